@@ -1,0 +1,42 @@
+# Two entry points for a fresh Debian/Ubuntu machine with Python >= 3.11:
+#   make demo   set up, then run the workflow on the demo cohort (config/patients.tsv)
+#   make test   set up, then run the whole test suite
+PYTHON ?= python3
+VENV   ?= .venv
+BIN     = $(VENV)/bin
+CORES  ?= 2
+SUDO    = $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+
+.PHONY: setup system demo test test-all bench clean
+
+# System packages: the CalculiX solver (tests run it) and venv support.
+system:
+	@if ! command -v ccx >/dev/null 2>&1 || ! $(PYTHON) -c 'import ensurepip' >/dev/null 2>&1; then \
+	  echo "installing system packages: calculix-ccx python3-venv"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq calculix-ccx python3-venv >/dev/null; \
+	fi
+
+$(BIN)/dicer: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -e '.[test]'
+	@touch $@
+
+setup: system $(BIN)/dicer
+
+demo: setup
+	$(BIN)/snakemake --cores $(CORES) --workflow-profile workflow/profiles/local
+
+test: setup
+	$(BIN)/python -m pytest -q
+
+# the slow cases too (real-data end-to-end runs, large volumes)
+test-all: setup
+	$(BIN)/python -m pytest -q -m ''
+
+bench: setup
+	$(BIN)/pip install -q -e '.[test,bench]'
+	$(BIN)/python -m dicer.bench
+
+clean:
+	rm -rf results logs .snakemake

@@ -1,0 +1,3 @@
+from dicer.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,296 @@
+"""The ``dicer`` command: a thin layer over the library stages.
+
+Every sub-command reads its input, runs one stage (``run``: all of them) and
+writes its output atomically. Bad input ends in one line ``error: ...`` on
+standard error and exit status 2, with no output file left behind.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+from dicer import __version__
+from dicer.errors import DicerError
+
+log = logging.getLogger("dicer")
+
+LABEL_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".mha", ".mhd", ".npy")
+
+
+def _config(args) -> dict:
+    from dicer.config import load_config
+
+    settings = None
+    if getattr(args, "settings", None):
+        try:
+            settings = json.loads(args.settings)
+        except json.JSONDecodeError as exc:
+            raise DicerError(f"--settings: not valid JSON ({exc.msg}); pass a JSON object") from None
+        if not isinstance(settings, dict):
+            raise DicerError("--settings: pass a JSON object of config sections")
+    return load_config(args.config, args.set or (), settings)
+
+
+class _Stage:
+    """Log a stage's start and end with its wall time."""
+
+    def __init__(self, name: str):
+        self.name = name
+
+    def __enter__(self):
+        self.t0 = time.perf_counter()
+        log.info("%s: started", self.name)
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            log.info("%s: done in %.2f s", self.name, time.perf_counter() - self.t0)
+
+
+def _check_output(path: str, suffixes: tuple[str, ...], what: str) -> Path:
+    out = Path(path)
+    if not out.name.lower().endswith(suffixes):
+        raise DicerError(f"{out}: {what} must be one of {', '.join(suffixes)}; rename the output")
+    return out
+
+
+# --- stages ---------------------------------------------------------------------------
+
+
+def do_segment(image_path: str, out: Path, config: dict):
+    from dicer.io.images import read_image, write_labels
+    from dicer.segment import segment
+
+    with _Stage("segment"):
+        image = read_image(image_path, spacing=config["image"]["spacing"])
+        labels, info = segment(image, config, source=image_path)
+        write_labels(labels, out)
+        log.info("segment: wrote %s (%s)", out, json.dumps(info, sort_keys=True))
+    return labels
+
+
+def do_downsample(labels_path: str, out: Path, config: dict):
+    from dicer.downsample import downsample
+    from dicer.io.images import read_labels, write_labels
+
+    with _Stage("downsample"):
+        labels = read_labels(labels_path)
+        reduced, info = downsample(labels, config, source=labels_path)
+        write_labels(reduced, out)
+        log.info("downsample: wrote %s (%s)", out, json.dumps(info, sort_keys=True))
+    return reduced
+
+
+def do_mesh(labels_path: str, out: Path, config: dict):
+    from dicer.io.images import read_labels
+    from dicer.io.meshes import write_mesh
+    from dicer.mesh.voxel import voxel_mesh
+
+    with _Stage("mesh"):
+        labels = read_labels(labels_path)
+        k = len(config["materials"])
+        top = int(labels.array.max())
+        if top > k:
+            raise DicerError(f"{labels_path}: label {top} found but the config names only {k} material(s); "
+                             "add materials to the config")
+        try:
+            mesh = voxel_mesh(labels.array, labels.spacing, labels.origin)
+        except DicerError as exc:
+            raise DicerError(f"{labels_path}: {exc}") from None
+        write_mesh(mesh, out)
+        log.info("mesh: wrote %s (%d nodes, %d elements)", out, mesh.n_points, mesh.n_cells)
+    return mesh
+
+
+def do_export(mesh_path: str, out: Path, config: dict, input_name: str | None = None):
+    from dicer.export import export_mesh
+    from dicer.io.meshes import read_mesh
+
+    with _Stage("export"):
+        mesh = read_mesh(mesh_path)
+        info = export_mesh(mesh, out, config, source=input_name or mesh_path)
+        log.info("export: wrote %s (%s)", out, json.dumps(info, sort_keys=True))
+
+
+def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None = None, html: str | None = None):
+    from dicer.io.atomic import write_bytes_atomic
+    from dicer.io.meshes import read_mesh
+    from dicer.quality import quality_report, render_html
+
+    with _Stage("quality"):
+        mesh = read_mesh(mesh_path)
+        labels = None
+        if labels_path:
+            from dicer.io.images import read_labels
+
+            labels = read_labels(labels_path)
+        report = quality_report(mesh, config, labels=labels)
+        text = json.dumps(report, indent=2, sort_keys=True) + "\n"
+        if html:
+            write_bytes_atomic(html, render_html(report))
+        write_bytes_atomic(out, text)
+        log.info("quality: wrote %s (min scaled Jacobian %.3f, %d inverted)", out,
+                 report["scaled_jacobian"]["min"], report["inverted_elements"])
+    return report
+
+
+# --- commands -------------------------------------------------------------------------
+
+
+def cmd_segment(args):
+    do_segment(args.image, _check_output(args.output, (".nii", ".nii.gz"), "the label volume"), _config(args))
+
+
+def cmd_downsample(args):
+    do_downsample(args.labels, _check_output(args.output, (".nii", ".nii.gz"), "the label volume"), _config(args))
+
+
+def cmd_mesh(args):
+    do_mesh(args.labels, _check_output(args.output, (".vtu",), "the mesh"), _config(args))
+
+
+def cmd_export(args):
+    from dicer.export import EXPORT_SUFFIXES
+
+    config = _config(args)
+    if args.order is not None:
+        config["export"]["order"] = args.order
+        from dicer.config import validate
+
+        validate(config, "--order")
+    do_export(args.mesh, _check_output(args.output, EXPORT_SUFFIXES, "the model file"), config)
+
+
+def cmd_quality(args):
+    do_quality(args.mesh, _check_output(args.output, (".json",), "the quality report"), _config(args),
+               labels_path=args.labels, html=args.html)
+
+
+def cmd_phantom(args):
+    from dicer.io.images import write_image
+    from dicer.phantoms import PHANTOMS, make_phantom
+
+    if args.name not in PHANTOMS:
+        raise DicerError(f"phantom {args.name!r} is unknown; choose one of {', '.join(sorted(PHANTOMS))}")
+    out = _check_output(args.output, (".nii", ".nii.gz", ".nrrd", ".mha"), "the phantom image")
+    with _Stage("phantom"):
+        image = make_phantom(args.name, size=args.size, noise=args.noise, seed=args.seed)
+        write_image(image, out)
+        log.info("phantom: wrote %s (%s voxels of %s mm)", out, "x".join(map(str, image.array.shape)),
+                 "x".join(f"{s:g}" for s in image.spacing))
+
+
+def cmd_run(args):
+    """segment -> downsample -> mesh -> export (.inp, .vtu) -> quality, all into OUTDIR."""
+    config = _config(args)
+    outdir = Path(args.output)
+    if outdir.exists() and not outdir.is_dir():
+        raise DicerError(f"{outdir}: exists and is not a folder; give an output folder with -o")
+    t0 = time.perf_counter()
+    do_segment(args.image, outdir / "labels.nii.gz", config)
+    do_downsample(str(outdir / "labels.nii.gz"), outdir / "labels_ds.nii.gz", config)
+    do_mesh(str(outdir / "labels_ds.nii.gz"), outdir / "mesh.vtu", config)
+    for name in ("model.inp", "model.vtu"):
+        do_export(str(outdir / "mesh.vtu"), outdir / name, config, input_name=args.image)
+    do_quality(str(outdir / "model.vtu"), outdir / "quality.json", config,
+               labels_path=str(outdir / "labels_ds.nii.gz"))
+    log.info("run: finished in %.1f s; model in %s", time.perf_counter() - t0, outdir / "model.inp")
+
+
+# --- parser ---------------------------------------------------------------------------
+
+
+def _add_config_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", metavar="FILE", help="YAML configuration (defaults: see config/config.yaml)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override one config key, e.g. --set segment.method=otsu (repeatable)")
+    p.add_argument("--settings", metavar="JSON", help=argparse.SUPPRESS)  # stage settings from the workflow
+    p.add_argument("-q", "--quiet", action="store_true", help="log warnings and errors only")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="dicer",
+        description="All-hexahedral finite-element models from CT/MR scans (DICER method).",
+        epilog="Each stage reads one file and writes one; 'dicer run' chains them. See README.md.",
+    )
+    parser.add_argument("--version", action="version", version=f"dicer {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def command(name, func, help_text, description=None):
+        p = sub.add_parser(name, help=help_text, description=description or help_text)
+        p.set_defaults(func=func)
+        return p
+
+    p = command("run", cmd_run, "the whole chain: image -> labels -> mesh -> model.inp, model.vtu, quality.json")
+    p.add_argument("image", metavar="IMAGE", help="image file or DICOM/TIFF/PNG folder")
+    p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="output folder")
+    _add_config_options(p)
+
+    p = command("segment", cmd_segment, "classify voxels into the configured materials (labels 1..K)")
+    p.add_argument("image", metavar="IMAGE",
+                   help="NIfTI, NRRD, MetaImage, TIFF, .npy, or a folder of DICOM, TIFF or PNG slices")
+    p.add_argument("-o", "--output", required=True, metavar="LABELS", help="label volume (.nii.gz)")
+    _add_config_options(p)
+
+    p = command("downsample", cmd_downsample, "reduce the label volume's resolution, keeping thin classes")
+    p.add_argument("labels", metavar="LABELS", help="label volume")
+    p.add_argument("-o", "--output", required=True, metavar="LABELS", help="reduced label volume (.nii.gz)")
+    _add_config_options(p)
+
+    p = command("mesh", cmd_mesh, "one hexahedron (2D: quad) per non-background voxel")
+    p.add_argument("labels", metavar="LABELS", help="label volume: " + ", ".join(LABEL_SUFFIXES) + " (.npy: spacing 1)")
+    p.add_argument("-o", "--output", required=True, metavar="MESH", help="mesh (.vtu)")
+    _add_config_options(p)
+
+    p = command("export", cmd_export, "write the mesh for a solver or viewer (format from the file extension)")
+    p.add_argument("mesh", metavar="MESH", help="mesh (.vtu)")
+    p.add_argument("-o", "--output", required=True, metavar="MODEL", help="model.inp (Abaqus/CalculiX) or model.vtu (ParaView)")
+    p.add_argument("--order", type=int, choices=(1, 2), help="element order (overrides export.order)")
+    _add_config_options(p)
+
+    p = command("quality", cmd_quality, "element quality report (JSON, optional HTML)")
+    p.add_argument("mesh", metavar="MESH", help="mesh (.vtu)")
+    p.add_argument("-o", "--output", required=True, metavar="JSON", help="quality report (.json)")
+    p.add_argument("--labels", metavar="LABELS", help="label volume the mesh came from (for voxel counts)")
+    p.add_argument("--html", metavar="HTML", help="also write a readable HTML report")
+    _add_config_options(p)
+
+    p = command("phantom", cmd_phantom, "write a synthetic CT phantom (HU, with noise) for demos and tests")
+    p.add_argument("name", metavar="NAME", help="phantom name: head, long_bone, shell, sphere, block")
+    p.add_argument("-o", "--output", required=True, metavar="IMAGE", help="image file (.nii.gz, .nrrd, .mha)")
+    p.add_argument("--size", type=int, default=None, help="voxels along the longest axis (phantom default if omitted)")
+    p.add_argument("--noise", type=float, default=None, help="Gaussian noise sigma in HU (phantom default if omitted)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the noise (default 0)")
+    p.add_argument("-q", "--quiet", action="store_true", help="log warnings and errors only")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.WARNING if getattr(args, "quiet", False) else logging.INFO,
+        format="%(name)s %(message)s", stream=sys.stderr,
+    )
+    try:
+        args.func(args)
+    except DicerError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("error: interrupted; no output was kept", file=sys.stderr)
+        return 130
+    except MemoryError:
+        print("error: out of memory; downsample the labels (downsample.factor) or use a larger machine", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""File input and output: images, label volumes, meshes. Every write is atomic."""

@@ -1,0 +1,71 @@
+"""One mesh data model for every stage.
+
+Index convention used throughout dicer: image arrays are indexed ``[x, y, z]``
+(``[x, y]`` in 2D) and a node's ``lattice`` index ``(i, j, k)`` is the voxel corner
+``origin + (i, j, k) * spacing`` before any smoothing moves it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+HEX_CORNERS = np.array(
+    [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], dtype=np.int64
+)
+"""Lattice offsets of the 8 corners of a hexahedron in VTK (and Abaqus C3D8) order."""
+
+QUAD_CORNERS = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=np.int64)
+"""Lattice offsets of the 4 corners of a quad in VTK (and Abaqus CPS4) order."""
+
+
+@dataclass
+class Mesh:
+    """A linear all-hexahedral (3D) or all-quad (2D) mesh.
+
+    points : (N, 3) float64, node coordinates in mm (z = 0 in 2D).
+    cells : (M, 8) int64 hexahedra or (M, 4) int64 quads, VTK corner order, 0-based.
+    material : (M,) int32, class label 1..K of each element.
+    lattice : (N, 3) int64, integer voxel-corner index of each node (k = 0 in 2D).
+    spacing, origin : (3,) float64, voxel size and position of lattice (0, 0, 0) in mm.
+    grid_shape : (3,) int64, voxels per axis of the source image (1 for z in 2D);
+        its bounding planes are lattice 0 and grid_shape along each axis.
+    point_data, cell_data : further per-node / per-element arrays carried through.
+    """
+
+    points: np.ndarray
+    cells: np.ndarray
+    material: np.ndarray
+    lattice: np.ndarray
+    spacing: np.ndarray
+    origin: np.ndarray
+    grid_shape: np.ndarray
+    point_data: dict[str, np.ndarray] = field(default_factory=dict)
+    cell_data: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def dim(self) -> int:
+        """2 for a quad mesh, 3 for a hexahedral mesh."""
+        return 3 if self.cells.shape[1] == 8 else 2
+
+    @property
+    def n_points(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def n_cells(self) -> int:
+        return int(self.cells.shape[0])
+
+    @property
+    def cell_type(self) -> str:
+        """meshio's name of the element type."""
+        return "hexahedron" if self.dim == 3 else "quad"
+
+    def copy(self) -> "Mesh":
+        return Mesh(
+            self.points.copy(), self.cells.copy(), self.material.copy(), self.lattice.copy(),
+            self.spacing.copy(), self.origin.copy(), self.grid_shape.copy(),
+            {k: v.copy() for k, v in self.point_data.items()},
+            {k: v.copy() for k, v in self.cell_data.items()},
+        )

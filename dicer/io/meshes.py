@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import shutil
 from pathlib import Path
@@ -93,8 +95,10 @@ def read_mesh(path: str | os.PathLike, source: str | None = None) -> Mesh:
     if not path.exists():
         raise DicerError(f"{name}: mesh file not found; check the path")
     try:
-        m = meshio.read(path)
-    except Exception as exc:  # meshio raises many types for damaged files
+        with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
+            fmt = "vtu" if path.suffix.lower() == ".vtu" else None
+            m = meshio.read(path, file_format=fmt)
+    except (Exception, SystemExit) as exc:  # meshio raises many types (and may exit) on damaged files
         raise DicerError(f"{name}: cannot read mesh ({type(exc).__name__}: {str(exc)[:120]}); is the file complete?") from None
     blocks = [(b.type, b.data) for b in m.cells]
     types = {t for t, _ in blocks}

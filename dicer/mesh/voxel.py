@@ -39,21 +39,22 @@ def voxel_mesh(labels: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.
     for dx, dy, dz in corners:
         used[dx : dx + nx, dy : dy + ny, dz : dz + nz] |= solid
 
-    used_flat = used.ravel()
-    n_nodes = int(np.count_nonzero(used_flat))
-    index_dtype = np.int32 if used_flat.size < 2**31 else np.int64
-    node_id = np.cumsum(used_flat, dtype=index_dtype)
-    node_id -= 1  # node_id[f] is the node number of flat node f where used_flat[f]
+    n_nodes = int(np.count_nonzero(used))
+    node_id = np.cumsum(used.ravel(), dtype=np.int64).reshape(node_shape)
+    node_id -= 1  # node_id at a used grid point is its node number (C order)
 
-    strides = np.array([node_shape[1] * node_shape[2], node_shape[2], 1], dtype=np.int64)
-    voxel_flat = np.flatnonzero(solid.ravel())
-    vi, vj, vk = np.unravel_index(voxel_flat, vol.shape)
-    base = vi * strides[0] + vj * strides[1] + vk * strides[2]
-    offsets = corners @ strides
-    cells = node_id[base[:, None] + offsets[None, :]].astype(np.int64)
+    # corner c of every element: the node grid shifted by c, read where a voxel is solid
+    cells = np.empty((int(np.count_nonzero(solid)), len(corners)), dtype=np.int64)
+    for c, (dx, dy, dz) in enumerate(corners):
+        cells[:, c] = node_id[dx : dx + nx, dy : dy + ny, dz : dz + nz][solid]
+    del node_id
 
-    lattice = np.stack(np.unravel_index(np.flatnonzero(used_flat), node_shape), axis=1).astype(np.int64)
-    points = lattice * spacing3 + origin3
-    material = vol.ravel()[voxel_flat].astype(np.int32)
-    assert lattice.shape[0] == n_nodes
+    index = np.nonzero(used)
+    lattice = np.empty((n_nodes, 3), dtype=np.int64)
+    points = np.empty((n_nodes, 3), dtype=np.float64)
+    for axis in range(3):
+        lattice[:, axis] = index[axis]
+        coordinate = origin3[axis] + spacing3[axis] * np.arange(node_shape[axis])
+        points[:, axis] = coordinate[index[axis]]
+    material = vol[solid].astype(np.int32)
     return Mesh(points, cells, material, lattice, spacing3, origin3, grid_shape)

@@ -1,0 +1,118 @@
+"""Mesh quality report: counts per material, element sizes and shape metrics.
+
+Sits above the mesh package and only reads meshes; nothing in ``dicer.mesh``
+imports it.
+"""
+
+from __future__ import annotations
+
+import html
+
+import numpy as np
+
+from dicer import __version__
+from dicer.config import material_names
+from dicer.mesh.metrics import edge_ratio, element_volumes, scaled_jacobian
+from dicer.mesh.model import Mesh
+
+_PERCENTILES = (1, 5, 25, 50, 75, 95, 99)
+_NODE_CLASSES = "ABCDEF"
+
+
+def _r(x: float) -> float:
+    """Round for a stable, readable report (6 significant digits)."""
+    return float(f"{float(x):.6g}")
+
+
+def _stats(values: np.ndarray) -> dict:
+    if values.size == 0:
+        return {}
+    out = {"min": _r(values.min()), "max": _r(values.max()), "mean": _r(values.mean())}
+    for p, v in zip(_PERCENTILES, np.percentile(values, _PERCENTILES)):
+        out[f"p{p}"] = _r(v)
+    return out
+
+
+def quality_report(mesh: Mesh, config: dict, labels=None) -> dict:
+    """Quality figures of ``mesh`` as a JSON-ready dict.
+
+    mesh : the mesh to assess.
+    config : dicer configuration (material names, ``quality.poor_scaled_jacobian``).
+    labels : optional label Volume the mesh came from; adds voxel counts and the
+        volume of the mesh against the voxel volume per material.
+    """
+    names = material_names(config)
+    sj = scaled_jacobian(mesh.points, mesh.cells)
+    vol = element_volumes(mesh.points, mesh.cells)
+    er = edge_ratio(mesh.points, mesh.cells)
+    poor = float(config["quality"]["poor_scaled_jacobian"])
+    unit = "mm^3" if mesh.dim == 3 else "mm^2"
+
+    materials = {}
+    for label in np.unique(mesh.material):
+        sel = mesh.material == label
+        name = names.get(int(label), f"material_{int(label)}")
+        entry = {
+            "label": int(label),
+            "elements": int(sel.sum()),
+            "nodes": int(np.unique(mesh.cells[sel]).size),
+            f"volume_{unit}": _r(vol[sel].sum()),
+            "min_scaled_jacobian": _r(sj[sel].min()),
+        }
+        if labels is not None:
+            voxels = int(np.count_nonzero(labels.array == label))
+            voxel_volume = float(np.prod(labels.spacing))
+            entry["voxels"] = voxels
+            entry[f"voxel_volume_{unit}"] = _r(voxels * voxel_volume)
+            if voxels:
+                entry["volume_change_percent"] = _r(100.0 * (vol[sel].sum() / (voxels * voxel_volume) - 1.0))
+        materials[name] = entry
+
+    report = {
+        "dicer_version": __version__,
+        "dimension": mesh.dim,
+        "element_type": mesh.cell_type,
+        "nodes": mesh.n_points,
+        "elements": mesh.n_cells,
+        "materials": materials,
+        f"element_volume_{unit}": {**_stats(vol), "total": _r(vol.sum())},
+        "scaled_jacobian": _stats(sj),
+        "edge_ratio": _stats(er),
+        "inverted_elements": int(np.count_nonzero(sj <= 0)),
+        "poor_elements": int(np.count_nonzero(sj < poor)),
+        "poor_threshold": poor,
+    }
+    if "node_class" in mesh.point_data:
+        cls = np.asarray(mesh.point_data["node_class"]).astype(np.int64)
+        counts = np.bincount(cls, minlength=len(_NODE_CLASSES) + 1)
+        report["node_classes"] = {"interior": int(counts[0])} | {
+            c: int(counts[i + 1]) for i, c in enumerate(_NODE_CLASSES)
+        }
+    return report
+
+
+def render_html(report: dict) -> str:
+    """A self-contained HTML page of the report (tables only, no external assets)."""
+
+    def table(rows: list[tuple[str, object]]) -> str:
+        body = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>" for k, v in rows)
+        return f"<table>{body}</table>"
+
+    top = [(k, report[k]) for k in ("dimension", "element_type", "nodes", "elements", "inverted_elements",
+                                      "poor_elements", "poor_threshold")]
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>dicer mesh quality</title>",
+        "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;margin-bottom:1.5em}"
+        "th,td{border:1px solid #bbb;padding:3px 8px;text-align:left}</style></head><body>",
+        f"<h1>Mesh quality</h1><p>dicer {html.escape(report['dicer_version'])}</p>",
+        table(top),
+        "<h2>Materials</h2>",
+    ]
+    for name, entry in report["materials"].items():
+        parts.append(f"<h3>{html.escape(name)}</h3>" + table(list(entry.items())))
+    for key in sorted(k for k in report if k.startswith(("scaled_jacobian", "edge_ratio", "element_volume"))):
+        parts.append(f"<h2>{html.escape(key)}</h2>" + table(list(report[key].items())))
+    if "node_classes" in report:
+        parts.append("<h2>Boundary node classes</h2>" + table(list(report["node_classes"].items())))
+    parts.append("</body></html>\n")
+    return "".join(parts)

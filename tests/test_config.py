@@ -1,0 +1,106 @@
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from dicer.config import (
+    config_hash,
+    default_config,
+    load_config,
+    parse_set,
+    stage_settings,
+    validate,
+)
+from dicer.errors import DicerError
+
+
+def test_defaults_are_valid_and_complete():
+    config = load_config()
+    assert config == default_config()
+    assert [m["name"] for m in config["materials"]] == ["soft_tissue", "bone"]
+    assert config["segment"]["thresholds"] == [-140.0, 226.0]
+    assert config["export"]["order"] == 1
+    validate(config)
+
+
+def test_file_then_settings_then_set(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("segment:\n  opening_radius: 3\nexport:\n  thickness: 2.5\n")
+    config = load_config(path, sets=["segment.opening_radius=2"], settings={"export": {"thickness": 4.0}})
+    assert config["segment"]["opening_radius"] == 2
+    assert config["export"]["thickness"] == 4.0
+    assert config["segment"]["closing_radius"] == 1  # default kept
+
+
+def test_material_defaults_filled_per_item():
+    config = load_config(sets=["materials=[{name: a}, {name: b, youngs_modulus: 5}]"])
+    assert config["materials"][0]["youngs_modulus"] == 1000.0
+    assert config["materials"][1]["youngs_modulus"] == 5
+    assert config["materials"][1]["poissons_ratio"] == 0.3
+
+
+@pytest.mark.parametrize(
+    "item, words",
+    [
+        ("segment.foo=1", ["unknown key 'segment.foo'", "opening_radius"]),
+        ("nonsense=1", ["unknown key 'nonsense'"]),
+        ("segment.opening_radius=abc", ["segment.opening_radius", "integer"]),
+        ("export.order=7", ["export.order"]),
+        ("materials=[{name: a}, {name: a}]", ["unique"]),
+        ("materials.0=1", ["materials"]),
+    ],
+)
+def test_bad_keys_and_types_name_the_key(item, words):
+    with pytest.raises(DicerError) as info:
+        load_config(sets=[item])
+    message = str(info.value)
+    assert "\n" not in message
+    for word in words:
+        assert word in message
+
+
+def test_bad_config_file(tmp_path):
+    with pytest.raises(DicerError, match="not found"):
+        load_config(tmp_path / "missing.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("segment: [unclosed\n")
+    with pytest.raises(DicerError, match="not valid YAML"):
+        load_config(bad)
+    listy = tmp_path / "list.yaml"
+    listy.write_text("- 1\n- 2\n")
+    with pytest.raises(DicerError, match="mapping"):
+        load_config(listy)
+
+
+def test_parse_set_forms():
+    assert parse_set("merge.passes=[1,1,1]") == {"merge": {"passes": [1, 1, 1]}}
+    assert parse_set("smooth.coefficient=0.8") == {"smooth": {"coefficient": 0.8}}
+    assert parse_set("segment.method=otsu") == {"segment": {"method": "otsu"}}
+    for bad in ("novalue", "a..b=1", "=3"):
+        with pytest.raises(DicerError):
+            parse_set(bad)
+
+
+@given(st.lists(st.sampled_from("abcxyz"), min_size=1, max_size=4), st.integers(-10**6, 10**6))
+def test_parse_set_nests_dotted_keys(parts, value):
+    out = parse_set(".".join(parts) + f"={value}")
+    node = out
+    for part in parts[:-1]:
+        assert list(node) == [part]
+        node = node[part]
+    assert node == {parts[-1]: value}
+
+
+def test_stage_settings_only_hold_their_sections():
+    config = load_config()
+    assert set(stage_settings(config, "export")) == {"materials", "export"}
+    assert set(stage_settings(config, "mesh")) == {"mesh"}
+    changed = load_config(sets=["export.thickness=3"])
+    assert stage_settings(changed, "segment") == stage_settings(config, "segment")
+    assert stage_settings(changed, "export") != stage_settings(config, "export")
+
+
+def test_config_hash_is_stable_and_sensitive():
+    a, b = load_config(), load_config()
+    assert config_hash(a) == config_hash(b)
+    assert len(config_hash(a)) == 16
+    assert config_hash(a) != config_hash(load_config(sets=["export.thickness=3"]))

@@ -1,0 +1,72 @@
+import numpy as np
+import pytest
+
+from dicer.mesh.metrics import corner_scaled_jacobians, edge_ratio, element_volumes, scaled_jacobian
+from dicer.mesh.model import HEX_CORNERS, QUAD_CORNERS
+
+CUBE = HEX_CORNERS.astype(float)
+CELL = np.arange(8)[None, :]
+
+
+def test_unit_cube():
+    assert np.allclose(corner_scaled_jacobians(CUBE, CELL), 1.0)
+    assert element_volumes(CUBE, CELL)[0] == pytest.approx(1.0)
+    assert edge_ratio(CUBE, CELL)[0] == pytest.approx(1.0)
+
+
+def test_sheared_hexahedron():
+    # shear x by z: edges in z lean 45 degrees, corner Jacobian = sin(45 deg)
+    pts = CUBE.copy()
+    pts[:, 0] += pts[:, 2]
+    assert scaled_jacobian(pts, CELL)[0] == pytest.approx(np.sqrt(0.5))
+    assert element_volumes(pts, CELL)[0] == pytest.approx(1.0)  # shear keeps volume
+
+
+def test_scaled_box_volume_and_ratio():
+    pts = CUBE * [2.0, 3.0, 0.5]
+    assert element_volumes(pts, CELL)[0] == pytest.approx(3.0)
+    assert scaled_jacobian(pts, CELL)[0] == pytest.approx(1.0)
+    assert edge_ratio(pts, CELL)[0] == pytest.approx(6.0)
+
+
+def test_inverted_and_degenerate():
+    pts = CUBE.copy()
+    pts[6] = [-0.5, -0.5, -0.5]  # far corner pulled through the element
+    assert scaled_jacobian(pts, CELL)[0] < 0
+    flat = CUBE.copy()
+    flat[4:, 2] = 0.0  # top face onto the bottom face
+    assert scaled_jacobian(flat, CELL)[0] <= 1e-12
+
+
+def test_trilinear_volume_is_exact():
+    # a warped hexahedron: volume from 2x2x2 Gauss equals a fine Monte-Carlo-free check
+    # by splitting into 8 sub-hexahedra of the trilinear map (volume is additive)
+    rng = np.random.default_rng(3)
+    pts = CUBE + rng.uniform(-0.15, 0.15, CUBE.shape)
+    whole = element_volumes(pts, CELL)[0]
+
+    def trilinear(u, v, w):
+        n = np.array([(1 - u) * (1 - v) * (1 - w), u * (1 - v) * (1 - w), u * v * (1 - w), (1 - u) * v * (1 - w),
+                      (1 - u) * (1 - v) * w, u * (1 - v) * w, u * v * w, (1 - u) * v * w])
+        return n @ pts
+
+    sub_pts, sub_cells = [], []
+    for o in HEX_CORNERS:
+        base = len(sub_pts)
+        for c in HEX_CORNERS:
+            sub_pts.append(trilinear(*((o + c) / 2.0)))
+        sub_cells.append(np.arange(base, base + 8))
+    parts = element_volumes(np.array(sub_pts), np.array(sub_cells))
+    assert parts.sum() == pytest.approx(whole, rel=1e-12)
+
+
+def test_quads():
+    sq = QUAD_CORNERS.astype(float)
+    cell = np.arange(4)[None, :]
+    assert scaled_jacobian(sq, cell)[0] == pytest.approx(1.0)
+    assert element_volumes(sq * 2, cell)[0] == pytest.approx(4.0)
+    rhomb = sq.copy()
+    rhomb[:, 0] += rhomb[:, 1]
+    assert scaled_jacobian(rhomb, cell)[0] == pytest.approx(np.sqrt(0.5))
+    flipped = sq[[0, 3, 2, 1]]
+    assert scaled_jacobian(flipped, cell)[0] == pytest.approx(-1.0)

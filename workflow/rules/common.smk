@@ -1,0 +1,89 @@
+# Config validation, the cohort sheet and per-stage settings. No algorithm here.
+import csv
+import json
+import os
+import sys
+from pathlib import Path
+
+from snakemake.exceptions import WorkflowError
+from snakemake.utils import validate
+
+from dicer.config import deep_merge, load_config, parse_set, stage_settings
+from dicer.errors import DicerError
+
+# the rules call the `dicer` installed beside this Snakemake
+os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", "")
+
+try:
+    CONFIG = load_config(settings=config)
+except DicerError as exc:
+    raise WorkflowError(f"config: {exc}")
+
+RESULTS = CONFIG["workflow"]["results"]
+PHANTOM_DIR = "resources/phantoms"
+
+
+def _read_patients(path):
+    if not Path(path).exists():
+        raise WorkflowError(f"{path}: cohort sheet not found; set workflow.patients in the config")
+    with open(path, newline="") as handle:
+        rows = [
+            {k: (v or "").strip() for k, v in row.items() if k}
+            for row in csv.DictReader(handle, delimiter="\t")
+        ]
+    seen = set()
+    for number, row in enumerate(rows, start=2):
+        try:
+            validate(row, "../schemas/patients.schema.yaml")
+        except Exception as exc:
+            raise WorkflowError(f"{path}, line {number}: {str(exc).splitlines()[0]}")
+        if row["patient"] in seen:
+            raise WorkflowError(f"{path}, line {number}: patient {row['patient']!r} appears twice")
+        seen.add(row["patient"])
+    return rows
+
+
+def _available(row):
+    """Phantoms are made by the workflow; other images must exist (the real CT is optional)."""
+    image = row["image"]
+    if image.startswith(PHANTOM_DIR + "/") or Path(image).exists():
+        return True
+    print(f"dicer workflow: skipping patient {row['patient']}: {image} not found", file=sys.stderr)
+    return False
+
+
+PATIENTS = {row["patient"]: row for row in _read_patients(CONFIG["workflow"]["patients"]) if _available(row)}
+
+
+def patient_config(patient):
+    """The workflow config with the patient's overrides applied, validated."""
+    overrides = [item.strip() for item in PATIENTS[patient].get("overrides", "").split(";") if item.strip()]
+    merged = config
+    for item in overrides:
+        merged = deep_merge(merged, parse_set(item, source=f"patients.tsv overrides of {patient}"))
+    try:
+        return load_config(settings=merged)
+    except DicerError as exc:
+        raise WorkflowError(f"patient {patient}: {exc}")
+
+
+def settings(stage):
+    """params: the config sections `stage` reads, as JSON; a change re-runs only that stage and later ones."""
+    return lambda wildcards: json.dumps(stage_settings(patient_config(wildcards.patient), stage), sort_keys=True)
+
+
+def patient_image(wildcards):
+    return PATIENTS[wildcards.patient]["image"]
+
+
+def all_outputs():
+    outputs = []
+    for patient in PATIENTS:
+        outputs += [f"{RESULTS}/{patient}/model.{ext}" for ext in CONFIG["workflow"]["exports"]]
+        outputs += [f"{RESULTS}/{patient}/quality.json", f"{RESULTS}/{patient}/report.html"]
+    return outputs
+
+
+wildcard_constraints:
+    patient="[A-Za-z0-9][A-Za-z0-9_.-]*",
+    name="[A-Za-z_]+",

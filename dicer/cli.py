@@ -8,6 +8,7 @@ standard error and exit status 2, with no output file left behind.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import sys
@@ -185,20 +186,37 @@ def cmd_phantom(args):
                  "x".join(f"{s:g}" for s in image.spacing))
 
 
+RUN_OUTPUTS = ("labels.nii.gz", "labels_ds.nii.gz", "mesh.vtu", "model.inp", "model.vtu", "quality.json")
+
+
 def cmd_run(args):
-    """segment -> downsample -> mesh -> export (.inp, .vtu) -> quality, all into OUTDIR."""
+    """segment -> downsample -> mesh -> export (.inp, .vtu) -> quality, all into OUTDIR.
+
+    On failure the files this run wrote are removed again, so no partial result is left.
+    """
     config = _config(args)
     outdir = Path(args.output)
     if outdir.exists() and not outdir.is_dir():
         raise DicerError(f"{outdir}: exists and is not a folder; give an output folder with -o")
+    created_dir = not outdir.exists()
+    before = {name: (outdir / name).exists() for name in RUN_OUTPUTS}
     t0 = time.perf_counter()
-    do_segment(args.image, outdir / "labels.nii.gz", config)
-    do_downsample(str(outdir / "labels.nii.gz"), outdir / "labels_ds.nii.gz", config)
-    do_mesh(str(outdir / "labels_ds.nii.gz"), outdir / "mesh.vtu", config)
-    for name in ("model.inp", "model.vtu"):
-        do_export(str(outdir / "mesh.vtu"), outdir / name, config, input_name=args.image)
-    do_quality(str(outdir / "model.vtu"), outdir / "quality.json", config,
-               labels_path=str(outdir / "labels_ds.nii.gz"))
+    try:
+        do_segment(args.image, outdir / "labels.nii.gz", config)
+        do_downsample(str(outdir / "labels.nii.gz"), outdir / "labels_ds.nii.gz", config)
+        do_mesh(str(outdir / "labels_ds.nii.gz"), outdir / "mesh.vtu", config)
+        for name in ("model.inp", "model.vtu"):
+            do_export(str(outdir / "mesh.vtu"), outdir / name, config, input_name=args.image)
+        do_quality(str(outdir / "model.vtu"), outdir / "quality.json", config,
+                   labels_path=str(outdir / "labels_ds.nii.gz"))
+    except BaseException:
+        with contextlib.suppress(OSError):
+            for name, existed in before.items():
+                if not existed:
+                    (outdir / name).unlink(missing_ok=True)
+            if created_dir and outdir.is_dir() and not any(outdir.iterdir()):
+                outdir.rmdir()
+        raise
     log.info("run: finished in %.1f s; model in %s", time.perf_counter() - t0, outdir / "model.inp")
 
 

@@ -72,6 +72,11 @@ def settings(stage):
     return lambda wildcards: json.dumps(stage_settings(patient_config(wildcards.patient), stage), sort_keys=True)
 
 
+def phantom_size_option(wildcards):
+    size = CONFIG["workflow"]["phantom_size"]
+    return f"--size {size}" if size else ""
+
+
 def patient_image(wildcards):
     return PATIENTS[wildcards.patient]["image"]
 

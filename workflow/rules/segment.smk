@@ -4,10 +4,12 @@
 rule phantom:
     output:
         PHANTOM_DIR + "/{name}.nii.gz",
+    params:
+        size=phantom_size_option,
     log:
         "logs/phantoms/{name}.log",
     shell:
-        "dicer phantom {wildcards.name} -o {output:q} > {log:q} 2>&1"
+        "dicer phantom {wildcards.name} -o {output:q} {params.size} > {log:q} 2>&1"
 
 
 rule segment:

@@ -1,0 +1,127 @@
+"""The `dicer` command: every form runs, and bad input ends in one `error:` line, exit 2, no file."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from dicer.cli import main
+
+
+def run_cli(capsys, *argv):
+    code = main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return code, captured.err
+
+
+@pytest.fixture(scope="module")
+def head(tmp_path_factory):
+    path = tmp_path_factory.mktemp("img") / "head.nii.gz"
+    assert main(["phantom", "head", "-o", str(path), "--size", "32", "-q"]) == 0
+    return path
+
+
+def test_help_for_every_command():
+    for command in ("run", "segment", "downsample", "mesh", "export", "quality", "phantom"):
+        proc = subprocess.run([sys.executable, "-m", "dicer", command, "--help"], capture_output=True, text=True)
+        assert proc.returncode == 0 and "usage: dicer " + command in proc.stdout
+
+
+def test_stage_by_stage(tmp_path, capsys, head):
+    labels, coarse, mesh = tmp_path / "labels.nii.gz", tmp_path / "ds.nii.gz", tmp_path / "mesh.vtu"
+    assert run_cli(capsys, "segment", head, "-o", labels)[0] == 0
+    assert run_cli(capsys, "downsample", labels, "-o", coarse, "--set", "downsample.factor=2")[0] == 0
+    assert run_cli(capsys, "mesh", coarse, "-o", mesh)[0] == 0
+    for name in ("model.inp", "model.vtu"):
+        assert run_cli(capsys, "export", mesh, "-o", tmp_path / name)[0] == 0
+    code, err = run_cli(capsys, "quality", tmp_path / "model.vtu", "-o", tmp_path / "q.json",
+                        "--labels", coarse, "--html", tmp_path / "q.html")
+    assert code == 0, err
+    report = json.loads((tmp_path / "q.json").read_text())
+    assert report["elements"] == sum(m["voxels"] for m in report["materials"].values())
+    assert report["inverted_elements"] == 0
+    assert (tmp_path / "q.html").read_text().startswith("<!DOCTYPE html>")
+    assert "*ELEMENT" in (tmp_path / "model.inp").read_text()
+
+
+def test_run_writes_everything_and_is_reproducible(tmp_path, capsys, head):
+    for out in ("a", "b"):
+        code, err = run_cli(capsys, "run", head, "-o", tmp_path / out)
+        assert code == 0, err
+    names = sorted(p.name for p in (tmp_path / "a").iterdir())
+    assert names == sorted(["labels.nii.gz", "labels_ds.nii.gz", "mesh.vtu", "model.inp", "model.vtu", "quality.json"])
+    for name in names:
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
+
+
+def test_mesh_from_npy_labels(tmp_path, capsys):
+    labels = np.zeros((3, 4, 5), np.int16)
+    labels[1:, 1:3, :4] = 2
+    np.save(tmp_path / "l.npy", labels)
+    assert run_cli(capsys, "mesh", tmp_path / "l.npy", "-o", tmp_path / "m.vtu")[0] == 0
+    from dicer.io.meshes import read_mesh
+
+    mesh = read_mesh(tmp_path / "m.vtu")
+    assert mesh.n_cells == 16 and set(mesh.material.tolist()) == {2}
+    assert np.allclose(mesh.spacing, 1.0)
+
+
+def _write(path, array, spacing=(1.0, 1.0, 1.0)):
+    image = sitk.GetImageFromArray(array)
+    image.SetSpacing(spacing)
+    sitk.WriteImage(image, str(path))
+
+
+def _bad_cases(tmp_path, head):
+    truncated = tmp_path / "truncated.nii.gz"
+    truncated.write_bytes(head.read_bytes()[:2000])
+    air = tmp_path / "air.nii.gz"
+    _write(air, np.full((8, 8, 8), -1000, np.int16))
+    four_d = tmp_path / "four_d.nii.gz"
+    sitk.WriteImage(sitk.JoinSeries([sitk.GetImageFromArray(np.zeros((4, 4, 4), np.int16))] * 2), str(four_d))
+    a_file = tmp_path / "plain.txt"
+    a_file.write_text("x")
+    out = tmp_path / "out" / "labels.nii.gz"
+    return {
+        "missing file": (["segment", tmp_path / "missing.nii.gz", "-o", out], "missing.nii.gz", out),
+        "truncated image": (["segment", truncated, "-o", out], "truncated.nii.gz", out),
+        "no voxel in any class": (["segment", air, "-o", out], "air.nii.gz", out),
+        "4D image": (["segment", four_d, "-o", out], "four_d.nii.gz", out),
+        "unknown config key": (["segment", head, "-o", out, "--set", "segment.colour=red"], "segment.colour", out),
+        "wrong config type": (["segment", head, "-o", out, "--set", "segment.opening_radius=wide"],
+                              "segment.opening_radius", out),
+        "unwritable output folder": (["segment", head, "-o", a_file / "labels.nii.gz"], "plain.txt",
+                                     a_file / "labels.nii.gz"),
+        "run into unwritable folder": (["run", head, "-o", a_file / "sub"], "plain.txt", a_file / "sub"),
+        "run with no voxel in any class": (["run", air, "-o", tmp_path / "run_out"], "air.nii.gz",
+                                           tmp_path / "run_out"),
+    }
+
+
+CASES = ["missing file", "truncated image", "no voxel in any class", "4D image", "unknown config key",
+         "wrong config type", "unwritable output folder", "run into unwritable folder",
+         "run with no voxel in any class"]
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_bad_input_one_error_line_exit_2_no_output(tmp_path, capsys, head, case):
+    argv, named, output = _bad_cases(tmp_path, head)[case]
+    code, err = run_cli(capsys, *argv)
+    lines = [line for line in err.splitlines() if line.strip() and not line.startswith("dicer ")]
+    assert code == 2
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    assert named in lines[0]
+    assert not output.exists()
+    leftovers = [p for p in tmp_path.rglob("*") if p.name.startswith(".") and ".tmp" in p.name]
+    assert leftovers == []
+
+
+def test_console_script_exit_status(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "dicer", "mesh", str(tmp_path / "none.npy"), "-o",
+                           str(tmp_path / "m.vtu")], capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().startswith("error: ") and "none.npy" in proc.stderr
+    assert not (tmp_path / "m.vtu").exists()

@@ -1,0 +1,439 @@
+"""Image and label I/O: round trips for every format, DICOM series, and the error cases."""
+
+import gzip
+import logging
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from dicer.errors import DicerError
+from dicer.image import Volume
+from dicer.io.images import read_image, read_labels, write_image, write_labels
+
+tifffile = pytest.importorskip("tifffile")
+pydicom = pytest.importorskip("pydicom")
+
+RNG = np.random.default_rng(7)
+HU = RNG.integers(-1024, 2000, size=(7, 6, 5)).astype(np.float32)
+SPACING = (0.7, 0.8, 1.5)
+CORNER = (-10.0, 4.25, 30.0)
+
+
+def _stored_type(path):
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(path))
+    reader.ReadImageInformation()
+    return sitk.GetPixelIDValueAsString(reader.GetPixelID())
+
+
+# --- round trips through the header formats ----------------------------------------------
+
+
+@pytest.mark.parametrize("ext", [".nii", ".nii.gz", ".nrrd", ".mha"])
+def test_image_round_trip_int16(tmp_path, ext):
+    path = tmp_path / f"ct{ext}"
+    write_image(Volume(HU, SPACING, CORNER), path)
+    assert _stored_type(path) == "16-bit signed integer"
+    v = read_image(path)
+    assert v.array.dtype == np.float32 and v.array.shape == (7, 6, 5)
+    np.testing.assert_array_equal(v.array, HU)
+    np.testing.assert_allclose(v.spacing, SPACING, rtol=1e-6)
+    np.testing.assert_allclose(v.origin, CORNER, atol=1e-5)
+
+
+@pytest.mark.parametrize("ext", [".nii.gz", ".nrrd", ".mha"])
+def test_image_round_trip_float32_when_not_integral(tmp_path, ext):
+    values = HU * 0.25 + 0.125
+    path = tmp_path / f"mr{ext}"
+    write_image(Volume(values, SPACING, CORNER), path)
+    assert _stored_type(path) == "32-bit float"
+    np.testing.assert_array_equal(read_image(path).array, values)
+
+
+def test_image_out_of_int16_range_is_float32(tmp_path):
+    path = tmp_path / "big.nii.gz"
+    write_image(Volume(np.array([[0, 40000], [1, 2]], np.float32), (1, 1)), path)
+    assert _stored_type(path) == "32-bit float"
+    np.testing.assert_array_equal(read_image(path).array, [[0, 40000], [1, 2]])
+
+
+def test_mhd_with_raw_file(tmp_path):
+    image = sitk.GetImageFromArray(np.ascontiguousarray(HU.T.astype(np.int16)))
+    image.SetSpacing(SPACING)
+    image.SetOrigin((1.0, 2.0, 3.0))  # ITK: centre of the first voxel
+    sitk.WriteImage(image, str(tmp_path / "ct.mhd"))
+    v = read_image(tmp_path / "ct.mhd")
+    np.testing.assert_array_equal(v.array, HU)
+    np.testing.assert_allclose(v.origin, (1.0 - 0.35, 2.0 - 0.4, 3.0 - 0.75))
+
+
+def test_nifti_spacing_reads_back_as_short_decimal(tmp_path):
+    write_image(Volume(HU, (0.7, 0.957, 1.5)), tmp_path / "a.nii.gz")
+    assert read_image(tmp_path / "a.nii.gz").spacing == (0.7, 0.957, 1.5)
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    shape=st.lists(st.integers(2, 6), min_size=2, max_size=3),
+    spacing=st.floats(0.1, 5.0),
+    seed=st.integers(0, 2**16),
+)
+def test_image_round_trip_property(tmp_path_factory, shape, spacing, seed):
+    rng = np.random.default_rng(seed)
+    values = rng.normal(0, 300, size=shape).astype(np.float32)
+    sp = tuple(spacing * (1 + i) for i in range(len(shape)))
+    path = tmp_path_factory.mktemp("rt") / "x.nrrd"
+    write_image(Volume(values, sp, tuple(-s for s in sp)), path)
+    v = read_image(path)
+    np.testing.assert_array_equal(v.array, values)
+    np.testing.assert_allclose(v.spacing, sp, rtol=1e-12)
+    np.testing.assert_allclose(v.origin, [-s for s in sp], atol=1e-9)
+
+
+def test_2d_nifti_and_singleton_axis(tmp_path):
+    img2d = HU[:, :, 0]
+    write_image(Volume(img2d, (0.5, 0.25), (1.0, 2.0)), tmp_path / "slice.nii")
+    v = read_image(tmp_path / "slice.nii")
+    assert v.ndim == 2 and v.spacing == (0.5, 0.25)
+    np.testing.assert_array_equal(v.array, img2d)
+    np.testing.assert_allclose(v.origin, (1.0, 2.0))
+    # a 3D file with a single slice becomes 2D; the remaining axes keep their spacing
+    write_image(Volume(HU[:, :, :1], SPACING, CORNER), tmp_path / "one.nrrd")
+    v = read_image(tmp_path / "one.nrrd")
+    assert v.array.shape == (7, 6) and v.spacing == SPACING[:2]
+    np.testing.assert_allclose(v.origin, CORNER[:2])
+
+
+# --- formats without a voxel size -------------------------------------------------------
+
+
+def test_npy_spacing_argument_and_default_warning(tmp_path, caplog):
+    np.save(tmp_path / "a.npy", HU.astype(np.int16))
+    v = read_image(tmp_path / "a.npy", spacing=[0.5, 0.5, 2.0])
+    assert v.spacing == (0.5, 0.5, 2.0) and v.origin == (0.0, 0.0, 0.0)
+    np.testing.assert_array_equal(v.array, HU)
+    assert v.array.dtype == np.float32
+    with caplog.at_level(logging.WARNING, logger="dicer"):
+        v = read_image(tmp_path / "a.npy")
+    assert v.spacing == (1.0, 1.0, 1.0)
+    assert "no voxel size" in caplog.text
+    with pytest.raises(DicerError, match="3D but the given spacing has 2"):
+        read_image(tmp_path / "a.npy", spacing=[1, 1])
+
+
+def test_multipage_tiff_is_3d_single_page_is_2d(tmp_path):
+    stack = HU.astype(np.int16)
+    tifffile.imwrite(tmp_path / "stack.tif", np.ascontiguousarray(stack.T))  # pages = z, rows = y
+    v = read_image(tmp_path / "stack.tif", spacing=(0.3, 0.3, 1.0))
+    assert v.array.shape == (7, 6, 5) and v.spacing == (0.3, 0.3, 1.0)
+    np.testing.assert_array_equal(v.array, stack)
+    tifffile.imwrite(tmp_path / "page.tiff", np.ascontiguousarray(stack[:, :, 2].T))
+    v = read_image(tmp_path / "page.tiff", spacing=0.3)
+    assert v.ndim == 2 and v.spacing == (0.3, 0.3)
+    np.testing.assert_array_equal(v.array, stack[:, :, 2])
+
+
+@pytest.mark.parametrize("kind", ["png", "tif"])
+def test_slice_folder_natural_order(tmp_path, kind):
+    nz = 12  # names slice1 .. slice12 so that plain sorting would put slice10 first
+    vol = RNG.integers(0, 60000, size=(5, 4, nz)).astype(np.uint16)
+    for k in range(nz):
+        sitk.WriteImage(sitk.GetImageFromArray(np.ascontiguousarray(vol[:, :, k].T)),
+                        str(tmp_path / f"slice{k + 1}.{kind}"))
+    (tmp_path / ".hidden").write_text("ignored")
+    v = read_image(tmp_path, spacing=(0.4, 0.4, 1.2))
+    assert v.array.shape == (5, 4, nz) and v.spacing == (0.4, 0.4, 1.2) and v.origin == (0.0, 0.0, 0.0)
+    np.testing.assert_array_equal(v.array, vol)
+
+
+def test_png_single_image_2d(tmp_path):
+    img = RNG.integers(0, 255, size=(9, 4)).astype(np.uint8)
+    sitk.WriteImage(sitk.GetImageFromArray(np.ascontiguousarray(img.T)), str(tmp_path / "a.png"))
+    v = read_image(tmp_path / "a.png", spacing=[0.2, 0.3])
+    assert v.array.shape == (9, 4) and v.spacing == (0.2, 0.3)
+    np.testing.assert_array_equal(v.array, img)
+
+
+# --- DICOM ------------------------------------------------------------------------------
+
+SECRET_NAME = "Testperson^Zelda"
+SECRET_ID = "PID-88231577"
+
+
+def _write_dicom_series(folder, nslices, series_uid, stored, z0=-20.0, dz=2.5, prefix="im", order=None):
+    """Write a CT series built on pydicom's CT_small.dcm: stored values, slope 2, intercept -1024."""
+    from pydicom.data import get_testdata_file
+    from pydicom.uid import generate_uid
+
+    template = pydicom.dcmread(get_testdata_file("CT_small.dcm"))
+    order = list(range(nslices)) if order is None else order
+    for k in range(nslices):
+        ds = template.copy()
+        ds.PatientName = SECRET_NAME
+        ds.PatientID = SECRET_ID
+        ds.SeriesInstanceUID = series_uid
+        uid = generate_uid(entropy_srcs=[series_uid, str(k)])
+        ds.SOPInstanceUID = uid
+        ds.file_meta.MediaStorageSOPInstanceUID = uid
+        ny, nx = stored.shape[1], stored.shape[0]
+        ds.Rows, ds.Columns = ny, nx
+        ds.PixelSpacing = [0.6, 0.8]  # row spacing (y), column spacing (x)
+        ds.SliceThickness = dz
+        ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
+        ds.ImagePositionPatient = [-50.0, -60.0, z0 + dz * k]
+        ds.SliceLocation = z0 + dz * k
+        ds.InstanceNumber = nslices - k  # misleading on purpose: position must decide
+        ds.RescaleSlope = 2
+        ds.RescaleIntercept = -1024
+        for tag in ("SmallestImagePixelValue", "LargestImagePixelValue"):
+            if tag in ds:
+                delattr(ds, tag)
+        ds.PixelData = np.ascontiguousarray(stored[:, :, k].T.astype(np.int16)).tobytes()  # rows = y
+        ds.save_as(folder / f"{prefix}{order[k]:03d}.dcm")
+
+
+@pytest.fixture
+def dicom_folder(tmp_path):
+    folder = tmp_path / "dicom"
+    folder.mkdir()
+    stored = np.zeros((10, 8, 6), np.int16)
+    stored += (np.arange(6, dtype=np.int16) * 100)[None, None, :]  # slice k holds 100 k + ...
+    stored += (np.arange(10, dtype=np.int16)[:, None] + 10 * np.arange(8, dtype=np.int16)[None, :])[:, :, None]
+    order = [3, 0, 5, 1, 4, 2]  # file names shuffled against slice position
+    _write_dicom_series(folder, 6, "1.2.826.0.1.3680043.8.498.1", stored, order=order)
+    return folder, stored
+
+
+def test_dicom_series_in_hu_ordered_by_position(dicom_folder, tmp_path, caplog):
+    folder, stored = dicom_folder
+    with caplog.at_level(logging.DEBUG, logger="dicer"):
+        v = read_image(folder)
+    assert v.array.shape == (10, 8, 6) and v.array.dtype == np.float32
+    np.testing.assert_array_equal(v.array, stored.astype(np.float32) * 2 - 1024)
+    np.testing.assert_allclose(v.spacing, (0.8, 0.6, 2.5), rtol=1e-6)
+    np.testing.assert_allclose(v.origin, (-50.0 - 0.4, -60.0 - 0.3, -20.0 - 1.25), atol=1e-4)
+    # the label file derived from it carries no patient information
+    out = tmp_path / "labels.nii.gz"
+    write_labels(Volume((v.array > -500).astype(np.uint8), v.spacing, v.origin), out)
+    raw = out.read_bytes()
+    for secret in (SECRET_NAME, SECRET_ID, "Testperson", "Zelda"):
+        assert secret.encode() not in raw
+        assert secret.encode() not in gzip.decompress(raw)
+        assert secret not in caplog.text
+
+
+def test_dicom_picks_the_largest_series(dicom_folder, caplog):
+    folder, stored = dicom_folder
+    small = np.full((10, 8, 3), 7, np.int16)
+    _write_dicom_series(folder, 3, "1.2.826.0.1.3680043.8.498.2", small, prefix="other")
+    with caplog.at_level(logging.INFO, logger="dicer"):
+        v = read_image(folder)
+    assert v.array.shape == (10, 8, 6)
+    np.testing.assert_array_equal(v.array, stored * 2.0 - 1024)
+    assert "2 DICOM series" in caplog.text and "(6)" in caplog.text
+    for secret in (SECRET_NAME, SECRET_ID, "1.2.826.0.1.3680043.8.498"):
+        assert secret not in caplog.text
+
+
+def test_ct_small_single_file():
+    from pydicom.data import get_testdata_file
+
+    path = get_testdata_file("CT_small.dcm")
+    ds = pydicom.dcmread(path)
+    hu = ds.pixel_array.astype(np.float32) * float(ds.RescaleSlope) + float(ds.RescaleIntercept)
+    v = read_image(path)
+    assert v.ndim == 2 and v.array.shape == (128, 128)
+    np.testing.assert_array_equal(v.array, hu.T)
+    np.testing.assert_allclose(v.spacing, [float(s) for s in ds.PixelSpacing[::-1]])
+
+
+# --- labels ------------------------------------------------------------------------------
+
+
+def test_write_labels_dtype_header_and_determinism(tmp_path):
+    labels = RNG.integers(0, 3, size=(9, 7, 5)).astype(np.int64)
+    vol = Volume(labels, SPACING, CORNER)
+    a, b = tmp_path / "a.nii.gz", tmp_path / "sub" / "b.nii.gz"
+    write_labels(vol, a)
+    write_labels(vol, b)
+    assert a.read_bytes() == b.read_bytes()
+    assert a.read_bytes()[4:8] == b"\0\0\0\0"  # gzip MTIME: no timestamp
+    assert _stored_type(a) == "8-bit unsigned integer"
+    back = read_labels(a)
+    assert back.array.dtype == np.uint8
+    np.testing.assert_array_equal(back.array, labels)
+    np.testing.assert_allclose(back.spacing, SPACING)
+    np.testing.assert_allclose(back.origin, CORNER, atol=1e-5)
+    big = labels.copy()
+    big[0, 0, 0] = 300
+    write_labels(Volume(big, SPACING), tmp_path / "big.nii")
+    assert _stored_type(tmp_path / "big.nii") == "16-bit unsigned integer"
+    back = read_labels(tmp_path / "big.nii")
+    assert back.array.dtype == np.int16 and back.array.max() == 300
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.nii.gz", "big.nii", "sub"]  # no temp files
+
+
+@pytest.mark.parametrize("ext", [".nrrd", ".mha", ".npy"])
+def test_read_labels_other_formats(tmp_path, ext):
+    labels = RNG.integers(0, 4, size=(6, 5, 4)).astype(np.uint8)
+    path = tmp_path / f"l{ext}"
+    if ext == ".npy":
+        np.save(path, labels.astype(np.int32))
+    else:
+        img = sitk.GetImageFromArray(np.ascontiguousarray(labels.T))
+        img.SetSpacing((0.5, 0.5, 0.5))
+        sitk.WriteImage(img, str(path))
+    v = read_labels(path)
+    assert v.array.dtype == np.uint8
+    np.testing.assert_array_equal(v.array, labels)
+    assert v.spacing == ((1.0,) * 3 if ext == ".npy" else (0.5,) * 3)
+
+
+def test_read_labels_rejects_fractions_and_negatives(tmp_path):
+    np.save(tmp_path / "f.npy", np.full((3, 3, 3), 0.5))
+    with pytest.raises(DicerError, match="not whole numbers"):
+        read_labels(tmp_path / "f.npy")
+    np.save(tmp_path / "n.npy", np.full((3, 3, 3), -1, np.int16))
+    with pytest.raises(DicerError, match="negative"):
+        read_labels(tmp_path / "n.npy")
+    np.save(tmp_path / "ok.npy", np.full((3, 3, 3), 2.0))
+    assert read_labels(tmp_path / "ok.npy").array.dtype == np.uint8
+    (tmp_path / "x.png").touch()
+    with pytest.raises(DicerError, match="NIfTI"):
+        read_labels(tmp_path / "x.png")
+
+
+def test_write_labels_rejects_bad_values_and_leaves_nothing(tmp_path):
+    for bad in (np.full((3, 3), -1), np.full((3, 3), 0.5), np.full((3, 3), 70000)):
+        with pytest.raises(DicerError):
+            write_labels(Volume(bad, (1, 1)), tmp_path / "l.nii.gz")
+    with pytest.raises(DicerError, match="NIfTI"):
+        write_labels(Volume(np.zeros((3, 3), np.uint8), (1, 1)), tmp_path / "l.vtu")
+    assert list(tmp_path.iterdir()) == []
+
+
+# --- errors ------------------------------------------------------------------------------
+
+
+def test_missing_unknown_and_empty(tmp_path):
+    with pytest.raises(DicerError, match="no such file") as err:
+        read_image(tmp_path / "nope.nii.gz")
+    assert "nope.nii.gz" in str(err.value)
+    (tmp_path / "a.xyz").write_text("x")
+    with pytest.raises(DicerError, match="unknown image format"):
+        read_image(tmp_path / "a.xyz")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DicerError, match="empty"):
+        read_image(tmp_path / "empty")
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "notes.txt").write_text("not an image")
+    with pytest.raises(DicerError, match="no DICOM series"):
+        read_image(tmp_path / "junk")
+    with pytest.raises(DicerError, match="no such file"):
+        read_labels(tmp_path / "nope.nii.gz")
+
+
+@pytest.mark.parametrize("ext,cut", [(".nii.gz", 0.5), (".nii", 0.9), (".nrrd", 0.9), (".mha", 0.9)])
+def test_truncated_file(tmp_path, ext, cut):
+    path = tmp_path / f"ct{ext}"
+    write_image(Volume(HU, SPACING), path)
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * cut)])
+    with pytest.raises(DicerError, match=f"ct{ext.replace('.', '[.]')}: .*(truncated|cannot read)"):
+        read_image(path)
+
+
+def test_4d_and_colour_are_refused(tmp_path):
+    four_d = sitk.GetImageFromArray(np.zeros((2, 3, 4, 5), np.float32), isVector=False)
+    sitk.WriteImage(four_d, str(tmp_path / "t.nii.gz"))
+    with pytest.raises(DicerError, match="4D.*2D and 3D"):
+        read_image(tmp_path / "t.nii.gz")
+    # a single time point is a 3D volume
+    one_t = sitk.GetImageFromArray(np.ones((1, 3, 4, 5), np.float32), isVector=False)
+    sitk.WriteImage(one_t, str(tmp_path / "t1.nii.gz"))
+    assert read_image(tmp_path / "t1.nii.gz").array.shape == (5, 4, 3)
+    rgb = np.zeros((5, 6, 3), np.uint8)
+    sitk.WriteImage(sitk.GetImageFromArray(rgb, isVector=True), str(tmp_path / "c.png"))
+    with pytest.raises(DicerError, match="3 components.*greyscale"):
+        read_image(tmp_path / "c.png")
+
+
+def test_zero_or_negative_spacing(tmp_path):
+    np.save(tmp_path / "a.npy", HU)
+    with pytest.raises(DicerError, match="zero, negative"):
+        read_image(tmp_path / "a.npy", spacing=(1.0, 0.0, 1.0))
+    with pytest.raises(DicerError, match="zero, negative"):
+        read_image(tmp_path / "a.npy", spacing=(1.0, -2.0, 1.0))
+    header = "ObjectType = Image\nNDims = 3\nDimSize = 2 2 2\nElementSpacing = {}\nElementType = MET_UCHAR\n"
+    for sp in ("0 1 1", "1 -1 1"):
+        path = tmp_path / "z.mha"
+        path.write_bytes((header.format(sp) + "ElementDataFile = LOCAL\n").encode() + bytes(8))
+        with pytest.raises(DicerError, match="z.mha: .*(zero|negative)"):
+            read_image(path)
+    with pytest.raises(DicerError, match="zero, negative"):
+        write_image(Volume(HU, (1.0, 0.0, 1.0)), tmp_path / "w.nii.gz")
+
+
+def test_one_dimensional_image_refused(tmp_path):
+    np.save(tmp_path / "line.npy", np.zeros((5, 1, 1)))
+    with pytest.raises(DicerError, match="2D or 3D"):
+        read_image(tmp_path / "line.npy")
+
+
+def test_write_image_unknown_extension(tmp_path):
+    with pytest.raises(DicerError, match="rename"):
+        write_image(Volume(HU, SPACING), tmp_path / "a.png")
+
+
+@pytest.mark.parametrize("name", ["bad.nii.gz", "bad.nii", "bad.nrrd", "bad.mha", "bad.npy", "bad.png"])
+def test_garbage_file_is_unreadable(tmp_path, name):
+    path = tmp_path / name
+    path.write_bytes(bytes(range(256)) * 8)
+    with pytest.raises(DicerError, match=name.replace(".", "[.]")):
+        read_image(path)
+
+
+def test_dicom_folder_with_a_stray_preview_png(dicom_folder):
+    folder, stored = dicom_folder
+    sitk.WriteImage(sitk.GetImageFromArray(np.zeros((4, 4), np.uint8)), str(folder / "preview.png"))
+    assert read_image(folder).array.shape == stored.shape
+
+
+def test_folder_of_subfolders(tmp_path):
+    (tmp_path / "series1").mkdir()
+    with pytest.raises(DicerError, match="only subfolders"):
+        read_image(tmp_path)
+
+
+def test_spacing_argument_shapes(tmp_path):
+    img = RNG.integers(0, 255, size=(6, 5)).astype(np.uint8)
+    sitk.WriteImage(sitk.GetImageFromArray(np.ascontiguousarray(img.T)), str(tmp_path / "a.png"))
+    # one image.spacing for stacks and single slices: a 2D image takes x and y
+    assert read_image(tmp_path / "a.png", spacing=[0.2, 0.3, 2.0]).spacing == (0.2, 0.3)
+    np.save(tmp_path / "sag.npy", np.zeros((1, 4, 5)))
+    assert read_image(tmp_path / "sag.npy", spacing=[9.0, 0.5, 0.6]).spacing == (0.5, 0.6)
+    assert read_image(tmp_path / "sag.npy", spacing=[0.5, 0.6]).spacing == (0.5, 0.6)
+    with pytest.raises(DicerError, match="2D but the given spacing has 4"):
+        read_image(tmp_path / "a.png", spacing=[1, 1, 1, 1])
+
+
+def test_slice_folder_errors(tmp_path):
+    (tmp_path / "mixed").mkdir()
+    sitk.WriteImage(sitk.GetImageFromArray(np.zeros((4, 5), np.uint8)), str(tmp_path / "mixed" / "a1.png"))
+    sitk.WriteImage(sitk.GetImageFromArray(np.zeros((6, 5), np.uint8)), str(tmp_path / "mixed" / "a2.png"))
+    with pytest.raises(DicerError, match="mixed: cannot stack the 2 slices"):
+        read_image(tmp_path / "mixed")
+    (tmp_path / "rgb").mkdir()
+    for k in range(2):
+        rgb = sitk.GetImageFromArray(np.zeros((4, 5, 3), np.uint8), isVector=True)
+        sitk.WriteImage(rgb, str(tmp_path / "rgb" / f"a{k}.png"))
+    with pytest.raises(DicerError, match="3 components"):
+        read_image(tmp_path / "rgb")
+    (tmp_path / "both").mkdir()
+    tifffile.imwrite(tmp_path / "both" / "a.tif", np.zeros((4, 5), np.uint8))
+    sitk.WriteImage(sitk.GetImageFromArray(np.zeros((4, 5), np.uint8)), str(tmp_path / "both" / "b.png"))
+    with pytest.raises(DicerError, match="mixes TIFF and PNG"):
+        read_image(tmp_path / "both")

@@ -1,0 +1,143 @@
+"""The Snakemake workflow on a tiny cohort: a real run, then dry runs for the rerun rules."""
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+SNAKEMAKE = [sys.executable, "-m", "snakemake"]
+
+
+def _env():
+    env = dict(os.environ)
+    env["PATH"] = os.path.dirname(sys.executable) + os.pathsep + env.get("PATH", "")
+    return env
+
+
+def _snakemake(workdir: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess:
+    cmd = SNAKEMAKE + ["-s", str(REPO / "Snakefile"), "-d", str(workdir), "--cores", "2", *args]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=_env(), timeout=900)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"snakemake failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
+    return proc
+
+
+def _cohort(tmp: Path, config_extra: dict | None = None) -> Path:
+    (tmp / "config").mkdir(parents=True, exist_ok=True)
+    config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    config["workflow"]["phantom_size"] = 24
+    config["downsample"]["factor"] = 1
+    for key, value in (config_extra or {}).items():
+        config.setdefault(key, {}).update(value)
+    (tmp / "config" / "config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
+    (tmp / "config" / "patients.tsv").write_text(
+        "patient\timage\toverrides\n"
+        "head\tresources/phantoms/head.nii.gz\t\n"
+        "bone\tresources/phantoms/long_bone.nii.gz\tdownsample.factor=2\n"
+        "absent\tno/such/scan.nii.gz\t\n"
+    )
+    return tmp
+
+
+def _planned_jobs(proc: subprocess.CompletedProcess) -> dict[str, int]:
+    """Rule -> job count from a dry run's job table."""
+    text = proc.stdout + proc.stderr
+    table = text[text.find("Job stats:"):]
+    jobs = {}
+    for line in table.splitlines()[3:]:
+        match = re.match(r"^(\w+)\s+(\d+)$", line.strip())
+        if not match:
+            if jobs:
+                break
+            continue
+        jobs[match.group(1)] = int(match.group(2))
+    jobs.pop("total", None)
+    return jobs
+
+
+@pytest.fixture(scope="module")
+def cohort(tmp_path_factory):
+    workdir = _cohort(tmp_path_factory.mktemp("cohort"))
+    _snakemake(workdir)
+    return workdir
+
+
+def test_every_output_per_patient(cohort):
+    for patient in ("head", "bone"):
+        folder = cohort / "results" / patient
+        for name in ("labels.nii.gz", "labels_ds.nii.gz", "mesh.vtu", "model.inp", "model.vtu",
+                     "quality.json", "report.html"):
+            assert (folder / name).stat().st_size > 0, name
+        report = json.loads((folder / "quality.json").read_text())
+        assert report["elements"] > 100
+        assert report["inverted_elements"] == 0
+        assert set(report["materials"]) == {"soft_tissue", "bone"}
+        for rule in ("segment", "downsample", "mesh", "export_inp", "export_vtu", "quality"):
+            assert (cohort / "logs" / patient / f"{rule}.log").exists()
+    assert not (cohort / "results" / "absent").exists()
+
+
+def test_patient_overrides_apply(cohort):
+    from dicer.io.images import read_labels
+
+    for patient, factor in (("head", 1), ("bone", 2)):
+        fine = read_labels(cohort / "results" / patient / "labels.nii.gz")
+        coarse = read_labels(cohort / "results" / patient / "labels_ds.nii.gz")
+        assert coarse.spacing == pytest.approx(tuple(s * factor for s in fine.spacing))
+
+
+def test_nothing_to_do_after_a_run(cohort):
+    proc = _snakemake(cohort, "-n")
+    assert _planned_jobs(proc) == {}
+
+
+def test_changing_export_settings_reruns_only_export_and_later(cohort):
+    config_path = cohort / "config" / "config.yaml"
+    original = config_path.read_text()
+    try:
+        config = yaml.safe_load(original)
+        config["export"]["element_type"] = "C3D8R"
+        config_path.write_text(yaml.safe_dump(config, sort_keys=False))
+        jobs = _planned_jobs(_snakemake(cohort, "-n"))
+        # both patients: the .inp and .vtu exports, then quality; nothing upstream
+        assert jobs == {"export": 4, "quality": 2, "all": 1}
+
+        config = yaml.safe_load(original)
+        config["segment"]["closing_radius"] = 2
+        config_path.write_text(yaml.safe_dump(config, sort_keys=False))
+        jobs = _planned_jobs(_snakemake(cohort, "-n"))
+        assert jobs.get("segment") == 2 and jobs.get("mesh") == 2 and "phantom" not in jobs
+    finally:
+        config_path.write_text(original)
+
+
+def test_bad_config_key_stops_the_run_naming_it(tmp_path):
+    workdir = _cohort(tmp_path, {"segment": {"closing_radiuss": 1}})
+    proc = _snakemake(workdir, "-n", check=False)
+    assert proc.returncode != 0
+    assert "segment.closing_radiuss" in proc.stdout + proc.stderr
+
+
+def test_bad_override_names_the_patient(tmp_path):
+    workdir = _cohort(tmp_path)
+    sheet = workdir / "config" / "patients.tsv"
+    sheet.write_text(sheet.read_text().replace("downsample.factor=2", "downsample.factor=zero"))
+    proc = _snakemake(workdir, "-n", check=False)
+    assert proc.returncode != 0
+    out = proc.stdout + proc.stderr
+    assert "bone" in out and "downsample.factor" in out
+
+
+@pytest.mark.skipif(shutil.which("snakemake") is None and not (Path(sys.executable).parent / "snakemake").exists(),
+                    reason="snakemake not installed")
+def test_lint_is_clean():
+    proc = subprocess.run(SNAKEMAKE + ["-s", str(REPO / "Snakefile"), "-d", str(REPO), "--lint"],
+                          capture_output=True, text=True, env=_env(), timeout=120)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]

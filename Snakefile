@@ -9,6 +9,11 @@ min_version("8.0")
 configfile: "config/config.yaml"
 
 
+# the rules call the `dicer` beside this Snakemake: common.smk puts it first on PATH
+envvars:
+    "PATH",
+
+
 include: "workflow/rules/common.smk"
 include: "workflow/rules/segment.smk"
 include: "workflow/rules/mesh.smk"

@@ -38,14 +38,13 @@ def _config(args) -> dict:
 
 
 class _Stage:
-    """Log a stage's start and end with its wall time."""
+    """Log a stage's end with its wall time (nothing before: bad input stays one error line)."""
 
     def __init__(self, name: str):
         self.name = name
 
     def __enter__(self):
         self.t0 = time.perf_counter()
-        log.info("%s: started", self.name)
         return self
 
     def __exit__(self, exc_type, exc, tb):

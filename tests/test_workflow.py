@@ -32,7 +32,7 @@ def _snakemake(workdir: Path, *args: str, check: bool = True) -> subprocess.Comp
 def _cohort(tmp: Path, config_extra: dict | None = None) -> Path:
     (tmp / "config").mkdir(parents=True, exist_ok=True)
     config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
-    config["workflow"]["phantom_size"] = 24
+    config["workflow"]["phantom_size"] = 48
     config["downsample"]["factor"] = 1
     for key, value in (config_extra or {}).items():
         config.setdefault(key, {}).update(value)

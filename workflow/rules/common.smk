@@ -21,6 +21,13 @@ except DicerError as exc:
 
 RESULTS = CONFIG["workflow"]["results"]
 PHANTOM_DIR = "resources/phantoms"
+# the environment every rule runs in (used with --software-deployment-method conda)
+CONDA_ENV = "../../environment.yml"
+
+
+def patient_file(name):
+    """Path pattern of one per-patient output."""
+    return os.path.join(RESULTS, "{patient}", name)
 
 
 def _read_patients(path):
@@ -46,7 +53,7 @@ def _read_patients(path):
 def _available(row):
     """Phantoms are made by the workflow; other images must exist (the real CT is optional)."""
     image = row["image"]
-    if image.startswith(PHANTOM_DIR + "/") or Path(image).exists():
+    if Path(image).parent == Path(PHANTOM_DIR) or Path(image).exists():
         return True
     print(f"dicer workflow: skipping patient {row['patient']}: {image} not found", file=sys.stderr)
     return False
@@ -84,8 +91,8 @@ def patient_image(wildcards):
 def all_outputs():
     outputs = []
     for patient in PATIENTS:
-        outputs += [f"{RESULTS}/{patient}/model.{ext}" for ext in CONFIG["workflow"]["exports"]]
-        outputs += [f"{RESULTS}/{patient}/quality.json", f"{RESULTS}/{patient}/report.html"]
+        names = [f"model.{ext}" for ext in CONFIG["workflow"]["exports"]] + ["quality.json", "report.html"]
+        outputs += [os.path.join(RESULTS, patient, name) for name in names]
     return outputs
 
 

@@ -3,11 +3,13 @@
 
 rule export:
     input:
-        RESULTS + "/{patient}/mesh.vtu",
+        patient_file("mesh.vtu"),
     output:
-        RESULTS + "/{patient}/model.{ext}",
+        patient_file("model.{ext}"),
     params:
         settings=settings("export"),
+    conda:
+        CONDA_ENV
     log:
         "logs/{patient}/export_{ext}.log",
     wildcard_constraints:
@@ -18,18 +20,20 @@ rule export:
 
 rule quality:
     input:
-        mesh=RESULTS + "/{patient}/model.vtu",
-        labels=RESULTS + "/{patient}/labels_ds.nii.gz",
+        mesh=patient_file("model.vtu"),
+        labels=patient_file("labels_ds.nii.gz"),
     output:
-        json=RESULTS + "/{patient}/quality.json",
+        json=patient_file("quality.json"),
         html=report(
-            RESULTS + "/{patient}/report.html",
+            patient_file("report.html"),
             caption="../report/quality.rst",
             category="Mesh quality",
             labels={"patient": "{patient}"},
         ),
     params:
         settings=settings("quality"),
+    conda:
+        CONDA_ENV
     log:
         "logs/{patient}/quality.log",
     shell:

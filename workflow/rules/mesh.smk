@@ -3,11 +3,13 @@
 
 rule mesh:
     input:
-        RESULTS + "/{patient}/labels_ds.nii.gz",
+        patient_file("labels_ds.nii.gz"),
     output:
-        RESULTS + "/{patient}/mesh.vtu",
+        patient_file("mesh.vtu"),
     params:
         settings=settings("mesh"),
+    conda:
+        CONDA_ENV
     log:
         "logs/{patient}/mesh.log",
     shell:

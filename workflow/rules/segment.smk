@@ -3,9 +3,11 @@
 
 rule phantom:
     output:
-        PHANTOM_DIR + "/{name}.nii.gz",
+        os.path.join(PHANTOM_DIR, "{name}.nii.gz"),
     params:
         size=phantom_size_option,
+    conda:
+        CONDA_ENV
     log:
         "logs/phantoms/{name}.log",
     shell:
@@ -16,9 +18,11 @@ rule segment:
     input:
         patient_image,
     output:
-        RESULTS + "/{patient}/labels.nii.gz",
+        patient_file("labels.nii.gz"),
     params:
         settings=settings("segment"),
+    conda:
+        CONDA_ENV
     log:
         "logs/{patient}/segment.log",
     shell:
@@ -27,11 +31,13 @@ rule segment:
 
 rule downsample:
     input:
-        RESULTS + "/{patient}/labels.nii.gz",
+        patient_file("labels.nii.gz"),
     output:
-        RESULTS + "/{patient}/labels_ds.nii.gz",
+        patient_file("labels_ds.nii.gz"),
     params:
         settings=settings("downsample"),
+    conda:
+        CONDA_ENV
     log:
         "logs/{patient}/downsample.log",
     shell:

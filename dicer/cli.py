@@ -11,6 +11,7 @@ import argparse
 import contextlib
 import json
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -62,15 +63,31 @@ def _check_output(path: str, suffixes: tuple[str, ...], what: str) -> Path:
 # --- stages ---------------------------------------------------------------------------
 
 
-def do_segment(image_path: str, out: Path, config: dict):
+def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = None, info_path: Path | None = None,
+               plot: Path | None = None):
+    from dicer.config import material_names
+    from dicer.io.atomic import write_bytes_atomic
     from dicer.io.images import read_image, write_labels
+    from dicer.io.pictures import save_overlay_png, save_threshold_plot
     from dicer.segment import segment
 
     with _Stage("segment"):
         image = read_image(image_path, spacing=config["image"]["spacing"])
         labels, info = segment(image, config, source=image_path)
         write_labels(labels, out)
-        log.info("segment: wrote %s (%s)", out, json.dumps(info, sort_keys=True))
+        names = list(material_names(config).values())
+        if overlay:
+            title = f"{info['method']} thresholds " + ", ".join(f"{n} {t:g}" for n, t in zip(names, info["thresholds"]))
+            save_overlay_png(image, labels, overlay, title, len(names), names)
+        if plot and info.get("criterion"):
+            save_threshold_plot(info, plot)
+        if info_path:
+            # timings go to the log only: the file must be the same on every rerun
+            stable = {k: v for k, v in info.items() if not k.endswith("seconds")}
+            write_bytes_atomic(info_path, json.dumps(stable, indent=1, sort_keys=True) + "\n")
+        fractions = {name: info["classes"][name]["fraction"] for name in names if name in info["classes"]}
+        log.info("segment: wrote %s (method %s, thresholds %s, class fractions %s)", out, info["method"],
+                 info["thresholds"], json.dumps(fractions))
     return labels
 
 
@@ -117,7 +134,8 @@ def do_export(mesh_path: str, out: Path, config: dict, input_name: str | None = 
         log.info("export: wrote %s (%s)", out, json.dumps(info, sort_keys=True))
 
 
-def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None = None, html: str | None = None):
+def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None = None, html: str | None = None,
+               pictures: list[str] = ()):
     from dicer.io.atomic import write_bytes_atomic
     from dicer.io.meshes import read_mesh
     from dicer.quality import quality_report, render_html
@@ -132,7 +150,9 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
         report = quality_report(mesh, config, labels=labels)
         text = json.dumps(report, indent=2, sort_keys=True) + "\n"
         if html:
-            write_bytes_atomic(html, render_html(report))
+            page_dir = Path(html).resolve().parent
+            links = [os.path.relpath(Path(p).resolve(), page_dir) for p in pictures]
+            write_bytes_atomic(html, render_html(report, links))
         write_bytes_atomic(out, text)
         log.info("quality: wrote %s (min scaled Jacobian %.3f, %d inverted)", out,
                  report["scaled_jacobian"]["min"], report["inverted_elements"])
@@ -143,7 +163,11 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
 
 
 def cmd_segment(args):
-    do_segment(args.image, _check_output(args.output, (".nii", ".nii.gz"), "the label volume"), _config(args))
+    out = _check_output(args.output, (".nii", ".nii.gz"), "the label volume")
+    overlay = _check_output(args.overlay, (".png",), "the overlay picture") if args.overlay else None
+    plot = _check_output(args.plot, (".png",), "the threshold plot") if args.plot else None
+    info = _check_output(args.info, (".json",), "the segmentation info") if args.info else None
+    do_segment(args.image, out, _config(args), overlay=overlay, info_path=info, plot=plot)
 
 
 def cmd_downsample(args):
@@ -168,7 +192,7 @@ def cmd_export(args):
 
 def cmd_quality(args):
     do_quality(args.mesh, _check_output(args.output, (".json",), "the quality report"), _config(args),
-               labels_path=args.labels, html=args.html)
+               labels_path=args.labels, html=args.html, pictures=args.picture or [])
 
 
 def cmd_phantom(args):
@@ -185,7 +209,7 @@ def cmd_phantom(args):
                  "x".join(f"{s:g}" for s in image.spacing))
 
 
-RUN_OUTPUTS = ("labels.nii.gz", "labels_ds.nii.gz", "mesh.vtu", "model.inp", "model.vtu", "quality.json")
+RUN_OUTPUTS = ("labels.nii.gz", "segmentation.png", "segmentation.json", "thresholds.png", "labels_ds.nii.gz", "mesh.vtu", "model.inp", "model.vtu", "quality.json", "report.html")
 
 
 def cmd_run(args):
@@ -201,13 +225,15 @@ def cmd_run(args):
     before = {name: (outdir / name).exists() for name in RUN_OUTPUTS}
     t0 = time.perf_counter()
     try:
-        do_segment(args.image, outdir / "labels.nii.gz", config)
+        do_segment(args.image, outdir / "labels.nii.gz", config, overlay=outdir / "segmentation.png",
+                   info_path=outdir / "segmentation.json", plot=outdir / "thresholds.png")
         do_downsample(str(outdir / "labels.nii.gz"), outdir / "labels_ds.nii.gz", config)
         do_mesh(str(outdir / "labels_ds.nii.gz"), outdir / "mesh.vtu", config)
         for name in ("model.inp", "model.vtu"):
             do_export(str(outdir / "mesh.vtu"), outdir / name, config, input_name=args.image)
+        pictures = [str(outdir / n) for n in ("segmentation.png", "thresholds.png") if (outdir / n).exists()]
         do_quality(str(outdir / "model.vtu"), outdir / "quality.json", config,
-                   labels_path=str(outdir / "labels_ds.nii.gz"))
+                   labels_path=str(outdir / "labels_ds.nii.gz"), html=str(outdir / "report.html"), pictures=pictures)
     except BaseException:
         with contextlib.suppress(OSError):
             for name, existed in before.items():
@@ -253,6 +279,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("image", metavar="IMAGE",
                    help="NIfTI, NRRD, MetaImage, TIFF, .npy, or a folder of DICOM, TIFF or PNG slices")
     p.add_argument("-o", "--output", required=True, metavar="LABELS", help="label volume (.nii.gz)")
+    p.add_argument("--overlay", metavar="PNG", help="also write three orthogonal slices with the labels over the image")
+    p.add_argument("--plot", metavar="PNG", help="also plot the threshold criterion (segment.method=shape_connectivity)")
+    p.add_argument("--info", metavar="JSON", help="also write thresholds, criterion curves and class fractions")
     _add_config_options(p)
 
     p = command("downsample", cmd_downsample, "reduce the label volume's resolution, keeping thin classes")
@@ -276,6 +305,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, metavar="JSON", help="quality report (.json)")
     p.add_argument("--labels", metavar="LABELS", help="label volume the mesh came from (for voxel counts)")
     p.add_argument("--html", metavar="HTML", help="also write a readable HTML report")
+    p.add_argument("--picture", action="append", metavar="PNG", help="a picture to show in the HTML report (repeatable)")
     _add_config_options(p)
 
     p = command("phantom", cmd_phantom, "write a synthetic CT phantom (HU, with noise) for demos and tests")

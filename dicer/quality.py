@@ -91,8 +91,8 @@ def quality_report(mesh: Mesh, config: dict, labels=None) -> dict:
     return report
 
 
-def render_html(report: dict) -> str:
-    """A self-contained HTML page of the report (tables only, no external assets)."""
+def render_html(report: dict, pictures: list[str] = ()) -> str:
+    """An HTML page of the report: tables, and ``pictures`` (paths relative to the page) shown inline."""
 
     def table(rows: list[tuple[str, object]]) -> str:
         body = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>" for k, v in rows)
@@ -106,8 +106,11 @@ def render_html(report: dict) -> str:
         "th,td{border:1px solid #bbb;padding:3px 8px;text-align:left}</style></head><body>",
         f"<h1>Mesh quality</h1><p>dicer {html.escape(report['dicer_version'])}</p>",
         table(top),
-        "<h2>Materials</h2>",
     ]
+    for picture in pictures:
+        src = html.escape(picture, quote=True)
+        parts.append(f"<p><a href='{src}'><img src='{src}' alt='{src}' style='max-width:100%'></a></p>")
+    parts.append("<h2>Materials</h2>")
     for name, entry in report["materials"].items():
         parts.append(f"<h3>{html.escape(name)}</h3>" + table(list(entry.items())))
     for key in sorted(k for k in report if k.startswith(("scaled_jacobian", "edge_ratio", "element_volume"))):

@@ -52,7 +52,7 @@ def test_run_writes_everything_and_is_reproducible(tmp_path, capsys, head):
         code, err = run_cli(capsys, "run", head, "-o", tmp_path / out)
         assert code == 0, err
     names = sorted(p.name for p in (tmp_path / "a").iterdir())
-    assert names == sorted(["labels.nii.gz", "labels_ds.nii.gz", "mesh.vtu", "model.inp", "model.vtu", "quality.json"])
+    assert names == sorted(["labels.nii.gz", "labels_ds.nii.gz", "mesh.vtu", "model.inp", "model.vtu", "quality.json", "report.html", "segmentation.json", "segmentation.png", "thresholds.png"])
     for name in names:
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
 

@@ -22,6 +22,7 @@ rule quality:
     input:
         mesh=patient_file("model.vtu"),
         labels=patient_file("labels_ds.nii.gz"),
+        overlay=patient_file("segmentation.png"),
     output:
         json=patient_file("quality.json"),
         html=report(
@@ -38,4 +39,4 @@ rule quality:
         "logs/{patient}/quality.log",
     shell:
         "dicer quality {input.mesh:q} --labels {input.labels:q} -o {output.json:q} --html {output.html:q}"
-        " --settings {params.settings:q} > {log:q} 2>&1"
+        " --picture {input.overlay:q} --settings {params.settings:q} > {log:q} 2>&1"

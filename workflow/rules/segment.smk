@@ -18,7 +18,9 @@ rule segment:
     input:
         patient_image,
     output:
-        patient_file("labels.nii.gz"),
+        labels=patient_file("labels.nii.gz"),
+        overlay=patient_file("segmentation.png"),
+        info=patient_file("segmentation.json"),
     params:
         settings=settings("segment"),
     conda:
@@ -26,7 +28,8 @@ rule segment:
     log:
         "logs/{patient}/segment.log",
     shell:
-        "dicer segment {input:q} -o {output:q} --settings {params.settings:q} > {log:q} 2>&1"
+        "dicer segment {input:q} -o {output.labels:q} --overlay {output.overlay:q} --info {output.info:q}"
+        " --settings {params.settings:q} > {log:q} 2>&1"
 
 
 rule downsample:

@@ -1,0 +1,210 @@
+"""Segmentation: image intensities -> material labels 0..K (section 2.1 of the paper).
+
+Global thresholds split the image into the K configured material classes (ordered
+by increasing intensity; label 0 is background), then opening by reconstruction,
+closing and optional component filters clean each class (see
+:mod:`dicer.segment.morphology` for the exact rule on nested classes).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from dicer.errors import DicerError
+from dicer.image import Volume
+from dicer.segment.morphology import clean_labels
+from dicer.segment.thresholds import (
+    check_thresholds,
+    classify,
+    multiotsu_thresholds,
+    otsu_thresholds,
+    shape_connectivity_thresholds,
+    value_range,
+)
+
+__all__ = ["segment", "class_priority", "morphology_options", "label_counts"]
+
+
+def _names(config: dict) -> list[str]:
+    return [m["name"] for m in config["materials"]]
+
+
+def class_priority(config: dict, source: str = "") -> list[int]:
+    """Class labels in priority order, highest first, from ``segment.priority``.
+
+    Parameters
+    ----------
+    config : dict
+        A loaded configuration.
+    source : str
+        File named in error messages.
+
+    Returns
+    -------
+    priority : list of int
+        Every label 1..K once. Named classes come first in the given order; classes
+        not named follow, densest first. Default (``null``): ``K, K-1, ..., 1``.
+
+    Raises
+    ------
+    DicerError
+        An unknown or repeated class name.
+    """
+    names = _names(config)
+    given = config.get("segment", {}).get("priority") or []
+    out = []
+    for name in given:
+        if name not in names:
+            raise DicerError(f"{source}: segment.priority names unknown class '{name}'; "
+                             f"known classes: {', '.join(names)}")
+        label = names.index(name) + 1
+        if label in out:
+            raise DicerError(f"{source}: segment.priority lists class '{name}' twice; list each class once")
+        out.append(label)
+    out += [c for c in range(len(names), 0, -1) if c not in out]
+    return out
+
+
+def morphology_options(config: dict, source: str = "") -> dict:
+    """Keyword arguments of :func:`clean_labels` from the ``segment`` section.
+
+    Returns
+    -------
+    options : dict
+        ``n_classes``, ``opening_radius``, ``closing_radius``, ``keep``, ``min_size``,
+        ``priority``.
+    """
+    seg = config.get("segment", {})
+    names = _names(config)
+    k = len(names)
+    keep = seg.get("keep", "all")
+    if keep == "body":  # the largest part of the outermost class, with everything inside it
+        keep = ["largest"] + ["all"] * (k - 1)
+    size = seg.get("min_component_size", 0)
+    for key, value in (("keep", keep), ("min_component_size", size)):
+        if isinstance(value, list) and len(value) != k:
+            raise DicerError(f"{source}: segment.{key} has {len(value)} entries for {k} materials "
+                             f"({', '.join(names)}); give one per material or a single value")
+    return {
+        "n_classes": k,
+        "opening_radius": int(seg.get("opening_radius", 1)),
+        "closing_radius": int(seg.get("closing_radius", 1)),
+        "keep": keep,
+        "min_size": size,
+        "priority": class_priority(config, source),
+    }
+
+
+def label_counts(labels: np.ndarray, names: list[str]) -> dict:
+    """Voxels and fraction of the volume per class name (background under 'background').
+
+    Returns
+    -------
+    counts : dict
+        ``{name: {"label": c, "voxels": n, "fraction": f}}`` for background and each class.
+    """
+    k = len(names)
+    counts = np.bincount(labels.ravel().astype(np.int64), minlength=k + 1)
+    total = max(int(labels.size), 1)
+    out = {}
+    for c, name in enumerate(["background"] + list(names)):
+        n = int(counts[c]) if c < counts.size else 0
+        out[name] = {"label": c, "voxels": n, "fraction": round(n / total, 6)}
+    return out
+
+
+def _check_image(image: Volume, source: str) -> tuple[float, float]:
+    if image.array.ndim not in (2, 3):
+        raise DicerError(f"{source}: a {image.array.ndim}D image; dicer segments 2D or 3D images, "
+                         "extract one volume first")
+    if image.array.size == 0:
+        raise DicerError(f"{source}: the image has no voxels; check the file")
+    if np.iscomplexobj(image.array) or image.array.dtype == bool:
+        raise DicerError(f"{source}: image of type {image.array.dtype}; give a grey-level (integer or float) image")
+    lo, hi = value_range(image.array)
+    if not np.isfinite(lo):
+        raise DicerError(f"{source}: the image holds no finite value (all NaN or infinite); check the file")
+    if lo == hi:
+        raise DicerError(f"{source}: the image has a single grey level ({lo:g}); nothing to segment, "
+                         "check that the file holds the scan")
+    return lo, hi
+
+
+def segment(image: Volume, config: dict, source: str = "") -> tuple[Volume, dict]:
+    """Classify voxels into the configured materials and clean the classes.
+
+    Parameters
+    ----------
+    image : Volume
+        Grey-level image, (nx, ny[, nz]) array of int or float (HU for CT).
+    config : dict
+        A loaded configuration; reads ``materials`` and ``segment``.
+    source : str
+        The image's file name, used in error messages.
+
+    Returns
+    -------
+    labels : Volume
+        uint8 array of the image's shape (0 background, 1..K classes), same spacing
+        and origin.
+    info : dict
+        ``method``, ``thresholds`` (K floats, the lower bound of each class),
+        ``classes`` (voxels and fraction per class after morphology),
+        ``thresholded`` (voxels per class before morphology), ``removed_by_opening``,
+        ``seconds``; for ``shape_connectivity`` also ``ranges`` and ``criterion``
+        (the criterion curve per class boundary).
+
+    Raises
+    ------
+    DicerError
+        Bad thresholds or ranges for the configured classes, an image with one grey
+        level, no voxel in any class, or morphology that removes every voxel.
+    """
+    t0 = time.perf_counter()
+    source = source or "image"
+    names = _names(config)
+    k = len(names)
+    seg = config.get("segment", {})
+    method = seg.get("method", "manual")
+    lo, hi = _check_image(image, source)
+    array = image.array
+    info: dict = {"method": method}
+    if method == "manual":
+        thresholds = check_thresholds(seg.get("thresholds", []), k, names, source)
+    elif method == "otsu":
+        thresholds = otsu_thresholds(array, k, names, source)
+    elif method == "multiotsu":
+        thresholds = multiotsu_thresholds(array, k, names, source)
+    elif method == "shape_connectivity":
+        thresholds, search = shape_connectivity_thresholds(
+            array, seg.get("ranges"), names, source, bins=int(seg.get("bins", 128)))
+        info.update({key: value for key, value in search.items() if key != "seconds"})
+        info["search_seconds"] = search["seconds"]
+    else:
+        raise DicerError(f"{source}: unknown segment.method '{method}'; "
+                         "use manual, otsu, multiotsu or shape_connectivity")
+    info["thresholds"] = [round(float(t), 4) for t in thresholds]
+    t_threshold = time.perf_counter()
+
+    raw = classify(array, thresholds)
+    if not raw.any():
+        raise DicerError(f"{source}: no voxel >= {thresholds[0]:g} (the lower bound of class '{names[0]}'); "
+                         f"the image spans {lo:g} .. {hi:g}; lower segment.thresholds")
+    info["thresholded"] = {name: v["voxels"] for name, v in label_counts(raw, names).items()}
+
+    options = morphology_options(config, source)
+    labels, minfo = clean_labels(raw, **options)
+    if not labels.any():
+        raise DicerError(f"{source}: the morphology removed every voxel (segment.opening_radius="
+                         f"{options['opening_radius']} drops parts thinner than {2 * options['opening_radius'] + 1} "
+                         "voxels, keep/min_component_size drop small parts); lower segment.opening_radius "
+                         "or segment.min_component_size")
+    info["removed_by_opening"] = {names[c - 1]: n for c, n in minfo["removed_by_opening"].items()}
+    if minfo["emptied"]:
+        info["warnings"] = [f"morphology emptied class '{names[c - 1]}'" for c in minfo["emptied"]]
+    info["classes"] = label_counts(labels, names)
+    info["seconds"] = {"thresholds": round(t_threshold - t0, 3),
+                       "total": round(time.perf_counter() - t0, 3)}
+    return Volume(labels, image.spacing, image.origin), info

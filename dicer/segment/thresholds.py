@@ -1,0 +1,428 @@
+"""Global thresholds: manual, Otsu, multi-Otsu and classification by thresholds.
+
+A threshold list ``t_1 < t_2 < ... < t_K`` (image units, HU for CT) splits the image
+into K material classes plus background: a voxel of value ``v`` gets label
+``c = #{i : v >= t_i}``, i.e. class c holds ``t_c <= v < t_{c+1}`` and background
+holds ``v < t_1`` (and NaN).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from skimage.filters import threshold_multiotsu, threshold_otsu
+
+from dicer.errors import DicerError
+
+__all__ = [
+    "classify", "check_thresholds", "otsu_thresholds", "multiotsu_thresholds", "value_range",
+    "check_ranges", "candidate_edges", "whole_valued", "bin_image", "cooccurrence", "shape_connectivity_thresholds",
+]
+
+
+def value_range(array: np.ndarray) -> tuple[float, float]:
+    """Smallest and largest finite value of ``array`` (float, float)."""
+    a = np.asarray(array)
+    if np.issubdtype(a.dtype, np.floating):
+        finite = a[np.isfinite(a)] if not np.isfinite(a).all() else a
+        if finite.size == 0:
+            return float("nan"), float("nan")
+        return float(finite.min()), float(finite.max())
+    return float(a.min()), float(a.max())
+
+
+def classify(array: np.ndarray, thresholds) -> np.ndarray:
+    """Label each voxel by the number of thresholds it reaches.
+
+    Parameters
+    ----------
+    array : (nx, ny[, nz]) ndarray of int or float
+        Image intensities.
+    thresholds : sequence of K floats, strictly increasing
+        Lower bound of each class.
+
+    Returns
+    -------
+    labels : ndarray of uint8 (int16 when K > 254), same shape as ``array``
+        0 below ``thresholds[0]`` (and NaN), c where ``t_c <= value < t_{c+1}``.
+    """
+    t = [float(x) for x in thresholds]
+    dtype = np.uint8 if len(t) < 255 else np.int16
+    labels = np.zeros(array.shape, dtype=dtype)
+    for ti in t:  # a loop over classes: K passes of a vectorised comparison
+        labels += array >= ti
+    return labels
+
+
+def check_thresholds(thresholds, k: int, names: list[str], source: str, key: str = "segment.thresholds") -> list[float]:
+    """Validate K strictly increasing thresholds; return them as floats.
+
+    Raises
+    ------
+    DicerError
+        Wrong count or not strictly increasing; the message names ``source``, the key,
+        the classes and the fix.
+    """
+    t = [float(x) for x in thresholds]
+    if len(t) != k:
+        raise DicerError(f"{source}: {key} has {len(t)} value(s) but the config names {k} material(s) "
+                         f"({', '.join(names)}); give one lower bound per material")
+    for i in range(1, k):
+        if not t[i] > t[i - 1]:
+            raise DicerError(f"{source}: {key} must increase strictly: class '{names[i]}' starts at {t[i]:g}, "
+                             f"not above class '{names[i - 1]}' at {t[i - 1]:g}; order the materials by intensity")
+    return t
+
+
+def _finite_values(array: np.ndarray) -> np.ndarray:
+    a = np.asarray(array)
+    if np.issubdtype(a.dtype, np.floating) and not np.isfinite(a).all():
+        return a[np.isfinite(a)]
+    return a
+
+
+def otsu_thresholds(array: np.ndarray, k: int, names: list[str], source: str) -> list[float]:
+    """Otsu's threshold for one material class.
+
+    Parameters
+    ----------
+    array : ndarray
+        Image intensities.
+    k : int
+        Number of material classes; must be 1.
+
+    Returns
+    -------
+    thresholds : list of 1 float
+    """
+    if k != 1:
+        raise DicerError(f"{source}: segment.method=otsu finds one threshold but the config names {k} materials "
+                         f"({', '.join(names)}); use segment.method=multiotsu or shape_connectivity")
+    return [float(threshold_otsu(_finite_values(array)))]
+
+
+def multiotsu_thresholds(array: np.ndarray, k: int, names: list[str], source: str) -> list[float]:
+    """Multi-Otsu thresholds for K material classes (K + 1 classes with background).
+
+    Uses :func:`skimage.filters.threshold_multiotsu` with ``classes=K+1`` on a
+    256-bin histogram.
+
+    Returns
+    -------
+    thresholds : list of K floats, increasing
+    """
+    values = _finite_values(array)
+    try:
+        t = threshold_multiotsu(values, classes=k + 1)
+    except ValueError as exc:
+        raise DicerError(f"{source}: multi-Otsu cannot split the image into {k + 1} classes ({exc}); "
+                         "use fewer materials or segment.method=manual") from None
+    t = [float(x) for x in t]
+    if any(b <= a for a, b in zip(t, t[1:])):
+        raise DicerError(f"{source}: multi-Otsu found repeated thresholds {t}; the image has too few grey levels "
+                         "for the configured materials; use segment.method=manual")
+    return t
+
+
+# --- shape connectivity (Lie) -------------------------------------------------------------
+
+
+def check_ranges(ranges, k: int, names: list[str], lo: float, hi: float, source: str) -> list[tuple[float, float]]:
+    """Validate the shape-connectivity search ranges against the classes and the image.
+
+    Parameters
+    ----------
+    ranges : list of K [low, high] pairs or None
+        Grey-level range of each class's lower threshold (image units).
+    k : int
+        Number of material classes.
+    names : list of str
+        Class names, for messages.
+    lo, hi : float
+        The image's smallest and largest finite value.
+
+    Returns
+    -------
+    ranges : list of K (float, float)
+
+    Raises
+    ------
+    DicerError
+        Missing ranges, a range with low >= high, ranges that overlap or are out of
+        order, or a range outside the image's values.
+    """
+    key = "segment.ranges"
+    given = list(ranges or [])
+    if len(given) != k:
+        missing = ", ".join(f"'{n}'" for n in names[len(given):]) or "none"
+        raise DicerError(f"{source}: {key} has {len(given)} range(s) for {k} material(s) ({', '.join(names)}); "
+                         f"give one [low, high] per material (missing: {missing})")
+    out = []
+    for name, r in zip(names, given):
+        if len(r) != 2:
+            raise DicerError(f"{source}: {key} entry for class '{name}' must be [low, high], got {r}")
+        a, b = float(r[0]), float(r[1])
+        if not a < b:
+            raise DicerError(f"{source}: {key} for class '{name}' is [{a:g}, {b:g}]; low must be below high")
+        if b <= lo or a >= hi:
+            raise DicerError(f"{source}: {key} for class '{name}' is [{a:g}, {b:g}] but the image's values span "
+                             f"{lo:g} .. {hi:g}; move the range inside the image's values")
+        out.append((a, b))
+    for i in range(1, k):
+        if out[i][0] < out[i - 1][1]:
+            raise DicerError(f"{source}: {key} for class '{names[i]}' [{out[i][0]:g}, {out[i][1]:g}] overlaps or "
+                             f"precedes class '{names[i - 1]}' [{out[i - 1][0]:g}, {out[i - 1][1]:g}]; ranges must "
+                             "not overlap and must increase with the materials' order")
+    return out
+
+
+def candidate_edges(ranges, bins: int, integer: bool) -> list[np.ndarray]:
+    """Candidate thresholds per range: equal steps from low up to high (``bins + 1`` values for float images).
+
+    With ``integer`` (images of whole grey levels) the candidates and the step are whole
+    numbers (step at least 1).
+
+    Returns
+    -------
+    edges : list of K 1D float64 arrays, each increasing
+    """
+    out = []
+    for a, b in ranges:
+        if integer:
+            a, b = np.ceil(a), np.floor(b)
+            step = max(1.0, np.ceil((b - a) / bins))
+            e = np.arange(a, b + 0.5 * step, step)
+            e = e[e <= b] if e.size > 1 else np.array([a])
+        else:
+            e = np.linspace(a, b, bins + 1)
+        out.append(e.astype(np.float64))
+    return out
+
+
+def whole_valued(array: np.ndarray) -> bool:
+    """True for integer images and float images whose finite values are all whole numbers."""
+    a = np.asarray(array)
+    if np.issubdtype(a.dtype, np.integer):
+        return True
+    with np.errstate(invalid="ignore"):
+        return bool(np.all((np.floor(a) == a) | ~np.isfinite(a)))
+
+
+def bin_image(array: np.ndarray, edges: np.ndarray, whole: bool | None = None) -> np.ndarray:
+    """Bin index of every voxel: ``b`` such that ``edges[b-1] <= value < edges[b]``.
+
+    Parameters
+    ----------
+    array : ndarray of int or float
+    edges : 1D float64 array, strictly increasing (length E)
+    whole : bool, optional
+        Whether the image holds whole grey levels only (see :func:`whole_valued`);
+        computed when omitted.
+
+    Returns
+    -------
+    binned : ndarray of uint16 (E < 65535), same shape; NaN goes to bin 0
+    """
+    a = np.asarray(array)
+    lo, hi = value_range(a)
+    if np.isfinite(lo) and a.size > 4 * (hi - lo + 1) and hi - lo < 2**24:
+        # whole grey levels (integer images, or float images holding whole numbers): a lookup table
+        if whole is None:
+            whole = whole_valued(a)
+        if whole and np.isfinite(a).all():
+            vmin, vmax = int(lo), int(hi)
+            levels = np.arange(vmin, vmax + 1, dtype=np.float64)
+            lut = np.searchsorted(edges, levels, side="right").astype(np.uint16)
+            return lut[a.astype(np.int32) - np.int32(vmin)]
+    binned = np.searchsorted(edges, a.ravel(), side="right").astype(np.uint16).reshape(a.shape)
+    if np.issubdtype(a.dtype, np.floating):
+        binned[np.isnan(a)] = 0
+    return binned
+
+
+def cooccurrence(binned: np.ndarray, nbins: int, slab: int = 32) -> np.ndarray:
+    """Symmetric grey-level co-occurrence counts over face-neighbour voxel pairs.
+
+    Every unordered pair of face neighbours (along each axis, in 2D or 3D) with bins
+    ``(i, j)`` adds 1 to ``C[i, j]`` and 1 to ``C[j, i]`` (a pair within one bin adds 2
+    to ``C[i, i]``), so ``C.sum()`` is twice the number of pairs and row ``i`` sums the
+    neighbours of all voxels in bin ``i``. Computed with ``np.bincount`` in slabs of
+    ``slab`` planes along the first axis to bound memory.
+
+    Parameters
+    ----------
+    binned : (nx, ny[, nz]) ndarray of int
+        Bin index per voxel, ``0 <= b < nbins``.
+    nbins : int
+
+    Returns
+    -------
+    C : (nbins, nbins) ndarray of int64, symmetric
+    """
+    counts = np.zeros(nbins * nbins, dtype=np.int64)
+    n0 = binned.shape[0]
+    ndim = binned.ndim
+    for start in range(0, n0, slab):
+        stop = min(start + slab, n0)
+        block = binned[start:stop].astype(np.int32)
+        pairs = []
+        if stop < n0 or stop - start > 1:  # axis-0 pairs, including the one into the next slab
+            nxt = binned[start + 1:min(stop + 1, n0)].astype(np.int32)
+            pairs.append((block[:nxt.shape[0]], nxt))
+        for axis in range(1, ndim):
+            lo = [slice(None)] * ndim
+            hi = [slice(None)] * ndim
+            lo[axis] = slice(None, -1)
+            hi[axis] = slice(1, None)
+            pairs.append((block[tuple(lo)], block[tuple(hi)]))
+        for a, b in pairs:
+            if a.size:
+                counts += np.bincount((a * nbins + b).ravel(), minlength=nbins * nbins)
+    c = counts.reshape(nbins, nbins)
+    return c + c.T
+
+
+class _Blocks:
+    """O(1) sums of square diagonal blocks and row bands of a co-occurrence matrix."""
+
+    def __init__(self, c: np.ndarray):
+        n = c.shape[0]
+        self.p = np.zeros((n + 1, n + 1), dtype=np.float64)
+        self.p[1:, 1:] = np.cumsum(np.cumsum(c, axis=0), axis=1)
+        self.r = np.concatenate([[0.0], np.cumsum(c.sum(axis=1), dtype=np.float64)])
+
+    def same(self, a, b):
+        """Pair ends inside bins [a, b) with the partner also inside [a, b)."""
+        p = self.p
+        return p[b, b] - p[a, b] - p[b, a] + p[a, a]
+
+    def total(self, a, b):
+        """All pair ends of voxels in bins [a, b)."""
+        return self.r[b] - self.r[a]
+
+    def solidity(self, a, b):
+        """Fraction of the face neighbours of the voxels in bins [a, b) that lie in [a, b) too (0 if empty)."""
+        t = self.total(a, b)
+        s = self.same(a, b)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(t > 0, s / np.where(t > 0, t, 1), 0.0)
+
+
+def _plateau_centre(values: np.ndarray) -> int:
+    """Index in the middle of the first run of maximal values (deterministic tie break)."""
+    best = values.max()
+    top = values >= best - 1e-12 * max(1.0, abs(best))
+    first = int(np.argmax(top))
+    run = int(np.argmin(top[first:])) if not top[first:].all() else top.size - first
+    return first + (run - 1) // 2
+
+
+def shape_connectivity_thresholds(array: np.ndarray, ranges, names: list[str], source: str,
+                                  bins: int = 128, max_sweeps: int = 20) -> tuple[list[float], dict]:
+    """Class thresholds by Lie's shape-connectivity criterion on face-neighbour co-occurrences.
+
+    Criterion. For thresholds ``t_1 < ... < t_K`` the image splits into classes
+    0..K (class c holds ``t_c <= v < t_{c+1}``, class 0 is background). Count every
+    pair of face-neighbouring voxels (6 neighbours in 3D, 4 in 2D). For class c let
+    ``S_c`` be the number of neighbour slots of its voxels that hold a voxel of class c
+    too (a pair inside c counts twice) and ``B_c`` the slots that hold another class
+    (the "busy" pairs straddling one of c's thresholds). The solidity of class c is
+    ``P_c = S_c / (S_c + B_c)`` (0 for an empty class): the probability that a face
+    neighbour of a class-c voxel is in class c. The thresholds maximise
+
+        ``J(t_1, ..., t_K) = sum_{c=0..K} P_c``  (at most K + 1),
+
+    which rewards solid classes and penalises busy, speckled splits; normalising per
+    class keeps a threshold from running to the edge of its range to make one class
+    tiny. All counts come from one grey-level co-occurrence matrix ``C`` over the
+    binned intensities (bins edged by the candidate thresholds), so ``S_c`` is the sum
+    of a diagonal block of ``C`` and ``S_c + B_c`` a band of its rows.
+
+    Search. Each ``t_c`` is searched over the candidates of its range
+    (``bins`` equal steps; whole grey levels when the image holds whole numbers). Moving ``t_c`` changes
+    only classes c-1 and c, so ``J`` is maximised one threshold at a time over all its
+    candidates (vectorised), with the others fixed, sweeping c = 1..K until no
+    threshold moves. The start is the middle of each range. Among equal maxima the
+    middle of the first plateau is taken.
+
+    Parameters
+    ----------
+    array : (nx, ny[, nz]) ndarray of int or float
+        Image intensities (HU for CT).
+    ranges : list of K [low, high]
+        Search range of each class's lower threshold, increasing and not overlapping.
+    names : list of K str
+        Class names (messages and the returned curves).
+    source : str
+        File named in error messages.
+    bins : int
+        Candidate steps per range.
+    max_sweeps : int
+        Upper bound on the coordinate sweeps.
+
+    Returns
+    -------
+    thresholds : list of K float
+    search : dict
+        ``ranges``; ``criterion`` per class name: ``{"thresholds": [...], "values": [...]}``,
+        J along that class's candidates with the other thresholds at their final
+        values; ``criterion_max`` (J at the result); ``sweeps``; ``bins``; ``seconds``.
+    """
+    import time
+
+    t0 = time.perf_counter()
+    k = len(names)
+    lo, hi = value_range(array)
+    checked = check_ranges(ranges, k, names, lo, hi, source)
+    whole = whole_valued(array)
+    cands = candidate_edges(checked, int(bins), whole)
+    edges, inverse = np.unique(np.concatenate(cands), return_inverse=True)
+    # position of each range's candidates in ``edges``; threshold at edges[j] starts bin j + 1
+    offsets = np.cumsum([0] + [len(c) for c in cands])
+    cand_idx = [inverse[offsets[i]:offsets[i + 1]] for i in range(k)]
+    nbins = edges.size + 1
+    binned = bin_image(array, edges, whole)
+    t_bin = time.perf_counter()
+    blocks = _Blocks(cooccurrence(binned, nbins))
+    del binned
+    t_cooc = time.perf_counter()
+
+    choice = [len(c) // 2 for c in cand_idx]  # index into each class's candidates
+
+    def starts():
+        return [0] + [int(cand_idx[i][choice[i]]) + 1 for i in range(k)] + [nbins]
+
+    sweeps = 0
+    for sweeps in range(1, max_sweeps + 1):
+        moved = False
+        for c in range(k):
+            s = starts()
+            j = cand_idx[c] + 1  # candidate bin starts of class c + 1 (label c + 1)
+            j = np.clip(j, s[c], s[c + 2])  # stay between the neighbouring thresholds
+            values = blocks.solidity(s[c], j) + blocks.solidity(j, s[c + 2])
+            best = _plateau_centre(values)
+            if best != choice[c]:
+                choice[c] = best
+                moved = True
+        if not moved:
+            break
+
+    s = starts()
+    total = float(sum(blocks.solidity(s[c], s[c + 1]) for c in range(k + 1)))
+    curves = {}
+    for c in range(k):
+        j = np.clip(cand_idx[c] + 1, s[c], s[c + 2])
+        rest = total - float(blocks.solidity(s[c], s[c + 1]) + blocks.solidity(s[c + 1], s[c + 2]))
+        values = blocks.solidity(s[c], j) + blocks.solidity(j, s[c + 2]) + rest
+        curves[names[c]] = {"thresholds": [round(float(x), 4) for x in cands[c]],
+                            "values": [round(float(x), 6) for x in values]}
+    thresholds = [float(cands[c][choice[c]]) for c in range(k)]
+    search = {
+        "ranges": [[a, b] for a, b in checked],
+        "bins": int(bins),
+        "criterion": curves,
+        "criterion_max": round(total, 6),
+        "sweeps": sweeps,
+        "seconds": {"binning": round(t_bin - t0, 3), "cooccurrence": round(t_cooc - t_bin, 3),
+                    "search": round(time.perf_counter() - t_cooc, 3)},
+    }
+    return thresholds, search

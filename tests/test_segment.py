@@ -1,0 +1,476 @@
+"""Segmentation: thresholds, morphology on nested classes, errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from scipy import ndimage as ndi
+
+from dicer.config import load_config
+from dicer.errors import DicerError
+from dicer.image import Volume
+from dicer.segment import class_priority, segment
+from dicer.segment.morphology import (
+    ball,
+    clean_labels,
+    closing,
+    filter_components,
+    opening_by_reconstruction,
+)
+from dicer.segment.thresholds import classify
+
+AIR, SOFT, BONE = -1000.0, 40.0, 900.0
+FACE3 = ndi.generate_binary_structure(3, 1)
+
+
+def config(**segment):
+    return load_config(settings={"segment": segment})
+
+
+def one_class_config(**segment):
+    return load_config(settings={"materials": [{"name": "solid"}], "segment": segment})
+
+
+def head_like(n=32, noise=0.0, seed=0):
+    """Air, a soft-tissue ball (radius 0.4 n) holding a bone shell (0.25..0.32 n); true labels too."""
+    g = np.indices((n, n, n), dtype=np.float32) - (n - 1) / 2
+    r = np.sqrt((g ** 2).sum(0))
+    truth = np.zeros((n, n, n), np.uint8)
+    truth[r <= 0.4 * n] = 1
+    truth[(r >= 0.25 * n) & (r <= 0.32 * n)] = 2
+    image = np.choose(truth, [AIR, SOFT, BONE]).astype(np.float32)
+    if noise:
+        image += np.random.default_rng(seed).normal(0, noise, image.shape).astype(np.float32)
+    return Volume(image, (1.0, 1.0, 1.0)), truth
+
+
+def dice(a, b):
+    return 2 * np.count_nonzero(a & b) / max(np.count_nonzero(a) + np.count_nonzero(b), 1)
+
+
+# --- thresholds ---------------------------------------------------------------------
+
+
+def test_classify_counts_thresholds_reached():
+    a = np.array([-1000, -141, -140, 0, 225.9, 226, 3000], dtype=np.float32)
+    assert classify(a, [-140, 226]).tolist() == [0, 0, 1, 1, 1, 2, 2]
+    assert classify(np.array([np.nan, 1.0]), [0.5]).tolist() == [0, 1]
+
+
+@settings(max_examples=40, deadline=None)
+@given(arrays(np.int16, (7, 5), elements=st.integers(-500, 500)),
+       st.lists(st.integers(-500, 500), min_size=1, max_size=4, unique=True))
+def test_classify_matches_digitize(a, t):
+    t = sorted(t)
+    assert np.array_equal(classify(a, t), np.digitize(a, t))
+
+
+def test_manual_exact_on_clean_volume():
+    image, truth = head_like(32)
+    labels, info = segment(image, config(method="manual", thresholds=[-140, 226], closing_radius=0),
+                           "head.nii.gz")
+    assert labels.array.dtype == np.uint8
+    assert labels.spacing == image.spacing and labels.origin == image.origin
+    assert np.array_equal(labels.array, truth)
+    assert info["thresholds"] == [-140.0, 226.0]
+    counts = info["classes"]
+    assert counts["bone"]["voxels"] == np.count_nonzero(truth == 2)
+    assert sum(v["fraction"] for v in counts.values()) == pytest.approx(1.0, abs=1e-5)
+    closed, _ = segment(image, config(method="manual"), "head.nii.gz")  # closing fills 24 dents of the shell
+    diff = closed.array != truth
+    assert diff.sum() == 24 and (closed.array[diff] == 2).all() and (truth[diff] == 1).all()
+
+
+def test_otsu_one_class_noisy():
+    image, truth = head_like(32, noise=60, seed=1)
+    image.array[truth == 2] = SOFT + np.random.default_rng(2).normal(0, 60, np.count_nonzero(truth == 2))
+    labels, info = segment(image, one_class_config(method="otsu"), "one.nii.gz")
+    assert AIR + 200 < info["thresholds"][0] < SOFT - 200
+    assert dice(labels.array == 1, truth >= 1) > 0.999
+
+
+def test_multiotsu_two_classes_noisy():
+    image, truth = head_like(32, noise=60, seed=3)
+    labels, info = segment(image, config(method="multiotsu"), "head.nii.gz")
+    t1, t2 = info["thresholds"]
+    assert AIR + 200 < t1 < SOFT - 150 and SOFT + 200 < t2 < BONE - 200
+    assert dice(labels.array == 1, truth == 1) > 0.99
+    assert dice(labels.array == 2, truth == 2) > 0.99
+
+
+def test_segment_2d():
+    image, truth = head_like(32)
+    im2 = Volume(image.array[:, :, 16].copy(), (0.5, 0.7))
+    labels, info = segment(im2, config(method="manual", closing_radius=0), "slice.png")
+    assert labels.array.shape == (32, 32) and labels.spacing == (0.5, 0.7)
+    assert np.array_equal(labels.array, truth[:, :, 16])
+
+
+# --- morphology ---------------------------------------------------------------------
+
+
+def test_ball_radius_1_is_the_face_cross():
+    assert np.array_equal(ball(1, 3), FACE3)
+    assert ball(2, 3).sum() == 33 and ball(2, 2).sum() == 13
+
+
+def test_opening_by_reconstruction_removes_speck_keeps_attached_plate():
+    m = np.zeros((30, 30, 30), bool)
+    m[2:12, 2:12, 2:12] = True            # big block
+    m[12:28, 5:20, 6] = True              # 1-voxel plate attached to it
+    m[20, 25, 25] = True                  # isolated speck
+    m[22:24, 25:27, 20:22] = True         # 2x2x2 blob (thinner than 3)
+    out = opening_by_reconstruction(m, 1)
+    expected = m.copy()
+    expected[20, 25, 25] = False
+    expected[22:24, 25:27, 20:22] = False
+    assert np.array_equal(out, expected)
+    assert out.sum() == 1000 + 16 * 15
+    # a plain opening would strip the plate
+    assert ndi.binary_opening(m, FACE3).sum() < 1000
+
+
+def test_opening_keeps_objects_cut_by_the_border():
+    m = np.zeros((10, 10, 10), bool)
+    m[:, :, 0:2] = True                   # a 2-voxel slab on the border plane
+    assert opening_by_reconstruction(m, 1).sum() == 200
+
+
+def test_closing_fills_one_voxel_hole_and_keeps_border():
+    m = np.ones((9, 9, 9), bool)
+    m[4, 4, 4] = False
+    out = closing(m, 1)
+    assert out.all()
+    m2 = np.zeros((9, 9, 9), bool)
+    m2[:, :, :3] = True
+    assert np.array_equal(closing(m2, 1), m2)
+
+
+def test_keep_largest_drops_separate_arc():
+    m = np.zeros((40, 40, 20), bool)
+    g = np.indices(m.shape)
+    m[((g[0] - 20) ** 2 + (g[1] - 18) ** 2) <= 100] = True            # the head: a cylinder of radius 10
+    arc = (np.abs(np.hypot(g[0] - 20, g[1] - 18) - 14) < 1.0) & (g[1] < 12)
+    m |= arc                                                         # a thin arc behind it, not touching
+    assert ndi.label(m, FACE3)[1] == 2
+    out = filter_components(m, "largest")
+    assert out.sum() == m.sum() - arc.sum()
+    assert not (out & arc).any()
+    assert filter_components(m, "all", min_size=arc.sum() + 1).sum() == out.sum()
+
+
+@settings(max_examples=30, deadline=None)
+@given(arrays(bool, (8, 8, 6)), st.integers(1, 2))
+def test_opening_keeps_or_drops_whole_components(m, r):
+    out = opening_by_reconstruction(m, r)
+    assert not (out & ~m).any()
+    comp, n = ndi.label(m, FACE3)
+    for c in range(1, n + 1):
+        part = out[comp == c]
+        assert part.all() or not part.any()
+
+
+def test_nested_classes_closing_bone_leaves_no_holes():
+    # soft tissue block with a bone plate holding a 1-voxel cavity: closing fills it with bone,
+    # and a 1-voxel soft-tissue skin on the body survives the opening (cumulative masks).
+    lab = np.zeros((20, 20, 20), np.uint8)
+    lab[2:18, 2:18, 2:18] = 1
+    lab[5:15, 5:15, 8:10] = 2
+    lab[5:15, 5:15, 10] = 2
+    lab[10, 10, 9] = 1                    # a cavity inside the bone plate
+    lab[5:15, 5:15, 18] = 1               # a 1-voxel skin on the body surface
+    out, info = clean_labels(lab, 2, 1, 1)
+    assert out[10, 10, 9] == 2
+    assert (out[5:15, 5:15, 18] == 1).all()
+    assert np.count_nonzero(out == 2) == 300
+    assert np.count_nonzero(out == 0) == np.count_nonzero(lab == 0)
+    assert info["removed_by_opening"] == {1: 0, 2: 0}
+
+
+def test_bone_speck_becomes_soft_tissue_and_soft_speck_becomes_background():
+    lab = np.zeros((20, 20, 20), np.uint8)
+    lab[2:18, 2:18, 2:12] = 1
+    lab[8, 8, 6] = 2                      # bone speck in soft tissue
+    lab[10, 10, 16] = 1                   # soft speck in air
+    out, info = clean_labels(lab, 2, 1, 0)
+    assert out[8, 8, 6] == 1 and out[10, 10, 16] == 0
+    assert info["removed_by_opening"] == {1: 1, 2: 1}
+
+
+def test_priority_settles_non_nested_voxels():
+    # K=3, a middle class emptied between kept outer and inner masks: (1, 0, 1) voxels
+    lab = np.zeros((12, 12, 12), np.uint8)
+    lab[1:11, 1:11, 1:11] = 3
+    out_default, _ = clean_labels(lab, 3, 0, 0)
+    assert np.array_equal(out_default, lab)
+    prio = class_priority(load_config(settings={
+        "materials": [{"name": "a"}, {"name": "b"}, {"name": "c"}],
+        "segment": {"priority": ["a"]}}))
+    assert prio == [1, 3, 2]
+
+
+def test_headrest_dropped_by_keep_largest():
+    image, truth = head_like(48)
+    g = np.indices(image.array.shape)
+    arc = (np.abs(np.hypot(g[0] - 23.5, g[1] - 23.5) - 22) < 1.4) & (g[1] < 10) & (g[2] > 5) & (g[2] < 40)
+    image.array[arc] = SOFT
+    cfg = config(method="manual", keep="largest", closing_radius=0)
+    labels, info = segment(image, cfg, "head.nii.gz")
+    assert not labels.array[arc].any()
+    assert np.array_equal(labels.array, truth)
+    labels_all, _ = segment(image, config(method="manual"), "head.nii.gz")
+    assert labels_all.array[arc].sum() > 0
+
+
+def test_keep_per_class_list():
+    image, truth = head_like(32)
+    image.array[0:3, 0:3, 0:3] = BONE     # a separate dense block in the corner
+    labels, _ = segment(image, config(method="manual", keep=["all", "largest"]), "x")
+    assert (labels.array[0:3, 0:3, 0:3] == 1).all()  # dropped from bone, kept as the outer class
+    labels, _ = segment(image, config(method="manual", keep="largest"), "x")
+    assert (labels.array[0:3, 0:3, 0:3] == 0).all()
+
+
+# --- errors -------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("settings_, words", [
+    ({"method": "manual", "thresholds": [0.0]}, ["head.nii", "1 value", "2 material", "soft_tissue, bone"]),
+    ({"method": "manual", "thresholds": [300.0, 200.0]}, ["head.nii", "increase strictly", "'bone'"]),
+    ({"method": "manual", "thresholds": [5000.0, 6000.0]}, ["head.nii", "no voxel >= 5000", "soft_tissue",
+                                                            "lower segment.thresholds"]),
+    ({"method": "otsu"}, ["head.nii", "otsu", "2 materials", "multiotsu"]),
+    ({"method": "manual", "priority": ["marrow"]}, ["head.nii", "segment.priority", "marrow"]),
+    ({"method": "manual", "keep": ["largest"]}, ["head.nii", "segment.keep", "1 entries", "2 materials"]),
+])
+def test_errors_name_file_key_and_fix(settings_, words):
+    image, _ = head_like(16)
+    with pytest.raises(DicerError) as err:
+        segment(image, config(**settings_), "head.nii")
+    message = str(err.value)
+    assert "\n" not in message
+    for w in words:
+        assert w in message
+
+
+def test_error_single_grey_level():
+    with pytest.raises(DicerError, match=r"flat.nii: the image has a single grey level \(7\)"):
+        segment(Volume(np.full((8, 8, 8), 7, np.int16), (1, 1, 1)), config(method="multiotsu"), "flat.nii")
+
+
+def test_error_opening_removes_everything():
+    a = np.full((20, 20, 20), AIR, np.float32)
+    a[::4, ::4, ::4] = SOFT               # isolated single voxels only
+    with pytest.raises(DicerError, match=r"dots.nii: the morphology removed every voxel.*lower segment.opening_radius"):
+        segment(Volume(a, (1, 1, 1)), config(method="manual"), "dots.nii")
+    labels, _ = segment(Volume(a, (1, 1, 1)), config(method="manual", opening_radius=0, closing_radius=0, keep="all"), "d")
+    assert np.count_nonzero(labels.array) == 125
+
+
+def test_error_4d_and_nan_image():
+    with pytest.raises(DicerError, match="4D image"):
+        segment(Volume(np.zeros((2, 2, 2, 2)), (1, 1, 1, 1)), config(), "four.nii")
+    with pytest.raises(DicerError, match="no finite value"):
+        segment(Volume(np.full((3, 3, 3), np.nan), (1, 1, 1)), config(), "nan.nii")
+
+
+# --- shape connectivity ----------------------------------------------------------------
+
+from pathlib import Path  # noqa: E402
+
+from dicer.segment.thresholds import (  # noqa: E402
+    bin_image,
+    cooccurrence,
+    shape_connectivity_thresholds,
+)
+
+CT = Path(__file__).resolve().parents[2] / "shared" / "data" / "cranium_ct.nii.gz"
+
+
+def _pairs_brute(b, nbins):
+    m = np.zeros((nbins, nbins), np.int64)
+    for ax in range(b.ndim):
+        a = np.moveaxis(b, ax, 0)
+        np.add.at(m, (a[:-1].ravel(), a[1:].ravel()), 1)
+    return m + m.T
+
+
+@settings(max_examples=25, deadline=None)
+@given(arrays(np.uint16, st.one_of(st.tuples(st.integers(1, 40), st.integers(1, 6), st.integers(1, 5)),
+                                   st.tuples(st.integers(1, 9), st.integers(1, 9))),
+              elements=st.integers(0, 4)),
+       st.integers(1, 7))
+def test_cooccurrence_matches_brute_force(b, slab):
+    assert np.array_equal(cooccurrence(b, 5, slab=slab), _pairs_brute(b, 5))
+
+
+def test_bin_image_lut_and_searchsorted_agree():
+    rng = np.random.default_rng(0)
+    a = rng.integers(-1024, 2000, (40, 40, 40)).astype(np.int16)
+    edges = np.array([-300.0, -200.5, 0.0, 150.0, 700.0])
+    expected = np.searchsorted(edges, a.astype(float).ravel(), side="right").reshape(a.shape)
+    assert np.array_equal(bin_image(a, edges), expected)                       # lookup table
+    assert np.array_equal(bin_image(a.astype(np.float32), edges), expected)    # whole-valued float
+    assert np.array_equal(bin_image(a.astype(np.float32) + 0.25, edges),
+                          np.searchsorted(edges, a.astype(float).ravel() + 0.25, side="right").reshape(a.shape))
+
+
+def _solidity_sum(labels, k):
+    """J computed directly from a label volume: sum over classes of same-class neighbour fraction."""
+    m = _pairs_brute(labels.astype(np.int64), k + 1)
+    rows = m.sum(axis=1)
+    return sum(m[c, c] / rows[c] for c in range(k + 1) if rows[c])
+
+
+def test_criterion_is_the_sum_of_class_solidities():
+    image, _ = head_like(24, noise=150, seed=5)
+    t, search = shape_connectivity_thresholds(image.array, [[-700, -100], [300, 700]], ["soft", "bone"], "h", bins=40)
+    assert -700 <= t[0] <= -100 and 300 <= t[1] <= 700
+    direct = _solidity_sum(classify(image.array, t), 2)
+    assert search["criterion_max"] == pytest.approx(direct, abs=1e-6)
+    # the curve of each class peaks at the chosen threshold and agrees with a direct evaluation
+    curve = search["criterion"]["bone"]
+    i = int(np.argmax(curve["values"]))
+    assert curve["thresholds"][i] == pytest.approx(t[1], abs=1e-3)
+    alt = curve["thresholds"][3]
+    assert curve["values"][3] == pytest.approx(_solidity_sum(classify(image.array, [t[0], alt]), 2), abs=1e-5)
+
+
+def test_plateau_centre_on_a_clean_two_level_image():
+    a = np.zeros((20, 20, 20), np.int16)
+    a[5:15, 5:15, 5:15] = 100
+    t, _ = shape_connectivity_thresholds(a, [[10, 90]], ["solid"], "x", bins=80)
+    assert t == [50.0]
+
+
+def test_shape_connectivity_2d():
+    image, truth = head_like(48, noise=80, seed=2)
+    im2 = Volume(image.array[:, :, 24].copy(), (1.0, 1.0))
+    labels, info = segment(im2, config(method="shape_connectivity", keep="all"), "slice.png")
+    assert dice(labels.array == 2, truth[:, :, 24] == 2) > 0.97
+    assert -400 <= info["thresholds"][0] <= 0 and 100 <= info["thresholds"][1] <= 1000
+
+
+@pytest.mark.parametrize("noise", [30.0, 100.0])
+def test_head_phantom_acceptance(head_phantom, noise):
+    truth = head_phantom["truth"]
+    image = head_phantom[noise]
+    scores = {}
+    for method in ("shape_connectivity", "multiotsu"):
+        labels, info = segment(image, config(method=method), "head")
+        a = labels.array
+        scores[method] = [dice(a == c, truth == c) for c in (1, 2)]
+        if method == "shape_connectivity":
+            (lo1, hi1), (lo2, hi2) = info["ranges"]
+            assert lo1 <= info["thresholds"][0] <= hi1 and lo2 <= info["thresholds"][1] <= hi2
+            assert ndi.label(a == 2, FACE3)[1] == 1          # the thin skull stays one piece
+            assert ndi.label(a > 0, FACE3)[1] == 1           # the headrest is gone
+            assert not a[head_phantom["headrest"]].any()
+    assert min(scores["shape_connectivity"]) >= 0.95
+    for sc, otsu in zip(scores["shape_connectivity"], scores["multiotsu"]):
+        assert sc >= otsu - 0.002
+
+
+@pytest.fixture(scope="module")
+def head_phantom():
+    phantoms = pytest.importorskip("dicer.phantoms")
+    truth = phantoms.phantom_labels("head", size=64).array
+    out = {"truth": truth}
+    for noise in (30.0, 100.0):
+        out[noise] = phantoms.make_phantom("head", size=64, noise=noise, seed=0)
+    clean = phantoms.make_phantom("head", size=64, noise=0.0).array
+    out["headrest"] = (truth == 0) & (clean > -500)
+    assert out["headrest"].sum() > 100
+    return out
+
+
+@pytest.mark.parametrize("ranges, words", [
+    ([[-400, 0]], ["head.nii", "1 range(s) for 2 material", "missing: 'bone'"]),
+    ([[-400, 200], [100, 1000]], ["head.nii", "'bone'", "overlaps or precedes", "'soft_tissue'"]),
+    ([[100, 1000], [-400, 0]], ["head.nii", "'bone'", "overlaps or precedes"]),
+    ([[-400, 0], [2000, 3000]], ["head.nii", "'bone'", "[2000, 3000]", "image's values span -1000 .. 900"]),
+    ([[-3000, -2000], [100, 1000]], ["head.nii", "'soft_tissue'", "move the range inside"]),
+    ([[0, -400], [100, 1000]], ["head.nii", "'soft_tissue'", "low must be below high"]),
+])
+def test_shape_connectivity_range_errors(ranges, words):
+    image, _ = head_like(16)
+    with pytest.raises(DicerError) as err:
+        segment(image, config(method="shape_connectivity", ranges=ranges), "head.nii")
+    for w in words:
+        assert w in str(err.value)
+
+
+def test_shape_connectivity_single_grey_level():
+    with pytest.raises(DicerError, match="single grey level"):
+        segment(Volume(np.zeros((6, 6, 6), np.int16), (1, 1, 1)), config(method="shape_connectivity"), "f.nii")
+
+
+def test_default_method_is_shape_connectivity():
+    assert load_config()["segment"]["method"] == "shape_connectivity"
+    image, truth = head_like(32, noise=50, seed=4)
+    labels, info = segment(image, load_config(), "head")
+    assert info["method"] == "shape_connectivity"
+    assert dice(labels.array == 2, truth == 2) > 0.98
+
+
+# --- pictures -------------------------------------------------------------------------
+
+
+def test_overlay_and_threshold_plot_are_deterministic(tmp_path):
+    from dicer.io.pictures import save_overlay_png, save_threshold_plot
+
+    image, _ = head_like(24, noise=40, seed=1)
+    labels, info = segment(image, config(method="shape_connectivity"), "head")
+    paths = []
+    for i in range(2):
+        p = save_overlay_png(image, labels, tmp_path / f"o{i}.png", f"thresholds {info['thresholds']}", 2,
+                             ["soft_tissue", "bone"])
+        q = save_threshold_plot(info, tmp_path / f"c{i}.png")
+        paths.append((p.read_bytes(), q.read_bytes()))
+    assert paths[0] == paths[1]
+    data = paths[0][0]
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and b"Software" not in data and b"matplotlib" not in data
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["c0.png", "c1.png", "o0.png", "o1.png"]
+    two_d = save_overlay_png(Volume(image.array[:, :, 12].copy(), (1, 1)),
+                             Volume(labels.array[:, :, 12].copy(), (1, 1)), tmp_path / "s.png")
+    assert two_d.stat().st_size > 1000
+
+
+def test_threshold_plot_needs_a_curve(tmp_path):
+    from dicer.io.pictures import save_threshold_plot
+
+    with pytest.raises(DicerError, match="needs segment.method=shape_connectivity"):
+        save_threshold_plot({"method": "manual", "thresholds": [0.0]}, tmp_path / "c.png")
+    assert not list(tmp_path.iterdir())
+
+
+# --- the real head CT -------------------------------------------------------------------
+
+
+@pytest.mark.skipif(not CT.exists(), reason="shared head CT not present")
+def test_real_head_ct():
+    import SimpleITK as sitk
+
+    img = sitk.ReadImage(str(CT))
+    a = sitk.GetArrayFromImage(img).transpose(2, 1, 0)
+    image = Volume(a, img.GetSpacing())
+    labels, info = segment(image, load_config(), str(CT))
+    t1, t2 = info["thresholds"]
+    assert -400 <= t1 <= 0 and 100 <= t2 <= 1000
+    assert -170 <= t1 <= -120 and 120 <= t2 <= 240      # measured: -144 and 140 HU
+    lab = labels.array
+    assert ndi.label(lab > 0, FACE3)[1] == 1
+    # the raw body mask holds the head and the two headrest parts; only the head remains
+    comp, n = ndi.label(a >= t1, FACE3)
+    sizes = np.bincount(comp.ravel())[1:]
+    big = np.argsort(sizes)[::-1][:3] + 1
+    assert sizes[big[1] - 1] > 20000 and sizes[big[2] - 1] > 20000
+    assert not lab[(comp == big[1]) | (comp == big[2])].any()
+    bone = ndi.label(lab == 2, FACE3)
+    bone_sizes = np.bincount(bone[0].ravel())[1:]
+    assert bone_sizes.max() > 0.99 * bone_sizes.sum()    # the skull is one component (plus specks < 1000)
+    assert 0.05 < info["classes"]["bone"]["fraction"] < 0.08
+    assert 0.23 < info["classes"]["soft_tissue"]["fraction"] < 0.28

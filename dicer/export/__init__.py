@@ -1,0 +1,487 @@
+"""Solver and viewer exports: the format follows the output file's extension.
+
+``export_mesh(mesh, path, config, source)`` prepares one :class:`SolverModel`
+(node numbering, element order and type, per-material blocks, node sets and the
+exterior surface), hands it to the writer of the format, reads the file back and
+checks it, and only then renames it into place. A failed check raises
+DicerError and leaves no file behind.
+
+Formats: Abaqus/CalculiX ``.inp``, VTU ``.vtu`` (ParaView), PATRAN neutral
+``.out``/``.neu``, LS-DYNA keyword ``.k``/``.key``/``.dyn``, Gmsh ``.msh``, Exodus II
+``.e``/``.exo`` (when the netCDF4 package is installed).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dicer import __version__
+from dicer.config import config_hash
+from dicer.errors import DicerError
+from dicer.io.atomic import atomic_path
+from dicer.mesh.model import Mesh
+
+FORMATS = {
+    ".inp": "abaqus",
+    ".vtu": "vtu",
+    ".out": "patran",
+    ".neu": "patran",
+    ".k": "lsdyna",
+    ".key": "lsdyna",
+    ".dyn": "lsdyna",
+    ".msh": "gmsh",
+    ".e": "exodus",
+    ".exo": "exodus",
+}
+EXPORT_SUFFIXES = tuple(FORMATS)
+"""Output file extensions ``dicer export`` accepts."""
+
+# element type -> (dimension, order); the node order of every type is VTK's (= Abaqus's)
+ELEMENT_TYPES = {
+    "C3D8": (3, 1), "C3D8R": (3, 1), "C3D8I": (3, 1),
+    "C3D20": (3, 2), "C3D20R": (3, 2),
+    "CPS4": (2, 1), "CPS4R": (2, 1), "CPE4": (2, 1), "CPE4R": (2, 1),
+    "CPS8": (2, 2), "CPS8R": (2, 2), "CPE8": (2, 2), "CPE8R": (2, 2),
+}
+DEFAULT_TYPES = {(3, 1): "C3D8", (3, 2): "C3D20", (2, 1): "CPS4", (2, 2): "CPS8"}
+
+# Faces (3D) or edges (2D) of an element, corner indices in the Abaqus face order S1..S6 / S1..S4.
+HEX_FACES = np.array([[0, 1, 2, 3], [4, 7, 6, 5], [0, 4, 5, 1], [1, 5, 6, 2], [2, 6, 7, 3], [3, 7, 4, 0]])
+QUAD_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
+# The same with the face's mid-edge nodes (20-node hex, 8-node quad; VTK/Abaqus node order).
+HEX20_FACES = np.column_stack([HEX_FACES, [[8, 9, 10, 11], [15, 14, 13, 12], [16, 12, 17, 8], [17, 13, 18, 9],
+                                           [18, 14, 19, 10], [19, 15, 16, 11]]])
+QUAD8_EDGES = np.column_stack([QUAD_EDGES, [4, 5, 6, 7]])
+
+SET_KINDS = ("planes", "materials", "interfaces", "exterior")
+
+
+@dataclass
+class SolverModel:
+    """A mesh ready for a solver file: everything a writer needs, nothing format-specific.
+
+    points : (N, 3) node coordinates; node i is written as number i + 1.
+    cells : (M, n) node indices in VTK/Abaqus order (8 or 20 per hex, 4 or 8 per quad).
+    material : (M,) labels 1..K; element j is written as number j + 1.
+    names : label -> class name; props : label -> material dict from the config.
+    element_type : Abaqus name (C3D8, C3D20, CPS4, ...); dim, order : 2|3, 1|2.
+    node_sets : set name -> sorted 0-based node indices (bounding planes, material
+        boundaries, interfaces). exterior : (F, 2) int64 rows (element index, face
+        number 1..6 / 1..4) of the element faces on the exterior surface.
+    heading : provenance lines (no date, no path).
+    """
+
+    points: np.ndarray
+    cells: np.ndarray
+    material: np.ndarray
+    names: dict[int, str]
+    props: dict[int, dict]
+    element_type: str
+    dim: int
+    order: int
+    thickness: float
+    digits: int
+    node_sets: dict[str, np.ndarray] = field(default_factory=dict)
+    exterior: np.ndarray | None = None
+    heading: list[str] = field(default_factory=list)
+    use_heading: bool = True
+    cell_data: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def n_points(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def n_cells(self) -> int:
+        return int(self.cells.shape[0])
+
+    def labels(self) -> list[int]:
+        """Material labels present, ascending."""
+        return [int(k) for k in np.unique(self.material)]
+
+    def blocks(self) -> list[tuple[int, np.ndarray]]:
+        """(label, element indices ascending) per material present."""
+        order = np.argsort(self.material, kind="stable")
+        counts = np.bincount(self.material, minlength=max(self.names) + 1)
+        out, start = [], 0
+        for k in range(counts.size):
+            if counts[k]:
+                out.append((k, order[start : start + counts[k]]))
+                start += counts[k]
+        return out
+
+
+def file_sha256(path: str | os.PathLike | None) -> str | None:
+    """SHA-256 of a file, or of a folder's files in sorted order (DICOM series); None if absent."""
+    if path is None:
+        return None
+    p = Path(path)
+    h = hashlib.sha256()
+    if p.is_file():
+        files = [p]
+    elif p.is_dir():
+        files = sorted(f for f in p.rglob("*") if f.is_file())
+    else:
+        return None
+    for f in files:
+        if p.is_dir():
+            h.update(str(f.relative_to(p)).encode() + b"\0")
+        with open(f, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 22), b""):
+                h.update(block)
+    return h.hexdigest()
+
+
+def provenance(source: str | os.PathLike | None, config: dict, element_type: str, order: int) -> list[str]:
+    """Heading lines: dicer version, input name (no folder) and checksum, config hash; no date."""
+    name = Path(source).name if source else "unknown"
+    digest = file_sha256(source) or "n/a"
+    return [
+        f"dicer {__version__} {element_type} model (order {order}) of {name}",
+        f"input {name} sha256 {digest}",
+        f"config sha256/16 {config_hash(config)}",
+    ]
+
+
+def resolve_element_type(mesh: Mesh, config: dict, path: Path) -> tuple[str, int]:
+    """The element type and order from ``config['export']``, checked against the mesh's dimension."""
+    ex = config.get("export", {})
+    order = int(ex.get("order", 1))
+    etype = ex.get("element_type")
+    if order not in (1, 2):
+        raise DicerError(f"{path}: export.order must be 1 or 2, got {order}")
+    if etype is None:
+        return DEFAULT_TYPES[(mesh.dim, order)], order
+    etype = str(etype).upper()
+    if etype not in ELEMENT_TYPES:
+        raise DicerError(f"{path}: unknown element type {etype!r}; choose one of {', '.join(ELEMENT_TYPES)}")
+    dim, etype_order = ELEMENT_TYPES[etype]
+    if dim != mesh.dim:
+        kinds = [t for t, (d, o) in ELEMENT_TYPES.items() if d == mesh.dim and o == order]
+        raise DicerError(f"{path}: element type {etype} is for {dim}D meshes but the mesh is {mesh.dim}D; "
+                         f"use one of {', '.join(kinds)}")
+    if etype_order != order:
+        kinds = [t for t, (d, o) in ELEMENT_TYPES.items() if d == mesh.dim and o == order]
+        raise DicerError(f"{path}: export.order is {order} but element type {etype} has order {etype_order}; "
+                         f"use one of {', '.join(kinds)} or set export.order={etype_order}")
+    return etype, order
+
+
+# (axis, side) of each face S1..S6 (3D) / edge S1..S4 (2D) of an element, in lattice terms
+HEX_FACE_AXES = [(2, 0), (2, 1), (1, 0), (0, 1), (1, 1), (0, 0)]
+QUAD_EDGE_AXES = [(1, 0), (0, 1), (1, 1), (0, 0)]
+
+
+_CHUNK = 1 << 18  # elements per pass: temporaries stay small and are reused
+
+
+def _box_offsets(dim: int) -> np.ndarray:
+    if dim == 3:
+        return np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]])
+    return np.array([[0, 0], [1, 0], [1, 1], [0, 1]])
+
+
+def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
+    """(M, F) uint8 material of the element across each face, 0 for none, from a voxel -> material grid.
+
+    Valid when every element is an axis-aligned box of the lattice (voxel meshes and
+    plane-merged meshes; smoothing moves points, not lattice indices); None otherwise.
+    """
+    dim = mesh.dim
+    cells, material = mesh.cells, mesh.material
+    m = cells.shape[0]
+    if m == 0 or int(material.max()) > 255:
+        return None
+    offsets = _box_offsets(dim)
+    far = 6 if dim == 3 else 2
+    shape = np.asarray(mesh.grid_shape, np.int64)[:dim]
+    lattice = mesh.lattice[:, :dim]
+    strides = np.array([int(np.prod(shape[i + 1 :])) for i in range(dim)], np.int64)
+    nstrides = np.array([int(np.prod(shape[i + 1 :] + 1)) for i in range(dim)], np.int64)
+    node_lin = lattice @ nstrides
+    grid = np.zeros(int(np.prod(shape)), np.uint8)
+    covered = 0
+    for start in range(0, m, _CHUNK):
+        c = cells[start : start + _CHUNK]
+        lo = lattice[c[:, 0]]
+        ext = lattice[c[:, far]] - lo
+        if ext.min() < 1 or lo.min() < 0 or np.any(lo + ext > shape) or ext.max() >= 64:
+            return None
+        lo_lin = node_lin[c[:, 0]]
+        for k in range(1, offsets.shape[0]):  # every corner where the box puts it
+            want = lo_lin + (offsets[k] * ext) @ nstrides
+            if not np.array_equal(node_lin[c[:, k]], want):
+                return None
+        base = lo @ strides
+        code = ext @ (64 ** np.arange(dim))
+        mat = material[start : start + _CHUNK].astype(np.uint8)
+        for cc in np.unique(code):  # a few distinct box sizes (1 x 1 x 1 before plane merging)
+            sel = code == cc
+            e = [(int(cc) // 64**i) % 64 for i in range(dim)]
+            b, v = base[sel], mat[sel]
+            for off in np.ndindex(*e):
+                grid[b + int(np.dot(off, strides))] = v
+            covered += b.size * int(np.prod(e))
+    if np.count_nonzero(grid) != covered:  # overlapping boxes
+        return None
+    axes = HEX_FACE_AXES if dim == 3 else QUAD_EDGE_AXES
+    nb = np.empty((m, len(axes)), np.uint8)
+    for start in range(0, m, _CHUNK):
+        c = cells[start : start + _CHUNK]
+        lo = lattice[c[:, 0]]
+        ext = lattice[c[:, far]] - lo
+        base = lo @ strides
+        for f, (axis, side) in enumerate(axes):
+            if side == 0:
+                inside = lo[:, axis] > 0
+                idx = base - strides[axis]
+            else:
+                inside = lo[:, axis] + ext[:, axis] < shape[axis]
+                idx = base + ext[:, axis] * strides[axis]
+            np.putmask(idx, ~inside, 0)
+            got = grid[idx]
+            got[~inside] = 0
+            nb[start : start + _CHUNK, f] = got
+    return nb
+
+
+def _neighbours_by_sort(cells: np.ndarray, dim: int, n_points: int) -> np.ndarray:
+    """(M, F) element across each face, -1 for none, from a sort of face keys (any conforming mesh).
+
+    A quad face is keyed by its smallest node and the node diagonally opposite it, an
+    edge by its two nodes."""
+    table = HEX_FACES if dim == 3 else QUAD_EDGES
+    m, nf = cells.shape[0], table.shape[0]
+    keys = np.empty((m, nf), np.int64)
+    for f, face in enumerate(table):
+        c = cells[:, face]
+        if dim == 3:
+            pos = np.argmin(c, axis=1)
+            lo = np.take_along_axis(c, pos[:, None], 1)[:, 0]
+            hi = np.take_along_axis(c, ((pos + 2) % 4)[:, None], 1)[:, 0]
+        else:
+            lo, hi = np.minimum(c[:, 0], c[:, 1]), np.maximum(c[:, 0], c[:, 1])
+        keys[:, f] = lo * n_points + hi
+    flat = keys.ravel()
+    order = np.argsort(flat, kind="stable")
+    sk = flat[order]
+    first = np.flatnonzero(sk[1:] == sk[:-1])
+    nb = np.full(m * nf, -1, np.int64)
+    a, b = order[first], order[first + 1]
+    nb[a] = b // nf
+    nb[b] = a // nf
+    return nb.reshape(m, nf)
+
+
+def neighbour_materials(mesh: Mesh) -> np.ndarray:
+    """(M, F) material label of the element across each face S1..S6 (2D: edge S1..S4), 0 for none."""
+    nb = _neighbour_materials_by_lattice(mesh)
+    if nb is None:
+        idx = _neighbours_by_sort(np.asarray(mesh.cells, np.int64), mesh.dim, mesh.n_points)
+        nb = np.where(idx >= 0, mesh.material[np.maximum(idx, 0)], 0)
+    return nb
+
+
+def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> None:
+    """Exterior faces and surface, material boundary and interface node sets from neighbour materials."""
+    dim = model.dim
+    if model.order == 2:
+        table = HEX20_FACES if dim == 3 else QUAD8_EDGES
+    else:
+        table = HEX_FACES if dim == 3 else QUAD_EDGES
+    labels = model.labels()
+    wanted: dict[str, tuple[int, int | None]] = {}  # set name -> (material, neighbour material or None: any other)
+    if "exterior" in kinds:
+        wanted["EXTERIOR"] = (-1, 0)
+    if "materials" in kinds:
+        for k in labels:
+            wanted[f"{model.names[k]}_BOUNDARY"] = (k, None)
+    if "interfaces" in kinds:
+        for a in labels:
+            for b in labels:
+                if b > a:
+                    wanted[f"{model.names[a]}_{model.names[b]}"] = (a, b)
+    masks = {name: np.zeros(model.n_points, bool) for name in wanted}
+    ext_e, ext_f = [], []
+    for start in range(0, model.n_cells, _CHUNK):
+        mat = model.material[start : start + _CHUNK]
+        nbm = nb_mat[start : start + _CHUNK]
+        cells = model.cells[start : start + _CHUNK]
+        for name, (k, other) in wanted.items():
+            if k == -1:
+                faces = nbm == 0
+                f_idx, e_idx = np.nonzero(faces.T)
+                ext_e.append(e_idx + start)
+                ext_f.append(f_idx)
+            elif other is None:
+                faces = (mat == k)[:, None] & (nbm != k)
+            else:
+                faces = (mat == k)[:, None] & (nbm == other)
+            for f in range(table.shape[0]):
+                e = np.flatnonzero(faces[:, f])
+                if e.size:
+                    masks[name][cells[e[:, None], table[f]]] = True
+    if "exterior" in kinds:
+        e, f = np.concatenate(ext_e), np.concatenate(ext_f)
+        order = np.lexsort((e, f))  # grouped by face number, elements ascending
+        model.exterior = np.column_stack([e[order], f[order] + 1]).astype(np.int64)
+    for name, mask in masks.items():
+        ids = np.flatnonzero(mask)
+        if ids.size:
+            model.node_sets[name] = ids
+
+
+def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "model") -> SolverModel:
+    """Validate ``mesh`` against ``config`` and build the SolverModel the writers share."""
+    path = Path(path)
+    etype, order = resolve_element_type(mesh, config, path)
+    materials = config["materials"]
+    k = len(materials)
+    if mesh.n_cells == 0:
+        raise DicerError(f"{path}: the mesh has no elements; nothing to export")
+    lo, hi = int(mesh.material.min()), int(mesh.material.max())
+    if lo < 1 or hi > k:
+        raise DicerError(f"{path}: element material labels run {lo}..{hi} but the config names {k} material(s) "
+                         f"(labels 1..{k}); add materials to the config")
+    if not np.all(np.isfinite(mesh.points)):
+        raise DicerError(f"{path}: the mesh has non-finite node coordinates; re-run the stage that made it")
+    ex = config.get("export", {})
+    names = {i + 1: m["name"] for i, m in enumerate(materials)}
+    props = {i + 1: {"youngs_modulus": 1000.0, "poissons_ratio": 0.3, "density": 1.0e-9, **m}
+             for i, m in enumerate(materials)}
+    cells = np.asarray(mesh.cells, dtype=np.int64)
+    lattice2 = None  # twice the lattice index (order 2: mid-edge nodes at half-integers)
+    points = mesh.points
+    kinds = set(ex.get("sets", SET_KINDS))
+    nb_mat = None
+    if kinds & {"materials", "interfaces", "exterior"} or (order == 2 and ex.get("midside_nodes") == "curved"):
+        nb_mat = neighbour_materials(mesh)
+    if order == 2:
+        from dicer.mesh.quadratic import quadratic_mesh
+
+        curved = ex.get("midside_nodes") == "curved"
+        boundary = (nb_mat != mesh.material[:, None].astype(nb_mat.dtype)) if curved else None
+        points, cells, lattice2 = quadratic_mesh(mesh, boundary)
+    model = SolverModel(
+        points=points, cells=cells, material=mesh.material.astype(np.int32), names=names, props=props,
+        element_type=etype, dim=mesh.dim, order=order, thickness=float(ex.get("thickness", 1.0)),
+        digits=int(ex.get("digits", 9)), heading=provenance(source, config, etype, order),
+        use_heading=bool(ex.get("heading", True)),
+    )
+    if "planes" in kinds:
+        g2 = 2 * np.asarray(mesh.grid_shape, np.int64)
+        for axis in range(mesh.dim):
+            for side, target in (("0", 0), ("1", g2[axis])):
+                if lattice2 is None:
+                    ids = np.flatnonzero(mesh.lattice[:, axis] == target // 2)
+                else:
+                    ids = np.flatnonzero(lattice2[:, axis] == target)
+                if ids.size:
+                    model.node_sets["XYZ"[axis] + side] = ids
+    if kinds & {"materials", "interfaces", "exterior"}:
+        _surface_sets(model, kinds, nb_mat)
+    return model
+
+
+def _write(fmt: str, model: SolverModel, mesh: Mesh, tmp: Path) -> None:
+    if fmt == "abaqus":
+        from dicer.export.abaqus import write_abaqus
+
+        write_abaqus(model, tmp)
+    elif fmt == "vtu":
+        from dicer.export.vtu import write_vtu
+
+        write_vtu(model, mesh, tmp)
+    elif fmt == "patran":
+        from dicer.export.patran import write_patran
+
+        write_patran(model, tmp)
+    elif fmt == "lsdyna":
+        from dicer.export.lsdyna import write_lsdyna
+
+        write_lsdyna(model, tmp)
+    elif fmt in ("gmsh", "exodus"):
+        from dicer.export.vtu import write_meshio
+
+        write_meshio(model, tmp, fmt)
+
+
+def _verify(fmt: str, model: SolverModel, tmp: Path, path: Path) -> None:
+    from dicer.export import readers
+
+    try:
+        if fmt == "abaqus":
+            readers.check_abaqus(tmp, model)
+        elif fmt in ("vtu", "gmsh", "exodus"):
+            readers.check_meshio(tmp, model, fmt)
+        elif fmt == "patran":
+            readers.check_patran(tmp, model)
+        elif fmt == "lsdyna":
+            readers.check_lsdyna(tmp, model)
+    except DicerError as exc:
+        raise DicerError(f"{path}: read-back check failed: {exc}; the file was not written") from None
+
+
+def export_mesh(mesh: Mesh, path: str | os.PathLike, config: dict, source: str | os.PathLike | None = None,
+                verify: bool = True) -> dict:
+    """Write ``mesh`` to ``path`` in the format its extension names; returns a summary dict.
+
+    config : the dicer configuration (``materials`` and ``export`` sections).
+    source : the input the model was made from (its name and SHA-256 go into the provenance).
+    verify : read the file back and check it before renaming it into place (default).
+    On any problem: DicerError, and no file at ``path``.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in FORMATS:
+        raise DicerError(f"{path}: unknown export format {path.suffix or '(none)'}; "
+                         f"name the output with one of {', '.join(EXPORT_SUFFIXES)}")
+    fmt = FORMATS[suffix]
+    if fmt == "exodus":
+        try:
+            import netCDF4  # noqa: F401  (meshio's Exodus writer needs it)
+        except ImportError:
+            raise DicerError(f"{path}: Exodus files need the netCDF4 package (pip install netCDF4); "
+                             "or choose another format") from None
+    model = prepare_model(mesh, config, source, path)
+    with atomic_path(path) as tmp:
+        try:
+            _write(fmt, model, mesh, tmp)
+        except ValueError as exc:  # a number no field of the format can hold
+            raise DicerError(f"{path}: cannot write the {fmt} file ({exc})") from None
+        except OSError as exc:
+            raise DicerError(f"{path}: cannot write ({exc.strerror}); choose a writable output path") from None
+        if verify:
+            _verify(fmt, model, tmp, path)
+        size = tmp.stat().st_size
+    return {
+        "format": fmt, "file": path.name, "nodes": model.n_points, "elements": model.n_cells,
+        "element_type": model.element_type, "order": model.order, "bytes": size,
+        "materials": {model.names[k]: int(np.count_nonzero(model.material == k)) for k in model.labels()},
+        "node_sets": {name: int(ids.size) for name, ids in model.node_sets.items()},
+        "exterior_faces": 0 if model.exterior is None else int(model.exterior.shape[0]),
+        "verified": bool(verify),
+    }
+
+
+def benchmark_export(mesh: Mesh, folder: str | os.PathLike, suffix: str = ".inp", config: dict | None = None) -> dict:
+    """Seconds and bytes of one export of ``mesh`` into ``folder`` (no read-back), for benchmarks.
+
+    The file is deleted afterwards. ``config`` defaults to dicer's default configuration.
+    """
+    import time
+
+    from dicer.config import load_config
+
+    config = config or load_config()
+    path = Path(folder) / f"bench_model{suffix}"
+    t0 = time.perf_counter()
+    info = export_mesh(mesh, path, config, source=None, verify=False)
+    seconds = time.perf_counter() - t0
+    path.unlink(missing_ok=True)
+    return {"seconds": seconds, "bytes": info["bytes"], "elements": info["elements"], "nodes": info["nodes"]}

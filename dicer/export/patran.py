@@ -1,0 +1,85 @@
+"""PATRAN 2 neutral file (``.out`` / ``.neu``): packets 25, 26, 01, 02 and 99, fixed-width cards.
+
+Every packet opens with a header card ``(I2,8I8)`` -- IT, ID, IV, KC, N1..N5 --
+followed by KC data cards:
+
+* 25 title: one card, the provenance line (80 columns).
+* 26 summary: N1 nodes, N2 elements, N3 materials, N4 properties; one card with
+  the date, time and version fields left blank (reruns are byte-identical).
+* 01 node (ID = node number): card 1 the coordinates ``(3E16.9)``, card 2
+  ``(I1,A1,3I8,2X,6I1)`` = ``1G       6       0       0  000000``.
+* 02 element (ID = element number, IV = shape: 4 quad, 8 hex): card 1
+  ``(4I8,3E16.9)`` = node count, configuration 0, property id = material
+  label, 0, three zero orientation angles; then the node numbers ``(10I8)``.
+  20-node hexahedra list their mid-edge nodes as PATRAN does: the bottom edges,
+  the vertical edges, then the top edges (VTK and Abaqus put the top edges
+  before the vertical ones).
+* 99 end of file.
+
+Each kind of packet is a fixed number of fixed-width lines, so whole blocks of
+packets are formatted in bulk by :mod:`dicer.export.textfmt`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from dicer.export.textfmt import Float, Int, Sci, write_rows
+
+E16 = Sci(9, b"E", fortran=True, width=16)
+PATRAN_HEX20 = np.r_[0:8, 8:12, 16:20, 12:16]
+"""Position in dicer's (VTK/Abaqus) 20-node order of each PATRAN 20-node hex node."""
+SHAPES = {(3, 1): (8, 8), (3, 2): (8, 20), (2, 1): (4, 4), (2, 2): (4, 8)}  # -> (IV shape code, nodes)
+CHUNK = 1 << 16
+
+
+def header(it: int, ident: int, iv: int, kc: int, *n: int) -> bytes:
+    """One ``(I2,8I8)`` header card."""
+    n = tuple(n) + (0,) * (5 - len(n))
+    return (f"{it:2d}{ident:8d}{iv:8d}{kc:8d}" + "".join(f"{v:8d}" for v in n) + "\n").encode()
+
+
+def patran_order(model) -> np.ndarray:
+    """The model's cells in PATRAN node order."""
+    if model.dim == 3 and model.order == 2:
+        return model.cells[:, PATRAN_HEX20]
+    return model.cells
+
+
+def write_patran(model, path: str | Path) -> None:
+    """Write the SolverModel ``model`` as a PATRAN 2 neutral file."""
+    iv, nn = SHAPES[(model.dim, model.order)]
+    if max(model.n_points, model.n_cells) >= 10**8:
+        raise ValueError("more than 99999999 nodes or elements do not fit PATRAN's 8-column fields")
+    cells = patran_order(model)
+    node_cards = -(-nn // 10)
+    labels = model.labels()
+    zeros5 = b"       0" * 5
+    with open(path, "wb", buffering=1 << 20) as f:
+        title = model.heading[0][:80]
+        f.write(header(25, 0, 0, 1) + title.encode() + b"\n")
+        f.write(header(26, 0, 0, 1, model.n_points, model.n_cells, len(labels), len(labels), 0))
+        f.write(b" " * 32 + b"\n")
+        for start in range(0, model.n_points, CHUNK):
+            p = model.points[start : start + CHUNK]
+            ids = np.arange(start + 1, start + 1 + p.shape[0])
+            fields = [b" 1", Int(ids, 8), b"       0       2" + zeros5 + b"\n"]
+            fields += [Float(p[:, j], E16) for j in range(3)]
+            fields += [b"\n1G       6       0       0  000000\n"]
+            write_rows(f, fields, p.shape[0])
+        head_tail = f"{1 + node_cards:8d}".encode() + zeros5 + b"\n" + f"{nn:8d}{0:8d}".encode()
+        angles = b" 0.000000000E+00" * 3
+        for start in range(0, model.n_cells, CHUNK):
+            c = cells[start : start + CHUNK] + 1
+            e = np.arange(start + 1, start + 1 + c.shape[0])
+            mat = model.material[start : start + CHUNK]
+            fields = [b" 2", Int(e, 8), f"{iv:8d}".encode() + head_tail, Int(mat, 8), f"{0:8d}".encode() + angles]
+            for j in range(nn):
+                if j % 10 == 0:
+                    fields.append(b"\n")
+                fields.append(Int(c[:, j], 8))
+            fields.append(b"\n")
+            write_rows(f, fields, c.shape[0])
+        f.write(header(99, 0, 0, 1))

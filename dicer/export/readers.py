@@ -1,0 +1,359 @@
+"""Read-back checks of every export, and strict readers for the formats meshio does not read.
+
+``check_abaqus`` and ``check_meshio`` re-read a file with meshio; ``read_patran``
+and ``read_lsdyna`` parse PATRAN neutral and LS-DYNA keyword files column by
+column as their specifications lay them out, and raise DicerError on anything
+out of place (the tests use them for round trips). Every ``check_*`` compares
+node count, coordinates (to print precision), connectivity and materials with
+the model that was written and raises DicerError on the first difference.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+
+import numpy as np
+
+from dicer.errors import DicerError
+
+MESHIO_TYPES = {(3, 1): "hexahedron", (3, 2): "hexahedron20", (2, 1): "quad", (2, 2): "quad8"}
+
+# element types CalculiX reads that meshio's Abaqus reader lacks (same node order as their cousins)
+_EXTRA_ABAQUS_TYPES = {"CPE4": "quad", "CPE4R": "quad", "CPS8": "quad8", "CPS8R": "quad8",
+                       "CPE8": "quad8", "CPE8R": "quad8"}
+
+
+@contextlib.contextmanager
+def _meshio_abaqus_types():
+    """Teach meshio's Abaqus reader the plane element types it does not list, for the duration only."""
+    from meshio.abaqus import _abaqus
+
+    table = _abaqus.abaqus_to_meshio_type
+    added = [k for k in _EXTRA_ABAQUS_TYPES if k not in table]
+    table.update({k: _EXTRA_ABAQUS_TYPES[k] for k in added})
+    try:
+        yield
+    finally:
+        for k in added:
+            table.pop(k, None)
+
+
+def _tolerance(model, digits: int) -> float:
+    scale = float(np.abs(model.points).max()) if model.n_points else 1.0
+    return max(scale, 1e-30) * 10.0 ** (1 - digits)
+
+
+def compare(model, points: np.ndarray, cells: np.ndarray, material: np.ndarray, what: str,
+            digits: int | None = None) -> None:
+    """Raise DicerError unless nodes (to ``digits`` significant digits, default the model's),
+    connectivity (0-based, file order = element number order) and materials equal the model's."""
+    if points.shape[0] != model.n_points:
+        raise DicerError(f"{what} has {points.shape[0]} nodes, expected {model.n_points}")
+    if cells.shape != model.cells.shape:
+        raise DicerError(f"{what} has elements of shape {cells.shape}, expected {model.cells.shape}")
+    dim = model.dim
+    err = np.abs(points[:, :dim] - model.points[:, :dim]).max() if model.n_points else 0.0
+    if not err <= _tolerance(model, digits or model.digits):
+        raise DicerError(f"{what}: node coordinates differ by {err:.3g} mm")
+    if not np.array_equal(cells, model.cells):
+        bad = int(np.flatnonzero((cells != model.cells).any(axis=1))[0])
+        raise DicerError(f"{what}: connectivity of element {bad + 1} differs")
+    if not np.array_equal(material, model.material):
+        raise DicerError(f"{what}: element materials differ")
+
+
+def check_abaqus(path: str | Path, model) -> None:
+    """Re-read an Abaqus deck with meshio and compare it with ``model``."""
+    import meshio
+
+    try:
+        with _meshio_abaqus_types():
+            m = meshio.read(path, file_format="abaqus")
+    except Exception as exc:  # meshio raises many types
+        raise DicerError(f"meshio cannot read the deck ({type(exc).__name__}: {str(exc)[:100]})") from None
+    want = MESHIO_TYPES[(model.dim, model.order)]
+    types = {b.type for b in m.cells}
+    if types != {want}:
+        raise DicerError(f"element types {sorted(types)} read back, expected {want}")
+    blocks = model.blocks()
+    if len(m.cells) != len(blocks):
+        raise DicerError(f"{len(m.cells)} element blocks read back, expected {len(blocks)} (one per material)")
+    cells = np.empty_like(model.cells)
+    material = np.zeros(model.n_cells, np.int32)
+    for (k, elements), block in zip(blocks, m.cells):
+        name = model.names[k]
+        sets = m.cell_sets.get(name)
+        if sets is None or sum(len(s) for s in sets) != elements.size or len(block.data) != elements.size:
+            raise DicerError(f"material set {name} does not hold its {elements.size} elements")
+        cells[elements] = block.data
+        material[elements] = k
+    for name, ids in model.node_sets.items():
+        got = m.point_sets.get(name)
+        if got is None or not np.array_equal(np.sort(np.asarray(got)), ids):
+            raise DicerError(f"node set {name} differs")
+    compare(model, np.asarray(m.points, float), cells, material, "the deck")
+
+
+def check_meshio(path: str | Path, model, file_format: str) -> None:
+    """Re-read a VTU or Gmsh file with meshio and compare it with ``model`` (cell data ``material``)."""
+    import meshio
+
+    try:
+        m = meshio.read(path, file_format=file_format)
+    except Exception as exc:
+        raise DicerError(f"meshio cannot read the file ({type(exc).__name__}: {str(exc)[:100]})") from None
+    want = MESHIO_TYPES[(model.dim, model.order)]
+    types = {b.type for b in m.cells}
+    if types != {want}:
+        raise DicerError(f"element types {sorted(types)} read back, expected {want}")
+    cells = np.concatenate([b.data for b in m.cells]).astype(np.int64)
+    key = "material" if "material" in m.cell_data else "gmsh:physical"
+    if key not in m.cell_data:
+        raise DicerError("no material cell data read back")
+    material = np.concatenate(m.cell_data[key]).astype(np.int32)
+    compare(model, np.asarray(m.points, float), cells, material, "the file")
+
+
+# --- strict fixed-width readers -------------------------------------------------------------
+
+
+class _Lines:
+    """A text file as byte lines, with vectorised access to fixed columns of many lines."""
+
+    def __init__(self, path: str | Path):
+        self.data = Path(path).read_bytes()
+        if not self.data.endswith(b"\n"):
+            raise DicerError("the file does not end with a newline (truncated?)")
+        self.arr = np.frombuffer(self.data, np.uint8)
+        self.ends = np.flatnonzero(self.arr == 10)
+        self.starts = np.concatenate([[0], self.ends[:-1] + 1])
+        self.lengths = self.ends - self.starts
+
+    def __len__(self) -> int:
+        return int(self.ends.size)
+
+    def text(self, i: int) -> str:
+        return self.data[self.starts[i] : self.ends[i]].decode("ascii", "replace")
+
+    def columns(self, rows: np.ndarray, first: int, width: int) -> np.ndarray:
+        """(n, width) uint8: columns first..first+width-1 (0-based) of the given lines."""
+        if rows.size == 0:
+            return np.zeros((0, width), np.uint8)
+        if rows.max() >= len(self) or np.any(self.lengths[rows] < first + width):
+            raise DicerError(f"lines too short for columns {first + 1}-{first + width}")
+        at = self.starts[rows] + first
+        step = int(at[1] - at[0]) if at.size > 1 else 1
+        if step > 0 and np.all(np.diff(at) == step):  # evenly spaced lines (fixed-length packets): a view
+            view = np.lib.stride_tricks.as_strided(self.arr[at[0] :], shape=(at.size, width), strides=(step, 1))
+            return view
+        return self.arr[at[:, None] + np.arange(width)]
+
+    def ints(self, rows: np.ndarray, first: int, width: int, what: str) -> np.ndarray:
+        cols = np.ascontiguousarray(self.columns(rows, first, width))
+        try:
+            return cols.view(f"S{width}").ravel().astype(np.int64)
+        except ValueError:
+            raise DicerError(f"{what}: not an integer in columns {first + 1}-{first + width}") from None
+
+    def floats(self, rows: np.ndarray, first: int, width: int, what: str) -> np.ndarray:
+        cols = np.ascontiguousarray(self.columns(rows, first, width))
+        try:
+            return cols.view(f"S{width}").ravel().astype(np.float64)
+        except ValueError:
+            raise DicerError(f"{what}: not a number in columns {first + 1}-{first + width}") from None
+
+    def expect(self, rows: np.ndarray, first: int, text: bytes, what: str) -> None:
+        got = self.columns(rows, first, len(text))
+        if not np.all(got == np.frombuffer(text, np.uint8)):
+            bad = int(rows[np.flatnonzero((got != np.frombuffer(text, np.uint8)).any(axis=1))[0]])
+            raise DicerError(f"line {bad + 1}: expected {text.decode()!r} for {what}")
+
+    def lengths_are(self, rows: np.ndarray, n: int, what: str) -> None:
+        if rows.size and np.any(self.lengths[rows] != n):
+            bad = int(rows[np.flatnonzero(self.lengths[rows] != n)[0]])
+            raise DicerError(f"line {bad + 1}: {what} card has {self.lengths[bad]} columns, expected {n}")
+
+
+def _patran_headers(lines: _Lines, rows: np.ndarray, it: int, what: str) -> np.ndarray:
+    """(n, 9) header fields IT ID IV KC N1..N5 of ``(I2,8I8)`` cards, IT checked."""
+    lines.lengths_are(rows, 66, what)
+    out = np.column_stack([lines.ints(rows, 0, 2, what)] + [lines.ints(rows, 2 + 8 * k, 8, what) for k in range(8)])
+    if np.any(out[:, 0] != it):
+        raise DicerError(f"line {int(rows[np.flatnonzero(out[:, 0] != it)[0]]) + 1}: expected a packet {it:02d} header")
+    return out
+
+
+def _patran_packets(lines: _Lines, rows: np.ndarray, it: int, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """IDs and the shared IV, KC, N1..N5 fields of a run of packets of type ``it`` whose
+    headers differ only in the ID (checked byte for byte)."""
+    lines.lengths_are(rows, 66, what)
+    lines.expect(rows, 0, f"{it:2d}".encode(), f"{what} (packet type)")
+    first = _patran_headers(lines, rows[:1], it, what)[0]
+    lines.expect(rows, 10, lines.data[lines.starts[rows[0]] + 10 : lines.starts[rows[0]] + 66], f"{what} fields")
+    return lines.ints(rows, 2, 8, what), first
+
+
+PATRAN_SHAPES = {8: {8: (3, 1), 20: (3, 2)}, 4: {4: (2, 1), 8: (2, 2)}}
+
+
+def read_patran(path: str | Path) -> dict:
+    """Read a PATRAN 2 neutral file of one element shape (as dicer writes them), strictly.
+
+    Returns points (N, 3), cells (M, k) 0-based in VTK/Abaqus node order, material
+    (M,) property ids, title, dim and order. Nodes and elements must be numbered
+    1..N and 1..M in order; any other layout raises DicerError.
+    """
+    from dicer.export.patran import PATRAN_HEX20
+
+    lines = _Lines(path)
+    h = _patran_headers(lines, np.array([0]), 25, "title header")[0]
+    title = lines.text(1)
+    s = _patran_headers(lines, np.array([2]), 26, "summary header")[0]
+    n_nodes, n_elems = int(s[4]), int(s[5])
+    if h[3] != 1 or s[3] != 1:
+        raise DicerError("packets 25 and 26 must have one data card each")
+    rows = 4 + 3 * np.arange(n_nodes)
+    ids, nh = _patran_packets(lines, rows, 1, "node header")
+    if not np.array_equal(ids, np.arange(1, n_nodes + 1)) or nh[3] != 2:
+        raise DicerError("node packets must be numbered 1..N with two cards each")
+    lines.lengths_are(rows + 1, 48, "node coordinate")
+    points = np.column_stack([lines.floats(rows + 1, 16 * j, 16, "node coordinate") for j in range(3)])
+    lines.lengths_are(rows + 2, 34, "node constraint")
+    lines.expect(rows + 2, 0, b"1G", "node card 2")
+    e0 = 4 + 3 * n_nodes
+    first = _patran_headers(lines, np.array([e0]), 2, "element header")[0]
+    kc = int(first[3])
+    rows = e0 + (1 + kc) * np.arange(n_elems)
+    ids, eh = _patran_packets(lines, rows, 2, "element header")
+    if not np.array_equal(ids, np.arange(1, n_elems + 1)):
+        raise DicerError("element packets must be numbered 1..M")
+    shape = int(first[2])
+    if shape not in PATRAN_SHAPES:
+        raise DicerError("element packets must all be hexahedra (8) or all quads (4)")
+    card1 = lines.data[lines.starts[rows[0] + 1] : lines.ends[rows[0] + 1]]
+    lines.lengths_are(rows + 1, 80, "element card 1")
+    lines.expect(rows + 1, 0, card1[:16], "element node count and configuration")
+    lines.expect(rows + 1, 24, card1[24:80], "element CEID and orientation angles")
+    nn = int(lines.ints(rows[:1] + 1, 0, 8, "element node count")[0])
+    if nn not in PATRAN_SHAPES[shape] or kc != 1 + -(-nn // 10):
+        raise DicerError("element packets must all have a valid node count for their shape")
+    material = lines.ints(rows + 1, 16, 8, "element property id").astype(np.int32)
+    cells = np.empty((n_elems, nn), np.int64)
+    for j in range(nn):
+        cells[:, j] = lines.ints(rows + 2 + j // 10, 8 * (j % 10), 8, "element node")
+    end = e0 + (1 + kc) * n_elems
+    _patran_headers(lines, np.array([end]), 99, "end of file")
+    if len(lines) != end + 1:
+        raise DicerError("data after the end-of-file packet 99")
+    dim, order = PATRAN_SHAPES[shape][nn]
+    if dim == 3 and order == 2:
+        back = np.empty_like(cells)
+        back[:, PATRAN_HEX20] = cells
+        cells = back
+    if cells.min() < 1 or cells.max() > n_nodes:
+        raise DicerError("elements refer to nodes that do not exist")
+    return {"points": points, "cells": cells - 1, "material": material, "title": title, "dim": dim, "order": order}
+
+
+def read_lsdyna(path: str | Path) -> dict:
+    """Read an LS-DYNA keyword file as dicer writes it, strictly (fixed-width cards).
+
+    Returns points, cells (0-based), material (part ids), parts (pid -> title),
+    materials (mid -> (ro, e, pr)), node_sets (title -> 0-based ids) and title.
+    """
+    lines = _Lines(path)
+    n = len(lines)
+    is_key = lines.arr[lines.starts[lines.lengths > 0]] == ord("*")
+    key_rows = np.flatnonzero(lines.lengths > 0)[is_key]
+    comment = np.zeros(n, bool)
+    nonempty = np.flatnonzero(lines.lengths > 0)
+    comment[nonempty[lines.arr[lines.starts[nonempty]] == ord("$")]] = True
+    keys = [lines.text(i).strip().upper() for i in key_rows]
+    if not keys or keys[0] != "*KEYWORD" or keys[-1] != "*END":
+        raise DicerError("an LS-DYNA keyword file starts with *KEYWORD and ends with *END")
+    bounds = list(key_rows) + [n]
+    out = {"parts": {}, "materials": {}, "node_sets": {}, "title": ""}
+    points = cells = pids = None
+    for i, key in enumerate(keys):
+        rows = np.arange(bounds[i] + 1, bounds[i + 1])
+        rows = rows[~comment[rows]]
+        if key == "*TITLE":
+            out["title"] = lines.text(rows[0]) if rows.size else ""
+        elif key == "*NODE":
+            lines.lengths_are(rows, 56, "*NODE")
+            ids = lines.ints(rows, 0, 8, "*NODE id")
+            if not np.array_equal(ids, np.arange(1, rows.size + 1)):
+                raise DicerError("*NODE ids must run 1..N in order")
+            points = np.column_stack([lines.floats(rows, 8 + 16 * j, 16, "*NODE coordinate") for j in range(3)])
+        elif key == "*PART":
+            if rows.size != 2:
+                raise DicerError("*PART needs a title card and one data card")
+            vals = [lines.ints(rows[1:], 10 * k, 10, "*PART")[0] for k in range(3)]
+            pid, secid, mid = (int(v) for v in vals)
+            out["parts"][pid] = {"title": lines.text(rows[0]).strip(), "secid": secid, "mid": mid}
+        elif key == "*SECTION_SOLID":
+            if rows.size != 1:
+                raise DicerError("*SECTION_SOLID needs one data card")
+            out.setdefault("sections", {})[int(lines.ints(rows, 0, 10, "*SECTION_SOLID")[0])] = int(
+                lines.ints(rows, 10, 10, "*SECTION_SOLID ELFORM")[0])
+        elif key == "*MAT_ELASTIC":
+            if rows.size != 1:
+                raise DicerError("*MAT_ELASTIC needs one data card")
+            mid = int(lines.ints(rows, 0, 10, "*MAT_ELASTIC")[0])
+            out["materials"][mid] = tuple(float(lines.floats(rows, 10 * k, 10, "*MAT_ELASTIC")[0]) for k in (1, 2, 3))
+        elif key == "*ELEMENT_SOLID":
+            lines.lengths_are(rows, 80, "*ELEMENT_SOLID")
+            ids = lines.ints(rows, 0, 8, "*ELEMENT_SOLID id")
+            if not np.array_equal(ids, np.arange(1, rows.size + 1)):
+                raise DicerError("*ELEMENT_SOLID ids must run 1..M in order")
+            pids = lines.ints(rows, 8, 8, "*ELEMENT_SOLID part").astype(np.int32)
+            cells = np.column_stack([lines.ints(rows, 16 + 8 * j, 8, "*ELEMENT_SOLID node") for j in range(8)])
+        elif key == "*SET_NODE_LIST_TITLE":
+            if rows.size < 2:
+                raise DicerError("*SET_NODE_LIST_TITLE needs a title and a data card")
+            name = lines.text(rows[0]).strip()
+            data = rows[2:]
+            if data.size and np.any(lines.lengths[data] % 10):
+                raise DicerError(f"node set {name}: cards must be whole 10-column fields")
+            full = data[lines.lengths[data] == 80]
+            ids = [lines.ints(full, 10 * k, 10, "node set")[:, None] for k in range(8)]
+            ids = np.concatenate(ids, axis=1).ravel() if full.size else np.zeros(0, np.int64)
+            tail = data[lines.lengths[data] < 80]
+            if tail.size > 1 or (tail.size == 1 and tail[0] != data[-1]):
+                raise DicerError(f"node set {name}: only the last card may be short")
+            if tail.size:
+                k = int(lines.lengths[tail[0]]) // 10
+                ids = np.concatenate([ids] + [lines.ints(tail, 10 * j, 10, "node set") for j in range(k)])
+            out["node_sets"][name] = ids - 1
+        elif key in ("*KEYWORD", "*END"):
+            if rows.size:
+                raise DicerError(f"{key} takes no data cards")
+        else:
+            raise DicerError(f"unexpected keyword {key}")
+    if points is None or cells is None:
+        raise DicerError("no *NODE or *ELEMENT_SOLID block")
+    if cells.min() < 1 or cells.max() > points.shape[0]:
+        raise DicerError("elements refer to nodes that do not exist")
+    out.update(points=points, cells=cells - 1, material=pids)
+    return out
+
+
+def check_patran(path: str | Path, model) -> None:
+    """Re-read a PATRAN neutral file with :func:`read_patran` and compare it with ``model``."""
+    got = read_patran(path)
+    if (got["dim"], got["order"]) != (model.dim, model.order):
+        raise DicerError("element shape or order differs")
+    compare(model, got["points"], got["cells"], got["material"], "the neutral file", digits=9)
+
+
+def check_lsdyna(path: str | Path, model) -> None:
+    """Re-read an LS-DYNA keyword file with :func:`read_lsdyna` and compare it with ``model``."""
+    got = read_lsdyna(path)
+    compare(model, got["points"], got["cells"], got["material"], "the keyword file", digits=9)
+    for name, ids in model.node_sets.items():
+        if not np.array_equal(got["node_sets"].get(name, np.zeros(0)), ids):
+            raise DicerError(f"node set {name} differs")
+    for k in model.labels():
+        if got["parts"].get(k, {}).get("title") != model.names[k] or k not in got["materials"]:
+            raise DicerError(f"part or material {model.names[k]} missing")

@@ -1,0 +1,324 @@
+"""Vectorised fixed-width ASCII formatting shared by the text exporters.
+
+A text writer describes one kind of line as a list of fields -- literal bytes,
+right-aligned integers of a fixed width, floats in scientific notation of a
+fixed width, each optionally preceded by a short ``lead`` (a separator such as
+``b","`` or the newline that ends the previous line) -- and :func:`format_rows`
+turns whole arrays into a ``(rows, line_length)`` uint8 buffer, a chunk of rows
+at a time, with numpy alone:
+
+* integers are split into 4-digit groups, each looked up as one 32-bit word in
+  a digit table (zero-padded, or blank-padded while the higher groups are zero);
+* floats are split into a decimal exponent and an integer mantissa, which is
+  then printed like an integer; the exponent is looked up in a table.
+
+When every field's length is a multiple of 4 bytes the row buffer is filled
+32-bit word by word, otherwise byte by byte (slower, same result). There is no
+per-line Python string formatting, and the output depends only on the numbers,
+so reruns are byte-identical.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import BinaryIO, Iterator
+
+import numpy as np
+
+CHUNK_ROWS = 1 << 16
+"""Rows formatted per chunk: bounds the temporary memory of a writer."""
+
+_SPACE, _ZERO, _MINUS, _PLUS, _DOT = 32, 48, 45, 43, 46
+_LAST, _INNER = 10000, 20000  # offsets of the blank-padded 4-digit tables (zero-padded at 0)
+
+
+def _digit_table() -> np.ndarray:
+    """(30000,) uint32: 4-digit groups as words -- zero-padded | blank-padded last group | blank inner group."""
+    v = np.arange(10000)
+    digits = ((v[:, None] // np.array([1000, 100, 10, 1])) % 10 + _ZERO).astype(np.uint8)
+    ndig = np.where(v > 0, np.floor(np.log10(np.maximum(v, 1))).astype(int) + 1, 1)
+    last = digits.copy()
+    last[np.arange(4)[None, :] < (4 - ndig)[:, None]] = _SPACE  # "   7", "   0"
+    inner = last.copy()
+    inner[0] = _SPACE  # "    ": an inner group of a number whose higher groups are all zero
+    return np.ascontiguousarray(np.concatenate([digits, last, inner])).view("<u4").ravel()
+
+
+_TABLE = _digit_table()
+_POW10 = 10 ** np.arange(19, dtype=np.int64)
+_POW10F = 10.0 ** np.arange(0, 309)  # exact up to 1e22, correctly rounded beyond
+
+
+def int_width(max_value: int) -> int:
+    """Digits needed to print the non-negative integer ``max_value``."""
+    return len(str(int(max(max_value, 0))))
+
+
+def aligned_width(digits: int, lead: bytes = b"") -> int:
+    """The smallest field width >= ``digits`` for which ``lead`` + field fills whole 32-bit words."""
+    w = max(digits, 1)
+    while (len(lead) + w) % 4:
+        w += 1
+    return w
+
+
+def _int_words(v: np.ndarray, groups: int, zero_pad: bool) -> np.ndarray:
+    """(n, groups) uint32: the values right-aligned in 4*groups characters."""
+    n = v.shape[0]
+    out = np.empty((n, groups), "<u4")
+    small = groups <= 2 and (v.size == 0 or int(v.max()) < 2**32)
+    rest = v.astype(np.uint32) if small else v.astype(np.int64)
+    higher = np.full(n, zero_pad)
+    for g in range(groups):
+        last = g == groups - 1
+        if last:
+            part = rest
+        else:
+            scale = 10 ** (4 * (groups - 1 - g))
+            part = rest // scale
+            rest = rest - part * scale
+        if zero_pad:
+            index = part
+        else:
+            index = part + (~higher).astype(part.dtype) * part.dtype.type(_LAST if last else _INNER)
+            if not last:
+                higher = higher | (part != 0)
+        out[:, g] = _TABLE[index]
+    return out
+
+
+def int_digits(values: np.ndarray, width: int, zero_pad: bool = False, lead: bytes = b"") -> np.ndarray:
+    """(n, len(lead) + width) uint8: ``lead`` then the non-negative integers right-aligned in ``width``."""
+    v = np.asarray(values).ravel()
+    if v.size and (int(v.min()) < 0 or int(v.max()) >= 10**width):
+        raise ValueError(f"integers out of range for a field of {width} digits")
+    total = len(lead) + width
+    n = v.shape[0]
+    if total % 4 == 0 and not zero_pad:
+        words = _int_words(v, total // 4, zero_pad=False)
+        if lead:
+            keep = np.uint32((0xFFFFFFFF << (8 * len(lead))) & 0xFFFFFFFF)
+            words[:, 0] = (words[:, 0] & keep) | np.uint32(int.from_bytes(lead, "little"))
+        return words.view(np.uint8).reshape(n, total)
+    groups = -(-width // 4)
+    body = _int_words(v, groups, zero_pad).view(np.uint8).reshape(n, 4 * groups)[:, 4 * groups - width :]
+    if not lead:
+        return body
+    out = np.empty((n, total), np.uint8)
+    out[:, : len(lead)] = np.frombuffer(lead, np.uint8)
+    out[:, len(lead) :] = body
+    return out
+
+
+@dataclass(frozen=True)
+class Sci:
+    """Scientific notation with ``digits`` significant digits: ``[-]d.ddde[+-]XX``.
+
+    fortran: Fortran's E-edit form ``[-]0.dddE[+-]XX`` (mantissa in [0.1, 1)).
+    exp_char: the exponent letter. width: right-align in this many columns (at
+    least the printed length, which has one column for the sign, blank for plus).
+    """
+
+    digits: int = 9
+    exp_char: bytes = b"e"
+    fortran: bool = False
+    width: int | None = None
+
+    @property
+    def body(self) -> int:
+        # sign, lead digit ('0' in Fortran form), '.', digits after the point, e, sign, 2 exponent digits
+        return 3 + (self.digits - (0 if self.fortran else 1)) + 4
+
+    @property
+    def length(self) -> int:
+        return max(self.body, self.width or 0)
+
+
+def _exp_words(exp_char: bytes) -> np.ndarray:
+    e = np.arange(-99, 100)
+    sign = np.where(e < 0, _MINUS, _PLUS).astype(np.uint32)
+    a = np.abs(e)
+    return (np.uint32(exp_char[0]) | (sign << 8) | ((a // 10 + _ZERO).astype(np.uint32) << 16)
+            | ((a % 10 + _ZERO).astype(np.uint32) << 24)).astype("<u4")
+
+
+_EXP_WORDS = {b"e": _exp_words(b"e"), b"E": _exp_words(b"E")}
+
+
+def _mantissa(x: np.ndarray, p: int, fortran: bool):
+    """Integer mantissa m (p digits) and decimal exponent e of x: |x| ~ m * 10**(e - p + 1)."""
+    a = np.abs(x)
+    zero = a < 1e-99
+    a = np.where(zero, 1.0, a)
+    e = np.floor(np.log10(a)).astype(np.int64)
+    for _ in range(3):
+        k = p - 1 - e  # m = a * 10**k, one correctly rounded operation
+        m = np.where(k >= 0, a * _POW10F[np.clip(k, 0, 308)], a / _POW10F[np.clip(-k, 0, 308)])
+        m = np.rint(m).astype(np.int64)
+        hi = m >= _POW10[p]
+        lo = m < _POW10[p - 1]
+        if not (hi.any() or lo.any()):
+            break
+        e = e + hi - lo
+    m[zero] = 0
+    e[zero] = -1 if fortran else 0
+    if fortran:
+        e = e + 1
+    if np.any(np.abs(e) > 99):
+        raise ValueError("number too large to print with a two-digit exponent")
+    return m, e
+
+
+def sci_digits(values: np.ndarray, fmt: Sci, lead: bytes = b"") -> np.ndarray:
+    """(n, len(lead) + fmt.length) uint8: ``lead`` then the floats in scientific notation.
+
+    Magnitudes below 1e-99 print as zero; non-finite values or magnitudes of
+    1e99 and above raise ValueError (no two-digit exponent holds them).
+    """
+    x = np.asarray(values, dtype=np.float64).ravel()
+    n = x.shape[0]
+    p = fmt.digits
+    total = len(lead) + fmt.length
+    if n and not np.all(np.isfinite(x)):
+        raise ValueError("cannot print non-finite numbers")
+    m, e = _mantissa(x, p, fmt.fortran)
+    neg = (x < 0) & (m > 0)
+    expw = _EXP_WORDS[fmt.exp_char][e + 99]
+    pad = fmt.length - fmt.body
+    if pad == 0 and len(lead) == (0 if fmt.fortran else 1) and (p - 1) % 4 == 0:
+        # word-aligned: [lead sign d .] or [sign 0 . d], then [4 digits]..., then [e s x x]
+        groups = (p - 1) // 4
+        words = np.empty((n, groups + 2), "<u4")
+        first = (m // _POW10[p - 1]).astype(np.uint32) + np.uint32(_ZERO)
+        sign = np.where(neg, _MINUS, _SPACE).astype(np.uint32)
+        if fmt.fortran:
+            words[:, 0] = sign | np.uint32(_ZERO << 8 | _DOT << 16) | (first << 24)
+        else:
+            words[:, 0] = np.uint32(lead[0] | _DOT << 24) | (sign << 8) | (first << 16)
+        words[:, 1 : groups + 1] = _int_words(m % _POW10[p - 1], groups, zero_pad=True)
+        words[:, groups + 1] = expw
+        return words.view(np.uint8).reshape(n, total)
+    out = np.full((n, total), _SPACE, np.uint8)
+    if lead:
+        out[:, : len(lead)] = np.frombuffer(lead, np.uint8)
+    c = len(lead) + pad  # column of the sign
+    out[:, c] = np.where(neg, _MINUS, _SPACE)
+    digits = int_digits(m, p, zero_pad=True)
+    if fmt.fortran:
+        out[:, c + 1] = _ZERO
+        out[:, c + 2] = _DOT
+        out[:, c + 3 : c + 3 + p] = digits
+        t = c + 3 + p
+    else:
+        out[:, c + 1] = digits[:, 0]
+        out[:, c + 2] = _DOT
+        out[:, c + 3 : c + 2 + p] = digits[:, 1:]
+        t = c + 2 + p
+    out[:, t : t + 4] = expw.view(np.uint8).reshape(n, 4)
+    return out
+
+
+@dataclass(frozen=True)
+class Int:
+    """A right-aligned integer field of ``width`` columns after ``lead`` (``zero_pad``: leading zeros)."""
+
+    values: np.ndarray
+    width: int
+    lead: bytes = b""
+    zero_pad: bool = False
+
+    @property
+    def length(self) -> int:
+        return len(self.lead) + self.width
+
+    def render(self, start: int, stop: int) -> np.ndarray:
+        return int_digits(self.values[start:stop], self.width, self.zero_pad, self.lead)
+
+
+@dataclass(frozen=True)
+class Float:
+    """A float field printed with :class:`Sci` format ``fmt`` after ``lead``."""
+
+    values: np.ndarray
+    fmt: Sci
+    lead: bytes = b""
+
+    @property
+    def length(self) -> int:
+        return len(self.lead) + self.fmt.length
+
+    def render(self, start: int, stop: int) -> np.ndarray:
+        return sci_digits(self.values[start:stop], self.fmt, self.lead)
+
+
+Field = bytes | Int | Float
+
+
+def line_length(fields: list[Field]) -> int:
+    """Bytes per row of ``fields``."""
+    return sum(len(f) if isinstance(f, bytes) else f.length for f in fields)
+
+
+def format_rows(fields: list[Field], n: int, chunk: int = CHUNK_ROWS) -> Iterator[np.ndarray]:
+    """Yield (rows, line_length) uint8 buffers holding ``n`` rows of ``fields``.
+
+    Array fields hold ``n`` values; literals repeat on every row. Rows carry no
+    implicit newline: put ``b"\\n"`` in a field's lead or a literal.
+    """
+    lengths = [len(f) if isinstance(f, bytes) else f.length for f in fields]
+    length = sum(lengths)
+    aligned = all(w % 4 == 0 for w in lengths)
+    for start in range(0, n, chunk):
+        stop = min(n, start + chunk)
+        rows = stop - start
+        if aligned:
+            words = np.empty((rows, length // 4), "<u4")
+            col = 0
+            for f, w in zip(fields, lengths):
+                k = w // 4
+                if isinstance(f, bytes):
+                    words[:, col : col + k] = np.frombuffer(f, "<u4")
+                else:
+                    words[:, col : col + k] = f.render(start, stop).view("<u4")
+                col += k
+            yield words.view(np.uint8).reshape(rows, length)
+        else:
+            buf = np.empty((rows, length), np.uint8)
+            col = 0
+            for f, w in zip(fields, lengths):
+                if isinstance(f, bytes):
+                    buf[:, col : col + w] = np.frombuffer(f, np.uint8)
+                else:
+                    buf[:, col : col + w] = f.render(start, stop)
+                col += w
+            yield buf
+
+
+def write_rows(stream: BinaryIO, fields: list[Field], n: int, chunk: int = CHUNK_ROWS) -> int:
+    """Write ``n`` rows of ``fields`` to the binary ``stream``; returns the bytes written."""
+    total = 0
+    for buf in format_rows(fields, n, chunk):
+        stream.write(memoryview(buf).cast("B"))
+        total += buf.size
+    return total
+
+
+def int_lines(values: np.ndarray, per_line: int, width: int, sep: bytes = b",") -> bytes:
+    """``values`` as newline-terminated lines of up to ``per_line`` right-aligned integers joined by ``sep``.
+
+    For set lists (node and element sets): full lines are formatted in bulk, the
+    last, shorter line separately.
+    """
+    v = np.asarray(values, dtype=np.int64).ravel()
+    full = v.size // per_line
+    parts = []
+    if full:
+        block = v[: full * per_line].reshape(full, per_line)
+        fields: list[Field] = [Int(block[:, j], width, sep if j else b"") for j in range(per_line)]
+        fields.append(b"\n")
+        parts.extend(buf.tobytes() for buf in format_rows(fields, full))
+    tail = v[full * per_line :]
+    if tail.size:
+        fields = [Int(tail[j : j + 1], width, sep if j else b"") for j in range(tail.size)]
+        parts.append(next(format_rows(fields + [b"\n"], 1)).tobytes())
+    return b"".join(parts)

@@ -1,0 +1,54 @@
+"""VTU export for ParaView (cell data ``material`` and ``scaled_jacobian``) and other meshio formats.
+
+Order 1 goes through dicer's own VTU writer (:func:`dicer.io.meshes._write_vtu`),
+so the file is also a valid dicer mesh (``lattice`` point data, grid field data)
+that every stage can read. Order 2 is written with meshio as ``hexahedron20`` /
+``quad8`` cells; the scaled Jacobian is then that of the element's corners.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from dicer.io.meshes import _write_vtu
+from dicer.mesh.metrics import scaled_jacobian
+from dicer.mesh.model import Mesh
+
+MESHIO_TYPES = {(3, 1): "hexahedron", (3, 2): "hexahedron20", (2, 1): "quad", (2, 2): "quad8"}
+
+
+def _corner_jacobian(model) -> np.ndarray:
+    k = 8 if model.dim == 3 else 4
+    return scaled_jacobian(model.points, model.cells[:, :k])
+
+
+def write_vtu(model, mesh: Mesh, path: str | Path) -> None:
+    """Write ``model`` (made from ``mesh``) as VTU with material and scaled Jacobian cell data."""
+    if model.order == 1:
+        out = mesh.copy()
+        out.cell_data["scaled_jacobian"] = scaled_jacobian(mesh.points, mesh.cells)
+        _write_vtu(out, Path(path))
+        return
+    write_meshio(model, path, "vtu")
+
+
+def write_meshio(model, path: str | Path, file_format: str) -> None:
+    """Write ``model`` with meshio (``vtu``, ``gmsh`` or ``exodus``): material as cell data."""
+    import meshio
+
+    ctype = MESHIO_TYPES[(model.dim, model.order)]
+    points = model.points if model.dim == 3 else model.points[:, :2]
+    if file_format == "gmsh":
+        tag = model.material.astype(np.int32)
+        m = meshio.Mesh(points, [(ctype, model.cells)],
+                        cell_data={"gmsh:physical": [tag], "gmsh:geometrical": [tag]})
+        meshio.write(path, m, file_format="gmsh22", binary=False)
+        return
+    m = meshio.Mesh(model.points, [(ctype, model.cells)],
+                    cell_data={"material": [model.material], "scaled_jacobian": [_corner_jacobian(model)]})
+    if file_format == "exodus":
+        meshio.write(path, m, file_format="exodus")
+        return
+    meshio.write(path, m, file_format="vtu", binary=True, compression="zlib")

@@ -1,0 +1,176 @@
+"""Quadratic elements: one mid-edge node per mesh edge, shared by every element around the edge.
+
+A 20-node hexahedron (8-node quad in 2D) keeps its 8 (4) corners and adds the
+mid-edge nodes in VTK order, which is also Abaqus's: bottom edges 0-1, 1-2, 2-3,
+3-0, top edges 4-5, 5-6, 6-7, 7-4, then the vertical edges 0-4, 1-5, 2-6, 3-7
+(quad: 0-1, 1-2, 2-3, 3-0). Mid-edge nodes sit at the midpoint of their edge's
+end nodes, on the (smoothed) geometry of the linear mesh, and are numbered after
+the corner nodes.
+
+Edges are identified once for the whole mesh. When every element is an axis-aligned
+box of the lattice (voxel and plane-merged meshes; smoothing moves points, not lattice
+indices), an edge is the pair (axis, doubled lattice index of its midpoint), looked up
+in one dense grid per axis: mid-edge nodes are then numbered by axis (x, y, z) and in
+C order of that grid. Other meshes fall back to sorting the end-node pairs (numbering
+in ascending order of the pair). Either way the result depends only on the mesh.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dicer.mesh.model import Mesh
+
+HEX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4],
+                      [0, 4], [1, 5], [2, 6], [3, 7]])
+"""End corners of the 12 edges of a hexahedron, in the order of nodes 8..19 of a 20-node hexahedron."""
+
+QUAD_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
+"""End corners of the 4 edges of a quad, in the order of nodes 4..7 of an 8-node quad."""
+
+HEX_EDGE_AXES = np.array([0, 1, 0, 1, 0, 1, 0, 1, 2, 2, 2, 2])
+QUAD_EDGE_AXES = np.array([0, 1, 0, 1])
+
+
+def _edges_by_lattice(mesh: Mesh, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(edges, index) as :func:`mesh_edges` gives them, from per-axis grids of edge midpoints;
+    None unless every element edge runs along its axis on the lattice."""
+    dim = mesh.dim
+    table, axes = (HEX_EDGES, HEX_EDGE_AXES) if dim == 3 else (QUAD_EDGES, QUAD_EDGE_AXES)
+    lattice = mesh.lattice
+    shape = np.asarray(mesh.grid_shape, np.int64).copy()
+    if dim == 2:
+        shape[2] = 0
+    if lattice.min() < 0 or np.any(lattice.max(axis=0) > shape):
+        return None
+    index = np.empty((cells.shape[0], table.shape[0]), np.int64)
+    edges = []
+    offset = 0
+    for a in range(dim):
+        gshape = shape + 1
+        gshape[a] = 2 * shape[a] + 1
+        strides = np.array([gshape[1] * gshape[2], gshape[2], 1], np.int64)
+        slots = np.flatnonzero(axes == a)
+        keys = np.empty((cells.shape[0], slots.size), np.int64)
+        for j, s in enumerate(slots):
+            p, q = lattice[cells[:, table[s, 0]]], lattice[cells[:, table[s, 1]]]
+            others = [b for b in range(3) if b != a]
+            if np.any(p[:, others] != q[:, others]) or np.any(p[:, a] == q[:, a]):
+                return None
+            mid = p.copy()
+            mid[:, a] += q[:, a]  # doubled midpoint along the edge's axis
+            keys[:, j] = mid @ strides
+        used = np.zeros(int(np.prod(gshape)), bool)
+        used[keys.ravel()] = True
+        count = int(np.count_nonzero(used))
+        number = np.cumsum(used, dtype=np.int64 if used.size >= 2**31 else np.int32) - 1
+        ends = np.empty((count, 2), np.int64)
+        for j, s in enumerate(slots):
+            k = number[keys[:, j]]
+            index[:, s] = offset + k
+            ends[k, 0], ends[k, 1] = cells[:, table[s, 0]], cells[:, table[s, 1]]
+        edges.append(ends)
+        offset += count
+    return np.concatenate(edges), index
+
+
+def mesh_edges(cells: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unique edges of a linear hex/quad mesh.
+
+    Returns (edges, index): edges (E, 2) int64 end nodes (smaller first, rows ascending);
+    index (M, 12) or (M, 4) int64: the edge of each element edge slot.
+    """
+    table = HEX_EDGES if cells.shape[1] == 8 else QUAD_EDGES
+    a = cells[:, table[:, 0]]
+    b = cells[:, table[:, 1]]
+    keys = np.minimum(a, b) * np.int64(n_points) + np.maximum(a, b)
+    unique, index = np.unique(keys.ravel(), return_inverse=True)
+    edges = np.column_stack([unique // n_points, unique % n_points])
+    return edges, index.reshape(keys.shape)
+
+
+# edge slots (HEX_EDGES / QUAD_EDGES rows) around each face S1..S6 (edge S1..S4) in Abaqus order
+HEX_FACE_EDGES = np.array([[0, 1, 2, 3], [7, 6, 5, 4], [8, 4, 9, 0], [9, 5, 10, 1], [10, 6, 11, 2], [11, 7, 8, 3]])
+QUAD_SIDE_EDGES = np.array([[0], [1], [2], [3]])
+
+
+def curved_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_faces: np.ndarray) -> np.ndarray:
+    """Mid-edge node positions with boundary edges bent onto the curve of the boundary.
+
+    A boundary edge a-b (on a face in ``boundary_faces``, (M, F) bool) whose lattice line
+    continues on the boundary at both ends, a'-a-b-b', gets the cubic (Catmull-Rom)
+    point (9 (x_a + x_b) - (x_a' + x_b')) / 16; with one continuation, the parabola
+    through the three nodes, e.g. (6 x_a + 3 x_b - x_a') / 8; every other edge keeps
+    its midpoint.
+    On a straight line of nodes both are the midpoint, so flat faces and cut planes stay flat.
+    """
+    x = mesh.points
+    mid = 0.5 * (x[edges[:, 0]] + x[edges[:, 1]])
+    slots = HEX_FACE_EDGES if mesh.dim == 3 else QUAD_SIDE_EDGES
+    on_boundary = np.zeros(edges.shape[0], bool)
+    for f in range(slots.shape[0]):
+        e = np.flatnonzero(boundary_faces[:, f])
+        on_boundary[index[e[:, None], slots[f]].ravel()] = True
+    n = mesh.n_points
+    lo, hi = np.minimum(edges[:, 0], edges[:, 1]), np.maximum(edges[:, 0], edges[:, 1])
+    keys = lo * np.int64(n) + hi
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+
+    def boundary_edge(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+        k = np.minimum(p, q) * np.int64(n) + np.maximum(p, q)
+        at = np.clip(np.searchsorted(sorted_keys, k), 0, keys.size - 1)
+        return (sorted_keys[at] == k) & on_boundary[order[at]]
+
+    lattice = mesh.lattice
+    shape = lattice.max(axis=0) + 2
+    strides = np.array([shape[1] * shape[2], shape[2], 1], np.int64)
+    node_at = np.full(int(np.prod(shape)), -1, np.int64)
+    node_at[lattice @ strides] = np.arange(n)
+
+    def node(lat: np.ndarray) -> np.ndarray:
+        inside = np.all((lat >= 0) & (lat < shape), axis=1)
+        out = np.full(lat.shape[0], -1, np.int64)
+        out[inside] = node_at[lat[inside] @ strides]
+        return out
+
+    cand = np.flatnonzero(on_boundary)
+    a, b = edges[cand, 0], edges[cand, 1]
+    step = lattice[b] - lattice[a]
+    ap, bp = node(lattice[a] - step), node(lattice[b] + step)
+    has_a, has_b = ap >= 0, bp >= 0
+    has_a[has_a] = boundary_edge(ap[has_a], a[has_a])
+    has_b[has_b] = boundary_edge(b[has_b], bp[has_b])
+    both = has_a & has_b
+    mid[cand[both]] = (9.0 * (x[a[both]] + x[b[both]]) - (x[ap[both]] + x[bp[both]])) / 16.0
+    one = has_a & ~has_b  # the parabola through a', a, b at the middle of a-b
+    mid[cand[one]] = (6.0 * x[a[one]] + 3.0 * x[b[one]] - x[ap[one]]) / 8.0
+    one = has_b & ~has_a
+    mid[cand[one]] = (3.0 * x[a[one]] + 6.0 * x[b[one]] - x[bp[one]]) / 8.0
+    return mid
+
+
+def quadratic_mesh(mesh: Mesh, boundary_faces: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points, 20-node (8-node) cells and doubled lattice indices of the quadratic mesh.
+
+    boundary_faces : optional (M, F) bool, the element faces (2D: edges) on a boundary
+        (exterior or material interface), in Abaqus face order; their edges get
+        :func:`curved_midpoints` placement. None: every mid-edge node at its edge's midpoint.
+    Returns
+    points : (N + E, 3): the corner nodes, then one mid-edge node per edge.
+    cells : (M, 20) or (M, 8) int64, VTK/Abaqus node order.
+    lattice2 : (N + E, 3) int64, twice the lattice index (a mid-edge node: the sum of its
+        ends' indices), so bounding-plane tests stay exact.
+    """
+    cells = np.asarray(mesh.cells, dtype=np.int64)
+    n = mesh.n_points
+    found = _edges_by_lattice(mesh, cells)
+    edges, index = found if found is not None else mesh_edges(cells, n)
+    if boundary_faces is not None and found is not None:  # lattice lines needed for the continuation
+        mid_points = curved_midpoints(mesh, edges, index, boundary_faces)
+    else:
+        mid_points = 0.5 * (mesh.points[edges[:, 0]] + mesh.points[edges[:, 1]])
+    points = np.concatenate([mesh.points, mid_points])
+    lattice2 = np.concatenate([2 * mesh.lattice, mesh.lattice[edges[:, 0]] + mesh.lattice[edges[:, 1]]])
+    quadratic = np.concatenate([cells, index + n], axis=1)
+    return points, quadratic, lattice2

@@ -1,0 +1,334 @@
+"""Exports: the fixed-width formatter, the Abaqus deck, VTU, read-back and bad input."""
+
+from __future__ import annotations
+
+import hashlib
+import re
+
+import meshio
+import numpy as np
+import pytest
+
+from dicer.config import config_hash, load_config
+from dicer.errors import DicerError
+from dicer.export import (
+    EXPORT_SUFFIXES,
+    _neighbours_by_sort,
+    export_mesh,
+    neighbour_materials,
+    prepare_model,
+)
+from dicer.export.textfmt import Sci, aligned_width, int_digits, int_lines, sci_digits
+from dicer.io.meshes import read_mesh
+from dicer.mesh.voxel import voxel_mesh
+
+
+@pytest.fixture
+def labels():
+    lab = np.zeros((4, 5, 6), np.uint8)
+    lab[:, :, :3] = 1
+    lab[1:3, 1:4, 3:] = 2
+    lab[0, 0, 5] = 1  # a lone voxel touching the rest along an edge only
+    return lab
+
+
+@pytest.fixture
+def mesh(labels):
+    return voxel_mesh(labels, spacing=(0.5, 0.75, 1.25), origin=(-3.0, 10.0, 0.125))
+
+
+@pytest.fixture
+def config():
+    return load_config()
+
+
+# --- formatter ----------------------------------------------------------------------------
+
+
+def test_integers_match_python_formatting():
+    rng = np.random.default_rng(1)
+    v = np.concatenate([[0, 1, 9, 10, 9999, 10000, 99999999, 100000000, 9999999999],
+                        rng.integers(0, 10**10, 5000)])
+    for width in (10, 11, 12):
+        for lead in (b"", b",", b"\n", b",\n"):
+            got = [bytes(r) for r in int_digits(v, width, lead=lead)]
+            assert got == [lead + f"{x:{width}d}".encode() for x in v]
+    small = v[v < 10**7]
+    for width in (7, 8):
+        got = [bytes(r) for r in int_digits(small, width, lead=b",")]
+        assert got == [b"," + f"{x:{width}d}".encode() for x in small]
+    assert [bytes(r) for r in int_digits(v, 10, zero_pad=True)] == [f"{x:010d}".encode() for x in v]
+    with pytest.raises(ValueError):
+        int_digits(np.array([10**7]), 7)
+
+
+def test_floats_match_python_formatting_to_the_last_digit():
+    rng = np.random.default_rng(2)
+    x = np.concatenate([[0.0, 1.0, -1.0, 0.1, 123.456, -2.5e-7, 1 / 3, 99999.99999, 1e-99, 9.99e98],
+                        rng.normal(size=20000) * 10.0 ** rng.integers(-40, 40, 20000)])
+    for digits in (9, 13, 6):
+        for lead in (b"", b","):
+            got = [bytes(r) for r in sci_digits(x, Sci(digits), lead)]
+            want = [lead + f"{v: .{digits - 1}e}".encode() for v in x]
+            mismatch = [i for i, (g, w) in enumerate(zip(got, want)) if g != w]
+            # a different last digit only where the decimal value sits on a rounding tie
+            assert len(mismatch) <= 5e-4 * x.size
+            back = np.array([float(g[len(lead):]) for g in got])
+            assert np.allclose(back, x, rtol=10.0 ** (1 - digits), atol=0)
+    fortran = [bytes(r) for r in sci_digits(np.array([0.0, 1.5, -0.00123]), Sci(9, b"E", fortran=True, width=16))]
+    assert fortran == [b" 0.000000000E+00", b" 0.150000000E+01", b"-0.123000000E-02"]
+    with pytest.raises(ValueError):
+        sci_digits(np.array([np.nan]), Sci(9))
+    with pytest.raises(ValueError):
+        sci_digits(np.array([1e100]), Sci(9))
+
+
+def test_set_lines_and_alignment():
+    text = int_lines(np.arange(1, 36), 16, 3)
+    lines = text.decode().splitlines()
+    assert [len(line.split(",")) for line in lines] == [16, 16, 3]
+    assert [int(v) for line in lines for v in line.split(",")] == list(range(1, 36))
+    assert aligned_width(7, b",") == 7 and aligned_width(8, b",") == 11 and aligned_width(7, b",\n") == 10
+
+
+# --- Abaqus deck --------------------------------------------------------------------------
+
+
+def _blocks(text: str) -> dict[str, list[str]]:
+    """Keyword line -> its data lines."""
+    out: dict[str, list[str]] = {}
+    key = None
+    for line in text.splitlines():
+        if line.startswith("*") and not line.startswith("**"):
+            key = line
+            out[key] = []
+        elif key and not line.startswith("**"):
+            out[key].append(line)
+    return out
+
+
+def test_abaqus_deck_content(tmp_path, mesh, labels, config):
+    src = tmp_path / "scan.nii.gz"
+    src.write_bytes(b"not really an image")
+    info = export_mesh(mesh, tmp_path / "model.inp", config, source=src)
+    text = (tmp_path / "model.inp").read_text()
+    assert info["nodes"] == mesh.n_points and info["elements"] == mesh.n_cells and info["verified"]
+    # provenance: version, input name and checksum, config hash, and no folder or date
+    head = text.split("*NODE")[0]
+    assert head.startswith("*HEADING\ndicer ")
+    assert hashlib.sha256(b"not really an image").hexdigest() in head
+    assert config_hash(config) in head and "scan.nii.gz" in head and str(tmp_path) not in head
+    assert not re.search(r"20\d\d-\d\d-\d\d", text)
+    blocks = _blocks(text)
+    # nodes numbered 1..N in mesh order, coordinates to 9 significant digits
+    nodes = np.array([[float(v) for v in line.split(",")] for line in blocks["*NODE"]])
+    assert nodes[:, 0].tolist() == list(range(1, mesh.n_points + 1))
+    assert np.allclose(nodes[:, 1:], mesh.points, rtol=1e-8, atol=1e-12)
+    # one element block per material, named after it, element number = mesh order + 1
+    soft = blocks["*ELEMENT, TYPE=C3D8, ELSET=soft_tissue"]
+    bone = blocks["*ELEMENT, TYPE=C3D8, ELSET=bone"]
+    ids = {}
+    for name, rows in (("soft_tissue", soft), ("bone", bone)):
+        arr = np.array([[int(v) for v in r.split(",")] for r in rows])
+        ids[name] = arr[:, 0]
+        assert np.array_equal(arr[:, 1:] - 1, mesh.cells[arr[:, 0] - 1])
+    assert sorted(np.concatenate(list(ids.values())).tolist()) == list(range(1, mesh.n_cells + 1))
+    assert np.all(mesh.material[ids["bone"] - 1] == 2) and ids["bone"].size == np.count_nonzero(labels == 2)
+    # materials and sections from the config
+    assert blocks["*ELASTIC"] == ["15000, 0.3"] or "15000, 0.3" in text
+    assert "*SOLID SECTION, ELSET=bone, MATERIAL=bone" in blocks
+    assert "*STEP" not in text
+    # bounding-plane node sets from the lattice
+    for axis, name in enumerate("XYZ"):
+        for side, value in (("0", 0), ("1", labels.shape[axis])):
+            got = [int(v) for line in blocks[f"*NSET, NSET={name}{side}"] for v in line.split(",")]
+            assert got == (np.flatnonzero(mesh.lattice[:, axis] == value) + 1).tolist()
+    # CalculiX limits: 16 entries a line, integers <= 10 and floats <= 20 characters
+    for line in (line for key, rows in blocks.items() if key != "*HEADING" for line in rows):
+        entries = [e.strip() for e in line.split(",") if e.strip()]
+        assert len(entries) <= 16 and len(line) <= 132
+        assert all(len(e) <= 20 for e in entries)
+
+
+def test_surface_and_interface_sets(tmp_path, mesh, labels, config):
+    model = prepare_model(mesh, config)
+    sets = model.node_sets
+    # the exterior: faces with no element behind them; the bone block sits on soft tissue
+    padded = np.pad(labels > 0, 1)
+    n_faces = sum(np.count_nonzero(padded & ~np.roll(padded, s, axis=a)) for a in range(3) for s in (1, -1))
+    assert model.exterior.shape == (n_faces, 2)
+    # interface nodes: the bone's bottom face (2 x 3 voxels -> 3 x 4 nodes at z = 3)
+    inter = sets["soft_tissue_bone"]
+    assert inter.size == 12 and np.all(mesh.lattice[inter, 2] == 3)
+    assert set(inter) <= set(sets["bone_BOUNDARY"]) and set(inter) <= set(sets["soft_tissue_BOUNDARY"])
+    assert set(sets["bone_BOUNDARY"]) - set(inter) <= set(sets["EXTERIOR"])
+    # faces of the exterior surface point outward: their nodes lie on the element's outer side
+    for e, s in model.exterior[:50]:
+        assert 1 <= s <= 6
+    text_path = tmp_path / "m.inp"
+    export_mesh(mesh, text_path, config)
+    text = text_path.read_text()
+    assert "*SURFACE, NAME=EXTERIOR, TYPE=ELEMENT\nEXTERIOR_S1, S1\n" in text
+
+
+def test_neighbours_by_lattice_equal_those_by_sort():
+    rng = np.random.default_rng(3)
+    lab = rng.integers(0, 3, (7, 6, 5)).astype(np.uint8)
+    mesh = voxel_mesh(lab)
+    nb = neighbour_materials(mesh)
+    idx = _neighbours_by_sort(mesh.cells, 3, mesh.n_points)
+    assert np.array_equal(nb, np.where(idx >= 0, mesh.material[np.maximum(idx, 0)], 0))
+    mesh2 = voxel_mesh(lab[:, :, 0])
+    idx2 = _neighbours_by_sort(mesh2.cells, 2, mesh2.n_points)
+    assert np.array_equal(neighbour_materials(mesh2), np.where(idx2 >= 0, mesh2.material[np.maximum(idx2, 0)], 0))
+    # a mesh whose lattice is not boxes (shuffled corners) falls back to the sort
+    mesh.lattice = mesh.lattice[::-1].copy()
+    assert np.array_equal(neighbour_materials(mesh), np.where(idx >= 0, mesh.material[np.maximum(idx, 0)], 0))
+
+
+def test_reruns_are_byte_identical_and_meshio_reads_the_deck(tmp_path, mesh, config):
+    export_mesh(mesh, tmp_path / "a.inp", config, source="scan.nii")
+    export_mesh(mesh, tmp_path / "b.inp", config, source="scan.nii")
+    assert (tmp_path / "a.inp").read_bytes() == (tmp_path / "b.inp").read_bytes()
+    m = meshio.read(tmp_path / "a.inp")
+    assert len(m.points) == mesh.n_points and sum(len(b.data) for b in m.cells) == mesh.n_cells
+    assert sorted(m.cell_sets) == sorted(["soft_tissue", "bone", *[f"EXTERIOR_S{s}" for s in range(1, 7)]])
+
+
+def test_two_dimensional_deck(tmp_path, config):
+    lab = np.ones((4, 3), np.uint8)
+    lab[2:, :] = 2
+    mesh = voxel_mesh(lab, spacing=(0.5, 0.25))
+    cfg = load_config(settings={"export": {"thickness": 2.5, "element_type": "CPE4"}})
+    info = export_mesh(mesh, tmp_path / "plate.inp", cfg)
+    text = (tmp_path / "plate.inp").read_text()
+    assert info["element_type"] == "CPE4" and "*ELEMENT, TYPE=CPE4, ELSET=bone" in text
+    assert "*SOLID SECTION, ELSET=bone, MATERIAL=bone\n2.5\n" in text
+    assert "*NSET, NSET=Z0" not in text and "*NSET, NSET=Y1" in text
+    assert "EXTERIOR_S4, S4" in text
+
+
+def test_heading_can_be_left_to_the_including_deck(tmp_path, mesh):
+    cfg = load_config(settings={"export": {"heading": False, "sets": ["planes"]}})
+    export_mesh(mesh, tmp_path / "m.inp", cfg, source="scan.nii")
+    text = (tmp_path / "m.inp").read_text()
+    assert "*HEADING" not in text and text.startswith("** dicer ")
+    assert "EXTERIOR" not in text and "_BOUNDARY" not in text and "*NSET, NSET=X0" in text
+
+
+# --- VTU ----------------------------------------------------------------------------------
+
+
+def test_vtu_export_has_material_and_quality(tmp_path, mesh, config):
+    info = export_mesh(mesh, tmp_path / "model.vtu", config)
+    assert info["format"] == "vtu"
+    m = meshio.read(tmp_path / "model.vtu")
+    assert np.array_equal(np.concatenate(m.cell_data["material"]), mesh.material)
+    assert np.allclose(np.concatenate(m.cell_data["scaled_jacobian"]), 1.0)
+    back = read_mesh(tmp_path / "model.vtu")  # still a dicer mesh for the quality stage
+    assert np.array_equal(back.cells, mesh.cells) and np.array_equal(back.lattice, mesh.lattice)
+
+
+# --- bad input ----------------------------------------------------------------------------
+
+
+def _no_files(folder, keep=()):
+    return sorted(p.name for p in folder.iterdir() if p.name not in keep) == []
+
+
+@pytest.mark.parametrize("settings,message", [
+    ({"element_type": "C3D27"}, "unknown element type"),
+    ({"element_type": "CPS4"}, "for 2D meshes"),
+    ({"element_type": "C3D20"}, "has order 2"),
+    ({"element_type": "C3D8", "order": 2}, "has order 1"),
+])
+def test_bad_element_type_writes_nothing(tmp_path, mesh, config, settings, message):
+    config["export"].update(settings)
+    with pytest.raises(DicerError, match=message):
+        export_mesh(mesh, tmp_path / "m.inp", config)
+    assert _no_files(tmp_path)
+
+
+def test_bad_format_labels_and_folder(tmp_path, mesh, config):
+    with pytest.raises(DicerError, match="unknown export format"):
+        export_mesh(mesh, tmp_path / "m.stl", config)
+    mesh.material[0] = 3
+    with pytest.raises(DicerError, match="names 2 material"):
+        export_mesh(mesh, tmp_path / "m.inp", config)
+    mesh.material[0] = 1
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    with pytest.raises(DicerError, match="cannot write"):
+        export_mesh(mesh, blocker / "m.inp", config)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+    assert ".inp" in EXPORT_SUFFIXES and ".vtu" in EXPORT_SUFFIXES
+
+
+def test_failed_read_back_leaves_no_file(tmp_path, mesh, config, monkeypatch):
+    from dicer.export import readers
+
+    def broken(path, model):
+        raise DicerError("node count changed")
+
+    monkeypatch.setattr(readers, "check_abaqus", broken)
+    with pytest.raises(DicerError, match="read-back check failed"):
+        export_mesh(mesh, tmp_path / "m.inp", config)
+    assert _no_files(tmp_path)
+
+
+def test_neighbours_of_merged_elements():
+    # two 2 x 1 x 1 lattice boxes side by side (as plane merging leaves them), and a unit voxel on top
+    from dicer.mesh.model import HEX_CORNERS, Mesh
+
+    lattice = np.array([[i, j, k] for i in (0, 1, 2) for j in (0, 1, 2) for k in (0, 1, 2)])
+    index = {tuple(v): n for n, v in enumerate(lattice.tolist())}
+
+    def box(lo, ext):
+        return [index[tuple(np.array(lo) + c * np.array(ext))] for c in HEX_CORNERS]
+
+    cells = np.array([box((0, 0, 0), (2, 1, 1)), box((0, 1, 0), (2, 1, 1)), box((0, 0, 1), (1, 1, 1))])
+    used = np.unique(cells)
+    remap = np.full(len(lattice), -1)
+    remap[used] = np.arange(used.size)
+    mesh = Mesh(lattice[used].astype(float), remap[cells], np.array([1, 2, 1], np.int32), lattice[used],
+                np.ones(3), np.zeros(3), np.array([2, 2, 2]))
+    nb = neighbour_materials(mesh)
+    # S1 z-, S2 z+, S3 y-, S4 x+, S5 y+, S6 x-
+    assert nb[1].tolist() == [0, 0, 1, 0, 0, 0]
+    assert nb[2].tolist() == [1, 0, 0, 0, 0, 0]
+    assert nb[0, 2] == 0 and nb[0, 4] == 2
+
+
+# --- command line ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("output,extra,message", [
+    ("model.stl", [], "must be one of"),
+    ("model.k", ["--order", "2"], "8-node hexahedra only"),
+    ("model.inp", ["--set", "export.element_type=C3D20"], "has order 2"),
+    ("model.inp", ["--set", "export.element_type=C3D99"], "export.element_type"),
+    ("file/model.inp", [], "cannot write"),
+])
+def test_cli_bad_export_input(tmp_path, mesh, capsys, output, extra, message):
+    from dicer.cli import main
+    from dicer.io.meshes import write_mesh
+
+    write_mesh(mesh, tmp_path / "mesh.vtu")
+    (tmp_path / "file").write_text("a file, not a folder")
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    code = main(["export", str(tmp_path / "mesh.vtu"), "-o", str(tmp_path / output), *extra])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err[-1].startswith("error: ") and message in err[-1]
+    assert sorted(p.name for p in tmp_path.rglob("*")) == before
+
+
+def test_cli_exports_every_format(tmp_path, mesh):
+    from dicer.cli import main
+    from dicer.io.meshes import write_mesh
+
+    write_mesh(mesh, tmp_path / "mesh.vtu")
+    for name in ("model.inp", "model.vtu", "model.out", "model.neu", "model.k", "model.msh"):
+        assert main(["export", str(tmp_path / "mesh.vtu"), "-o", str(tmp_path / name)]) == 0
+        assert (tmp_path / name).stat().st_size > 0
+    assert main(["export", str(tmp_path / "mesh.vtu"), "-o", str(tmp_path / "q.inp"), "--order", "2"]) == 0
+    assert "TYPE=C3D20," in (tmp_path / "q.inp").read_text()

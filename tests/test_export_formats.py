@@ -1,0 +1,281 @@
+"""Quadratic elements, PATRAN neutral, LS-DYNA keyword, Gmsh and VTU: round trips and layouts."""
+
+from __future__ import annotations
+
+import re
+
+import meshio
+import numpy as np
+import pytest
+
+from dicer.config import load_config
+from dicer.errors import DicerError
+from dicer.export import export_mesh, prepare_model
+from dicer.export.readers import read_lsdyna, read_patran
+from dicer.mesh.quadratic import HEX_EDGES, QUAD_EDGES, quadratic_mesh
+from dicer.mesh.voxel import voxel_mesh
+
+# PATRAN's 20-node hexahedron, from its element library: corners, then the mid-edge
+# nodes of the bottom edges, the vertical edges and the top edges (1-based corners)
+PATRAN_HEX20_EDGES = [(1, 2), (2, 3), (3, 4), (4, 1), (1, 5), (2, 6), (3, 7), (4, 8),
+                      (5, 6), (6, 7), (7, 8), (8, 5)]
+
+
+@pytest.fixture
+def labels():
+    lab = np.zeros((3, 4, 5), np.uint8)
+    lab[:, :, :2] = 1
+    lab[:, 1:3, 2:] = 2
+    return lab
+
+
+@pytest.fixture
+def mesh(labels):
+    m = voxel_mesh(labels, spacing=(0.5, 0.75, 1.25), origin=(-1.0, 2.0, 0.5))
+    # a smoothed-looking mesh: move interior-free nodes a little, keep elements valid
+    rng = np.random.default_rng(0)
+    m.points += rng.uniform(-0.05, 0.05, m.points.shape)
+    return m
+
+
+def cfg(**export):
+    return load_config(settings={"export": export})
+
+
+def _edge_count(labels: np.ndarray) -> int:
+    solid = np.pad(labels > 0, 1)
+    total = 0
+    for axis in range(3):
+        # an edge along `axis` exists where any of the 4 voxels around it is solid
+        others = [a for a in range(3) if a != axis]
+        s = solid
+        around = s | np.roll(s, 1, others[0])
+        around = around | np.roll(around, 1, others[1])
+        total += np.count_nonzero(around)
+    return total
+
+
+# --- quadratic elements ---------------------------------------------------------------------
+
+
+def test_mid_edge_nodes_are_shared_and_at_midpoints(mesh, labels):
+    points, cells, lattice2 = quadratic_mesh(mesh)
+    n = mesh.n_points
+    assert cells.shape == (mesh.n_cells, 20)
+    assert points.shape[0] - n == _edge_count(labels)  # one node per mesh edge, never duplicated
+    mids = cells[:, 8:]
+    ends = cells[:, HEX_EDGES]
+    assert np.allclose(points[mids], 0.5 * (points[ends[..., 0]] + points[ends[..., 1]]))
+    assert np.array_equal(lattice2[mids], mesh.lattice[ends[..., 0]] + mesh.lattice[ends[..., 1]])
+    assert np.unique(points.round(9), axis=0).shape[0] == points.shape[0]  # no two nodes coincide
+    # every element edge slot refers to the same node from all elements around the edge
+    key = np.sort(ends, axis=-1).reshape(-1, 2)
+    node = mids.ravel()
+    order = np.lexsort(key.T[::-1])
+    same = (key[order][1:] == key[order][:-1]).all(axis=1)
+    assert np.array_equal(node[order][1:][same], node[order][:-1][same])
+
+
+def test_mid_edge_nodes_without_lattice_boxes(mesh):
+    # a mesh whose lattice indices are not boxes: edges are found by sorting end-node pairs
+    points, cells, _ = quadratic_mesh(mesh)
+    other = mesh.copy()
+    other.lattice = other.lattice[::-1].copy()
+    points2, cells2, _ = quadratic_mesh(other)
+    assert points2.shape == points.shape and np.array_equal(cells2[:, :8], cells[:, :8])
+    assert np.allclose(points2[cells2], points[cells])  # same node at every element slot
+
+
+def test_curved_mid_edge_nodes_keep_flat_faces_flat(mesh):
+    straight = voxel_mesh(np.ones((3, 4, 2), np.uint8), spacing=(0.5, 1.0, 2.0))
+    a = prepare_model(straight, cfg(order=2))
+    b = prepare_model(straight, cfg(order=2, midside_nodes="curved"))
+    assert np.allclose(a.points, b.points)  # collinear boundary nodes: the cubic is the midpoint
+    # on a bumpy boundary only boundary edges move, interior ones stay at their midpoints
+    c = prepare_model(mesh, cfg(order=2))
+    d = prepare_model(mesh, cfg(order=2, midside_nodes="curved"))
+    moved = np.flatnonzero(np.abs(c.points - d.points).max(axis=1) > 1e-12)
+    assert moved.size and np.all(moved >= mesh.n_points)
+    assert set(moved) <= set(np.concatenate([d.node_sets["EXTERIOR"], d.node_sets["soft_tissue_bone"]]))
+
+
+def test_curved_mid_edge_nodes_follow_a_smoothed_sphere():
+    smooth = pytest.importorskip("dicer.mesh.smooth")
+    from dicer.phantoms import sphere_labels
+
+    volume = sphere_labels(24)
+    mesh, _ = smooth.smooth_mesh(voxel_mesh(volume.array, volume.spacing), load_config().get("smooth"))
+    centre = mesh.points.mean(axis=0)
+    sag = {}
+    for mode in ("midpoint", "curved"):
+        model = prepare_model(mesh, cfg(order=2, midside_nodes=mode))
+        ext = model.node_sets["EXTERIOR"]
+        r = np.linalg.norm(model.points[ext] - centre, axis=1)
+        sag[mode] = r[ext < mesh.n_points].mean() - r[ext >= mesh.n_points].mean()
+    # chords cut inside a convex surface; bending boundary edges takes back part of that sag
+    assert 0 < sag["curved"] < 0.8 * sag["midpoint"]
+
+
+def test_quadratic_quads():
+    mesh = voxel_mesh(np.ones((3, 2), np.uint8), spacing=(1.0, 2.0))
+    points, cells, _ = quadratic_mesh(mesh)
+    assert cells.shape == (6, 8) and points.shape[0] == 12 + 17
+    ends = cells[:, QUAD_EDGES]
+    assert np.allclose(points[cells[:, 4:]], 0.5 * (points[ends[..., 0]] + points[ends[..., 1]]))
+
+
+def test_quadratic_node_sets_include_mid_edge_nodes(mesh, labels):
+    model = prepare_model(mesh, cfg(order=2))
+    # the X0 plane holds its corner nodes and the mid-edge nodes between them
+    x0 = model.node_sets["X0"]
+    assert np.all(model.points[x0, 0] < -0.9) and np.all(np.isin(np.flatnonzero(mesh.lattice[:, 0] == 0), x0))
+    inter = model.node_sets["soft_tissue_bone"]
+    corners = inter[inter < mesh.n_points]
+    # the bone sits on 3 x 2 voxel faces: 4 x 3 corners, 3 x 3 + 2 x 4 mid-edge nodes
+    assert corners.size == 12 and inter.size == 12 + 17
+
+
+# --- Abaqus order 2 ---------------------------------------------------------------------------
+
+
+def test_abaqus_quadratic_deck_round_trip(tmp_path, mesh):
+    info = export_mesh(mesh, tmp_path / "m.inp", cfg(order=2, element_type="C3D20R"))
+    text = (tmp_path / "m.inp").read_text()
+    assert "*ELEMENT, TYPE=C3D20R, ELSET=bone" in text
+    body = text.split("*ELEMENT, TYPE=C3D20R, ELSET=soft_tissue\n")[1].split("*")[0].splitlines()
+    assert all(line.endswith(",") and len(line.split(",")) == 17 for line in body[0::2])  # 16 entries + comma
+    assert all(len(line.split(",")) == 5 for line in body[1::2])
+    m = meshio.read(tmp_path / "m.inp")
+    model = prepare_model(mesh, cfg(order=2))
+    assert m.cells[0].type == "hexahedron20" and len(m.points) == info["nodes"] == model.n_points
+    assert np.allclose(m.points, model.points, rtol=1e-8, atol=1e-8)
+
+
+# --- PATRAN neutral ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_patran_round_trip(tmp_path, mesh, order):
+    info = export_mesh(mesh, tmp_path / "m.out", cfg(order=order), source="scan.nii")
+    got = read_patran(tmp_path / "m.out")
+    model = prepare_model(mesh, cfg(order=order))
+    assert info["nodes"] == got["points"].shape[0] == model.n_points
+    assert np.allclose(got["points"], model.points, rtol=1e-8, atol=1e-9)
+    assert np.array_equal(got["cells"], model.cells) and np.array_equal(got["material"], mesh.material)
+    assert got["title"].startswith("dicer ") and "scan.nii" in got["title"]
+
+
+def test_patran_cards_and_20_node_order(tmp_path, mesh):
+    export_mesh(mesh, tmp_path / "m.neu", cfg(order=2))
+    lines = (tmp_path / "m.neu").read_text().splitlines()
+    assert lines[0] == "25       0       0       1       0       0       0       0       0"
+    n_nodes, n_elems = int(lines[2][26:34]), int(lines[2][34:42])
+    coords = np.array([[float(lines[4 + 3 * i + 1][16 * j : 16 * j + 16]) for j in range(3)]
+                       for i in range(n_nodes)])
+    assert all(len(lines[4 + 3 * i + 1]) == 48 for i in range(n_nodes))
+    assert all(re.fullmatch(r"[ -]0\.\d{9}E[+-]\d\d", lines[5][k : k + 16]) for k in (0, 16, 32))  # E16.9
+    first = 4 + 3 * n_nodes
+    for e in range(n_elems):
+        head = lines[first + 4 * e]
+        assert head[:2] == " 2" and int(head[2:10]) == e + 1 and int(head[10:18]) == 8 and int(head[18:26]) == 3
+        card1 = lines[first + 4 * e + 1]
+        assert int(card1[0:8]) == 20 and int(card1[16:24]) == mesh.material[e]
+        ids = [int(line[k : k + 8]) for line in lines[first + 4 * e + 2 : first + 4 * e + 4]
+               for k in range(0, len(line), 8)]
+        xyz = coords[np.array(ids) - 1]
+        for m, (a, b) in enumerate(PATRAN_HEX20_EDGES):
+            # each mid-edge node lies between the corners PATRAN's order gives it
+            assert np.allclose(xyz[8 + m], 0.5 * (xyz[a - 1] + xyz[b - 1]), atol=1e-8)
+    assert lines[-1].startswith("99")
+
+
+def test_patran_reader_is_strict(tmp_path, mesh):
+    export_mesh(mesh, tmp_path / "m.out", cfg())
+    text = (tmp_path / "m.out").read_text()
+    (tmp_path / "cut.out").write_text(text[: len(text) // 2])
+    with pytest.raises(DicerError):
+        read_patran(tmp_path / "cut.out")
+    lines = text.splitlines(keepends=True)
+    lines[5] = lines[5][:20] + "x" + lines[5][21:]
+    (tmp_path / "bad.out").write_text("".join(lines))
+    with pytest.raises(DicerError, match="not a number"):
+        read_patran(tmp_path / "bad.out")
+    lines = text.splitlines(keepends=True)
+    lines[7] = lines[7][:18] + "       3" + lines[7][26:]  # second node packet claims three cards
+    (tmp_path / "kc.out").write_text("".join(lines))
+    with pytest.raises(DicerError, match="node header fields"):
+        read_patran(tmp_path / "kc.out")
+
+
+def test_patran_two_dimensional(tmp_path):
+    mesh = voxel_mesh(np.array([[1, 2], [1, 1]], np.uint8), spacing=(0.5, 0.5))
+    for order in (1, 2):
+        export_mesh(mesh, tmp_path / f"p{order}.out", cfg(order=order))
+        got = read_patran(tmp_path / f"p{order}.out")
+        assert got["dim"] == 2 and got["cells"].shape == (4, 4 * order)
+
+
+# --- LS-DYNA keyword --------------------------------------------------------------------------
+
+
+def test_lsdyna_round_trip(tmp_path, mesh):
+    config = load_config(settings={"materials": [
+        {"name": "soft_tissue", "youngs_modulus": 1.25, "poissons_ratio": 0.45, "density": 1.05e-9},
+        {"name": "bone", "youngs_modulus": 17123.5, "poissons_ratio": 0.3, "density": 1.9e-9}]})
+    info = export_mesh(mesh, tmp_path / "m.k", config)
+    got = read_lsdyna(tmp_path / "m.k")
+    model = prepare_model(mesh, config)
+    assert np.allclose(got["points"], mesh.points, rtol=1e-8, atol=1e-9)
+    assert np.array_equal(got["cells"], mesh.cells) and np.array_equal(got["material"], mesh.material)
+    assert got["parts"][2]["title"] == "bone" and got["materials"][2] == (1.9e-9, 17123.5, 0.3)
+    assert got["sections"] == {1: 2, 2: 2}
+    assert sorted(got["node_sets"]) == sorted(model.node_sets) == sorted(info["node_sets"])
+    for name, ids in model.node_sets.items():
+        assert np.array_equal(got["node_sets"][name], ids)
+    lines = (tmp_path / "m.k").read_text().splitlines()
+    element_lines = lines[lines.index("*ELEMENT_SOLID") + 2 :][: mesh.n_cells]
+    assert all(len(line) == 80 for line in element_lines)
+
+
+def test_lsdyna_element_formulation_and_limits(tmp_path, mesh):
+    export_mesh(mesh, tmp_path / "r.k", cfg(element_type="C3D8R"))
+    assert set(read_lsdyna(tmp_path / "r.k")["sections"].values()) == {1}
+    with pytest.raises(DicerError, match="8-node hexahedra only"):
+        export_mesh(mesh, tmp_path / "q.k", cfg(order=2))
+    assert not (tmp_path / "q.k").exists() and sorted(p.name for p in tmp_path.iterdir()) == ["r.k"]
+
+
+# --- VTU and Gmsh -----------------------------------------------------------------------------
+
+
+def test_vtu_quadratic_and_gmsh(tmp_path, mesh):
+    export_mesh(mesh, tmp_path / "q.vtu", cfg(order=2))
+    m = meshio.read(tmp_path / "q.vtu")
+    assert m.cells[0].type == "hexahedron20"
+    assert np.array_equal(np.concatenate(m.cell_data["material"]), mesh.material)
+    assert np.concatenate(m.cell_data["scaled_jacobian"]).min() > 0.5
+    export_mesh(mesh, tmp_path / "m.msh", cfg())
+    g = meshio.read(tmp_path / "m.msh")
+    assert np.array_equal(g.cells[0].data, mesh.cells)
+    assert np.array_equal(np.concatenate(g.cell_data["gmsh:physical"]), mesh.material)
+
+
+@pytest.mark.parametrize("name", ["m.inp", "m.out", "m.k", "m.vtu", "m.msh"])
+def test_every_format_reruns_byte_identical(tmp_path, mesh, name):
+    a, b = tmp_path / "a", tmp_path / "b"
+    for folder in (a, b):
+        export_mesh(mesh, folder / name, cfg(), source="scan.nii")
+    assert (a / name).read_bytes() == (b / name).read_bytes()
+
+
+def test_exodus_needs_netcdf4(tmp_path, mesh):
+    try:
+        import netCDF4  # noqa: F401
+    except ImportError:
+        with pytest.raises(DicerError, match="netCDF4"):
+            export_mesh(mesh, tmp_path / "m.exo", cfg())
+        assert list(tmp_path.iterdir()) == []
+        return
+    export_mesh(mesh, tmp_path / "m.exo", cfg())
+    m = meshio.read(tmp_path / "m.exo")
+    assert np.array_equal(np.concatenate(m.cell_data["material"]), mesh.material)

@@ -1,0 +1,452 @@
+"""Connectivity fixes (DICER Box 1): make every class of a label volume well connected.
+
+Three poorly connected arrangements are repaired (paper section 2.2, Fig. 3):
+
+* **Type A** - in a 2x2 block of any axis-aligned plane, a class occupies exactly one
+  diagonal (the two voxels touch only along an edge).
+* **Type B** - in a 2x2x2 block, a class occupies exactly the two voxels of a body
+  diagonal, or exactly the six voxels that leave a body diagonal to others (the central
+  node is exposed).
+* **Type C** - a voxel holds two class-A boundary nodes joined by a boundary edge
+  (an element hanging on by two adjacent faces, or its complement).
+
+Every class, background (0) included, is treated. A Type A/B fix never lowers a
+voxel's class: label values order the classes (background lowest, the highest label
+wins), and every fix sets a voxel to a class of higher value than it had. The A/B sweep
+is therefore monotone and reaches a fixed point; on that fixed point no Type A or B
+arrangement of any class is left, because each one would trigger a fix. Type C then
+reclassifies the offending voxel to the majority class of its face neighbours and A/B
+run again, round by round while the number of Type C sites falls.
+``docs/smoothing.md`` gives the exact rules.
+
+Arrays are indexed ``[x, y, z]`` (``[x, y]`` in 2D). Voxels outside the image count
+as background for node classification (Type C) and are never changed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dicer.errors import DicerError
+
+__all__ = ["fix_connectivity", "connectivity_defects", "boundary_edge_counts"]
+
+
+# --- helpers -----------------------------------------------------------------------------
+
+
+def _sl(ndim: int, axis: int, s: slice) -> tuple:
+    out = [slice(None)] * ndim
+    out[axis] = s
+    return tuple(out)
+
+
+_LO, _HI = slice(None, -1), slice(1, None)
+
+
+def _corner_views(a: np.ndarray, axes: tuple[int, ...]) -> list[tuple]:
+    """Slices selecting, for every 2^len(axes) block along ``axes``, one of its corners.
+
+    Corner index bit b (in ``axes`` order) set means the high side along ``axes[b]``.
+    """
+    out = []
+    for code in range(1 << len(axes)):
+        s = [slice(None)] * a.ndim
+        for b, ax in enumerate(axes):
+            s[ax] = _HI if (code >> b) & 1 else _LO
+        out.append(tuple(s))
+    return out
+
+
+def _as_work(labels: np.ndarray) -> np.ndarray:
+    top = int(labels.max()) if labels.size else 0
+    if int(labels.min()) < 0:
+        raise DicerError("labels contain negative values; use 0 for background and 1..K for materials")
+    dtype = np.uint8 if top < 256 else (np.uint16 if top < 65536 else np.int64)
+    return np.ascontiguousarray(labels, dtype=dtype)
+
+
+# --- Type A ------------------------------------------------------------------------------
+
+
+def _type_a_pass(w: np.ndarray, axes: tuple[int, int]) -> np.ndarray:
+    """One simultaneous Type A sweep over the 2x2 blocks spanning ``axes``; returns proposals.
+
+    Corners a (0,0), b (1,0), c (0,1), d (1,1). For a checkerboard diagonal P of class p
+    with the other diagonal Q: if p is above the lower Q class, that Q voxel (the first
+    on ties) becomes p (the connecting voxel); otherwise the first P voxel becomes the
+    higher Q class. Returns the array of proposed classes (>= w everywhere).
+    """
+    sa, sb, sc, sd = _corner_views(w, axes)
+    a, b, c, d = w[sa], w[sb], w[sc], w[sd]
+    prop = w.copy()
+    for (p1, p2, q1, q2, s_p1, s_q1, s_q2) in ((a, d, b, c, sa, sb, sc), (b, c, a, d, sb, sa, sd)):
+        bad = (p1 == p2) & (q1 != p1) & (q2 != p1)
+        if not bad.any():
+            continue
+        qmin = np.minimum(q1, q2)
+        grow = bad & (p1 > qmin)
+        # p above the lower Q class: the lower Q voxel (q1 on ties) becomes p
+        first = grow & (q1 <= q2)
+        second = grow & (q1 > q2)
+        np.maximum(prop[s_q1], np.where(first, p1, 0).astype(w.dtype), out=prop[s_q1])
+        np.maximum(prop[s_q2], np.where(second, p1, 0).astype(w.dtype), out=prop[s_q2])
+        # p below both Q classes: the first P voxel takes the higher Q class
+        lift = bad & ~grow
+        np.maximum(prop[s_p1], np.where(lift, np.maximum(q1, q2), 0).astype(w.dtype), out=prop[s_p1])
+    return prop
+
+
+def _type_a_defects(w: np.ndarray, axes: tuple[int, int]) -> np.ndarray:
+    sa, sb, sc, sd = _corner_views(w, axes)
+    a, b, c, d = w[sa], w[sb], w[sc], w[sd]
+    return ((a == d) & (b != a) & (c != a)) | ((b == c) & (a != b) & (d != b))
+
+
+# --- Type B ------------------------------------------------------------------------------
+
+# corner codes: bit 0 = x, bit 1 = y, bit 2 = z; the body-diagonal partner of p is p ^ 7
+_DIAG = (0, 1, 2, 3)
+
+
+def _type_b_masks(v: list[np.ndarray], p: int):
+    """(pair, six) masks for the body diagonal (p, p^7): pair = the two share a class no
+    other corner has; six = the other six share a class neither diagonal voxel has."""
+    q = p ^ 7
+    rest = [v[r] for r in range(8) if r not in (p, q)]
+    vp, vq = v[p], v[q]
+    pair = vp == vq
+    for r in rest:
+        pair &= r != vp
+    six = np.ones_like(pair)
+    r0 = rest[0]
+    for r in rest[1:]:
+        six &= r == r0
+    six &= (vp != r0) & (vq != r0)
+    return pair, six, rest
+
+
+def _type_b_pass(w: np.ndarray) -> np.ndarray:
+    """One simultaneous Type B sweep over all 2x2x2 blocks; returns proposals (>= w)."""
+    views = _corner_views(w, (0, 1, 2))
+    v = [w[s] for s in views]
+    prop = w.copy()
+
+    def propose(corner, mask, value):
+        if mask.any():
+            s = views[corner]
+            np.maximum(prop[s], np.where(mask, value, 0).astype(w.dtype), out=prop[s])
+
+    for p in _DIAG:
+        q = p ^ 7
+        pair, six, rest = _type_b_masks(v, p)
+        vp, vq = v[p], v[q]
+        if six.any():
+            c = rest[0]
+            # the six-class fills each diagonal voxel it is above (the paper's fill) ...
+            propose(p, six & (c > vp), c)
+            propose(q, six & (c > vq), c)
+            # ... and where it is below both, one of its voxels next to the higher diagonal
+            # voxel takes that voxel's class
+            low = six & (c < vp) & (c < vq)
+            hi_p = vp >= vq
+            propose(p ^ 1, low & hi_p, vp)
+            propose(q ^ 1, low & ~hi_p, vq)
+        if pair.any():
+            rmax = rest[0]
+            for r in rest[1:]:
+                rmax = np.maximum(rmax, r)
+            # the pair's class is above all others: join the pair by a face path p, p^1, p^3, q
+            top = pair & (vp > rmax)
+            propose(p ^ 1, top, vp)
+            propose(p ^ 3, top, vp)
+            # otherwise the first voxel of the pair takes the highest other class
+            propose(p, pair & ~top, rmax)
+    return prop
+
+
+def _type_b_defects(w: np.ndarray) -> np.ndarray:
+    v = [w[s] for s in _corner_views(w, (0, 1, 2))]
+    bad = np.zeros(v[0].shape, bool)
+    for p in _DIAG:
+        pair, six, _ = _type_b_masks(v, p)
+        bad |= pair | six
+    return bad
+
+
+# --- node classification in voxel space (Type C) ------------------------------------------
+
+
+def _edge_boundary(lp: np.ndarray, axis: int) -> np.ndarray:
+    """Boundary flags of the lattice edges along ``axis`` of the padded volume ``lp``.
+
+    An edge is a boundary edge unless its four voxels hold one class; four background
+    voxels mean no edge (also False). Shape: voxels along ``axis``, nodes along the others.
+    """
+    others = tuple(ax for ax in range(3) if ax != axis)
+    core = lp[_sl(3, axis, slice(1, -1))]
+    v = [core[s] for s in _corner_views(core, others)]
+    same = (v[0] == v[1]) & (v[1] == v[2]) & (v[2] == v[3])
+    return ~same
+
+
+def _padded(w: np.ndarray) -> np.ndarray:
+    return np.pad(w, 1, mode="constant", constant_values=0)
+
+
+def boundary_edge_counts(labels: np.ndarray) -> np.ndarray:
+    """Boundary edges at every voxel corner of a 3D label volume, (nx+1, ny+1, nz+1) int8.
+
+    0 for interior nodes (eight voxels of one material) and for corners of background
+    only; voxels outside the image count as background.
+    """
+    w = _as_work(np.asarray(labels))
+    if w.ndim != 3:
+        raise DicerError("boundary_edge_counts needs a 3D label volume")
+    lp = _padded(w)
+    cnt = np.zeros(tuple(n + 1 for n in w.shape), np.int8)
+    for axis in range(3):
+        e = _edge_boundary(lp, axis).astype(np.int8)
+        cnt[_sl(3, axis, _LO)] += e  # edge towards +axis
+        cnt[_sl(3, axis, _HI)] += e  # edge towards -axis
+    return cnt
+
+
+def _type_c_edges(w: np.ndarray):
+    """Type C sites: for each axis, the (voxels-along-axis, nodes, nodes) mask of boundary
+    edges whose two end nodes both have three boundary edges (class A), leaving out the
+    edges that lie on the image's bounding surface (their outside voxels are no class)."""
+    lp = _padded(w)
+    cnt = np.zeros(tuple(n + 1 for n in w.shape), np.int8)
+    edges = []
+    for axis in range(3):
+        e = _edge_boundary(lp, axis)
+        edges.append(e)
+        cnt[_sl(3, axis, _LO)] += e
+        cnt[_sl(3, axis, _HI)] += e
+    a_node = cnt == 3
+    out = []
+    for axis in range(3):
+        site = edges[axis] & a_node[_sl(3, axis, _LO)] & a_node[_sl(3, axis, _HI)]
+        for ax in range(3):
+            if ax != axis:  # edges on the image's bounding surface are cut faces: not sites
+                site[_sl(3, ax, slice(0, 1))] = False
+                site[_sl(3, ax, slice(-1, None))] = False
+        out.append(site)
+    return lp, out
+
+
+def _type_c_voxels(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices of the in-image voxels to reclassify, and the class each gets.
+
+    For every A-A boundary edge, the voxel among the four around it whose class differs
+    from the other three (if the four split otherwise, all four) takes the majority class
+    of its six face neighbours (outside the image: background); ties go to the class of the other voxels
+    around the edge, then to the higher class.
+    """
+    lp, sites = _type_c_edges(w)
+    shape = w.shape
+    cand, hint = [], []
+    for axis in range(3):
+        idx = np.nonzero(sites[axis])
+        if idx[0].size == 0:
+            continue
+        others = [ax for ax in range(3) if ax != axis]
+        # the four voxels around the edge, in image coordinates (padded index - 1)
+        vox = []
+        for code in range(4):
+            coord = [None, None, None]
+            coord[axis] = idx[axis]
+            for b, ax in enumerate(others):
+                coord[ax] = idx[ax] - 1 + ((code >> b) & 1)
+            vox.append(coord)
+        vals = np.stack([lp[tuple(c + 1 for c in coord)] for coord in vox], axis=1)  # (n, 4)
+        eq = vals[:, :, None] == vals[:, None, :]
+        n_same = eq.sum(axis=2)  # how many of the four share each voxel's class
+        odd = (n_same == 1) & (n_same.sum(axis=1, keepdims=True) == 1 + 3 * 3)
+        general = ~odd.any(axis=1)
+        for code in range(4):
+            take = odd[:, code] | general
+            coord = [c[take] for c in vox[code]]
+            inside = np.ones(coord[0].shape, bool)
+            for ax in range(3):
+                inside &= (coord[ax] >= 0) & (coord[ax] < shape[ax])
+            if not inside.any():
+                continue
+            flat = np.ravel_multi_index(tuple(c[inside] for c in coord), shape)
+            # class of the majority of the other voxels around the edge
+            others_vals = np.delete(vals[take][inside], code, axis=1)
+            h = _row_mode(others_vals)
+            cand.append(flat)
+            hint.append(h)
+    if not cand:
+        return np.zeros(0, np.int64), np.zeros(0, w.dtype)
+    flat = np.concatenate(cand)
+    hint = np.concatenate(hint)
+    flat, first = np.unique(flat, return_index=True)
+    hint = hint[first]
+    coords = np.unravel_index(flat, shape)
+    k = int(w.max()) + 1
+    counts = np.zeros((flat.size, k), np.float64)
+    rows = np.arange(flat.size)
+    for axis in range(3):
+        for step in (-1, 1):
+            nb = [c.copy() for c in coords]
+            nb[axis] = nb[axis] + step
+            inside = (nb[axis] >= 0) & (nb[axis] < shape[axis])
+            vals = np.where(inside, w[tuple(np.where(inside, c, 0) for c in nb)], 0)  # outside: background
+            np.add.at(counts, (rows, vals.astype(np.int64)), 1.0)
+    counts[rows, hint.astype(np.int64)] += 0.5
+    counts += np.arange(k)[None, :] * 1e-3  # then the higher class
+    new = counts.argmax(axis=1).astype(w.dtype)
+    change = new != w.ravel()[flat]
+    return flat[change], new[change]
+
+
+def _row_mode(vals: np.ndarray) -> np.ndarray:
+    """Most frequent value of each row (ties: the higher value)."""
+    eq = (vals[:, :, None] == vals[:, None, :]).sum(axis=2)
+    score = eq.astype(np.int64) * (1 << 32) + vals.astype(np.int64)
+    return vals[np.arange(vals.shape[0]), score.argmax(axis=1)]
+
+
+# --- public API ----------------------------------------------------------------------------
+
+
+def _ab_to_fixed_point(w: np.ndarray, max_iterations: int, counts: dict) -> tuple[int, bool]:
+    """Run Type A then Type B sweeps until nothing changes. Returns (iterations, converged)."""
+    planes = [(0, 1)] if w.ndim == 2 else [(1, 2), (0, 2), (0, 1)]
+    for it in range(1, max_iterations + 1):
+        changed = False
+        for axes in planes:
+            prop = _type_a_pass(w, axes)
+            diff = prop != w
+            if diff.any():
+                _tally(counts["A"], prop[diff])
+                w[diff] = prop[diff]
+                changed = True
+        if w.ndim == 3:
+            prop = _type_b_pass(w)
+            diff = prop != w
+            if diff.any():
+                _tally(counts["B"], prop[diff])
+                w[diff] = prop[diff]
+                changed = True
+        if not changed:
+            return it, True
+    return max_iterations, False
+
+
+def _tally(table: dict, new_values: np.ndarray) -> None:
+    vals, n = np.unique(new_values, return_counts=True)
+    for v, c in zip(vals.tolist(), n.tolist()):
+        table[int(v)] = table.get(int(v), 0) + int(c)
+
+
+def fix_connectivity(labels: np.ndarray, max_iterations: int = 100, type_c: bool = True,
+                     max_type_c_rounds: int = 5) -> tuple[np.ndarray, dict]:
+    """Repair Type A, B and C connectivity in a 2D or 3D label volume (0 = background).
+
+    Type A and B sweeps repeat until nothing changes (at most ``max_iterations``
+    sweeps); every sweep only raises classes, so this always ends. In 3D, Type C then
+    gives each offending voxel the majority class of its face neighbours and A/B run
+    again, for at most ``max_type_c_rounds`` rounds; of the states reached, the one with
+    the fewest Type C sites is kept (the earliest on ties). On a one-voxel plate every
+    round only moves the corners inwards, so the plate is kept whole (its corner sites
+    are reported in ``remaining``). Returns
+    the fixed labels (same dtype and shape) and a report::
+
+        {"changed_voxels": n, "type_a": {class: voxels set to it}, "type_b": {...},
+         "type_c": {...}, "iterations": [A/B sweeps per round], "type_c_rounds": r,
+         "type_c_stopped": bool, "converged": bool (A/B reached a fixed point),
+         "remaining": connectivity_defects(result)}
+
+    Raises DicerError for input that is not a 2D/3D non-negative integer volume.
+    """
+    labels = np.asarray(labels)
+    if labels.ndim not in (2, 3):
+        raise DicerError(f"labels have {labels.ndim} dimensions; a 2D or 3D label image is needed")
+    if not np.issubdtype(labels.dtype, np.integer):
+        raise DicerError(f"labels have dtype {labels.dtype}; an integer label image is needed")
+    if max_iterations < 1 or max_type_c_rounds < 0:
+        raise DicerError("fix: max_iterations must be >= 1 and max_type_c_rounds >= 0")
+    w = _as_work(labels).copy()
+    before = w.copy()
+    counts = {"A": {}, "B": {}, "C": {}}
+    iterations = []
+    it, converged = _ab_to_fixed_point(w, max_iterations, counts)
+    iterations.append(it)
+    rounds = 0
+    undone = False
+    if w.ndim == 3 and type_c and converged:
+        # run the rounds on a copy and keep the state with the fewest Type C sites (the
+        # earliest on ties): a round may expose a few new sites that the next one clears,
+        # but on a one-voxel plate every round only moves the corners inwards
+        sites = _type_c_sites(w)
+        best = (sites, 0, w, {"A": {}, "B": {}, "C": {}}, [])
+        trial = w.copy()
+        trial_counts = {"A": {}, "B": {}, "C": {}}
+        trial_its = []
+        r = 0
+        while sites and r < max_type_c_rounds and sites <= 4 * best[0]:
+            flat, new = _type_c_voxels(trial)
+            if flat.size == 0:
+                break
+            r += 1
+            _tally(trial_counts["C"], new)
+            trial.ravel()[flat] = new
+            it, ok = _ab_to_fixed_point(trial, max_iterations, trial_counts)
+            trial_its.append(it)
+            if not ok:
+                break
+            sites = _type_c_sites(trial)
+            if sites < best[0]:
+                best = (sites, r, trial.copy(), {k: dict(v) for k, v in trial_counts.items()}, list(trial_its))
+        undone = r > best[1]
+        _, rounds, w, extra, its = best
+        for key in ("A", "B", "C"):
+            for k, v in extra[key].items():
+                counts[key][k] = counts[key].get(k, 0) + v
+        iterations.extend(its)
+    remaining = connectivity_defects(w, type_c=type_c)
+    report = {
+        "changed_voxels": int(np.count_nonzero(w != before)),
+        "type_a": {str(k): v for k, v in sorted(counts["A"].items())},
+        "type_b": {str(k): v for k, v in sorted(counts["B"].items())},
+        "type_c": {str(k): v for k, v in sorted(counts["C"].items())},
+        "iterations": iterations,
+        "type_c_rounds": rounds,
+        "type_c_stopped": bool(undone),
+        "converged": bool(converged),
+        "remaining": remaining,
+    }
+    return w.astype(labels.dtype, copy=False), report
+
+
+def connectivity_defects(labels: np.ndarray, type_c: bool = True) -> dict:
+    """Count the poorly connected arrangements left in a label volume.
+
+    type_a: planar 2x2 blocks (all three orientations) where a class holds exactly one
+    diagonal; type_b: 2x2x2 blocks where a class holds exactly a body diagonal or exactly
+    the six voxels off one; type_c: boundary edges joining two class-A nodes.
+    """
+    w = _as_work(np.asarray(labels))
+    planes = [(0, 1)] if w.ndim == 2 else [(1, 2), (0, 2), (0, 1)]
+    out = {"type_a": int(sum(np.count_nonzero(_type_a_defects(w, p)) for p in planes)),
+           "type_b": 0, "type_c": 0}
+    if w.ndim == 3:
+        out["type_b"] = int(np.count_nonzero(_type_b_defects(w)))
+        if type_c:
+            out["type_c"] = _type_c_sites(w)
+    return out
+
+
+def _type_c_sites(w: np.ndarray) -> int:
+    """Number of A-A boundary edges with at least one in-image voxel around them."""
+    _, sites = _type_c_edges(w)
+    n = 0
+    for axis in range(3):
+        s = sites[axis]
+        # edges on the outer node layers only have outside voxels on one side; keep all
+        n += int(np.count_nonzero(s))
+    return n

@@ -1,0 +1,190 @@
+"""Connectivity fixes (Box 1): Types A, B, C and the invariant they leave behind."""
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from dicer.connectivity import boundary_edge_counts, connectivity_defects, fix_connectivity
+from dicer.errors import DicerError
+
+
+def test_type_a_2d_checkerboard_gets_one_connecting_pixel():
+    lab = np.array([[1, 0], [0, 1]], np.uint8)
+    out, rep = fix_connectivity(lab)
+    assert out.sum() == 3 and out[0, 0] == 1 and out[1, 1] == 1
+    assert rep["type_a"] == {"1": 1}
+    assert connectivity_defects(out) == {"type_a": 0, "type_b": 0, "type_c": 0}
+
+
+def test_type_a_3d_edge_contact_in_every_orientation():
+    for axes in ((0, 1), (0, 2), (1, 2)):
+        lab = np.zeros((4, 4, 4), np.uint8)
+        a = [1, 1, 1]
+        b = [1, 1, 1]
+        b[axes[0]] += 1
+        b[axes[1]] += 1
+        lab[tuple(a)] = 1
+        lab[tuple(b)] = 1
+        assert connectivity_defects(lab, type_c=False)["type_a"] == 1
+        out, rep = fix_connectivity(lab, type_c=False)
+        assert rep["type_a"] == {"1": 1}
+        assert out.sum() == 3
+        assert connectivity_defects(out)["type_a"] == 0
+
+
+def test_type_a_multiclass_checkerboard_goes_to_higher_class():
+    lab = np.array([[2, 1], [1, 2]], np.uint8)
+    out, rep = fix_connectivity(lab)
+    assert sorted(out.ravel().tolist()) == [1, 2, 2, 2]
+    assert rep["type_a"] == {"2": 1}
+
+
+def test_type_b_six_around_a_body_diagonal_are_filled():
+    lab = np.ones((2, 2, 2), np.uint8)
+    lab[0, 0, 0] = 0
+    lab[1, 1, 1] = 0
+    assert connectivity_defects(lab)["type_b"] == 1
+    out, rep = fix_connectivity(lab)
+    assert out.min() == 1
+    assert rep["type_b"] == {"1": 2}
+
+
+def test_type_b_body_diagonal_pair_is_joined_by_a_face_path():
+    lab = np.zeros((2, 2, 2), np.uint8)
+    lab[0, 0, 0] = 1
+    lab[1, 1, 1] = 1
+    out, rep = fix_connectivity(lab, type_c=False)
+    # p = corner 0 -> p^1 = (1,0,0), p^3 = (1,1,0) join it to (1,1,1)
+    assert out[1, 0, 0] == 1 and out[1, 1, 0] == 1
+    assert out.sum() == 4
+    assert connectivity_defects(out, type_c=False)["type_b"] == 0
+
+
+def test_type_c_element_hanging_by_two_faces_is_removed():
+    lab = np.zeros((8, 8, 8), np.uint8)
+    lab[1:6, 1:6, 1:6] = 1
+    lab[3:6, 3:6, 1:6] = 0  # an L-shaped prism (two walls, two voxels thick) ...
+    lab[3, 3, 3] = 1  # ... with one element in its inner corner, held by two adjacent faces
+    counts = boundary_edge_counts(lab)
+    assert counts[4, 4, 3] == 3 and counts[4, 4, 4] == 3  # the two free corners are class A
+    assert connectivity_defects(lab)["type_c"] >= 1
+    out, rep = fix_connectivity(lab)
+    assert out[3, 3, 3] == 0
+    assert rep["type_c"].get("0", 0) >= 1
+    assert connectivity_defects(out) == {"type_a": 0, "type_b": 0, "type_c": 0}
+
+
+def test_type_c_single_void_is_filled():
+    lab = np.ones((5, 5, 5), np.uint8)
+    lab[2, 2, 2] = 0
+    out, rep = fix_connectivity(lab)
+    assert out.min() == 1
+    assert rep["type_c"] == {"1": 1}
+
+
+def test_thin_plate_is_not_eaten():
+    lab = np.zeros((12, 6, 12), np.uint8)
+    lab[1:11, 2, 1:11] = 1
+    out, rep = fix_connectivity(lab)
+    # removing a corner of a one-voxel plate only exposes two new corners: keep the plate
+    assert np.array_equal(out, lab)
+    assert rep["converged"] and rep["type_c_stopped"]
+    assert rep["remaining"] == {"type_a": 0, "type_b": 0, "type_c": 4}
+
+
+def test_well_connected_volume_is_unchanged_and_dtype_kept():
+    lab = np.zeros((10, 10, 10), np.int16)
+    lab[2:8, 2:8, 2:8] = 1
+    lab[4:6, 4:6, 4:6] = 2
+    out, rep = fix_connectivity(lab)
+    assert out.dtype == np.int16
+    assert np.array_equal(out, lab)
+    assert rep["changed_voxels"] == 0 and rep["iterations"] == [1]
+
+
+def test_ball_needs_few_iterations():
+    n = 40
+    g = np.arange(n) + 0.5 - 20.3
+    r = np.sqrt(g[:, None, None] ** 2 + (g[None, :, None] - 0.2) ** 2 + (g[None, None, :] + 0.1) ** 2)
+    lab = (r < 15).astype(np.uint8) + (r < 9).astype(np.uint8)
+    out, rep = fix_connectivity(lab)
+    assert rep["converged"] and max(rep["iterations"]) <= 3
+    assert rep["changed_voxels"] < 50
+    assert connectivity_defects(out) == {"type_a": 0, "type_b": 0, "type_c": 0}
+
+
+def test_bad_input():
+    with pytest.raises(DicerError):
+        fix_connectivity(np.zeros(5, np.uint8))
+    with pytest.raises(DicerError):
+        fix_connectivity(np.zeros((3, 3, 3)))
+    with pytest.raises(DicerError):
+        fix_connectivity(-np.ones((3, 3, 3), np.int32))
+
+
+def _invariant_holds(out: np.ndarray) -> None:
+    """Check the invariant directly, class by class, without the module's own counters."""
+    classes = np.unique(out)
+    planes = [(0, 1)] if out.ndim == 2 else [(1, 2), (0, 2), (0, 1)]
+    for c in classes:
+        b = out == c
+        for ax in planes:
+            sl = [slice(None)] * out.ndim
+            def v(i, j):
+                s = list(sl)
+                s[ax[0]] = slice(i, b.shape[ax[0]] - 1 + i)
+                s[ax[1]] = slice(j, b.shape[ax[1]] - 1 + j)
+                return b[tuple(s)]
+            checker = (v(0, 0) & v(1, 1) & ~v(1, 0) & ~v(0, 1)) | (v(1, 0) & v(0, 1) & ~v(0, 0) & ~v(1, 1))
+            assert not checker.any(), f"class {c}: planar checkerboard"
+        if out.ndim == 3:
+            nx, ny, nz = b.shape
+            corners = [b[i : nx - 1 + i, j : ny - 1 + j, k : nz - 1 + k] for k in (0, 1) for j in (0, 1) for i in (0, 1)]
+            total = sum(x.astype(int) for x in corners)
+            for p in range(4):
+                q = p ^ 7
+                pair = corners[p] & corners[q]
+                assert not (pair & (total == 2)).any(), f"class {c}: two voxels on a body diagonal"
+                gap = ~corners[p] & ~corners[q]
+                assert not (gap & (total == 6)).any(), f"class {c}: six voxels around a body diagonal"
+
+
+volumes3d = st.tuples(st.integers(2, 7), st.integers(2, 7), st.integers(2, 7), st.integers(1, 3)).flatmap(
+    lambda t: arrays(np.uint8, t[:3], elements=st.integers(0, t[3])))
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(volumes3d)
+def test_invariant_on_random_multiclass_volumes(lab):
+    out, rep = fix_connectivity(lab)
+    assert rep["converged"]
+    _invariant_holds(out)
+    left = connectivity_defects(out)
+    assert left["type_a"] == 0 and left["type_b"] == 0 and rep["remaining"] == left
+    # Type C never leaves more sites than the A/B fixes alone
+    ab_only, _ = fix_connectivity(lab, type_c=False)
+    assert left["type_c"] <= connectivity_defects(ab_only)["type_c"]
+    if not rep["type_c_stopped"] and rep["type_c_rounds"] < 5:
+        assert left["type_c"] == 0
+    # fixing again changes nothing
+    again, rep2 = fix_connectivity(out)
+    assert np.array_equal(again, out) and rep2["changed_voxels"] == 0
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.tuples(st.integers(2, 12), st.integers(2, 12), st.integers(1, 3)).flatmap(
+    lambda t: arrays(np.uint8, t[:2], elements=st.integers(0, t[2]))))
+def test_invariant_on_random_2d_images(lab):
+    out, rep = fix_connectivity(lab)
+    assert rep["converged"]
+    _invariant_holds(out)
+
+
+def test_deterministic():
+    rng = np.random.default_rng(3)
+    lab = rng.integers(0, 3, (9, 8, 7)).astype(np.uint8)
+    a, ra = fix_connectivity(lab)
+    b, rb = fix_connectivity(lab.copy())
+    assert np.array_equal(a, b) and ra == rb

@@ -1,0 +1,217 @@
+"""Boundary and interior smoothing with the quality guard: the measured acceptance figures."""
+
+import numpy as np
+import pytest
+
+from dicer.connectivity import fix_connectivity
+from dicer.errors import DicerError
+from dicer.mesh.boundary import boundary_graph
+from dicer.mesh.metrics import element_volumes, scaled_jacobian
+from dicer.mesh.model import Mesh
+from dicer.mesh.smooth import DEFAULTS, smooth_mesh, smoothing_settings
+from dicer.mesh.voxel import voxel_mesh
+
+CENTRE = np.array([20.31, 19.77, 20.13])  # off the lattice
+
+
+def ball(n=40, radii=(16.3,), centre=CENTRE):
+    g = np.arange(n) + 0.5
+    r = np.sqrt((g[:, None, None] - centre[0]) ** 2 + (g[None, :, None] - centre[1]) ** 2
+                + (g[None, None, :] - centre[2]) ** 2)
+    lab = np.zeros((n, n, n), np.uint8)
+    for i, rad in enumerate(radii):
+        lab[r < rad] = i + 1
+    lab, _ = fix_connectivity(lab)
+    return voxel_mesh(lab)
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    m = ball()
+    out, rep = smooth_mesh(m, {})
+    return m, out, rep
+
+
+@pytest.fixture(scope="module")
+def nested():
+    m = ball(radii=(16.3, 9.7))
+    out, rep = smooth_mesh(m, {})
+    return m, out, rep
+
+
+def radial_error(points, nodes, radius):
+    return float(np.abs(np.linalg.norm(points[nodes] - CENTRE, axis=1) - radius).mean())
+
+
+def test_sphere_acceptance(sphere):
+    m, out, rep = sphere
+    g = boundary_graph(m)
+    nodes = np.flatnonzero(g.boundary)
+    before = radial_error(m.points, nodes, 16.3)
+    after = radial_error(out.points, nodes, 16.3)
+    assert 0.33 < before < 0.43  # the stair-stepped voxel surface
+    assert after <= 0.15
+    sj = scaled_jacobian(out.points, out.cells)
+    assert sj.min() >= 0.3
+    assert np.count_nonzero(sj <= 0) == 0
+    v0 = element_volumes(m.points, m.cells).sum()
+    v1 = element_volumes(out.points, out.cells).sum()
+    assert abs(v1 - v0) / v0 <= 0.02
+    assert rep["volume_change"] == pytest.approx((v1 - v0) / v0, abs=1e-9)
+    assert rep["inverted_elements"] == 0 and rep["min_scaled_jacobian"] == pytest.approx(sj.min())
+    # same topology, classes kept as point data
+    assert np.array_equal(out.cells, m.cells) and np.array_equal(out.lattice, m.lattice)
+    assert np.array_equal(out.point_data["node_class"], g.node_class)
+
+
+def test_nested_spheres_acceptance(nested):
+    m, out, rep = nested
+    g = boundary_graph(m)
+    d = np.linalg.norm(m.points - CENTRE, axis=1)
+    outer = np.flatnonzero(g.boundary & (d > 13))
+    inner = np.flatnonzero(g.boundary & (d < 13))
+    # the interface is a boundary too, and is smoothed
+    assert inner.size > 1000
+    assert radial_error(m.points, inner, 9.7) > 0.3
+    assert radial_error(out.points, inner, 9.7) <= 0.15
+    assert radial_error(out.points, outer, 16.3) <= 0.15
+    sj = scaled_jacobian(out.points, out.cells)
+    assert sj.min() >= 0.3 and np.count_nonzero(sj <= 0) == 0
+    for kind in (1, 2):
+        sel = m.material == kind
+        v0 = element_volumes(m.points, m.cells[sel]).sum()
+        v1 = element_volumes(out.points, out.cells[sel]).sum()
+        assert abs(v1 - v0) / v0 <= 0.02
+        assert rep["volume_change_by_material"][str(kind)] == pytest.approx((v1 - v0) / v0, abs=1e-9)
+    # conforming: both materials still share their interface nodes
+    n1 = np.unique(out.cells[out.material == 1])
+    n2 = np.unique(out.cells[out.material == 2])
+    assert np.intersect1d(n1, n2).size == inner.size
+
+
+def test_interior_nodes_follow_the_boundary(sphere):
+    m, out, rep = sphere
+    g = boundary_graph(m)
+    moved = np.linalg.norm(out.points - m.points, axis=1)
+    assert moved[~g.boundary].max() > 0.05
+    assert rep["interior_nodes_solved"] > 0
+    # interior node next to the boundary sits at the centroid of its neighbours (whole-interior solve)
+    full, _ = smooth_mesh(m, {"interior_band": 0})
+    sj = scaled_jacobian(full.points, full.cells)
+    assert sj.min() >= 0.3
+
+
+def test_bounding_planes_stay_flat():
+    lab = np.zeros((20, 20, 12), np.uint8)
+    g = np.arange(20) + 0.5
+    r = np.sqrt((g[:, None] - 10.2) ** 2 + (g[None, :] - 9.7) ** 2)
+    lab[r < 7.3, :] = 1  # a cylinder cut by the z = 0 and z = 12 planes
+    lab, _ = fix_connectivity(lab)
+    m = voxel_mesh(lab)
+    out, rep = smooth_mesh(m, {})
+    on_lo = m.points[:, 2] == 0
+    on_hi = m.points[:, 2] == 12
+    assert on_lo.sum() > 100
+    assert np.all(out.points[on_lo, 2] == 0) and np.all(out.points[on_hi, 2] == 12)
+    assert np.abs(out.points[on_lo, :2] - m.points[on_lo, :2]).max() > 0.05  # they still move in the plane
+    free, _ = smooth_mesh(m, {"keep_bounding_planes": False})
+    assert np.abs(free.points[on_lo, 2]).max() > 0.01
+
+
+def test_coefficients_control_the_motion():
+    m = ball(n=24, radii=(8.3,), centre=np.array([12.2, 11.9, 12.1]))
+    still, rep = smooth_mesh(m, {"coefficient": 0.0})
+    assert np.allclose(still.points, m.points)
+    weak, _ = smooth_mesh(m, {"coefficient": 0.5})
+    strong, _ = smooth_mesh(m, {"coefficient": 0.9})
+    d_weak = np.linalg.norm(weak.points - m.points, axis=1).mean()
+    d_strong = np.linalg.norm(strong.points - m.points, axis=1).mean()
+    assert 0 < d_weak < d_strong
+    s = smoothing_settings({"coefficient": 0.7, "coefficients": {"D": 0.2}})
+    assert set(s["coefficients"].values()) == {0.7}
+    s = smoothing_settings({"coefficients": {"D": 0.2}})
+    assert s["coefficients"]["D"] == 0.2 and s["coefficients"]["A"] == DEFAULTS["coefficients"]["A"]
+
+
+def test_guard_backs_off_locally():
+    m = ball(n=24, radii=(8.3,), centre=np.array([12.2, 11.9, 12.1]))
+    out, rep = smooth_mesh(m, {"min_scaled_jacobian": 0.6})
+    sj = scaled_jacobian(out.points, out.cells)
+    assert sj.min() >= 0.6
+    assert rep["backoff_rounds"] >= 1 and 0 < rep["backed_off_nodes"] < rep["boundary_nodes"]
+
+
+def test_guard_error_names_the_worst_element():
+    # an input element that is already inverted cannot be rescued by backing off
+    m = ball(n=24, radii=(8.3,), centre=np.array([12.2, 11.9, 12.1]))
+    bad = m.copy()
+    g = boundary_graph(m)
+    node = np.flatnonzero(g.boundary & (m.points[:, 0] > 16))[0]
+    bad.points[node] += (np.array([12.2, 11.9, 12.1]) - bad.points[node]) * 0.3  # deep inside
+    with pytest.raises(DicerError, match=r"element \d+ \(material 1, centre .* mm\).*scaled Jacobian"):
+        smooth_mesh(bad, {})
+
+
+@pytest.mark.parametrize("section, match", [
+    ({"coefficient": 1.0}, r"outside \[0, 1\)"),
+    ({"coefficient": -0.1}, r"outside \[0, 1\)"),
+    ({"coefficients": {"A": 1.2}}, r"smooth.coefficients.A"),
+    ({"coefficients": {"Q": 0.5}}, r"unknown node class"),
+    ({"min_scaled_jacobian": 1.5}, r"min_scaled_jacobian"),
+    ({"colour": 1}, r"unknown setting"),
+])
+def test_bad_settings(section, match):
+    m = ball(n=12, radii=(4.3,), centre=np.array([6.1, 5.9, 6.2]))
+    with pytest.raises(DicerError, match=match):
+        smooth_mesh(m, section)
+
+
+def test_bad_meshes():
+    empty = Mesh(np.zeros((0, 3)), np.zeros((0, 8), np.int64), np.zeros(0, np.int32), np.zeros((0, 3), np.int64),
+                 np.ones(3), np.zeros(3), np.ones(3, np.int64))
+    with pytest.raises(DicerError, match="empty"):
+        smooth_mesh(empty, {})
+    m = ball(n=12, radii=(4.3,), centre=np.array([6.1, 5.9, 6.2]))
+    m.lattice = None
+    with pytest.raises(DicerError, match="lattice"):
+        smooth_mesh(m, {})
+
+
+def test_stretched_mesh_like_after_plane_merging():
+    m = ball(n=24, radii=(8.3, 4.1), centre=np.array([12.2, 11.9, 12.1]))
+    widths = np.tile([1, 2], 20)
+    edges = np.concatenate([[0], np.cumsum(widths)])
+    lat = edges[m.lattice]
+    ms = Mesh(lat.astype(float), m.cells.copy(), m.material.copy(), lat, m.spacing.copy(), m.origin.copy(),
+              np.array([edges[n] for n in m.grid_shape]))
+    out, rep = smooth_mesh(ms, {})
+    sj = scaled_jacobian(out.points, out.cells)
+    assert sj.min() >= 0.2 and rep["inverted_elements"] == 0
+    assert rep["node_classes"]["X"] == 0
+    # the interior keeps its graded spacing: the displacement, not the position, is
+    # harmonic, so with the boundary held still no interior node moves (a centroid rule on
+    # positions would move them by up to 0.5 towards even spacing)
+    still, _ = smooth_mesh(ms, {"coefficient": 0.0, "interior_band": 0})
+    assert np.array_equal(still.points, ms.points)
+
+
+def test_2d_disc():
+    n = 40
+    g = np.arange(n) + 0.5
+    r = np.sqrt((g[:, None] - 20.3) ** 2 + (g[None, :] - 19.8) ** 2)
+    lab, _ = fix_connectivity((r < 14.6).astype(np.uint8))
+    m = voxel_mesh(lab)
+    out, rep = smooth_mesh(m, {})
+    nodes = np.flatnonzero(boundary_graph(m).boundary)
+    err0 = np.abs(np.linalg.norm(m.points[nodes, :2] - [20.3, 19.8], axis=1) - 14.6).mean()
+    err1 = np.abs(np.linalg.norm(out.points[nodes, :2] - [20.3, 19.8], axis=1) - 14.6).mean()
+    assert err1 < 0.5 * err0
+    assert np.all(out.points[:, 2] == 0)
+    assert scaled_jacobian(out.points, out.cells).min() >= 0.2
+
+
+def test_deterministic():
+    m = ball(n=20, radii=(7.3, 3.9), centre=np.array([10.2, 9.9, 10.1]))
+    a, ra = smooth_mesh(m, {})
+    b, rb = smooth_mesh(m, {})
+    assert np.array_equal(a.points, b.points)

@@ -1,0 +1,297 @@
+"""Plane merging (DICER Box 2): the paper's 2D example, a thick shell, multi-material and random volumes."""
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from dicer.errors import DicerError
+from dicer.mesh.merge import merge_planes, thick_elements
+from dicer.mesh.metrics import element_volumes, scaled_jacobian
+from dicer.mesh.voxel import voxel_mesh
+
+try:
+    from dicer.connectivity import fix_connectivity
+except ImportError:  # pragma: no cover - the connectivity stage ships with the package
+    fix_connectivity = None
+
+HEX_FACES = np.array([[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]])
+QUAD_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
+
+
+def fixed(labels):
+    """Labels made well connected (no diagonal-only pairs) by the connectivity stage."""
+    if fix_connectivity is not None:
+        return fix_connectivity(labels)[0]
+    raise RuntimeError("dicer.connectivity is missing")
+
+
+def conformity(mesh):
+    """Figures of a sound mesh: face use counts, closed boundary, unit blocks, duplicates, Jacobian."""
+    cells, n = mesh.cells, mesh.n_points
+    faces = cells[:, HEX_FACES].reshape(-1, 4) if mesh.dim == 3 else cells[:, QUAD_EDGES].reshape(-1, 2)
+    _, inverse, counts = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
+    use = counts[inverse.ravel()]
+    boundary = faces[use == 1]
+    if mesh.dim == 3:  # boundary faces close up: every boundary edge used an even number of times
+        edges = np.sort(np.stack([boundary, np.roll(boundary, -1, axis=1)], axis=-1).reshape(-1, 2), axis=1)
+        _, edge_use = np.unique(edges, axis=0, return_counts=True)
+        open_edges = int(np.count_nonzero(edge_use % 2))
+    else:  # boundary edges close up: every boundary node used an even number of times
+        open_edges = int(np.count_nonzero(np.bincount(boundary.ravel(), minlength=n) % 2))
+    per_node = np.bincount(cells.ravel(), minlength=n)
+    return {
+        "max_face_use": int(counts.max()),
+        "open_edges": open_edges,
+        "max_elements_per_node": int(per_node.max()),
+        "unused_nodes": int(np.count_nonzero(per_node == 0)),
+        "duplicates": int(cells.shape[0] - np.unique(np.sort(cells, axis=1), axis=0).shape[0]),
+        "min_scaled_jacobian": float(scaled_jacobian(mesh.points, cells).min()),
+        "min_volume": float(element_volumes(mesh.points, cells).min()),
+    }
+
+
+def assert_sound(mesh):
+    c = conformity(mesh)
+    limit = 8 if mesh.dim == 3 else 4
+    assert c["max_face_use"] <= 2, c  # interior faces shared by exactly two elements, boundary by one
+    assert c["open_edges"] == 0, c  # no hanging node or gap: the boundary is closed
+    assert c["max_elements_per_node"] <= limit, c  # unit blocks of at most 8 (2D: 4) elements
+    assert c["unused_nodes"] == 0 and c["duplicates"] == 0, c
+    assert c["min_scaled_jacobian"] >= 0.0 and c["min_volume"] > 0.0, c  # nothing inverted
+    assert np.allclose(mesh.points, mesh.lattice * mesh.spacing + mesh.origin)  # nodes keep their lattice
+    return c
+
+
+def neighbour_counts(mesh):
+    edges = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4],
+                      [0, 4], [1, 5], [2, 6], [3, 7]]) if mesh.dim == 3 else QUAD_EDGES
+    e = np.unique(np.sort(mesh.cells[:, edges].reshape(-1, 2), axis=1), axis=0)
+    return np.bincount(e.ravel(), minlength=mesh.n_points)
+
+
+# --- the paper's example ----------------------------------------------------------------
+
+
+def test_paper_figure_4_row_of_eight_over_two_groups_of_three():
+    labels = np.zeros((8, 2), np.uint8)  # [x, y]: y = 1 is the top row
+    labels[:, 1] = 1
+    labels[0:3, 0] = 1
+    labels[5:8, 0] = 1
+    mesh = voxel_mesh(labels)
+    assert (mesh.n_cells, mesh.n_points) == (14, 26)
+    out, report = merge_planes(mesh, passes=(0, 1))
+    assert (out.n_cells, out.n_points) == (8, 18)
+    quads = [out.lattice[c][:, :2].tolist() for c in out.cells]
+    # six full-height elements over the two groups of three ...
+    for x in (0, 1, 2, 5, 6, 7):
+        assert [[x, 0], [x + 1, 0], [x + 1, 2], [x, 2]] in quads
+    # ... and the two top elements over the gap become chamfers meeting at the kept node (4, 1)
+    assert [[3, 0], [4, 1], [4, 2], [3, 2]] in quads
+    assert [[4, 1], [5, 0], [5, 2], [4, 2]] in quads
+    step = report["steps"][0]
+    assert (step["axis"], step["pass"], step["merged_pairs"], step["chamfered_elements"]) == ("y", 1, 6, 2)
+    assert report["volume"]["1"]["before"] == 14.0 and report["volume"]["1"]["after"] == 15.0
+    assert_sound(out)
+    assert neighbour_counts(out).max() <= 4
+
+
+# --- single material --------------------------------------------------------------------
+
+
+def test_block_merges_to_half_size_elements_on_every_axis():
+    mesh = voxel_mesh(np.ones((4, 6, 2), np.uint8), spacing=(0.5, 1.0, 2.0), origin=(1.0, 2.0, 3.0))
+    out, report = merge_planes(mesh, passes=(1, 1, 1))
+    assert out.n_cells == 2 * 3 * 1 and out.n_points == 3 * 4 * 2
+    assert np.allclose(element_volumes(out.points, out.cells), 8 * 0.5 * 1.0 * 2.0)
+    assert [s["elements_after"] for s in report["steps"]] == [24, 12, 6]
+    assert report["element_ratio"] == 8.0 and report["volume"]["1"]["change_percent"] == 0.0
+    assert_sound(out)
+
+
+def test_passes_merge_groups_of_p_plus_one_layers():
+    mesh = voxel_mesh(np.ones((1, 1, 7), np.uint8))
+    out, report = merge_planes(mesh, passes=(0, 0, 2))
+    spans = sorted((out.lattice[c][:, 2].max() - out.lattice[c][:, 2].min()) for c in out.cells)
+    assert spans == [1, 3, 3]  # layers {0,1,2}, {3,4,5} and the lone {6}
+    assert [(s["pass"], s["elements_after"]) for s in report["steps"]] == [(1, 5), (2, 3)]
+    assert_sound(out)
+
+
+def test_point_and_cell_data_follow_the_nodes_and_elements_kept():
+    mesh = voxel_mesh(np.ones((2, 2, 2), np.uint8))
+    mesh.point_data["tag"] = np.arange(mesh.n_points, dtype=float)
+    mesh.cell_data["voxel"] = np.arange(mesh.n_cells)
+    out, _ = merge_planes(mesh, passes=(1, 1, 1))
+    assert out.n_cells == 1 and out.cell_data["voxel"].tolist() == [0]
+    assert out.n_points == 8
+    kept = np.flatnonzero(np.all(mesh.lattice % 2 == 0, axis=1))
+    assert out.point_data["tag"].tolist() == mesh.point_data["tag"][kept].tolist()
+
+
+def _thick_shell(n, inner, outer):
+    c = (n - 1) / 2
+    x, y, z = np.ogrid[:n, :n, :n]
+    r = np.sqrt((x - c) ** 2 + (y - c) ** 2 + (z - c) ** 2)
+    return ((r <= outer * n) & (r >= inner * n)).astype(np.uint8)
+
+
+def test_thick_shell_one_merge_per_axis():
+    labels = fixed(_thick_shell(96, 0.12, 0.46))
+    mesh = voxel_mesh(labels)
+    out, report = merge_planes(mesh, passes=(1, 1, 1))
+    assert mesh.n_cells / out.n_cells >= 4.0, report["element_ratio"]
+    assert abs(report["volume"]["1"]["change_percent"]) <= 3.0, report["volume"]
+    assert scaled_jacobian(out.points, out.cells).min() >= 0.0  # 0 inverted
+    assert_sound(out)
+
+
+@pytest.mark.slow
+def test_thick_shell_after_smoothing_keeps_scaled_jacobian_above_0_2():
+    from dicer.mesh.smooth import smooth_mesh
+
+    out, _ = merge_planes(voxel_mesh(fixed(_thick_shell(96, 0.12, 0.46))), passes=(1, 1, 1))
+    smoothed, _ = smooth_mesh(out, None)
+    assert scaled_jacobian(smoothed.points, smoothed.cells).min() >= 0.2
+
+
+# --- multi-material ---------------------------------------------------------------------
+
+
+def test_side_by_side_materials_merge_and_keep_a_conforming_interface():
+    labels = np.ones((4, 4, 4), np.uint8)
+    labels[2:] = 2  # interface plane x = 2, across every merge plane
+    out, _ = merge_planes(voxel_mesh(labels), passes=(1, 1, 1))
+    assert out.n_cells == 8
+    assert sorted(out.material.tolist()) == [1] * 4 + [2] * 4
+    assert_sound(out)
+
+
+def test_different_materials_never_merge_and_block_their_region():
+    labels = np.ones((4, 4, 2), np.uint8)
+    labels[:, :, 1] = 2  # every stacked z pair mixes materials
+    labels[0, 0, 1] = 1
+    out, report = merge_planes(voxel_mesh(labels), passes=(0, 0, 1))
+    assert out.n_cells == 32 and report["steps"][0]["blocked_material"] == 1
+    vol = report["volume"]
+    assert vol["1"]["change_percent"] == 0.0 and vol["2"]["change_percent"] == 0.0
+
+
+def test_each_merged_element_covers_voxels_of_one_material():
+    rng = np.random.default_rng(3)  # 2x2x2 blocks of random material: every stacked pair is one material
+    labels = rng.integers(0, 3, (8, 8, 8)).astype(np.uint8).repeat(2, 0).repeat(2, 1).repeat(2, 2)
+    labels[0, 0, 0] = 1  # one odd voxel: its own block cannot merge
+    mesh = voxel_mesh(labels)
+    out, report = merge_planes(mesh, passes=(1, 1, 1))
+    assert out.n_cells < mesh.n_cells / 4
+    lo = out.lattice[out.cells].min(axis=1)
+    hi = out.lattice[out.cells].max(axis=1)
+    box = np.all(hi - lo == out.lattice[out.cells[:, 6]] - out.lattice[out.cells[:, 0]], axis=1)
+    for (a, b), m in zip(np.stack([lo, hi], 1)[box], out.material[box]):
+        assert np.all(labels[a[0]:b[0], a[1]:b[1], a[2]:b[2]] == m)
+    assert set(report["volume"]) == {"1", "2"}
+    assert_sound(out)
+
+
+# --- options ----------------------------------------------------------------------------
+
+
+def test_selective_merging_keeps_thin_parts_fine():
+    labels = np.zeros((24, 12, 8), np.uint8)
+    labels[0:10, 1:11, 0:8] = 1  # a thick block
+    labels[14:24, 1:11, 2:4] = 1  # a separate plate two voxels thick, one layer pair
+    mesh = voxel_mesh(labels)
+    thick = thick_elements(mesh, 4)
+    centre_x = mesh.lattice[mesh.cells[:, 0], 0]
+    assert thick[centre_x < 10].all() and not thick[centre_x >= 14].any()
+    every, _ = merge_planes(mesh, passes=(0, 0, 1))
+    selective, report = merge_planes(mesh, passes=(0, 0, 1), min_thickness=4)
+    plate = lambda m: np.count_nonzero(m.lattice[m.cells[:, 0], 0] >= 14)  # noqa: E731
+    assert plate(every) == 100 and plate(selective) == 200
+    assert selective.n_cells == 400 + 200 and report["steps"][0]["blocked_thin"] == 1
+    assert_sound(selective)
+
+
+def test_plane_granularity_refuses_whole_planes():
+    labels = fixed(_thick_shell(40, 0.25, 0.45))
+    region, r1 = merge_planes(voxel_mesh(labels), passes=(1, 1, 1))
+    plane, r2 = merge_planes(voxel_mesh(labels), passes=(1, 1, 1), granularity="plane")
+    assert plane.n_cells >= region.n_cells
+    assert_sound(plane)
+    assert_sound(region)
+
+
+def test_result_is_deterministic():
+    labels = fixed(_thick_shell(32, 0.2, 0.45))
+    a, ra = merge_planes(voxel_mesh(labels), passes=(1, 2, 1))
+    b, rb = merge_planes(voxel_mesh(labels), passes=(1, 2, 1))
+    assert np.array_equal(a.cells, b.cells) and np.array_equal(a.points, b.points)
+    assert [s["elements_after"] for s in ra["steps"]] == [s["elements_after"] for s in rb["steps"]]
+
+
+@pytest.mark.parametrize("passes", [(1,), (1, -1, 0), (1, 1.5, 1), "abc", (1, 1, 1, 1)])
+def test_bad_passes_are_errors(passes):
+    with pytest.raises(DicerError, match="merge.passes"):
+        merge_planes(voxel_mesh(np.ones((2, 2, 2), np.uint8)), passes=passes)
+
+
+def test_bad_options_are_errors():
+    mesh = voxel_mesh(np.ones((2, 2, 2), np.uint8))
+    with pytest.raises(DicerError, match="granularity"):
+        merge_planes(mesh, granularity="voxel")
+    with pytest.raises(DicerError, match="min_thickness"):
+        merge_planes(mesh, min_thickness=-1)
+
+
+def test_zero_passes_returns_the_same_mesh():
+    mesh = voxel_mesh(np.ones((3, 3, 3), np.uint8))
+    out, report = merge_planes(mesh, passes=(0, 0, 0))
+    assert np.array_equal(out.cells, mesh.cells) and report["steps"] == []
+
+
+# --- random volumes ---------------------------------------------------------------------
+
+_SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+@_SETTINGS
+@given(arrays(np.uint8, st.tuples(*[st.integers(2, 7)] * 3), elements=st.integers(0, 1)),
+       st.tuples(*[st.integers(0, 2)] * 3), st.permutations([0, 1, 2]))
+def test_random_single_material_volumes_stay_sound(labels, passes, axes):
+    labels = fixed(labels)
+    if not labels.any():
+        return
+    mesh = voxel_mesh(labels)
+    out, report = merge_planes(mesh, passes=passes, axes=tuple(axes))
+    assert_sound(out)
+    assert neighbour_counts(out).max() <= 6
+    assert out.n_cells <= mesh.n_cells and report["elements_after"] == out.n_cells
+
+
+@_SETTINGS
+@given(arrays(np.uint8, st.tuples(*[st.integers(2, 7)] * 3), elements=st.integers(0, 3)),
+       st.tuples(*[st.integers(0, 2)] * 3))
+def test_random_multi_material_volumes_stay_sound(labels, passes):
+    labels = fixed(labels)
+    if not labels.any():
+        return
+    mesh = voxel_mesh(labels)
+    out, report = merge_planes(mesh, passes=passes)
+    assert_sound(out)
+    assert neighbour_counts(out).max() <= 6
+    # no material is lost or renamed (a lone element may grow into an empty neighbour voxel)
+    assert np.array_equal(np.unique(out.material), np.unique(mesh.material))
+    assert all(v["after"] > 0 for v in report["volume"].values())
+
+
+@_SETTINGS
+@given(arrays(np.uint8, st.tuples(st.integers(2, 12), st.integers(2, 12)), elements=st.integers(0, 2)),
+       st.tuples(st.integers(0, 3), st.integers(0, 3)))
+def test_random_2d_volumes_stay_sound(labels, passes):
+    labels = fixed(labels)
+    if not labels.any():
+        return
+    out, _ = merge_planes(voxel_mesh(labels), passes=passes)
+    assert_sound(out)
+    assert neighbour_counts(out).max() <= 4

@@ -1,0 +1,229 @@
+"""The real head CT (``../shared/data/cranium_ct.nii.gz``) through ``dicer run``, solved by CalculiX.
+
+Skipped when the shared data folder is not beside the repository (a clone without it).
+
+Default suite: the segmentation acceptance on the real scan and a coarse (factor 8) run whose
+``model.inp`` CalculiX solves. ``-m slow``: the literal acceptance run at full resolution with
+the default configuration, and CalculiX on that deck (iterative solver).
+
+Load case for CalculiX: the head stands on its cut plane (``Z0``, the skull base: the only
+bounding plane the scan's body touches at every resolution), clamped there, under its own
+weight. For voxel hexahedra the consistent gravity load puts 1/8 of an element's weight on
+each of its nodes, and the share on the clamped nodes goes straight into the support, so the
+reaction on ``Z0`` is the weight of the model less half the weight of its bottom element layer
+— an exact check of the deck's geometry, materials, densities and element sets.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import ndimage as ndi
+
+from dicer.cli import main
+
+CT = Path(__file__).parents[1] / ".." / "shared" / "data" / "cranium_ct.nii.gz"
+CCX = shutil.which("ccx")
+G = 9810.0  # mm/s^2 (units: mm, N, MPa, t/mm^3)
+FACE3 = ndi.generate_binary_structure(3, 1)
+
+pytestmark = pytest.mark.skipif(not CT.exists(), reason=f"shared head CT not present ({CT.resolve()})")
+needs_ccx = pytest.mark.skipif(CCX is None, reason="CalculiX (ccx) is not installed")
+
+
+def dicer(*argv) -> None:
+    code = main([str(a) for a in argv])
+    assert code == 0, f"dicer {' '.join(map(str, argv))} exited with {code}"
+
+
+def gravity_deck(materials: list[str], solver: str = "") -> str:
+    """A deck that includes model.inp, clamps Z0 and loads every material ELSET with gravity (-z)."""
+    loads = "".join(f"{name}, GRAV, {G!r}, 0., 0., -1.\n" for name in materials)
+    return (
+        "*INCLUDE, INPUT=model.inp\n*BOUNDARY\nZ0, 1, 3, 0\n"
+        f"*STEP\n*STATIC{', SOLVER=' + solver if solver else ''}\n*DLOAD\n{loads}"
+        "*NODE PRINT, NSET=Z0, TOTALS=ONLY\nRF\n*NODE FILE\nU\n*END STEP\n"
+    )
+
+
+def run_ccx(folder: Path, deck: str, timeout: float) -> tuple[str, str]:
+    """Run ccx on ``deck`` in ``folder``; return (.dat text, log). Fails on a non-zero exit or *ERROR."""
+    (folder / "job.inp").write_text(deck)
+    proc = subprocess.run([CCX, "-i", "job"], cwd=folder, capture_output=True, text=True, timeout=timeout,
+                          env={**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")})
+    log = proc.stdout + proc.stderr
+    assert proc.returncode == 0 and "*ERROR" not in log, log[-3000:]
+    return (folder / "job.dat").read_text(), log
+
+
+def total_force(dat: str, set_name: str) -> np.ndarray:
+    found = re.findall(rf"total force \(fx,fy,fz\) for set {set_name.upper()} and time\s+\S+\s+(\S+)\s+(\S+)\s+(\S+)",
+                       dat)
+    assert found, dat[-1000:]
+    return np.array([float(v) for v in found[-1]])
+
+
+def expected_reaction(labels_ds_path: Path, densities: list[float]) -> float:
+    """Weight of the voxel model less half the weight of its bottom (z = 0) layer, in N."""
+    from dicer.io.images import read_labels
+
+    labels = read_labels(labels_ds_path)
+    rho = np.array([0.0, *densities])
+    voxel = float(np.prod(labels.spacing))
+    weight = G * voxel * rho[labels.array].sum()
+    bottom = G * voxel * rho[labels.array[:, :, 0]].sum()
+    return weight - bottom / 2
+
+
+def deck_sets(inp: Path) -> set[str]:
+    with open(inp, "rb") as f:
+        return {m.decode() for m in re.findall(rb"^\*NSET, NSET=(\w+)", f.read(), re.M)}
+
+
+def check_solved(folder: Path, dat: str, labels_ds: Path) -> float:
+    from dicer.config import load_config
+
+    densities = [m["density"] for m in load_config()["materials"]]
+    force = total_force(dat, "Z0")
+    expected = expected_reaction(labels_ds, densities)
+    assert force[2] == pytest.approx(expected, rel=0.01)
+    assert abs(force[0]) < 0.01 * expected and abs(force[1]) < 0.01 * expected
+    frd = (folder / "job.frd").read_bytes()
+    assert b"DISP" in frd  # a displacement result block
+    return float(force[2])
+
+
+# --- default suite: segmentation acceptance and a coarse model ---------------------------
+
+
+@pytest.fixture(scope="module")
+def coarse_run(tmp_path_factory):
+    """``dicer run CT -o out --set downsample.factor=8`` (the full-resolution labels come with it)."""
+    out = tmp_path_factory.mktemp("cranium") / "out"
+    dicer("run", CT, "-o", out, "--set", "downsample.factor=8", "-q")
+    return out
+
+
+def test_run_writes_every_output(coarse_run):
+    for name in ("labels.nii.gz", "labels_ds.nii.gz", "mesh.vtu", "model.inp", "model.vtu", "quality.json",
+                 "report.html", "segmentation.json", "segmentation.png", "thresholds.png"):
+        assert (coarse_run / name).stat().st_size > 0, name
+
+
+def test_segmentation_acceptance(coarse_run):
+    from dicer.io.images import read_image, read_labels
+
+    info = json.loads((coarse_run / "segmentation.json").read_text())
+    assert info["method"] == "shape_connectivity"
+    t1, t2 = info["thresholds"]
+    (lo1, hi1), (lo2, hi2) = info["ranges"]
+    assert (lo1, hi1, lo2, hi2) == (-400, 0, 100, 1000)  # the default search ranges
+    # inside the ranges, not stuck at an end, and near the scan's known soft tissue / bone bounds
+    assert lo1 < t1 < hi1 and lo2 < t2 < hi2
+    assert -200 <= t1 <= -100 and 110 <= t2 <= 260                    # measured: -144 and 140 HU
+    fractions = {name: c["fraction"] for name, c in info["classes"].items()}
+    assert 0.05 < fractions["bone"] < 0.08                            # ~6.7 % above 226 HU
+    assert 0.22 < fractions["soft_tissue"] < 0.29
+    assert 0.64 < fractions["background"] < 0.72
+    assert sum(fractions.values()) == pytest.approx(1.0, abs=1e-4)
+
+    image, labels = read_image(CT), read_labels(coarse_run / "labels.nii.gz")
+    a, lab = image.array, labels.array
+    assert lab.shape == a.shape == (256, 256, 108)
+    assert np.allclose(labels.spacing, image.spacing)
+    assert set(np.unique(lab)) == {0, 1, 2}
+    assert ndi.label(lab > 0, FACE3)[1] == 1  # one body
+    # the headrest: the raw body mask (>= t1) holds the head and two big separate parts; both are dropped
+    comp, _ = ndi.label(a >= t1, FACE3)
+    sizes = np.bincount(comp.ravel())
+    sizes[0] = 0
+    head, rest1, rest2 = np.argsort(sizes)[::-1][:3]
+    assert sizes[rest1] > 20000 and sizes[rest2] > 20000
+    assert not lab[(comp == rest1) | (comp == rest2)].any()
+    assert (lab[comp == head] > 0).mean() > 0.99
+    # the skull is one component: at least 99 % of the bone
+    bone, _ = ndi.label(lab == 2, FACE3)
+    bone_sizes = np.bincount(bone.ravel())[1:]
+    assert bone_sizes.max() >= 0.99 * bone_sizes.sum()
+
+
+def test_coarse_model_matches_its_labels(coarse_run):
+    import meshio
+
+    from dicer.io.images import read_labels
+
+    labels = read_labels(coarse_run / "labels_ds.nii.gz")
+    assert labels.array.shape == (32, 32, 14)  # 256/8, 256/8, ceil(108/8)
+    assert np.allclose(labels.spacing, np.array([0.957031, 0.957031, 1.5]) * 8, rtol=1e-5)
+    counts = np.bincount(labels.array.ravel(), minlength=3)
+    model = meshio.read(coarse_run / "model.vtu")
+    assert [c.type for c in model.cells] == ["hexahedron"]
+    material = model.cell_data["material"][0]
+    assert np.array_equal(np.bincount(material, minlength=3)[1:], counts[1:])
+    inp = (coarse_run / "model.inp").read_text()
+    n_elements = counts[1:].sum()
+    assert f"{model.points.shape[0]} nodes, {n_elements} C3D8 elements" in inp
+    assert inp.count("*ELEMENT, TYPE=C3D8, ELSET=") == 2
+    assert "Z0" in deck_sets(coarse_run / "model.inp")
+    assert "*STEP" not in inp
+    # nodes inside the coarse grid's box (origin + shape * spacing)
+    lo = np.asarray(labels.origin) - 1e-6
+    hi = np.asarray(labels.origin) + np.array(labels.array.shape) * np.asarray(labels.spacing) + 1e-6
+    assert np.all((model.points >= lo) & (model.points <= hi))
+    quality = json.loads((coarse_run / "quality.json").read_text())
+    assert quality["elements"] == n_elements and quality["inverted_elements"] == 0
+    assert quality["scaled_jacobian"]["min"] > 0
+
+
+@pytest.mark.calculix
+@needs_ccx
+def test_ccx_solves_coarse_model(coarse_run, tmp_path):
+    shutil.copy(coarse_run / "model.inp", tmp_path / "model.inp")
+    dat, _log = run_ccx(tmp_path, gravity_deck(["soft_tissue", "bone"]), timeout=300)
+    check_solved(tmp_path, dat, coarse_run / "labels_ds.nii.gz")
+
+
+# --- slow: the literal acceptance run ------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def full_run(tmp_path_factory):
+    """``dicer run ../shared/data/cranium_ct.nii.gz -o out/`` with the default configuration."""
+    out = tmp_path_factory.mktemp("cranium_full") / "out"
+    dicer("run", CT, "-o", out, "-q")
+    return out
+
+
+@pytest.mark.slow
+def test_full_resolution_run(full_run):
+    from dicer.io.images import read_labels
+
+    labels = read_labels(full_run / "labels_ds.nii.gz")
+    assert labels.array.shape == (256, 256, 108)  # factor 1: the labels unchanged
+    assert np.array_equal(labels.array, read_labels(full_run / "labels.nii.gz").array)
+    n_elements = int(np.count_nonzero(labels.array))
+    quality = json.loads((full_run / "quality.json").read_text())
+    assert quality["elements"] == n_elements > 2_000_000
+    assert quality["inverted_elements"] == 0
+    with open(full_run / "model.inp", "rb") as f:
+        head = f.read(4096).decode()
+    assert f"{quality['nodes']} nodes, {n_elements} C3D8 elements" in head
+    assert "Z0" in deck_sets(full_run / "model.inp")
+
+
+@pytest.mark.slow
+@pytest.mark.calculix
+@needs_ccx
+def test_ccx_solves_full_resolution_model(full_run, tmp_path):
+    # ~7 M degrees of freedom: SPOOLES' direct factorisation does not fit; the preconditioned
+    # conjugate gradient solver does (see the module docstring for the load case)
+    os.symlink((full_run / "model.inp").resolve(), tmp_path / "model.inp")
+    dat, _log = run_ccx(tmp_path, gravity_deck(["soft_tissue", "bone"], solver="ITERATIVE CHOLESKY"), timeout=3600)
+    check_solved(tmp_path, dat, full_run / "labels_ds.nii.gz")

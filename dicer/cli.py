@@ -232,7 +232,7 @@ def cmd_run(args):
         for name in ("model.inp", "model.vtu"):
             do_export(str(outdir / "mesh.vtu"), outdir / name, config, input_name=args.image)
         pictures = [str(outdir / n) for n in ("segmentation.png", "thresholds.png") if (outdir / n).exists()]
-        do_quality(str(outdir / "model.vtu"), outdir / "quality.json", config,
+        do_quality(str(outdir / "mesh.vtu"), outdir / "quality.json", config,
                    labels_path=str(outdir / "labels_ds.nii.gz"), html=str(outdir / "report.html"), pictures=pictures)
     except BaseException:
         with contextlib.suppress(OSError):

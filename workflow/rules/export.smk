@@ -13,14 +13,14 @@ rule export:
     log:
         "logs/{patient}/export_{ext}.log",
     wildcard_constraints:
-        ext="inp|vtu|out|neu|k",
+        ext="inp|vtu|out|neu|k|msh",
     shell:
         "dicer export {input:q} -o {output:q} --settings {params.settings:q} > {log:q} 2>&1"
 
 
 rule quality:
     input:
-        mesh=patient_file("model.vtu"),
+        mesh=patient_file("mesh.vtu"),
         labels=patient_file("labels_ds.nii.gz"),
         overlay=patient_file("segmentation.png"),
     output:

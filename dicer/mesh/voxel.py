@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import numpy as np
 
 from dicer.errors import DicerError
 from dicer.mesh.model import HEX_CORNERS, QUAD_CORNERS, Mesh
+
+_BLOCK = 1 << 16
+"""Grid points per slab of x planes: a slab's temporaries stay in cache."""
 
 
 def voxel_mesh(labels: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0)) -> Mesh:
@@ -33,28 +38,87 @@ def voxel_mesh(labels: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.
     solid = vol != 0
     if not solid.any():
         raise DicerError("the label image has no non-background voxel; nothing to mesh")
-    nx, ny, nz = vol.shape
-    node_shape = (nx + 1, ny + 1, nz + 1) if dim == 3 else (nx + 1, ny + 1, 1)
-    used = np.zeros(node_shape, dtype=bool)
-    for dx, dy, dz in corners:
-        used[dx : dx + nx, dy : dy + ny, dz : dz + nz] |= solid
+    with _small_pages():
+        points, cells, lattice = _hexahedra(solid, corners, spacing3, origin3)
+        material = vol[solid].astype(np.int32)
+    return Mesh(points, cells, material, lattice, spacing3, origin3, grid_shape)
 
-    n_nodes = int(np.count_nonzero(used))
-    node_id = np.cumsum(used.ravel(), dtype=np.int64).reshape(node_shape)
-    node_id -= 1  # node_id at a used grid point is its node number (C order)
 
-    # corner c of every element: the node grid shifted by c, read where a voxel is solid
+def _hexahedra(solid: np.ndarray, corners: np.ndarray, spacing3: np.ndarray, origin3: np.ndarray):
+    """Points, cells and lattice of the voxel mesh of the (nx, ny, nz) mask ``solid``.
+
+    Works slab by slab of x planes (no loop over voxels): every output array is written
+    once, in order, and the temporaries are a slab's size.
+    """
+    nx, ny, nz = solid.shape
+    flat = bool(corners[:, 2].max() == 0)  # quads: the node grid has a single z layer
+    node_shape = (nx + 1, ny + 1, 1 if flat else nz + 1)
+
+    # voxel (i, j, k) is anchored at grid point (i, j, k), its corner 0; a grid point is a
+    # node when a solid voxel has it as a corner: the anchors dilated by one along +x, +y, +z
+    anchor = np.zeros(node_shape, dtype=bool)
+    anchor[:nx, :ny, :nz] = solid
+    used = anchor.copy()
+    used[1:] |= anchor[:-1]
+    used[:, 1:] |= used[:, :-1].copy()
+    if not flat:
+        used[:, :, 1:] |= used[:, :, :-1].copy()
+
+    # nodes are numbered in C order of the grid: x plane p starts after all nodes of planes < p
+    plane_start = np.zeros(node_shape[0] + 1, dtype=np.int64)
+    np.cumsum(np.count_nonzero(used.reshape(node_shape[0], -1), axis=1), out=plane_start[1:])
+    n_nodes = int(plane_start[-1])
+
+    # corner c of the voxel anchored at flat grid index f is the node at flat index f + offset[c]
+    plane = node_shape[1] * node_shape[2]
+    offset = corners @ np.array([plane, node_shape[2], 1], dtype=np.int64)
+    step = max(1, _BLOCK // plane)  # x planes per slab
     cells = np.empty((int(np.count_nonzero(solid)), len(corners)), dtype=np.int64)
-    for c, (dx, dy, dz) in enumerate(corners):
-        cells[:, c] = node_id[dx : dx + nx, dy : dy + ny, dz : dz + nz][solid]
-    del node_id
+    node_id = np.empty((step + 1) * plane, dtype=np.int64)  # node number of each grid point of a slab
+    row = 0
+    for x0 in range(0, nx, step):
+        x1 = min(nx, x0 + step)
+        window = used[x0 : x1 + 1].reshape(-1)  # the slab's node planes and the next one
+        node_id[: window.size][window] = np.arange(plane_start[x0], plane_start[x1 + 1], dtype=np.int64)
+        first = np.flatnonzero(anchor[x0:x1])
+        np.take(node_id, first[:, None] + offset, out=cells[row : row + first.size], mode="clip")
+        row += first.size
+    del node_id, anchor
 
-    index = np.nonzero(used)
     lattice = np.empty((n_nodes, 3), dtype=np.int64)
     points = np.empty((n_nodes, 3), dtype=np.float64)
-    for axis in range(3):
-        lattice[:, axis] = index[axis]
-        coordinate = origin3[axis] + spacing3[axis] * np.arange(node_shape[axis])
-        points[:, axis] = coordinate[index[axis]]
-    material = vol[solid].astype(np.int32)
-    return Mesh(points, cells, material, lattice, spacing3, origin3, grid_shape)
+    coordinate = [origin3[axis] + spacing3[axis] * np.arange(node_shape[axis]) for axis in range(3)]
+    for x0 in range(0, node_shape[0], step):
+        x1 = min(node_shape[0], x0 + step)
+        index = np.nonzero(used[x0:x1])
+        rows = slice(plane_start[x0], plane_start[x1])
+        for axis in range(3):
+            np.add(index[axis], x0 if axis == 0 else 0, out=lattice[rows, axis])
+            np.take(coordinate[axis], lattice[rows, axis], out=points[rows, axis], mode="clip")
+    return points, cells, lattice
+
+
+@contextmanager
+def _small_pages():
+    """Allocate the arrays made inside the block in ordinary (4 KiB) pages.
+
+    numpy asks the kernel for transparent huge pages for every array of 4 MiB or more.
+    On virtual machines that hand freed memory back to the host (free page reporting),
+    every fresh huge page is first faulted in by the host: writing a new 0.75 GB mesh
+    then took about three times as long as with ordinary pages.
+    """
+    try:
+        from numpy._core.multiarray import _set_madvise_hugepage
+    except ImportError:  # numpy < 2
+        try:
+            from numpy.core.multiarray import _set_madvise_hugepage
+        except ImportError:
+            _set_madvise_hugepage = None
+    if _set_madvise_hugepage is None:
+        yield
+        return
+    previous = _set_madvise_hugepage(False)
+    try:
+        yield
+    finally:
+        _set_madvise_hugepage(previous)

@@ -22,12 +22,10 @@ from pathlib import Path
 
 
 def shell_labels(n: int):
-    """(n, n, n) uint8: 2 inside radius 0.30 n, 1 out to 0.45 n, 0 outside (1 mm voxels)."""
-    import numpy as np
+    """(n, n, n) uint8 labels of the shell phantom (see ``dicer.phantoms.shell_labels``)."""
+    from dicer.phantoms import shell_labels as phantom
 
-    c = (np.arange(n, dtype=np.float32) - n / 2 + 0.5) ** 2
-    r2 = c[:, None, None] + c[None, :, None] + c[None, None, :]
-    return ((r2 < (0.45 * n) ** 2).astype(np.uint8) + (r2 < (0.30 * n) ** 2)).astype(np.uint8)
+    return phantom(n).array
 
 
 def _mesh(n):
@@ -43,6 +41,31 @@ def _config():
 
 
 # Each case: (setup(n) -> state, run(state, tmpdir) -> extra dict or None, what it measures)
+def _case_segment():
+    def setup(n):
+        from dicer.phantoms import make_phantom
+
+        return make_phantom("shell", size=n)
+
+    def run(image, tmp):
+        from dicer.segment import segment
+
+        labels, info = segment(image, _config())
+        return {"thresholds": info["thresholds"]}
+
+    return setup, run, "dicer segment: threshold search + morphology (noisy CT of the ball)"
+
+
+def _case_fix():
+    def run(labels, tmp):
+        from dicer.connectivity import fix_connectivity
+
+        _, report = fix_connectivity(labels)
+        return {"changed_voxels": report["changed_voxels"]}
+
+    return shell_labels, run, "dicer fix: connectivity fixes A, B, C"
+
+
 def _case_mesh():
     def run(labels, tmp):
         from dicer.mesh.voxel import voxel_mesh
@@ -69,15 +92,37 @@ def _case_pyvista_threshold():
     return setup, run, "PyVista ImageData.threshold (VTK, same volume)"
 
 
-def _case_export_abaqus():
+def _case_merge():
     def run(mesh, tmp):
-        from dicer.export import export_mesh
+        from dicer.mesh.merge import merge_planes
 
-        path = Path(tmp) / "model.inp"
-        export_mesh(mesh, path, _config(), source="bench", verify=False)
-        return {"bytes": path.stat().st_size}
+        merged, _ = merge_planes(mesh, passes=(1, 1, 1))
+        return {"elements": merged.n_cells, "nodes": merged.n_points}
 
-    return _mesh, run, "dicer Abaqus .inp writer (order 1)"
+    return _mesh, run, "dicer merge, passes [1,1,1]"
+
+
+def _case_smooth():
+    def run(mesh, tmp):
+        from dicer.mesh.smooth import smooth_mesh
+
+        _, report = smooth_mesh(mesh, _config().get("smooth"))
+        return {"min_scaled_jacobian": report.get("min_scaled_jacobian")}
+
+    return _mesh, run, "dicer smooth: boundary + interior solves with the quality guard"
+
+
+def _export_case(suffix: str, what: str):
+    def case():
+        def run(mesh, tmp):
+            from dicer.export import benchmark_export
+
+            info = benchmark_export(mesh, tmp, suffix=suffix, config=_config())
+            return {"bytes": info["bytes"]}
+
+        return _mesh, run, what
+
+    return case
 
 
 def _case_meshio_abaqus():
@@ -98,10 +143,17 @@ def _case_meshio_abaqus():
 
 
 CASES = {
+    "segment": _case_segment,
+    "fix": _case_fix,
     "mesh": _case_mesh,
     "pyvista_threshold": _case_pyvista_threshold,
-    "export_abaqus": _case_export_abaqus,
+    "merge": _case_merge,
+    "smooth": _case_smooth,
+    "export_abaqus": _export_case(".inp", "dicer Abaqus/CalculiX .inp writer (order 1, all sets)"),
     "meshio_abaqus": _case_meshio_abaqus,
+    "export_patran": _export_case(".out", "dicer PATRAN neutral writer (order 1)"),
+    "export_lsdyna": _export_case(".k", "dicer LS-DYNA keyword writer"),
+    "export_vtu": _export_case(".vtu", "dicer VTU writer (with scaled Jacobian cell data)"),
 }
 
 

@@ -147,7 +147,6 @@ def test_thick_shell_one_merge_per_axis():
     assert_sound(out)
 
 
-@pytest.mark.slow
 def test_thick_shell_after_smoothing_keeps_scaled_jacobian_above_0_2():
     from dicer.mesh.smooth import smooth_mesh
 
@@ -295,3 +294,27 @@ def test_random_2d_volumes_stay_sound(labels, passes):
     out, _ = merge_planes(voxel_mesh(labels), passes=passes)
     assert_sound(out)
     assert neighbour_counts(out).max() <= 4
+
+
+def test_config_section_drives_the_merge():
+    from dicer.mesh.merge import DEFAULTS, merge_mesh
+
+    mesh = voxel_mesh(np.ones((2, 2, 2), np.uint8))
+    out, report = merge_mesh(mesh, None)
+    assert out.n_cells == 1 and report["passes"] == DEFAULTS["passes"]
+    out, report = merge_mesh(mesh, {"passes": [0, 0, 1], "granularity": "plane"})
+    assert out.n_cells == 4 and report["granularity"] == "plane"
+    with pytest.raises(DicerError, match="merge.passes_per_axis: unknown setting"):
+        merge_mesh(mesh, {"passes_per_axis": [1, 1, 1]})
+    with pytest.raises(DicerError, match="merge.rim_moves"):
+        merge_mesh(mesh, {"rim_moves": "yes"})
+
+
+def test_merged_mesh_survives_a_vtu_round_trip(tmp_path):
+    from dicer.io.meshes import read_mesh, write_mesh
+
+    out, _ = merge_planes(voxel_mesh(fixed(_thick_shell(24, 0.2, 0.45))), passes=(1, 1, 1))
+    write_mesh(out, tmp_path / "merged.vtu")
+    back = read_mesh(tmp_path / "merged.vtu")
+    assert np.array_equal(back.cells, out.cells) and np.array_equal(back.lattice, out.lattice)
+    assert np.allclose(back.points, out.points) and np.array_equal(back.material, out.material)

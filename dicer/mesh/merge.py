@@ -18,9 +18,10 @@ keeps its plane; the paper's "drop the plane" is ``granularity="plane"``.
 The trial mesh of every step is checked where it changed (Box 2 steps 12-14, widened):
 no node with more than 6 (2D: 4) neighbours or in more than 8 (4) elements, no face of
 three elements, and no element whose corner scaled Jacobian on the lattice falls below
-``min_scaled_jacobian``. A chamfer that fails only the last test is first repaired by
-moving its *rim nodes* (plane nodes on one side only) one lattice step across the plane;
-what still fails makes its merge region keep the plane, and the step is tried again.
+``min_scaled_jacobian``. A failing element is first repaired through its *rim nodes*
+(plane nodes on one side only): each moves one lattice step across the plane, or joins
+the node already at that corner, so the element fills the empty voxel beside it. What
+still fails makes its merge region keep the plane, and the step is tried again.
 
 Arrays are numpy throughout; loops run only over axes, passes and retry rounds.
 """
@@ -38,7 +39,7 @@ from dicer.errors import DicerError
 from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes
 from dicer.mesh.model import HEX_CORNERS, QUAD_CORNERS, Mesh
 
-__all__ = ["merge_planes", "thick_elements"]
+__all__ = ["merge_planes", "merge_mesh", "merge_settings", "thick_elements", "DEFAULTS"]
 
 # For each axis: (bottom corners, top corners) of the element, paired so that bottom[i]
 # and top[i] are the two ends of one edge parallel to the axis (VTK corner order).
@@ -55,6 +56,16 @@ _HEX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [
                        [0, 4], [1, 5], [2, 6], [3, 7]])
 _QUAD_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
 _AXIS_NAMES = "xyz"
+
+
+def _unique(a: np.ndarray) -> np.ndarray:
+    """Sorted distinct values of a 1-D integer array (sorting beats numpy's hashed unique here)."""
+    a = np.sort(np.asarray(a).ravel())
+    return a[np.r_[True, a[1:] != a[:-1]]] if a.size else a
+
+
+def _union(*arrays) -> np.ndarray:
+    return _unique(np.concatenate([np.asarray(x).ravel() for x in arrays]))
 
 
 def _check_passes(passes, dim: int) -> tuple[int, int, int]:
@@ -205,7 +216,7 @@ def _clashes(l_top, u_bot, li, ui, irr_l, irr_u, cand, lattice, dim, axis) -> np
         ok, lr, ur = ok[maybe], lr[maybe], ur[maybe]
         same = side(lr, l_top, le[ok]) * side(ur, u_bot, le[ok]) > 0
         found.append(le[ok][same].ravel())
-    return np.unique(np.concatenate(found))
+    return _unique(np.concatenate(found))
 
 
 _HEX_FACES = np.array([[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]])
@@ -225,7 +236,7 @@ def _crowded_faces(sub: np.ndarray, n: int, dim: int) -> np.ndarray:
     group = np.cumsum(start) - 1
     size = np.bincount(group)
     crowded = order[size[group] > 2] // k
-    return np.unique(crowded)
+    return _unique(crowded)
 
 
 def _degrees(cells: np.ndarray, rows: np.ndarray, nodes_mask: np.ndarray, n: int, edges: np.ndarray):
@@ -235,13 +246,13 @@ def _degrees(cells: np.ndarray, rows: np.ndarray, nodes_mask: np.ndarray, n: int
     e = sub[:, edges].reshape(-1, 2)
     e = np.concatenate([e, e[:, ::-1]])
     e = e[nodes_mask[e[:, 0]]]
-    key = np.unique(e[:, 0].astype(np.int64) * np.int64(n) + e[:, 1])
+    key = _unique(e[:, 0].astype(np.int64) * np.int64(n) + e[:, 1])
     degree = np.bincount(key // n, minlength=n)
     return degree, count
 
 
 def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g, s, dim, granularity, min_corner,
-                rim_moves=True):
+                rim_moves=True, spacing=(1.0, 1.0, 1.0)):
     """Merge element layer ``s`` of every group of ``g`` layers into the layers below it.
 
     ``irregular`` flags the elements that are not lattice boxes (chamfers of earlier
@@ -259,7 +270,8 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
     lo = np.flatnonzero(r < s)
     up = np.flatnonzero(r == s)
     info = {"merged_pairs": 0, "chamfered_elements": 0, "regions": 0, "regions_merged": 0,
-            "blocked_material": 0, "blocked_thin": 0, "blocked_overlap": 0, "blocked_connectivity": 0, "rim_nodes_refused": 0, "retry_rounds": 0,
+            "blocked_material": 0, "blocked_thin": 0, "blocked_overlap": 0, "blocked_connectivity": 0,
+            "rim_nodes_refused": 0, "retry_rounds": 0,
             "overconnected_nodes": 0, "inverted_elements": 0, "crowded_faces": 0}
     keep = np.ones(m, dtype=bool)
     if lo.size == 0 or up.size == 0:
@@ -307,15 +319,15 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
     cmap = np.full(n, -1, dtype=np.int64)
     cmap[cand_idx] = np.arange(cand_idx.size)
     if granularity == "plane":
-        planes, comp = np.unique(lattice_a[cand_idx], return_inverse=True)
-        comp = comp.ravel()
+        planes = _unique(lattice_a[cand_idx])
+        comp = np.searchsorted(planes, lattice_a[cand_idx])
         n_comp = planes.size
     else:
         f = cmap[faces]
         k = f.shape[1] - 1
         graph = coo_matrix((np.ones(f.shape[0] * k, dtype=np.int8),
                             (np.repeat(f[:, 0], k), f[:, 1:].ravel())), shape=(cand_idx.size,) * 2)
-        n_comp, comp = connected_components(graph, directed=False)
+        n_comp, comp = connected_components(graph, directed=True, connection="weak")
     region_of = np.zeros(n_comp, dtype=bool)  # components holding a stacked pair
     region_of[comp[cmap[faces[:, 0]]]] = True
     info["regions"] = int(region_of.sum())
@@ -338,14 +350,15 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
     info["blocked_thin"] = int((by_thin & ~by_material).sum())
     base_blocked = blocked.copy()
 
-    # Rim nodes: on the plane but on one side only. When a chamfer would come out flat or
-    # inside out at one, the rim node moves one lattice step across the plane instead
-    # (the chamfer then fills the empty voxel beside it), if that lattice corner is free.
+    # Rim nodes: on the plane but on one side only. When an element around one fails a
+    # check, the rim node moves one lattice step across the plane (or joins the node
+    # already at that corner): the element then fills the empty voxel beside it.
     rim_up = is_bot & ~is_top  # bottom corners of upper elements only: may move down
     rim_lo = is_top & ~is_bot  # top corners of lower elements only: may move up
     shift = np.zeros(n, dtype=np.int64)
+    snap = np.full(n, -1, dtype=np.int64)  # rim node -> the node already at its target corner
     tried = np.zeros(n, dtype=bool)  # rim nodes moved once (and maybe put back): never again
-    occupied = None
+    node_at = None
     unit = np.zeros(3, dtype=np.int64)
     unit[axis] = 1
     cells = mesh_cells.copy()
@@ -357,19 +370,24 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
         # Step 10: replace deleted nodes by the far ends of their axis edges.
         if changed.size:  # undo the previous round
             cells[changed] = mesh_cells[changed]
+        snapped = snap >= 0
         hit_l = delete[l_top]
-        rows_l = np.flatnonzero(hit_l.any(axis=1))
+        rows_l = np.flatnonzero(hit_l.any(axis=1) | snapped[l_top].any(axis=1))
         t = l_top[rows_l]
         h = hit_l[rows_l]
         t[h] = upn[t[h]]
+        h = snapped[t]
+        t[h] = snap[t[h]]
         sub = lc[rows_l]
         sub[:, tc] = t
         cells[lo[rows_l]] = sub
         hit_u = delete[u_bot]
-        rows_u = np.flatnonzero(hit_u.any(axis=1))
+        rows_u = np.flatnonzero(hit_u.any(axis=1) | snapped[u_bot].any(axis=1))
         b = u_bot[rows_u]
         h = hit_u[rows_u]
         b[h] = down[b[h]]
+        h = snapped[b]
+        b[h] = snap[b[h]]
         sub = uc[rows_u]
         sub[:, bc] = b
         cells[up[rows_u]] = sub
@@ -378,9 +396,9 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
         merged = delete[faces[:, 0]]
         keep[:] = True
         keep[up[ui[merged]]] = False
-        # Step 12: check the nodes of chamfered elements (the only elements that gain a
-        # new, non-axis edge): at most 6 (2D: 4) neighbours, at most 8 (4) elements,
-        # and no element turned inside out.
+        # Step 12 (widened): check every element that changed other than by a clean stacked
+        # merge, and the nodes around it: at most 6 (2D: 4) neighbours, at most 8 (4)
+        # elements, no face of three elements, no corner below the Jacobian floor.
         part_l = hit_l.any(axis=1) & ~hit_l.all(axis=1)
         part_u = hit_u.any(axis=1) & ~hit_u.all(axis=1)
         chamfer = np.concatenate([lo[part_l], up[part_u]])
@@ -397,7 +415,12 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
         paired_u = np.zeros(up.size, dtype=bool)
         paired_u[ui[merged]] = True
         filled = np.concatenate([lo[hit_l.all(axis=1) & ~paired_l], up[hit_u.all(axis=1) & ~paired_u]])
-        checked = np.union1d(np.union1d(chamfer, reshaped), filled)
+        checked = _union(chamfer, reshaped, filled)
+        moved = np.flatnonzero((shift != 0) | (snap >= 0))
+        if moved.size:  # elements at moved or joined rim nodes change too
+            at = np.zeros(n, dtype=bool)
+            at[moved] = True
+            checked = _union(checked, lo[at[l_top].any(axis=1)], up[at[u_bot].any(axis=1)])
         bad_rows = np.empty(0, dtype=np.int64)
         if checked.size:
             in_s = np.zeros(n, dtype=bool)
@@ -411,44 +434,52 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
                 bad_rows = rows[crowded]
             info["overconnected_nodes"] += int(np.count_nonzero(bad_node))
             if bad_node.any():
-                bad_rows = np.union1d(bad_rows, rows[bad_node[cells[rows]].any(axis=1)])
-            moved = np.flatnonzero(shift)
-            if moved.size:  # elements at moved rim nodes change shape too
-                at = np.zeros(n, dtype=bool)
-                at[moved] = True
-                checked = np.union1d(checked, np.concatenate([lo[at[l_top].any(axis=1)], up[at[u_bot].any(axis=1)]]))
-            corners = (lattice[cells[checked]] + shift[cells[checked]][:, :, None] * unit).astype(np.float64)
+                bad_rows = _union(bad_rows, rows[bad_node[cells[rows]].any(axis=1)])
+            corners = (lattice[cells[checked]] + shift[cells[checked]][:, :, None] * unit) * spacing
             jac = corner_scaled_jacobians(corners.reshape(-1, 3), np.arange(corners.shape[0] * corners.shape[1]
                                                                            ).reshape(checked.size, -1))
             flat = checked[(jac < min_corner).any(axis=1)]
             info["inverted_elements"] += int(flat.size)
-            if flat.size and not rim_moves:
-                bad_rows = np.union1d(bad_rows, flat)
-            elif flat.size:
-                moved_now = 0
-                if occupied is None:
-                    # lattice corners holding a node (a dense flag grid, built on first use)
+            bad_rows = _union(bad_rows, flat)
+            if bad_rows.size and rim_moves:
+                if node_at is None:  # node at every lattice corner (a dense grid, built on first use)
                     dims = lattice.max(axis=0).astype(np.int64) + 3
-                    key_of = lambda lat: ((lat[:, 0] + 1) * dims[1] + lat[:, 1] + 1) * dims[2] + lat[:, 2] + 1  # noqa: E731
-                    occupied = np.zeros(int(np.prod(dims)), dtype=bool)
-                    occupied[key_of(lattice)] = True
+
+                    def key_of(lat, dims=dims):
+                        return ((lat[:, 0] + 1) * dims[1] + lat[:, 1] + 1) * dims[2] + lat[:, 2] + 1
+
+                    node_at = np.full(int(np.prod(dims)), -1, dtype=np.int32 if n < 2**31 - 1 else np.int64)
+                    node_at[key_of(lattice)] = np.arange(n, dtype=node_at.dtype)
+                # rim nodes used only as face corners of the merged layers may move
+                c_all = _unique(mesh_cells[bad_rows])
+                c_all = c_all[(rim_up[c_all] | rim_lo[c_all]) & ~tried[c_all]]
+                mask = np.zeros(n, dtype=bool)
+                mask[c_all] = True
+                uses = np.bincount(mesh_cells[mask[mesh_cells]], minlength=n)
+                uses -= np.bincount(l_top[mask[l_top]], minlength=n) + np.bincount(u_bot[mask[u_bot]], minlength=n)
+                confined = uses == 0
+                moved_now = 0
                 for rim, step in ((rim_up, -1), (rim_lo, 1)):
-                    c = np.unique(mesh_cells[flat].ravel())
-                    c = c[rim[c] & ~tried[c]]
-                    if c.size:
-                        target = key_of(lattice[c] + step * unit)
-                        free = ~occupied[target]
-                        c, target = c[free], target[free]
-                        target, first = np.unique(target, return_index=True)
-                        c = c[first]
-                        shift[c] = step
-                        tried[c] = True
-                        occupied[target] = True
-                        occupied[key_of(lattice[c])] = False
-                        moved_now += c.size
-                if not moved_now:
-                    bad_rows = np.union1d(bad_rows, flat)
-                elif bad_rows.size == 0:
+                    c = c_all[rim[c_all] & confined[c_all]]
+                    if not c.size:
+                        continue
+                    target = key_of(lattice[c] + step * unit)
+                    order = np.argsort(target, kind="stable")
+                    target, c = target[order], c[order]
+                    first = np.ones(target.size, dtype=bool)
+                    first[1:] = target[1:] != target[:-1]
+                    target, c = target[first], c[first]
+                    occupant = node_at[target]
+                    free = occupant < 0
+                    usable = free | ~delete[np.maximum(occupant, 0)]
+                    c, target, occupant, free = c[usable], target[usable], occupant[usable], free[usable]
+                    tried[c] = True
+                    shift[c[free]] = step  # move to the empty corner
+                    node_at[target[free]] = c[free]
+                    snap[c[~free]] = occupant[~free]  # or join the node already there
+                    node_at[key_of(lattice[c])] = -1
+                    moved_now += c.size
+                if moved_now:
                     continue
         if bad_rows.size == 0:
             break
@@ -462,24 +493,22 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
         rim = ~region_of[ccomp]
         has_rim = np.zeros(bad_rows.size, dtype=bool)
         has_rim[rows_rep[rim]] = True
-        newly = np.unique(ccomp[rim | ~has_rim[rows_rep]])
+        newly = _unique(ccomp[rim | ~has_rim[rows_rep]])
         newly = newly[~blocked[newly]]
         # moved rim nodes of the bad elements go back to their place
-        back = mesh_cells[bad_rows].ravel()
-        back = back[shift[back] != 0]
-        if back.size:
-            occupied[key_of(lattice[back] + shift[back][:, None] * unit)] = False
-            occupied[key_of(lattice[back])] = True
-            shift[back] = 0
+        back = _unique(mesh_cells[bad_rows])
+        back = back[(shift[back] != 0) | (snap[back] >= 0)]
         if newly.size == 0 and back.size == 0:  # cannot happen for a consistent mesh
             blocked[:] = True
-            if occupied is not None:
-                moved = np.flatnonzero(shift)
-                occupied[key_of(lattice[moved] + shift[moved][:, None] * unit)] = False
-                occupied[key_of(lattice[moved])] = True
-            shift[:] = 0
+            back = np.flatnonzero((shift != 0) | (snap >= 0))
         else:
             blocked[newly] = True
+        if back.size:
+            moved_back = back[shift[back] != 0]
+            node_at[key_of(lattice[moved_back] + shift[moved_back][:, None] * unit)] = -1
+            node_at[key_of(lattice[back])] = back
+            shift[back] = 0
+            snap[back] = -1
     refused = blocked & ~base_blocked
     info["blocked_connectivity"] = int((refused & region_of).sum())
     info["rim_nodes_refused"] = int((refused & ~region_of).sum())
@@ -488,6 +517,12 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
     delete = np.zeros(n, dtype=bool)
     delete[cand_idx] = ~blocked[comp]
     info["rim_nodes_moved"] = int(np.count_nonzero(shift))
+    info["rim_nodes_joined"] = int(np.count_nonzero(snap >= 0))
+    if (snap >= 0).any():
+        delete |= snap >= 0
+        if delete[cells[keep]].any():  # a joined rim node outside the merged layers
+            raise DicerError("internal error in plane merging (a joined rim node is still in use); "
+                             "rerun with merge.rim_moves=false and report the input")
     irregular[checked] = True
     merged_up = up[ui[merged]]
     irregular[lo[li[merged]]] |= irregular[merged_up]
@@ -511,9 +546,9 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
     min_scaled_jacobian : lowest corner scaled Jacobian (measured on the lattice) a
         changed element may have; the default 0.2 matches the smoothing floor. 0 allows
         flat corners, -1 switches the test off (the paper checks connectivity only).
-    rim_moves : repair a chamfer that fails ``min_scaled_jacobian`` by moving its rim
-        nodes one lattice step across the plane (filling the empty voxel beside them)
-        before refusing its region.
+    rim_moves : repair an element that fails a check by moving its rim nodes one lattice
+        step across the plane, or joining them to the node already there (the element
+        then fills the empty voxel beside it), before refusing its region.
     axes : order in which the axes are merged.
 
     Returns the merged mesh and a report with element and node counts per axis and pass
@@ -547,7 +582,8 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
               "min_scaled_jacobian": msj, "rim_moves": bool(rim_moves),
               "elements_before": mesh.n_cells, "nodes_before": mesh.n_points, "steps": []}
 
-    cells = mesh.cells
+    index = np.int32 if mesh.n_points < 2**31 - 1 else np.int64  # halves memory traffic
+    cells = mesh.cells.astype(index)
     material = mesh.material
     lattice = mesh.lattice
     points = mesh.points
@@ -566,7 +602,7 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
             n_before, m_before = lattice.shape[0], cells.shape[0]
             new_cells, keep, delete, shift, info = _merge_step(
                 cells, material, thick, irregular, layer, lattice, axis, g, s, dim, granularity, min_corner,
-                rim_moves)
+                rim_moves, np.asarray(mesh.spacing, dtype=np.float64))
             if shift.any():
                 lattice = lattice.copy()
                 lattice[:, axis] += shift
@@ -575,7 +611,8 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
             if delete.any():
                 kept_nodes = ~delete
                 new_id = np.cumsum(kept_nodes) - 1
-                cells = new_id[new_cells[keep]].astype(np.int64)
+                new_id = new_id.astype(index)
+                cells = new_id[new_cells[keep]]
                 material, thick, layer = material[keep], thick[keep], layer[keep]
                 irregular = irregular[keep]
                 lattice, points = lattice[kept_nodes], points[kept_nodes]
@@ -587,7 +624,7 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
                 "nodes_after": int(lattice.shape[0]), **info,
                 "seconds": round(time.perf_counter() - t0, 3)})
 
-    out = Mesh(points, cells, material, lattice, mesh.spacing.copy(), mesh.origin.copy(),
+    out = Mesh(points, cells.astype(np.int64), material, lattice, mesh.spacing.copy(), mesh.origin.copy(),
                mesh.grid_shape.copy(), point_data, cell_data)
     vol_after = _material_volumes(out, ~irregular, on_lattice)
     report["elements_after"] = out.n_cells
@@ -602,20 +639,44 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
     return out, report
 
 
+DEFAULTS = {"passes": [1, 1, 1], "min_thickness": 0.0, "granularity": "region",
+            "min_scaled_jacobian": 0.2, "rim_moves": True}
+"""The ``merge:`` config section's defaults (see docs/merging.md)."""
+
+
+def merge_settings(section: dict | None) -> dict:
+    """The ``merge:`` config section with defaults filled in; unknown keys are errors."""
+    settings = dict(DEFAULTS)
+    for key, value in (section or {}).items():
+        if key not in settings:
+            raise DicerError(f"merge.{key}: unknown setting; use one of {', '.join(sorted(settings))}")
+        settings[key] = value
+    return settings
+
+
+def merge_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, dict]:
+    """``merge_planes`` driven by the ``merge:`` config section (missing keys take DEFAULTS)."""
+    s = merge_settings(config_section)
+    for key in ("min_thickness", "min_scaled_jacobian"):
+        if isinstance(s[key], bool) or not isinstance(s[key], (int, float)):
+            raise DicerError(f"merge.{key}={s[key]!r}: give a number")
+    return merge_planes(mesh, passes=s["passes"], min_thickness=float(s["min_thickness"]),
+                        granularity=s["granularity"], min_scaled_jacobian=float(s["min_scaled_jacobian"]),
+                        rim_moves=s["rim_moves"])
+
+
 def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int = 1 << 20):
     """(M,) bool: elements whose corners sit on the corners of a lattice box, in VTK order."""
     offsets = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim].astype(bool)
     far = 6 if dim == 3 else 2
-    out = np.empty(cells.shape[0], dtype=bool)
-    for start in range(0, cells.shape[0], chunk):
-        sub = cells[start:start + chunk]
-        lo = lattice[sub[:, 0], :dim]
-        hi = lattice[sub[:, far], :dim]
-        ok = np.all(hi > lo, axis=1)
-        for c in range(1, sub.shape[1]):
-            if c != far:
-                ok &= np.all(lattice[sub[:, c], :dim] == np.where(offsets[c], hi, lo), axis=1)
-        out[start:start + chunk] = ok
+    out = np.ones(cells.shape[0], dtype=bool)
+    for d in range(dim):
+        coord = np.ascontiguousarray(lattice[:, d], dtype=np.int32 if lattice.max(initial=0) < 2**31 else np.int64)
+        for start in range(0, cells.shape[0], chunk):
+            sub = coord[cells[start:start + chunk]]  # (m, corners) lattice coordinate d
+            lo, hi = sub[:, :1], sub[:, far:far + 1]
+            ok = (hi[:, 0] > lo[:, 0]) & np.all(sub == np.where(offsets[:, d], hi, lo), axis=1)
+            out[start:start + chunk] &= ok
     return out
 
 
@@ -637,5 +698,12 @@ def _material_volumes(mesh: Mesh, box: np.ndarray, on_lattice: bool) -> dict[int
 
 
 def _on_lattice(mesh: Mesh) -> bool:
-    scale = max(1.0, float(np.abs(mesh.points).max(initial=0.0)))
-    return bool(np.abs(mesh.points - (mesh.lattice * mesh.spacing + mesh.origin)).max(initial=0.0) <= 1e-9 * scale)
+    """True when every node sits at origin + lattice * spacing."""
+    scale = 1e-9 * max(1.0, float(np.abs(mesh.points).max(initial=0.0)))
+    for d in range(3):
+        x = mesh.lattice[:, d] * mesh.spacing[d]
+        x += mesh.origin[d]
+        x -= mesh.points[:, d]
+        if np.abs(x).max(initial=0.0) > scale:
+            return False
+    return True

@@ -60,6 +60,24 @@ def _check_output(path: str, suffixes: tuple[str, ...], what: str) -> Path:
     return out
 
 
+def _stable(report):
+    """The report without timings, so report files are the same on every rerun."""
+    if isinstance(report, dict):
+        return {str(k): _stable(v) for k, v in report.items() if not str(k).endswith("seconds")}
+    if isinstance(report, (list, tuple)):
+        return [_stable(v) for v in report]
+    if hasattr(report, "item"):  # numpy scalars
+        return report.item()
+    return report
+
+
+def _write_report(path, report) -> None:
+    from dicer.io.atomic import write_bytes_atomic
+
+    if path:
+        write_bytes_atomic(path, json.dumps(_stable(report), indent=1, sort_keys=True) + "\n")
+
+
 # --- stages ---------------------------------------------------------------------------
 
 
@@ -103,6 +121,66 @@ def do_downsample(labels_path: str, out: Path, config: dict):
     return reduced
 
 
+def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None = None):
+    from dicer.config import material_names
+    from dicer.connectivity import fix_connectivity
+    from dicer.image import Volume
+    from dicer.io.images import read_labels, write_labels
+
+    with _Stage("fix"):
+        labels = read_labels(labels_path)
+        settings = config["fix"]
+        try:
+            fixed, report = fix_connectivity(labels.array, max_iterations=settings["max_iterations"],
+                                             type_c=settings["type_c"],
+                                             max_type_c_rounds=settings["max_type_c_rounds"])
+        except DicerError as exc:
+            raise DicerError(f"{labels_path}: {exc}") from None
+        names = {str(k): v for k, v in material_names(config).items()} | {"0": "background"}
+        for kind in ("type_a", "type_b", "type_c"):
+            report[kind] = {names.get(k, k): v for k, v in report[kind].items()}
+        write_labels(Volume(fixed, labels.spacing, labels.origin), out)
+        _write_report(report_path, report)
+        log.info("fix: wrote %s (%d voxels changed; type A %s, type B %s, type C %s; A/B sweeps %s)", out,
+                 report["changed_voxels"], report["type_a"], report["type_b"], report["type_c"],
+                 report["iterations"])
+    return report
+
+
+def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None = None):
+    from dicer.io.meshes import read_mesh, write_mesh
+    from dicer.mesh.merge import merge_mesh
+
+    with _Stage("merge"):
+        mesh = read_mesh(mesh_path)
+        try:
+            merged, report = merge_mesh(mesh, config["merge"])
+        except DicerError as exc:
+            raise DicerError(f"{mesh_path}: {exc}") from None
+        write_mesh(merged, out)
+        _write_report(report_path, report)
+        log.info("merge: wrote %s (%d -> %d elements, %d -> %d nodes; volume %s)", out,
+                 report["elements_before"], report["elements_after"], report["nodes_before"],
+                 report["nodes_after"], json.dumps(_stable(report["volume"]), sort_keys=True))
+    return merged
+
+
+def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None = None):
+    from dicer.io.meshes import read_mesh, write_mesh
+    from dicer.mesh.smooth import smooth_mesh
+
+    with _Stage("smooth"):
+        mesh = read_mesh(mesh_path)
+        try:
+            smoothed, report = smooth_mesh(mesh, config["smooth"])
+        except DicerError as exc:
+            raise DicerError(f"{mesh_path}: {exc}") from None
+        write_mesh(smoothed, out)
+        _write_report(report_path, report)
+        log.info("smooth: wrote %s (%s)", out, json.dumps(_stable(report), sort_keys=True)[:600])
+    return smoothed
+
+
 def do_mesh(labels_path: str, out: Path, config: dict):
     from dicer.io.images import read_labels
     from dicer.io.meshes import write_mesh
@@ -135,7 +213,7 @@ def do_export(mesh_path: str, out: Path, config: dict, input_name: str | None = 
 
 
 def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None = None, html: str | None = None,
-               pictures: list[str] = ()):
+               pictures: list[str] = (), stage_reports: list[str] = ()):
     from dicer.io.atomic import write_bytes_atomic
     from dicer.io.meshes import read_mesh
     from dicer.quality import quality_report, render_html
@@ -148,6 +226,14 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
 
             labels = read_labels(labels_path)
         report = quality_report(mesh, config, labels=labels)
+        stages = {}
+        for path in stage_reports:
+            try:
+                stages[Path(path).name.split(".")[0]] = json.loads(Path(path).read_text())
+            except (OSError, json.JSONDecodeError) as exc:
+                raise DicerError(f"{path}: cannot read the stage report ({exc}); rerun that stage") from None
+        if stages:
+            report["stages"] = stages
         text = json.dumps(report, indent=2, sort_keys=True) + "\n"
         if html:
             page_dir = Path(html).resolve().parent
@@ -174,6 +260,21 @@ def cmd_downsample(args):
     do_downsample(args.labels, _check_output(args.output, (".nii", ".nii.gz"), "the label volume"), _config(args))
 
 
+def cmd_fix(args):
+    report = _check_output(args.report, (".json",), "the fix report") if args.report else None
+    do_fix(args.labels, _check_output(args.output, (".nii", ".nii.gz"), "the label volume"), _config(args), report)
+
+
+def cmd_merge(args):
+    report = _check_output(args.report, (".json",), "the merge report") if args.report else None
+    do_merge(args.mesh, _check_output(args.output, (".vtu",), "the mesh"), _config(args), report)
+
+
+def cmd_smooth(args):
+    report = _check_output(args.report, (".json",), "the smoothing report") if args.report else None
+    do_smooth(args.mesh, _check_output(args.output, (".vtu",), "the mesh"), _config(args), report)
+
+
 def cmd_mesh(args):
     do_mesh(args.labels, _check_output(args.output, (".vtu",), "the mesh"), _config(args))
 
@@ -192,7 +293,8 @@ def cmd_export(args):
 
 def cmd_quality(args):
     do_quality(args.mesh, _check_output(args.output, (".json",), "the quality report"), _config(args),
-               labels_path=args.labels, html=args.html, pictures=args.picture or [])
+               labels_path=args.labels, html=args.html, pictures=args.picture or [],
+               stage_reports=args.stage_report or [])
 
 
 def cmd_phantom(args):
@@ -209,11 +311,13 @@ def cmd_phantom(args):
                  "x".join(f"{s:g}" for s in image.spacing))
 
 
-RUN_OUTPUTS = ("labels.nii.gz", "segmentation.png", "segmentation.json", "thresholds.png", "labels_ds.nii.gz", "mesh.vtu", "model.inp", "model.vtu", "quality.json", "report.html")
+RUN_OUTPUTS = ("labels.nii.gz", "segmentation.png", "segmentation.json", "thresholds.png", "labels_ds.nii.gz",
+               "labels_fixed.nii.gz", "fix.json", "mesh.vtu", "merged.vtu", "merge.json", "smoothed.vtu",
+               "smooth.json", "model.inp", "model.vtu", "quality.json", "report.html")
 
 
 def cmd_run(args):
-    """segment -> downsample -> mesh -> export (.inp, .vtu) -> quality, all into OUTDIR.
+    """segment -> downsample -> fix -> mesh -> merge -> smooth -> export (.inp, .vtu) -> quality, into OUTDIR.
 
     On failure the files this run wrote are removed again, so no partial result is left.
     """
@@ -224,16 +328,24 @@ def cmd_run(args):
     created_dir = not outdir.exists()
     before = {name: (outdir / name).exists() for name in RUN_OUTPUTS}
     t0 = time.perf_counter()
+
+    def path(name: str) -> Path:
+        return outdir / name
+
     try:
-        do_segment(args.image, outdir / "labels.nii.gz", config, overlay=outdir / "segmentation.png",
-                   info_path=outdir / "segmentation.json", plot=outdir / "thresholds.png")
-        do_downsample(str(outdir / "labels.nii.gz"), outdir / "labels_ds.nii.gz", config)
-        do_mesh(str(outdir / "labels_ds.nii.gz"), outdir / "mesh.vtu", config)
+        do_segment(args.image, path("labels.nii.gz"), config, overlay=path("segmentation.png"),
+                   info_path=path("segmentation.json"), plot=path("thresholds.png"))
+        do_downsample(str(path("labels.nii.gz")), path("labels_ds.nii.gz"), config)
+        do_fix(str(path("labels_ds.nii.gz")), path("labels_fixed.nii.gz"), config, path("fix.json"))
+        do_mesh(str(path("labels_fixed.nii.gz")), path("mesh.vtu"), config)
+        do_merge(str(path("mesh.vtu")), path("merged.vtu"), config, path("merge.json"))
+        do_smooth(str(path("merged.vtu")), path("smoothed.vtu"), config, path("smooth.json"))
         for name in ("model.inp", "model.vtu"):
-            do_export(str(outdir / "mesh.vtu"), outdir / name, config, input_name=args.image)
-        pictures = [str(outdir / n) for n in ("segmentation.png", "thresholds.png") if (outdir / n).exists()]
-        do_quality(str(outdir / "mesh.vtu"), outdir / "quality.json", config,
-                   labels_path=str(outdir / "labels_ds.nii.gz"), html=str(outdir / "report.html"), pictures=pictures)
+            do_export(str(path("smoothed.vtu")), path(name), config, input_name=args.image)
+        pictures = [str(path(n)) for n in ("segmentation.png", "thresholds.png") if path(n).exists()]
+        do_quality(str(path("smoothed.vtu")), path("quality.json"), config,
+                   labels_path=str(path("labels_fixed.nii.gz")), html=str(path("report.html")), pictures=pictures,
+                   stage_reports=[str(path(n)) for n in ("fix.json", "merge.json", "smooth.json")])
     except BaseException:
         with contextlib.suppress(OSError):
             for name, existed in before.items():
@@ -242,7 +354,7 @@ def cmd_run(args):
             if created_dir and outdir.is_dir() and not any(outdir.iterdir()):
                 outdir.rmdir()
         raise
-    log.info("run: finished in %.1f s; model in %s", time.perf_counter() - t0, outdir / "model.inp")
+    log.info("run: finished in %.1f s; model in %s", time.perf_counter() - t0, path("model.inp"))
 
 
 # --- parser ---------------------------------------------------------------------------
@@ -289,9 +401,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, metavar="LABELS", help="reduced label volume (.nii.gz)")
     _add_config_options(p)
 
+    p = command("fix", cmd_fix, "repair poorly connected voxels (connectivity fixes A, B, C) to a fixed point")
+    p.add_argument("labels", metavar="LABELS", help="label volume")
+    p.add_argument("-o", "--output", required=True, metavar="LABELS", help="fixed label volume (.nii.gz)")
+    p.add_argument("--report", metavar="JSON", help="also write the voxels changed per type and class")
+    _add_config_options(p)
+
     p = command("mesh", cmd_mesh, "one hexahedron (2D: quad) per non-background voxel")
     p.add_argument("labels", metavar="LABELS", help="label volume: " + ", ".join(LABEL_SUFFIXES) + " (.npy: spacing 1)")
     p.add_argument("-o", "--output", required=True, metavar="MESH", help="mesh (.vtu)")
+    _add_config_options(p)
+
+    p = command("merge", cmd_merge, "merge pairs of element layers where safe (fewer elements, same surface)")
+    p.add_argument("mesh", metavar="MESH", help="mesh (.vtu) from 'dicer mesh'")
+    p.add_argument("-o", "--output", required=True, metavar="MESH", help="merged mesh (.vtu)")
+    p.add_argument("--report", metavar="JSON", help="also write counts per axis and pass and volume changes")
+    _add_config_options(p)
+
+    p = command("smooth", cmd_smooth, "smooth the boundary per node class, relax the interior, never invert")
+    p.add_argument("mesh", metavar="MESH", help="mesh (.vtu) from 'dicer mesh' or 'dicer merge'")
+    p.add_argument("-o", "--output", required=True, metavar="MESH", help="smoothed mesh (.vtu)")
+    p.add_argument("--report", metavar="JSON", help="also write node class counts, back-offs and quality")
     _add_config_options(p)
 
     p = command("export", cmd_export, "write the mesh for a solver or viewer (format from the file extension)")
@@ -306,6 +436,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--labels", metavar="LABELS", help="label volume the mesh came from (for voxel counts)")
     p.add_argument("--html", metavar="HTML", help="also write a readable HTML report")
     p.add_argument("--picture", action="append", metavar="PNG", help="a picture to show in the HTML report (repeatable)")
+    p.add_argument("--stage-report", action="append", metavar="JSON",
+                   help="a stage report (fix.json, merge.json, smooth.json) to include (repeatable)")
     _add_config_options(p)
 
     p = command("phantom", cmd_phantom, "write a synthetic CT phantom (HU, with noise) for demos and tests")

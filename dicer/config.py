@@ -22,7 +22,7 @@ from dicer.errors import DicerError
 STAGE_SECTIONS = {
     "segment": ("image", "materials", "segment"),
     "downsample": ("materials", "segment", "downsample"),
-    "fix": ("materials",),
+    "fix": ("materials", "fix"),
     "mesh": ("mesh",),
     "merge": ("merge",),
     "smooth": ("smooth",),

@@ -25,7 +25,7 @@ def head(tmp_path_factory):
 
 
 def test_help_for_every_command():
-    for command in ("run", "segment", "downsample", "mesh", "export", "quality", "phantom"):
+    for command in ("run", "segment", "downsample", "fix", "mesh", "merge", "smooth", "export", "quality", "phantom"):
         proc = subprocess.run([sys.executable, "-m", "dicer", command, "--help"], capture_output=True, text=True)
         assert proc.returncode == 0 and "usage: dicer " + command in proc.stdout
 
@@ -52,7 +52,9 @@ def test_run_writes_everything_and_is_reproducible(tmp_path, capsys, head):
         code, err = run_cli(capsys, "run", head, "-o", tmp_path / out)
         assert code == 0, err
     names = sorted(p.name for p in (tmp_path / "a").iterdir())
-    assert names == sorted(["labels.nii.gz", "labels_ds.nii.gz", "mesh.vtu", "model.inp", "model.vtu", "quality.json", "report.html", "segmentation.json", "segmentation.png", "thresholds.png"])
+    from dicer.cli import RUN_OUTPUTS
+
+    assert names == sorted(RUN_OUTPUTS)
     for name in names:
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
 

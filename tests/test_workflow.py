@@ -72,14 +72,15 @@ def cohort(tmp_path_factory):
 def test_every_output_per_patient(cohort):
     for patient in ("head", "bone"):
         folder = cohort / "results" / patient
-        for name in ("labels.nii.gz", "labels_ds.nii.gz", "mesh.vtu", "model.inp", "model.vtu",
-                     "quality.json", "report.html"):
+        for name in ("labels.nii.gz", "labels_ds.nii.gz", "labels_fixed.nii.gz", "mesh.vtu", "merged.vtu",
+                     "smoothed.vtu", "model.inp", "model.vtu", "quality.json", "report.html"):
             assert (folder / name).stat().st_size > 0, name
         report = json.loads((folder / "quality.json").read_text())
         assert report["elements"] > 100
         assert report["inverted_elements"] == 0
         assert set(report["materials"]) == {"soft_tissue", "bone"}
-        for rule in ("segment", "downsample", "mesh", "export_inp", "export_vtu", "quality"):
+        assert set(report["stages"]) == {"fix", "merge", "smooth"}
+        for rule in ("segment", "downsample", "fix", "mesh", "merge", "smooth", "export_inp", "export_vtu", "quality"):
             assert (cohort / "logs" / patient / f"{rule}.log").exists()
     assert not (cohort / "results" / "absent").exists()
 
@@ -106,14 +107,20 @@ def test_changing_export_settings_reruns_only_export_and_later(cohort):
         config["export"]["element_type"] = "C3D8R"
         config_path.write_text(yaml.safe_dump(config, sort_keys=False))
         jobs = _planned_jobs(_snakemake(cohort, "-n"))
-        # both patients: the .inp and .vtu exports, then quality; nothing upstream
-        assert jobs == {"export": 4, "quality": 2, "all": 1}
+        # both patients: the .inp and .vtu exports; nothing upstream (quality reads the smoothed mesh)
+        assert jobs == {"export": 4, "all": 1}
 
         config = yaml.safe_load(original)
         config["segment"]["closing_radius"] = 2
         config_path.write_text(yaml.safe_dump(config, sort_keys=False))
         jobs = _planned_jobs(_snakemake(cohort, "-n"))
         assert jobs.get("segment") == 2 and jobs.get("mesh") == 2 and "phantom" not in jobs
+
+        config = yaml.safe_load(original)
+        config["smooth"] = {"coefficient": 0.8}
+        config_path.write_text(yaml.safe_dump(config, sort_keys=False))
+        jobs = _planned_jobs(_snakemake(cohort, "-n"))
+        assert jobs == {"smooth": 2, "export": 4, "quality": 2, "all": 1}
     finally:
         config_path.write_text(original)
 

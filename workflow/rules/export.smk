@@ -1,9 +1,9 @@
-# Mesh -> solver decks and viewer files; quality report per patient.
+# Smoothed mesh -> solver decks and viewer files; quality report per patient.
 
 
 rule export:
     input:
-        patient_file("mesh.vtu"),
+        patient_file("smoothed.vtu"),
     output:
         patient_file("model.{ext}"),
     params:
@@ -20,9 +20,10 @@ rule export:
 
 rule quality:
     input:
-        mesh=patient_file("mesh.vtu"),
-        labels=patient_file("labels_ds.nii.gz"),
+        mesh=patient_file("smoothed.vtu"),
+        labels=patient_file("labels_fixed.nii.gz"),
         overlay=patient_file("segmentation.png"),
+        reports=[patient_file(f"{stage}.json") for stage in ("fix", "merge", "smooth")],
     output:
         json=patient_file("quality.json"),
         html=report(
@@ -39,4 +40,5 @@ rule quality:
         "logs/{patient}/quality.log",
     shell:
         "dicer quality {input.mesh:q} --labels {input.labels:q} -o {output.json:q} --html {output.html:q}"
-        " --picture {input.overlay:q} --settings {params.settings:q} > {log:q} 2>&1"
+        " --picture {input.overlay:q} --stage-report {input.reports[0]:q} --stage-report {input.reports[1]:q}"
+        " --stage-report {input.reports[2]:q} --settings {params.settings:q} > {log:q} 2>&1"

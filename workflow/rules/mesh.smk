@@ -1,9 +1,9 @@
-# Labels -> hexahedral mesh (read back and checked by `dicer` before the rule succeeds).
+# Labels -> hexahedral mesh -> merged -> smoothed (each mesh read back and checked by `dicer`).
 
 
 rule mesh:
     input:
-        patient_file("labels_ds.nii.gz"),
+        patient_file("labels_fixed.nii.gz"),
     output:
         patient_file("mesh.vtu"),
     params:
@@ -14,3 +14,37 @@ rule mesh:
         "logs/{patient}/mesh.log",
     shell:
         "dicer mesh {input:q} -o {output:q} --settings {params.settings:q} > {log:q} 2>&1"
+
+
+rule merge:
+    input:
+        patient_file("mesh.vtu"),
+    output:
+        mesh=patient_file("merged.vtu"),
+        report=patient_file("merge.json"),
+    params:
+        settings=settings("merge"),
+    conda:
+        CONDA_ENV
+    log:
+        "logs/{patient}/merge.log",
+    shell:
+        "dicer merge {input:q} -o {output.mesh:q} --report {output.report:q}"
+        " --settings {params.settings:q} > {log:q} 2>&1"
+
+
+rule smooth:
+    input:
+        patient_file("merged.vtu"),
+    output:
+        mesh=patient_file("smoothed.vtu"),
+        report=patient_file("smooth.json"),
+    params:
+        settings=settings("smooth"),
+    conda:
+        CONDA_ENV
+    log:
+        "logs/{patient}/smooth.log",
+    shell:
+        "dicer smooth {input:q} -o {output.mesh:q} --report {output.report:q}"
+        " --settings {params.settings:q} > {log:q} 2>&1"

@@ -45,3 +45,20 @@ rule downsample:
         "logs/{patient}/downsample.log",
     shell:
         "dicer downsample {input:q} -o {output:q} --settings {params.settings:q} > {log:q} 2>&1"
+
+
+rule fix:
+    input:
+        patient_file("labels_ds.nii.gz"),
+    output:
+        labels=patient_file("labels_fixed.nii.gz"),
+        report=patient_file("fix.json"),
+    params:
+        settings=settings("fix"),
+    conda:
+        CONDA_ENV
+    log:
+        "logs/{patient}/fix.log",
+    shell:
+        "dicer fix {input:q} -o {output.labels:q} --report {output.report:q}"
+        " --settings {params.settings:q} > {log:q} 2>&1"

@@ -147,37 +147,37 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
     return report
 
 
-def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None = None):
+def _mesh_to_mesh(stage: str, func, mesh_path: str, out: Path, report_path: Path | None):
+    """Read a mesh, apply ``func(mesh) -> (mesh, report)``, write the mesh (checked) and report."""
     from dicer.io.meshes import read_mesh, write_mesh
-    from dicer.mesh.merge import merge_mesh
 
-    with _Stage("merge"):
+    with _Stage(stage):
         mesh = read_mesh(mesh_path)
         try:
-            merged, report = merge_mesh(mesh, config["merge"])
+            result, report = func(mesh)
         except DicerError as exc:
             raise DicerError(f"{mesh_path}: {exc}") from None
-        write_mesh(merged, out)
+        write_mesh(result, out)
         _write_report(report_path, report)
-        log.info("merge: wrote %s (%d -> %d elements, %d -> %d nodes; volume %s)", out,
-                 report["elements_before"], report["elements_after"], report["nodes_before"],
-                 report["nodes_after"], json.dumps(_stable(report["volume"]), sort_keys=True))
+    return result, report
+
+
+def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None = None):
+    from dicer.mesh.merge import merge_mesh
+
+    merged, report = _mesh_to_mesh("merge", lambda m: merge_mesh(m, config["merge"]), mesh_path, out, report_path)
+    log.info("merge: wrote %s (%d -> %d elements, %d -> %d nodes; volume %s)", out,
+             report["elements_before"], report["elements_after"], report["nodes_before"],
+             report["nodes_after"], json.dumps(_stable(report["volume"]), sort_keys=True))
     return merged
 
 
 def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None = None):
-    from dicer.io.meshes import read_mesh, write_mesh
     from dicer.mesh.smooth import smooth_mesh
 
-    with _Stage("smooth"):
-        mesh = read_mesh(mesh_path)
-        try:
-            smoothed, report = smooth_mesh(mesh, config["smooth"])
-        except DicerError as exc:
-            raise DicerError(f"{mesh_path}: {exc}") from None
-        write_mesh(smoothed, out)
-        _write_report(report_path, report)
-        log.info("smooth: wrote %s (%s)", out, json.dumps(_stable(report), sort_keys=True)[:600])
+    smoothed, report = _mesh_to_mesh("smooth", lambda m: smooth_mesh(m, config["smooth"]), mesh_path, out,
+                                     report_path)
+    log.info("smooth: wrote %s (%s)", out, json.dumps(_stable(report), sort_keys=True)[:600])
     return smoothed
 
 

@@ -84,6 +84,19 @@ def _bad_cases(tmp_path, head):
     _write(air, np.full((8, 8, 8), -1000, np.int16))
     four_d = tmp_path / "four_d.nii.gz"
     sitk.WriteImage(sitk.JoinSeries([sitk.GetImageFromArray(np.zeros((4, 4, 4), np.int16))] * 2), str(four_d))
+    import meshio
+
+    from dicer.io.meshes import write_mesh
+    from dicer.mesh.voxel import voxel_mesh
+
+    good = voxel_mesh(np.ones((3, 3, 3), np.uint8))
+    good_vtu = tmp_path / "good.vtu"
+    write_mesh(good, good_vtu)
+    foreign = tmp_path / "foreign.vtu"
+    meshio.write(foreign, meshio.Mesh(good.points, [("hexahedron", good.cells)], cell_data={"material": [good.material]}))
+    empty = tmp_path / "empty.vtu"
+    meshio.write(empty, meshio.Mesh(good.points, [("hexahedron", np.zeros((0, 8), np.int64))]))
+    smoothed = tmp_path / "out" / "smoothed.vtu"
     a_file = tmp_path / "plain.txt"
     a_file.write_text("x")
     out = tmp_path / "out" / "labels.nii.gz"
@@ -100,12 +113,20 @@ def _bad_cases(tmp_path, head):
         "run into unwritable folder": (["run", head, "-o", a_file / "sub"], "plain.txt", a_file / "sub"),
         "run with no voxel in any class": (["run", air, "-o", tmp_path / "run_out"], "air.nii.gz",
                                            tmp_path / "run_out"),
+        "smoothing coefficient of 1": (["smooth", good_vtu, "-o", smoothed, "--set", "smooth.coefficient=1.0"],
+                                       "smooth.coefficient", smoothed),
+        "negative class coefficient": (["smooth", good_vtu, "-o", smoothed, "--set", "smooth.coefficients.D=-0.1"],
+                                       "smooth.coefficients.D", smoothed),
+        "mesh without lattice": (["smooth", foreign, "-o", smoothed], "foreign.vtu", smoothed),
+        "empty mesh": (["merge", empty, "-o", smoothed], "empty.vtu", smoothed),
+        "fix of a missing file": (["fix", tmp_path / "none.nii.gz", "-o", out], "none.nii.gz", out),
     }
 
 
 CASES = ["missing file", "truncated image", "no voxel in any class", "4D image", "unknown config key",
          "wrong config type", "unwritable output folder", "run into unwritable folder",
-         "run with no voxel in any class"]
+         "run with no voxel in any class", "smoothing coefficient of 1", "negative class coefficient",
+         "mesh without lattice", "empty mesh", "fix of a missing file"]
 
 
 @pytest.mark.parametrize("case", CASES)

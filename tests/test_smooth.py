@@ -215,3 +215,37 @@ def test_deterministic():
     a, ra = smooth_mesh(m, {})
     b, rb = smooth_mesh(m, {})
     assert np.array_equal(a.points, b.points)
+
+
+def test_plane_merged_mesh():
+    merge = pytest.importorskip("dicer.mesh.merge")
+    m = ball(radii=(16.3, 9.7))
+    merged, _ = merge.merge_planes(m, (1, 1, 1))
+    assert merged.n_cells < m.n_cells
+    out, rep = smooth_mesh(merged, {})
+    assert rep["node_classes"]["X"] == 0
+    sj = scaled_jacobian(out.points, out.cells)
+    assert sj.min() >= 0.2 and np.count_nonzero(sj <= 0) == 0
+    assert abs(rep["volume_change"]) <= 0.02
+
+
+@pytest.mark.slow
+def test_head_ct_chain():
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "shared" / "data" / "cranium_ct.nii.gz"
+    if not path.exists():
+        pytest.skip("the shared head CT is not present")
+    from dicer.io.images import read_image
+
+    image = read_image(str(path))
+    hu = image.array
+    lab = (hu >= -140).astype(np.uint8) + (hu >= 226).astype(np.uint8)
+    lab = lab[::2, ::2, ::2]
+    fixed, frep = fix_connectivity(lab)
+    assert frep["converged"] and frep["remaining"]["type_a"] == 0 and frep["remaining"]["type_b"] == 0
+    m = voxel_mesh(fixed, [2 * s for s in image.spacing])
+    out, rep = smooth_mesh(m, {})
+    sj = scaled_jacobian(out.points, out.cells)
+    assert sj.min() >= 0.2 and np.count_nonzero(sj <= 0) == 0
+    assert rep["node_classes"]["X"] == 0

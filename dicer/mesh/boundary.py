@@ -39,7 +39,7 @@ from dicer.errors import DicerError
 from dicer.mesh.model import Mesh
 
 __all__ = ["NODE_CLASSES", "BoundaryGraph", "boundary_graph", "classify_nodes", "with_node_classes",
-           "HEX_EDGES", "QUAD_EDGES", "node_cell_counts"]
+           "HEX_EDGES", "QUAD_EDGES", "node_cell_counts", "class_counts"]
 
 NODE_CLASSES = ("interior", "A", "B", "C", "D", "E", "F", "X")
 """Names of the ``node_class`` codes 0..7."""
@@ -82,23 +82,35 @@ class BoundaryGraph:
         return sp.csr_matrix((ones, (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(nodes.size, nodes.size))
 
 
+def _kinds(material: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct material values and each element's rank among them (no sorting)."""
+    m = material.astype(np.int64)
+    if m.size and m.min() < 0:
+        raise DicerError("material values must not be negative; renumber the materials")
+    present = np.bincount(m) if m.size else np.zeros(0, np.int64)
+    kinds = np.flatnonzero(present)
+    lut = np.zeros(present.size, np.int64)
+    lut[kinds] = np.arange(kinds.size)
+    return kinds, lut[m], present[kinds]
+
+
 def node_cell_counts(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     """Per node: the number of elements sharing it, and whether they all have one material."""
     n = mesh.n_points
-    m = mesh.material.astype(np.int64)
-    if m.size and (m.min() < 0 or m.max() >= 4096 // 8):
-        raise DicerError(f"material values must lie in 0..{4096 // 8 - 1}; renumber the materials")
-    per = mesh.cells.shape[1]
-    # one bincount: count + 16 * sum(m) + 16 * 4096 * sum(m^2), exact in float64
-    w = 1.0 + 16.0 * m + 65536.0 * m * m
-    acc = np.zeros(n)
-    for c in range(per):
-        acc += np.bincount(mesh.cells[:, c], weights=w, minlength=n)
-    s = acc.astype(np.int64)
-    cnt = s & 15
-    msum = (s >> 4) & 4095
-    msq = s >> 16
-    uniform = cnt * msq == msum * msum
+    cnt = np.bincount(mesh.cells.ravel(), minlength=n)
+    kinds, rank, sizes = _kinds(mesh.material)
+    if kinds.size <= 1:
+        return cnt, np.ones(n, bool)
+    uniform = np.zeros(n, bool)
+    rest = cnt.copy()
+    biggest = int(np.argmax(sizes))
+    for r in range(kinds.size):
+        if r == biggest:
+            continue
+        ck = np.bincount(mesh.cells[rank == r].ravel(), minlength=n)
+        uniform |= ck == cnt
+        rest -= ck
+    uniform |= rest == cnt
     return cnt, uniform
 
 
@@ -130,7 +142,7 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None) -> BoundaryGrap
     boundary = ~((cnt == full) & uniform)
     boundary &= cnt > 0
 
-    kinds, rank = np.unique(mesh.material, return_inverse=True)
+    kinds, rank, _ = _kinds(mesh.material)
     if kinds.size > _MAX_KINDS:
         raise DicerError(f"the mesh has {kinds.size} materials; node classification handles up to {_MAX_KINDS}")
     code = np.left_shift(np.int64(1), 3 * rank.astype(np.int64))  # one 3-bit counter per material
@@ -163,15 +175,20 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None) -> BoundaryGrap
 
     # unit vectors along the boundary edges, summed per node
     d = pts[edges[:, 1]] - pts[edges[:, 0]]
-    length = np.linalg.norm(d, axis=1)
+    length = np.sqrt(np.einsum("ij,ij->i", d, d))
     if np.any(length <= 0):
         raise DicerError("the mesh has boundary edges of zero length; it is degenerate")
     u = d / length[:, None]
-    usum = np.zeros((n, 3))
+    bn = np.flatnonzero(boundary)
+    bpos = np.full(n, -1, np.int64)
+    bpos[bn] = np.arange(bn.size)
+    ea, eb = bpos[edges[:, 0]], bpos[edges[:, 1]]
+    usum = np.zeros((bn.size, 3))
     for c in range(3):
-        usum[:, c] = np.bincount(edges[:, 0], weights=u[:, c], minlength=n) - np.bincount(
-            edges[:, 1], weights=u[:, c], minlength=n)
-    flat = np.linalg.norm(usum, axis=1) < 0.5
+        usum[:, c] = np.bincount(ea, weights=u[:, c], minlength=bn.size) - np.bincount(
+            eb, weights=u[:, c], minlength=bn.size)
+    flat = np.zeros(n, bool)
+    flat[bn] = np.einsum("ij,ij->i", usum, usum) < 0.25
 
     cls = np.zeros(n, np.int8)
     if per == 8:

@@ -209,7 +209,8 @@ def test_ccx_plate_without_hole_reaction_is_sigma_times_area(tmp_path):
     rng = np.random.default_rng(0)
     image = plate(hole=False).astype(np.float32) + rng.normal(0.0, 10.0, (NX, NY)).astype(np.float32)
     np.save(tmp_path / "plate.npy", image)
-    (tmp_path / "config.yaml").write_text(CONFIG)
+    # one element per coarse pixel: no plane merging
+    (tmp_path / "config.yaml").write_text(CONFIG + "merge:\n  passes: [0, 0]\n")
     out = tmp_path / "out"
     dicer("run", tmp_path / "plate.npy", "-o", out, "--config", tmp_path / "config.yaml")
     q = json.loads((out / "quality.json").read_text())

@@ -42,6 +42,7 @@ def conformity(mesh):
         open_edges = int(np.count_nonzero(np.bincount(boundary.ravel(), minlength=n) % 2))
     per_node = np.bincount(cells.ravel(), minlength=n)
     return {
+        "same_side_faces": same_side_faces(faces),
         "max_face_use": int(counts.max()),
         "open_edges": open_edges,
         "max_elements_per_node": int(per_node.max()),
@@ -52,10 +53,38 @@ def conformity(mesh):
     }
 
 
+def same_side_faces(faces):
+    """Faces (rows of outward-ordered node ids) that two elements use in the same orientation.
+
+    A shared face of a conforming mesh is seen from both sides, once in each direction; two
+    elements using it the same way lie on the same side of it and overlap (a use count of
+    two alone does not tell these apart).
+    """
+    faces = np.asarray(faces)
+    start = np.argmin(faces, axis=1)
+    k = faces.shape[1]
+    rolled = np.take_along_axis(faces, (start[:, None] + np.arange(k)) % k, axis=1)
+    # the direction of travel: 2D edges a < b; quads (started at their lowest node) next < previous
+    sense = faces[:, 0] < faces[:, 1] if k == 2 else rolled[:, 1] < rolled[:, -1]
+    key = np.column_stack([np.sort(faces, axis=1), sense])
+    _, counts = np.unique(key, axis=0, return_counts=True)
+    return int(np.count_nonzero(counts > 1))
+
+
+def test_same_side_faces_catch_overlapping_elements_that_share_a_face():
+    # two quads over the same ground on one side of their common edge (2,0)-(2,2): a use
+    # count of two, but both see the edge in the same direction
+    overlap = np.array([[0, 1, 2, 3], [3, 1, 2, 4]])  # (1,0) (2,0) (2,2) (1,1) and (1,1) (2,0) (2,2) (1,2)
+    assert same_side_faces(overlap[:, QUAD_EDGES].reshape(-1, 2)) == 1
+    beside = np.array([[0, 1, 2, 3], [1, 4, 5, 2]])  # two unit squares side by side
+    assert same_side_faces(beside[:, QUAD_EDGES].reshape(-1, 2)) == 0
+
+
 def assert_sound(mesh):
     c = conformity(mesh)
     limit = 8 if mesh.dim == 3 else 4
     assert c["max_face_use"] <= 2, c  # interior faces shared by exactly two elements, boundary by one
+    assert c["same_side_faces"] == 0, c  # ... seen from its two sides: no two elements overlap
     assert c["open_edges"] == 0, c  # no hanging node or gap: the boundary is closed
     assert c["max_elements_per_node"] <= limit, c  # unit blocks of at most 8 (2D: 4) elements
     assert c["unused_nodes"] == 0 and c["duplicates"] == 0, c
@@ -177,6 +206,23 @@ def test_different_materials_never_merge_and_block_their_region():
     assert vol["1"]["change_percent"] == 0.0 and vol["2"]["change_percent"] == 0.0
 
 
+def test_pair_beside_a_two_material_column_keeps_its_layers_unless_a_gap_separates_them():
+    # [x, y]: a column of two materials (1 below 2) beside two one-material columns. A
+    # merged column has one edge where the two-material column has two; the two-material
+    # column (4 corners + the hanging node = 5 boundary edges) cannot be cut into quads, so
+    # neither its own plane node nor the one it shares may go, and the refusal spreads to
+    # every pair linked to it through plane nodes (see docs/merging.md, Multi-material).
+    labels = np.array([[1, 2], [1, 1], [1, 1]], np.uint8)
+    out, report = merge_planes(voxel_mesh(labels), passes=(0, 1))
+    assert out.n_cells == 6 and report["steps"][0]["blocked_material"] == 1
+    assert_sound(out)
+    # an empty column between them is a free surface: the one-material pairs merge
+    labels = np.array([[1, 2], [0, 0], [1, 1], [1, 1]], np.uint8)
+    out, report = merge_planes(voxel_mesh(labels), passes=(0, 1))
+    assert out.n_cells == 4 and sorted(out.material.tolist()) == [1, 1, 1, 2]
+    assert_sound(out)
+
+
 def test_each_merged_element_covers_voxels_of_one_material():
     rng = np.random.default_rng(3)  # 2x2x2 blocks of random material: every stacked pair is one material
     labels = rng.integers(0, 3, (8, 8, 8)).astype(np.uint8).repeat(2, 0).repeat(2, 1).repeat(2, 2)
@@ -282,6 +328,32 @@ def test_random_multi_material_volumes_stay_sound(labels, passes):
     # no material is lost or renamed (a lone element may grow into an empty neighbour voxel)
     assert np.array_equal(np.unique(out.material), np.unique(mesh.material))
     assert all(v["after"] > 0 for v in report["volume"].values())
+
+
+@_SETTINGS
+@given(arrays(np.uint8, st.tuples(*[st.integers(1, 4)] * 3), elements=st.integers(0, 3)),
+       st.tuples(*[st.integers(1, 3)] * 3), st.tuples(*[st.integers(0, 2)] * 3), st.permutations([0, 1, 2]))
+def test_random_blocky_multi_material_volumes_merge_soundly(blocks, repeat, passes, axes):
+    # material blocks a few voxels wide, so that layers of one material do merge next to
+    # interfaces running along and across the merge planes
+    labels = blocks
+    for d in range(3):
+        labels = labels.repeat(repeat[d], axis=d)
+    labels = fixed(labels)
+    if not labels.any():
+        return
+    mesh = voxel_mesh(labels)
+    out, report = merge_planes(mesh, passes=passes, axes=tuple(axes))
+    assert_sound(out)
+    assert neighbour_counts(out).max() <= 6
+    assert np.array_equal(np.unique(out.material), np.unique(mesh.material))
+    # a lattice box holds voxels of its own material (or background: a lone element may
+    # fill an empty voxel beside it), never another material's
+    cells = out.cells
+    lo, hi = out.lattice[cells].min(axis=1), out.lattice[cells].max(axis=1)
+    box = np.all(hi - lo == out.lattice[cells[:, 6]] - out.lattice[cells[:, 0]], axis=1)
+    for a, b, m in zip(lo[box], hi[box], out.material[box]):
+        assert np.isin(labels[a[0]:b[0], a[1]:b[1], a[2]:b[2]], (0, m)).all()
 
 
 @_SETTINGS

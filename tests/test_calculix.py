@@ -189,3 +189,23 @@ def test_plane_merged_bar_in_series(tmp_path, order):
     expected = lx * ly * 0.01 * lz / (0.5 * lz / e1 + 0.5 * lz / e2)
     force = total_force(run_ccx(tmp_path, "bar.inp", compression_step(0.01, lz)), "Z0")
     assert force[2] == pytest.approx(expected, rel=0.01)
+
+
+def test_model_deck_alone_is_read_to_the_end(tmp_path):
+    # the deck as written, without a step: ccx reads every section (nodes, per-material element
+    # blocks, all four set kinds, the element-face surface, materials) and stops -- the run
+    # docs/exports.md uses to time input reading apart from the solver
+    labels = np.ones(BLOCK_SHAPE, np.uint8)
+    labels[:, :, 2:] = 2
+    labels[0, 0, 0] = 0
+    info = export_mesh(voxel_mesh(labels, BLOCK_SPACING), tmp_path / "model.inp",
+                       config(("soft", 800.0, 0.3), ("stiff", 12000.0, 0.3)))
+    assert {"X0", "Z1", "EXTERIOR", "soft_BOUNDARY", "stiff_BOUNDARY", "soft_stiff"} <= set(info["node_sets"])
+    assert info["exterior_faces"] > 0
+    proc = subprocess.run([CCX, "-i", "model"], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    log = proc.stdout + proc.stderr
+    assert proc.returncode == 0 and "*ERROR" not in log and "Job finished" in log, log[-2000:]
+    sets = int(re.search(r"^\s*sets:\s+(\d+)", log, re.M).group(1))
+    # node sets, EXTERIOR_S1..S6, the two material element sets
+    assert sets >= len(info["node_sets"]) + 6 + 2
+    assert re.search(rf"^\s*elements:\s+{info['elements']}\s*$", log, re.M)

@@ -9,40 +9,23 @@ state, which linear and quadratic elements both reproduce.
 from __future__ import annotations
 
 import re
-import shutil
 import subprocess
 
 import numpy as np
 import pytest
 
+from calculix import CCX, needs_ccx, run_ccx, total_force
+
 from dicer.config import load_config
 from dicer.export import export_mesh
 from dicer.mesh.voxel import voxel_mesh
 
-CCX = shutil.which("ccx")
-pytestmark = [pytest.mark.calculix, pytest.mark.skipif(CCX is None, reason="CalculiX (ccx) is not installed")]
+pytestmark = [pytest.mark.calculix, needs_ccx]
 
 
 def config(*materials, **export):
     mats = [{"name": n, "youngs_modulus": e, "poissons_ratio": nu} for n, e, nu in materials]
     return load_config(settings={"materials": mats, "export": export})
-
-
-def run_ccx(folder, model_name: str, step: str) -> str:
-    """Run ccx on a deck that includes ``model_name`` and adds ``step``; return the .dat text."""
-    (folder / "job.inp").write_text(f"*INCLUDE, INPUT={model_name}\n{step}")
-    proc = subprocess.run([CCX, "-i", "job"], cwd=folder, capture_output=True, text=True, timeout=300)
-    log = proc.stdout + proc.stderr
-    assert proc.returncode == 0 and "*ERROR" not in log, log[-2000:]
-    return (folder / "job.dat").read_text()
-
-
-def total_force(dat: str, set_name: str) -> np.ndarray:
-    """The last ``*NODE PRINT ... TOTALS=ONLY`` force triple of ``set_name`` in a .dat file."""
-    pattern = rf"total force \(fx,fy,fz\) for set {set_name.upper()} and time\s+\S+\s+(\S+)\s+(\S+)\s+(\S+)"
-    found = re.findall(pattern, dat)
-    assert found, dat[-1000:]
-    return np.array([float(v) for v in found[-1]])
 
 
 def compression_step(strain: float, length: float, axis: int = 2) -> str:
@@ -67,7 +50,7 @@ def test_block_compression_force(tmp_path, etype, order):
     export_mesh(mesh, tmp_path / "model.inp", config(("cortical", e, 0.3), element_type=etype, order=order),
                 source="block.npy")
     lx, ly, lz = (n * s for n, s in zip(BLOCK_SHAPE, BLOCK_SPACING))
-    dat = run_ccx(tmp_path, "model.inp", compression_step(0.01, lz))
+    dat = run_ccx(tmp_path, model="model.inp", step=compression_step(0.01, lz))
     expected = e * 0.01 * lx * ly  # E * strain * area, compressive
     force = total_force(dat, "Z0")
     assert force[2] == pytest.approx(expected, rel=0.01)
@@ -79,7 +62,7 @@ def test_block_compression_along_x_anisotropic_spacing(tmp_path):
     mesh = voxel_mesh(np.ones(BLOCK_SHAPE, np.uint8), BLOCK_SPACING)
     export_mesh(mesh, tmp_path / "model.inp", config(("bone", e, 0.25)))
     lx, ly, lz = (n * s for n, s in zip(BLOCK_SHAPE, BLOCK_SPACING))
-    force = total_force(run_ccx(tmp_path, "model.inp", compression_step(0.01, lx, axis=0)), "X0")
+    force = total_force(run_ccx(tmp_path, model="model.inp", step=compression_step(0.01, lx, axis=0)), "X0")
     assert force[0] == pytest.approx(e * 0.01 * ly * lz, rel=0.01)
 
 
@@ -98,7 +81,7 @@ def test_two_material_bar_in_series(tmp_path, order):
     l1, l2 = 2 * BLOCK_SPACING[2], 4 * BLOCK_SPACING[2]
     delta = 0.01 * lz
     expected = lx * ly * delta / (l1 / e1 + l2 / e2)  # springs in series
-    force = total_force(run_ccx(tmp_path, "bar.inp", compression_step(0.01, lz)), "Z0")
+    force = total_force(run_ccx(tmp_path, model="bar.inp", step=compression_step(0.01, lz)), "Z0")
     assert force[2] == pytest.approx(expected, rel=0.01)
     # one material everywhere would give a clearly different force: the sections are per material
     assert abs(force[2] - e1 * 0.01 * lx * ly) > 0.1 * expected
@@ -113,7 +96,7 @@ def test_plane_stress_plate_in_tension(tmp_path, etype, order):
     lx, ly = shape[0] * spacing[0], shape[1] * spacing[1]
     step = ("*BOUNDARY\nX0, 1, 1, 0\nY0, 2, 2, 0\n*STEP\n*STATIC\n*BOUNDARY\n"
             f"X1, 1, 1, {0.01 * lx!r}\n*NODE PRINT, NSET=X0, TOTALS=ONLY\nRF\n*END STEP\n")
-    force = total_force(run_ccx(tmp_path, "plate.inp", step), "X0")
+    force = total_force(run_ccx(tmp_path, model="plate.inp", step=step), "X0")
     stress = -force[0] / (ly * t)
     assert stress == pytest.approx(e * 0.01, rel=0.01)
 
@@ -126,7 +109,7 @@ def test_exterior_surface_takes_a_pressure(tmp_path):
     export_mesh(mesh, tmp_path / "model.inp", config(("m", e, nu)))
     step = ("*BOUNDARY\nX0, 1, 1, 0\nY0, 2, 2, 0\nZ0, 3, 3, 0\n*STEP\n*STATIC\n*DSLOAD\nEXTERIOR, P, "
             f"{p!r}\n*NODE PRINT, NSET=X0, TOTALS=ONLY\nRF\n*NODE PRINT, NSET=X1\nU\n*END STEP\n")
-    dat = run_ccx(tmp_path, "model.inp", step)
+    dat = run_ccx(tmp_path, model="model.inp", step=step)
     lx = BLOCK_SHAPE[0] * BLOCK_SPACING[0]
     strain = -p * (1 - 2 * nu) / e  # hydrostatic
     rows = re.findall(r"^\s+\d+\s+(\S+)\s+\S+\s+\S+\s*$", dat.split("displacements")[-1], re.M)
@@ -153,7 +136,7 @@ def test_smoothed_head_phantom_at_order_2_runs(tmp_path, midside):
     names = ", ".join(info["materials"])
     step = (f"*ELSET, ELSET=EALL\n{names}\n*BOUNDARY\nEXTERIOR, 1, 3, 0\n*STEP\n*STATIC\n*DLOAD\n"
             "EALL, GRAV, 9810., 0., 0., -1.\n*NODE PRINT, NSET=EXTERIOR, TOTALS=ONLY\nRF\n*END STEP\n")
-    dat = run_ccx(tmp_path, "head.inp", step)
+    dat = run_ccx(tmp_path, model="head.inp", step=step)
     rho = np.array([0.0] + [m["density"] for m in cfg["materials"]])
     weight = float((element_volumes(mesh.points, mesh.cells) * rho[mesh.material]).sum() * 9810.0)
     force = total_force(dat, "EXTERIOR")
@@ -170,7 +153,7 @@ def test_plane_strain_plate_in_tension(tmp_path, etype, order):
     lx, ly = shape[0] * spacing[0], shape[1] * spacing[1]
     step = ("*BOUNDARY\nX0, 1, 1, 0\nY0, 2, 2, 0\n*STEP\n*STATIC\n*BOUNDARY\n"
             f"X1, 1, 1, {0.01 * lx!r}\n*NODE PRINT, NSET=X0, TOTALS=ONLY\nRF\n*END STEP\n")
-    force = total_force(run_ccx(tmp_path, "plate.inp", step), "X0")
+    force = total_force(run_ccx(tmp_path, model="plate.inp", step=step), "X0")
     assert -force[0] / (ly * t) == pytest.approx(e / (1 - nu**2) * 0.01, rel=0.01)
 
 
@@ -187,7 +170,7 @@ def test_plane_merged_bar_in_series(tmp_path, order):
     export_mesh(mesh, tmp_path / "bar.inp", config(("soft", e1, 0.0), ("stiff", e2, 0.0), order=order))
     lx, ly, lz = (n * s for n, s in zip(labels.shape, spacing))
     expected = lx * ly * 0.01 * lz / (0.5 * lz / e1 + 0.5 * lz / e2)
-    force = total_force(run_ccx(tmp_path, "bar.inp", compression_step(0.01, lz)), "Z0")
+    force = total_force(run_ccx(tmp_path, model="bar.inp", step=compression_step(0.01, lz)), "Z0")
     assert force[2] == pytest.approx(expected, rel=0.01)
 
 

@@ -10,16 +10,15 @@ from __future__ import annotations
 import json
 import re
 import shutil
-import subprocess
 
 import meshio
 import numpy as np
 import pytest
 
+from calculix import needs_ccx, run_ccx, total_force
+
 from dicer.cli import main
 
-CCX = shutil.which("ccx")
-needs_ccx = pytest.mark.skipif(CCX is None, reason="CalculiX (ccx) is not installed")
 
 NX, NY, PIXEL = 80, 40, 0.5             # image: 80 x 40 pixels of 0.5 mm -> 40 x 20 mm
 HOLE_CENTRE, HOLE_RADIUS = (20.0, 10.0), 5.0
@@ -69,20 +68,6 @@ def node_sets(inp: str) -> dict[str, np.ndarray]:
     for name, body in re.findall(r"^\*NSET, NSET=(\w+)\n((?:[^*].*\n)*)", inp, re.M):
         sets[name] = np.array([int(v) for v in body.replace(",", " ").split()])
     return sets
-
-
-def run_ccx(folder, step: str, model: str = "model.inp") -> str:
-    (folder / "job.inp").write_text(f"*INCLUDE, INPUT={model}\n{step}")
-    proc = subprocess.run([CCX, "-i", "job"], cwd=folder, capture_output=True, text=True, timeout=120)
-    log = proc.stdout + proc.stderr
-    assert proc.returncode == 0 and "*ERROR" not in log, log[-2000:]
-    return (folder / "job.dat").read_text()
-
-
-def total_force(dat: str, set_name: str) -> np.ndarray:
-    found = re.findall(rf"total force \(fx,fy,fz\) for set {set_name} and time\s+\S+\s+(\S+)\s+(\S+)\s+(\S+)", dat)
-    assert found, dat[-1000:]
-    return np.array([float(v) for v in found[-1]])
 
 
 STRAIN = 0.01

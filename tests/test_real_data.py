@@ -21,22 +21,21 @@ import json
 import os
 import re
 import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
+from calculix import needs_ccx, run_ccx, total_force
+
 from dicer.cli import main
 
 CT = Path(__file__).parents[1] / ".." / "shared" / "data" / "cranium_ct.nii.gz"
-CCX = shutil.which("ccx")
 G = 9810.0  # mm/s^2 (units: mm, N, MPa, t/mm^3)
 FACE3 = ndi.generate_binary_structure(3, 1)
 
 pytestmark = pytest.mark.skipif(not CT.exists(), reason=f"shared head CT not present ({CT.resolve()})")
-needs_ccx = pytest.mark.skipif(CCX is None, reason="CalculiX (ccx) is not installed")
 
 
 def dicer(*argv) -> None:
@@ -52,23 +51,6 @@ def gravity_deck(materials: list[str], solver: str = "") -> str:
         f"*STEP\n*STATIC{', SOLVER=' + solver if solver else ''}\n*DLOAD\n{loads}"
         "*NODE PRINT, NSET=Z0, TOTALS=ONLY\nRF\n*NODE FILE\nU\n*END STEP\n"
     )
-
-
-def run_ccx(folder: Path, deck: str, timeout: float) -> tuple[str, str]:
-    """Run ccx on ``deck`` in ``folder``; return (.dat text, log). Fails on a non-zero exit or *ERROR."""
-    (folder / "job.inp").write_text(deck)
-    proc = subprocess.run([CCX, "-i", "job"], cwd=folder, capture_output=True, text=True, timeout=timeout,
-                          env={**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")})
-    log = proc.stdout + proc.stderr
-    assert proc.returncode == 0 and "*ERROR" not in log, log[-3000:]
-    return (folder / "job.dat").read_text(), log
-
-
-def total_force(dat: str, set_name: str) -> np.ndarray:
-    found = re.findall(rf"total force \(fx,fy,fz\) for set {set_name.upper()} and time\s+\S+\s+(\S+)\s+(\S+)\s+(\S+)",
-                       dat)
-    assert found, dat[-1000:]
-    return np.array([float(v) for v in found[-1]])
 
 
 def reaction_bounds(model_vtu: Path, densities: list[float]) -> tuple[float, float]:
@@ -193,7 +175,7 @@ def test_coarse_model_matches_its_labels(coarse_run):
 @needs_ccx
 def test_ccx_solves_coarse_model(coarse_run, tmp_path):
     shutil.copy(coarse_run / "model.inp", tmp_path / "model.inp")
-    dat, _log = run_ccx(tmp_path, gravity_deck(["soft_tissue", "bone"]), timeout=300)
+    dat = run_ccx(tmp_path, gravity_deck(["soft_tissue", "bone"]), model=None, timeout=300)
     check_solved(tmp_path, dat, coarse_run / "model.vtu")
 
 
@@ -238,7 +220,7 @@ def solve_iteratively(run: Path, folder: Path, timeout: float) -> None:
     # fill-in grows faster than the model
     os.symlink((run / "model.inp").resolve(), folder / "model.inp")
     deck = gravity_deck(["soft_tissue", "bone"], solver="ITERATIVE CHOLESKY")
-    dat, _log = run_ccx(folder, deck, timeout=timeout)
+    dat = run_ccx(folder, deck, model=None, timeout=timeout)
     check_solved(folder, dat, run / "model.vtu")
 
 

@@ -7,6 +7,7 @@ imports it.
 from __future__ import annotations
 
 import html
+import json
 
 import numpy as np
 
@@ -117,5 +118,10 @@ def render_html(report: dict, pictures: list[str] = ()) -> str:
         parts.append(f"<h2>{html.escape(key)}</h2>" + table(list(report[key].items())))
     if "node_classes" in report:
         parts.append("<h2>Boundary node classes</h2>" + table(list(report["node_classes"].items())))
+    for stage, entry in report.get("stages", {}).items():
+        # scalars as they are, small nested values as compact JSON
+        rows = [(k, v if not isinstance(v, (dict, list)) else json.dumps(v, sort_keys=True)[:300])
+                for k, v in entry.items()]
+        parts.append(f"<h2>Stage: {html.escape(stage)}</h2>" + table(rows))
     parts.append("</body></html>\n")
     return "".join(parts)

@@ -37,3 +37,13 @@ def test_inverted_elements_are_counted_and_html_renders():
     assert report["poor_elements"] >= report["inverted_elements"]
     page = render_html(report)
     assert page.startswith("<!DOCTYPE html>") and "soft_tissue" in page
+
+
+def test_html_shows_stage_reports_and_pictures():
+    mesh = voxel_mesh(np.ones((2, 2, 2), np.uint8))
+    report = quality_report(mesh, load_config())
+    report["stages"] = {"fix": {"changed_voxels": 7, "type_a": {"bone": 3}}, "merge": {"elements_after": 1}}
+    page = render_html(report, ["segmentation.png"])
+    assert "<h2>Stage: fix</h2>" in page and "<h2>Stage: merge</h2>" in page
+    assert "<td>7</td>" in page and "{&quot;bone&quot;: 3}" in page
+    assert "<img src='segmentation.png'" in page

@@ -117,8 +117,7 @@ def test_exterior_surface_takes_a_pressure(tmp_path):
     assert ux.size and np.allclose(ux, strain * lx, rtol=0.01)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("midside", ["midpoint", "curved"])
+@pytest.mark.parametrize("midside", ["midpoint", pytest.param("curved", marks=pytest.mark.slow)])
 def test_smoothed_head_phantom_at_order_2_runs(tmp_path, midside):
     """A smoothed head phantom with 20-node hexahedra: ccx assembles and solves a gravity step
     (exterior held) without element errors; the reaction balances most of the weight (the

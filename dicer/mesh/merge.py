@@ -251,6 +251,21 @@ def _degrees(cells: np.ndarray, rows: np.ndarray, nodes_mask: np.ndarray, n: int
     return degree, count
 
 
+def _replace_face_nodes(face, hit, far, block, cols, snapped, snap):
+    """Rows of ``block`` whose ``face`` nodes (in columns ``cols``) are deleted (``hit``) or
+    snapped, with each deleted node replaced by the far end ``far`` of its axis edge and each
+    snapped node by its snap target. Returns (row indices, new rows)."""
+    rows = np.flatnonzero(hit.any(axis=1) | snapped[face].any(axis=1))
+    nodes = face[rows]
+    h = hit[rows]
+    nodes[h] = far[nodes[h]]
+    h = snapped[nodes]
+    nodes[h] = snap[nodes[h]]
+    sub = block[rows]
+    sub[:, cols] = nodes
+    return rows, sub
+
+
 def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g, s, dim, granularity, min_corner,
                 rim_moves=True, spacing=(1.0, 1.0, 1.0)):
     """Merge element layer ``s`` of every group of ``g`` layers into the layers below it.
@@ -372,24 +387,10 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
             cells[changed] = mesh_cells[changed]
         snapped = snap >= 0
         hit_l = delete[l_top]
-        rows_l = np.flatnonzero(hit_l.any(axis=1) | snapped[l_top].any(axis=1))
-        t = l_top[rows_l]
-        h = hit_l[rows_l]
-        t[h] = upn[t[h]]
-        h = snapped[t]
-        t[h] = snap[t[h]]
-        sub = lc[rows_l]
-        sub[:, tc] = t
+        rows_l, sub = _replace_face_nodes(l_top, hit_l, upn, lc, tc, snapped, snap)
         cells[lo[rows_l]] = sub
         hit_u = delete[u_bot]
-        rows_u = np.flatnonzero(hit_u.any(axis=1) | snapped[u_bot].any(axis=1))
-        b = u_bot[rows_u]
-        h = hit_u[rows_u]
-        b[h] = down[b[h]]
-        h = snapped[b]
-        b[h] = snap[b[h]]
-        sub = uc[rows_u]
-        sub[:, bc] = b
+        rows_u, sub = _replace_face_nodes(u_bot, hit_u, down, uc, bc, snapped, snap)
         cells[up[rows_u]] = sub
         changed = np.concatenate([lo[rows_l], up[rows_u]])
         # Step 11: stacked pairs whose face went became duplicates; keep the lower one.

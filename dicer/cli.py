@@ -136,14 +136,17 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
                                              max_type_c_rounds=settings["max_type_c_rounds"])
         except DicerError as exc:
             raise DicerError(f"{labels_path}: {exc}") from None
+        if not report["converged"]:
+            log.warning("fix: stopped at a round cap with %s left; raise fix.max_iterations or "
+                        "fix.max_type_c_rounds", report["remaining"])
         names = {str(k): v for k, v in material_names(config).items()} | {"0": "background"}
         for kind in ("type_a", "type_b", "type_c"):
             report[kind] = {names.get(k, k): v for k, v in report[kind].items()}
         write_labels(Volume(fixed, labels.spacing, labels.origin), out)
         _write_report(report_path, report)
-        log.info("fix: wrote %s (%d voxels changed; type A %s, type B %s, type C %s; A/B sweeps %s)", out,
-                 report["changed_voxels"], report["type_a"], report["type_b"], report["type_c"],
-                 report["iterations"])
+        log.info("fix: wrote %s (%d voxels changed; type A %s, type B %s, type C %s; A/B sweeps %s; "
+                 "Type C sites per round %s)", out, report["changed_voxels"], report["type_a"], report["type_b"],
+                 report["type_c"], report["iterations"], report["type_c_sites"])
     return report
 
 

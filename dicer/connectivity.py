@@ -10,13 +10,13 @@ Three poorly connected arrangements are repaired (paper section 2.2, Fig. 3):
 * **Type C** - a voxel holds two class-A boundary nodes joined by a boundary edge
   (an element hanging on by two adjacent faces, or its complement).
 
-Every class, background (0) included, is treated. A Type A/B fix never lowers a
-voxel's class: label values order the classes (background lowest, the highest label
-wins), and every fix sets a voxel to a class of higher value than it had. The A/B sweep
-is therefore monotone and reaches a fixed point; on that fixed point no Type A or B
-arrangement of any class is left, because each one would trigger a fix. Type C then
-reclassifies the offending voxel to the majority class of its face neighbours and A/B
-run again, round by round while the number of Type C sites falls.
+Every class, background (0) included, is treated. No fix ever lowers a voxel's class:
+label values order the classes (background lowest, the highest label wins), and every
+fix sets a voxel to a class of higher value than it had. The process is therefore
+monotone and ends; where it ends no Type A, B or C arrangement of any class is left,
+because each one would trigger a fix. Type C fills notches and makes one-voxel-thick
+features two voxels thick instead of deleting their corners as the paper does (which
+lowers classes, so it fights the A/B fixes and eats thin plates away).
 ``docs/smoothing.md`` gives the exact rules.
 
 Arrays are indexed ``[x, y, z]`` (``[x, y]`` in 2D). Voxels outside the image count
@@ -26,6 +26,7 @@ as background for node classification (Type C) and are never changed.
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 
 from dicer.errors import DicerError
 
@@ -236,104 +237,177 @@ def _type_c_edges(w: np.ndarray):
     return lp, out
 
 
-def _type_c_voxels(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Flat indices of the in-image voxels to reclassify, and the class each gets.
+def _type_c_proposals(w: np.ndarray, thicken: bool = True) -> tuple[np.ndarray, int]:
+    """One Type C sweep: proposed classes (>= w everywhere) and the number of sites seen.
 
-    For every A-A boundary edge, the voxel among the four around it whose class differs
-    from the other three (if the four split otherwise, all four) takes the majority class
-    of its six face neighbours (outside the image: background); ties go to the class of the other voxels
-    around the edge, then to the higher class.
+    At every A-A boundary edge the four voxels around it are looked at. When one of them
+    holds a class above the other three, it is the thin corner of a feature one voxel
+    thick along the edge (both of its neighbours along the edge differ from it): that
+    feature is thickened - every voxel of its class that is one voxel thick along that
+    axis and face-connected to it gives its class to the neighbour on the +axis side
+    (the -axis side where +axis holds a higher class). Otherwise the voxels around the
+    edge below its highest class take that class (a notch is filled). Only raising
+    classes keeps the whole fix monotone, so it ends, and each site raises at least one
+    voxel. With ``thicken=False`` every site is filled (the fallback when thickening
+    cannot raise anything).
     """
     lp, sites = _type_c_edges(w)
+    prop = w.copy()
+    n_sites = 0
+    all_seeds = None
     shape = w.shape
-    cand, hint = [], []
     for axis in range(3):
         idx = np.nonzero(sites[axis])
         if idx[0].size == 0:
             continue
+        n_sites += idx[0].size
         others = [ax for ax in range(3) if ax != axis]
-        # the four voxels around the edge, in image coordinates (padded index - 1)
-        vox = []
+        vox = []  # the four voxels around each edge, image coordinates (padded index - 1)
         for code in range(4):
             coord = [None, None, None]
             coord[axis] = idx[axis]
             for b, ax in enumerate(others):
                 coord[ax] = idx[ax] - 1 + ((code >> b) & 1)
-            vox.append(coord)
+            vox.append(tuple(coord))
         vals = np.stack([lp[tuple(c + 1 for c in coord)] for coord in vox], axis=1)  # (n, 4)
-        eq = vals[:, :, None] == vals[:, None, :]
-        n_same = eq.sum(axis=2)  # how many of the four share each voxel's class
-        odd = (n_same == 1) & (n_same.sum(axis=1, keepdims=True) == 1 + 3 * 3)
-        general = ~odd.any(axis=1)
+        top = vals.max(axis=1)
+        lone = ((vals == top[:, None]).sum(axis=1) == 1) & thicken
+        seeds = np.zeros(shape, dtype=bool)
         for code in range(4):
-            take = odd[:, code] | general
-            coord = [c[take] for c in vox[code]]
-            inside = np.ones(coord[0].shape, bool)
-            for ax in range(3):
-                inside &= (coord[ax] >= 0) & (coord[ax] < shape[ax])
-            if not inside.any():
-                continue
-            flat = np.ravel_multi_index(tuple(c[inside] for c in coord), shape)
-            # class of the majority of the other voxels around the edge
-            others_vals = np.delete(vals[take][inside], code, axis=1)
-            h = _row_mode(others_vals)
-            cand.append(flat)
-            hint.append(h)
-    if not cand:
-        return np.zeros(0, np.int64), np.zeros(0, w.dtype)
-    flat = np.concatenate(cand)
-    hint = np.concatenate(hint)
-    flat, first = np.unique(flat, return_index=True)
-    hint = hint[first]
-    coords = np.unravel_index(flat, shape)
-    k = int(w.max()) + 1
-    counts = np.zeros((flat.size, k), np.float64)
-    rows = np.arange(flat.size)
-    for axis in range(3):
-        for step in (-1, 1):
-            nb = [c.copy() for c in coords]
-            nb[axis] = nb[axis] + step
-            inside = (nb[axis] >= 0) & (nb[axis] < shape[axis])
-            vals = np.where(inside, w[tuple(np.where(inside, c, 0) for c in nb)], 0)  # outside: background
-            np.add.at(counts, (rows, vals.astype(np.int64)), 1.0)
-    counts[rows, hint.astype(np.int64)] += 0.5
-    counts += np.arange(k)[None, :] * 1e-3  # then the higher class
-    new = counts.argmax(axis=1).astype(w.dtype)
-    change = new != w.ravel()[flat]
-    return flat[change], new[change]
+            coord = vox[code]
+            v = vals[:, code]
+            # sites lie off the image's bounding surface, so all four voxels are inside
+            fill = ~lone & (v < top)
+            np.maximum.at(prop, tuple(c[fill] for c in coord), top[fill].astype(w.dtype))
+            seed = lone & (v == top)
+            seeds[tuple(c[seed] for c in coord)] = True
+        if seeds.any():
+            all_seeds = seeds if all_seeds is None else all_seeds | seeds
+    if all_seeds is not None:
+        _fatten(w, prop, all_seeds)
+    return prop, n_sites
 
 
-def _row_mode(vals: np.ndarray) -> np.ndarray:
-    """Most frequent value of each row (ties: the higher value)."""
-    eq = (vals[:, :, None] == vals[:, None, :]).sum(axis=2)
-    score = eq.astype(np.int64) * (1 << 32) + vals.astype(np.int64)
-    return vals[np.arange(vals.shape[0]), score.argmax(axis=1)]
+def _fat(w: np.ndarray) -> np.ndarray:
+    """(shape) bool: voxels lying in a 2x2x2 block of their own class."""
+    views = _corner_views(w, (0, 1, 2))
+    full = np.ones(w[views[0]].shape, dtype=bool)
+    for s in views[1:]:
+        full &= w[s] == w[views[0]]
+    fat = np.zeros(w.shape, dtype=bool)
+    for s in views:
+        fat[s] |= full
+    return fat
+
+
+def _fatten(w: np.ndarray, prop: np.ndarray, seeds: np.ndarray) -> None:
+    """Propose classes that put every thin voxel joined to ``seeds`` into a 2x2x2 block.
+
+    A voxel is thin when no 2x2x2 block of its class holds it. The thin voxels of a
+    seed's class that are 26-connected to it (through thin voxels of that class) each
+    take the block around them with the most voxels of their class and none of a higher
+    one, and raise that block's other voxels to their class; a thin voxel with no such
+    block rises to the lowest higher class among its face neighbours.
+    """
+    thin = ~_fat(w)
+    grow = np.zeros(w.shape, dtype=bool)
+    structure = np.ones((3, 3, 3), dtype=bool)
+    for value in np.unique(w[seeds]):
+        region = thin & (w == value)
+        comp, _ = ndimage.label(region, structure=structure)
+        chosen = np.unique(comp[seeds & region])
+        grow |= np.isin(comp, chosen[chosen > 0])
+    pts = np.argwhere(grow)
+    if not pts.size:
+        return
+    v = w[tuple(pts.T)]
+    shape = np.array(w.shape)
+    offsets = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)])
+    best_score = np.full(pts.shape[0], -1, dtype=np.int64)
+    best_lo = np.zeros_like(pts)
+    for o in offsets:
+        lo = pts - o  # the block's lowest corner
+        valid = np.all((lo >= 0) & (lo + 1 < shape), axis=1)
+        cells = np.clip(lo[:, None, :] + offsets[None, :, :], 0, shape - 1)  # (N, 8, 3)
+        vals = w[cells[..., 0], cells[..., 1], cells[..., 2]]
+        score = np.where(valid & np.all(vals <= v[:, None], axis=1), (vals == v[:, None]).sum(axis=1), -1)
+        better = score > best_score
+        best_score[better] = score[better]
+        best_lo[better] = lo[better]
+    ok = best_score >= 0
+    cells = (best_lo[ok][:, None, :] + offsets[None, :, :]).reshape(-1, 3)
+    np.maximum.at(prop, tuple(cells.T), np.repeat(v[ok], 8).astype(w.dtype))
+    stuck = pts[~ok]
+    if stuck.size:
+        vs = v[~ok].astype(np.int64)
+        rise = np.full(stuck.shape[0], np.iinfo(np.int64).max)
+        for axis in range(3):
+            for step in (-1, 1):
+                nb = stuck.copy()
+                nb[:, axis] += step
+                inside = (nb[:, axis] >= 0) & (nb[:, axis] < shape[axis])
+                val = w[tuple(np.clip(nb, 0, shape - 1).T)].astype(np.int64)
+                take = inside & (val > vs)
+                rise[take] = np.minimum(rise[take], val[take])
+        up = rise < np.iinfo(np.int64).max
+        np.maximum.at(prop, tuple(stuck[up].T), rise[up].astype(w.dtype))
 
 
 # --- public API ----------------------------------------------------------------------------
 
 
-def _ab_to_fixed_point(w: np.ndarray, max_iterations: int, counts: dict) -> tuple[int, bool]:
-    """Run Type A then Type B sweeps until nothing changes. Returns (iterations, converged)."""
+_TILE = 16  # edge of the tiles that later sweeps revisit (voxels)
+
+
+def _sweep(w: np.ndarray, counts: dict, box: tuple) -> np.ndarray:
+    """One Type A (all plane orientations) then Type B sweep over ``w[box]``, applied in
+    place. Returns the tiles (rows of tile indices) holding voxels it changed."""
+    sub = w[box]
     planes = [(0, 1)] if w.ndim == 2 else [(1, 2), (0, 2), (0, 1)]
+    passes = [lambda a=axes: _type_a_pass(sub, a) for axes in planes]
+    if w.ndim == 3:
+        passes.append(lambda: _type_b_pass(sub))
+    changed = None
+    for kind, run in zip("A" * len(planes) + "B", passes):
+        prop = run()
+        diff = prop != sub
+        if diff.any():
+            _tally(counts[kind], prop[diff])
+            sub[diff] = prop[diff]
+            changed = diff if changed is None else changed | diff
+    if changed is None:
+        return np.zeros((0, w.ndim), dtype=np.int64)
+    start = np.array([b.start or 0 for b in box])
+    return (np.argwhere(changed) + start) // _TILE
+
+
+def _tile_boxes(tiles: np.ndarray, shape: tuple) -> list[tuple]:
+    """Boxes covering every block (2x2 or 2x2x2) that holds a voxel of ``tiles``: each
+    tile grown by one voxel on every side, in tile order."""
+    tiles = np.unique(tiles, axis=0)
+    return [tuple(slice(max(int(t) * _TILE - 1, 0), min((int(t) + 1) * _TILE + 1, n))
+                  for t, n in zip(tile, shape)) for tile in tiles]
+
+
+def _ab_to_fixed_point(w: np.ndarray, max_iterations: int, counts: dict,
+                       changed: np.ndarray | None = None) -> tuple[int, bool]:
+    """Run Type A then Type B sweeps until nothing changes. Returns (iterations, converged).
+
+    The first sweep covers the whole volume, or with ``changed`` (voxels changed since
+    ``w`` was last at a fixed point) only the blocks around those; every later sweep
+    revisits only the tiles around the voxels the previous sweep changed, since a block
+    none of whose voxels changed cannot have become a defect.
+    """
+    if changed is None:
+        boxes = [tuple(slice(None) for _ in range(w.ndim))]
+    else:
+        boxes = _tile_boxes(np.argwhere(changed) // _TILE, w.shape)
     for it in range(1, max_iterations + 1):
-        changed = False
-        for axes in planes:
-            prop = _type_a_pass(w, axes)
-            diff = prop != w
-            if diff.any():
-                _tally(counts["A"], prop[diff])
-                w[diff] = prop[diff]
-                changed = True
-        if w.ndim == 3:
-            prop = _type_b_pass(w)
-            diff = prop != w
-            if diff.any():
-                _tally(counts["B"], prop[diff])
-                w[diff] = prop[diff]
-                changed = True
-        if not changed:
+        tiles = [_sweep(w, counts, box) for box in boxes]
+        tiles = np.concatenate(tiles) if tiles else np.zeros((0, w.ndim), dtype=np.int64)
+        if tiles.shape[0] == 0:
             return it, True
+        boxes = _tile_boxes(tiles, w.shape)
     return max_iterations, False
 
 
@@ -344,22 +418,20 @@ def _tally(table: dict, new_values: np.ndarray) -> None:
 
 
 def fix_connectivity(labels: np.ndarray, max_iterations: int = 100, type_c: bool = True,
-                     max_type_c_rounds: int = 5) -> tuple[np.ndarray, dict]:
+                     max_type_c_rounds: int = 100) -> tuple[np.ndarray, dict]:
     """Repair Type A, B and C connectivity in a 2D or 3D label volume (0 = background).
 
     Type A and B sweeps repeat until nothing changes (at most ``max_iterations``
-    sweeps); every sweep only raises classes, so this always ends. In 3D, Type C then
-    gives each offending voxel the majority class of its face neighbours and A/B run
-    again, for at most ``max_type_c_rounds`` rounds; of the states reached, the one with
-    the fewest Type C sites is kept (the earliest on ties). On a one-voxel plate every
-    round only moves the corners inwards, so the plate is kept whole (its corner sites
-    are reported in ``remaining``). Returns
-    the fixed labels (same dtype and shape) and a report::
+    sweeps). In 3D, Type C rounds follow: every Type C site is repaired (a notch is
+    filled, a one-voxel-thick corner has its feature thickened) and A/B run again, until
+    no site is left (at most ``max_type_c_rounds`` rounds). Every change raises a
+    voxel's class, so the whole process ends, and when it ends no Type A, B or C
+    arrangement is left. Returns the fixed labels (same dtype and shape) and a report::
 
         {"changed_voxels": n, "type_a": {class: voxels set to it}, "type_b": {...},
          "type_c": {...}, "iterations": [A/B sweeps per round], "type_c_rounds": r,
-         "type_c_stopped": bool, "converged": bool (A/B reached a fixed point),
-         "remaining": connectivity_defects(result)}
+         "type_c_sites": [sites before each round], "converged": bool (no round hit
+         its cap), "remaining": connectivity_defects(result)}
 
     Raises DicerError for input that is not a 2D/3D non-negative integer volume.
     """
@@ -373,41 +445,30 @@ def fix_connectivity(labels: np.ndarray, max_iterations: int = 100, type_c: bool
     w = _as_work(labels).copy()
     before = w.copy()
     counts = {"A": {}, "B": {}, "C": {}}
-    iterations = []
     it, converged = _ab_to_fixed_point(w, max_iterations, counts)
-    iterations.append(it)
+    iterations = [it]
+    site_counts = []
     rounds = 0
-    undone = False
     if w.ndim == 3 and type_c and converged:
-        # run the rounds on a copy and keep the state with the fewest Type C sites (the
-        # earliest on ties): a round may expose a few new sites that the next one clears,
-        # but on a one-voxel plate every round only moves the corners inwards
-        sites = _type_c_sites(w)
-        best = (sites, 0, w, {"A": {}, "B": {}, "C": {}}, [])
-        trial = w.copy()
-        trial_counts = {"A": {}, "B": {}, "C": {}}
-        trial_its = []
-        r = 0
-        while sites and r < max_type_c_rounds and sites <= 4 * best[0]:
-            flat, new = _type_c_voxels(trial)
-            if flat.size == 0:
+        while True:
+            prop, sites = _type_c_proposals(w)
+            if sites == 0:
                 break
-            r += 1
-            _tally(trial_counts["C"], new)
-            trial.ravel()[flat] = new
-            it, ok = _ab_to_fixed_point(trial, max_iterations, trial_counts)
-            trial_its.append(it)
-            if not ok:
+            site_counts.append(sites)
+            if rounds == max_type_c_rounds:
+                converged = False
                 break
-            sites = _type_c_sites(trial)
-            if sites < best[0]:
-                best = (sites, r, trial.copy(), {k: dict(v) for k, v in trial_counts.items()}, list(trial_its))
-        undone = r > best[1]
-        _, rounds, w, extra, its = best
-        for key in ("A", "B", "C"):
-            for k, v in extra[key].items():
-                counts[key][k] = counts[key].get(k, 0) + v
-        iterations.extend(its)
+            diff = prop != w
+            if not diff.any():  # thickening could raise nothing: fill instead
+                prop, _ = _type_c_proposals(w, thicken=False)
+                diff = prop != w
+            rounds += 1
+            _tally(counts["C"], prop[diff])
+            w[diff] = prop[diff]
+            it, converged = _ab_to_fixed_point(w, max_iterations, counts, changed=diff)
+            iterations.append(it)
+            if not converged:
+                break
     remaining = connectivity_defects(w, type_c=type_c)
     report = {
         "changed_voxels": int(np.count_nonzero(w != before)),
@@ -416,7 +477,7 @@ def fix_connectivity(labels: np.ndarray, max_iterations: int = 100, type_c: bool
         "type_c": {str(k): v for k, v in sorted(counts["C"].items())},
         "iterations": iterations,
         "type_c_rounds": rounds,
-        "type_c_stopped": bool(undone),
+        "type_c_sites": site_counts,
         "converged": bool(converged),
         "remaining": remaining,
     }

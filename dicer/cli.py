@@ -133,7 +133,8 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
         try:
             fixed, report = fix_connectivity(labels.array, max_iterations=settings["max_iterations"],
                                              type_c=settings["type_c"],
-                                             max_type_c_rounds=settings["max_type_c_rounds"])
+                                             max_type_c_rounds=settings["max_type_c_rounds"],
+                                             majority_rounds=settings["majority_rounds"])
         except DicerError as exc:
             raise DicerError(f"{labels_path}: {exc}") from None
         if not report["converged"]:
@@ -145,8 +146,9 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
         write_labels(Volume(fixed, labels.spacing, labels.origin), out)
         _write_report(report_path, report)
         log.info("fix: wrote %s (%d voxels changed; type A %s, type B %s, type C %s; A/B sweeps %s; "
-                 "Type C sites per round %s)", out, report["changed_voxels"], report["type_a"], report["type_b"],
-                 report["type_c"], report["iterations"], report["type_c_sites"])
+                 "Type C rounds %d + %d, sites per round %s)", out, report["changed_voxels"], report["type_a"], report["type_b"],
+                 report["type_c"], report["iterations"], report["majority_rounds"],
+                 report["type_c_rounds"], report["type_c_sites"])
     return report
 
 

@@ -10,13 +10,15 @@ Three poorly connected arrangements are repaired (paper section 2.2, Fig. 3):
 * **Type C** - a voxel holds two class-A boundary nodes joined by a boundary edge
   (an element hanging on by two adjacent faces, or its complement).
 
-Every class, background (0) included, is treated. No fix ever lowers a voxel's class:
-label values order the classes (background lowest, the highest label wins), and every
-fix sets a voxel to a class of higher value than it had. The process is therefore
-monotone and ends; where it ends no Type A, B or C arrangement of any class is left,
-because each one would trigger a fix. Type C fills notches and makes one-voxel-thick
-features two voxels thick instead of deleting their corners as the paper does (which
-lowers classes, so it fights the A/B fixes and eats thin plates away).
+Every class, background (0) included, is treated. A Type A/B fix never lowers a
+voxel's class: label values order the classes (background lowest, the highest label
+wins), and every fix sets a voxel to a class of higher value than it had, so the
+sweeps reach a fixed point with no Type A or B arrangement left. Type C first applies
+the paper's rule (the majority class of the neighbours) for a few rounds, keeping the
+state with the fewest sites; that rule lowers classes, so it can undo itself and it
+eats one-voxel plates away. The remaining sites are then repaired by raising only:
+notches are filled and one-voxel-thick features made two voxels thick. That phase is
+monotone too, so it ends, and where it ends no Type A, B or C arrangement is left.
 ``docs/smoothing.md`` gives the exact rules.
 
 Arrays are indexed ``[x, y, z]`` (``[x, y]`` in 2D). Voxels outside the image count
@@ -288,6 +290,80 @@ def _type_c_proposals(w: np.ndarray, thicken: bool = True) -> tuple[np.ndarray, 
     return prop, n_sites
 
 
+def _type_c_voxels(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices of the in-image voxels to reclassify, and the class each gets.
+
+    For every A-A boundary edge, the voxel among the four around it whose class differs
+    from the other three (if the four split otherwise, all four) takes the majority class
+    of its six face neighbours (outside the image: background); ties go to the class of the other voxels
+    around the edge, then to the higher class.
+    """
+    lp, sites = _type_c_edges(w)
+    shape = w.shape
+    cand, hint = [], []
+    for axis in range(3):
+        idx = np.nonzero(sites[axis])
+        if idx[0].size == 0:
+            continue
+        others = [ax for ax in range(3) if ax != axis]
+        # the four voxels around the edge, in image coordinates (padded index - 1)
+        vox = []
+        for code in range(4):
+            coord = [None, None, None]
+            coord[axis] = idx[axis]
+            for b, ax in enumerate(others):
+                coord[ax] = idx[ax] - 1 + ((code >> b) & 1)
+            vox.append(coord)
+        vals = np.stack([lp[tuple(c + 1 for c in coord)] for coord in vox], axis=1)  # (n, 4)
+        eq = vals[:, :, None] == vals[:, None, :]
+        n_same = eq.sum(axis=2)  # how many of the four share each voxel's class
+        odd = (n_same == 1) & (n_same.sum(axis=1, keepdims=True) == 1 + 3 * 3)
+        general = ~odd.any(axis=1)
+        for code in range(4):
+            take = odd[:, code] | general
+            coord = [c[take] for c in vox[code]]
+            inside = np.ones(coord[0].shape, bool)
+            for ax in range(3):
+                inside &= (coord[ax] >= 0) & (coord[ax] < shape[ax])
+            if not inside.any():
+                continue
+            flat = np.ravel_multi_index(tuple(c[inside] for c in coord), shape)
+            # class of the majority of the other voxels around the edge
+            others_vals = np.delete(vals[take][inside], code, axis=1)
+            h = _row_mode(others_vals)
+            cand.append(flat)
+            hint.append(h)
+    if not cand:
+        return np.zeros(0, np.int64), np.zeros(0, w.dtype)
+    flat = np.concatenate(cand)
+    hint = np.concatenate(hint)
+    flat, first = np.unique(flat, return_index=True)
+    hint = hint[first]
+    coords = np.unravel_index(flat, shape)
+    k = int(w.max()) + 1
+    counts = np.zeros((flat.size, k), np.float64)
+    rows = np.arange(flat.size)
+    for axis in range(3):
+        for step in (-1, 1):
+            nb = [c.copy() for c in coords]
+            nb[axis] = nb[axis] + step
+            inside = (nb[axis] >= 0) & (nb[axis] < shape[axis])
+            vals = np.where(inside, w[tuple(np.where(inside, c, 0) for c in nb)], 0)  # outside: background
+            np.add.at(counts, (rows, vals.astype(np.int64)), 1.0)
+    counts[rows, hint.astype(np.int64)] += 0.5
+    counts += np.arange(k)[None, :] * 1e-3  # then the higher class
+    new = counts.argmax(axis=1).astype(w.dtype)
+    change = new != w.ravel()[flat]
+    return flat[change], new[change]
+
+
+def _row_mode(vals: np.ndarray) -> np.ndarray:
+    """Most frequent value of each row (ties: the higher value)."""
+    eq = (vals[:, :, None] == vals[:, None, :]).sum(axis=2)
+    score = eq.astype(np.int64) * (1 << 32) + vals.astype(np.int64)
+    return vals[np.arange(vals.shape[0]), score.argmax(axis=1)]
+
+
 def _fat(w: np.ndarray) -> np.ndarray:
     """(shape) bool: voxels lying in a 2x2x2 block of their own class."""
     views = _corner_views(w, (0, 1, 2))
@@ -418,20 +494,27 @@ def _tally(table: dict, new_values: np.ndarray) -> None:
 
 
 def fix_connectivity(labels: np.ndarray, max_iterations: int = 100, type_c: bool = True,
-                     max_type_c_rounds: int = 100) -> tuple[np.ndarray, dict]:
+                     max_type_c_rounds: int = 100, majority_rounds: int = 5) -> tuple[np.ndarray, dict]:
     """Repair Type A, B and C connectivity in a 2D or 3D label volume (0 = background).
 
     Type A and B sweeps repeat until nothing changes (at most ``max_iterations``
-    sweeps). In 3D, Type C rounds follow: every Type C site is repaired (a notch is
-    filled, a one-voxel-thick corner has its feature thickened) and A/B run again, until
-    no site is left (at most ``max_type_c_rounds`` rounds). Every change raises a
-    voxel's class, so the whole process ends, and when it ends no Type A, B or C
-    arrangement is left. Returns the fixed labels (same dtype and shape) and a report::
+    sweeps). In 3D, Type C follows in two phases, each round followed by A/B to their
+    fixed point again:
+
+    1. the paper's rule, for at most ``majority_rounds`` rounds: each offending voxel
+       takes the majority class of its face neighbours; of the states reached, the one
+       with the fewest sites is kept (the rule can undo itself or eat a thin plate);
+    2. raising only, until no site is left (at most ``max_type_c_rounds`` rounds): a
+       notch is filled, a one-voxel-thick corner has its feature made two voxels thick.
+       Every change raises a class, so this phase ends, and when it ends no Type A, B
+       or C arrangement is left.
+
+    Returns the fixed labels (same dtype and shape) and a report::
 
         {"changed_voxels": n, "type_a": {class: voxels set to it}, "type_b": {...},
-         "type_c": {...}, "iterations": [A/B sweeps per round], "type_c_rounds": r,
-         "type_c_sites": [sites before each round], "converged": bool (no round hit
-         its cap), "remaining": connectivity_defects(result)}
+         "type_c": {...}, "iterations": [A/B sweeps per round], "majority_rounds": r1,
+         "type_c_rounds": r2, "type_c_sites": [sites before each round kept],
+         "converged": bool (no cap was hit), "remaining": connectivity_defects(result)}
 
     Raises DicerError for input that is not a 2D/3D non-negative integer volume.
     """
@@ -440,15 +523,18 @@ def fix_connectivity(labels: np.ndarray, max_iterations: int = 100, type_c: bool
         raise DicerError(f"labels have {labels.ndim} dimensions; a 2D or 3D label image is needed")
     if not np.issubdtype(labels.dtype, np.integer):
         raise DicerError(f"labels have dtype {labels.dtype}; an integer label image is needed")
-    if max_iterations < 1 or max_type_c_rounds < 0:
-        raise DicerError("fix: max_iterations must be >= 1 and max_type_c_rounds >= 0")
+    if max_iterations < 1 or max_type_c_rounds < 0 or majority_rounds < 0:
+        raise DicerError("fix: max_iterations must be >= 1, max_type_c_rounds and majority_rounds >= 0")
     w = _as_work(labels).copy()
     before = w.copy()
     counts = {"A": {}, "B": {}, "C": {}}
     it, converged = _ab_to_fixed_point(w, max_iterations, counts)
     iterations = [it]
     site_counts = []
-    rounds = 0
+    kept_majority = rounds = 0
+    if w.ndim == 3 and type_c and converged and majority_rounds:
+        w, counts, iterations, site_counts, kept_majority = _majority_phase(
+            w, counts, iterations, max_iterations, majority_rounds)
     if w.ndim == 3 and type_c and converged:
         while True:
             prop, sites = _type_c_proposals(w)
@@ -476,12 +562,43 @@ def fix_connectivity(labels: np.ndarray, max_iterations: int = 100, type_c: bool
         "type_b": {str(k): v for k, v in sorted(counts["B"].items())},
         "type_c": {str(k): v for k, v in sorted(counts["C"].items())},
         "iterations": iterations,
+        "majority_rounds": kept_majority,
         "type_c_rounds": rounds,
         "type_c_sites": site_counts,
         "converged": bool(converged),
         "remaining": remaining,
     }
     return w.astype(labels.dtype, copy=False), report
+
+
+def _majority_phase(w, counts, iterations, max_iterations, max_rounds):
+    """The paper's Type C rule, round by round on a copy; returns the state with the
+    fewest sites (the earliest on ties): (labels, counts, iterations, site counts of
+    the rounds kept, rounds kept)."""
+    sites = _type_c_sites(w)
+    trial = w.copy()
+    t_counts = {k: dict(v) for k, v in counts.items()}
+    t_its, t_sites = list(iterations), []
+    best = (sites, w, counts, iterations, [], 0)
+    r = 0
+    while sites and r < max_rounds:
+        flat, new = _type_c_voxels(trial)
+        if flat.size == 0:
+            break
+        r += 1
+        t_sites.append(sites)
+        _tally(t_counts["C"], new)
+        changed = np.zeros(trial.shape, dtype=bool)
+        changed.ravel()[flat] = True
+        trial.ravel()[flat] = new
+        it, ok = _ab_to_fixed_point(trial, max_iterations, t_counts, changed=changed)
+        t_its.append(it)
+        if not ok:
+            break
+        sites = _type_c_sites(trial)
+        if sites < best[0]:
+            best = (sites, trial.copy(), {k: dict(v) for k, v in t_counts.items()}, list(t_its), list(t_sites), r)
+    return best[1], best[2], best[3], best[4], best[5]
 
 
 def connectivity_defects(labels: np.ndarray, type_c: bool = True) -> dict:

@@ -62,15 +62,28 @@ def test_type_b_body_diagonal_pair_is_joined_by_a_face_path():
     assert connectivity_defects(out, type_c=False)["type_b"] == 0
 
 
-def test_type_c_element_hanging_by_two_faces_is_made_fat():
+def _hanging_element():
     lab = np.zeros((8, 8, 8), np.uint8)
     lab[1:6, 1:6, 1:6] = 1
     lab[3:6, 3:6, 1:6] = 0  # an L-shaped prism (two walls, two voxels thick) ...
     lab[3, 3, 3] = 1  # ... with one element in its inner corner, held by two adjacent faces
+    return lab
+
+
+def test_type_c_element_hanging_by_two_faces_is_removed():
+    lab = _hanging_element()
     counts = boundary_edge_counts(lab)
     assert counts[4, 4, 3] == 3 and counts[4, 4, 4] == 3  # the two free corners are class A
     assert connectivity_defects(lab)["type_c"] >= 1
     out, rep = fix_connectivity(lab)
+    assert out[3, 3, 3] == 0  # the paper's rule: the majority of its neighbours is background
+    assert rep["type_c"] == {"0": 1} and rep["majority_rounds"] == 1 and rep["type_c_rounds"] == 0
+    assert connectivity_defects(out) == {"type_a": 0, "type_b": 0, "type_c": 0}
+
+
+def test_type_c_raise_only_makes_the_hanging_element_fat():
+    lab = _hanging_element()
+    out, rep = fix_connectivity(lab, majority_rounds=0)
     # the element stays and now lies in a 2x2x2 block of its class; nothing was removed
     assert out[3, 3, 3] == 1 and np.all(out >= lab)
     assert any(np.all(out[x:x + 2, y:y + 2, z:z + 2] == 1)
@@ -100,13 +113,21 @@ def test_thin_plate_is_thickened_not_eaten():
     assert rep["converged"] and rep["remaining"] == {"type_a": 0, "type_b": 0, "type_c": 0}
 
 
-def test_one_voxel_rod_becomes_two_by_two():
-    lab = np.zeros((10, 6, 6), np.uint8)
-    lab[1:9, 2, 2] = 2
-    out, rep = fix_connectivity(lab)
+@pytest.mark.parametrize("length, majority_rounds", [(20, 5), (8, 0)])
+def test_one_voxel_rod_becomes_two_by_two(length, majority_rounds):
+    lab = np.zeros((length + 2, 6, 6), np.uint8)
+    lab[1:-1, 2, 2] = 2
+    out, rep = fix_connectivity(lab, majority_rounds=majority_rounds)
     assert np.all(out >= lab) and set(np.unique(out)) == {0, 2}
-    assert np.count_nonzero(out) == 4 * 8
+    assert np.count_nonzero(out) == 4 * length
     assert connectivity_defects(out) == {"type_a": 0, "type_b": 0, "type_c": 0}
+
+
+def test_short_one_voxel_rod_is_deleted_by_the_papers_rule():
+    lab = np.zeros((10, 6, 6), np.uint8)
+    lab[1:9, 2, 2] = 2  # each round deletes both ends: gone after four
+    out, rep = fix_connectivity(lab)
+    assert out.max() == 0 and rep["majority_rounds"] == 4 and rep["type_c"] == {"0": 8}
 
 
 def test_well_connected_volume_is_unchanged_and_dtype_kept():
@@ -172,17 +193,19 @@ volumes3d = st.tuples(st.integers(2, 7), st.integers(2, 7), st.integers(2, 7), s
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(volumes3d)
-def test_invariant_on_random_multiclass_volumes(lab):
-    out, rep = fix_connectivity(lab)
+@pytest.mark.parametrize("majority_rounds", [5, 0])
+def test_invariant_on_random_multiclass_volumes(majority_rounds, lab):
+    out, rep = fix_connectivity(lab, majority_rounds=majority_rounds)
     assert rep["converged"]
     _invariant_holds(out)
     left = connectivity_defects(out)
     assert left["type_a"] == 0 and left["type_b"] == 0 and rep["remaining"] == left
-    # no Type C site is left, and every fix only raised classes
+    # no Type C site is left; without the paper's rule every fix only raised classes
     assert left["type_c"] == 0
-    assert np.all(out >= lab)
+    if majority_rounds == 0:
+        assert np.all(out >= lab)
     # fixing again changes nothing
-    again, rep2 = fix_connectivity(out)
+    again, rep2 = fix_connectivity(out, majority_rounds=majority_rounds)
     assert np.array_equal(again, out) and rep2["changed_voxels"] == 0
 
 

@@ -64,6 +64,17 @@ def _unique(a: np.ndarray) -> np.ndarray:
     return a[np.r_[True, a[1:] != a[:-1]]] if a.size else a
 
 
+def _any(b: np.ndarray) -> np.ndarray:
+    """Row-wise any of an (M, k) bool array, k = 2, 4 or 8 (rows read as one integer)."""
+    b = np.ascontiguousarray(b)
+    return b.view({2: np.uint16, 4: np.uint32, 8: np.uint64}[b.shape[1]])[:, 0] != 0
+
+
+def _all(b: np.ndarray) -> np.ndarray:
+    """Row-wise all of an (M, k) bool array, k = 2, 4 or 8."""
+    return ~_any(~b)
+
+
 def _union(*arrays) -> np.ndarray:
     return _unique(np.concatenate([np.asarray(x).ravel() for x in arrays]))
 
@@ -255,7 +266,7 @@ def _replace_face_nodes(face, hit, far, block, cols, snapped, snap):
     """Rows of ``block`` whose ``face`` nodes (in columns ``cols``) are deleted (``hit``) or
     snapped, with each deleted node replaced by the far end ``far`` of its axis edge and each
     snapped node by its snap target. Returns (row indices, new rows)."""
-    rows = np.flatnonzero(hit.any(axis=1) | snapped[face].any(axis=1))
+    rows = np.flatnonzero(_any(hit) | _any(snapped[face]))
     nodes = face[rows]
     h = hit[rows]
     nodes[h] = far[nodes[h]]
@@ -400,33 +411,34 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
         # Step 12 (widened): check every element that changed other than by a clean stacked
         # merge, and the nodes around it: at most 6 (2D: 4) neighbours, at most 8 (4)
         # elements, no face of three elements, no corner below the Jacobian floor.
-        part_l = hit_l.any(axis=1) & ~hit_l.all(axis=1)
-        part_u = hit_u.any(axis=1) & ~hit_u.all(axis=1)
+        any_l, all_l, any_u, all_u = _any(hit_l), _all(hit_l), _any(hit_u), _all(hit_u)
+        part_l = any_l & ~all_l
+        part_u = any_u & ~all_u
         chamfer = np.concatenate([lo[part_l], up[part_u]])
         info["chamfered_elements"] = int(chamfer.size)
         # changed elements that were already irregular: a merged old chamfer gains edges too
-        bent_l = (hit_l & bent[l_top]).any(axis=1)
-        bent_u = (hit_u & bent[u_bot]).any(axis=1)
-        reshaped = np.concatenate([lo[(hit_l.any(axis=1) & irregular[lo]) | bent_l],
-                                   up[(hit_u.any(axis=1) & irregular[up]) | bent_u]])
+        bent_l = _any(hit_l & bent[l_top])
+        bent_u = _any(hit_u & bent[u_bot])
+        reshaped = np.concatenate([lo[(any_l & irregular[lo]) | bent_l],
+                                   up[(any_u & irregular[up]) | bent_u]])
         # elements stretched whole without a partner (a filled notch): their new face need
         # not match the faces beyond it
         paired_l = np.zeros(lo.size, dtype=bool)
         paired_l[li[merged]] = True
         paired_u = np.zeros(up.size, dtype=bool)
         paired_u[ui[merged]] = True
-        filled = np.concatenate([lo[hit_l.all(axis=1) & ~paired_l], up[hit_u.all(axis=1) & ~paired_u]])
+        filled = np.concatenate([lo[all_l & ~paired_l], up[all_u & ~paired_u]])
         checked = _union(chamfer, reshaped, filled)
         moved = np.flatnonzero((shift != 0) | (snap >= 0))
         if moved.size:  # elements at moved or joined rim nodes change too
             at = np.zeros(n, dtype=bool)
             at[moved] = True
-            checked = _union(checked, lo[at[l_top].any(axis=1)], up[at[u_bot].any(axis=1)])
+            checked = _union(checked, lo[_any(at[l_top])], up[_any(at[u_bot])])
         bad_rows = np.empty(0, dtype=np.int64)
         if checked.size:
             in_s = np.zeros(n, dtype=bool)
             in_s[cells[checked]] = True
-            rows = np.flatnonzero(keep & in_s[cells].any(axis=1))
+            rows = np.flatnonzero(keep & _any(in_s[cells]))
             degree, count = _degrees(cells, rows, in_s, n, edges)
             bad_node = in_s & ((degree > max_neighbours) | (count > max_elements))
             crowded = _crowded_faces(cells[rows], n, dim)  # faces of three or more elements
@@ -613,12 +625,13 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
                 kept_nodes = ~delete
                 new_id = np.cumsum(kept_nodes) - 1
                 new_id = new_id.astype(index)
-                cells = new_id[new_cells[keep]]
-                material, thick, layer = material[keep], thick[keep], layer[keep]
-                irregular = irregular[keep]
-                lattice, points = lattice[kept_nodes], points[kept_nodes]
-                point_data = {k: v[kept_nodes] for k, v in point_data.items()}
-                cell_data = {k: v[keep] for k, v in cell_data.items()}
+                # np.compress: a boolean selection several times faster than a[mask]
+                cells = new_id[np.compress(keep, new_cells, axis=0)]
+                material, thick, layer, irregular = (np.compress(keep, a, axis=0)
+                                                     for a in (material, thick, layer, irregular))
+                lattice, points = np.compress(kept_nodes, lattice, axis=0), np.compress(kept_nodes, points, axis=0)
+                point_data = {k: np.compress(kept_nodes, v, axis=0) for k, v in point_data.items()}
+                cell_data = {k: np.compress(keep, v, axis=0) for k, v in cell_data.items()}
             report["steps"].append({
                 "axis": _AXIS_NAMES[axis], "pass": s, "elements_before": m_before,
                 "elements_after": int(cells.shape[0]), "nodes_before": n_before,
@@ -667,17 +680,38 @@ def merge_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, di
 
 
 def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int = 1 << 20):
-    """(M,) bool: elements whose corners sit on the corners of a lattice box, in VTK order."""
-    offsets = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim].astype(bool)
+    """(M,) bool: elements whose corners sit on the corners of a lattice box, in VTK order.
+
+    Lattice positions are packed into one integer key each (one-to-one inside the
+    lattice's bounding box). An element is a box when its corner keys are its first
+    corner's key plus the right sums of its extent along each axis times that axis's
+    key stride, with every extent positive.
+    """
     far = 6 if dim == 3 else 2
+    lat = lattice[:, :dim].astype(np.int64)
     out = np.ones(cells.shape[0], dtype=bool)
-    for d in range(dim):
-        coord = np.ascontiguousarray(lattice[:, d], dtype=np.int32 if lattice.max(initial=0) < 2**31 else np.int64)
-        for start in range(0, cells.shape[0], chunk):
-            sub = coord[cells[start:start + chunk]]  # (m, corners) lattice coordinate d
-            lo, hi = sub[:, :1], sub[:, far:far + 1]
-            ok = (hi[:, 0] > lo[:, 0]) & np.all(sub == np.where(offsets[:, d], hi, lo), axis=1)
-            out[start:start + chunk] &= ok
+    if lat.shape[0] == 0:
+        return out
+    base = lat.min(axis=0)
+    extent = lat.max(axis=0) - base + 1
+    stride = np.ones(dim, dtype=np.int64)
+    for d in range(dim - 2, -1, -1):
+        stride[d] = stride[d + 1] * extent[d + 1]
+    key = (lat - base) @ stride
+    # corner -> the axes it is offset along (VTK order): corner = corner 0 + those steps
+    steps = [[d for d in range(dim) if off[d]] for off in (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim]]
+    for start in range(0, cells.shape[0], chunk):
+        c = cells[start:start + chunk]
+        span = lat[c[:, far]] - lat[c[:, 0]]  # (m, dim)
+        ok = np.all(span > 0, axis=1)
+        k0 = key[c[:, 0]]
+        step = [span[:, d] * stride[d] for d in range(dim)]
+        for corner in range(1, c.shape[1]):
+            expected = k0.copy()
+            for d in steps[corner]:
+                expected += step[d]
+            ok &= key[c[:, corner]] == expected
+        out[start:start + chunk] = ok
     return out
 
 

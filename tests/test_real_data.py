@@ -169,6 +169,11 @@ def test_coarse_model_matches_its_labels(coarse_run):
     assert quality["elements"] == n_elements and quality["inverted_elements"] == 0
     assert quality["scaled_jacobian"]["min"] >= 0.2 - 1e-9
     assert set(quality["stages"]) == {"fix", "merge", "smooth"}
+    fix = json.loads((coarse_run / "fix.json").read_text())
+    assert fix["converged"] and fix["remaining"] == {"type_a": 0, "type_b": 0, "type_c": 0}
+    from dicer.connectivity import connectivity_defects
+
+    assert connectivity_defects(labels.array) == {"type_a": 0, "type_b": 0, "type_c": 0}
 
 
 @pytest.mark.calculix

@@ -130,6 +130,20 @@ def test_classes_do_not_depend_on_the_lattice():
     assert CODE["X"] not in set(a.tolist())
 
 
+@pytest.mark.parametrize("dims", [(9, 8, 7), (13, 11)])
+def test_corner_table_gives_the_same_graph(dims):
+    # the smoother passes its corner table (no pass over all elements); same graph
+    from dicer.mesh.smooth import _corner_slots
+
+    rng = np.random.default_rng(len(dims))
+    for kinds in (1, 2, 4):
+        m = voxel_mesh(rng.integers(0, kinds + 1, dims).astype(np.uint8))
+        a = boundary_graph(m)
+        b = boundary_graph(m, None, _corner_slots(m.cells, m.n_points))
+        for f in ("boundary", "edges", "degree", "node_class", "boundary_cells"):
+            assert np.array_equal(getattr(a, f), getattr(b, f)), f
+
+
 def test_2d_square_corners_and_sides():
     lab = np.zeros((5, 5), np.uint8)
     lab[1:4, 1:4] = 1

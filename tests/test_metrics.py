@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from dicer.mesh.metrics import corner_scaled_jacobians, edge_ratio, element_volumes, scaled_jacobian
+from dicer.mesh.metrics import (corner_scaled_jacobians, edge_ratio, element_volumes, hex_scaled_jacobian_t,
+                                hex_volumes_t, scaled_jacobian)
 from dicer.mesh.model import HEX_CORNERS, QUAD_CORNERS
 
 CUBE = HEX_CORNERS.astype(float)
@@ -58,6 +59,22 @@ def test_trilinear_volume_is_exact():
         sub_cells.append(np.arange(base, base + 8))
     parts = element_volumes(np.array(sub_pts), np.array(sub_cells))
     assert parts.sum() == pytest.approx(whole, rel=1e-12)
+
+
+def test_transposed_hexahedron_metrics_match():
+    # the smoother's variants (cells transposed, coordinate columns; closed-form volume)
+    rng = np.random.default_rng(5)
+    m = 500
+    pts = (CUBE[None] * rng.uniform(0.5, 3.0, (m, 1, 3)) + rng.normal(0, 0.25, (m, 8, 3))
+           + rng.normal(0, 20.0, (m, 1, 3))).reshape(-1, 3)
+    cells = np.arange(8 * m).reshape(m, 8)[rng.permutation(m)]
+    cols = [np.ascontiguousarray(pts[:, d]) for d in range(3)]
+    vol = element_volumes(pts, cells)
+    assert np.allclose(hex_volumes_t(cols, cells.T, chunk=64), vol, rtol=1e-12, atol=1e-12 * np.abs(vol).max())
+    sj = scaled_jacobian(pts, cells, chunk=64)
+    assert np.allclose(sj, corner_scaled_jacobians(pts, cells).min(axis=1), rtol=0, atol=1e-12)
+    assert np.array_equal(hex_scaled_jacobian_t(cols, cells.T.astype(np.int32), chunk=100), sj)
+    assert np.array_equal(scaled_jacobian(pts, cells), sj)  # the block size does not matter
 
 
 def test_quads():

@@ -73,7 +73,7 @@ class BoundaryGraph:
         the boundary nodes, in increasing order); rows and columns follow ``nodes``."""
         if nodes is None:
             nodes = np.flatnonzero(self.boundary)
-        pos = np.full(self.boundary.size, -1, np.int64)
+        pos = np.full(self.boundary.size, -1, np.int32 if self.boundary.size < 2**31 else np.int64)
         pos[nodes] = np.arange(nodes.size)
         a, b = pos[self.edges[:, 0]], pos[self.edges[:, 1]]
         keep = (a >= 0) & (b >= 0)
@@ -82,36 +82,50 @@ class BoundaryGraph:
         return sp.csr_matrix((ones, (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(nodes.size, nodes.size))
 
 
-def _kinds(material: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distinct material values and each element's rank among them (no sorting)."""
-    m = material.astype(np.int64)
+_ROWS = 65536  # elements per block of the passes over all elements (a block stays in the cache)
+
+
+def _kinds(material: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Distinct material values, each element's rank among them (no sorting) and the
+    number of elements of each."""
+    m = np.asarray(material)
+    if m.dtype.kind not in "iu":
+        m = m.astype(np.int64)
     if m.size and m.min() < 0:
         raise DicerError("material values must not be negative; renumber the materials")
     present = np.bincount(m) if m.size else np.zeros(0, np.int64)
     kinds = np.flatnonzero(present)
-    lut = np.zeros(present.size, np.int64)
+    lut = np.zeros(present.size, np.int8 if kinds.size <= 127 else np.int32)
     lut[kinds] = np.arange(kinds.size)
     return kinds, lut[m], present[kinds]
+
+
+def _uniform(cells: np.ndarray, rank: np.ndarray, n: int, n_kinds: int) -> np.ndarray:
+    """Per node: whether all elements sharing it have one material rank.
+
+    Every element writes its rank to its nodes (the last write stays), then every
+    element compares: a node where some element finds another rank is mixed.
+    """
+    if n_kinds <= 1:
+        return np.ones(n, bool)
+    kind_of = np.zeros(n, rank.dtype)
+    for start in range(0, cells.shape[0], _ROWS):
+        kind_of[cells[start : start + _ROWS]] = rank[start : start + _ROWS, None]
+    mixed = np.zeros(n, bool)
+    for start in range(0, cells.shape[0], _ROWS):
+        block = cells[start : start + _ROWS]
+        other = kind_of[block] != rank[start : start + _ROWS, None]
+        if other.any():
+            mixed[block[other]] = True
+    return ~mixed
 
 
 def node_cell_counts(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     """Per node: the number of elements sharing it, and whether they all have one material."""
     n = mesh.n_points
     cnt = np.bincount(mesh.cells.ravel(), minlength=n)
-    kinds, rank, sizes = _kinds(mesh.material)
-    if kinds.size <= 1:
-        return cnt, np.ones(n, bool)
-    uniform = np.zeros(n, bool)
-    rest = cnt.copy()
-    biggest = int(np.argmax(sizes))
-    for r in range(kinds.size):
-        if r == biggest:
-            continue
-        ck = np.bincount(mesh.cells[rank == r].ravel(), minlength=n)
-        uniform |= ck == cnt
-        rest -= ck
-    uniform |= rest == cnt
-    return cnt, uniform
+    kinds, rank, _ = _kinds(mesh.material)
+    return cnt, _uniform(mesh.cells, rank, n, kinds.size)
 
 
 def _check(mesh: Mesh) -> None:
@@ -123,11 +137,33 @@ def _check(mesh: Mesh) -> None:
         raise DicerError("material data do not match the element count; the mesh file is inconsistent")
 
 
-def boundary_graph(mesh: Mesh, points: np.ndarray | None = None) -> BoundaryGraph:
+def _slot_counts(slots: np.ndarray, rank: np.ndarray, n_kinds: int) -> tuple[np.ndarray, np.ndarray]:
+    """node_cell_counts (counts as int8) from the corner table ``slots`` (see boundary_graph)."""
+    cnt = np.zeros(slots.shape[1], np.int8)  # at most 8
+    if n_kinds <= 1:
+        for row in slots:
+            cnt += row >= 0
+        return cnt, np.ones(slots.shape[1], bool)
+    big = np.iinfo(rank.dtype).max
+    low = np.full(slots.shape[1], big, rank.dtype)
+    high = np.full(slots.shape[1], -1, rank.dtype)
+    for row in slots:
+        present = row >= 0
+        cnt += present
+        r = rank[row]  # row -1: the last element's rank, masked below
+        np.minimum(low, np.where(present, r, big), out=low)
+        np.maximum(high, np.where(present, r, -1), out=high)
+    return cnt, (low == high) | (high < 0)
+
+
+def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarray | None = None) -> BoundaryGraph:
     """Boundary nodes, boundary edges, their counts and the node classes of ``mesh``.
 
     ``points`` (default ``mesh.points``) is the geometry used to tell B from D (and
-    corner from flat in 2D); pass the unsmoothed positions.
+    corner from flat in 2D); pass the unsmoothed positions. ``slots`` (optional, same
+    result) is the (corners, N) table of the element in which each node is corner c (-1:
+    none) of a mesh in which a node is corner c of at most one element (lattice-aligned
+    elements, as made by 'dicer mesh'); with it no pass over all elements is needed.
     """
     _check(mesh)
     n = mesh.n_points
@@ -138,40 +174,84 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None) -> BoundaryGrap
     local = HEX_EDGES if per == 8 else QUAD_EDGES
     pts = mesh.points if points is None else points
 
-    cnt, uniform = node_cell_counts(mesh)
-    boundary = ~((cnt == full) & uniform)
-    boundary &= cnt > 0
-
     kinds, rank, _ = _kinds(mesh.material)
+    if slots is None:
+        cnt = np.bincount(cells.ravel(), minlength=n)
+        uniform = _uniform(cells, rank, n, kinds.size)
+    else:
+        cnt, uniform = _slot_counts(slots, rank, kinds.size)
+    boundary = (cnt > 0) & ~((cnt == full) & uniform)
+    del cnt, uniform
     if kinds.size > _MAX_KINDS:
         raise DicerError(f"the mesh has {kinds.size} materials; node classification handles up to {_MAX_KINDS}")
-    code = np.left_shift(np.int64(1), 3 * rank.astype(np.int64))  # one 3-bit counter per material
+    code = np.left_shift(np.int64(1), 3 * np.arange(kinds.size, dtype=np.int64))  # one 3-bit counter per material
 
-    cand = np.flatnonzero(boundary[cells].any(axis=1))
-    sub = cells[cand]
-    a = sub[:, local[:, 0]].ravel()
-    b = sub[:, local[:, 1]].ravel()
-    val = np.repeat(code[cand], local.shape[0])
-    keep = boundary[a] & boundary[b]
-    a, b, val = a[keep], b[keep], val[keep]
-    lo, hi = np.minimum(a, b), np.maximum(a, b)
-    hist = sp.csr_matrix((val, (lo, hi)), shape=(n, n))  # duplicates summed: per-edge histogram
+    # the elements holding a boundary node, and their edges between two boundary nodes, with
+    # nodes numbered among the boundary nodes (p: that number, -1 for other nodes)
+    pre = np.flatnonzero(boundary)
+    idx = np.int32 if n < 2**31 else np.int64
+    p = np.full(n, -1, idx)
+    p[pre] = np.arange(pre.size, dtype=idx)
+    parts = []  # per block of elements: (first, second, material code) of its edges
+
+    def edges_of(sub, ranks):
+        a, b = sub[:, local[:, 0]], sub[:, local[:, 1]]
+        keep = (a >= 0) & (b >= 0)
+        return (np.minimum(a, b)[keep], np.maximum(a, b)[keep],
+                np.broadcast_to(code[ranks][:, None], a.shape)[keep])
+
+    if slots is None:
+        has = np.empty(cells.shape[0], bool)
+        for start in range(0, cells.shape[0], _ROWS):
+            sub = p[cells[start : start + _ROWS]]
+            on = (sub >= 0).any(axis=1)
+            has[start : start + _ROWS] = on
+            parts.append(edges_of(sub[on], rank[start : start + _ROWS][on]))
+        cand = np.flatnonzero(has)
+    else:
+        has = np.zeros(cells.shape[0], bool)
+        for row in slots:
+            e = row[pre]
+            has[e[e >= 0]] = True
+        cand = np.flatnonzero(has)
+        for start in range(0, cand.size, _ROWS):
+            part = cand[start : start + _ROWS]
+            parts.append(edges_of(p[cells[part]], rank[part]))
+    del p, has
+    if not parts:
+        parts.append(edges_of(np.zeros((0, per), idx), np.zeros(0, np.int64)))
+    lo, hi, val = (np.concatenate(column) for column in zip(*parts))
+    del parts
+    # duplicates summed: per-edge histogram; rows and columns sorted, so edges come out in
+    # increasing (first, second) order
+    hist = sp.csr_matrix((val, (lo, hi)), shape=(pre.size, pre.size))
     hist.sum_duplicates()
-    e_lo = np.repeat(np.arange(n, dtype=np.int64), np.diff(hist.indptr))
-    e_hi = hist.indices.astype(np.int64)
+    del lo, hi, val
+    e_lo = np.repeat(np.arange(pre.size, dtype=idx), np.diff(hist.indptr))
+    e_hi = hist.indices
     h = hist.data.astype(np.int64)
     counts = np.stack([(h >> (3 * r)) & 7 for r in range(kinds.size)], axis=1) if h.size else np.zeros((0, kinds.size), np.int64)
     total = counts.sum(axis=1)
     top = counts.max(axis=1) if counts.size else np.zeros(0, np.int64)
     is_b = top < edge_slots
     biggest = np.maximum(top, edge_slots - total)  # empty slots are one more kind
-    edges = np.stack([e_lo[is_b], e_hi[is_b]], axis=1)
+    ea, eb = e_lo[is_b], e_hi[is_b].astype(idx)
     biggest = biggest[is_b]
+    del hist, e_lo, e_hi, h, counts, total, top, is_b
+    edges = np.stack([pre[ea], pre[eb]], axis=1)
 
-    degree = np.bincount(edges.ravel(), minlength=n).astype(np.int64)
+    deg = np.bincount(ea, minlength=pre.size) + np.bincount(eb, minlength=pre.size)
+    degree = np.zeros(n, np.int64)
+    degree[pre] = deg
     # boundary nodes are exactly the nodes on boundary edges (a node of a single-material
     # unit block with empty slots has them); keep the two definitions in step
-    boundary &= degree > 0
+    on_edge = deg > 0
+    if not on_edge.all():
+        boundary[pre[~on_edge]] = False
+        renumber = np.cumsum(on_edge, dtype=np.int64) - 1
+        ea, eb = renumber[ea], renumber[eb]
+        deg = deg[on_edge]
+    bn = np.flatnonzero(boundary)
 
     # unit vectors along the boundary edges, summed per node
     d = pts[edges[:, 1]] - pts[edges[:, 0]]
@@ -179,34 +259,30 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None) -> BoundaryGrap
     if np.any(length <= 0):
         raise DicerError("the mesh has boundary edges of zero length; it is degenerate")
     u = d / length[:, None]
-    bn = np.flatnonzero(boundary)
-    bpos = np.full(n, -1, np.int64)
-    bpos[bn] = np.arange(bn.size)
-    ea, eb = bpos[edges[:, 0]], bpos[edges[:, 1]]
     usum = np.zeros((bn.size, 3))
     for c in range(3):
         usum[:, c] = np.bincount(ea, weights=u[:, c], minlength=bn.size) - np.bincount(
             eb, weights=u[:, c], minlength=bn.size)
-    flat = np.zeros(n, bool)
-    flat[bn] = np.einsum("ij,ij->i", usum, usum) < 0.25
+    flat = np.einsum("ij,ij->i", usum, usum) < 0.25
 
-    cls = np.zeros(n, np.int8)
+    # classes of the boundary nodes
+    cb = np.full(bn.size, 7, np.int8)
     if per == 8:
-        split = np.zeros(n, bool)  # some boundary edge split two/two
+        split = np.zeros(bn.size, bool)  # some boundary edge split two/two
         two = biggest <= 2
-        split[edges[two, 0]] = True
-        split[edges[two, 1]] = True
-        cls[boundary] = 7
-        cls[boundary & (degree == 3)] = 1
-        cls[boundary & (degree == 4) & ~flat] = 2
-        cls[boundary & (degree == 5)] = 3
-        cls[boundary & (degree == 4) & flat] = 4
-        cls[boundary & (degree == 6) & split] = 5
-        cls[boundary & (degree == 6) & ~split] = 6
+        split[ea[two]] = True
+        split[eb[two]] = True
+        cb[deg == 3] = 1
+        cb[(deg == 4) & ~flat] = 2
+        cb[deg == 5] = 3
+        cb[(deg == 4) & flat] = 4
+        cb[(deg == 6) & split] = 5
+        cb[(deg == 6) & ~split] = 6
     else:
-        cls[boundary] = 7
-        cls[boundary & (degree == 2) & ~flat] = 2
-        cls[boundary & (degree == 2) & flat] = 4
+        cb[(deg == 2) & ~flat] = 2
+        cb[(deg == 2) & flat] = 4
+    cls = np.zeros(n, np.int8)
+    cls[bn] = cb
     return BoundaryGraph(boundary, edges, degree, cls, cand)
 
 

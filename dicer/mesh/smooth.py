@@ -24,7 +24,12 @@
    boundary nodes of the offending elements (widening to their neighbours when those
    already stay put) are multiplied by ``backoff_factor``, or set to 0 in the last
    rounds, and both solves rerun. A mesh that still fails raises DicerError naming the
-   worst element.
+   worst element. (The scaled Jacobian before smoothing is computed only for elements
+   that fail: an element already below the floor fails only if it got worse.)
+
+The arithmetic is single-threaded numpy and scipy.sparse (no BLAS calls, whose threaded
+sums depend on the thread count): the same input gives the same output, bit for bit,
+whatever the number of threads.
 """
 
 from __future__ import annotations
@@ -33,11 +38,10 @@ import time
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg.blas import get_blas_funcs as _blas
 
 from dicer.errors import DicerError
 from dicer.mesh.boundary import NODE_CLASSES, boundary_graph, class_counts
-from dicer.mesh.metrics import element_volumes, scaled_jacobian
+from dicer.mesh.metrics import element_volumes, hex_scaled_jacobian_t, hex_volumes_t, scaled_jacobian
 from dicer.mesh.model import Mesh
 
 __all__ = ["DEFAULTS", "smooth_mesh", "smoothing_settings"]
@@ -102,84 +106,122 @@ def smoothing_settings(section: dict | None) -> dict:
 
 
 # --- solvers -------------------------------------------------------------------------------
+#
+# Every reduction and vector update is a numpy ufunc or einsum, never a BLAS call:
+# OpenBLAS splits dot and axpy between threads, so their results would depend on the
+# number of threads (and the threads' hand-offs cost more than the sums on a busy machine).
 
 
-def _pcg(apply, rhs: np.ndarray, inv_diag: np.ndarray | None, tol: float, maxiter: int) -> tuple[np.ndarray, int]:
-    """Conjugate gradients on the block-diagonal system of the columns of ``rhs``.
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    """a . b of two vectors, in one thread."""
+    return float(np.einsum("i,i->", a, b))
 
-    The columns share one operator; CG runs on them stacked as one vector (the block
-    system is symmetric positive definite when each block is), preconditioned by
-    ``inv_diag`` (None: none), until ||r|| <= tol * ||rhs||. Vector updates are in place.
+
+def _pcg(apply, b: np.ndarray, inv_diag: np.ndarray | None, tol: float, maxiter: int) -> tuple[np.ndarray, int]:
+    """Conjugate gradients on A x = b, ``apply(p)`` giving A p.
+
+    ``b`` holds the columns of a block-diagonal system stacked into one vector (the block
+    system is symmetric positive definite when each block is). Preconditioned by
+    ``inv_diag`` (None: none), until ||r|| <= tol * ||b||. Vector updates are in place.
     """
-    shape = rhs.shape
-    b = np.ascontiguousarray(rhs).ravel()
-    bnorm = float(np.sqrt(b @ b))
+    bnorm = float(np.sqrt(_dot(b, b)))
     x = np.zeros_like(b)
     if bnorm == 0:
-        return x.reshape(shape), 0
-    d = None if inv_diag is None else np.repeat(inv_diag, shape[1]).astype(b.dtype)
-    axpy = _blas("axpy", (b,))
-
-    def op(v):
-        return np.ascontiguousarray(apply(v.reshape(shape))).ravel()
-
+        return x, 0
+    buf = np.empty_like(b)
     r = b.copy()
-    z = r if d is None else r * d
+    z = r if inv_diag is None else r * inv_diag
     p = z.copy()
-    rz = float(r @ z)
+    rz = _dot(r, z)
     target = tol * bnorm
     for it in range(1, maxiter + 1):
-        q = op(p)
-        pq = float(p @ q)
+        q = apply(p)
+        pq = _dot(p, q)
         if pq <= 0:
-            return x.reshape(shape), it
+            return x, it
         alpha = rz / pq
-        axpy(p, x, a=alpha)
-        axpy(q, r, a=-alpha)
-        if np.sqrt(r @ r) <= target:
-            return x.reshape(shape), it
-        if d is None:
-            z = r
+        x += np.multiply(p, alpha, out=buf)
+        r -= np.multiply(q, alpha, out=buf)
+        rr = _dot(r, r)
+        if np.sqrt(rr) <= target:
+            return x, it
+        if inv_diag is None:
+            rz_new = rr  # z is r
         else:
-            np.multiply(r, d, out=z)
-        rz_new = float(r @ z)
+            np.multiply(r, inv_diag, out=z)
+            rz_new = _dot(r, z)
         p *= rz_new / rz
         p += z
         rz = rz_new
-    return x.reshape(shape), maxiter
+    return x, maxiter
 
 
-def _smoothing_step(adj: sp.csr_matrix, degree: np.ndarray, k: np.ndarray, y: np.ndarray,
-                    fixed: np.ndarray, tol: float) -> tuple[np.ndarray, int]:
-    """The displacement S(y) - y of the boundary system applied to positions ``y``.
+def _csr_rows(col: np.ndarray, keep: np.ndarray, n_cols: int, dtype) -> sp.csr_matrix:
+    """0/1 matrix with a one in row i at column col[i, j] for every keep[i, j], in that order."""
+    indptr = np.zeros(col.shape[0] + 1, np.int64)
+    np.cumsum(np.count_nonzero(keep, axis=1), out=indptr[1:])
+    indices = col[keep]
+    return sp.csr_matrix((np.ones(indices.size, dtype), indices, indptr), shape=(col.shape[0], n_cols))
 
-    With x = y + delta, the system (R/k) x_n - sum x_j = R (1/k - 1) y_n becomes
-    (R/k) delta_n - sum delta_j = sum_j (y_j - y_n): the right-hand side is the graph
-    Laplacian of y (small numbers), so single precision and a relative residual of
-    ``tol`` are ample. Fixed coordinates (and nodes with k = 0) get delta = 0.
+
+class _BoundarySystem:
+    """The boundary system for one set of coefficients ``k``, assembled once for its solves.
+
+    A coordinate is fixed when ``fixed`` says so (a kept bounding plane) or its node has
+    k = 0 or no boundary edge. The three coordinates are solved at once, stacked x | y | z,
+    on the block-diagonal operator diag(R/k) - adjacency, whose block for a coordinate keeps
+    only the edges between nodes free in it (a fixed coordinate's displacement is 0).
     """
-    fixed = fixed | (k <= 0)[:, None] | (degree == 0)[:, None]
-    free = ~fixed
-    kk = np.where(k > 0, k, 1.0)
-    diag = (degree / kk).astype(np.float32)
-    lap = adj @ y - degree[:, None] * y  # float64: positions are large, differences small
-    rhs = np.where(free, lap, 0.0).astype(np.float32)
-    inv_diag = np.where(diag > 0, 1.0 / np.where(diag > 0, diag, 1.0), 1.0).astype(np.float32)
-    adj32 = adj.astype(np.float32)
-    free32 = free
 
-    def apply(v):
-        out = adj32 @ v
-        np.subtract(diag[:, None] * v, out, out=out)
-        out[~free32] = v[~free32]
-        return out
+    def __init__(self, adj: sp.csr_matrix, degree: np.ndarray, k: np.ndarray, fixed: np.ndarray):
+        n = degree.size
+        self.adj, self.degree = adj, degree
+        self.fixed = fixed | (k <= 0)[:, None] | (degree == 0)[:, None]
+        self.free = ~self.fixed
+        kk = np.where(k > 0, k, 1.0)
+        diag = (degree / kk).astype(np.float32)
+        inv_diag = np.where(diag > 0, 1.0 / np.where(diag > 0, diag, 1.0), 1.0).astype(np.float32)
+        self.inv_diag = np.tile(inv_diag, 3)
+        self.diag = np.where(self.free.T, diag, np.float32(1.0)).ravel()
+        rows = np.repeat(np.arange(n), np.diff(adj.indptr))
+        cols = adj.indices
+        indices, counts = [], []
+        for d in range(3):
+            keep = self.free[rows, d] & self.free[cols, d]
+            indices.append(cols[keep].astype(np.int64) + d * n)
+            counts.append(np.bincount(rows[keep], minlength=n))
+        indptr = np.zeros(3 * n + 1, np.int64)
+        np.cumsum(np.concatenate(counts), out=indptr[1:])
+        indices = np.concatenate(indices)
+        self.mat = sp.csr_matrix((np.ones(indices.size, np.float32), indices, indptr), shape=(3 * n, 3 * n))
 
-    delta, it = _pcg(apply, rhs, inv_diag, tol, 2000)
-    return np.where(fixed, 0.0, delta.astype(np.float64)), it
+    def step(self, y: np.ndarray, tol: float) -> tuple[np.ndarray, int]:
+        """The displacement S(y) - y of the boundary system applied to positions ``y``.
+
+        With x = y + delta, the system (R/k) x_n - sum x_j = R (1/k - 1) y_n becomes
+        (R/k) delta_n - sum delta_j = sum_j (y_j - y_n): the right-hand side is the graph
+        Laplacian of y (small numbers), so single precision and a relative residual of
+        ``tol`` are ample. Fixed coordinates (and nodes with k = 0) get delta = 0.
+        """
+        n = y.shape[0]
+        lap = self.adj @ y - self.degree[:, None] * y  # float64: positions are large, differences small
+        rhs = np.where(self.free, lap, 0.0).astype(np.float32)
+        b = np.ascontiguousarray(rhs.T).ravel()
+        mat, diag, buf = self.mat, self.diag, np.empty_like(b)
+
+        def apply(v):
+            out = mat @ v
+            np.multiply(diag, v, out=buf)
+            np.subtract(buf, out, out=out)
+            return out
+
+        delta, it = _pcg(apply, b, self.inv_diag, tol, 2000)
+        return np.where(self.fixed, 0.0, delta.reshape(3, n).T.astype(np.float64)), it
 
 
-_HEX_NEIGHBOURS = np.array([[1, 3, 4], [2, 0, 5], [3, 1, 6], [0, 2, 7], [7, 5, 0], [4, 6, 1], [5, 7, 2], [6, 4, 3]])
-_QUAD_NEIGHBOURS = np.array([[1, 3], [2, 0], [3, 1], [0, 2]])
+# rows of the element array per block of the passes over all elements: a block's columns
+# stay in the cache while each corner is read
+_ROWS = 65536
 
 
 def _touching(cells: np.ndarray, mark: np.ndarray) -> np.ndarray:
@@ -193,25 +235,33 @@ def _corner_slots(cells: np.ndarray, n_points: int) -> np.ndarray:
     In a conforming mesh of lattice-aligned elements in VTK order (voxel and plane-merged
     meshes), a node is corner c of at most one element: the one in the matching octant.
     """
-    per = cells.shape[1]
-    if cells.shape[0] >= 2**31 - 1 or n_points >= 2**31 - 1:
+    m, per = cells.shape
+    if m >= 2**31 - 1 or n_points >= 2**31 - 1:
         raise DicerError("the mesh is too large for smoothing (2^31 nodes or elements)")
     slots = np.full((per, n_points), -1, np.int32)
-    ids = np.arange(cells.shape[0], dtype=np.int32)
-    for c in range(per):
-        slots[c][cells[:, c]] = ids
-    if int(np.count_nonzero(slots >= 0)) != cells.size:
+    for start in range(0, m, _ROWS):
+        block = cells[start : start + _ROWS]
+        ids = np.arange(start, start + block.shape[0], dtype=np.int32)
+        for c in range(per):
+            slots[c][block[:, c]] = ids
+    if any(int(np.count_nonzero(row >= 0)) != m for row in slots):
         raise DicerError("the elements are not lattice-aligned with VTK corner order (a node is the same "
                          "corner of two elements); remesh from the labels with 'dicer mesh'")
     return slots
 
 
-def _cells_of(slots: np.ndarray, nodes: np.ndarray, n_cells: int) -> np.ndarray:
-    """Sorted unique elements holding any of ``nodes``."""
+def _holding(slots: np.ndarray, nodes: np.ndarray, n_cells: int) -> np.ndarray:
+    """(n_cells,) bool: the elements holding any of ``nodes``."""
     cand = slots[:, nodes].ravel()
     mark = np.zeros(n_cells, bool)
     mark[cand[cand >= 0]] = True
-    return np.flatnonzero(mark)
+    return mark
+
+
+def _mark_nodes(cells: np.ndarray, elements: np.ndarray, mark: np.ndarray) -> None:
+    """Set ``mark`` at the nodes of ``elements``, a block of elements at a time."""
+    for start in range(0, elements.size, _ROWS):
+        mark[cells[elements[start : start + _ROWS]]] = True
 
 
 def _band(cells: np.ndarray, slots: np.ndarray, boundary: np.ndarray, boundary_cells: np.ndarray, width: int):
@@ -226,14 +276,16 @@ def _band(cells: np.ndarray, slots: np.ndarray, boundary: np.ndarray, boundary_c
     layer_cells = boundary_cells
     for _ in range(width):
         mark = np.zeros(n, bool)
-        mark[cells[layer_cells].ravel()] = True
+        _mark_nodes(cells, layer_cells, mark)
         mark &= ~seen
         nodes = np.flatnonzero(mark)
         if nodes.size == 0:
             break
         seen[nodes] = True
-        layer_cells = _cells_of(slots, nodes, m)
-        in_cells[layer_cells] = True
+        holding = _holding(slots, nodes, m)
+        # the next layer: elements not met before (the nodes of the others are all seen)
+        layer_cells = np.flatnonzero(holding & ~in_cells)
+        in_cells |= holding
     return np.flatnonzero(seen & ~boundary), np.flatnonzero(in_cells)
 
 
@@ -247,55 +299,57 @@ class _Interior:
     """The interior Laplace system on a band of interior nodes, assembled once.
 
     An interior node has a full unit block, so its 2*dim edge neighbours are the
-    neighbouring corners in its +++ and --- elements.
+    neighbouring corners in its +++ and --- elements. ``m_bb`` couples band nodes,
+    ``m_bB`` band nodes to boundary nodes (the nodes ``bnodes``, in that order).
     """
 
-    def __init__(self, cells: np.ndarray, slots: np.ndarray, band_nodes: np.ndarray, boundary: np.ndarray):
+    def __init__(self, cells: np.ndarray, slots: np.ndarray, band_nodes: np.ndarray, boundary: np.ndarray,
+                 bnodes: np.ndarray):
         n = boundary.size
         per = cells.shape[1]
         m = band_nodes.size
         self.nodes = band_nodes
         if m == 0:
             return
-        parts = []
+        # pos: a band node's number (>= 0), -2 - a boundary node's number, -1 for other nodes
+        pos = np.full(n, -1, np.int32)  # n < 2^31 (checked by _corner_slots)
+        pos[band_nodes] = np.arange(m, dtype=np.int32)
+        pos[bnodes] = -2 - np.arange(bnodes.size, dtype=np.int32)
+        nb = np.empty((m, 2 * len(_FORWARD[per][1])), np.int32)  # neighbours, in pos numbers
+        j = 0
         for corner, nbrs in (_FORWARD[per], _BACKWARD[per]):
             owner = slots[corner][band_nodes]
             if np.any(owner < 0):
                 raise DicerError("an interior node lacks a full unit block of elements; the mesh is not conforming")
-            parts.append(cells[owner][:, list(nbrs)])
-        nb = np.concatenate(parts, axis=1)  # (m, 2*dim)
-        n_nb = nb.shape[1]
-        pos = np.full(n, -1, np.int32 if n < 2**31 else np.int64)
-        pos[band_nodes] = np.arange(m)
-        cols = nb.ravel()
-        indptr = np.arange(0, m * n_nb + 1, n_nb, dtype=np.int64)
-        # fixed-length rows: neighbours of another kind stay in place with a zero weight
-        pb = pos[cols]
-        in_band = pb >= 0
-        self.m_bb = sp.csr_matrix((in_band.astype(np.float32), np.where(in_band, pb, 0), indptr), shape=(m, m))
-        bnodes = np.flatnonzero(boundary)
-        pos[:] = -1
-        pos[bnodes] = np.arange(bnodes.size)
-        pB = pos[cols]
-        on_bnd = pB >= 0
-        self.m_bB = sp.csr_matrix((on_bnd.astype(np.float64), np.where(on_bnd, pB, 0), indptr),
-                                  shape=(m, bnodes.size))
-        self.deg = float(n_nb)
+            for c in nbrs:
+                nb[:, j] = pos[cells[owner, c]]
+                j += 1
+        del pos
+        self.m_bb = _csr_rows(nb, nb >= 0, m, np.float32)  # neighbours of another kind: no entry
+        self.m_bB = _csr_rows(-2 - nb, nb <= -2, bnodes.size, np.float64)
+        self.deg = np.float32(nb.shape[1])
 
     def solve(self, u_boundary: np.ndarray, tol: float) -> tuple[np.ndarray, int]:
         """Displacements of the band nodes given those of the boundary nodes (B, 3)."""
-        if self.nodes.size == 0:
+        m = self.nodes.size
+        if m == 0:
             return np.zeros((0, 3)), 0
-        rhs = (self.m_bB @ u_boundary).astype(np.float32)
-        deg, m_bb = np.float32(self.deg), self.m_bb
+        ub = np.ascontiguousarray(u_boundary.T)
+        b = np.empty(3 * m, np.float32)
+        for d in range(3):
+            b[d * m : (d + 1) * m] = self.m_bB @ ub[d]
+        deg, m_bb = self.deg, self.m_bb
+        out, buf = np.empty_like(b), np.empty_like(b)
 
         def apply(v):
-            out = m_bb @ v
-            np.subtract(deg * v, out, out=out)
+            np.multiply(v, deg, out=buf)
+            for d in range(3):
+                part = slice(d * m, (d + 1) * m)
+                np.subtract(buf[part], m_bb @ v[part], out=out[part])
             return out
 
-        u, it = _pcg(apply, rhs, None, tol, 5000)
-        return u.astype(np.float64), it
+        u, it = _pcg(apply, b, None, tol, 5000)
+        return u.reshape(3, m).T.astype(np.float64), it
 
 
 # --- the stage -----------------------------------------------------------------------------
@@ -304,12 +358,53 @@ class _Interior:
 def _lattice_volumes(mesh: Mesh) -> np.ndarray:
     """Per element, the volume (2D: area) of its lattice box: exact before smoothing."""
     far = 6 if mesh.dim == 3 else 2
-    lo, hi = mesh.cells[:, 0], mesh.cells[:, far]
-    out = np.ones(mesh.n_cells)
-    for d in range(mesh.dim):
-        col = np.ascontiguousarray(mesh.lattice[:, d])
-        out *= np.abs(col[hi] - col[lo]) * float(mesh.spacing[d])
+    lattice = np.asarray(mesh.lattice)
+    spacing = [float(mesh.spacing[d]) for d in range(mesh.dim)]
+    out = np.empty(mesh.n_cells)
+    for start in range(0, mesh.n_cells, _ROWS):
+        block = mesh.cells[start : start + _ROWS]
+        span = np.abs(lattice[block[:, far]] - lattice[block[:, 0]])
+        vol = np.ones(block.shape[0])
+        for d in range(mesh.dim):
+            vol *= span[:, d] * spacing[d]
+        out[start : start + _ROWS] = vol
     return out
+
+
+class _Elements:
+    """A set of elements (the checked ones) with their own numbering of the nodes they hold,
+    so their metrics are computed from compact coordinate columns."""
+
+    def __init__(self, cells: np.ndarray, elements: np.ndarray, n_points: int):
+        self.cells, self.elements = cells, elements
+        self.hex = cells.shape[1] == 8
+        if not self.hex:
+            return
+        mark = np.zeros(n_points, bool)
+        _mark_nodes(cells, elements, mark)
+        self.nodes = np.flatnonzero(mark)
+        del mark
+        idx = np.int32 if n_points < 2**31 else np.int64
+        pos = np.full(n_points, -1, idx)
+        pos[self.nodes] = np.arange(self.nodes.size, dtype=idx)
+        self.local = np.empty((8, elements.size), idx)
+        for start in range(0, elements.size, _ROWS):
+            self.local[:, start : start + _ROWS] = pos[cells[elements[start : start + _ROWS]]].T
+
+    def columns(self, x: np.ndarray) -> list[np.ndarray]:
+        """The coordinates of the elements' nodes: x, y and z arrays in local numbering."""
+        return [x[self.nodes, d] for d in range(3)]
+
+    def scaled_jacobian(self, x: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
+        """Scaled Jacobian of the elements (or of elements[which]) at positions x (N, 3).
+        The coordinate columns of the last whole pass are kept in ``self.last``."""
+        if not self.hex:
+            el = self.elements if which is None else self.elements[which]
+            return scaled_jacobian(x, self.cells[el])
+        if which is not None:
+            return scaled_jacobian(x, self.cells[self.elements[which]])
+        self.last = self.columns(x)
+        return hex_scaled_jacobian_t(self.last, self.local)
 
 
 def _plane_fixed(mesh: Mesh, nodes: np.ndarray) -> np.ndarray:
@@ -347,8 +442,18 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
     t0 = time.perf_counter()
     timings = {}
     x0 = np.asarray(mesh.points, float)
-    g = boundary_graph(mesh, x0)
-    timings["classify"] = time.perf_counter() - t0
+    slots = slots_error = None
+    if s["interior"]:
+        # the corner table serves the classification too (no pass over all elements there)
+        try:
+            slots = _corner_slots(mesh.cells, mesh.n_points)
+        except DicerError as err:  # raised after the classification's own checks
+            slots_error = err
+    t_slots = time.perf_counter() - t0
+    g = boundary_graph(mesh, x0, slots)
+    if slots_error is not None:
+        raise slots_error
+    timings["classify"] = time.perf_counter() - t0 - t_slots
 
     bnodes = np.flatnonzero(g.boundary)
     adj = g.adjacency(bnodes)
@@ -371,50 +476,57 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
 
     t1 = time.perf_counter()
     if s["interior"]:
-        slots = _corner_slots(mesh.cells, mesh.n_points)
         band_nodes, touched = _band(mesh.cells, slots, g.boundary, g.boundary_cells, s["interior_band"])
-        interior = _Interior(mesh.cells, slots, band_nodes, g.boundary)
+        interior = _Interior(mesh.cells, slots, band_nodes, g.boundary, bnodes)
         del slots
     else:
         band_nodes = np.zeros(0, np.int64)
         touched = g.boundary_cells
         interior = None
-    timings["assemble"] = time.perf_counter() - t1
+    checked = _Elements(mesh.cells, touched, mesh.n_points)
+    timings["assemble"] = time.perf_counter() - t1 + t_slots
 
     floor = float(s["min_scaled_jacobian"])
-    sj_before = scaled_jacobian(x0, mesh.cells[touched])
     backed = np.zeros(bnodes.size, bool)
-    bpos = np.full(mesh.n_points, -1, np.int64)
-    bpos[bnodes] = np.arange(bnodes.size)
+    bpos = None  # a node's number among the boundary nodes, made for the first back-off
     rounds = 0
     x = None
+    x_band0 = x0[band_nodes]
     t_solve = t_guard = 0.0
     it_b = it_i = 0
     while True:
         ts = time.perf_counter()
-        d1, itb = _smoothing_step(adj, degree, k, xb0, fixed, s["tolerance"])
+        system = _BoundarySystem(adj, degree, k, fixed)
+        d1, itb = system.step(xb0, s["tolerance"])
         it_b += itb
         if s["shrink_compensation"]:
             # twicing: x = (2S - S^2) x0 = x0 - (S(d1) - d1) with d1 = S(x0) - x0; the
             # low-frequency part of the displacement (the shrinkage) is taken back
-            d2, itb = _smoothing_step(adj, degree, k, d1, fixed, s["tolerance"])
+            d2, itb = system.step(d1, s["tolerance"])
             it_b += itb
             xb = xb0 - d2
         else:
             xb = xb0 + d1
+        del system
         if x is None:
             x = x0.copy()
         x[bnodes] = xb
         if interior is not None and band_nodes.size:
             u, iti = interior.solve(xb - xb0, s["tolerance"])
             it_i += iti
-            x[band_nodes] = x0[band_nodes] + u
+            x_band = x_band0 + u
+            x[band_nodes] = x_band
         tg = time.perf_counter()
         t_solve += tg - ts
-        sj = scaled_jacobian(x, mesh.cells[touched])
+        sj = checked.scaled_jacobian(x)
         bad = (sj < floor) | (sj <= 0)
-        # elements that were already below the floor before smoothing only fail if they got worse
-        bad &= ~((sj_before < floor) & (sj >= sj_before - 1e-12) & (sj_before > 0))
+        if bad.any():
+            # elements that were already below the floor before smoothing only fail if they
+            # got worse (their value before is needed only here)
+            which = np.flatnonzero(bad)
+            before = checked.scaled_jacobian(x0, which)
+            after = sj[which]
+            bad[which] = ~((before < floor) & (after >= before - 1e-12) & (before > 0))
         t_guard += time.perf_counter() - tg
         if not bad.any():
             break
@@ -430,6 +542,9 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
         rounds += 1
         last = rounds >= max(1, s["max_backoff_rounds"] - 2)
         nodes = np.unique(mesh.cells[touched[bad]].ravel())
+        if bpos is None:
+            bpos = np.full(mesh.n_points, -1, np.int64)
+            bpos[bnodes] = np.arange(bnodes.size)
         for _ in range(4):
             sel = bpos[nodes]
             sel = sel[(sel >= 0)]
@@ -454,16 +569,24 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
     # the volume a mesh (and each material) encloses depends on its boundary nodes only:
     # measure it on the elements holding a boundary node, with only those nodes moved
     bc = g.boundary_cells
-    xb_only = x0.copy()
-    xb_only[bnodes] = x[bnodes]
-    dv = element_volumes(xb_only, mesh.cells[bc]) - element_volumes(x0, mesh.cells[bc])
-    del xb_only
+    if checked.hex:
+        local = checked.local[:, np.searchsorted(touched, bc)]  # bc is a subset of touched
+        before = checked.columns(x0)
+        on_boundary = g.boundary[checked.nodes]
+        after = [np.where(on_boundary, c1, c0) for c1, c0 in zip(checked.last, before)]
+        dv = hex_volumes_t(after, local) - hex_volumes_t(before, local)
+        del local, before, after
+    else:
+        xb_only = x0.copy()
+        xb_only[bnodes] = x[bnodes]
+        dv = element_volumes(xb_only, mesh.cells[bc]) - element_volumes(x0, mesh.cells[bc])
+        del xb_only
     base = np.bincount(mesh.material, weights=_lattice_volumes(mesh))
     change = np.bincount(mesh.material[bc], weights=dv, minlength=base.size)
     volume_change = {str(kind): float(change[kind] / base[kind]) for kind in np.flatnonzero(base)}
-    moved = np.concatenate([bnodes, band_nodes])
-    disp = np.linalg.norm(x[moved] - x0[moved], axis=1)
-    bdisp = disp[: bnodes.size]
+    bdisp = np.linalg.norm(xb - xb0, axis=1)
+    idisp = np.linalg.norm(x_band - x_band0, axis=1) if band_nodes.size else np.zeros(0)
+    max_disp = max(float(bdisp.max()) if bdisp.size else 0.0, float(idisp.max()) if idisp.size else 0.0)
     report = {
         "nodes": mesh.n_points,
         "elements": mesh.n_cells,
@@ -482,7 +605,7 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
         "inverted_elements": int(np.count_nonzero(sj <= 0)),
         "volume_change": float(dv.sum() / base.sum()),
         "volume_change_by_material": volume_change,
-        "max_displacement_mm": float(disp.max()) if disp.size else 0.0,
+        "max_displacement_mm": max_disp,
         "mean_boundary_displacement_mm": float(bdisp.mean()) if bdisp.size else 0.0,
         "seconds": {**{k_: round(v, 3) for k_, v in timings.items()}, "solve": round(t_solve, 3),
                     "guard": round(t_guard, 3), "total": round(time.perf_counter() - t0, 3)},

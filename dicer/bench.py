@@ -20,6 +20,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 
 def shell_labels(n: int):
     """(n, n, n) uint8 labels of the shell phantom (see ``dicer.phantoms.shell_labels``)."""
@@ -112,6 +114,22 @@ def _case_smooth():
     return _mesh, run, "dicer smooth: boundary + interior solves with the quality guard"
 
 
+def _case_automesh_smooth():
+    def setup(n):
+        import automesh
+
+        labels = shell_labels(n)
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "labels.npy"
+            np.save(path, labels)
+            return automesh.Voxels.from_npy(str(path)).as_finite_elements(remove=[0])
+
+    def run(fem, tmp):
+        fem.smooth(method="Taubin", hierarchical=True, iterations=10)
+
+    return setup, run, "automesh 0.3.1 (Rust) smooth: Taubin, hierarchical, 10 iterations (same ball)"
+
+
 def _export_case(suffix: str, what: str):
     def case():
         def run(mesh, tmp):
@@ -149,6 +167,7 @@ CASES = {
     "pyvista_threshold": _case_pyvista_threshold,
     "merge": _case_merge,
     "smooth": _case_smooth,
+    "automesh_smooth": _case_automesh_smooth,
     "export_abaqus": _export_case(".inp", "dicer Abaqus/CalculiX .inp writer (order 1, all sets)"),
     "meshio_abaqus": _case_meshio_abaqus,
     "export_patran": _export_case(".out", "dicer PATRAN neutral writer (order 1)"),

@@ -243,3 +243,56 @@ def test_ccx_solves_half_resolution_model(half_run, tmp_path):
 def test_ccx_solves_full_resolution_model(full_run, tmp_path):
     # 2.35 M nodes (7 M degrees of freedom): > 10 GB, and more than 1000 s on 2 shared cores
     solve_iteratively(full_run, tmp_path, timeout=7200)
+
+
+# --- slow: plane merging on the real bone ------------------------------------------------------
+
+
+def _exterior_faces(cells: np.ndarray) -> np.ndarray:
+    """(F, 4) node rows of the hexahedron faces used by one element only."""
+    faces = cells[:, [[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]]]
+    faces = faces.reshape(-1, 4)
+    key = np.sort(faces, axis=1)
+    _, first, count = np.unique(key, axis=0, return_index=True, return_counts=True)
+    return faces[first[count == 1]]
+
+
+def _surface_samples(points: np.ndarray, faces: np.ndarray, k: int = 6) -> np.ndarray:
+    """k x k bilinear samples on every face."""
+    t = (np.arange(k) + 0.5) / k
+    u, v = (a.ravel() for a in np.meshgrid(t, t))
+    c = points[faces]  # (F, 4, 3)
+    w = np.stack([(1 - u) * (1 - v), u * (1 - v), u * v, (1 - u) * v], axis=1)  # (k*k, 4)
+    return np.einsum("sc,fcd->fsd", w, c).reshape(-1, 3)
+
+
+@pytest.mark.slow
+def test_merged_bone_surface_stays_within_half_a_voxel():
+    """Bone of the head CT: one merge per axis, then smoothing; the merged-and-smoothed boundary
+    lies on average within 0.5 voxel of the unmerged-and-smoothed one (both ways)."""
+    from scipy.spatial import cKDTree
+
+    from dicer.connectivity import fix_connectivity
+    from dicer.io.images import read_image
+    from dicer.mesh.merge import merge_planes
+    from dicer.mesh.smooth import smooth_mesh
+    from dicer.mesh.voxel import voxel_mesh
+
+    image = read_image(CT)
+    bone = ndi.binary_closing(ndi.binary_opening(image.array >= 226, FACE3), FACE3).astype(np.uint8)
+    bone, _ = fix_connectivity(bone)
+    mesh = voxel_mesh(bone, image.spacing)
+    merged, report = merge_planes(mesh, passes=(1, 1, 1))
+    assert report["element_ratio"] >= 2.0
+    assert abs(report["volume"]["1"]["change_percent"]) <= 10.0
+    fine, _ = smooth_mesh(mesh, {})
+    coarse, rep = smooth_mesh(merged, {})
+    assert rep["inverted_elements"] == 0 and rep["min_scaled_jacobian"] >= 0.2
+    voxel = float(min(image.spacing))
+    distances = []
+    for a, b in ((coarse, fine), (fine, coarse)):
+        samples = _surface_samples(b.points, _exterior_faces(b.cells))
+        nodes = np.unique(_exterior_faces(a.cells))
+        d, _ = cKDTree(samples).query(a.points[nodes])
+        distances.append(float(d.mean()) / voxel)
+    assert max(distances) <= 0.5, distances

@@ -588,9 +588,9 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
         raise DicerError(f"merge.min_scaled_jacobian={min_scaled_jacobian!r}: give a value in [-1, 1)")
     min_corner = msj if msj > 0 else msj - 1e-9  # 0 still refuses inverted corners only
     t_start = time.perf_counter()
-    box0 = _lattice_boxes(mesh.cells, mesh.lattice, dim)
+    box0, size0 = _lattice_boxes(mesh.cells, mesh.lattice, dim, sizes=True)
     on_lattice = _on_lattice(mesh)
-    vol_before = _material_volumes(mesh, box0, on_lattice)
+    vol_before = _material_volumes(mesh, box0, on_lattice, size0)
     report = {"passes": list(counts), "granularity": granularity, "min_thickness": float(min_thickness),
               "min_scaled_jacobian": msj, "rim_moves": bool(rim_moves),
               "elements_before": mesh.n_cells, "nodes_before": mesh.n_points, "steps": []}
@@ -679,8 +679,9 @@ def merge_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, di
                         rim_moves=s["rim_moves"])
 
 
-def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int = 1 << 20):
-    """(M,) bool: elements whose corners sit on the corners of a lattice box, in VTK order.
+def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int = 1 << 20, sizes: bool = False):
+    """(M,) bool: elements whose corners sit on the corners of a lattice box, in VTK order;
+    with ``sizes``, also (M,) int64: each box's volume in lattice units (0 for others).
 
     Lattice positions are packed into one integer key each (one-to-one inside the
     lattice's bounding box). An element is a box when its corner keys are its first
@@ -690,8 +691,9 @@ def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int 
     far = 6 if dim == 3 else 2
     lat = lattice[:, :dim].astype(np.int64)
     out = np.ones(cells.shape[0], dtype=bool)
+    size = np.zeros(cells.shape[0], dtype=np.int64) if sizes else None
     if lat.shape[0] == 0:
-        return out
+        return (out, size) if sizes else out
     base = lat.min(axis=0)
     extent = lat.max(axis=0) - base + 1
     stride = np.ones(dim, dtype=np.int64)
@@ -712,19 +714,26 @@ def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int 
                 expected += step[d]
             ok &= key[c[:, corner]] == expected
         out[start:start + chunk] = ok
-    return out
+        if sizes:
+            size[start:start + chunk] = np.where(ok, np.prod(span, axis=1), 0)
+    return (out, size) if sizes else out
 
 
-def _material_volumes(mesh: Mesh, box: np.ndarray, on_lattice: bool) -> dict[int, float]:
+def _material_volumes(mesh: Mesh, box: np.ndarray, on_lattice: bool, size: np.ndarray | None = None
+                      ) -> dict[int, float]:
     """Volume (area in 2D) of every material, mm^3: lattice boxes (``box``) from their
-    extent when the nodes sit on the lattice, every other element by Gauss quadrature."""
+    extent (or their ``size`` in lattice units, when given) when the nodes sit on the
+    lattice, every other element by Gauss quadrature."""
     cells = mesh.cells
     dim = mesh.dim
     box = box if on_lattice else np.zeros(cells.shape[0], dtype=bool)
     vol = np.empty(cells.shape[0])
     rows = np.flatnonzero(box)
-    span = mesh.lattice[cells[rows, 2 if dim == 2 else 6], :dim] - mesh.lattice[cells[rows, 0], :dim]
-    vol[rows] = np.prod(span, axis=1) * float(np.prod(mesh.spacing[:dim]))
+    if size is None:
+        span = mesh.lattice[cells[rows, 2 if dim == 2 else 6], :dim] - mesh.lattice[cells[rows, 0], :dim]
+        vol[rows] = np.prod(span, axis=1) * float(np.prod(mesh.spacing[:dim]))
+    else:
+        vol[rows] = size[rows] * float(np.prod(mesh.spacing[:dim]))
     other = np.flatnonzero(~box)
     if other.size:
         vol[other] = element_volumes(mesh.points, cells[other])

@@ -113,6 +113,15 @@ def test_thin_plate_is_thickened_not_eaten():
     assert rep["converged"] and rep["remaining"] == {"type_a": 0, "type_b": 0, "type_c": 0}
 
 
+def test_round_cap_is_reported():
+    lab = np.zeros((12, 6, 12), np.uint8)
+    lab[1:11, 2, 1:11] = 1
+    out, rep = fix_connectivity(lab, majority_rounds=0, max_type_c_rounds=0)
+    assert np.array_equal(out, lab)
+    assert not rep["converged"] and rep["type_c_sites"] == [4]
+    assert rep["remaining"] == {"type_a": 0, "type_b": 0, "type_c": 4}
+
+
 @pytest.mark.parametrize("length, majority_rounds", [(20, 5), (8, 0)])
 def test_one_voxel_rod_becomes_two_by_two(length, majority_rounds):
     lab = np.zeros((length + 2, 6, 6), np.uint8)

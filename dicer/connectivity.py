@@ -62,7 +62,9 @@ def _corner_views(a: np.ndarray, axes: tuple[int, ...]) -> list[tuple]:
 
 
 def _as_work(labels: np.ndarray) -> np.ndarray:
-    top = int(labels.max()) if labels.size else 0
+    if labels.size == 0:
+        raise DicerError(f"labels have shape {labels.shape}; an image with at least one voxel is needed")
+    top = int(labels.max())
     if int(labels.min()) < 0:
         raise DicerError("labels contain negative values; use 0 for background and 1..K for materials")
     dtype = np.uint8 if top < 256 else (np.uint16 if top < 65536 else np.int64)
@@ -244,14 +246,13 @@ def _type_c_proposals(w: np.ndarray, thicken: bool = True) -> tuple[np.ndarray, 
 
     At every A-A boundary edge the four voxels around it are looked at. When one of them
     holds a class above the other three, it is the thin corner of a feature one voxel
-    thick along the edge (both of its neighbours along the edge differ from it): that
-    feature is thickened - every voxel of its class that is one voxel thick along that
-    axis and face-connected to it gives its class to the neighbour on the +axis side
-    (the -axis side where +axis holds a higher class). Otherwise the voxels around the
-    edge below its highest class take that class (a notch is filled). Only raising
-    classes keeps the whole fix monotone, so it ends, and each site raises at least one
-    voxel. With ``thicken=False`` every site is filled (the fallback when thickening
-    cannot raise anything).
+    thick along the edge, and a seed for ``_fatten``: the thin voxels of its class
+    26-connected to it each take a 2x2x2 block of their class. Otherwise the voxels
+    around the edge below its highest class take that class (a notch is filled). Only
+    raising keeps the fix monotone, so the rounds end. A seed may raise nothing (already
+    fat, or no higher neighbour to rise to); with ``thicken=False`` every site is filled
+    instead, which always raises a voxel (the caller's fallback when a sweep proposes
+    no change).
     """
     lp, sites = _type_c_edges(w)
     prop = w.copy()
@@ -340,28 +341,32 @@ def _type_c_voxels(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     flat, first = np.unique(flat, return_index=True)
     hint = hint[first]
     coords = np.unravel_index(flat, shape)
-    k = int(w.max()) + 1
-    counts = np.zeros((flat.size, k), np.float64)
-    rows = np.arange(flat.size)
+    neighbours = []
     for axis in range(3):
         for step in (-1, 1):
             nb = [c.copy() for c in coords]
             nb[axis] = nb[axis] + step
             inside = (nb[axis] >= 0) & (nb[axis] < shape[axis])
-            vals = np.where(inside, w[tuple(np.where(inside, c, 0) for c in nb)], 0)  # outside: background
-            np.add.at(counts, (rows, vals.astype(np.int64)), 1.0)
-    counts[rows, hint.astype(np.int64)] += 0.5
-    counts += np.arange(k)[None, :] * 1e-3  # then the higher class
-    new = counts.argmax(axis=1).astype(w.dtype)
+            neighbours.append(np.where(inside, w[tuple(np.where(inside, c, 0) for c in nb)], 0))  # outside: 0
+    neighbours = np.stack(neighbours, axis=1).astype(np.int64)  # (n, 6)
+    # score: twice the neighbour count, plus one for the hint; ties go to the higher class
+    score = 2 * (neighbours[:, :, None] == neighbours[:, None, :]).sum(axis=2)
+    score += neighbours == hint.astype(np.int64)[:, None]
+    new = _best_value(neighbours, score).astype(w.dtype)
     change = new != w.ravel()[flat]
     return flat[change], new[change]
 
 
+def _best_value(vals: np.ndarray, score: np.ndarray) -> np.ndarray:
+    """Per row, the value with the highest score (ties: the highest value); vals >= 0."""
+    top = score == score.max(axis=1, keepdims=True)
+    return np.where(top, vals, -1).max(axis=1)
+
+
 def _row_mode(vals: np.ndarray) -> np.ndarray:
     """Most frequent value of each row (ties: the higher value)."""
-    eq = (vals[:, :, None] == vals[:, None, :]).sum(axis=2)
-    score = eq.astype(np.int64) * (1 << 32) + vals.astype(np.int64)
-    return vals[np.arange(vals.shape[0]), score.argmax(axis=1)]
+    vals = vals.astype(np.int64)
+    return _best_value(vals, (vals[:, :, None] == vals[:, None, :]).sum(axis=2))
 
 
 def _fat(w: np.ndarray) -> np.ndarray:
@@ -620,11 +625,6 @@ def connectivity_defects(labels: np.ndarray, type_c: bool = True) -> dict:
 
 
 def _type_c_sites(w: np.ndarray) -> int:
-    """Number of A-A boundary edges with at least one in-image voxel around them."""
+    """Number of Type C sites: A-A boundary edges off the image's bounding surface."""
     _, sites = _type_c_edges(w)
-    n = 0
-    for axis in range(3):
-        s = sites[axis]
-        # edges on the outer node layers only have outside voxels on one side; keep all
-        n += int(np.count_nonzero(s))
-    return n
+    return int(sum(np.count_nonzero(s) for s in sites))

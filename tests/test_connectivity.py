@@ -113,6 +113,27 @@ def test_thin_plate_is_thickened_not_eaten():
     assert rep["converged"] and rep["remaining"] == {"type_a": 0, "type_b": 0, "type_c": 0}
 
 
+@pytest.mark.parametrize("seed, majority_rounds", [(7, 5), (8, 0)])
+def test_invariant_on_a_volume_of_several_tiles(seed, majority_rounds):
+    # larger than one 16^3 tile: later A/B sweeps run tile by tile
+    lab = np.random.default_rng(seed).integers(0, 4, (40, 36, 34)).astype(np.uint8)
+    out, rep = fix_connectivity(lab, majority_rounds=majority_rounds)
+    assert rep["converged"] and rep["type_c_rounds"] >= 1
+    _invariant_holds(out)
+    assert connectivity_defects(out) == {"type_a": 0, "type_b": 0, "type_c": 0}
+    if majority_rounds == 0:
+        assert np.all(out >= lab)
+
+
+def test_majority_rule_with_large_label_values():
+    lab = _hanging_element().astype(np.uint16) * 5000
+    lab[7, 7, 7] = 6000
+    out, rep = fix_connectivity(lab)
+    # the hanging element goes to its neighbours' majority (background), not to a far class
+    assert out[3, 3, 3] == 0 and rep["type_c"].get("6000", 0) == 0
+    assert connectivity_defects(out)["type_c"] == 0
+
+
 def test_round_cap_is_reported():
     lab = np.zeros((12, 6, 12), np.uint8)
     lab[1:11, 2, 1:11] = 1
@@ -163,6 +184,8 @@ def test_ball_needs_few_iterations():
 def test_bad_input():
     with pytest.raises(DicerError):
         fix_connectivity(np.zeros(5, np.uint8))
+    with pytest.raises(DicerError):
+        fix_connectivity(np.zeros((0, 3, 3), np.uint8))
     with pytest.raises(DicerError):
         fix_connectivity(np.zeros((3, 3, 3)))
     with pytest.raises(DicerError):

@@ -107,28 +107,7 @@ def hex_scaled_jacobian_t(columns: list[np.ndarray], cells_t: np.ndarray, chunk:
     return out
 
 
-# 2x2x2 Gauss points in the reference cube [-1, 1]^3; exact for a trilinear hexahedron's volume.
-_G = 1.0 / np.sqrt(3.0)
-_HEX_SIGNS = np.array(
-    [[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1], [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], float
-)
-
-
-def _gauss_derivatives() -> np.ndarray:
-    """(8 Gauss points * 3 directions, 8 nodes): dN_a/dxi_i of the trilinear shape functions."""
-    s = _HEX_SIGNS
-    rows = []
-    for g in _HEX_SIGNS * _G:
-        rows.append(s[:, 0] * (1 + s[:, 1] * g[1]) * (1 + s[:, 2] * g[2]) / 8)
-        rows.append(s[:, 1] * (1 + s[:, 0] * g[0]) * (1 + s[:, 2] * g[2]) / 8)
-        rows.append(s[:, 2] * (1 + s[:, 0] * g[0]) * (1 + s[:, 1] * g[1]) / 8)
-    return np.array(rows)
-
-
-_DN = _gauss_derivatives()
-
-
-def element_volumes(points: np.ndarray, cells: np.ndarray, chunk: int = 262_144) -> np.ndarray:
+def element_volumes(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
     """Volume (mm^3) of each hexahedron, or area (mm^2) of each quad; (M,) float64, signed."""
     out = np.empty(cells.shape[0])
     if cells.shape[1] == 4:
@@ -137,21 +116,7 @@ def element_volumes(points: np.ndarray, cells: np.ndarray, chunk: int = 262_144)
         # shoelace formula: exact for a bilinear quad
         out[:] = 0.5 * np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1)
         return out
-    # 2x2x2 Gauss quadrature of det(J) (unit weights), exact for a trilinear hexahedron
-    cols = [np.ascontiguousarray(points[:, d]) for d in range(3)]
-    for start in range(0, cells.shape[0], chunk):
-        part = cells[start : start + chunk]
-        j = [(_DN @ cols[d][part].T).reshape(8, 3, -1) for d in range(3)]
-        # j[c][g, i] = d x_c / d xi_i at Gauss point g
-        vol = np.zeros(part.shape[0])
-        for g in range(8):
-            a = [j[c][g, 0] for c in range(3)]
-            b = [j[c][g, 1] for c in range(3)]
-            c_ = [j[c][g, 2] for c in range(3)]
-            vol += (a[0] * (b[1] * c_[2] - b[2] * c_[1]) + a[1] * (b[2] * c_[0] - b[0] * c_[2])
-                    + a[2] * (b[0] * c_[1] - b[1] * c_[0]))
-        out[start : start + chunk] = vol
-    return out
+    return hex_volumes_t(_columns(points), cells.T, out=out)
 
 
 def _triple(a: list[np.ndarray], b: list[np.ndarray], c: list[np.ndarray]) -> np.ndarray:
@@ -162,11 +127,11 @@ def _triple(a: list[np.ndarray], b: list[np.ndarray], c: list[np.ndarray]) -> np
 
 def hex_volumes_t(columns: list[np.ndarray], cells_t: np.ndarray, chunk: int = _BLOCK,
                   out: np.ndarray | None = None) -> np.ndarray:
-    """element_volumes of hexahedra given as ``cells_t`` (8, M) (the transposed cell array)
-    over the coordinate columns ``columns`` (x, y, z arrays of the nodes).
+    """Volumes of hexahedra given as ``cells_t`` (8, M) (the transposed cell array) over
+    the coordinate columns ``columns`` (x, y, z arrays of the nodes); (M,) float64, signed.
 
-    Closed form of the integral of det(J) over the reference cube, equal to the Gauss
-    quadrature of element_volumes up to rounding: with the trilinear map written as
+    Closed form of the integral of det(J) over the reference cube (exact for a trilinear
+    hexahedron, like 2x2x2 Gauss quadrature): with the trilinear map written as
     x = c0 + xi c1 + eta c2 + zeta c3 + xi eta c4 + xi zeta c5 + eta zeta c6 + xi eta zeta c7,
     V = 8 [c1.(c2 x c3) + (c1.(c4 x c5) + c4.(c2 x c6) + c5.(c6 x c3)) / 3]
     (every other product of the expansion integrates to zero or repeats a vector).

@@ -241,6 +241,40 @@ def _type_c_edges(w: np.ndarray):
     return lp, out
 
 
+def _edge_voxels(lp: np.ndarray, sites: list[np.ndarray]):
+    """For each axis with Type C sites: (axis, the four voxels around each site edge as
+    image coordinate tuples, their classes (n, 4)). Sites lie off the image's bounding
+    surface, so all four voxels are inside the image."""
+    for axis in range(3):
+        idx = np.nonzero(sites[axis])
+        if idx[0].size == 0:
+            continue
+        others = [ax for ax in range(3) if ax != axis]
+        vox = []
+        for code in range(4):
+            coord = [None, None, None]
+            coord[axis] = idx[axis]
+            for b, ax in enumerate(others):
+                coord[ax] = idx[ax] - 1 + ((code >> b) & 1)  # padded node index - 1 + side
+            vox.append(tuple(coord))
+        yield axis, vox, np.stack([lp[tuple(c + 1 for c in coord)] for coord in vox], axis=1)
+
+
+def _face_neighbours(w: np.ndarray, coords) -> tuple[np.ndarray, np.ndarray]:
+    """Classes (n, 6) int64 of the six face neighbours of the voxels at ``coords`` (0
+    outside the image) and whether each neighbour is inside the image."""
+    vals, inside = [], []
+    for axis in range(3):
+        for step in (-1, 1):
+            nb = list(coords)
+            nb[axis] = nb[axis] + step
+            ok = (nb[axis] >= 0) & (nb[axis] < w.shape[axis])
+            nb[axis] = np.where(ok, nb[axis], 0)
+            vals.append(np.where(ok, w[tuple(nb)], 0))
+            inside.append(ok)
+    return np.stack(vals, axis=1).astype(np.int64), np.stack(inside, axis=1)
+
+
 def _type_c_proposals(w: np.ndarray, thicken: bool = True) -> tuple[np.ndarray, int]:
     """One Type C sweep: proposed classes (>= w everywhere) and the number of sites seen.
 
@@ -256,105 +290,55 @@ def _type_c_proposals(w: np.ndarray, thicken: bool = True) -> tuple[np.ndarray, 
     """
     lp, sites = _type_c_edges(w)
     prop = w.copy()
-    n_sites = 0
     all_seeds = None
-    shape = w.shape
-    for axis in range(3):
-        idx = np.nonzero(sites[axis])
-        if idx[0].size == 0:
-            continue
-        n_sites += idx[0].size
-        others = [ax for ax in range(3) if ax != axis]
-        vox = []  # the four voxels around each edge, image coordinates (padded index - 1)
-        for code in range(4):
-            coord = [None, None, None]
-            coord[axis] = idx[axis]
-            for b, ax in enumerate(others):
-                coord[ax] = idx[ax] - 1 + ((code >> b) & 1)
-            vox.append(tuple(coord))
-        vals = np.stack([lp[tuple(c + 1 for c in coord)] for coord in vox], axis=1)  # (n, 4)
+    for _, vox, vals in _edge_voxels(lp, sites):
         top = vals.max(axis=1)
         lone = ((vals == top[:, None]).sum(axis=1) == 1) & thicken
-        seeds = np.zeros(shape, dtype=bool)
+        seeds = np.zeros(w.shape, dtype=bool)
         for code in range(4):
             coord = vox[code]
             v = vals[:, code]
-            # sites lie off the image's bounding surface, so all four voxels are inside
             fill = ~lone & (v < top)
             np.maximum.at(prop, tuple(c[fill] for c in coord), top[fill].astype(w.dtype))
             seed = lone & (v == top)
             seeds[tuple(c[seed] for c in coord)] = True
-        if seeds.any():
-            all_seeds = seeds if all_seeds is None else all_seeds | seeds
-    if all_seeds is not None:
+        all_seeds = seeds if all_seeds is None else all_seeds | seeds
+    if all_seeds is not None and all_seeds.any():
         _fatten(w, prop, all_seeds)
-    return prop, n_sites
+    return prop, sum(int(np.count_nonzero(e)) for e in sites)
 
 
-def _type_c_voxels(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Flat indices of the in-image voxels to reclassify, and the class each gets.
+def _type_c_voxels(w: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Flat indices of the in-image voxels to reclassify, the class each gets, and the
+    number of Type C sites.
 
     For every A-A boundary edge, the voxel among the four around it whose class differs
     from the other three (if the four split otherwise, all four) takes the majority class
-    of its six face neighbours (outside the image: background); ties go to the class of the other voxels
-    around the edge, then to the higher class.
+    of its six face neighbours (outside the image: background); ties go to the class of
+    the other voxels around the edge, then to the higher class.
     """
     lp, sites = _type_c_edges(w)
-    shape = w.shape
+    n_sites = sum(int(np.count_nonzero(e)) for e in sites)
     cand, hint = [], []
-    for axis in range(3):
-        idx = np.nonzero(sites[axis])
-        if idx[0].size == 0:
-            continue
-        others = [ax for ax in range(3) if ax != axis]
-        # the four voxels around the edge, in image coordinates (padded index - 1)
-        vox = []
-        for code in range(4):
-            coord = [None, None, None]
-            coord[axis] = idx[axis]
-            for b, ax in enumerate(others):
-                coord[ax] = idx[ax] - 1 + ((code >> b) & 1)
-            vox.append(coord)
-        vals = np.stack([lp[tuple(c + 1 for c in coord)] for coord in vox], axis=1)  # (n, 4)
-        eq = vals[:, :, None] == vals[:, None, :]
-        n_same = eq.sum(axis=2)  # how many of the four share each voxel's class
+    for _, vox, vals in _edge_voxels(lp, sites):
+        n_same = (vals[:, :, None] == vals[:, None, :]).sum(axis=2)  # voxels sharing each one's class
         odd = (n_same == 1) & (n_same.sum(axis=1, keepdims=True) == 1 + 3 * 3)
         general = ~odd.any(axis=1)
         for code in range(4):
             take = odd[:, code] | general
-            coord = [c[take] for c in vox[code]]
-            inside = np.ones(coord[0].shape, bool)
-            for ax in range(3):
-                inside &= (coord[ax] >= 0) & (coord[ax] < shape[ax])
-            if not inside.any():
-                continue
-            flat = np.ravel_multi_index(tuple(c[inside] for c in coord), shape)
-            # class of the majority of the other voxels around the edge
-            others_vals = np.delete(vals[take][inside], code, axis=1)
-            h = _row_mode(others_vals)
-            cand.append(flat)
-            hint.append(h)
+            cand.append(np.ravel_multi_index(tuple(c[take] for c in vox[code]), w.shape))
+            hint.append(_row_mode(np.delete(vals[take], code, axis=1)))  # the other voxels' class
     if not cand:
-        return np.zeros(0, np.int64), np.zeros(0, w.dtype)
-    flat = np.concatenate(cand)
-    hint = np.concatenate(hint)
-    flat, first = np.unique(flat, return_index=True)
-    hint = hint[first]
-    coords = np.unravel_index(flat, shape)
-    neighbours = []
-    for axis in range(3):
-        for step in (-1, 1):
-            nb = [c.copy() for c in coords]
-            nb[axis] = nb[axis] + step
-            inside = (nb[axis] >= 0) & (nb[axis] < shape[axis])
-            neighbours.append(np.where(inside, w[tuple(np.where(inside, c, 0) for c in nb)], 0))  # outside: 0
-    neighbours = np.stack(neighbours, axis=1).astype(np.int64)  # (n, 6)
+        return np.zeros(0, np.int64), np.zeros(0, w.dtype), n_sites
+    flat, first = np.unique(np.concatenate(cand), return_index=True)
+    hint = np.concatenate(hint)[first]
+    neighbours, _ = _face_neighbours(w, np.unravel_index(flat, w.shape))
     # score: twice the neighbour count, plus one for the hint; ties go to the higher class
     score = 2 * (neighbours[:, :, None] == neighbours[:, None, :]).sum(axis=2)
     score += neighbours == hint.astype(np.int64)[:, None]
     new = _best_value(neighbours, score).astype(w.dtype)
     change = new != w.ravel()[flat]
-    return flat[change], new[change]
+    return flat[change], new[change], n_sites
 
 
 def _best_value(vals: np.ndarray, score: np.ndarray) -> np.ndarray:
@@ -420,17 +404,10 @@ def _fatten(w: np.ndarray, prop: np.ndarray, seeds: np.ndarray) -> None:
     np.maximum.at(prop, tuple(cells.T), np.repeat(v[ok], 8).astype(w.dtype))
     stuck = pts[~ok]
     if stuck.size:
-        vs = v[~ok].astype(np.int64)
-        rise = np.full(stuck.shape[0], np.iinfo(np.int64).max)
-        for axis in range(3):
-            for step in (-1, 1):
-                nb = stuck.copy()
-                nb[:, axis] += step
-                inside = (nb[:, axis] >= 0) & (nb[:, axis] < shape[axis])
-                val = w[tuple(np.clip(nb, 0, shape - 1).T)].astype(np.int64)
-                take = inside & (val > vs)
-                rise[take] = np.minimum(rise[take], val[take])
-        up = rise < np.iinfo(np.int64).max
+        nb, inside = _face_neighbours(w, tuple(stuck.T))
+        higher = inside & (nb > v[~ok].astype(np.int64)[:, None])
+        rise = np.where(higher, nb, np.iinfo(np.int64).max).min(axis=1)
+        up = higher.any(axis=1)
         np.maximum.at(prop, tuple(stuck[up].T), rise[up].astype(w.dtype))
 
 
@@ -580,15 +557,18 @@ def _majority_phase(w, counts, iterations, max_iterations, max_rounds):
     """The paper's Type C rule, round by round on a copy; returns the state with the
     fewest sites (the earliest on ties): (labels, counts, iterations, site counts of
     the rounds kept, rounds kept)."""
-    sites = _type_c_sites(w)
     trial = w.copy()
     t_counts = {k: dict(v) for k, v in counts.items()}
     t_its, t_sites = list(iterations), []
-    best = (sites, w, counts, iterations, [], 0)
+    best = None
     r = 0
-    while sites and r < max_rounds:
-        flat, new = _type_c_voxels(trial)
-        if flat.size == 0:
+    while True:
+        flat, new, sites = _type_c_voxels(trial)
+        if best is None:
+            best = (sites, w, counts, iterations, [], 0)
+        elif sites < best[0]:
+            best = (sites, trial.copy(), {k: dict(v) for k, v in t_counts.items()}, list(t_its), list(t_sites), r)
+        if sites == 0 or flat.size == 0 or r == max_rounds:
             break
         r += 1
         t_sites.append(sites)
@@ -600,9 +580,6 @@ def _majority_phase(w, counts, iterations, max_iterations, max_rounds):
         t_its.append(it)
         if not ok:
             break
-        sites = _type_c_sites(trial)
-        if sites < best[0]:
-            best = (sites, trial.copy(), {k: dict(v) for k, v in t_counts.items()}, list(t_its), list(t_sites), r)
     return best[1], best[2], best[3], best[4], best[5]
 
 

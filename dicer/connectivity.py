@@ -246,9 +246,9 @@ def _edge_voxels(lp: np.ndarray, sites: list[np.ndarray]):
     image coordinate tuples, their classes (n, 4)). Sites lie off the image's bounding
     surface, so all four voxels are inside the image."""
     for axis in range(3):
-        idx = np.nonzero(sites[axis])
-        if idx[0].size == 0:
+        if not sites[axis].any():  # far cheaper than nonzero on an empty mask
             continue
+        idx = np.nonzero(sites[axis])
         others = [ax for ax in range(3) if ax != axis]
         vox = []
         for code in range(4):
@@ -514,10 +514,11 @@ def fix_connectivity(labels: np.ndarray, max_iterations: int = 100, type_c: bool
     iterations = [it]
     site_counts = []
     kept_majority = rounds = 0
+    left = None  # Type C sites after the majority phase, when it ran
     if w.ndim == 3 and type_c and converged and majority_rounds:
-        w, counts, iterations, site_counts, kept_majority = _majority_phase(
+        w, counts, iterations, site_counts, kept_majority, left = _majority_phase(
             w, counts, iterations, max_iterations, majority_rounds)
-    if w.ndim == 3 and type_c and converged:
+    if w.ndim == 3 and type_c and converged and left != 0:
         while True:
             prop, sites = _type_c_proposals(w)
             if sites == 0:
@@ -556,8 +557,8 @@ def fix_connectivity(labels: np.ndarray, max_iterations: int = 100, type_c: bool
 def _majority_phase(w, counts, iterations, max_iterations, max_rounds):
     """The paper's Type C rule, round by round on a copy; returns the state with the
     fewest sites (the earliest on ties): (labels, counts, iterations, site counts of
-    the rounds kept, rounds kept)."""
-    trial = w.copy()
+    the rounds kept, rounds kept, sites left)."""
+    trial = w  # copied before the first change
     t_counts = {k: dict(v) for k, v in counts.items()}
     t_its, t_sites = list(iterations), []
     best = None
@@ -571,6 +572,8 @@ def _majority_phase(w, counts, iterations, max_iterations, max_rounds):
         if sites == 0 or flat.size == 0 or r == max_rounds:
             break
         r += 1
+        if trial is w:
+            trial = w.copy()
         t_sites.append(sites)
         _tally(t_counts["C"], new)
         changed = np.zeros(trial.shape, dtype=bool)
@@ -580,7 +583,7 @@ def _majority_phase(w, counts, iterations, max_iterations, max_rounds):
         t_its.append(it)
         if not ok:
             break
-    return best[1], best[2], best[3], best[4], best[5]
+    return best[1], best[2], best[3], best[4], best[5], best[0]
 
 
 def connectivity_defects(labels: np.ndarray, type_c: bool = True) -> dict:

@@ -153,7 +153,7 @@ def _match_faces(a: np.ndarray, b: np.ndarray, n: int) -> tuple[np.ndarray, np.n
     easy = (j >= 0) & ~shared[a[:, 0]]
     i = np.flatnonzero(easy)
     j = j[i]
-    same = np.all(a[i] == b[j], axis=1)
+    same = _all(a[i] == b[j])
     i, j = i[same], j[same]
     hard_a = np.flatnonzero(shared[a[:, 0]])
     if hard_a.size:
@@ -168,6 +168,66 @@ def _match_faces(a: np.ndarray, b: np.ndarray, n: int) -> tuple[np.ndarray, np.n
         i = np.r_[i, row[:-1][hit]]
         j = np.r_[j, row[1:][hit]]
     return i, j
+
+
+def _merge_regions(faces: np.ndarray, box: np.ndarray, cand_idx: np.ndarray, cmap: np.ndarray, lattice: np.ndarray,
+                   axis: int, far: int, dim: int) -> tuple[int, np.ndarray]:
+    """Connected components of the candidate nodes, linked through the stacked faces.
+
+    faces : (K, c) node ids of each stacked face (c = 4 in 3D, 2 in 2D), its first corner
+        the lowest and corner ``far`` the highest when the face is a lattice rectangle.
+    box : (K,) bool, faces of two lattice boxes (so the face is a lattice rectangle).
+    cand_idx, cmap : the candidate nodes, and the candidate number of every node (-1 for others).
+    Returns the number of components and the component number of every candidate.
+
+    Rectangles are joined by labelling the unit squares (2D: unit segments) they cover,
+    touching diagonally included: in a conforming mesh two faces touch exactly when they
+    share a node, and labelling a grid is far cheaper than a graph of every face. Other
+    faces (of earlier chamfers) join their nodes, and the rectangles' components, through
+    a small graph.
+    """
+    other = [d for d in range(dim) if d != axis]
+    n_labels = 0
+    rows = np.flatnonzero(box)
+    on_box = np.full(lattice.shape[0], -1, dtype=np.int64)  # node -> its rectangles' component
+    if rows.size:
+        whole = rows.size == box.size
+        first = faces[:, 0] if whole else faces[rows, 0]
+        last = faces[:, far] if whole else faces[rows, far]
+        coord = [lattice[:, d].astype(np.int32) for d in range(dim)]
+        plane = coord[axis][first]
+        start = [coord[d][first] for d in other]
+        size = [coord[d][last] - x for d, x in zip(other, start)]
+        base = [int(x.min()) for x in start]
+        for x, b in zip(start, base):
+            x -= b
+        lo_plane = int(plane.min())
+        plane -= lo_plane
+        used = np.bincount(plane) > 0
+        pid = (np.cumsum(used, dtype=np.int32) - 1)[plane]
+        grid = np.zeros((int(used.sum()), *[int((x + w).max()) for x, w in zip(start, size)]), dtype=bool)
+        packed = size[0].astype(np.int64) if dim == 2 else size[0] * np.int64(int(size[1].max()) + 1) + size[1]
+        kinds = np.flatnonzero(np.bincount(packed))
+        for kind in kinds:  # faces of one size at a time (unit squares in a voxel mesh)
+            pick = packed == kind
+            sel = slice(None) if kinds.size == 1 else np.flatnonzero(pick)
+            one = int(np.argmax(pick))
+            for off in np.ndindex(*[int(w[one]) for w in size]):
+                grid[(pid[sel], *[x[sel] + d for x, d in zip(start, off)])] = True
+        structure = np.zeros((3,) * dim, dtype=bool)
+        structure[1] = True  # neighbours within a plane only, diagonals included
+        labels, n_labels = ndimage.label(grid, structure)
+        on_box[faces if whole else faces[rows]] = (labels[(pid, *start)] - 1)[:, None]
+    vid = on_box[cand_idx]
+    rest = np.flatnonzero(vid < 0)
+    vid[rest] = n_labels + np.arange(rest.size)
+    f = vid[cmap[faces[~box]]]
+    k = f.shape[1] - 1
+    n_vertices = n_labels + rest.size
+    graph = coo_matrix((np.ones(f.shape[0] * k, dtype=np.int8), (np.repeat(f[:, 0], k), f[:, 1:].ravel())),
+                       shape=(n_vertices, n_vertices))
+    n_comp, comp = connected_components(graph, directed=True, connection="weak")
+    return int(n_comp), comp[vid]
 
 
 def _face_edge_positions(dim: int, axis: int) -> np.ndarray:
@@ -195,9 +255,9 @@ def _clashes(l_top, u_bot, li, ui, irr_l, irr_u, cand, lattice, dim, axis) -> np
     n64 = np.int64(n)
 
     def edges(face):
-        rows = np.flatnonzero(near[face].any(axis=1))
+        rows = np.flatnonzero(_any(near[face]))
         e = face[rows][:, pairs]  # (K, E, 2)
-        ok = near[e].all(axis=2)
+        ok = _all(near[e].reshape(-1, 2)).reshape(e.shape[:2])
         row = np.broadcast_to(rows[:, None], ok.shape)[ok]
         e = np.sort(e[ok], axis=1).astype(np.int64)
         return e[:, 0] * n64 + e[:, 1], row, e
@@ -266,12 +326,14 @@ def _replace_face_nodes(face, hit, far, block, cols, snapped, snap):
     """Rows of ``block`` whose ``face`` nodes (in columns ``cols``) are deleted (``hit``) or
     snapped, with each deleted node replaced by the far end ``far`` of its axis edge and each
     snapped node by its snap target. Returns (row indices, new rows)."""
-    rows = np.flatnonzero(_any(hit) | _any(snapped[face]))
+    any_snapped = bool(snapped.any())
+    rows = np.flatnonzero(_any(hit) | _any(snapped[face]) if any_snapped else _any(hit))
     nodes = face[rows]
     h = hit[rows]
     nodes[h] = far[nodes[h]]
-    h = snapped[nodes]
-    nodes[h] = snap[nodes[h]]
+    if any_snapped:
+        h = snapped[nodes]
+        nodes[h] = snap[nodes[h]]
     sub = block[rows]
     sub[:, cols] = nodes
     return rows, sub
@@ -349,11 +411,9 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
         comp = np.searchsorted(planes, lattice_a[cand_idx])
         n_comp = planes.size
     else:
-        f = cmap[faces]
-        k = f.shape[1] - 1
-        graph = coo_matrix((np.ones(f.shape[0] * k, dtype=np.int8),
-                            (np.repeat(f[:, 0], k), f[:, 1:].ravel())), shape=(cand_idx.size,) * 2)
-        n_comp, comp = connected_components(graph, directed=True, connection="weak")
+        far_corner = list(tc).index(6 if dim == 3 else 2)
+        n_comp, comp = _merge_regions(faces, ~(irregular[lo[li]] | irregular[up[ui]]), cand_idx, cmap,
+                                      lattice, axis, far_corner, dim)
     region_of = np.zeros(n_comp, dtype=bool)  # components holding a stacked pair
     region_of[comp[cmap[faces[:, 0]]]] = True
     info["regions"] = int(region_of.sum())
@@ -388,22 +448,34 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
     unit = np.zeros(3, dtype=np.int64)
     unit[axis] = 1
     cells = mesh_cells.copy()
-    changed = np.empty(0, dtype=np.int64)
+    delete = np.zeros(n, dtype=bool)
+    snapped = np.zeros(n, dtype=bool)
+    # per side (lower, upper): deleted face corners and whether any, all, or a bent one went
+    hit = [np.zeros(face.shape, dtype=bool) for face in (l_top, u_bot)]
+    flags = [np.zeros((3, face.shape[0]), dtype=bool) for face in (l_top, u_bot)]
+    first_round = True
     while True:
         info["retry_rounds"] += 1
-        delete = np.zeros(n, dtype=bool)
-        delete[cand_idx] = ~blocked[comp]
-        # Step 10: replace deleted nodes by the far ends of their axis edges.
-        if changed.size:  # undo the previous round
-            cells[changed] = mesh_cells[changed]
-        snapped = snap >= 0
-        hit_l = delete[l_top]
-        rows_l, sub = _replace_face_nodes(l_top, hit_l, upn, lc, tc, snapped, snap)
-        cells[lo[rows_l]] = sub
-        hit_u = delete[u_bot]
-        rows_u, sub = _replace_face_nodes(u_bot, hit_u, down, uc, bc, snapped, snap)
-        cells[up[rows_u]] = sub
-        changed = np.concatenate([lo[rows_l], up[rows_u]])
+        now = np.zeros(n, dtype=bool)
+        now[cand_idx] = ~blocked[comp]
+        snapped_now = snap >= 0
+        dirty = None if first_round else (now != delete) | (snapped_now != snapped)
+        delete, snapped, first_round = now, snapped_now, False
+        # Step 10: replace deleted nodes by the far ends of their axis edges. After the first
+        # round only the rows at a node whose fate changed are redone.
+        for side, (face, block, idx, far, cols) in enumerate(((l_top, lc, lo, upn, tc), (u_bot, uc, up, down, bc))):
+            rows = slice(None) if dirty is None else np.flatnonzero(_any(dirty[face]))
+            if dirty is not None:
+                cells[idx[rows]] = block[rows]  # undo the previous round there
+            f = face[rows]
+            h = delete[f]
+            hit[side][rows] = h
+            flags[side][0, rows] = _any(h)
+            flags[side][1, rows] = _all(h)
+            flags[side][2, rows] = _any(h & bent[f])
+            done, sub = _replace_face_nodes(f, h, far, block[rows], cols, snapped, snap)
+            cells[idx[rows][done]] = sub
+        (any_l, all_l, bent_l), (any_u, all_u, bent_u) = flags
         # Step 11: stacked pairs whose face went became duplicates; keep the lower one.
         merged = delete[faces[:, 0]]
         keep[:] = True
@@ -411,14 +483,11 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
         # Step 12 (widened): check every element that changed other than by a clean stacked
         # merge, and the nodes around it: at most 6 (2D: 4) neighbours, at most 8 (4)
         # elements, no face of three elements, no corner below the Jacobian floor.
-        any_l, all_l, any_u, all_u = _any(hit_l), _all(hit_l), _any(hit_u), _all(hit_u)
         part_l = any_l & ~all_l
         part_u = any_u & ~all_u
         chamfer = np.concatenate([lo[part_l], up[part_u]])
         info["chamfered_elements"] = int(chamfer.size)
         # changed elements that were already irregular: a merged old chamfer gains edges too
-        bent_l = _any(hit_l & bent[l_top])
-        bent_u = _any(hit_u & bent[u_bot])
         reshaped = np.concatenate([lo[(any_l & irregular[lo]) | bent_l],
                                    up[(any_u & irregular[up]) | bent_u]])
         # elements stretched whole without a partner (a filled notch): their new face need
@@ -689,33 +758,41 @@ def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int 
     key stride, with every extent positive.
     """
     far = 6 if dim == 3 else 2
-    lat = lattice[:, :dim].astype(np.int64)
     out = np.ones(cells.shape[0], dtype=bool)
     size = np.zeros(cells.shape[0], dtype=np.int64) if sizes else None
-    if lat.shape[0] == 0:
+    if lattice.shape[0] == 0:
         return (out, size) if sizes else out
-    base = lat.min(axis=0)
-    extent = lat.max(axis=0) - base + 1
-    stride = np.ones(dim, dtype=np.int64)
-    for d in range(dim - 2, -1, -1):
-        stride[d] = stride[d + 1] * extent[d + 1]
-    key = (lat - base) @ stride
+    lat = [np.ascontiguousarray(lattice[:, d]) for d in range(dim)]
+    base = [int(x.min()) for x in lat]
+    extent = [int(x.max()) - b + 1 for x, b in zip(lat, base)]
+    kind = np.int32 if int(np.prod(extent, dtype=np.float64)) < 2**31 - 1 else np.int64  # halves memory traffic
+    stride = [int(np.prod(extent[d + 1:], dtype=np.int64)) for d in range(dim)]
+    key = np.zeros(lattice.shape[0], dtype=kind)
+    for d in range(dim):
+        key += (lat[d] - base[d]).astype(kind) * kind(stride[d])
+    lat = [x.astype(kind) for x in lat]
     # corner -> the axes it is offset along (VTK order): corner = corner 0 + those steps
     steps = [[d for d in range(dim) if off[d]] for off in (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim]]
     for start in range(0, cells.shape[0], chunk):
         c = cells[start:start + chunk]
-        span = lat[c[:, far]] - lat[c[:, 0]]  # (m, dim)
-        ok = np.all(span > 0, axis=1)
-        k0 = key[c[:, 0]]
-        step = [span[:, d] * stride[d] for d in range(dim)]
+        first, last = c[:, 0], c[:, far]
+        span = [x[last] - x[first] for x in lat]
+        ok = span[0] > 0
+        for d in range(1, dim):
+            ok &= span[d] > 0
+        kc = key[c]
+        step = [span[d] * kind(stride[d]) for d in range(dim)]
         for corner in range(1, c.shape[1]):
-            expected = k0.copy()
+            expected = kc[:, 0].copy()
             for d in steps[corner]:
                 expected += step[d]
-            ok &= key[c[:, corner]] == expected
+            ok &= kc[:, corner] == expected
         out[start:start + chunk] = ok
         if sizes:
-            size[start:start + chunk] = np.where(ok, np.prod(span, axis=1), 0)
+            volume = span[0].astype(np.int64)
+            for d in range(1, dim):
+                volume *= span[d]
+            size[start:start + chunk] = np.where(ok, volume, 0)
     return (out, size) if sizes else out
 
 
@@ -744,10 +821,7 @@ def _material_volumes(mesh: Mesh, box: np.ndarray, on_lattice: bool, size: np.nd
 def _on_lattice(mesh: Mesh) -> bool:
     """True when every node sits at origin + lattice * spacing."""
     scale = 1e-9 * max(1.0, float(np.abs(mesh.points).max(initial=0.0)))
-    for d in range(3):
-        x = mesh.lattice[:, d] * mesh.spacing[d]
-        x += mesh.origin[d]
-        x -= mesh.points[:, d]
-        if np.abs(x).max(initial=0.0) > scale:
-            return False
-    return True
+    x = mesh.lattice * mesh.spacing
+    x += mesh.origin
+    x -= mesh.points
+    return bool(np.abs(x).max(initial=0.0) <= scale)

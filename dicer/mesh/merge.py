@@ -310,16 +310,23 @@ def _crowded_faces(sub: np.ndarray, n: int, dim: int) -> np.ndarray:
     return _unique(crowded)
 
 
-def _degrees(cells: np.ndarray, rows: np.ndarray, nodes_mask: np.ndarray, n: int, edges: np.ndarray):
-    """Distinct edge neighbours and element count of every node in ``nodes_mask``, from ``cells[rows]``."""
-    sub = cells[rows]
-    count = np.bincount(sub[nodes_mask[sub]], minlength=n)
-    e = sub[:, edges].reshape(-1, 2)
+def _degrees(sub: np.ndarray, nodes_mask: np.ndarray, edges: np.ndarray):
+    """Distinct edge neighbours and element count of the nodes of the elements ``sub`` (R, c).
+
+    Returns (R, c) node numbers local to ``sub`` (0 .. k-1, in node id order) and, per local
+    node, its degree and count (0 for nodes outside ``nodes_mask``, which is (n,) bool).
+    """
+    ids = _unique(sub)
+    local = np.searchsorted(ids, sub)
+    k = np.int64(ids.size)
+    inside = nodes_mask[ids]
+    count = np.bincount(local[inside[local]], minlength=ids.size)
+    e = local[:, edges].reshape(-1, 2)
     e = np.concatenate([e, e[:, ::-1]])
-    e = e[nodes_mask[e[:, 0]]]
-    key = _unique(e[:, 0].astype(np.int64) * np.int64(n) + e[:, 1])
-    degree = np.bincount(key // n, minlength=n)
-    return degree, count
+    e = e[inside[e[:, 0]]]
+    key = _unique(e[:, 0].astype(np.int64) * k + e[:, 1])
+    degree = np.bincount(key // k, minlength=ids.size)
+    return local, degree, count
 
 
 def _replace_face_nodes(face, hit, far, block, cols, snapped, snap):
@@ -339,12 +346,13 @@ def _replace_face_nodes(face, hit, far, block, cols, snapped, snap):
     return rows, sub
 
 
-def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g, s, dim, granularity, min_corner,
-                rim_moves=True, spacing=(1.0, 1.0, 1.0)):
+def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, axis, g, s, dim, granularity,
+                min_corner, rim_moves=True, spacing=(1.0, 1.0, 1.0)):
     """Merge element layer ``s`` of every group of ``g`` layers into the layers below it.
 
     ``irregular`` flags the elements that are not lattice boxes (chamfers of earlier
-    steps); it is updated in place. Returns (cells, keep, delete, shift, info): the new
+    steps) and ``size`` holds the boxes' volumes in lattice units; both are updated in
+    place. Returns (cells, keep, delete, shift, info): the new
     cells (rows of removed elements still present), the rows kept, the nodes deleted,
     each node's move along the axis in lattice units (-1, 0, 1) and the step's figures.
     """
@@ -508,15 +516,16 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
             in_s = np.zeros(n, dtype=bool)
             in_s[cells[checked]] = True
             rows = np.flatnonzero(keep & _any(in_s[cells]))
-            degree, count = _degrees(cells, rows, in_s, n, edges)
-            bad_node = in_s & ((degree > max_neighbours) | (count > max_elements))
-            crowded = _crowded_faces(cells[rows], n, dim)  # faces of three or more elements
+            sub = cells[rows]
+            local, degree, count = _degrees(sub, in_s, edges)
+            bad_node = (degree > max_neighbours) | (count > max_elements)
+            crowded = _crowded_faces(sub, n, dim)  # faces of three or more elements
             info["crowded_faces"] += int(crowded.size)
             if crowded.size:
                 bad_rows = rows[crowded]
             info["overconnected_nodes"] += int(np.count_nonzero(bad_node))
             if bad_node.any():
-                bad_rows = _union(bad_rows, rows[bad_node[cells[rows]].any(axis=1)])
+                bad_rows = _union(bad_rows, rows[_any(bad_node[local])])
             corners = (lattice[cells[checked]] + shift[cells[checked]][:, :, None] * unit) * spacing
             jac = corner_scaled_jacobians(corners.reshape(-1, 3), np.arange(corners.shape[0] * corners.shape[1]
                                                                            ).reshape(checked.size, -1))
@@ -525,7 +534,7 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
             bad_rows = _union(bad_rows, flat)
             if bad_rows.size and rim_moves:
                 if node_at is None:  # node at every lattice corner (a dense grid, built on first use)
-                    dims = lattice.max(axis=0).astype(np.int64) + 3
+                    dims = np.array([int(lattice[:, d].max()) + 3 for d in range(3)], dtype=np.int64)
 
                     def key_of(lat, dims=dims):
                         return ((lat[:, 0] + 1) * dims[1] + lat[:, 1] + 1) * dims[2] + lat[:, 2] + 1
@@ -537,9 +546,9 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
                 c_all = c_all[(rim_up[c_all] | rim_lo[c_all]) & ~tried[c_all]]
                 mask = np.zeros(n, dtype=bool)
                 mask[c_all] = True
-                uses = np.bincount(mesh_cells[mask[mesh_cells]], minlength=n)
-                uses -= np.bincount(l_top[mask[l_top]], minlength=n) + np.bincount(u_bot[mask[u_bot]], minlength=n)
-                confined = uses == 0
+                confined = np.ones(n, dtype=bool)  # no corner of theirs other than a face corner on the plane
+                for other_corners in (l_bot, u_top, mesh_cells[r > s]):
+                    confined[other_corners[mask[other_corners]]] = False
                 moved_now = 0
                 for rim, step in ((rim_up, -1), (rim_lo, 1)):
                     c = c_all[rim[c_all] & confined[c_all]]
@@ -608,6 +617,7 @@ def _merge_step(mesh_cells, material, thick, irregular, layer, lattice, axis, g,
     irregular[checked] = True
     merged_up = up[ui[merged]]
     irregular[lo[li[merged]]] |= irregular[merged_up]
+    size[lo[li[merged]]] += size[merged_up]
     return cells, keep, delete, shift, info
 
 
@@ -657,15 +667,15 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
         raise DicerError(f"merge.min_scaled_jacobian={min_scaled_jacobian!r}: give a value in [-1, 1)")
     min_corner = msj if msj > 0 else msj - 1e-9  # 0 still refuses inverted corners only
     t_start = time.perf_counter()
-    box0, size0 = _lattice_boxes(mesh.cells, mesh.lattice, dim, sizes=True)
+    index = np.int32 if mesh.n_points < 2**31 - 1 else np.int64  # halves memory traffic
+    cells = mesh.cells.astype(index)
+    box0, size = _lattice_boxes(cells, mesh.lattice, dim, sizes=True)
     on_lattice = _on_lattice(mesh)
-    vol_before = _material_volumes(mesh, box0, on_lattice, size0)
+    vol_before = _material_volumes(mesh, box0, on_lattice, size)
     report = {"passes": list(counts), "granularity": granularity, "min_thickness": float(min_thickness),
               "min_scaled_jacobian": msj, "rim_moves": bool(rim_moves),
               "elements_before": mesh.n_cells, "nodes_before": mesh.n_points, "steps": []}
 
-    index = np.int32 if mesh.n_points < 2**31 - 1 else np.int64  # halves memory traffic
-    cells = mesh.cells.astype(index)
     material = mesh.material
     lattice = mesh.lattice
     points = mesh.points
@@ -683,7 +693,7 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
             t0 = time.perf_counter()
             n_before, m_before = lattice.shape[0], cells.shape[0]
             new_cells, keep, delete, shift, info = _merge_step(
-                cells, material, thick, irregular, layer, lattice, axis, g, s, dim, granularity, min_corner,
+                cells, material, thick, irregular, size, layer, lattice, axis, g, s, dim, granularity, min_corner,
                 rim_moves, np.asarray(mesh.spacing, dtype=np.float64))
             if shift.any():
                 lattice = lattice.copy()
@@ -696,8 +706,8 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
                 new_id = new_id.astype(index)
                 # np.compress: a boolean selection several times faster than a[mask]
                 cells = new_id[np.compress(keep, new_cells, axis=0)]
-                material, thick, layer, irregular = (np.compress(keep, a, axis=0)
-                                                     for a in (material, thick, layer, irregular))
+                material, thick, layer, irregular, size = (np.compress(keep, a, axis=0)
+                                                           for a in (material, thick, layer, irregular, size))
                 lattice, points = np.compress(kept_nodes, lattice, axis=0), np.compress(kept_nodes, points, axis=0)
                 point_data = {k: np.compress(kept_nodes, v, axis=0) for k, v in point_data.items()}
                 cell_data = {k: np.compress(keep, v, axis=0) for k, v in cell_data.items()}
@@ -709,7 +719,7 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
 
     out = Mesh(points, cells.astype(np.int64), material, lattice, mesh.spacing.copy(), mesh.origin.copy(),
                mesh.grid_shape.copy(), point_data, cell_data)
-    vol_after = _material_volumes(out, ~irregular, on_lattice)
+    vol_after = _material_volumes(out, ~irregular, on_lattice, size)
     report["elements_after"] = out.n_cells
     report["nodes_after"] = out.n_points
     report["element_ratio"] = round(mesh.n_cells / max(out.n_cells, 1), 4)

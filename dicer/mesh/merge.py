@@ -153,7 +153,7 @@ def _match_faces(a: np.ndarray, b: np.ndarray, n: int) -> tuple[np.ndarray, np.n
     easy = (j >= 0) & ~shared[a[:, 0]]
     i = np.flatnonzero(easy)
     j = j[i]
-    same = _all(a[i] == b[j])
+    same = _all(np.take(a, i, axis=0) == np.take(b, j, axis=0))
     i, j = i[same], j[same]
     hard_a = np.flatnonzero(shared[a[:, 0]])
     if hard_a.size:
@@ -335,13 +335,13 @@ def _replace_face_nodes(face, hit, far, block, cols, snapped, snap):
     snapped node by its snap target. Returns (row indices, new rows)."""
     any_snapped = bool(snapped.any())
     rows = np.flatnonzero(_any(hit) | _any(snapped[face]) if any_snapped else _any(hit))
-    nodes = face[rows]
-    h = hit[rows]
+    nodes = np.take(face, rows, axis=0)
+    h = np.take(hit, rows, axis=0)
     nodes[h] = far[nodes[h]]
     if any_snapped:
         h = snapped[nodes]
         nodes[h] = snap[nodes[h]]
-    sub = block[rows]
+    sub = np.take(block, rows, axis=0)
     sub[:, cols] = nodes
     return rows, sub
 
@@ -372,9 +372,10 @@ def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, ax
     keep = np.ones(m, dtype=bool)
     if lo.size == 0 or up.size == 0:
         return mesh_cells, keep, np.zeros(n, dtype=bool), np.zeros(n, dtype=np.int64), info
-    lc, uc = mesh_cells[lo], mesh_cells[up]
-    l_top, l_bot = lc[:, tc], lc[:, bc]
-    u_bot, u_top = uc[:, bc], uc[:, tc]
+    # np.take: row and column gathers about twice as fast as fancy indexing
+    lc, uc = np.take(mesh_cells, lo, axis=0), np.take(mesh_cells, up, axis=0)
+    l_top, l_bot = np.take(lc, tc, axis=1), np.take(lc, bc, axis=1)
+    u_bot, u_top = np.take(uc, bc, axis=1), np.take(uc, tc, axis=1)
 
     # Box 2 steps 5-6: nodes at the top of an axis edge (of a lower element) and the bottom
     # of another (of an upper element) are the candidates for deletion.
@@ -406,7 +407,7 @@ def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, ax
 
     # Stacked pairs: a lower element whose top face is an upper element's bottom face.
     li, ui = _match_faces(l_top, u_bot, n)
-    faces = l_top[li]
+    faces = np.take(l_top, li, axis=0)
     mergeable = (material[lo[li]] == material[up[ui]])
     thin = ~(thick[lo[li]] & thick[up[ui]])
 

@@ -189,20 +189,18 @@ def _merge_regions(faces: np.ndarray, box: np.ndarray, cand_idx: np.ndarray, cma
     other = [d for d in range(dim) if d != axis]
     n_labels = 0
     rows = np.flatnonzero(box)
-    on_box = np.full(lattice.shape[0], -1, dtype=np.int64)  # node -> its rectangles' component
+    on_box = np.full(lattice.shape[0], -1, dtype=np.int32)  # node -> its rectangles' component
     if rows.size:
         whole = rows.size == box.size
         first = faces[:, 0] if whole else faces[rows, 0]
         last = faces[:, far] if whole else faces[rows, far]
-        coord = [lattice[:, d].astype(np.int32) for d in range(dim)]
-        plane = coord[axis][first]
-        start = [coord[d][first] for d in other]
-        size = [coord[d][last] - x for d, x in zip(other, start)]
+        first, last = (np.take(lattice, x, axis=0).astype(np.int32) for x in (first, last))
+        plane = first[:, axis]
+        start = [first[:, d] for d in other]
+        size = [last[:, d] - x for d, x in zip(other, start)]
         base = [int(x.min()) for x in start]
-        for x, b in zip(start, base):
-            x -= b
-        lo_plane = int(plane.min())
-        plane -= lo_plane
+        start = [x - b for x, b in zip(start, base)]
+        plane = plane - int(plane.min())
         used = np.bincount(plane) > 0
         pid = (np.cumsum(used, dtype=np.int32) - 1)[plane]
         grid = np.zeros((int(used.sum()), *[int((x + w).max()) for x, w in zip(start, size)]), dtype=bool)
@@ -218,7 +216,7 @@ def _merge_regions(faces: np.ndarray, box: np.ndarray, cand_idx: np.ndarray, cma
         structure[1] = True  # neighbours within a plane only, diagonals included
         labels, n_labels = ndimage.label(grid, structure)
         on_box[faces if whole else faces[rows]] = (labels[(pid, *start)] - 1)[:, None]
-    vid = on_box[cand_idx]
+    vid = on_box[cand_idx].astype(np.int64)
     rest = np.flatnonzero(vid < 0)
     vid[rest] = n_labels + np.arange(rest.size)
     f = vid[cmap[faces[~box]]]
@@ -352,7 +350,7 @@ def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, ax
 
     ``irregular`` flags the elements that are not lattice boxes (chamfers of earlier
     steps) and ``size`` holds the boxes' volumes in lattice units; both are updated in
-    place. Returns (cells, keep, delete, shift, info): the new
+    place, and so is ``mesh_cells``. Returns (cells, keep, delete, shift, info): the new
     cells (rows of removed elements still present), the rows kept, the nodes deleted,
     each node's move along the axis in lattice units (-1, 0, 1) and the step's figures.
     """
@@ -456,7 +454,17 @@ def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, ax
     node_at = None
     unit = np.zeros(3, dtype=np.int64)
     unit[axis] = 1
-    cells = mesh_cells.copy()
+    cells = mesh_cells  # changed in place: a copy of every element costs more than the rest of a round
+
+    def original(rows):
+        """The corners ``rows`` had before this step."""
+        out = cells[rows]
+        for idx, block in ((lo, lc), (up, uc)):
+            pos = np.minimum(np.searchsorted(idx, rows), idx.size - 1)
+            inside = idx[pos] == rows
+            out[inside] = block[pos[inside]]
+        return out
+
     delete = np.zeros(n, dtype=bool)
     snapped = np.zeros(n, dtype=bool)
     # per side (lower, upper): deleted face corners and whether any, all, or a bent one went
@@ -543,7 +551,7 @@ def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, ax
                     node_at = np.full(int(np.prod(dims)), -1, dtype=np.int32 if n < 2**31 - 1 else np.int64)
                     node_at[key_of(lattice)] = np.arange(n, dtype=node_at.dtype)
                 # rim nodes used only as face corners of the merged layers may move
-                c_all = _unique(mesh_cells[bad_rows])
+                c_all = _unique(original(bad_rows))
                 c_all = c_all[(rim_up[c_all] | rim_lo[c_all]) & ~tried[c_all]]
                 mask = np.zeros(n, dtype=bool)
                 mask[c_all] = True
@@ -579,7 +587,7 @@ def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, ax
         # (a rim node: it only makes chamfers) is refused on its own first; the merge
         # region of a bad element is refused only when it has no such node left.
         rows_rep = np.repeat(np.arange(bad_rows.size), mesh_cells.shape[1])
-        corners = mesh_cells[bad_rows].ravel()
+        corners = original(bad_rows).ravel()
         sel = delete[corners]
         rows_rep, ccomp = rows_rep[sel], comp[cmap[corners[sel]]]
         rim = ~region_of[ccomp]
@@ -588,7 +596,7 @@ def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, ax
         newly = _unique(ccomp[rim | ~has_rim[rows_rep]])
         newly = newly[~blocked[newly]]
         # moved rim nodes of the bad elements go back to their place
-        back = _unique(mesh_cells[bad_rows])
+        back = _unique(original(bad_rows))
         back = back[(shift[back] != 0) | (snap[back] >= 0)]
         if newly.size == 0 and back.size == 0:  # cannot happen for a consistent mesh
             blocked[:] = True
@@ -832,7 +840,10 @@ def _material_volumes(mesh: Mesh, box: np.ndarray, on_lattice: bool, size: np.nd
 def _on_lattice(mesh: Mesh) -> bool:
     """True when every node sits at origin + lattice * spacing."""
     scale = 1e-9 * max(1.0, float(np.abs(mesh.points).max(initial=0.0)))
-    x = mesh.lattice * mesh.spacing
-    x += mesh.origin
-    x -= mesh.points
-    return bool(np.abs(x).max(initial=0.0) <= scale)
+    for start in range(0, mesh.points.shape[0], 1 << 18):  # in pieces that stay in cache
+        x = mesh.lattice[start:start + (1 << 18)] * mesh.spacing
+        x += mesh.origin
+        x -= mesh.points[start:start + (1 << 18)]
+        if np.abs(x).max(initial=0.0) > scale:
+            return False
+    return True

@@ -248,13 +248,35 @@ def test_ccx_solves_full_resolution_model(full_run, tmp_path):
 # --- slow: plane merging on the real bone ------------------------------------------------------
 
 
-def _exterior_faces(cells: np.ndarray) -> np.ndarray:
-    """(F, 4) node rows of the hexahedron faces used by one element only."""
+def _surface_faces(cells: np.ndarray, material: np.ndarray | None = None) -> np.ndarray:
+    """(F, 4) node rows of the hexahedron faces used by one element only; with ``material``,
+    those between two elements of different materials instead (the interfaces)."""
     faces = cells[:, [[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]]]
     faces = faces.reshape(-1, 4)
     key = np.sort(faces, axis=1)
-    _, first, count = np.unique(key, axis=0, return_index=True, return_counts=True)
-    return faces[first[count == 1]]
+    order = np.lexsort(key.T[::-1])
+    key = key[order]
+    start = np.r_[True, np.any(key[1:] != key[:-1], axis=1)]
+    group = np.cumsum(start) - 1
+    count = np.bincount(group)
+    first = order[start]
+    if material is None:
+        return faces[first[count == 1]]
+    owner_material = np.repeat(material, 6)[order]
+    differs = np.zeros(count.size, dtype=bool)
+    differs[group[1:][(group[1:] == group[:-1]) & (owner_material[1:] != owner_material[:-1])]] = True
+    return faces[first[(count == 2) & differs]]
+
+
+def _mean_distances(a, b, faces_a: np.ndarray, faces_b: np.ndarray, voxel: float) -> list[float]:
+    """Mean distance, in voxels, of the nodes of ``faces_a`` to the surface ``faces_b`` and back."""
+    from scipy.spatial import cKDTree
+
+    out = []
+    for x, fx, y, fy in ((a, faces_a, b, faces_b), (b, faces_b, a, faces_a)):
+        d, _ = cKDTree(_surface_samples(y.points, fy)).query(x.points[np.unique(fx)])
+        out.append(float(d.mean()) / voxel)
+    return out
 
 
 def _surface_samples(points: np.ndarray, faces: np.ndarray, k: int = 6) -> np.ndarray:
@@ -270,8 +292,6 @@ def _surface_samples(points: np.ndarray, faces: np.ndarray, k: int = 6) -> np.nd
 def test_merged_bone_surface_stays_within_half_a_voxel():
     """Bone of the head CT: one merge per axis, then smoothing; the merged-and-smoothed boundary
     lies on average within 0.5 voxel of the unmerged-and-smoothed one (both ways)."""
-    from scipy.spatial import cKDTree
-
     from dicer.connectivity import fix_connectivity
     from dicer.io.images import read_image
     from dicer.mesh.merge import merge_planes
@@ -288,11 +308,25 @@ def test_merged_bone_surface_stays_within_half_a_voxel():
     fine, _ = smooth_mesh(mesh, {})
     coarse, rep = smooth_mesh(merged, {})
     assert rep["inverted_elements"] == 0 and rep["min_scaled_jacobian"] >= 0.2
-    voxel = float(min(image.spacing))
-    distances = []
-    for a, b in ((coarse, fine), (fine, coarse)):
-        samples = _surface_samples(b.points, _exterior_faces(b.cells))
-        nodes = np.unique(_exterior_faces(a.cells))
-        d, _ = cKDTree(samples).query(a.points[nodes])
-        distances.append(float(d.mean()) / voxel)
+    distances = _mean_distances(coarse, fine, _surface_faces(coarse.cells), _surface_faces(fine.cells),
+                                float(min(image.spacing)))
     assert max(distances) <= 0.5, distances
+
+
+@pytest.mark.slow
+def test_merged_head_surfaces_stay_within_half_a_voxel(full_run):
+    """Soft tissue + bone of the default full-resolution run: the merged-and-smoothed outer
+    surface and bone interface lie on average within 0.5 voxel of the unmerged-and-smoothed ones."""
+    from dicer.io.meshes import read_mesh
+    from dicer.mesh.smooth import smooth_mesh
+
+    report = json.loads((full_run / "merge.json").read_text())
+    assert report["elements_after"] < report["elements_before"]
+    assert all(abs(v["change_percent"]) <= 1.0 for v in report["volume"].values())
+    fine, _ = smooth_mesh(read_mesh(full_run / "mesh.vtu"), {})
+    coarse = read_mesh(full_run / "smoothed.vtu")
+    voxel = float(min(fine.spacing))
+    outer = _mean_distances(coarse, fine, _surface_faces(coarse.cells), _surface_faces(fine.cells), voxel)
+    interface = _mean_distances(coarse, fine, _surface_faces(coarse.cells, coarse.material),
+                                _surface_faces(fine.cells, fine.material), voxel)
+    assert max(outer) <= 0.5 and max(interface) <= 0.5, (outer, interface)

@@ -1,5 +1,7 @@
 """Plane merging (DICER Box 2): the paper's 2D example, a thick shell, multi-material and random volumes."""
 
+import contextlib
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -390,3 +392,81 @@ def test_merged_mesh_survives_a_vtu_round_trip(tmp_path):
     back = read_mesh(tmp_path / "merged.vtu")
     assert np.array_equal(back.cells, out.cells) and np.array_equal(back.lattice, out.lattice)
     assert np.allclose(back.points, out.points) and np.array_equal(back.material, out.material)
+
+
+def _graph_regions(faces, cand_idx, cmap):
+    """Reference merge regions: components of the graph joining every stacked face's nodes."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = cmap[faces]
+    k = f.shape[1] - 1
+    graph = coo_matrix((np.ones(f.shape[0] * k), (np.repeat(f[:, 0], k), f[:, 1:].ravel())),
+                       shape=(cand_idx.size,) * 2)
+    return connected_components(graph, directed=True, connection="weak")
+
+
+@contextlib.contextmanager
+def regions_checked_against_the_face_graph():
+    """Every merge step inside checks its merge regions against ``_graph_regions``; yields a
+    list that receives the number of non-rectangular stacked faces of each step."""
+    import dicer.mesh.merge as merge
+
+    original = merge._merge_regions
+    irregular_faces = []
+
+    def checked(faces, box, cand_idx, cmap, lattice, axis, far, dim):
+        n, comp = original(faces, box, cand_idx, cmap, lattice, axis, far, dim)
+        n_ref, ref = _graph_regions(faces, cand_idx, cmap)
+        assert n == n_ref
+        pairs = np.unique(comp.astype(np.int64) * (n + 1) + ref)  # one reference component per component
+        assert pairs.size == n
+        irregular_faces.append(int((~box).sum()))
+        return n, comp
+
+    merge._merge_regions = checked
+    try:
+        yield irregular_faces
+    finally:
+        merge._merge_regions = original
+
+
+@pytest.mark.parametrize("phantom", ["head", "shell", "long_bone"])
+@pytest.mark.parametrize("passes", [(1, 1, 1), (2, 2, 2)])
+def test_merge_regions_from_labelled_squares_equal_the_face_graph(phantom, passes):
+    # the regions found by labelling the squares under rectangular faces partition the
+    # candidates exactly as the graph of all faces does, also where later steps meet the
+    # faces of earlier chamfers
+    from dicer.phantoms import phantom_labels
+
+    labels = phantom_labels(phantom, 40).array
+    with regions_checked_against_the_face_graph() as irregular_faces:
+        merge_planes(voxel_mesh(labels), passes=passes)
+    assert len(irregular_faces) == sum(passes)
+    if phantom != "head":
+        assert sum(irregular_faces) > 0
+
+
+def test_stacked_pairs_touching_at_one_corner_share_a_region():
+    # two stacked pairs on a diagonal share only the node between them (the other two
+    # columns hold a lower voxel only): one region, as in the graph of their faces
+    labels = np.zeros((2, 2, 2), dtype=np.uint8)
+    labels[:, :, 0] = 1
+    labels[0, 0, 1] = labels[1, 1, 1] = 1
+    with regions_checked_against_the_face_graph() as irregular_faces:
+        _, report = merge_planes(voxel_mesh(labels), passes=(0, 0, 1))
+    assert irregular_faces == [0] and report["steps"][0]["regions"] == 1
+
+
+@_SETTINGS
+@given(arrays(np.uint8, st.tuples(*[st.integers(1, 4)] * 3), elements=st.integers(0, 3)),
+       st.tuples(*[st.integers(1, 3)] * 3), st.tuples(*[st.integers(0, 2)] * 3), st.permutations([0, 1, 2]))
+def test_merge_regions_of_random_blocky_volumes_equal_the_face_graph(blocks, repeat, passes, axes):
+    labels = blocks
+    for d in range(3):
+        labels = labels.repeat(repeat[d], axis=d)
+    labels = fixed(labels)
+    if not labels.any():
+        return
+    with regions_checked_against_the_face_graph():
+        merge_planes(voxel_mesh(labels), passes=passes, axes=tuple(axes))

@@ -23,7 +23,8 @@ three elements, and no element whose corner scaled Jacobian on the lattice falls
 the node already at that corner, so the element fills the empty voxel beside it. What
 still fails makes its merge region keep the plane, and the step is tried again.
 
-Arrays are numpy throughout; loops run only over axes, passes and retry rounds.
+Arrays are numpy throughout; loops run only over axes, passes, retry rounds and the few
+sizes of merged faces.
 """
 
 from __future__ import annotations

@@ -29,6 +29,7 @@ sizes of merged faces.
 
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
@@ -57,6 +58,7 @@ _HEX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [
                        [0, 4], [1, 5], [2, 6], [3, 7]])
 _QUAD_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
 _AXIS_NAMES = "xyz"
+log = logging.getLogger("dicer")  # the command line's logger: progress of long merges
 
 
 def _unique(a: np.ndarray) -> np.ndarray:
@@ -726,6 +728,9 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
                 "elements_after": int(cells.shape[0]), "nodes_before": n_before,
                 "nodes_after": int(lattice.shape[0]), **info,
                 "seconds": round(time.perf_counter() - t0, 3)})
+            log.info("merge: %s pass %d: %d -> %d elements, %d of %d regions merged (%.1f s)",
+                     _AXIS_NAMES[axis], s, m_before, cells.shape[0], info["regions_merged"], info["regions"],
+                     time.perf_counter() - t0)
 
     out = Mesh(points, cells.astype(np.int64), material, lattice, mesh.spacing.copy(), mesh.origin.copy(),
                mesh.grid_shape.copy(), point_data, cell_data)

@@ -269,10 +269,13 @@ def test_plane_granularity_refuses_whole_planes():
     assert_sound(region)
 
 
-def test_result_is_deterministic():
+def test_result_is_deterministic_and_the_input_mesh_unchanged():
     labels = fixed(_thick_shell(32, 0.2, 0.45))
-    a, ra = merge_planes(voxel_mesh(labels), passes=(1, 2, 1))
-    b, rb = merge_planes(voxel_mesh(labels), passes=(1, 2, 1))
+    mesh = voxel_mesh(labels)
+    before = mesh.cells.copy(), mesh.points.copy(), mesh.lattice.copy()
+    a, ra = merge_planes(mesh, passes=(1, 2, 1))
+    assert all(np.array_equal(x, y) for x, y in zip(before, (mesh.cells, mesh.points, mesh.lattice)))
+    b, rb = merge_planes(mesh, passes=(1, 2, 1))
     assert np.array_equal(a.cells, b.cells) and np.array_equal(a.points, b.points)
     assert [s["elements_after"] for s in ra["steps"]] == [s["elements_after"] for s in rb["steps"]]
 

@@ -348,7 +348,8 @@ def test_random_blocky_multi_material_volumes_merge_soundly(blocks, repeat, pass
     if not labels.any():
         return
     mesh = voxel_mesh(labels)
-    out, report = merge_planes(mesh, passes=passes, axes=tuple(axes))
+    with regions_checked_against_the_face_graph():  # labelled merge regions equal the face graph's
+        out, report = merge_planes(mesh, passes=passes, axes=tuple(axes))
     assert_sound(out)
     assert neighbour_counts(out).max() <= 6
     assert np.array_equal(np.unique(out.material), np.unique(mesh.material))
@@ -459,17 +460,3 @@ def test_stacked_pairs_touching_at_one_corner_share_a_region():
     with regions_checked_against_the_face_graph() as irregular_faces:
         _, report = merge_planes(voxel_mesh(labels), passes=(0, 0, 1))
     assert irregular_faces == [0] and report["steps"][0]["regions"] == 1
-
-
-@_SETTINGS
-@given(arrays(np.uint8, st.tuples(*[st.integers(1, 4)] * 3), elements=st.integers(0, 3)),
-       st.tuples(*[st.integers(1, 3)] * 3), st.tuples(*[st.integers(0, 2)] * 3), st.permutations([0, 1, 2]))
-def test_merge_regions_of_random_blocky_volumes_equal_the_face_graph(blocks, repeat, passes, axes):
-    labels = blocks
-    for d in range(3):
-        labels = labels.repeat(repeat[d], axis=d)
-    labels = fixed(labels)
-    if not labels.any():
-        return
-    with regions_checked_against_the_face_graph():
-        merge_planes(voxel_mesh(labels), passes=passes, axes=tuple(axes))

@@ -470,8 +470,7 @@ def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, ax
 
     delete = np.zeros(n, dtype=bool)
     snapped = np.zeros(n, dtype=bool)
-    # per side (lower, upper): deleted face corners and whether any, all, or a bent one went
-    hit = [np.zeros(face.shape, dtype=bool) for face in (l_top, u_bot)]
+    # per side (lower, upper): whether any, all, or a bent one of the face corners went
     flags = [np.zeros((3, face.shape[0]), dtype=bool) for face in (l_top, u_bot)]
     first_round = True
     while True:
@@ -489,7 +488,6 @@ def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, ax
                 cells[idx[rows]] = block[rows]  # undo the previous round there
             f = face[rows]
             h = delete[f]
-            hit[side][rows] = h
             flags[side][0, rows] = _any(h)
             flags[side][1, rows] = _all(h)
             flags[side][2, rows] = _any(h & bent[f])
@@ -681,7 +679,7 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
     t_start = time.perf_counter()
     index = np.int32 if mesh.n_points < 2**31 - 1 else np.int64  # halves memory traffic
     cells = mesh.cells.astype(index)
-    box0, size = _lattice_boxes(cells, mesh.lattice, dim, sizes=True)
+    box0, size = _lattice_boxes(cells, mesh.lattice, dim)
     on_lattice = _on_lattice(mesh)
     vol_before = _material_volumes(mesh, box0, on_lattice, size)
     report = {"passes": list(counts), "granularity": granularity, "min_thickness": float(min_thickness),
@@ -773,9 +771,10 @@ def merge_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, di
                         rim_moves=s["rim_moves"])
 
 
-def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int = 1 << 20, sizes: bool = False):
+def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int = 1 << 20
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """(M,) bool: elements whose corners sit on the corners of a lattice box, in VTK order;
-    with ``sizes``, also (M,) int64: each box's volume in lattice units (0 for others).
+    and (M,) int64: each box's volume in lattice units (0 for others).
 
     Lattice positions are packed into one integer key each (one-to-one inside the
     lattice's bounding box). An element is a box when its corner keys are its first
@@ -784,9 +783,9 @@ def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int 
     """
     far = 6 if dim == 3 else 2
     out = np.ones(cells.shape[0], dtype=bool)
-    size = np.zeros(cells.shape[0], dtype=np.int64) if sizes else None
+    size = np.zeros(cells.shape[0], dtype=np.int64)
     if lattice.shape[0] == 0:
-        return (out, size) if sizes else out
+        return out, size
     lat = [np.ascontiguousarray(lattice[:, d]) for d in range(dim)]
     base = [int(x.min()) for x in lat]
     extent = [int(x.max()) - b + 1 for x, b in zip(lat, base)]
@@ -813,29 +812,22 @@ def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int 
                 expected += step[d]
             ok &= kc[:, corner] == expected
         out[start:start + chunk] = ok
-        if sizes:
-            volume = span[0].astype(np.int64)
-            for d in range(1, dim):
-                volume *= span[d]
-            size[start:start + chunk] = np.where(ok, volume, 0)
-    return (out, size) if sizes else out
+        volume = span[0].astype(np.int64)
+        for d in range(1, dim):
+            volume *= span[d]
+        size[start:start + chunk] = np.where(ok, volume, 0)
+    return out, size
 
 
-def _material_volumes(mesh: Mesh, box: np.ndarray, on_lattice: bool, size: np.ndarray | None = None
-                      ) -> dict[int, float]:
+def _material_volumes(mesh: Mesh, box: np.ndarray, on_lattice: bool, size: np.ndarray) -> dict[int, float]:
     """Volume (area in 2D) of every material, mm^3: lattice boxes (``box``) from their
-    extent (or their ``size`` in lattice units, when given) when the nodes sit on the
-    lattice, every other element by Gauss quadrature."""
+    ``size`` in lattice units when the nodes sit on the lattice, every other element from
+    its corners (``element_volumes``)."""
     cells = mesh.cells
-    dim = mesh.dim
     box = box if on_lattice else np.zeros(cells.shape[0], dtype=bool)
     vol = np.empty(cells.shape[0])
     rows = np.flatnonzero(box)
-    if size is None:
-        span = mesh.lattice[cells[rows, 2 if dim == 2 else 6], :dim] - mesh.lattice[cells[rows, 0], :dim]
-        vol[rows] = np.prod(span, axis=1) * float(np.prod(mesh.spacing[:dim]))
-    else:
-        vol[rows] = size[rows] * float(np.prod(mesh.spacing[:dim]))
+    vol[rows] = size[rows] * float(np.prod(mesh.spacing[:mesh.dim]))
     other = np.flatnonzero(~box)
     if other.size:
         vol[other] = element_volumes(mesh.points, cells[other])

@@ -1,12 +1,17 @@
 """Boundary edges, the boundary graph and node classes A-F (Fig. 5)."""
 
 import itertools
+from unittest import mock
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
-from dicer.connectivity import boundary_edge_counts, connectivity_defects
+from dicer.connectivity import boundary_edge_counts, connectivity_defects, fix_connectivity
 from dicer.errors import DicerError
+from dicer.mesh import boundary
 from dicer.mesh.boundary import NODE_CLASSES, boundary_graph, class_counts, with_node_classes
 from dicer.mesh.model import Mesh
 from dicer.mesh.voxel import voxel_mesh
@@ -170,3 +175,94 @@ def test_empty_mesh_is_an_error():
              np.ones(3), np.zeros(3), np.ones(3, np.int64))
     with pytest.raises(DicerError):
         boundary_graph(m)
+
+
+_GRAPH_FIELDS = ("boundary", "edges", "degree", "node_class", "boundary_cells")
+
+
+def _graphs_by_every_count(m: Mesh, slots=None) -> list:
+    """The boundary graph of ``m`` with the packed per-edge histogram, the sorted count
+    with one int64 key, and the sorted count by lexsort."""
+    out = [boundary_graph(m, None, slots)]
+    with mock.patch.object(boundary, "_PACKED_KINDS", 0):
+        out.append(boundary_graph(m, None, slots))
+        with mock.patch.object(boundary, "_KEY_MAX", 0):
+            out.append(boundary_graph(m, None, slots))
+    return out
+
+
+@settings(max_examples=40, deadline=None)
+@given(arrays(np.uint8, st.one_of(st.tuples(*[st.integers(2, 7)] * 3), st.tuples(*[st.integers(2, 9)] * 2)),
+              elements=st.integers(0, 6)),
+       st.sampled_from([1, 37, 4000]))
+def test_sorted_edge_counts_equal_the_packed_histogram(labels, scale):
+    # random fixed meshes of up to 6 materials (label values spread out by ``scale``):
+    # the count for any number of materials gives exactly the graph of the packed one
+    from dicer.mesh.smooth import _corner_slots
+
+    labels = labels.astype(np.uint16) * scale
+    labels, _ = fix_connectivity(labels)
+    if not labels.any():
+        labels[(0,) * labels.ndim] = scale
+    m = voxel_mesh(labels)
+    for slots in (None, _corner_slots(m.cells, m.n_points)):
+        first, *others = _graphs_by_every_count(m, slots)
+        for g in others:
+            for f in _GRAPH_FIELDS:
+                assert np.array_equal(getattr(g, f), getattr(first, f)), f
+                assert getattr(g, f).dtype == getattr(first, f).dtype, f
+
+
+def _many_labels(n: int, kinds: int, seed: int) -> np.ndarray:
+    """(n, n, n) uint16 Voronoi cells of ``kinds`` random seeds, labelled with values scattered
+    over 1..65535, background on one face; connectivity fixed."""
+    rng = np.random.default_rng(seed)
+    values = np.sort(rng.choice(np.arange(1, 65536), kinds, replace=False)).astype(np.uint16)
+    seeds = rng.uniform(0, n, (kinds, 3))
+    centres = np.stack(np.meshgrid(*[np.arange(n) + 0.5] * 3, indexing="ij"), axis=-1).reshape(-1, 1, 3)
+    lab = values[((centres - seeds) ** 2).sum(axis=2).argmin(axis=1)].reshape(n, n, n)
+    lab[0] = 0
+    return fix_connectivity(lab)[0]
+
+
+def test_many_materials_give_the_voxel_space_counts():
+    # 300 labels up to 65535: the boundary edges per node are those counted on the label
+    # volume itself, every node gets one of the six classes, and the two sorted counts agree
+    lab = _many_labels(20, 300, 0)
+    m = voxel_mesh(lab)
+    assert np.unique(m.material).size > 250
+    g, by_key, by_lexsort = _graphs_by_every_count(m)
+    for f in _GRAPH_FIELDS:
+        assert np.array_equal(getattr(by_key, f), getattr(g, f)), f
+        assert np.array_equal(getattr(by_lexsort, f), getattr(g, f)), f
+    assert np.array_equal(g.degree, boundary_edge_counts(lab)[tuple(m.lattice.T)])
+    counts = class_counts(g.node_class)
+    assert counts["X"] == 0
+    assert sum(counts.values()) == m.n_points
+    assert counts["interior"] == np.count_nonzero(~g.boundary)
+    assert min(counts[c] for c in "ABCDEF") > 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 40), st.integers(1, 20), st.integers(0, 2**32 - 1))
+def test_edge_counts_by_sorting_and_packing_agree_with_a_tally(n, kinds, seed):
+    # per distinct edge: its nodes, its elements and the most of one material, checked
+    # against a plain tally (up to 7 elements of a material on an edge)
+    rng = np.random.default_rng(seed)
+    size = int(rng.integers(0, 200))
+    a, b = rng.integers(0, n, (2, size)).astype(np.int32)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    rank = rng.integers(0, kinds, size).astype(np.int8)
+    tally = {}
+    for x, y, r in zip(lo.tolist(), hi.tolist(), rank.tolist()):
+        tally.setdefault((x, y), []).append(r)
+    tally = {e: r for e, r in tally.items() if max(np.bincount(r)) <= 7}
+    keep = np.array([(x, y) in tally for x, y in zip(lo.tolist(), hi.tolist())], bool)
+    lo, hi, rank = lo[keep], hi[keep], rank[keep]
+    expected = sorted((x, y, len(r), int(np.bincount(r).max())) for (x, y), r in tally.items())
+    results = [boundary._edge_counts_packed(lo, hi, rank, n, kinds), boundary._edge_counts_sorted(lo, hi, rank, n, kinds)]
+    with mock.patch.object(boundary, "_KEY_MAX", 0):
+        results.append(boundary._edge_counts_sorted(lo, hi, rank, n, kinds))
+    for first, second, total, top in results:
+        assert list(zip(first.tolist(), second.tolist(), total.tolist(), top.tolist())) == expected
+        assert first.dtype == second.dtype == np.int32

@@ -48,7 +48,8 @@ HEX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7
                       [0, 4], [1, 5], [2, 6], [3, 7]])
 QUAD_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
 
-_MAX_KINDS = 20  # material kinds the per-edge histogram holds (3 bits each in an int64)
+_PACKED_KINDS = 20  # materials the packed per-edge histogram holds (3 bits each in an int64); more are sorted
+_KEY_MAX = 2**63 - 1  # largest sort key (edge, material) packed in one int64
 
 
 @dataclass
@@ -156,6 +157,67 @@ def _slot_counts(slots: np.ndarray, rank: np.ndarray, n_kinds: int) -> tuple[np.
     return cnt, (low == high) | (high < 0)
 
 
+def _edge_counts_packed(lo: np.ndarray, hi: np.ndarray, rank: np.ndarray, n: int, n_kinds: int
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per distinct edge: its two nodes, its element count and the most elements of one material.
+
+    lo, hi : (P,) int, the two node numbers (lo <= hi < n) of every edge of every element.
+    rank : (P,) int, the material rank (0 .. n_kinds - 1, n_kinds <= _PACKED_KINDS) of its element.
+    Returns (first, second, total, top), each (E,), edges in increasing (first, second) order.
+
+    Every material gets a 3-bit counter in an int64 and a sparse matrix sums the
+    duplicates: one linear pass, faster than a sort for few materials.
+    """
+    code = np.left_shift(np.int64(1), 3 * np.arange(n_kinds, dtype=np.int64))
+    hist = sp.csr_matrix((code[rank], (lo, hi)), shape=(n, n))
+    hist.sum_duplicates()  # rows and columns sorted: edges in increasing (first, second) order
+    first = np.repeat(np.arange(n, dtype=lo.dtype), np.diff(hist.indptr))
+    h = hist.data.astype(np.int64)
+    if not h.size:
+        return first, hist.indices, np.zeros(0, np.int64), np.zeros(0, np.int64)
+    counts = np.stack([(h >> (3 * r)) & 7 for r in range(n_kinds)], axis=1)
+    return first, hist.indices, counts.sum(axis=1), counts.max(axis=1)
+
+
+def _edge_counts_sorted(lo: np.ndarray, hi: np.ndarray, rank: np.ndarray, n: int, n_kinds: int
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``_edge_counts_packed`` for any number of materials: (edge, material) pairs sorted
+    and counted in runs."""
+    if lo.size == 0:
+        empty = np.zeros(0, np.int64)
+        return lo, hi, empty, empty
+    new_edge = np.ones(lo.size, bool)  # first entry of an edge in sorted order
+    new_pair = np.ones(lo.size, bool)  # first entry of an (edge, material) pair
+    if n * n * n_kinds <= _KEY_MAX:  # Python ints: no overflow in the test
+        # one int64 key per entry holds all three values: sorting the keys is all the sorting
+        key = (lo.astype(np.int64) * n + hi) * n_kinds + rank
+        key.sort(kind="stable")  # runs of sorted keys (elements come in order): timsort is quick
+        edge = key // n_kinds
+        np.not_equal(key[1:], key[:-1], out=new_pair[1:])
+        np.not_equal(edge[1:], edge[:-1], out=new_edge[1:])
+        del key
+        starts = np.flatnonzero(new_edge)
+        first, second = np.divmod(edge[starts], n)
+        del edge
+    else:
+        order = np.lexsort((rank, hi, lo))
+        a, b, r = lo[order], hi[order], rank[order]
+        del order
+        np.not_equal(a[1:], a[:-1], out=new_edge[1:])
+        new_edge[1:] |= b[1:] != b[:-1]
+        np.not_equal(r[1:], r[:-1], out=new_pair[1:])
+        new_pair |= new_edge
+        starts = np.flatnonzero(new_edge)
+        first, second = a[starts].astype(np.int64), b[starts].astype(np.int64)
+        del a, b, r
+    total = np.diff(np.append(starts, lo.size))
+    pair_starts = np.flatnonzero(new_pair)
+    run = np.diff(np.append(pair_starts, lo.size))  # elements of one material on one edge
+    first_run = np.cumsum(new_pair)[starts] - 1  # each edge's first pair
+    top = np.maximum.reduceat(run, first_run)
+    return first.astype(lo.dtype), second.astype(hi.dtype), total, top
+
+
 def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarray | None = None) -> BoundaryGraph:
     """Boundary nodes, boundary edges, their counts and the node classes of ``mesh``.
 
@@ -182,9 +244,6 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
         cnt, uniform = _slot_counts(slots, rank, kinds.size)
     boundary = (cnt > 0) & ~((cnt == full) & uniform)
     del cnt, uniform
-    if kinds.size > _MAX_KINDS:
-        raise DicerError(f"the mesh has {kinds.size} materials; node classification handles up to {_MAX_KINDS}")
-    code = np.left_shift(np.int64(1), 3 * np.arange(kinds.size, dtype=np.int64))  # one 3-bit counter per material
 
     # the elements holding a boundary node, and their edges between two boundary nodes, with
     # nodes numbered among the boundary nodes (p: that number, -1 for other nodes)
@@ -192,13 +251,13 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
     idx = np.int32 if n < 2**31 else np.int64
     p = np.full(n, -1, idx)
     p[pre] = np.arange(pre.size, dtype=idx)
-    parts = []  # per block of elements: (first, second, material code) of its edges
+    parts = []  # per block of elements: (first, second, material rank) of its edges
 
     def edges_of(sub, ranks):
         a, b = sub[:, local[:, 0]], sub[:, local[:, 1]]
         keep = (a >= 0) & (b >= 0)
         return (np.minimum(a, b)[keep], np.maximum(a, b)[keep],
-                np.broadcast_to(code[ranks][:, None], a.shape)[keep])
+                np.broadcast_to(ranks[:, None], a.shape)[keep])
 
     if slots is None:
         has = np.empty(cells.shape[0], bool)
@@ -219,25 +278,17 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
             parts.append(edges_of(p[cells[part]], rank[part]))
     del p, has
     if not parts:
-        parts.append(edges_of(np.zeros((0, per), idx), np.zeros(0, np.int64)))
-    lo, hi, val = (np.concatenate(column) for column in zip(*parts))
+        parts.append(edges_of(np.zeros((0, per), idx), np.zeros(0, rank.dtype)))
+    lo, hi, mat = (np.concatenate(column) for column in zip(*parts))
     del parts
-    # duplicates summed: per-edge histogram; rows and columns sorted, so edges come out in
-    # increasing (first, second) order
-    hist = sp.csr_matrix((val, (lo, hi)), shape=(pre.size, pre.size))
-    hist.sum_duplicates()
-    del lo, hi, val
-    e_lo = np.repeat(np.arange(pre.size, dtype=idx), np.diff(hist.indptr))
-    e_hi = hist.indices
-    h = hist.data.astype(np.int64)
-    counts = np.stack([(h >> (3 * r)) & 7 for r in range(kinds.size)], axis=1) if h.size else np.zeros((0, kinds.size), np.int64)
-    total = counts.sum(axis=1)
-    top = counts.max(axis=1) if counts.size else np.zeros(0, np.int64)
+    count_edges = _edge_counts_packed if kinds.size <= _PACKED_KINDS else _edge_counts_sorted
+    e_lo, e_hi, total, top = count_edges(lo, hi, mat, pre.size, kinds.size)
+    del lo, hi, mat
     is_b = top < edge_slots
     biggest = np.maximum(top, edge_slots - total)  # empty slots are one more kind
     ea, eb = e_lo[is_b], e_hi[is_b].astype(idx)
     biggest = biggest[is_b]
-    del hist, e_lo, e_hi, h, counts, total, top, is_b
+    del e_lo, e_hi, total, top, is_b
     edges = np.stack([pre[ea], pre[eb]], axis=1)
 
     deg = np.bincount(ea, minlength=pre.size) + np.bincount(eb, minlength=pre.size)

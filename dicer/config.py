@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+from collections import Counter
 from importlib import resources
 from pathlib import Path
 
@@ -142,8 +143,73 @@ def validate(config: dict, source: str = "config") -> dict:
         raise DicerError(f"{source}: key '{_key_path(err)}': {err.message}")
     names = [m["name"] for m in config.get("materials", [])]
     if len(set(names)) != len(names):
-        raise DicerError(f"{source}: key 'materials': class names must be unique, got {names}")
+        twice = sorted(n for n, count in Counter(names).items() if count > 1)
+        raise DicerError(f"{source}: key 'materials': class names must be unique; {', '.join(twice)} repeat")
+    clash = name_clash(names, config.get("export", {}).get("sets", SET_KINDS))
+    if clash:
+        raise DicerError(f"{source}: key 'materials': {clash}")
     return config
+
+
+SET_KINDS = ("planes", "materials", "interfaces", "exterior")
+"""The kinds of node and element sets an export can write (``export.sets``)."""
+
+
+def name_clash(names: list[str], sets=SET_KINDS) -> str | None:
+    """Why the material ``names`` (label i is names[i - 1]) would give two export sets one
+    name, or None when every name is distinct.
+
+    Solvers read names in upper case, so names are compared that way. An export names
+    each material's element set and material after it, the faces of the exterior
+    EXTERIOR_S1..S6 and, by ``sets``, the node sets ``<a>_BOUNDARY`` (materials) and
+    ``<a>_<b>`` for materials a before b (interfaces). Two of those clash when one
+    string splits two ways at its underscores, as ``a_b`` + ``c`` and ``a`` + ``b_c``
+    do; that is looked up through the names' prefixes, so the work follows the
+    number of names and underscores, not the number of pairs.
+    """
+    label: dict[str, int] = {}
+    for i, name in enumerate(names, start=1):
+        up = name.upper()
+        if up in label:
+            return (f"names {names[label[up] - 1]} and {name} differ only in case, and solvers read names "
+                    "in upper case; rename one")
+        label[up] = i
+    if "exterior" in sets:
+        for up, i in label.items():
+            if up in {f"EXTERIOR_S{s}" for s in range(1, 7)}:
+                return f"name {names[i - 1]} is the name of an exterior face set; rename it"
+    bound, inter = "materials" in sets, "interfaces" in sets
+    if not inter:
+        return None  # <a>_BOUNDARY are distinct for distinct names
+    if bound and label.get("BOUNDARY", 1) > 1:
+        first = names[0]
+        return (f"the boundary of {first} and its interface with {names[label['BOUNDARY'] - 1]} would both be "
+                f"{first}_BOUNDARY; rename {names[label['BOUNDARY'] - 1]}")
+    # a string a_m_t read as a + (m_t) and as (a_m) + t: a, a_m and m_t are names, t is
+    # BOUNDARY or a name; ``after[m]`` lists the names m_t
+    after: dict[str, list[str]] = {}
+    for up in label:
+        for cut in (i for i, ch in enumerate(up) if ch == "_"):
+            after.setdefault(up[:cut], []).append(up)
+    for long_left, i_long in label.items():
+        for cut in (i for i, ch in enumerate(long_left) if ch == "_"):
+            left, middle = long_left[:cut], long_left[cut + 1 :]
+            if left not in label:
+                continue
+            for right in after.get(middle, ()):
+                if label[right] <= label[left]:
+                    continue  # no interface set left_right: right comes first
+                tail = right[len(middle) + 1 :]
+                if tail == "BOUNDARY" and bound:
+                    other = f"the boundary of {names[i_long - 1]}"
+                elif tail in label and label[tail] > i_long:
+                    other = f"the interface of {names[i_long - 1]} and {names[label[tail] - 1]}"
+                else:
+                    continue
+                a, b = names[label[left] - 1], names[label[right] - 1]
+                return (f"the interface of {a} and {b} and {other} would both be {a}_{b} in an export; "
+                        "rename one of these materials")
+    return None
 
 
 def load_config(path: str | Path | None = None, sets: list[str] | tuple = (), settings: dict | None = None) -> dict:

@@ -6,6 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+MAX_LABEL = 65535
+"""The largest material label: label volumes are written as uint16 (NIfTI)."""
+
 
 @dataclass
 class Volume:

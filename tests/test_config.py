@@ -1,11 +1,14 @@
+import itertools
+
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dicer.config import (
     config_hash,
     default_config,
     load_config,
+    name_clash,
     parse_set,
     stage_settings,
     validate,
@@ -45,7 +48,11 @@ def test_material_defaults_filled_per_item():
         ("nonsense=1", ["unknown key 'nonsense'"]),
         ("segment.opening_radius=abc", ["segment.opening_radius", "integer"]),
         ("export.order=7", ["export.order"]),
-        ("materials=[{name: a}, {name: a}]", ["unique"]),
+        ("materials=[{name: a}, {name: a}]", ["unique", "a repeat"]),
+        ("materials=[{name: Bone}, {name: bone}]", ["Bone and bone", "upper case"]),
+        ("materials=[{name: a}, {name: a_b}, {name: b_c}, {name: c}]", ["a and b_c", "a_b and c", "a_b_c"]),
+        ("materials=[{name: a}, {name: BOUNDARY}]", ["a_BOUNDARY"]),
+        ("materials=[{name: Exterior_S2}]", ["Exterior_S2", "exterior face set"]),
         ("materials.0=1", ["materials"]),
     ],
 )
@@ -104,3 +111,36 @@ def test_config_hash_is_stable_and_sensitive():
     assert config_hash(a) == config_hash(b)
     assert len(config_hash(a)) == 16
     assert config_hash(a) != config_hash(load_config(sets=["export.thickness=3"]))
+
+
+def _set_names(names: list[str], sets) -> tuple[list[str], list[str]]:
+    """The element set and node set names of an export of the materials, upper case."""
+    upper = [n.upper() for n in names]
+    elements = upper + ([f"EXTERIOR_S{s}" for s in range(1, 7)] if "exterior" in sets else [])
+    nodes = ["X0", "X1", "Y0", "Y1", "Z0", "Z1", "EXTERIOR"]
+    if "materials" in sets:
+        nodes += [f"{a}_BOUNDARY" for a in upper]
+    if "interfaces" in sets:
+        nodes += [f"{a}_{b}" for a, b in itertools.combinations(upper, 2)]
+    return elements, nodes
+
+
+_WORDS = ["a", "b", "c", "a_b", "b_c", "a_b_c", "c_a", "BOUNDARY", "b_BOUNDARY", "A", "x_y", "y", "x", "Exterior_S3"]
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.sampled_from(_WORDS), min_size=1, max_size=6, unique=True),
+       st.sets(st.sampled_from(["materials", "interfaces", "exterior"])))
+def test_name_clash_finds_exactly_the_repeated_set_names(names, sets):
+    # a clash is reported exactly when two of the export's set names are equal
+    distinct = all(len(set(group)) == len(group) for group in _set_names(names, sets))
+    assert (name_clash(names, sets) is None) == distinct
+
+
+def test_many_material_names_without_a_clash_are_quick():
+    # 5000 names sharing prefixes and underscores, as atlas names do
+    names = [f"{side}_{part}_{i}" for i in range(2500) for side, part in (("Left", "Gyrus"), ("Right", "Gyrus"))]
+    assert name_clash(names) is None
+    assert "Left_Gyrus_7" in name_clash(names + ["Left", "Gyrus_7_Right_Gyrus_7"])
+    config = load_config(settings={"materials": [{"name": n} for n in names]})
+    assert len(config["materials"]) == 5000

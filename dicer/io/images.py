@@ -27,7 +27,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from dicer.errors import DicerError
-from dicer.image import Volume
+from dicer.image import MAX_LABEL, Volume
 from dicer.io.atomic import atomic_path
 
 log = logging.getLogger(__name__)
@@ -500,8 +500,8 @@ def write_labels(volume: Volume, path: str | os.PathLike) -> None:
         raise DicerError(f"{path}: labels of dtype {array.dtype} cannot be written; use integers 0..K")
     hi = array.max() if array.size else 0
     lo = array.min() if array.size else 0
-    if lo < 0 or hi > np.iinfo(np.uint16).max:
-        raise DicerError(f"{path}: labels range {lo:g}..{hi:g}; they must lie in 0..65535")
+    if lo < 0 or hi > MAX_LABEL:
+        raise DicerError(f"{path}: labels range {lo:g}..{hi:g}; they must lie in 0..{MAX_LABEL}")
     out = array.astype(np.uint8 if hi < 256 else np.uint16, copy=False)
     _write(_to_sitk(volume, out), path, compress=True)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import itertools
 import re
 
 import meshio
@@ -297,6 +298,88 @@ def test_neighbours_of_merged_elements():
     assert nb[1].tolist() == [0, 0, 1, 0, 0, 0]
     assert nb[2].tolist() == [1, 0, 0, 0, 0, 0]
     assert nb[0, 2] == 0 and nb[0, 4] == 2
+
+
+def _voronoi_labels(n: int, kinds: int, seed: int) -> np.ndarray:
+    """(n, n, n) uint16 Voronoi cells labelled 1..kinds, background on one face; connectivity fixed."""
+    from dicer.connectivity import fix_connectivity
+
+    rng = np.random.default_rng(seed)
+    seeds = rng.uniform(0, n, (kinds, 3))
+    centres = np.stack(np.meshgrid(*[np.arange(n) + 0.5] * 3, indexing="ij"), axis=-1).reshape(-1, 1, 3)
+    lab = (1 + ((centres - seeds) ** 2).sum(axis=2).argmin(axis=1)).astype(np.uint16).reshape(n, n, n)
+    lab[0] = 0
+    return fix_connectivity(lab)[0]
+
+
+def _faces_between(lab: np.ndarray) -> dict[tuple[int, int], set]:
+    """{(a, b), a < b: lattice points of the voxel faces between labels a and b (b 0: outside)},
+    straight from the label volume."""
+    padded = np.pad(lab, 1).astype(np.int64)
+    out: dict[tuple[int, int], set] = {}
+    for axis in range(3):
+        lo = padded.take(range(padded.shape[axis] - 1), axis)
+        hi = padded.take(range(1, padded.shape[axis]), axis)
+        for v in np.argwhere((lo != hi) & ((lo > 0) | (hi > 0))):
+            a, b = sorted((int(lo[tuple(v)]), int(hi[tuple(v)])))
+            pair = (b, 0) if a == 0 else (a, b)
+            face = v - 1  # the face's lowest corner, in lattice (unpadded) terms
+            face[axis] += 1
+            others = [d for d in range(3) if d != axis]
+            for i, j in itertools.product((0, 1), repeat=2):
+                corner = face.copy()
+                corner[others[0]] += i
+                corner[others[1]] += j
+                out.setdefault(pair, set()).add(tuple(corner.tolist()))
+    return out
+
+
+def test_sets_of_hundreds_of_materials_follow_the_faces(tmp_path):
+    # 300 materials (labels above 255): one boundary set per material and one interface set
+    # per pair that touches, each holding exactly the nodes of the faces concerned
+    lab = _voronoi_labels(16, 300, 1)
+    mesh = voxel_mesh(lab)
+    names = [f"Region_{i}" for i in range(1, 301)]
+    config = load_config(settings={"materials": [{"name": n} for n in names]})
+    model = prepare_model(mesh, config)
+    faces = _faces_between(lab)
+    present = np.unique(mesh.material)
+    assert present.size > 280 and int(lab.max()) > 255
+    lattice = [tuple(p) for p in mesh.lattice.tolist()]
+
+    def nodes(name):
+        return {lattice[i] for i in model.node_sets[name]}
+
+    pairs = sorted(p for p in faces if p[1] != 0)
+    expected = ["X1", "Y0", "Y1", "Z0", "Z1", "EXTERIOR"]  # (no node on x = 0: background there)
+    expected += [f"{names[k - 1]}_BOUNDARY" for k in present]
+    expected += [f"{names[a - 1]}_{names[b - 1]}" for a, b in pairs]
+    assert list(model.node_sets) == expected
+    assert len(pairs) > 1000
+    for a, b in pairs:
+        assert nodes(f"{names[a - 1]}_{names[b - 1]}") == faces[(a, b)]
+    for k in present:
+        around = set().union(*(pts for pair, pts in faces.items() if k in pair))
+        assert nodes(f"{names[k - 1]}_BOUNDARY") == around
+    assert nodes("EXTERIOR") == set().union(*(pts for (a, b), pts in faces.items() if b == 0))
+    # the voxel -> material grid (uint16 here) finds the neighbours the face sort finds
+    idx = _neighbours_by_sort(mesh.cells, 3, mesh.n_points)
+    assert np.array_equal(neighbour_materials(mesh), np.where(idx >= 0, mesh.material[np.maximum(idx, 0)], 0))
+    # the deck holds one element set and one material per material, and reads back
+    info = export_mesh(mesh, tmp_path / "m.inp", config)
+    text = (tmp_path / "m.inp").read_text()
+    assert len(info["materials"]) == present.size and len(info["node_sets"]) == len(expected)
+    assert len(re.findall(r"^\*ELEMENT, TYPE=C3D8, ELSET=Region_\d+$", text, re.M)) == present.size
+    assert len(re.findall(r"^\*SOLID SECTION, ELSET=Region_\d+, MATERIAL=Region_\d+$", text, re.M)) == present.size
+
+
+def test_set_names_that_clash_are_refused(mesh, config):
+    config["materials"] = [{"name": "a"}, {"name": "a_b"}, {"name": "b_c"}, {"name": "c"}]
+    mesh.material = np.where(mesh.material == 2, 4, 1).astype(np.int32)
+    with pytest.raises(DicerError, match="a_b_c"):
+        prepare_model(mesh, config)
+    config["export"]["sets"] = ["planes", "materials", "exterior"]
+    assert "a_BOUNDARY" in prepare_model(mesh, config).node_sets
 
 
 # --- command line ---------------------------------------------------------------------------

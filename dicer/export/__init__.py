@@ -21,8 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from dicer import __version__
-from dicer.config import config_hash
+from dicer.config import SET_KINDS, config_hash, name_clash
 from dicer.errors import DicerError
+from dicer.image import MAX_LABEL
 from dicer.io.atomic import atomic_path
 from dicer.mesh.model import Mesh
 
@@ -58,7 +59,6 @@ HEX20_FACES = np.column_stack([HEX_FACES, [[8, 9, 10, 11], [15, 14, 13, 12], [16
                                            [18, 14, 19, 10], [19, 15, 16, 11]]])
 QUAD8_EDGES = np.column_stack([QUAD_EDGES, [4, 5, 6, 7]])
 
-SET_KINDS = ("planes", "materials", "interfaces", "exterior")
 
 
 @dataclass
@@ -187,7 +187,8 @@ def _box_offsets(dim: int) -> np.ndarray:
 
 
 def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
-    """(M, F) uint8 material of the element across each face, 0 for none, from a voxel -> material grid.
+    """(M, F) material of the element across each face, 0 for none, from a voxel -> material grid
+    (uint8, or uint16 for labels above 255).
 
     Valid when every element is an axis-aligned box of the lattice (voxel meshes and
     plane-merged meshes; smoothing moves points, not lattice indices); None otherwise.
@@ -195,8 +196,9 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
     dim = mesh.dim
     cells, material = mesh.cells, mesh.material
     m = cells.shape[0]
-    if m == 0 or int(material.max()) > 255:
+    if m == 0 or int(material.max()) > 65535:
         return None
+    kind = np.uint8 if int(material.max()) < 256 else np.uint16
     offsets = _box_offsets(dim)
     far = 6 if dim == 3 else 2
     shape = np.asarray(mesh.grid_shape, np.int64)[:dim]
@@ -204,7 +206,7 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
     strides = np.array([int(np.prod(shape[i + 1 :])) for i in range(dim)], np.int64)
     nstrides = np.array([int(np.prod(shape[i + 1 :] + 1)) for i in range(dim)], np.int64)
     node_lin = lattice @ nstrides
-    grid = np.zeros(int(np.prod(shape)), np.uint8)
+    grid = np.zeros(int(np.prod(shape)), kind)
     covered = 0
     for start in range(0, m, _CHUNK):
         c = cells[start : start + _CHUNK]
@@ -219,7 +221,7 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
                 return None
         base = lo @ strides
         code = ext @ (64 ** np.arange(dim))
-        mat = material[start : start + _CHUNK].astype(np.uint8)
+        mat = material[start : start + _CHUNK].astype(kind)
         for cc in np.unique(code):  # a few distinct box sizes (1 x 1 x 1 before plane merging)
             sel = code == cc
             e = [(int(cc) // 64**i) % 64 for i in range(dim)]
@@ -230,7 +232,7 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
     if np.count_nonzero(grid) != covered:  # overlapping boxes
         return None
     axes = HEX_FACE_AXES if dim == 3 else QUAD_EDGE_AXES
-    nb = np.empty((m, len(axes)), np.uint8)
+    nb = np.empty((m, len(axes)), kind)
     for start in range(0, m, _CHUNK):
         c = cells[start : start + _CHUNK]
         lo = lattice[c[:, 0]]
@@ -287,53 +289,78 @@ def neighbour_materials(mesh: Mesh) -> np.ndarray:
     return nb
 
 
+def _face_nodes(cells: np.ndarray, table: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Elements (F,) and their nodes (F, c) of the faces marked in the (M, faces) bool array ``faces``."""
+    e_idx, f_idx = np.nonzero(faces)
+    return e_idx, cells[e_idx[:, None], table[f_idx]]
+
+
+def _grouped_nodes(code: np.ndarray, nodes: np.ndarray, n_points: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Distinct codes (ascending) and, for each, the sorted distinct nodes paired with it.
+
+    code : (F,) int64, one code per row of ``nodes``; nodes : (F, c) node indices.
+    """
+    key = np.unique((code[:, None] * n_points + nodes).ravel())  # int64: codes < 2**32, nodes < 2**31
+    if not key.size:
+        return key, []
+    group, node = np.divmod(key, n_points)
+    cut = np.flatnonzero(group[1:] != group[:-1]) + 1
+    return group[np.r_[0, cut]], np.split(node, cut)
+
+
 def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> None:
-    """Exterior faces and surface, material boundary and interface node sets from neighbour materials."""
+    """Exterior faces and surface, material boundary and interface node sets from neighbour materials.
+
+    Sets come in the order EXTERIOR, <a>_BOUNDARY by label, <a>_<b> by label a then b
+    (a < b); only sets with nodes are kept. Nodes are collected as (set, node) pairs
+    from the faces concerned, so the work follows the surface, not the number of
+    materials or pairs of them.
+    """
     dim = model.dim
     if model.order == 2:
         table = HEX20_FACES if dim == 3 else QUAD8_EDGES
     else:
         table = HEX_FACES if dim == 3 else QUAD_EDGES
-    labels = model.labels()
-    wanted: dict[str, tuple[int, int | None]] = {}  # set name -> (material, neighbour material or None: any other)
-    if "exterior" in kinds:
-        wanted["EXTERIOR"] = (-1, 0)
-    if "materials" in kinds:
-        for k in labels:
-            wanted[f"{model.names[k]}_BOUNDARY"] = (k, None)
-    if "interfaces" in kinds:
-        for a in labels:
-            for b in labels:
-                if b > a:
-                    wanted[f"{model.names[a]}_{model.names[b]}"] = (a, b)
-    masks = {name: np.zeros(model.n_points, bool) for name in wanted}
+    n = model.n_points
+    if n >= 2**31:
+        raise DicerError("node sets of models with 2**31 nodes or more are not supported; leave materials, "
+                         "interfaces and exterior out of export.sets")
+    exterior = np.zeros(n, bool)
     ext_e, ext_f = [], []
+    bound_code, bound_nodes, pair_code, pair_nodes = [], [], [], []
     for start in range(0, model.n_cells, _CHUNK):
-        mat = model.material[start : start + _CHUNK]
+        mat = model.material[start : start + _CHUNK].astype(np.int64)
         nbm = nb_mat[start : start + _CHUNK]
         cells = model.cells[start : start + _CHUNK]
-        for name, (k, other) in wanted.items():
-            if k == -1:
-                faces = nbm == 0
-                f_idx, e_idx = np.nonzero(faces.T)
-                ext_e.append(e_idx + start)
-                ext_f.append(f_idx)
-            elif other is None:
-                faces = (mat == k)[:, None] & (nbm != k)
-            else:
-                faces = (mat == k)[:, None] & (nbm == other)
-            for f in range(table.shape[0]):
-                e = np.flatnonzero(faces[:, f])
-                if e.size:
-                    masks[name][cells[e[:, None], table[f]]] = True
+        if "exterior" in kinds:
+            f_idx, e_idx = np.nonzero((nbm == 0).T)  # grouped by face number
+            ext_e.append(e_idx + start)
+            ext_f.append(f_idx)
+            exterior[cells[e_idx[:, None], table[f_idx]]] = True
+        if "materials" in kinds:  # faces of a material with another (or none) behind them
+            e_idx, nodes = _face_nodes(cells, table, nbm != mat[:, None])
+            bound_code.append(mat[e_idx])
+            bound_nodes.append(nodes)
+        if "interfaces" in kinds:  # faces of material a with material b > a behind them
+            later = nbm > mat[:, None]
+            e_idx, nodes = _face_nodes(cells, table, later)
+            pair_code.append(mat[e_idx] << 16 | nbm[later].astype(np.int64))  # labels <= MAX_LABEL < 2**16
+            pair_nodes.append(nodes)
     if "exterior" in kinds:
         e, f = np.concatenate(ext_e), np.concatenate(ext_f)
         order = np.lexsort((e, f))  # grouped by face number, elements ascending
         model.exterior = np.column_stack([e[order], f[order] + 1]).astype(np.int64)
-    for name, mask in masks.items():
-        ids = np.flatnonzero(mask)
-        if ids.size:
-            model.node_sets[name] = ids
+        if exterior.any():
+            model.node_sets["EXTERIOR"] = np.flatnonzero(exterior)
+    width = table.shape[1]
+    if "materials" in kinds:
+        codes, groups = _grouped_nodes(np.concatenate(bound_code), np.concatenate(bound_nodes).reshape(-1, width), n)
+        for k, ids in zip(codes.tolist(), groups):
+            model.node_sets[f"{model.names[k]}_BOUNDARY"] = ids
+    if "interfaces" in kinds:
+        codes, groups = _grouped_nodes(np.concatenate(pair_code), np.concatenate(pair_nodes).reshape(-1, width), n)
+        for code, ids in zip(codes.tolist(), groups):
+            model.node_sets[f"{model.names[code >> 16]}_{model.names[code & 0xFFFF]}"] = ids
 
 
 def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "model") -> SolverModel:
@@ -348,16 +375,22 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
     if lo < 1 or hi > k:
         raise DicerError(f"{path}: element material labels run {lo}..{hi} but the config names {k} material(s) "
                          f"(labels 1..{k}); add materials to the config")
+    if hi > MAX_LABEL:
+        raise DicerError(f"{path}: material label {hi} is above {MAX_LABEL}, the largest a label volume holds; "
+                         "renumber the materials")
     if not np.all(np.isfinite(mesh.points)):
         raise DicerError(f"{path}: the mesh has non-finite node coordinates; re-run the stage that made it")
     ex = config.get("export", {})
+    kinds = set(ex.get("sets", SET_KINDS))
+    clash = name_clash([m["name"] for m in materials], kinds)
+    if clash:
+        raise DicerError(f"{path}: {clash}")
     names = {i + 1: m["name"] for i, m in enumerate(materials)}
     props = {i + 1: {"youngs_modulus": 1000.0, "poissons_ratio": 0.3, "density": 1.0e-9, **m}
              for i, m in enumerate(materials)}
     cells = np.asarray(mesh.cells, dtype=np.int64)
     lattice2 = None  # twice the lattice index (order 2: mid-edge nodes at half-integers)
     points = mesh.points
-    kinds = set(ex.get("sets", SET_KINDS))
     nb_mat = None
     if kinds & {"materials", "interfaces", "exterior"} or (order == 2 and ex.get("midside_nodes") == "curved"):
         nb_mat = neighbour_materials(mesh)

@@ -34,6 +34,29 @@ def _stats(values: np.ndarray) -> dict:
     return out
 
 
+def _material_counts(mesh: Mesh, sj: np.ndarray, vol: np.ndarray) -> dict[str, np.ndarray]:
+    """Per material present, ascending: ``label``, ``elements``, ``nodes``, ``volume`` and
+    ``min_scaled_jacobian``, each (K,), in passes over all elements (none per material)."""
+    material = np.asarray(mesh.material, np.int64)
+    size = int(material.max()) + 1 if material.size else 1
+    elements = np.bincount(material, minlength=size)
+    label = np.flatnonzero(elements)
+    lowest = np.full(size, np.inf)
+    np.minimum.at(lowest, material, sj)
+    # nodes: the distinct (node, material) pairs, as one sorted int64 key per element corner
+    rank = np.zeros(size, np.int64)
+    rank[label] = np.arange(label.size)
+    key = mesh.cells * np.int64(label.size)
+    key += rank[material][:, None]
+    key = key.ravel()
+    key.sort(kind="stable")  # element corners come in runs of increasing nodes
+    first = np.ones(key.size, bool)
+    np.not_equal(key[1:], key[:-1], out=first[1:])
+    nodes = np.bincount(key[first] % label.size, minlength=label.size)
+    return {"label": label, "elements": elements[label], "nodes": nodes,
+            "volume": np.bincount(material, weights=vol, minlength=size)[label], "min_scaled_jacobian": lowest[label]}
+
+
 def quality_report(mesh: Mesh, config: dict, labels=None) -> dict:
     """Quality figures of ``mesh`` as a JSON-ready dict.
 
@@ -50,24 +73,25 @@ def quality_report(mesh: Mesh, config: dict, labels=None) -> dict:
     unit = "mm^3" if mesh.dim == 3 else "mm^2"
 
     materials = {}
-    for label in np.unique(mesh.material):
-        sel = mesh.material == label
-        name = names.get(int(label), f"material_{int(label)}")
+    per = _material_counts(mesh, sj, vol)
+    if labels is not None:
+        in_volume = np.bincount(np.asarray(labels.array).ravel(), minlength=int(per["label"].max()) + 1)
+        voxel_volume = float(np.prod(labels.spacing))
+    for i, label in enumerate(per["label"].tolist()):
         entry = {
-            "label": int(label),
-            "elements": int(sel.sum()),
-            "nodes": int(np.unique(mesh.cells[sel]).size),
-            f"volume_{unit}": _r(vol[sel].sum()),
-            "min_scaled_jacobian": _r(sj[sel].min()),
+            "label": label,
+            "elements": int(per["elements"][i]),
+            "nodes": int(per["nodes"][i]),
+            f"volume_{unit}": _r(per["volume"][i]),
+            "min_scaled_jacobian": _r(per["min_scaled_jacobian"][i]),
         }
         if labels is not None:
-            voxels = int(np.count_nonzero(labels.array == label))
-            voxel_volume = float(np.prod(labels.spacing))
+            voxels = int(in_volume[label])
             entry["voxels"] = voxels
             entry[f"voxel_volume_{unit}"] = _r(voxels * voxel_volume)
             if voxels:
-                entry["volume_change_percent"] = _r(100.0 * (vol[sel].sum() / (voxels * voxel_volume) - 1.0))
-        materials[name] = entry
+                entry["volume_change_percent"] = _r(100.0 * (per["volume"][i] / (voxels * voxel_volume) - 1.0))
+        materials[names.get(label, f"material_{label}")] = entry
 
     report = {
         "dicer_version": __version__,

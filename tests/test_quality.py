@@ -47,3 +47,28 @@ def test_html_shows_stage_reports_and_pictures():
     assert "<h2>Stage: fix</h2>" in page and "<h2>Stage: merge</h2>" in page
     assert "<td>7</td>" in page and "{&quot;bone&quot;: 3}" in page
     assert "<img src='segmentation.png'" in page
+
+
+def test_counts_of_hundreds_of_materials():
+    # 400 labels (some unnamed): each material's counts equal a count over its own elements
+    rng = np.random.default_rng(5)
+    labels = rng.integers(0, 401, (12, 11, 10)).astype(np.uint16)
+    mesh = voxel_mesh(labels)
+    mesh.points += rng.normal(0, 0.05, mesh.points.shape)
+    config = load_config(settings={"materials": [{"name": f"m{i}"} for i in range(1, 301)]})
+    report = quality_report(mesh, config, labels=Volume(labels, (1.0, 1.0, 1.0)))
+    present = np.unique(mesh.material)
+    assert len(report["materials"]) == present.size > 350
+    from dicer.mesh.metrics import element_volumes, scaled_jacobian
+
+    sj = scaled_jacobian(mesh.points, mesh.cells)
+    vol = element_volumes(mesh.points, mesh.cells)
+    for k in present.tolist():
+        entry = report["materials"][f"m{k}" if k <= 300 else f"material_{k}"]
+        sel = mesh.material == k
+        assert entry["label"] == k and entry["elements"] == np.count_nonzero(sel)
+        assert entry["nodes"] == np.unique(mesh.cells[sel]).size
+        assert entry["voxels"] == np.count_nonzero(labels == k)
+        assert entry["volume_mm^3"] == pytest.approx(vol[sel].sum(), rel=1e-5)
+        assert entry["min_scaled_jacobian"] == pytest.approx(sj[sel].min(), rel=1e-5)
+    assert sum(e["nodes"] for e in report["materials"].values()) > mesh.n_points  # shared nodes count twice

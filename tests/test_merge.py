@@ -260,6 +260,38 @@ def test_selective_merging_keeps_thin_parts_fine():
     assert_sound(selective)
 
 
+def _thick_by_whole_grid(labels: np.ndarray, min_thickness: float) -> np.ndarray:
+    """Thick voxels of every material, each found on the whole grid (the definition)."""
+    from scipy import ndimage
+
+    radius = 0.5 * min_thickness
+    thick = np.zeros(labels.shape, bool)
+    for mat in np.unique(labels[labels > 0]):
+        mask = labels == mat
+        inside = ndimage.distance_transform_edt(np.pad(mask, 1))[(slice(1, -1),) * labels.ndim]
+        centres = inside >= radius
+        if centres.any():
+            thick |= mask & (ndimage.distance_transform_edt(~centres) < radius)
+    return thick
+
+
+@pytest.mark.parametrize("min_thickness", [2.5, 3, 4.5])
+def test_thick_elements_of_hundreds_of_materials(min_thickness):
+    # 200 materials in blocks of 1 to 6 voxels: each material's thick part, found inside its
+    # bounding box, is the one found on the whole grid
+    rng = np.random.default_rng(int(min_thickness * 2))
+    labels = np.zeros((30, 28, 26), np.int32)
+    for k in range(1, 201):
+        lo = rng.integers(0, 25, 3)
+        hi = lo + rng.integers(1, 7, 3)
+        labels[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = k
+    mesh = voxel_mesh(labels)
+    expected = _thick_by_whole_grid(labels, min_thickness)[tuple(mesh.lattice[mesh.cells[:, 0]].T)]
+    got = thick_elements(mesh, min_thickness)
+    assert np.array_equal(got, expected)
+    assert 0 < np.count_nonzero(got) < got.size and np.unique(mesh.material).size > 150
+
+
 def test_plane_granularity_refuses_whole_planes():
     labels = fixed(_thick_shell(40, 0.25, 0.45))
     region, r1 = merge_planes(voxel_mesh(labels), passes=(1, 1, 1))

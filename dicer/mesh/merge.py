@@ -130,14 +130,19 @@ def thick_elements(mesh: Mesh, min_thickness: float) -> np.ndarray:
             labels[idx] = mesh.material[rows]
     radius = 0.5 * float(min_thickness)
     thick_vox = np.zeros(shape, dtype=bool)
-    for mat in np.unique(mesh.material):
-        mask = labels == mat
+    # each material inside its bounding box (one pass finds them all): the distance
+    # transforms cover the materials' extents, not the grid once per material
+    for mat, box in enumerate(ndimage.find_objects(labels), start=1):
+        if box is None:
+            continue
+        mask = labels[box] == mat
+        # the padding stands for the voxels around the box, none of this material
         inside = ndimage.distance_transform_edt(np.pad(mask, 1))[(slice(1, -1),) * dim]
         centres = inside >= radius  # centres of balls of the given radius inside the material
         if not centres.any():
             continue
         reach = ndimage.distance_transform_edt(~centres)
-        thick_vox |= mask & (reach < radius)
+        thick_vox[box] |= mask & (reach < radius)
     return thick_vox[tuple(lo[:, d] for d in range(dim))]
 
 

@@ -87,28 +87,62 @@ def vote(labels: np.ndarray, factor, n_classes: int, min_fraction: float = 0.25,
     k = int(n_classes)
     f = tuple(int(x) for x in factor)
     prio = list(priority) if priority is not None else list(range(k, 0, -1))
+    work = labels.view(np.uint8) if labels.dtype == bool else labels
     pad = [(0, (-n) % fi) for n, fi in zip(labels.shape, f)]
-    padded = np.pad(labels, pad) if any(p[1] for p in pad) else labels
+    padded = np.pad(work, pad) if any(p[1] for p in pad) else work
     coarse_shape = tuple(n // fi for n, fi in zip(padded.shape, f))
-    split = tuple(x for pair in zip(coarse_shape, f) for x in pair)
-    axes = tuple(range(1, 2 * len(f), 2))
     block = int(np.prod(f))
-    need = min_fraction * block
-    counts = np.empty((k + 1,) + coarse_shape, dtype=np.int32)
-    for c in range(k + 1):  # loop over classes, each a vectorised block count
-        counts[c] = (padded == c).reshape(split).sum(axis=axes, dtype=np.int32)
-    out = np.zeros(coarse_shape, dtype=labels.dtype)
-    decided = np.zeros(coarse_shape, dtype=bool)
-    for c in prio:  # rule 1: highest-priority candidate
-        win = (counts[c] >= need) & (counts[c] > 0) & ~decided
-        out[win] = c
-        decided |= win
-    if not decided.all():  # rule 2: plurality, ties to priority order then background
-        order = list(prio) + [0]
-        ranked = counts[order]  # (K+1, ...) in tie-break order; argmax takes the first maximum
-        plural = np.asarray(order, dtype=labels.dtype)[np.argmax(ranked, axis=0)]
-        out[~decided] = plural[~decided]
+    order = prio + [0]  # the tie-break order of rule 2
+    top = max(int(padded.max(initial=0)), k)
+    rank = np.full(top + 1, len(order), np.int64)  # position in ``order``; len(order): not in it
+    rank[order] = np.arange(len(order))
+    out = np.empty(coarse_shape, dtype=labels.dtype)
+    step = max(1, _VOXELS // max(1, padded[: f[0]].size))  # coarse planes along x per slab
+    for x0 in range(0, coarse_shape[0], step):
+        slab = padded[x0 * f[0] : (x0 + step) * f[0]]
+        out[x0 : x0 + step] = _vote_blocks(_blocks(slab, f), rank, np.asarray(order), min_fraction * block
+                                           ).reshape((-1,) + coarse_shape[1:])
     return out
+
+
+_VOXELS = 1 << 22  # fine voxels per slab of the vote: its temporaries stay small
+
+
+def _blocks(a: np.ndarray, f: tuple[int, ...]) -> np.ndarray:
+    """(blocks, voxels per block): the voxels of each ``f`` block of ``a`` (shape a multiple of
+    ``f``) in one row, blocks in C order of the coarse grid."""
+    coarse = tuple(n // fi for n, fi in zip(a.shape, f))
+    split = tuple(x for pair in zip(coarse, f) for x in pair)
+    nd = len(f)
+    return a.reshape(split).transpose(tuple(range(0, 2 * nd, 2)) + tuple(range(1, 2 * nd, 2))).reshape(
+        int(np.prod(coarse)), int(np.prod(f)))
+
+
+def _vote_blocks(rows: np.ndarray, rank: np.ndarray, order: np.ndarray, need: float) -> np.ndarray:
+    """The vote of every row of ``rows`` (blocks, voxels): one pass over the sorted rows.
+
+    rank : position of each value in ``order`` (prio then background; len(order) for
+    values outside it). Sorting each row turns its classes into runs, so the counts of
+    every class present come out together, however many classes there are.
+    """
+    n, width = rows.shape
+    flat = np.sort(rows, axis=1).ravel()
+    start = np.ones(flat.size, dtype=bool)
+    np.not_equal(flat[1:], flat[:-1], out=start[1:])
+    start[::width] = True  # every row starts a run
+    runs = np.flatnonzero(start)
+    count = np.diff(np.append(runs, flat.size))
+    r = rank[flat[runs]]
+    first = np.searchsorted(runs, np.arange(n) * width)  # each row's first run
+    outside = len(order)
+    # rule 1: among the classes of the priority filling ``need`` (and at least one voxel), the first
+    cand = (count >= need) & (count > 0) & (r < outside - 1)
+    best = np.minimum.reduceat(np.where(cand, r, outside), first)
+    # rule 2: the most frequent value of ``order``, ties to the first in it
+    score = np.where(r < outside, count * (outside + 1) + (outside - r), 0)
+    plural = np.maximum.reduceat(score, first)
+    plural_rank = np.where(plural > 0, outside - plural % (outside + 1), 0)
+    return order[np.where(best < outside, best, plural_rank)].astype(rows.dtype)
 
 
 def downsample(labels: Volume, config: dict, source: str = "") -> tuple[Volume, dict]:

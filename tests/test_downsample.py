@@ -126,6 +126,26 @@ def test_vote_matches_blockwise_rule(lab, fx, fy, frac):
             assert out[i, j] == expected
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 300).flatmap(lambda k: st.tuples(
+           st.just(k), arrays(np.uint16, st.tuples(*[st.integers(1, 7)] * 3), elements=st.integers(0, k)),
+           st.permutations(list(range(1, k + 1))))),
+       st.tuples(*[st.integers(1, 3)] * 3), st.sampled_from([0.0, 0.2, 0.5, 1.0]))
+def test_vote_of_many_classes_matches_blockwise_rule(drawn, factor, frac):
+    # up to 300 classes in any priority: each coarse voxel follows the rule on its block
+    k, lab, prio = drawn
+    out = vote(lab, factor, k, frac, priority=prio)
+    order = prio + [0]
+    pad = np.zeros([-(-n // f) * f for n, f in zip(lab.shape, factor)], np.uint16)
+    pad[tuple(slice(0, n) for n in lab.shape)] = lab
+    for idx in np.ndindex(*out.shape):
+        blk = pad[tuple(slice(i * f, (i + 1) * f) for i, f in zip(idx, factor))]
+        counts = np.bincount(blk.ravel(), minlength=k + 1)
+        cands = [c for c in prio if counts[c] > 0 and counts[c] >= frac * blk.size]
+        expected = cands[0] if cands else max(order, key=lambda c: (counts[c], -order.index(c)))
+        assert out[idx] == expected
+
+
 def test_morphology_runs_again_after_reduction():
     lab = np.zeros((24, 24, 24), np.uint8)
     lab[:, :, :12] = 1

@@ -81,6 +81,17 @@ def _write_report(path, report) -> None:
 # --- stages ---------------------------------------------------------------------------
 
 
+def _check_labels(labels, path: str, config: dict) -> None:
+    """Stop before a stage's work when the config does not name every label of the volume:
+    meshing and the exports need a material per label (at most 65535, as a label volume
+    holds), and finding that out after the fix or the mesh would waste them."""
+    top = int(labels.array.max(initial=0))
+    k = len(config["materials"])
+    if top > k:
+        raise DicerError(f"{path}: label {top} found but the config names only {k} material(s); "
+                         f"list one material per label 1..{top} under materials: in the config")
+
+
 def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = None, info_path: Path | None = None,
                plot: Path | None = None):
     from dicer.config import material_names
@@ -129,6 +140,7 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
 
     with _Stage("fix"):
         labels = read_labels(labels_path)
+        _check_labels(labels, labels_path, config)
         settings = config["fix"]
         try:
             fixed, report = fix_connectivity(labels.array, max_iterations=settings["max_iterations"],
@@ -193,11 +205,7 @@ def do_mesh(labels_path: str, out: Path, config: dict):
 
     with _Stage("mesh"):
         labels = read_labels(labels_path)
-        k = len(config["materials"])
-        top = int(labels.array.max())
-        if top > k:
-            raise DicerError(f"{labels_path}: label {top} found but the config names only {k} material(s); "
-                             "add materials to the config")
+        _check_labels(labels, labels_path, config)
         try:
             mesh = voxel_mesh(labels.array, labels.spacing, labels.origin)
         except DicerError as exc:

@@ -1,0 +1,129 @@
+"""A label atlas of 130 materials end to end through the ``dicer`` command (in-process).
+
+Voronoi regions inside a ball (as the parcels of a brain atlas) -> fix -> mesh -> merge
+-> smooth -> export (.inp) -> quality, with one named material per label in the config;
+and the same labels with a config that does not name them, stopped before the fix.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+import yaml
+
+from dicer.cli import main
+from dicer.image import Volume
+from dicer.io.images import write_labels
+
+N, KINDS = 40, 130
+
+
+def atlas_labels(n: int = N, kinds: int = KINDS, seed: int = 0) -> np.ndarray:
+    """(n, n, n) uint16: the Voronoi regions of ``kinds`` random seeds inside a ball of
+    radius 0.47 n, labelled 1..kinds; background outside the ball."""
+    rng = np.random.default_rng(seed)
+    centres = np.stack(np.meshgrid(*[np.arange(n) + 0.5] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    inside = np.linalg.norm(centres - n / 2, axis=1) < 0.47 * n
+    direction = rng.normal(size=(kinds, 3))
+    radius = 0.45 * n * rng.uniform(0, 1, kinds) ** (1 / 3)  # uniform in the ball
+    seeds = n / 2 + direction / np.linalg.norm(direction, axis=1)[:, None] * radius[:, None]
+    lab = np.zeros(n**3, np.uint16)
+    lab[inside] = 1 + ((centres[inside, None, :] - seeds) ** 2).sum(axis=2).argmin(axis=1)
+    return lab.reshape(n, n, n)
+
+
+def touching_pairs(lab: np.ndarray) -> set[tuple[int, int]]:
+    """Pairs (a, b), 0 < a < b, of labels with voxels sharing a face."""
+    pairs = set()
+    for axis in range(lab.ndim):
+        lo = lab.take(range(lab.shape[axis] - 1), axis).ravel()
+        hi = lab.take(range(1, lab.shape[axis]), axis).ravel()
+        keep = (lo != hi) & (lo > 0) & (hi > 0)
+        pairs |= set(zip(np.minimum(lo, hi)[keep].tolist(), np.maximum(lo, hi)[keep].tolist()))
+    return pairs
+
+
+def _names(kinds: int) -> list[str]:
+    # atlas-like names: shared prefixes and underscores, distinct set names
+    return [f"{('Left', 'Right')[i % 2]}_Gyrus_{i // 2 + 1}" for i in range(kinds)]
+
+
+@pytest.fixture(scope="module")
+def chain(tmp_path_factory):
+    """The files and reports of the whole chain on the atlas."""
+    folder = tmp_path_factory.mktemp("atlas")
+    write_labels(Volume(atlas_labels(), (1.0, 1.0, 1.0)), folder / "atlas.nii.gz")
+    materials = [{"name": n, "youngs_modulus": 1.0 + i, "poissons_ratio": 0.45} for i, n in enumerate(_names(KINDS))]
+    (folder / "atlas.yaml").write_text(yaml.safe_dump({"materials": materials}))
+    steps = [
+        ["fix", "atlas.nii.gz", "-o", "fixed.nii.gz"],
+        ["mesh", "fixed.nii.gz", "-o", "mesh.vtu"],
+        ["merge", "mesh.vtu", "-o", "merged.vtu", "--report", "merge.json"],
+        ["smooth", "merged.vtu", "-o", "smoothed.vtu", "--report", "smooth.json"],
+        ["export", "smoothed.vtu", "-o", "model.inp"],
+        ["quality", "smoothed.vtu", "-o", "quality.json", "--labels", "fixed.nii.gz"],
+    ]
+    for command, *rest in steps:
+        argv = [command] + [str(folder / a) if "." in a else a for a in rest]
+        assert main([*argv, "--config", str(folder / "atlas.yaml"), "-q"]) == 0, command
+    return folder
+
+
+def test_every_stage_takes_a_hundred_and_thirty_materials(chain):
+    from dicer.io.images import read_labels
+    from dicer.io.meshes import read_mesh
+
+    fixed = read_labels(chain / "fixed.nii.gz").array
+    present = np.unique(fixed[fixed > 0])
+    assert present.size == KINDS
+    merged, mesh = read_mesh(chain / "merged.vtu"), read_mesh(chain / "mesh.vtu")
+    assert mesh.n_cells == np.count_nonzero(fixed) and merged.n_cells <= mesh.n_cells
+    assert np.array_equal(np.unique(merged.material), present)
+    # (a merge region crossing a material interface keeps its plane; here every plane of
+    # the ball crosses one, so merging refuses them for that reason)
+    steps = json.loads((chain / "merge.json").read_text())["steps"]
+    assert [s["axis"] for s in steps] == ["x", "y", "z"] and all(s["blocked_material"] > 0 for s in steps)
+
+    # smoothing: no inverted element, the quality floor kept, every node classified
+    smooth = json.loads((chain / "smooth.json").read_text())
+    assert smooth["inverted_elements"] == 0 and smooth["min_scaled_jacobian"] >= 0.2
+    classes = smooth["node_classes"]
+    assert sum(classes.values()) == smooth["nodes"] == merged.n_points
+    assert sum(classes[c] for c in "ABCDEF") == smooth["boundary_nodes"] and classes["X"] == 0
+    assert min(classes[c] for c in "ABCDEF") > 0  # a triple corner (F) needs three materials
+
+    # the deck: an element set, a material and a section per material, an interface node
+    # set per pair of touching materials, each under its configured name
+    text = (chain / "model.inp").read_text()
+    names = _names(KINDS)
+    elsets = re.findall(r"^\*ELEMENT, TYPE=C3D8, ELSET=(\w+)$", text, re.M)
+    assert elsets == [names[k - 1] for k in present]
+    assert re.findall(r"^\*MATERIAL, NAME=(\w+)$", text, re.M) == elsets
+    assert len(re.findall(r"^\*SOLID SECTION, ELSET=(\w+), MATERIAL=\1$", text, re.M)) == KINDS
+    nsets = set(re.findall(r"^\*NSET, NSET=(\w+)$", text, re.M))
+    pairs = touching_pairs(fixed)
+    assert len(pairs) > 500
+    assert {f"{names[a - 1]}_{names[b - 1]}" for a, b in pairs} <= nsets
+    assert len(nsets) == len(pairs) + KINDS + 1  # + <name>_BOUNDARY, EXTERIOR (no node on a bounding plane)
+
+    # quality: every material with its voxels, the volume of each kept within a few per cent
+    quality = json.loads((chain / "quality.json").read_text())
+    assert quality["inverted_elements"] == 0 and quality["elements"] == merged.n_cells
+    assert sorted(quality["materials"]) == sorted(names)
+    assert sum(m["voxels"] for m in quality["materials"].values()) == np.count_nonzero(fixed)
+    changes = [abs(m["volume_change_percent"]) for m in quality["materials"].values()]
+    assert np.median(changes) < 5
+
+
+def test_unnamed_labels_stop_before_the_fix(tmp_path, capsys):
+    # the default config names two materials: the fix refuses the atlas at once, with one
+    # error line naming the highest label, and writes nothing
+    write_labels(Volume(atlas_labels(16, 20, seed=1), (1.0, 1.0, 1.0)), tmp_path / "atlas.nii.gz")
+    code = main(["fix", str(tmp_path / "atlas.nii.gz"), "-o", str(tmp_path / "fixed.nii.gz")])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(err) == 1
+    assert err[0].startswith("error: ") and "label 20 found" in err[0] and "names only 2" in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["atlas.nii.gz"]

@@ -260,7 +260,8 @@ def test_edge_counts_by_sorting_and_packing_agree_with_a_tally(n, kinds, seed):
     keep = np.array([(x, y) in tally for x, y in zip(lo.tolist(), hi.tolist())], bool)
     lo, hi, rank = lo[keep], hi[keep], rank[keep]
     expected = sorted((x, y, len(r), int(np.bincount(r).max())) for (x, y), r in tally.items())
-    results = [boundary._edge_counts_packed(lo, hi, rank, n, kinds), boundary._edge_counts_sorted(lo, hi, rank, n, kinds)]
+    results = [boundary._edge_counts_packed(lo, hi, rank, n, kinds),
+               boundary._edge_counts_sorted(lo, hi, rank, n, kinds)]
     with mock.patch.object(boundary, "_KEY_MAX", 0):
         results.append(boundary._edge_counts_sorted(lo, hi, rank, n, kinds))
     for first, second, total, top in results:

@@ -4,7 +4,9 @@ Everything is derived from the mesh's topology (which elements share a node or a
 edge) and its node coordinates, never from lattice positions, so it works the same on
 voxel meshes and on plane-merged meshes.
 
-* A node is a *boundary node* unless it is shared by eight elements of one material.
+* A node is a *boundary node* unless it is shared by eight elements of one material (or is
+  a node of a coarse cell or transition template of a graded mesh: cell data
+  ``coarsening_level`` > 0, all inside one material).
 * An edge is a *boundary edge* unless four elements of one material share it (2D: two).
 * The boundary nodes and boundary edges form the *boundary graph*; a node's boundary
   neighbours are its neighbours in that graph.
@@ -36,7 +38,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from dicer.errors import DicerError
-from dicer.mesh.model import Mesh
+from dicer.mesh.model import LEVEL_DATA, Mesh
 
 __all__ = ["NODE_CLASSES", "BoundaryGraph", "boundary_graph", "classify_nodes", "with_node_classes",
            "HEX_EDGES", "QUAD_EDGES", "node_cell_counts", "class_counts"]
@@ -243,6 +245,13 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
     else:
         cnt, uniform = _slot_counts(slots, rank, kinds.size)
     boundary = (cnt > 0) & ~((cnt == full) & uniform)
+    level = mesh.cell_data.get(LEVEL_DATA)
+    if level is not None and np.any(level > 0):
+        # nodes of coarse cells and transition templates lie inside one material (their
+        # element count is not 8 there)
+        inner = np.zeros(n, bool)
+        inner[cells[np.asarray(level) > 0]] = True
+        boundary &= ~(inner & uniform)
     del cnt, uniform
 
     # the elements holding a boundary node, and their edges between two boundary nodes, with

@@ -42,7 +42,7 @@ import scipy.sparse as sp
 from dicer.errors import DicerError
 from dicer.mesh.boundary import NODE_CLASSES, boundary_graph, class_counts
 from dicer.mesh.metrics import element_volumes, hex_scaled_jacobian_t, hex_volumes_t, scaled_jacobian
-from dicer.mesh.model import Mesh
+from dicer.mesh.model import LEVEL_DATA, Mesh
 
 __all__ = ["DEFAULTS", "smooth_mesh", "smoothing_settings"]
 
@@ -250,8 +250,17 @@ def _corner_slots(cells: np.ndarray, n_points: int) -> np.ndarray:
     return slots
 
 
-def _holding(slots: np.ndarray, nodes: np.ndarray, n_cells: int) -> np.ndarray:
-    """(n_cells,) bool: the elements holding any of ``nodes``."""
+def _holding(slots: np.ndarray | None, nodes: np.ndarray, n_cells: int, cells: np.ndarray | None = None
+             ) -> np.ndarray:
+    """(n_cells,) bool: the elements holding any of ``nodes`` (from the corner table, or
+    without one from ``cells``)."""
+    if slots is None:
+        mark = np.zeros(int(cells.max()) + 1, bool)
+        mark[nodes] = True
+        out = np.zeros(n_cells, bool)
+        for start in range(0, n_cells, _ROWS):
+            out[start : start + _ROWS] = mark[cells[start : start + _ROWS]].any(axis=1)
+        return out
     cand = slots[:, nodes].ravel()
     mark = np.zeros(n_cells, bool)
     mark[cand[cand >= 0]] = True
@@ -282,7 +291,7 @@ def _band(cells: np.ndarray, slots: np.ndarray, boundary: np.ndarray, boundary_c
         if nodes.size == 0:
             break
         seen[nodes] = True
-        holding = _holding(slots, nodes, m)
+        holding = _holding(slots, nodes, m, cells)
         # the next layer: elements not met before (the nodes of the others are all seen)
         layer_cells = np.flatnonzero(holding & ~in_cells)
         in_cells |= holding
@@ -342,14 +351,61 @@ class _Interior:
         out, buf = np.empty_like(b), np.empty_like(b)
 
         def apply(v):
-            np.multiply(v, deg, out=buf)
             for d in range(3):
                 part = slice(d * m, (d + 1) * m)
+                np.multiply(v[part], deg, out=buf[part])
                 np.subtract(buf[part], m_bb @ v[part], out=out[part])
             return out
 
         u, it = _pcg(apply, b, None, tol, 5000)
         return u.reshape(3, m).T.astype(np.float64), it
+
+
+class _InteriorGraph(_Interior):
+    """The interior Laplace system of a graded mesh (transition templates: nodes shared by
+    any number of elements), from the unique element edges around the band nodes.
+
+    A band node's displacement is the mean of its edge neighbours' (those beyond the band
+    count as 0), as in ``_Interior``; only the neighbour count varies from node to node.
+    """
+
+    def __init__(self, cells: np.ndarray, band_nodes: np.ndarray, boundary: np.ndarray, bnodes: np.ndarray):
+        n = boundary.size
+        m = band_nodes.size
+        self.nodes = band_nodes
+        if m == 0:
+            return
+        local = _HEX_EDGES if cells.shape[1] == 8 else _QUAD_EDGES
+        near = _holding(None, band_nodes, cells.shape[0], cells)
+        sub = cells[near]
+        a = sub[:, local[:, 0]].ravel()
+        b = sub[:, local[:, 1]].ravel()
+        pairs = np.unique(np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1), axis=0)
+        a, b = np.concatenate([pairs[:, 0], pairs[:, 1]]), np.concatenate([pairs[:, 1], pairs[:, 0]])
+        pos = np.full(n, -1, np.int64)
+        pos[band_nodes] = np.arange(m)
+        bpos = np.full(n, -1, np.int64)
+        bpos[bnodes] = np.arange(bnodes.size)
+        row = pos[a]
+        keep = row >= 0
+        row, col = row[keep], b[keep]
+        deg = np.bincount(row, minlength=m).astype(np.float32)
+        in_band = pos[col] >= 0
+        self.m_bb = sp.csr_matrix((np.ones(int(in_band.sum()), np.float32), (row[in_band], pos[col[in_band]])),
+                                  shape=(m, m))
+        on_b = bpos[col] >= 0
+        self.m_bB = sp.csr_matrix((np.ones(int(on_b.sum())), (row[on_b], bpos[col[on_b]])), shape=(m, bnodes.size))
+        self.deg = deg
+
+
+_HEX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]])
+_QUAD_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
+
+
+def _graded(mesh: Mesh) -> bool:
+    """True for a mesh with coarse cells or transition templates (see LEVEL_DATA)."""
+    level = mesh.cell_data.get(LEVEL_DATA)
+    return level is not None and bool(np.any(np.asarray(level) > 0))
 
 
 # --- the stage -----------------------------------------------------------------------------
@@ -443,7 +499,8 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
     timings = {}
     x0 = np.asarray(mesh.points, float)
     slots = slots_error = None
-    if s["interior"]:
+    graded = _graded(mesh)
+    if s["interior"] and not graded:
         # the corner table serves the classification too (no pass over all elements there)
         try:
             slots = _corner_slots(mesh.cells, mesh.n_points)
@@ -477,7 +534,10 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
     t1 = time.perf_counter()
     if s["interior"]:
         band_nodes, touched = _band(mesh.cells, slots, g.boundary, g.boundary_cells, s["interior_band"])
-        interior = _Interior(mesh.cells, slots, band_nodes, g.boundary, bnodes)
+        if graded:
+            interior = _InteriorGraph(mesh.cells, band_nodes, g.boundary, bnodes)
+        else:
+            interior = _Interior(mesh.cells, slots, band_nodes, g.boundary, bnodes)
         del slots
     else:
         band_nodes = np.zeros(0, np.int64)
@@ -581,7 +641,7 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
         xb_only[bnodes] = x[bnodes]
         dv = element_volumes(xb_only, mesh.cells[bc]) - element_volumes(x0, mesh.cells[bc])
         del xb_only
-    base = np.bincount(mesh.material, weights=_lattice_volumes(mesh))
+    base = np.bincount(mesh.material, weights=element_volumes(x0, mesh.cells) if graded else _lattice_volumes(mesh))
     change = np.bincount(mesh.material[bc], weights=dv, minlength=base.size)
     volume_change = {str(kind): float(change[kind] / base[kind]) for kind in np.flatnonzero(base)}
     bdisp = np.linalg.norm(xb - xb0, axis=1)

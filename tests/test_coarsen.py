@@ -1,0 +1,238 @@
+"""Graded coarsening by transition templates (merge.method=templates)."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from scipy import ndimage
+
+from dicer.connectivity import fix_connectivity
+from dicer.errors import DicerError
+from dicer.mesh.coarsen import COARSE, FINE, INVALID, TEMPLATES, coarsen_mesh
+from dicer.mesh.merge import merge_mesh
+from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes
+from dicer.mesh.model import LEVEL_DATA
+from dicer.mesh.smooth import smooth_mesh
+from dicer.mesh.voxel import voxel_mesh
+
+HEX_FACES = np.array([[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]])
+QUAD_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
+
+
+def faces_of(mesh):
+    """(F, k) node ids of every element face (quad edges in 2D), in the element's winding,
+    and the element each belongs to."""
+    table = HEX_FACES if mesh.dim == 3 else QUAD_EDGES
+    faces = mesh.cells[:, table].reshape(-1, table.shape[1])
+    owner = np.repeat(np.arange(mesh.n_cells), table.shape[0])
+    return faces, owner
+
+
+def face_census(mesh):
+    """Boundary and interface faces as a set of (rounded corner positions, materials), and
+    the checks that every face is used once or twice, twice in opposite orientation."""
+    faces, owner = faces_of(mesh)
+    key = np.sort(faces, axis=1)
+    uniq, inverse, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    assert count.max() <= 2, "a face is shared by three or more elements"
+    out = set()
+    for f in np.flatnonzero(count == 1):
+        rows = np.flatnonzero(inverse == f)
+        pts = tuple(sorted(map(tuple, np.round(mesh.points[faces[rows[0]]], 6))))
+        out.add((pts, int(mesh.material[owner[rows[0]]]), 0))
+    # faces used twice: opposite windings, and interfaces recorded with both materials
+    twice = np.flatnonzero(count == 2)
+    order = np.argsort(inverse, kind="stable")
+    starts = np.searchsorted(inverse[order], twice)
+    a, b = order[starts], order[starts + 1]
+    if mesh.dim == 3:
+        # the same cyclic order read backwards: face b is a rotation of face a reversed
+        fa, fb = faces[a], faces[b][:, ::-1]
+        same = np.zeros(a.size, bool)
+        for shift in range(4):
+            same |= np.all(fa == np.roll(fb, shift, axis=1), axis=1)
+        assert same.all(), "an interior face is seen in the same orientation from both sides"
+    else:
+        assert np.all(faces[a][:, 0] == faces[b][:, 1]), "an interior edge is seen in the same direction from both sides"
+    ma, mb = mesh.material[owner[a]], mesh.material[owner[b]]
+    for i in np.flatnonzero(ma != mb):
+        pts = tuple(sorted(map(tuple, np.round(mesh.points[faces[a[i]]], 6))))
+        out.add((pts, int(min(ma[i], mb[i])), int(max(ma[i], mb[i]))))
+    return out
+
+
+def check_graded(voxel, graded):
+    """The invariants of a graded mesh against the voxel mesh it came from."""
+    per = 8 if voxel.dim == 3 else 4
+    assert graded.cells.shape[1] == per
+    assert corner_scaled_jacobians(graded.points, graded.cells).min() > 0.2
+    vol_v = np.bincount(voxel.material, weights=element_volumes(voxel.points, voxel.cells))
+    vol_g = np.bincount(graded.material, weights=element_volumes(graded.points, graded.cells),
+                        minlength=vol_v.size)
+    np.testing.assert_allclose(vol_g, vol_v, rtol=0, atol=1e-9 * max(1.0, vol_v.sum()))
+    assert face_census(graded) == face_census(voxel)
+    # nodes of coarse elements are never on a boundary or interface
+    level = graded.cell_data[LEVEL_DATA]
+    assert level.shape == (graded.n_cells,)
+    faces, owner = faces_of(graded)
+    on_boundary = np.zeros(graded.n_points, bool)
+    key = np.sort(faces, axis=1)
+    _, inverse, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    single = count[inverse.ravel()] == 1
+    on_boundary[faces[single].ravel()] = True
+    assert not on_boundary[graded.cells[level > 0]].any()
+
+
+def test_template_tables_cover_every_corner_pattern():
+    for dim, n_corners, cell_volume in ((2, 4, 9.0), (3, 8, 27.0)):
+        pattern, table = TEMPLATES[dim]
+        assert pattern.shape == (1 << n_corners,)
+        assert pattern[0] == COARSE and pattern[-1] == FINE
+        for mask, cells in table.items():
+            x = np.asarray(cells, float)
+            pts = np.zeros((x.shape[0] * x.shape[1], 3))
+            pts[:, :dim] = x.reshape(-1, dim)
+            conn = np.arange(pts.shape[0]).reshape(x.shape[0], x.shape[1])
+            assert corner_scaled_jacobians(pts, conn).min() >= 0.5 - 1e-9, (dim, mask)
+            assert element_volumes(pts, conn).sum() == pytest.approx(cell_volume, abs=1e-9)
+    # 2D: every pattern has a template (no cell is ever refined for its pattern alone)
+    assert not np.any(TEMPLATES[2][0] == INVALID)
+
+
+def ball_labels(shape, radii, centre=None):
+    grid = np.indices(shape).astype(float)
+    centre = np.array(shape, float) / 2 if centre is None else np.asarray(centre, float)
+    r = np.sqrt(sum((g + 0.5 - c) ** 2 for g, c in zip(grid, centre)))
+    labels = np.zeros(shape, np.int32)
+    for k, radius in enumerate(radii, start=1):
+        labels[r < radius] = k
+    return labels
+
+
+def test_2d_disc_coarsens_and_keeps_every_boundary():
+    labels = ball_labels((120, 120), (55, 25))
+    voxel = voxel_mesh(labels)
+    graded, report = coarsen_mesh(voxel, levels=2)
+    check_graded(voxel, graded)
+    assert voxel.n_cells == 9500
+    assert report["element_ratio"] >= 2.5
+    assert set(report["elements_by_level"]) == {"0", "1", "2"}
+    for k in ("1", "2"):
+        assert report["volume"][k]["change_percent"] == 0.0
+    # more levels never give more elements
+    one, _ = coarsen_mesh(voxel, levels=1)
+    assert graded.n_cells <= one.n_cells < voxel.n_cells
+
+
+def test_levels_zero_and_keep_fine_leave_voxels():
+    labels = ball_labels((60, 60), (28, 12))
+    voxel = voxel_mesh(labels)
+    same, _ = coarsen_mesh(voxel, levels=0)
+    assert same.n_cells == voxel.n_cells
+    np.testing.assert_array_equal(same.points, voxel.points)
+    kept, report = coarsen_mesh(voxel, levels=2, keep_fine=[1, 2])
+    assert kept.n_cells == voxel.n_cells
+    part, report = coarsen_mesh(voxel, levels=2, keep_fine=[2])
+    assert report["elements_by_material"]["2"]["after"] == report["elements_by_material"]["2"]["before"]
+    assert report["elements_by_material"]["1"]["after"] < report["elements_by_material"]["1"]["before"]
+
+
+def test_min_distance_keeps_thin_parts_fine():
+    labels = np.zeros((60, 60), np.int32)
+    labels[5:55, 5:55] = 1
+    labels[5:55, 28:32] = 2  # a 4-voxel band
+    voxel = voxel_mesh(labels)
+    graded, report = coarsen_mesh(voxel, levels=1, min_distance=1)
+    assert report["elements_by_material"]["2"]["after"] == 200
+    far, report_far = coarsen_mesh(voxel, levels=1, min_distance=4)
+    assert far.n_cells > graded.n_cells
+    check_graded(voxel, far)
+
+
+def test_graded_2d_mesh_smooths_like_the_voxel_mesh():
+    labels = ball_labels((90, 90), (40, 18))
+    voxel = voxel_mesh(labels)
+    graded, _ = coarsen_mesh(voxel, levels=2)
+    smooth_v, rep_v = smooth_mesh(voxel, {})
+    smooth_g, rep_g = smooth_mesh(graded, {})
+    assert rep_g["inverted_elements"] == 0
+    assert rep_g["min_scaled_jacobian"] >= 0.2
+    assert {k: v for k, v in rep_g["node_classes"].items() if k != "interior"} == \
+        {k: v for k, v in rep_v["node_classes"].items() if k != "interior"}
+    # boundary nodes land where they land on the voxel mesh
+    lat_v = {tuple(p): i for i, p in enumerate(voxel.lattice)}
+    boundary = np.flatnonzero(np.asarray(smooth_g.point_data["node_class"]) > 0)
+    rows = np.array([lat_v[tuple(p)] for p in graded.lattice[boundary]])
+    assert np.abs(smooth_g.points[boundary] - smooth_v.points[rows]).max() < 1e-4
+
+
+def test_templates_refuse_a_merged_mesh():
+    labels = ball_labels((30, 30, 30), (12,))
+    merged, _ = merge_mesh(voxel_mesh(labels), {"passes": [1, 0, 0]})
+    with pytest.raises(DicerError, match="voxel mesh"):
+        coarsen_mesh(merged, levels=1)
+    with pytest.raises(DicerError, match="min_distance"):
+        coarsen_mesh(voxel_mesh(labels), levels=1, min_distance=0)
+
+
+def test_merge_stage_dispatches_to_templates():
+    labels = ball_labels((60, 60), (28,))
+    voxel = voxel_mesh(labels)
+    graded, report = merge_mesh(voxel, {"method": "templates", "templates": {"levels": 1}})
+    assert report["method"] == "templates" and report["levels"] == 1
+    assert graded.n_cells < voxel.n_cells
+    with pytest.raises(DicerError, match="merge.templates.level"):
+        merge_mesh(voxel, {"method": "templates", "templates": {"level": 1}})
+
+
+@st.composite
+def label_volumes(draw, dim):
+    shape = tuple(draw(st.integers(12, 40 if dim == 2 else 16)) for _ in range(dim))
+    classes = draw(st.integers(1, 4))
+    seed = draw(st.integers(0, 2**31 - 1))
+    rng = np.random.default_rng(seed)
+    field = ndimage.gaussian_filter(rng.random(shape), draw(st.floats(2.0, 6.0)))
+    edges = np.quantile(field, np.linspace(0, 1, classes + 2)[1:-1])
+    labels = np.digitize(field, edges).astype(np.int32)
+    if draw(st.booleans()):
+        labels[labels == 0] = 1  # a volume filling the whole image, touching every plane
+    fixed, _ = fix_connectivity(labels)
+    return fixed
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(labels=label_volumes(2), levels=st.integers(1, 3), distance=st.integers(1, 3))
+def test_random_2d_volumes_keep_every_invariant(labels, levels, distance):
+    if not labels.any():
+        return
+    voxel = voxel_mesh(labels)
+    graded, _ = coarsen_mesh(voxel, levels=levels, min_distance=distance)
+    check_graded(voxel, graded)
+    smoothed, report = smooth_mesh(graded, {})
+    assert report["inverted_elements"] == 0
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(labels=label_volumes(3), levels=st.integers(1, 2))
+def test_random_3d_volumes_keep_every_invariant(labels, levels):
+    if not labels.any():
+        return
+    voxel = voxel_mesh(labels)
+    graded, _ = coarsen_mesh(voxel, levels=levels)
+    check_graded(voxel, graded)
+
+
+def test_fine_template_is_the_unit_grid():
+    for dim in (2, 3):
+        pattern, table = TEMPLATES[dim]
+        fine = table[len(pattern) - 1]
+        expected = sorted(tuple(map(tuple, np.asarray(c) + (
+            np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]])
+            if dim == 3 else np.array([[0, 0], [1, 0], [1, 1], [0, 1]]))))
+            for c in itertools.product(range(3), repeat=dim))
+        assert sorted(tuple(map(tuple, c.astype(int))) for c in fine) == expected

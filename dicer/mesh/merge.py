@@ -750,24 +750,45 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
     return out, report
 
 
-DEFAULTS = {"passes": [1, 1, 1], "min_thickness": 0.0, "granularity": "region",
-            "min_scaled_jacobian": 0.2, "rim_moves": True}
-"""The ``merge:`` config section's defaults (see docs/merging.md)."""
+DEFAULTS = {"method": "planes", "passes": [1, 1, 1], "min_thickness": 0.0, "granularity": "region",
+            "min_scaled_jacobian": 0.2, "rim_moves": True,
+            "templates": {"levels": 2, "min_distance": 1, "keep_fine": []}}
+"""The ``merge:`` config section's defaults (see docs/merging.md and docs/coarsening.md)."""
 
 
 def merge_settings(section: dict | None) -> dict:
     """The ``merge:`` config section with defaults filled in; unknown keys are errors."""
-    settings = dict(DEFAULTS)
+    settings = {k: (dict(v) if isinstance(v, dict) else v) for k, v in DEFAULTS.items()}
     for key, value in (section or {}).items():
         if key not in settings:
             raise DicerError(f"merge.{key}: unknown setting; use one of {', '.join(sorted(settings))}")
-        settings[key] = value
+        if key == "templates":
+            if not isinstance(value, dict):
+                raise DicerError("merge.templates: give a mapping of levels, min_distance and keep_fine")
+            for sub, v in value.items():
+                if sub not in settings["templates"]:
+                    raise DicerError(f"merge.templates.{sub}: unknown setting; use levels, min_distance or keep_fine")
+                settings["templates"][sub] = v
+        else:
+            settings[key] = value
     return settings
 
 
 def merge_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, dict]:
-    """``merge_planes`` driven by the ``merge:`` config section (missing keys take DEFAULTS)."""
+    """The merge stage driven by the ``merge:`` config section (missing keys take DEFAULTS):
+    plane merging (``method: planes``, ``merge_planes``) or graded coarsening by transition
+    templates (``method: templates``, ``dicer.mesh.coarsen.coarsen_mesh``)."""
     s = merge_settings(config_section)
+    if s["method"] == "templates":
+        from dicer.mesh.coarsen import coarsen_mesh
+
+        t = s["templates"]
+        keep = t["keep_fine"]
+        if not isinstance(keep, (list, tuple)) or any(isinstance(k, bool) or not isinstance(k, int) for k in keep):
+            raise DicerError(f"merge.templates.keep_fine={keep!r}: give a list of material labels")
+        return coarsen_mesh(mesh, levels=t["levels"], min_distance=t["min_distance"], keep_fine=list(keep))
+    if s["method"] != "planes":
+        raise DicerError(f"merge.method={s['method']!r}: use 'planes' or 'templates'")
     for key in ("min_thickness", "min_scaled_jacobian"):
         if isinstance(s[key], bool) or not isinstance(s[key], (int, float)):
             raise DicerError(f"merge.{key}={s[key]!r}: give a number")

@@ -191,3 +191,25 @@ def test_model_deck_alone_is_read_to_the_end(tmp_path):
     # node sets, EXTERIOR_S1..S6, the two material element sets
     assert sets >= len(info["node_sets"]) + 6 + 2
     assert re.search(rf"^\s*elements:\s+{info['elements']}\s*$", log, re.M)
+
+
+@pytest.mark.parametrize("etype,order", [("CPS4", 1), ("CPS8", 2)])
+def test_graded_plate_in_series(tmp_path, etype, order):
+    # transition templates pass the patch test: a graded two-material plate under uniaxial
+    # tension (Poisson ratio 0) carries the springs-in-series force
+    from dicer.mesh.coarsen import coarsen_mesh
+
+    labels = np.ones((54, 36), np.uint8)
+    labels[27:] = 2
+    spacing = (0.5, 0.5)
+    graded, report = coarsen_mesh(voxel_mesh(labels, spacing), levels=2)
+    assert report["element_ratio"] > 1.9  # 1944 -> 1012: the plate is only 12 cells wide
+    e1, e2, t = 800.0, 12000.0, 1.0
+    export_mesh(graded, tmp_path / "plate.inp",
+                config(("soft", e1, 0.0), ("stiff", e2, 0.0), element_type=etype, order=order, thickness=t))
+    lx, ly = 54 * 0.5, 36 * 0.5
+    step = ("*BOUNDARY\nX0, 1, 1, 0\nY0, 2, 2, 0\n*STEP\n*STATIC\n*BOUNDARY\n"
+            f"X1, 1, 1, {0.01 * lx!r}\n*NODE PRINT, NSET=X0, TOTALS=ONLY\nRF\n*END STEP\n")
+    force = total_force(run_ccx(tmp_path, model="plate.inp", step=step), "X0")
+    expected = ly * t * 0.01 * lx / (0.5 * lx / e1 + 0.5 * lx / e2)
+    assert -force[0] == pytest.approx(expected, rel=0.01)

@@ -43,7 +43,7 @@ __all__ = ["coarsen_mesh", "coarsen_labels", "TEMPLATES", "LEVEL_DATA"]
 
 log = logging.getLogger("dicer")
 
-COARSE, EDGE, FACE, FINE, INVALID, CORNER = 0, 1, 2, 3, 4, 5
+COARSE, EDGE, FACE, FINE, INVALID, CORNER, TWO_FACES = 0, 1, 2, 3, 4, 5, 6
 """Patterns of a cell's marked corners."""
 
 # canonical templates in thirds of the cell (coordinates 0..3), corners in VTK order
@@ -79,6 +79,38 @@ def _face_template() -> list:
     return out
 
 
+# The 3D faces with two split edges at a corner (faces of the two-face template) carry
+# this pattern: nine quads, mirror-symmetric about the diagonal through the refined corner
+# (0, 0), so both cells sharing such a face see the same quads. Its quad count is odd,
+# as a three-face template (27 + 3 x 9 boundary quads) needs. From each node of the split
+# edges a rung runs inward: from the corner diagonally to D, from (1, 0) to R1, from (2, 0)
+# to R2, from (3, 0) along the whole coarse edge to (3, 3); three quads around M fill the
+# middle. The positions maximise the smallest scaled Jacobian of the two-face template.
+_D, _R1, _R2, _M = (7 / 6, 7 / 6), (4 / 3, 13 / 12), (5 / 3, 7 / 6), (5 / 4, 5 / 4)
+_S1, _S2 = _R1[::-1], _R2[::-1]
+_L_RUNGS_U = [((0, 0), (1, 0), _R1, _D), ((1, 0), (2, 0), _R2, _R1), ((2, 0), (3, 0), (3, 3), _R2)]
+_L_RUNGS_T = [((0, 1), (0, 0), _D, _S1), ((0, 2), (0, 1), _S1, _S2), ((0, 3), (0, 2), _S2, (3, 3))]
+_L_MIDDLE = [(_D, _R1, _R2, _M), (_M, _R2, (3, 3), _S2), (_D, _M, _S2, _S1)]
+
+
+def _two_face_template() -> list:
+    """The 3D two-face template (refined faces x = 0 and z = 0): the nine-quad corner
+    pattern in (x, z) swept along y. A quad with an edge on the refined faces becomes the
+    2D edge template in (y, rung): four hexahedra whose middle nodes sit 2/3 along its
+    rungs; a middle quad becomes one hexahedron (6 x 4 + 3 = 27)."""
+    def at(p, y):
+        return (p[0], y, p[1])
+
+    out = []
+    for p0, p1, q1, q0 in _L_RUNGS_U + _L_RUNGS_T:
+        for cell in _Q:
+            out.append([at(tuple(a + (b - a) * t / 3 for a, b in zip(*side)), y)
+                        for side in ((p0, q0), (p1, q1)) for y, t in cell])
+    for quad in _L_MIDDLE:
+        out.append([at(p, y) for y in (0, 3) for p in quad])
+    return out
+
+
 def _oriented(cells: np.ndarray, dim: int) -> np.ndarray:
     """Template elements (n, corners, dim) with corners reordered where a reflection
     turned them inside out."""
@@ -106,9 +138,10 @@ def _canonical(dim: int) -> list:
     """(pattern, marked corners in thirds, elements) of every template of dimension ``dim``."""
     if dim == 2:
         return [(EDGE, [(0, 0), (3, 0)], _Q), (CORNER, [(0, 0), (3, 0), (0, 3)], _L)]
-    out = [(EDGE, [(0, 0, 0), (3, 0, 0)], _E),
-           (FACE, [(x, y, 0) for x in (0, 3) for y in (0, 3)], _face_template())]
-    return out
+    corners = [tuple(c) for c in itertools.product((0, 3), repeat=3)]
+    return [(EDGE, [(0, 0, 0), (3, 0, 0)], _E),
+            (FACE, [c for c in corners if c[2] == 0], _face_template()),
+            (TWO_FACES, [c for c in corners if c[0] == 0 or c[2] == 0], _two_face_template())]
 
 
 def _template_table(dim: int) -> tuple[np.ndarray, dict[int, np.ndarray]]:

@@ -333,39 +333,51 @@ def _children(parent: np.ndarray, shape: tuple) -> np.ndarray:
     return out[tuple(slice(0, s) for s in shape)]
 
 
-def _check_voxel_mesh(mesh: Mesh) -> np.ndarray:
-    """The label volume (grid_shape, 2D: (nx, ny)) of a voxel mesh; DicerError otherwise."""
+_ROWS = 1 << 20
+"""Elements per block of the passes over all elements (a block's temporaries stay small)."""
+
+
+def _lattice_keys(lattice: np.ndarray, shape: tuple) -> np.ndarray:
+    """(N,) int64: C-order index of each lattice point in the (shape + 1) point grid."""
+    grid = [s + 1 for s in shape]
+    stride = np.array([int(np.prod(grid[d + 1:])) for d in range(len(shape))], np.int64)
+    return np.asarray(lattice, np.int64)[:, : len(shape)] @ stride, stride
+
+
+def _voxels_of(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """The label volume (grid_shape; 2D: (nx, ny)) of a voxel mesh and each element's
+    voxel (M, dim); DicerError for any other mesh."""
     dim = mesh.dim
     if mesh.n_cells == 0:
         raise DicerError("the mesh has no elements; nothing to coarsen")
+    shape = tuple(int(s) for s in mesh.grid_shape[:dim])
     lattice = np.asarray(mesh.lattice, np.int64)
-    corners = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)
-    first = lattice[mesh.cells[:, 0]]
-    for c in range(1, corners.shape[0]):
-        if not np.array_equal(lattice[mesh.cells[:, c]] - first, np.broadcast_to(corners[c], first.shape)):
+    if lattice.shape != (mesh.n_points, 3) or lattice.min() < 0 or np.any(lattice[:, :dim].max(axis=0) > shape):
+        raise DicerError("node lattice indices lie outside the image grid; remesh from the labels with 'dicer mesh'")
+    key, stride = _lattice_keys(lattice, shape)
+    offsets = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim] @ stride
+    for start in range(0, mesh.n_cells, _ROWS):
+        kc = key[mesh.cells[start : start + _ROWS]]
+        if not np.array_equal(kc - kc[:, :1], np.broadcast_to(offsets, kc.shape)):
             raise DicerError("merge.method=templates needs a voxel mesh (one element per voxel, as 'dicer mesh' "
                              "writes it); this mesh was merged or edited already")
-    shape = tuple(int(s) for s in mesh.grid_shape[:dim])
-    if first.min() < 0 or np.any(first[:, :dim].max(axis=0) >= np.asarray(shape)):
+    first = lattice[mesh.cells[:, 0], :dim]
+    if np.any(first >= np.asarray(shape)):
         raise DicerError("element lattice indices lie outside the image grid; remesh from the labels with 'dicer mesh'")
     if int(mesh.material.min()) <= 0:
         raise DicerError("the mesh has material labels <= 0; materials are numbered 1..K")
     labels = np.zeros(shape, np.int64)
-    index = tuple(first[:, d] for d in range(dim))
-    labels[index] = mesh.material
-    return labels
+    labels[tuple(first.T)] = mesh.material
+    return labels, first
 
 
-def _elements(decomposition: dict, labels: np.ndarray):
-    """Element corners (M, corners, dim) float64 in voxel units, their materials and levels."""
-    dim = labels.ndim
+def _new_elements(decomposition: dict, dim: int):
+    """The coarse and template elements: corners (M, corners, dim) float64 in voxel units,
+    materials and levels."""
     _, table = TEMPLATES[dim]
     corners = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim]
-    parts, materials, levels = [], [], []
-    vox = np.argwhere(decomposition["voxels"])
-    parts.append((vox[:, None, :] + corners[None]).astype(float))
-    materials.append(labels[decomposition["voxels"]])
-    levels.append(np.zeros(vox.shape[0], np.int8))
+    per = corners.shape[0]
+    parts, materials, levels = [np.zeros((0, per, dim))], [np.zeros(0, np.int64)], [np.zeros(0, np.int8)]
     for level, entry in enumerate(decomposition["levels"], start=1):
         size = 3 ** level
         state, mask, open_ = entry["state"], entry["mask"], entry["open"]
@@ -379,7 +391,7 @@ def _elements(decomposition: dict, labels: np.ndarray):
             origin = np.argwhere(rows) * size
             shape = corners[None] * 3.0 if m == 0 else table[int(m)]  # thirds of the cell
             cells = origin[:, None, None, :] + shape[None] * (size / 3)
-            parts.append(cells.reshape(-1, *shape.shape[1:]))
+            parts.append(cells.reshape(-1, per, dim))
             mat = entry["material"][rows]
             materials.append(np.repeat(mat, shape.shape[0]))
             levels.append(np.full(mat.size * shape.shape[0], level, np.int8))
@@ -393,8 +405,10 @@ def coarsen_mesh(mesh: Mesh, levels: int = 1, min_distance: int = 1, keep_fine=(
     levels : coarsening levels; elements grow to 3**levels voxels at most (0: unchanged).
     min_distance : voxels (>= 1) of one material around a cell before it coarsens.
     keep_fine : material labels kept at voxel size.
-    Returns the graded mesh (cell data ``coarsening_level``; nodes on voxel corners, point
-    data ``lattice``) and a report: elements before and after, per material and level.
+    Returns the graded mesh and a report (elements before and after, per material and
+    level; volumes). The graded mesh keeps the voxel mesh's remaining voxels and nodes (in
+    their order), adds the coarse and template elements after them and any template node
+    between voxel corners after the nodes (lattice -1); cell data ``coarsening_level``.
     Each material's volume and boundary faces are those of the voxel mesh.
     """
     if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or levels < 0:
@@ -402,75 +416,85 @@ def coarsen_mesh(mesh: Mesh, levels: int = 1, min_distance: int = 1, keep_fine=(
     if isinstance(min_distance, bool) or not isinstance(min_distance, (int, np.integer)) or min_distance < 1:
         raise DicerError(f"merge.templates.min_distance={min_distance!r}: give a whole number of voxels >= 1")
     t0 = time.perf_counter()
-    dim = mesh.dim
-    labels = _check_voxel_mesh(mesh)
+    labels, first = _voxels_of(mesh)
     decomposition = coarsen_labels(labels, int(levels), int(min_distance), keep_fine)
-    corner_points, material, level = _elements(decomposition, labels)
-    out = _assemble(mesh, corner_points, material.astype(np.int32), level)
-    report = _report(mesh, out, labels, level, time.perf_counter() - t0, int(levels), int(min_distance), keep_fine)
+    keep = decomposition["voxels"][tuple(first.T)]
+    corner_points, material, level = _new_elements(decomposition, mesh.dim)
+    out = _assemble(mesh, keep, corner_points, material.astype(np.int32), level)
+    report = _report(mesh, out, keep, level, time.perf_counter() - t0, int(levels), int(min_distance), keep_fine)
     log.info("merge: templates, %d levels: %d -> %d elements (%.1f s)", levels, mesh.n_cells, out.n_cells,
              report["seconds"])
     return out, report
 
 
 _KEY = float(1 << 20)
-"""Off-lattice node positions are matched on a grid of 2**-20 voxel (template nodes are
+"""Template nodes between voxel corners are matched on a grid of 2**-20 voxel (they are
 rationals with small denominators; the same node computed from two templates agrees to
 far better than that)."""
 
 
-def _assemble(mesh: Mesh, corner_points: np.ndarray, material: np.ndarray, level: np.ndarray) -> Mesh:
-    """The mesh of elements given by their corners' positions (voxel units): nodes on voxel
-    corners first, numbered in C order of their lattice point, then nodes inside transition
-    templates in C order of their position (lattice -1); every node shared by all elements
-    that have it."""
+def _assemble(mesh: Mesh, keep: np.ndarray, corner_points: np.ndarray, material: np.ndarray,
+              level: np.ndarray) -> Mesh:
+    """The graded mesh: the kept voxel elements of ``mesh`` and the new elements given by
+    their corners (voxel units). A new corner on a voxel corner is the voxel mesh's node
+    there (every such corner lies inside a solid cell, so the node exists); the others are
+    new nodes, shared by position."""
     dim = mesh.dim
-    n_el, per = corner_points.shape[:2]
+    n_new, per = corner_points.shape[:2]
+    shape = tuple(int(s) for s in mesh.grid_shape[:dim])
+    key, stride = _lattice_keys(mesh.lattice, shape)
+    order = None if np.all(key[1:] > key[:-1]) else np.argsort(key, kind="stable")
+    sorted_key = key if order is None else key[order]
     flat = corner_points.reshape(-1, dim)
     whole = np.all(flat == np.round(flat), axis=1)
-    grid = [int(s) + 1 for s in mesh.grid_shape[:dim]]
-    stride = np.array([int(np.prod(grid[d + 1:])) for d in range(dim)], np.int64)
-    key = np.round(flat[whole]).astype(np.int64) @ stride
-    used = np.zeros(int(np.prod(grid)), bool)
-    used[key] = True
-    lattice_key = np.flatnonzero(used)
-    node_id = np.cumsum(used, dtype=np.int64) - 1
     ids = np.empty(flat.shape[0], np.int64)
-    ids[whole] = node_id[key]
-    del used, node_id, key
-    off = np.round(flat[~whole] * _KEY).astype(np.int64)
-    off_points, inverse = np.unique(off, axis=0, return_inverse=True)
-    ids[~whole] = lattice_key.size + inverse.ravel()
-    cells = ids.reshape(n_el, per)
-    lattice = np.full((lattice_key.size + off_points.shape[0], 3), -1, np.int64)
-    lattice[:, dim:] = 0
-    rest = lattice_key
-    for d in range(dim):
-        if d < dim - 1:
-            lattice[: lattice_key.size, d], rest = np.divmod(rest, stride[d])
-        else:
-            lattice[: lattice_key.size, d] = rest
-    position = np.zeros((lattice.shape[0], 3))
-    position[: lattice_key.size, :dim] = lattice[: lattice_key.size, :dim]
-    position[lattice_key.size:, :dim] = off_points / _KEY
-    points = mesh.origin + position * mesh.spacing
+    wanted = np.round(flat[whole]).astype(np.int64) @ stride
+    pos = np.searchsorted(sorted_key, wanted)
+    if np.any(pos >= sorted_key.size) or np.any(sorted_key[np.minimum(pos, sorted_key.size - 1)] != wanted):
+        raise DicerError("a coarse element's corner has no node in the voxel mesh; the mesh is not a full voxel mesh")
+    ids[whole] = pos if order is None else order[pos]
+    off, inverse = np.unique(np.round(flat[~whole] * _KEY).astype(np.int64), axis=0, return_inverse=True)
+    ids[~whole] = mesh.n_points + inverse.ravel()
+    cells = np.concatenate([np.compress(keep, mesh.cells, axis=0), ids.reshape(n_new, per)])
+    # nodes still used, in the voxel mesh's order, then the new ones
+    used = np.zeros(mesh.n_points + off.shape[0], bool)
+    for start in range(0, cells.shape[0], _ROWS):
+        used[cells[start : start + _ROWS]] = True
+    number = np.cumsum(used) - 1
+    cells = number[cells]
+    n_old = int(used[: mesh.n_points].sum())
+    n_off = off.shape[0]
+    points = np.empty((n_old + n_off, 3))
+    points[:n_old] = np.compress(used[: mesh.n_points], mesh.points, axis=0)
+    lattice = np.full((n_old + n_off, 3), -1, np.int64)
+    lattice[:n_old] = np.compress(used[: mesh.n_points], mesh.lattice, axis=0)
+    lattice[n_old:, dim:] = 0
+    position = np.zeros((n_off, 3))
+    position[:, :dim] = off / _KEY
+    points[n_old:] = mesh.origin + position * mesh.spacing
     if dim == 2:
-        points[:, 2] = mesh.origin[2]
+        points[n_old:, 2] = mesh.origin[2]
+    material = np.concatenate([np.compress(keep, mesh.material), material]).astype(np.int32)
+    level = np.concatenate([np.zeros(int(keep.sum()), np.int8), level])
     return Mesh(points, cells, material, lattice, mesh.spacing.copy(), mesh.origin.copy(), mesh.grid_shape.copy(),
                 {}, {LEVEL_DATA: level})
 
 
-def _report(mesh: Mesh, out: Mesh, labels: np.ndarray, level: np.ndarray, seconds: float, levels: int,
+def _report(mesh: Mesh, out: Mesh, keep: np.ndarray, level: np.ndarray, seconds: float, levels: int,
             min_distance: int, keep_fine) -> dict:
-    kinds = np.unique(mesh.material)
-    before = np.bincount(mesh.material, minlength=kinds.max() + 1)
-    after = np.bincount(out.material, minlength=kinds.max() + 1)
+    top = int(mesh.material.max()) + 1
+    kinds = np.flatnonzero(np.bincount(mesh.material, minlength=top))
+    before = np.bincount(mesh.material, minlength=top)
+    after = np.bincount(out.material, minlength=top)
     voxel = float(np.prod(mesh.spacing[: mesh.dim]))
-    vol = np.bincount(out.material, weights=element_volumes(out.points, out.cells), minlength=kinds.max() + 1)
+    coarse = np.flatnonzero(out.cell_data[LEVEL_DATA] > 0)
+    vol = np.bincount(out.material[coarse], weights=element_volumes(out.points, out.cells[coarse]),
+                      minlength=top).astype(float)
+    vol += np.bincount(mesh.material[keep], minlength=top) * voxel
     per_level = {}
-    for lv in np.unique(level):
-        sel = level == lv
-        counts = np.bincount(out.material[sel], minlength=kinds.max() + 1)
+    out_level = out.cell_data[LEVEL_DATA]
+    for lv in np.unique(out_level):
+        counts = np.bincount(out.material[out_level == lv], minlength=top)
         per_level[str(int(lv))] = {str(int(k)): int(counts[k]) for k in kinds if counts[k]}
     return {
         "method": "templates", "levels": levels, "min_distance": min_distance,

@@ -40,7 +40,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from dicer.errors import DicerError
-from dicer.mesh.boundary import NODE_CLASSES, boundary_graph, class_counts
+from dicer.mesh.boundary import HEX_EDGES, NODE_CLASSES, QUAD_EDGES, boundary_graph, class_counts
 from dicer.mesh.metrics import element_volumes, hex_scaled_jacobian_t, hex_volumes_t, scaled_jacobian
 from dicer.mesh.model import LEVEL_DATA, Mesh
 
@@ -375,7 +375,7 @@ class _InteriorGraph(_Interior):
         self.nodes = band_nodes
         if m == 0:
             return
-        local = _HEX_EDGES if cells.shape[1] == 8 else _QUAD_EDGES
+        local = HEX_EDGES if cells.shape[1] == 8 else QUAD_EDGES
         near = _holding(None, band_nodes, cells.shape[0], cells)
         sub = cells[near]
         a = sub[:, local[:, 0]].ravel()
@@ -396,10 +396,6 @@ class _InteriorGraph(_Interior):
         on_b = bpos[col] >= 0
         self.m_bB = sp.csr_matrix((np.ones(int(on_b.sum())), (row[on_b], bpos[col[on_b]])), shape=(m, bnodes.size))
         self.deg = deg
-
-
-_HEX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]])
-_QUAD_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
 
 
 def _graded(mesh: Mesh) -> bool:

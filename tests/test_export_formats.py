@@ -260,7 +260,7 @@ def test_vtu_quadratic_and_gmsh(tmp_path, mesh):
     assert np.array_equal(np.concatenate(g.cell_data["gmsh:physical"]), mesh.material)
 
 
-@pytest.mark.parametrize("name", ["m.inp", "m.out", "m.k", "m.vtu", "m.msh", "m.exo"])
+@pytest.mark.parametrize("name", ["m.inp", "m.out", "m.k", "m.vtu", "m.msh", "m.exo", "m.feb"])
 def test_every_format_reruns_byte_identical(tmp_path, mesh, name):
     a, b = tmp_path / "a", tmp_path / "b"
     for folder in (a, b):

@@ -8,7 +8,7 @@ DicerError and leaves no file behind.
 
 Formats: Abaqus/CalculiX ``.inp``, VTU ``.vtu`` (ParaView), PATRAN neutral
 ``.out``/``.neu``, LS-DYNA keyword ``.k``/``.key``/``.dyn``, Gmsh ``.msh``, Exodus II
-``.e``/``.exo`` (written with netCDF4).
+``.e``/``.exo`` (written with netCDF4), FEBio ``.feb``.
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ FORMATS = {
     ".msh": "gmsh",
     ".e": "exodus",
     ".exo": "exodus",
+    ".feb": "febio",
 }
 EXPORT_SUFFIXES = tuple(FORMATS)
 """Output file extensions ``dicer export`` accepts."""
@@ -75,7 +76,7 @@ class SolverModel:
         number 1..6 / 1..4) of the element faces on the exterior surface.
     interfaces : interface name ``<a>_<b>`` -> (F, 2) int64 rows (element index, face
         number) of the faces of material a with material b behind them (a < b), grouped
-        by face number, elements ascending; for formats with face sets (Exodus).
+        by face number, elements ascending; for formats with face sets (Exodus, FEBio).
     heading : provenance lines (no date, no path).
     """
 
@@ -455,6 +456,10 @@ def _write(fmt: str, model: SolverModel, mesh: Mesh, tmp: Path, ex: dict) -> Non
         from dicer.export.exodus import write_exodus
 
         write_exodus(model, tmp)
+    elif fmt == "febio":
+        from dicer.export.febio import write_febio
+
+        write_febio(model, tmp, ex.get("febio_material", "isotropic elastic"))
     elif fmt == "gmsh":
         from dicer.export.vtu import write_meshio
 
@@ -473,6 +478,10 @@ def _verify(fmt: str, model: SolverModel, tmp: Path, path: Path, ex: dict) -> No
             from dicer.export.exodus import check_exodus
 
             check_exodus(tmp, model)
+        elif fmt == "febio":
+            from dicer.export.febio import check_febio
+
+            check_febio(tmp, model, ex.get("febio_material", "isotropic elastic"))
         elif fmt == "patran":
             readers.check_patran(tmp, model)
         elif fmt == "lsdyna":
@@ -502,6 +511,9 @@ def export_mesh(mesh: Mesh, path: str | os.PathLike, config: dict, source: str |
         except ImportError:
             raise DicerError(f"{path}: Exodus files need the netCDF4 package (pip install netCDF4); "
                              "or choose another format") from None
+    if fmt == "febio" and mesh.dim != 3:
+        raise DicerError(f"{path}: FEBio has no plane (2D) elements; export this {mesh.dim}D mesh "
+                         "to .inp (CPS4/CPE4) or another format, or mesh a 3D volume for .feb")
     model = prepare_model(mesh, config, source, path)
     ex = config.get("export", {})
     with atomic_path(path) as tmp:

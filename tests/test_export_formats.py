@@ -260,22 +260,9 @@ def test_vtu_quadratic_and_gmsh(tmp_path, mesh):
     assert np.array_equal(np.concatenate(g.cell_data["gmsh:physical"]), mesh.material)
 
 
-@pytest.mark.parametrize("name", ["m.inp", "m.out", "m.k", "m.vtu", "m.msh"])
+@pytest.mark.parametrize("name", ["m.inp", "m.out", "m.k", "m.vtu", "m.msh", "m.exo", "m.feb"])
 def test_every_format_reruns_byte_identical(tmp_path, mesh, name):
     a, b = tmp_path / "a", tmp_path / "b"
     for folder in (a, b):
         export_mesh(mesh, folder / name, cfg(), source="scan.nii")
     assert (a / name).read_bytes() == (b / name).read_bytes()
-
-
-def test_exodus_needs_netcdf4(tmp_path, mesh):
-    try:
-        import netCDF4  # noqa: F401
-    except ImportError:
-        with pytest.raises(DicerError, match="netCDF4"):
-            export_mesh(mesh, tmp_path / "m.exo", cfg())
-        assert list(tmp_path.iterdir()) == []
-        return
-    export_mesh(mesh, tmp_path / "m.exo", cfg())
-    m = meshio.read(tmp_path / "m.exo")
-    assert np.array_equal(np.concatenate(m.cell_data["material"]), mesh.material)

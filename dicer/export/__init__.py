@@ -8,7 +8,7 @@ DicerError and leaves no file behind.
 
 Formats: Abaqus/CalculiX ``.inp``, VTU ``.vtu`` (ParaView), PATRAN neutral
 ``.out``/``.neu``, LS-DYNA keyword ``.k``/``.key``/``.dyn``, Gmsh ``.msh``, Exodus II
-``.e``/``.exo`` (when the netCDF4 package is installed).
+``.e``/``.exo`` (written with netCDF4), FEBio ``.feb``.
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ FORMATS = {
     ".msh": "gmsh",
     ".e": "exodus",
     ".exo": "exodus",
+    ".feb": "febio",
 }
 EXPORT_SUFFIXES = tuple(FORMATS)
 """Output file extensions ``dicer export`` accepts."""
@@ -73,6 +74,9 @@ class SolverModel:
     node_sets : set name -> sorted 0-based node indices (bounding planes, material
         boundaries, interfaces). exterior : (F, 2) int64 rows (element index, face
         number 1..6 / 1..4) of the element faces on the exterior surface.
+    interfaces : interface name ``<a>_<b>`` -> (F, 2) int64 rows (element index, face
+        number) of the faces of material a with material b behind them (a < b), grouped
+        by face number, elements ascending; for formats with face sets (Exodus, FEBio).
     heading : provenance lines (no date, no path).
     """
 
@@ -88,6 +92,7 @@ class SolverModel:
     digits: int
     node_sets: dict[str, np.ndarray] = field(default_factory=dict)
     exterior: np.ndarray | None = None
+    interfaces: dict[str, np.ndarray] = field(default_factory=dict)
     heading: list[str] = field(default_factory=list)
     use_heading: bool = True
     cell_data: dict[str, np.ndarray] = field(default_factory=dict)
@@ -327,7 +332,7 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> No
                          "interfaces and exterior out of export.sets")
     exterior = np.zeros(n, bool)
     ext_e, ext_f = [], []
-    bound_code, bound_nodes, pair_code, pair_nodes = [], [], [], []
+    bound_code, bound_nodes, pair_code, pair_nodes, pair_face = [], [], [], [], []
     for start in range(0, model.n_cells, _CHUNK):
         mat = model.material[start : start + _CHUNK].astype(np.int64)
         nbm = nb_mat[start : start + _CHUNK]
@@ -346,6 +351,7 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> No
             e_idx, nodes = _face_nodes(cells, table, later)
             pair_code.append(mat[e_idx] << 16 | nbm[later].astype(np.int64))  # labels <= MAX_LABEL < 2**16
             pair_nodes.append(nodes)
+            pair_face.append(np.column_stack(np.nonzero(later)) + [start, 1])  # (element, face number)
     if "exterior" in kinds:
         e, f = np.concatenate(ext_e), np.concatenate(ext_f)
         order = np.lexsort((e, f))  # grouped by face number, elements ascending
@@ -358,9 +364,17 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> No
         for k, ids in zip(codes.tolist(), groups):
             model.node_sets[f"{model.names[k]}_BOUNDARY"] = ids
     if "interfaces" in kinds:
-        codes, groups = _grouped_nodes(np.concatenate(pair_code), np.concatenate(pair_nodes).reshape(-1, width), n)
-        for code, ids in zip(codes.tolist(), groups):
-            model.node_sets[f"{model.names[code >> 16]}_{model.names[code & 0xFFFF]}"] = ids
+        code = np.concatenate(pair_code)
+        codes, groups = _grouped_nodes(code, np.concatenate(pair_nodes).reshape(-1, width), n)
+        for c, ids in zip(codes.tolist(), groups):
+            model.node_sets[f"{model.names[c >> 16]}_{model.names[c & 0xFFFF]}"] = ids
+        # the same faces as (element, face number) rows per pair: by face number, elements ascending
+        faces = np.concatenate(pair_face).astype(np.int64).reshape(-1, 2)
+        order = np.lexsort((faces[:, 0], faces[:, 1], code))
+        code, faces = code[order], faces[order]
+        cut = np.flatnonzero(code[1:] != code[:-1]) + 1
+        for c, rows in zip(code[np.r_[0, cut]].tolist() if code.size else [], np.split(faces, cut)):
+            model.interfaces[f"{model.names[c >> 16]}_{model.names[c & 0xFFFF]}"] = rows
 
 
 def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "model") -> SolverModel:
@@ -421,7 +435,7 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
     return model
 
 
-def _write(fmt: str, model: SolverModel, mesh: Mesh, tmp: Path) -> None:
+def _write(fmt: str, model: SolverModel, mesh: Mesh, tmp: Path, ex: dict) -> None:
     if fmt == "abaqus":
         from dicer.export.abaqus import write_abaqus
 
@@ -438,20 +452,36 @@ def _write(fmt: str, model: SolverModel, mesh: Mesh, tmp: Path) -> None:
         from dicer.export.lsdyna import write_lsdyna
 
         write_lsdyna(model, tmp)
-    elif fmt in ("gmsh", "exodus"):
+    elif fmt == "exodus":
+        from dicer.export.exodus import write_exodus
+
+        write_exodus(model, tmp)
+    elif fmt == "febio":
+        from dicer.export.febio import write_febio
+
+        write_febio(model, tmp, ex.get("febio_material", "isotropic elastic"))
+    elif fmt == "gmsh":
         from dicer.export.vtu import write_meshio
 
         write_meshio(model, tmp, fmt)
 
 
-def _verify(fmt: str, model: SolverModel, tmp: Path, path: Path) -> None:
+def _verify(fmt: str, model: SolverModel, tmp: Path, path: Path, ex: dict) -> None:
     from dicer.export import readers
 
     try:
         if fmt == "abaqus":
             readers.check_abaqus(tmp, model)
-        elif fmt in ("vtu", "gmsh", "exodus"):
+        elif fmt in ("vtu", "gmsh"):
             readers.check_meshio(tmp, model, fmt)
+        elif fmt == "exodus":
+            from dicer.export.exodus import check_exodus
+
+            check_exodus(tmp, model)
+        elif fmt == "febio":
+            from dicer.export.febio import check_febio
+
+            check_febio(tmp, model, ex.get("febio_material", "isotropic elastic"))
         elif fmt == "patran":
             readers.check_patran(tmp, model)
         elif fmt == "lsdyna":
@@ -477,20 +507,24 @@ def export_mesh(mesh: Mesh, path: str | os.PathLike, config: dict, source: str |
     fmt = FORMATS[suffix]
     if fmt == "exodus":
         try:
-            import netCDF4  # noqa: F401  (meshio's Exodus writer needs it)
+            import netCDF4  # noqa: F401  (the Exodus writer needs it)
         except ImportError:
             raise DicerError(f"{path}: Exodus files need the netCDF4 package (pip install netCDF4); "
                              "or choose another format") from None
+    if fmt == "febio" and mesh.dim != 3:
+        raise DicerError(f"{path}: FEBio has no plane (2D) elements; export this {mesh.dim}D mesh "
+                         "to .inp (CPS4/CPE4) or another format, or mesh a 3D volume for .feb")
     model = prepare_model(mesh, config, source, path)
+    ex = config.get("export", {})
     with atomic_path(path) as tmp:
         try:
-            _write(fmt, model, mesh, tmp)
+            _write(fmt, model, mesh, tmp, ex)
         except ValueError as exc:  # a number no field of the format can hold
             raise DicerError(f"{path}: cannot write the {fmt} file ({exc})") from None
         except OSError as exc:
             raise DicerError(f"{path}: cannot write ({exc.strerror}); choose a writable output path") from None
         if verify:
-            _verify(fmt, model, tmp, path)
+            _verify(fmt, model, tmp, path, ex)
         size = tmp.stat().st_size
     return {
         "format": fmt, "file": path.name, "nodes": model.n_points, "elements": model.n_cells,

@@ -1,4 +1,4 @@
-"""VTU export for ParaView (cell data ``material`` and ``scaled_jacobian``) and other meshio formats.
+"""VTU export for ParaView (cell data ``material`` and ``scaled_jacobian``) and Gmsh through meshio.
 
 Order 1 goes through dicer's own VTU writer (:func:`dicer.io.meshes._write_vtu`),
 so the file is also a valid dicer mesh (``lattice`` point data, grid field data)
@@ -35,7 +35,7 @@ def write_vtu(model, mesh: Mesh, path: str | Path) -> None:
 
 
 def write_meshio(model, path: str | Path, file_format: str) -> None:
-    """Write ``model`` with meshio (``vtu``, ``gmsh`` or ``exodus``): material as cell data."""
+    """Write ``model`` with meshio (``vtu`` or ``gmsh``): material as cell data."""
     import meshio
 
     ctype = MESHIO_TYPES[(model.dim, model.order)]
@@ -48,7 +48,4 @@ def write_meshio(model, path: str | Path, file_format: str) -> None:
         return
     m = meshio.Mesh(model.points, [(ctype, model.cells)],
                     cell_data={"material": [model.material], "scaled_jacobian": [_corner_jacobian(model)]})
-    if file_format == "exodus":
-        meshio.write(path, m, file_format="exodus")
-        return
     meshio.write(path, m, file_format="vtu", binary=True, compression="zlib")

@@ -13,7 +13,7 @@ rule export:
     log:
         "logs/{patient}/export_{ext}.log",
     wildcard_constraints:
-        ext="inp|vtu|out|neu|k|msh",
+        ext="inp|vtu|out|neu|k|msh|exo|e|feb",
     shell:
         "dicer export {input:q} -o {output:q} --settings {params.settings:q} > {log:q} 2>&1"
 

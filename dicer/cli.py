@@ -101,7 +101,8 @@ def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = 
     from dicer.segment import segment
 
     with _Stage("segment"):
-        image = read_image(image_path, spacing=config["image"]["spacing"])
+        image = read_image(image_path, spacing=config["image"]["spacing"],
+                           allow_irregular_slices=config["image"]["allow_irregular_slices"])
         labels, info = segment(image, config, source=image_path)
         write_labels(labels, out)
         names = list(material_names(config).values())

@@ -101,8 +101,8 @@ def _check_paths(args) -> None:
         outdir = Path(args.output)
         for inp in inputs:
             if _same(inp, outdir):
-                raise DicerError(f"{outdir}: the output folder is the input folder; give a new output folder "
-                                 "with -o so the scan's folder stays as it is")
+                raise DicerError(f"{outdir}: the output (-o) is the input itself; give a new output folder "
+                                 "with -o so the input stays as it is")
         if outdir.is_dir():
             for name in RUN_OUTPUTS:
                 target = outdir / name

@@ -12,6 +12,7 @@ import shutil
 import struct
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -198,7 +199,10 @@ CASES = {
         "q.json: the output (-o) is the input file itself"),
     "run: output folder is the input folder": (
         lambda t, b: ["run", write_dicom_series(t / "series", [0, 2, 4]), "-o", t / "series"],
-        "the output folder is the input folder"),
+        "series: the output (-o) is the input itself"),
+    "quality: one file for two outputs": (
+        lambda t, b: ["quality", _copy(b, t, "mesh.vtu"), "-o", t / "q.json", "--html", t / "q.json"],
+        "q.json: given as the output of both -o and --html"),
 }
 
 
@@ -235,7 +239,8 @@ def test_bad_input_from_the_shell(tmp_path, base, case):
     build, expected = CASES[case]
     argv = [str(a) for a in build(tmp_path, base)]
     before = _snapshot(tmp_path)
-    proc = subprocess.run([sys.executable, "-m", "dicer", *argv, "-q"], capture_output=True, text=True)
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))  # this checkout's dicer
+    proc = subprocess.run([sys.executable, "-m", "dicer", *argv, "-q"], capture_output=True, text=True, env=env)
     assert proc.returncode == 2
     lines = proc.stderr.splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and expected in lines[0], proc.stderr

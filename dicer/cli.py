@@ -60,6 +60,76 @@ def _check_output(path: str, suffixes: tuple[str, ...], what: str) -> Path:
     return out
 
 
+#: argparse destinations holding output files, with the option that sets them
+OUTPUT_OPTIONS = {"output": "-o", "overlay": "--overlay", "plot": "--plot", "info": "--info", "report": "--report",
+                  "html": "--html"}
+#: argparse destinations holding input files or folders
+INPUT_OPTIONS = ("image", "labels", "mesh", "config", "picture", "stage_report")
+
+
+def _same(a: Path, b: Path) -> bool:
+    """Whether paths ``a`` (an input) and ``b`` (an output) name the same file or folder.
+
+    ``b`` may not exist yet under its spelling (``new/../input.nii``) and still land
+    on ``a`` once its parent folders are made, so it is also compared resolved.
+    """
+    try:
+        if not a.exists():
+            return False
+        if b.exists():
+            return os.path.samefile(a, b)
+        return os.path.realpath(a) == os.path.realpath(b)
+    except OSError:
+        return False
+
+
+def _check_paths(args) -> None:
+    """Refuse, before any work, outputs that would hit a folder, an input or each other.
+
+    Every command goes through here, so no command can replace its own input (the
+    input would be gone if the stage then failed) or end in a traceback when an
+    output path names a folder. ``run`` writes into a folder: its fixed file names are
+    checked instead.
+    """
+    inputs = []
+    for dest in INPUT_OPTIONS:
+        value = getattr(args, dest, None)
+        for item in value if isinstance(value, list) else [value]:
+            if item:
+                inputs.append(Path(item))
+    if args.command == "run":
+        outdir = Path(args.output)
+        for inp in inputs:
+            if _same(inp, outdir):
+                raise DicerError(f"{outdir}: the output (-o) is the input itself; give a new output folder "
+                                 "with -o so the input stays as it is")
+        if outdir.is_dir():
+            for name in RUN_OUTPUTS:
+                target = outdir / name
+                if target.is_dir():
+                    raise DicerError(f"{target}: is a folder where dicer run writes its {name} file; remove or "
+                                     "rename it, or give another output folder with -o")
+                for inp in inputs:
+                    if _same(inp, target):
+                        raise DicerError(f"{target}: the input is one of the files dicer run writes into this "
+                                         "folder; give another output folder with -o")
+        return
+    outputs = [(OUTPUT_OPTIONS[dest], Path(getattr(args, dest))) for dest in OUTPUT_OPTIONS
+               if getattr(args, dest, None)]
+    for k, (option, out) in enumerate(outputs):
+        if out.is_dir():
+            raise DicerError(f"{out}: the output ({option}) is an existing folder; give the path of a file "
+                             "to write (inside that folder if you meant it)")
+        for inp in inputs:
+            if _same(inp, out):
+                raise DicerError(f"{out}: the output ({option}) is the input file itself; write to a new file "
+                                 "so the input stays as it is")
+        for other_option, other in outputs[:k]:
+            if out.resolve() == other.resolve():
+                raise DicerError(f"{out}: given as the output of both {other_option} and {option}; give each "
+                                 "output its own file")
+
+
 def _stable(report):
     """The report without timings, so report files are the same on every rerun."""
     if isinstance(report, dict):
@@ -101,7 +171,8 @@ def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = 
     from dicer.segment import segment
 
     with _Stage("segment"):
-        image = read_image(image_path, spacing=config["image"]["spacing"])
+        image = read_image(image_path, spacing=config["image"]["spacing"],
+                           allow_irregular_slices=config["image"]["allow_irregular_slices"])
         labels, info = segment(image, config, source=image_path)
         write_labels(labels, out)
         names = list(material_names(config).values())
@@ -471,6 +542,7 @@ def main(argv: list[str] | None = None) -> int:
         format="%(name)s %(message)s", stream=sys.stderr,
     )
     try:
+        _check_paths(args)
         args.func(args)
     except DicerError as exc:
         print(f"error: {exc}", file=sys.stderr)

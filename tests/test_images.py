@@ -163,8 +163,13 @@ SECRET_NAME = "Testperson^Zelda"
 SECRET_ID = "PID-88231577"
 
 
-def _write_dicom_series(folder, nslices, series_uid, stored, z0=-20.0, dz=2.5, prefix="im", order=None):
-    """Write a CT series built on pydicom's CT_small.dcm: stored values, slope 2, intercept -1024."""
+def _write_dicom_series(folder, nslices, series_uid, stored, z0=-20.0, dz=2.5, prefix="im", order=None,
+                        positions=None):
+    """Write a CT series built on pydicom's CT_small.dcm: stored values, slope 2, intercept -1024.
+
+    Slice k lies at z = ``positions[k]`` (default ``z0 + dz * k``); its SliceThickness is
+    a misleading 5 mm so that the spacing can only come from the positions.
+    """
     from pydicom.data import get_testdata_file
     from pydicom.uid import generate_uid
 
@@ -181,10 +186,11 @@ def _write_dicom_series(folder, nslices, series_uid, stored, z0=-20.0, dz=2.5, p
         ny, nx = stored.shape[1], stored.shape[0]
         ds.Rows, ds.Columns = ny, nx
         ds.PixelSpacing = [0.6, 0.8]  # row spacing (y), column spacing (x)
-        ds.SliceThickness = dz
+        z = z0 + dz * k if positions is None else positions[k]
+        ds.SliceThickness = 5.0
         ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
-        ds.ImagePositionPatient = [-50.0, -60.0, z0 + dz * k]
-        ds.SliceLocation = z0 + dz * k
+        ds.ImagePositionPatient = [-50.0, -60.0, z]
+        ds.SliceLocation = z
         ds.InstanceNumber = nslices - k  # misleading on purpose: position must decide
         ds.RescaleSlope = 2
         ds.RescaleIntercept = -1024
@@ -248,6 +254,174 @@ def test_ct_small_single_file():
     assert v.ndim == 2 and v.array.shape == (128, 128)
     np.testing.assert_array_equal(v.array, hu.T)
     np.testing.assert_allclose(v.spacing, [float(s) for s in ds.PixelSpacing[::-1]])
+
+
+def _series_at(tmp_path, positions, name="series"):
+    folder = tmp_path / name
+    folder.mkdir()
+    n = len(positions)
+    stored = np.broadcast_to((np.arange(n, dtype=np.int16) * 100)[None, None, :], (10, 8, n))
+    _write_dicom_series(folder, n, "1.2.826.0.1.3680043.8.498.9", stored, positions=positions)
+    return folder
+
+
+def test_dicom_spacing_from_positions_not_header(tmp_path):
+    v = read_image(_series_at(tmp_path, [10.0, 12.0, 14.0, 16.0, 18.0, 20.0]))
+    assert v.array.shape == (10, 8, 6)
+    assert v.spacing[2] == pytest.approx(2.0)  # SliceThickness says 5
+    np.testing.assert_array_equal(v.array[0, 0], np.arange(6) * 200.0 - 1024)
+
+
+@pytest.mark.parametrize("case,positions,message", [
+    ("gap", [0.0, 2.0, 4.0, 8.0, 10.0, 12.0], r"misses slices between positions 4 and 8 mm \(step 4 mm\)"),
+    ("irregular", [0.0, 2.0, 4.0, 7.0, 8.0, 10.0], r"uneven slice steps between positions 4 and 7 mm"),
+    ("duplicate", [0.0, 2.0, 4.0, 4.0, 6.0, 8.0], r"same position along the slice normal \(4 mm"),
+])
+def test_dicom_uneven_series_refused(tmp_path, case, positions, message):
+    folder = _series_at(tmp_path, positions)
+    with pytest.raises(DicerError, match=message) as err:
+        read_image(folder)
+    text = str(err.value)
+    assert text.startswith(f"{folder}: ")
+    assert ("allow_irregular_slices" in text) == (case != "duplicate")
+    for secret in (SECRET_NAME, SECRET_ID, "Testperson", "1.2.826.0.1.3680043.8.498"):
+        assert secret not in text
+
+
+def test_dicom_uneven_series_resampled_when_allowed(tmp_path, caplog):
+    irregular = _series_at(tmp_path, [0.0, 2.0, 4.0, 7.0, 8.0, 10.0], "irregular")
+    with caplog.at_level(logging.WARNING, logger="dicer"):
+        v = read_image(irregular, allow_irregular_slices=True)
+    assert "resampled its 6 slices to 6 uniform slices of 2 mm" in caplog.text
+    assert v.array.shape == (10, 8, 6) and v.spacing[2] == pytest.approx(2.0)
+    # slices hold 200 k - 1024; z = 6 lies 2/3 of the way from z = 4 (k 2) to z = 7 (k 3)
+    expected = np.array([0, 1, 2, 2 + 2 / 3, 4, 5]) * 200.0 - 1024
+    np.testing.assert_allclose(v.array[3, 4], expected, rtol=1e-6)
+    gap = _series_at(tmp_path, [0.0, 2.0, 4.0, 8.0, 10.0], "gap")
+    v = read_image(gap, allow_irregular_slices=True)
+    assert v.array.shape == (10, 8, 6)
+    np.testing.assert_allclose(v.array[0, 0], np.array([0, 1, 2, 2.5, 3, 4]) * 200.0 - 1024)
+    duplicate = _series_at(tmp_path, [0.0, 2.0, 2.0, 4.0], "duplicate")
+    with pytest.raises(DicerError, match="same position"):
+        read_image(duplicate, allow_irregular_slices=True)
+
+
+def test_dicom_tolerance_and_decreasing_positions(tmp_path):
+    # positions written with rounding noise well inside 1 % of the step, in reverse file order
+    v = read_image(_series_at(tmp_path, [10.0, 8.004, 6.0, 3.998, 2.0, 0.0]))
+    assert v.spacing[2] == pytest.approx(2.0, abs=0.01)
+    np.testing.assert_array_equal(v.array[0, 0], np.arange(5, -1, -1) * 200.0 - 1024)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "header only", "random bytes"])
+def test_dicom_damaged_slice_named(tmp_path, damage):
+    folder = _series_at(tmp_path, [0.0, 2.0, 4.0, 6.0, 8.0, 10.0])
+    slice_file = sorted(folder.iterdir())[3]
+    data = slice_file.read_bytes()
+    slice_file.write_bytes({"truncated": data[:-40], "header only": data[:300],
+                            "random bytes": RNG.integers(0, 256, 4000).astype(np.uint8).tobytes()}[damage])
+    with pytest.raises(DicerError) as err:
+        read_image(folder)
+    assert str(err.value).startswith(f"{slice_file}: this slice of the DICOM series cannot be read")
+
+
+def test_dicom_notes_and_dicomdir_beside_the_series(tmp_path):
+    folder = _series_at(tmp_path, [0.0, 2.0, 4.0])
+    (folder / "notes.txt").write_text("scanned on a Tuesday")
+    (folder / "DICOMDIR").write_bytes(bytes(200))
+    assert read_image(folder).array.shape == (10, 8, 3)
+
+
+# --- input sanity: non-finite voxels, spacing, raw data size --------------------------------
+
+
+@pytest.mark.parametrize("ext", [".nii.gz", ".nrrd", ".mha", ".npy"])
+def test_nan_and_inf_voxels_refused(tmp_path, ext):
+    values = HU.copy()
+    values[1, 2, 3] = np.nan
+    values[0, 0, 0] = np.inf
+    values[0, 1, 0] = -np.inf
+    path = tmp_path / f"mr{ext}"
+    if ext == ".npy":
+        np.save(path, values)
+    else:
+        write_image(Volume(values, SPACING), path)
+    with pytest.raises(DicerError, match=f"mr{ext.replace('.', '[.]')}: 1 NaN and 2 infinite voxel value"):
+        read_image(path)
+
+
+def _nifti_with_pixdim(path, value, axis=2):
+    write_image(Volume(HU, SPACING), path)
+    data = bytearray(path.read_bytes())
+    import struct
+
+    data[76 + 4 * axis : 80 + 4 * axis] = struct.pack("<f", value)
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("value", [0.0, float("nan"), float("inf"), -1.5])
+def test_nifti_bad_pixdim_refused_or_replaced(tmp_path, value):
+    path = tmp_path / "ct.nii"
+    _nifti_with_pixdim(path, value)
+    with pytest.raises(DicerError, match=r"ct[.]nii: the header's voxel spacing \(pixdim\) .*image[.]spacing"):
+        read_image(path)
+    v = read_image(path, spacing=[0.5, 0.6, 0.7])
+    assert v.spacing == (0.5, 0.6, 0.7)
+    np.testing.assert_array_equal(v.array, HU)
+
+
+def test_metaimage_infinite_spacing_refused(tmp_path):
+    path = tmp_path / "z.mha"
+    header = "ObjectType = Image\nNDims = 3\nDimSize = 2 2 2\nElementSpacing = 1 inf 1\nElementType = MET_UCHAR\n"
+    path.write_bytes((header + "ElementDataFile = LOCAL\n").encode() + bytes(8))
+    with pytest.raises(DicerError, match="z.mha: .*not finite.*image.spacing"):
+        read_image(path)
+
+
+def _raw_headers(tmp_path, dims, nbytes):
+    """A .mhd and a .nhdr header for ``dims`` int16 voxels, each beside ``nbytes`` of raw data."""
+    (tmp_path / "ct.raw").write_bytes(bytes(nbytes))
+    size = " ".join(map(str, dims))
+    (tmp_path / "ct.mhd").write_text(f"ObjectType = Image\nNDims = 3\nDimSize = {size}\nElementSpacing = 1 1 1\n"
+                                     "ElementType = MET_SHORT\nElementDataFile = ct.raw\n")
+    (tmp_path / "ct.nhdr").write_text(f"NRRD0004\ntype: short\ndimension: 3\nsizes: {size}\n"
+                                      "spacings: 1 1 1\nencoding: raw\nendian: little\ndata file: ct.raw\n")
+    return tmp_path / "ct.mhd", tmp_path / "ct.nhdr"
+
+
+@pytest.mark.parametrize("header", [0, 1])
+def test_header_only_raw_size_checked(tmp_path, header):
+    path = _raw_headers(tmp_path, (4, 5, 6), 4 * 5 * 6 * 2)[header]
+    assert read_image(path).array.shape == (4, 5, 6)
+    for nbytes in (4 * 5 * 6 * 2 - 10, 4 * 5 * 6 * 2 + 100):
+        path = _raw_headers(tmp_path, (4, 5, 6), nbytes)[header]
+        with pytest.raises(DicerError, match=f"{path.name}: the header promises 4x5x6 elements of 2 byte.* "
+                                             f"= 240 bytes .* holds {nbytes - 0} [(]in ct.raw[)]"):
+            read_image(path)
+    # dimensions that would need terabytes: refused before anything is allocated
+    path = _raw_headers(tmp_path, (100000, 100000, 1000), 240)[header]
+    with pytest.raises(DicerError, match="20000000000000 bytes"):
+        read_image(path)
+    (tmp_path / "ct.raw").unlink()
+    with pytest.raises(DicerError, match="data file 'ct.raw' named by the header is missing"):
+        read_image(path)
+
+
+def test_attached_raw_nrrd_and_mha_size_checked(tmp_path):
+    nrrd = tmp_path / "a.nrrd"
+    head = b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 3 4\nencoding: raw\n\n"
+    nrrd.write_bytes(head + bytes(24))
+    assert read_image(nrrd).array.shape == (2, 3, 4)
+    nrrd.write_bytes(head + bytes(20))
+    with pytest.raises(DicerError, match="a.nrrd: the header promises 2x3x4 elements of 1 byte.* holds 20;"):
+        read_image(nrrd)
+    mha = tmp_path / "a.mha"
+    head = b"ObjectType = Image\nNDims = 3\nDimSize = 2 3 4\nElementType = MET_FLOAT\nElementDataFile = LOCAL\n"
+    mha.write_bytes(head + bytes(96))
+    assert read_image(mha).array.shape == (2, 3, 4)
+    mha.write_bytes(head + bytes(90))
+    with pytest.raises(DicerError, match="a.mha: the header promises 2x3x4 elements of 4 byte.* holds 90;"):
+        read_image(mha)
 
 
 # --- labels ------------------------------------------------------------------------------

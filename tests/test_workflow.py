@@ -18,6 +18,8 @@ SNAKEMAKE = [sys.executable, "-m", "snakemake"]
 def _env():
     env = dict(os.environ)
     env["PATH"] = os.path.dirname(sys.executable) + os.pathsep + env.get("PATH", "")
+    # the rules' `dicer` commands run this checkout's package, not another installed copy
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
     return env
 
 

@@ -33,7 +33,11 @@ def atomic_path(path: str | os.PathLike):
     try:
         yield tmp
         os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
+        try:
+            os.replace(tmp, path)
+        except OSError as exc:  # e.g. a folder of that name: say so instead of a traceback
+            raise DicerError(f"{path}: cannot write the file there ({exc.strerror}); give the path of a file "
+                             "that can be replaced") from None
     except BaseException:
         with contextlib.suppress(OSError):
             tmp.unlink()

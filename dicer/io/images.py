@@ -33,7 +33,7 @@ from dicer.io.atomic import atomic_path
 log = logging.getLogger(__name__)
 
 #: single-file image formats (lower-case name endings)
-IMAGE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".mha", ".mhd", ".npy", ".tif", ".tiff", ".png", ".dcm")
+IMAGE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".npy", ".tif", ".tiff", ".png", ".dcm")
 #: label volume formats
 LABEL_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".mha", ".mhd", ".npy")
 #: formats ``write_image`` writes
@@ -44,7 +44,7 @@ WRITE_LABEL_SUFFIXES = (".nii", ".nii.gz")
 _TIFF = (".tif", ".tiff")
 _PNG = (".png",)
 _SUPPORTED = (
-    "supported inputs: .nii, .nii.gz, .nrrd, .mha/.mhd, .npy, .tif/.tiff, .png, .dcm, "
+    "supported inputs: .nii, .nii.gz, .nrrd/.nhdr, .mha/.mhd, .npy, .tif/.tiff, .png, .dcm, "
     "or a folder holding a DICOM series, TIFF slices or PNG slices"
 )
 
@@ -108,8 +108,23 @@ def _check_spacing(spacing, path, source: str) -> tuple[float, ...]:
     return spacing
 
 
+def _check_finite(array: np.ndarray, path) -> None:
+    """Raise DicerError when a float image holds NaN or infinite voxels.
+
+    Such voxels have no value a threshold could classify; turning them into background
+    (or anything else) would change the model without telling, so they are refused.
+    """
+    if array.dtype.kind != "f":
+        return
+    finite = np.count_nonzero(np.isfinite(array))
+    if finite == array.size:
+        return
+    nan = int(np.count_nonzero(np.isnan(array)))
+    raise _nonfinite_error(path, nan, array.size - finite - nan, array.size)
+
+
 def _finish(array: np.ndarray, spacing, origin, path, dtype=np.float32) -> Volume:
-    """Drop a singleton axis (3D -> 2D) and build the Volume."""
+    """Drop a singleton axis (3D -> 2D), refuse NaN/Inf voxels and build the Volume."""
     spacing, origin = list(spacing), list(origin)
     singles = [ax for ax, n in enumerate(array.shape) if n == 1]
     if array.ndim == 3 and len(singles) == 1:
@@ -121,6 +136,7 @@ def _finish(array: np.ndarray, spacing, origin, path, dtype=np.float32) -> Volum
             f"{path}: the image has shape {'x'.join(map(str, array.shape))} (x, y, z); dicer meshes 2D or 3D "
             "images with at least 2 voxels along each axis; give a 2D slice or a 3D volume"
         )
+    _check_finite(array, path)
     return Volume(np.ascontiguousarray(array, dtype=dtype), tuple(spacing), tuple(origin))
 
 
@@ -187,53 +203,239 @@ def _default_spacing(spacing_arg, shape, path) -> list[float]:
     return list(_check_spacing(spacing, path, "given spacing"))
 
 
-# --- NIfTI completeness ------------------------------------------------------------------
+# --- header checks -------------------------------------------------------------------
 
 
-def _check_nifti_complete(path: Path) -> None:
-    """Raise DicerError when a NIfTI file holds fewer bytes than its header promises.
+def _nonfinite_error(path, nan: int, inf: int, size: int) -> DicerError:
+    parts = [f"{nan} NaN" if nan else "", f"{inf} infinite" if inf else ""]
+    return DicerError(
+        f"{path}: {' and '.join(p for p in parts if p)} voxel value(s) of {size} ({(nan + inf) / size:.3%}); "
+        "dicer does not guess them: replace them in the file with real values (e.g. the background value) "
+        "and read it again"
+    )
 
-    ITK silently pads a truncated .nii or .nii.gz with zeros, so the header's data size
-    (dims, bitpix, vox_offset) is compared with the file's (decompressed) length, and a
-    gzip stream is read to its end-of-stream marker and CRC check.
-    """
-    gz = path.name.lower().endswith(".gz")
-    opener = gzip.open if gz else open
-    try:
-        with opener(path, "rb") as f:
-            head = f.read(540)
-            total = len(head)
-            while chunk := f.read(1 << 22):
-                total += len(chunk)
-    except (EOFError, OSError, gzip.BadGzipFile) as exc:
-        raise DicerError(f"{path}: the file is truncated or corrupt ({exc}); copy or export it again") from None
-    if len(head) < 348:
-        raise DicerError(f"{path}: the file is too short for a NIfTI header; copy or export it again")
+
+def _nifti_header(head: bytes):
+    """``(dims, bitpix, datatype, pixdim, vox_offset, endian)`` of a NIfTI-1/2 header, or None."""
     for endian in "<>":
         (sizeof_hdr,) = struct.unpack(endian + "i", head[:4])
         if sizeof_hdr == 348:  # NIfTI-1
             dims = struct.unpack(endian + "8h", head[40:56])
-            (bitpix,) = struct.unpack(endian + "h", head[72:74])
+            datatype, bitpix = struct.unpack(endian + "2h", head[70:74])
+            pixdim = struct.unpack(endian + "8f", head[76:108])
             (vox_offset,) = struct.unpack(endian + "f", head[108:112])
-            break
-        if sizeof_hdr == 540:  # NIfTI-2
+            return dims, bitpix, datatype, pixdim, int(vox_offset), endian
+        if sizeof_hdr == 540 and len(head) >= 540:  # NIfTI-2
             dims = struct.unpack(endian + "8q", head[16:80])
-            (bitpix,) = struct.unpack(endian + "h", head[14:16])
+            datatype, bitpix = struct.unpack(endian + "2h", head[12:16])
+            pixdim = struct.unpack(endian + "8d", head[104:168])
             (vox_offset,) = struct.unpack(endian + "q", head[168:176])
-            break
-    else:
-        return  # not a header we know; leave the judgement to ITK
-    if not 1 <= dims[0] <= 7 or path.name.lower().endswith((".hdr", ".img")):
-        return
+            return dims, bitpix, datatype, pixdim, int(vox_offset), endian
+    return None
+
+
+def _check_nifti_complete(path: Path) -> tuple[float, ...] | None:
+    """Raise DicerError when a NIfTI file is truncated or holds NaN or infinite voxels.
+
+    ITK silently pads a truncated .nii or .nii.gz with zeros, so the header's data size
+    (dims, bitpix, vox_offset) is compared with the file's (decompressed) length, and a
+    gzip stream is read to its end-of-stream marker and CRC check. ITK's NIfTI reader
+    also turns NaN and infinite float voxels into 0 (background) without a word, so
+    they are counted here, on the stored bytes, in the same pass.
+
+    Returns
+    -------
+    tuple of float or None
+        The header's voxel spacing (pixdim) of the spatial axes as stored, or None for
+        a header this function does not know. ITK turns a zero or NaN pixdim into 1 mm
+        without a word, so the caller judges these values itself.
+    """
+    gz = path.name.lower().endswith(".gz")
+    opener = gzip.open if gz else open
+    nan = inf = 0
+    try:
+        with opener(path, "rb") as f:
+            head = f.read(540)
+            total = len(head)
+            header = _nifti_header(head) if len(head) >= 348 else None
+            floats = None
+            if header is not None and not path.name.lower().endswith((".hdr", ".img")):
+                floats = {16: "f4", 64: "f8"}.get(header[2])
+            if floats:
+                dtype = np.dtype(header[5] + floats)
+                pending = head[header[4]:]  # voxel bytes not yet counted
+                skip = max(header[4] - len(head), 0)  # header extensions beyond the first 540 bytes
+            while chunk := f.read(1 << 22):
+                total += len(chunk)
+                if floats:
+                    cut = min(skip, len(chunk))
+                    skip -= cut
+                    pending += chunk[cut:]
+                    usable = len(pending) - len(pending) % dtype.itemsize
+                    values = np.frombuffer(pending, dtype, count=usable // dtype.itemsize)
+                    bad = values[~np.isfinite(values)]
+                    nan += int(np.count_nonzero(np.isnan(bad)))
+                    inf += bad.size - int(np.count_nonzero(np.isnan(bad)))
+                    pending = pending[usable:]
+            if floats and pending:
+                values = np.frombuffer(pending[: len(pending) - len(pending) % dtype.itemsize], dtype)
+                bad = values[~np.isfinite(values)]
+                nan += int(np.count_nonzero(np.isnan(bad)))
+                inf += bad.size - int(np.count_nonzero(np.isnan(bad)))
+    except (EOFError, OSError, gzip.BadGzipFile) as exc:
+        raise DicerError(f"{path}: the file is truncated or corrupt ({exc}); copy or export it again") from None
+    if len(head) < 348:
+        raise DicerError(f"{path}: the file is too short for a NIfTI header; copy or export it again")
+    if header is None:
+        return None  # not a header we know; leave the judgement to ITK
+    dims, bitpix, _, pixdim, vox_offset, _ = header
+    if not 1 <= dims[0] <= 7:
+        return None
+    spatial = tuple(float(v) for v in pixdim[1 : min(int(dims[0]), 3) + 1])
+    if path.name.lower().endswith((".hdr", ".img")):
+        return spatial
     n = int(np.prod([max(int(d), 1) for d in dims[1 : dims[0] + 1]], dtype=np.int64))
-    need = int(vox_offset) + n * max(int(bitpix), 8) // 8
+    need = vox_offset + n * max(int(bitpix), 8) // 8
     if total < need:
         raise DicerError(
             f"{path}: the file is truncated ({total} of {need} bytes); copy or export it again"
         )
+    if nan or inf:
+        raise _nonfinite_error(path, nan, inf, n)
+    return spatial
+
+
+#: bytes per element of the MetaImage element types
+_MET_SIZES = {"MET_CHAR": 1, "MET_UCHAR": 1, "MET_SHORT": 2, "MET_USHORT": 2, "MET_INT": 4, "MET_UINT": 4,
+              "MET_LONG": 4, "MET_ULONG": 4, "MET_LONG_LONG": 8, "MET_ULONG_LONG": 8, "MET_FLOAT": 4,
+              "MET_DOUBLE": 8}
+#: bytes per element of the NRRD types (every spelling the format allows)
+_NRRD_SIZES = {
+    **dict.fromkeys(("signed char", "int8", "int8_t", "uchar", "unsigned char", "uint8", "uint8_t"), 1),
+    **dict.fromkeys(("short", "short int", "signed short", "signed short int", "int16", "int16_t", "ushort",
+                     "unsigned short", "unsigned short int", "uint16", "uint16_t"), 2),
+    **dict.fromkeys(("int", "signed int", "int32", "int32_t", "uint", "unsigned int", "uint32", "uint32_t",
+                     "float"), 4),
+    **dict.fromkeys(("longlong", "long long", "long long int", "signed long long", "signed long long int",
+                     "int64", "int64_t", "ulonglong", "unsigned long long", "unsigned long long int", "uint64",
+                     "uint64_t", "double"), 8),
+}
+
+
+def _read_header_text(path: Path, limit: int = 1 << 16) -> bytes:
+    try:
+        with open(path, "rb") as f:
+            return f.read(limit)
+    except OSError as exc:
+        raise DicerError(f"{path}: cannot read the file ({exc.strerror}); check the path and permissions") from None
+
+
+def _raw_layout(path: Path, suffix: str):
+    """The raw voxel data a MetaImage or NRRD header describes, or None when not checkable.
+
+    Returns
+    -------
+    tuple or None
+        ``(data_file, offset, need, dims, element_size, at_end)``: the file holding the
+        voxels, where they start, how many bytes the header's dimensions and element
+        type need, those dimensions and element size, and whether the data sits at the
+        end of the file (offset unknown). None for compressed, text, multi-file or
+        unrecognised headers, which ITK judges when it reads them.
+    """
+    head = _read_header_text(path)
+    if suffix in (".mha", ".mhd"):
+        fields, end = {}, None
+        for match in re.finditer(rb"^[ \t]*(\w+)[ \t]*=[ \t]*([^\r\n]*?)[ \t]*(?:\r?\n|$)", head, re.M):
+            key, value = match.group(1).decode("ascii", "replace"), match.group(2).decode("latin-1")
+            fields[key] = value
+            if key == "ElementDataFile":
+                end = match.end()
+                break
+        if end is None or fields.get("CompressedData", "False").lower() == "true":
+            return None
+        try:
+            dims = [int(v) for v in fields["DimSize"].split()]
+            channels = int(fields.get("ElementNumberOfChannels", "1"))
+            size = _MET_SIZES[fields["ElementType"]]
+            skip = int(fields.get("HeaderSize", "0"))
+        except (KeyError, ValueError):
+            return None
+        name = fields["ElementDataFile"]
+        if name.upper() == "LOCAL":
+            data_file, offset = path, end
+        elif name.upper().startswith("LIST") or "%" in name or " " in name.strip():
+            return None
+        else:
+            data_file, offset = path.parent / name, max(skip, 0)
+        return data_file, offset, int(np.prod(dims, dtype=np.int64)) * channels * size, dims, size, skip == -1
+    # NRRD: magic line, "field: value" lines, a blank line, then the data (or a detached file)
+    if not head.startswith(b"NRRD000"):
+        return None
+    match = re.search(rb"\r?\n\r?\n", head)
+    end = match.end() if match else len(head)
+    fields = {}
+    for line in head[:end].decode("latin-1").splitlines()[1:]:
+        if line.startswith("#") or ":=" in line or ": " not in line:
+            continue
+        key, _, value = line.partition(": ")
+        fields[key.strip().lower().replace(" ", "")] = value.strip()
+    if fields.get("encoding", "").lower() != "raw" or fields.get("lineskip", "0") != "0":
+        return None
+    try:
+        dims = [int(v) for v in fields["sizes"].split()]
+        size = _NRRD_SIZES[fields["type"].lower()]
+        skip = int(fields.get("byteskip", "0"))
+    except (KeyError, ValueError):
+        return None
+    name = fields.get("datafile")
+    if name is None:
+        if match is None:
+            return None  # header longer than what was read: leave it to ITK
+        data_file, offset = path, end + max(skip, 0)
+    elif name.upper().startswith("LIST") or " " in name:
+        return None
+    else:
+        data_file, offset = (Path(name) if Path(name).is_absolute() else path.parent / name), max(skip, 0)
+    return data_file, offset, int(np.prod(dims, dtype=np.int64)) * size, dims, size, skip == -1
+
+
+def _check_raw_size(path: Path, suffix: str) -> None:
+    """Raise DicerError when raw voxel data does not have the size its header promises.
+
+    Checked before ITK reads anything: a header whose dimensions are wrong (or whose
+    data file is cut short) would otherwise allocate the whole promised array first,
+    then fail or pad, or read the voxels with the wrong layout.
+    """
+    layout = _raw_layout(path, suffix)
+    if layout is None:
+        return
+    data_file, offset, need, dims, size, at_end = layout
+    if not data_file.is_file():
+        raise DicerError(f"{path}: the data file {data_file.name!r} named by the header is missing; put it "
+                         "beside the header or fix the header's data file entry")
+    have = data_file.stat().st_size - offset
+    if have < need or (have > need and not at_end):
+        where = "" if data_file == path else f" (in {data_file.name})"
+        raise DicerError(
+            f"{path}: the header promises {'x'.join(map(str, dims))} elements of {size} byte(s) = {need} bytes "
+            f"of raw voxel data but the file holds {max(have, 0)}{where}; fix the header's dimensions or element "
+            "type, or copy the complete data file again"
+        )
 
 
 # --- reading -----------------------------------------------------------------------
+
+
+def _bad_spacing(spacing) -> bool:
+    return not all(np.isfinite(sp) and sp > 0 for sp in spacing)
+
+
+def _spacing_error(path: Path, spacing, what: str) -> DicerError:
+    return DicerError(
+        f"{path}: the header's voxel spacing{what} is {', '.join(f'{sp:g}' for sp in spacing)} mm: zero, "
+        "negative or not finite; fix the spacing in the header, or set image.spacing to the voxel size "
+        "in mm (x, y, z) to use instead"
+    )
 
 
 def _read_file(path: Path, spacing_arg, dtype=np.float32) -> Volume:
@@ -242,8 +444,16 @@ def _read_file(path: Path, spacing_arg, dtype=np.float32) -> Volume:
         return _read_npy(path, spacing_arg, dtype)
     if suffix not in IMAGE_SUFFIXES:
         raise DicerError(f"{path}: unknown image format {suffix or '(no extension)'!r}; {_SUPPORTED}")
+    bad_header_spacing = False
     if suffix in (".nii", ".nii.gz"):
-        _check_nifti_complete(path)
+        pixdim = _check_nifti_complete(path)
+        # ITK reads a zero or NaN pixdim as 1 mm: judge the stored values instead
+        if pixdim is not None and _bad_spacing(pixdim):
+            if spacing_arg is None:
+                raise _spacing_error(path, pixdim, " (pixdim)")
+            bad_header_spacing = True
+    elif suffix in (".mha", ".mhd", ".nrrd", ".nhdr"):
+        _check_raw_size(path, suffix)
     reader = sitk.ImageFileReader()
     reader.SetFileName(str(path))
     try:
@@ -255,11 +465,10 @@ def _read_file(path: Path, spacing_arg, dtype=np.float32) -> Volume:
                     "vector data); dicer reads single-channel (greyscale) images: convert it to greyscale"
                 )
             # ITK turns a negative header spacing into a flipped direction: catch it here
-            if not all(sp > 0 for sp in reader.GetSpacing()) and suffix not in _TIFF + _PNG:
-                raise DicerError(
-                    f"{path}: the header has a zero or negative voxel spacing "
-                    f"({', '.join(f'{sp:g}' for sp in reader.GetSpacing())}); fix the spacing in the header"
-                )
+            if _bad_spacing(reader.GetSpacing()) and suffix not in _TIFF + _PNG:
+                if spacing_arg is None:
+                    raise _spacing_error(path, reader.GetSpacing(), "")
+                bad_header_spacing = True
             image = reader.Execute()
     except RuntimeError as exc:
         msg = _itk_message(exc)
@@ -269,8 +478,13 @@ def _read_file(path: Path, spacing_arg, dtype=np.float32) -> Volume:
             ) from None
         raise DicerError(f"{path}: cannot read the image ({msg}); check that the file is complete and in a "
                          f"supported format ({_SUPPORTED})") from None
+    if bad_header_spacing:
+        # the user's image.spacing replaces a header spacing that cannot be right; the
+        # header's origin is dropped with it (it was placed with that spacing)
+        log.warning("%s: the header's voxel spacing is zero, negative or not finite; using image.spacing %s",
+                    path.name, spacing_arg)
     # TIFF and PNG resolution tags are unreliable (dpi, not mm): use the given spacing
-    own = suffix not in _TIFF + _PNG
+    own = suffix not in _TIFF + _PNG and not bad_header_spacing
     return _from_sitk(image, path, spacing_arg, own_spacing=own, nifti=suffix in (".nii", ".nii.gz"),
                       dtype=dtype)
 
@@ -293,7 +507,7 @@ def _read_npy(path: Path, spacing_arg, dtype) -> Volume:
     return _finish(array, spacing, (0.0,) * array.ndim, path, dtype=dtype)
 
 
-def _read_folder(folder: Path, spacing_arg) -> Volume:
+def _read_folder(folder: Path, spacing_arg, allow_irregular: bool = False) -> Volume:
     files = sorted((p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")),
                    key=lambda p: _natural_key(p.name))
     if not files:
@@ -304,7 +518,7 @@ def _read_folder(folder: Path, spacing_arg) -> Volume:
     pngs = [p for p in files if p.suffix.lower() in _PNG]
     if len(tiffs) + len(pngs) < len(files):
         # other files: a DICOM series wins over stray previews (.png) beside it
-        volume = _read_dicom_series(folder, required=not (tiffs or pngs))
+        volume = _read_dicom_series(folder, required=not (tiffs or pngs), allow_irregular=allow_irregular)
         if volume is not None:
             return volume
     if tiffs and pngs:
@@ -328,8 +542,166 @@ def _read_slices(folder: Path, files: list[Path], spacing_arg) -> Volume:
     return _from_sitk(image, folder, spacing_arg, own_spacing=False)
 
 
-def _read_dicom_series(folder: Path, required: bool = True) -> Volume | None:
-    """Read the DICOM series with the most slices; None if there is none and not ``required``."""
+#: name endings of files that are meant to be DICOM slices (besides files without one)
+_DICOM_SUFFIXES = (".dcm", ".dicom", ".ima")
+
+
+def _meant_as_dicom(path: Path) -> bool:
+    """Whether a file GDCM left out of every series was meant to be a DICOM slice.
+
+    GDCM's series scan silently skips files it cannot parse, so a truncated or damaged
+    slice would just be missing from the series. Files named like slices (.dcm, .ima,
+    no extension) or starting with the DICOM preamble are judged; notes, previews and
+    the DICOMDIR index are not.
+    """
+    if path.name.upper() == "DICOMDIR" or path.suffix.lower() in _TIFF + _PNG:
+        return False
+    if path.suffix.lower() in _DICOM_SUFFIXES or not path.suffix:
+        return True
+    try:
+        with open(path, "rb") as f:
+            return f.read(132)[128:] == b"DICM"
+    except OSError:
+        return True
+
+
+def _slice_error(path: str, detail: str) -> DicerError:
+    return DicerError(f"{path}: this slice of the DICOM series cannot be read ({detail}); the file is truncated "
+                      "or damaged: copy it again from the scanner or archive")
+
+
+def _read_dicom_slices(names: list[str]):
+    """Read every slice file: headers first (geometry, checked), then the pixels into one array.
+
+    Returns
+    -------
+    array : ndarray, float32, shape (nx, ny, n)
+        Slices in the order of ``names``, rescale slope and intercept applied.
+    positions : ndarray, shape (n, 3)
+        Image position (patient) of each slice, mm.
+    direction : ndarray, shape (3, 3)
+        Direction cosines of the first slice; column 2 is the slice normal.
+    pixel_spacing : tuple of float
+        In-plane voxel size (x, y), mm.
+    """
+    reader = sitk.ImageFileReader()
+    reader.SetImageIO("GDCMImageIO")
+    positions, directions, sizes, spacings = [], [], [], []
+    for name in names:
+        reader.SetFileName(name)
+        try:
+            reader.ReadImageInformation()
+        except RuntimeError as exc:
+            raise _slice_error(name, _itk_message(exc)) from None
+        positions.append(reader.GetOrigin()[:3])
+        directions.append(reader.GetDirection())
+        sizes.append(reader.GetSize()[:2])
+        spacings.append(reader.GetSpacing()[:2])
+    positions = np.asarray(positions, dtype=np.float64)
+    directions = np.asarray(directions, dtype=np.float64)
+    first = Path(names[0]).parent
+    if positions.shape[1] != 3 or directions.shape[1] != 9:
+        raise DicerError(f"{first}: the DICOM slices carry no 3D position and orientation; export the series "
+                         "with Image Position and Image Orientation (Patient)")
+    if np.abs(directions - directions[0]).max() > 1e-4:
+        raise DicerError(f"{first}: the slices of the DICOM series have different orientations; a series must "
+                         "be one stack of parallel slices: export each orientation as its own series")
+    if len(set(sizes)) > 1 or np.ptp(np.asarray(spacings), axis=0).max() > 1e-6:
+        raise DicerError(f"{first}: the slices of the DICOM series differ in size or pixel spacing; "
+                         "a series must be one stack of equal slices: export it again")
+    nx, ny = sizes[0]
+    array = np.empty((nx, ny, len(names)), dtype=np.float32)
+    reader.SetOutputPixelType(sitk.sitkFloat32)  # keeps rescale slope/intercept (HU) exact
+    for k, name in enumerate(names):
+        reader.SetFileName(name)
+        try:
+            image = reader.Execute()
+        except RuntimeError as exc:
+            raise _slice_error(name, _itk_message(exc)) from None
+        pixels = sitk.GetArrayViewFromImage(image)
+        if pixels.size != nx * ny or image.GetNumberOfComponentsPerPixel() != 1:
+            raise _slice_error(name, f"{pixels.size} values where the header promises {nx}x{ny}")
+        array[:, :, k] = pixels.reshape(ny, nx).T  # [y, x] -> [x, y]
+    return array, positions, directions[0].reshape(3, 3), tuple(float(v) for v in spacings[0])
+
+
+def _positions_text(pairs, n_more: int) -> str:
+    text = "; ".join(f"{a:g} and {b:g} mm (step {b - a:g} mm)" for a, b in pairs)
+    return text + (f" and {n_more} more" if n_more > 0 else "")
+
+
+def _uniform_slices(array, depth, names, folder, allow_irregular: bool):
+    """Check that sorted slice positions are evenly spaced; resample them if allowed.
+
+    Parameters
+    ----------
+    array : ndarray, shape (nx, ny, n)
+        Slices sorted by ``depth``.
+    depth : ndarray, shape (n,)
+        Increasing slice positions along the slice normal, mm.
+    names : list of str
+        Slice files in the same order (to name duplicates).
+    folder : Path
+        The series folder, for messages.
+    allow_irregular : bool
+        Resample a series with missing slices or irregular steps (not duplicates) to
+        the median step by linear interpolation along the slice normal.
+
+    Returns
+    -------
+    array : ndarray, shape (nx, ny, m)
+    dz : float
+        The slice spacing in mm, from the positions (never from a header field).
+    """
+    steps = np.diff(depth)
+    positive = steps[steps > 1e-3]
+    median = float(np.median(positive)) if positive.size else 0.0
+    # 1 % of a step: positions are written with a few decimals, real gaps are whole steps
+    tol = max(0.01 * median, 1e-3)
+    dup = np.flatnonzero(steps <= tol)
+    if dup.size:
+        k = int(dup[0])
+        raise DicerError(
+            f"{folder}: {dup.size} pair(s) of slices of the DICOM series lie at the same position along the "
+            f"slice normal ({', '.join(f'{depth[i]:g} mm' for i in dup[:5])}; first: {Path(names[k]).name} "
+            f"and {Path(names[k + 1]).name}); a series holds one slice per position: remove the duplicate "
+            "files, or put each acquisition (echo, phase) in its own folder"
+        )
+    odd = np.flatnonzero(np.abs(steps - median) > tol)
+    if odd.size == 0:
+        return array, median
+    whole = np.rint(steps[odd] / median)
+    gaps = bool(np.all((whole >= 2) & (np.abs(steps[odd] - whole * median) <= tol * whole)))
+    where = _positions_text([(depth[i], depth[i + 1]) for i in odd[:3]], odd.size - 3)
+    problem = (f"misses slices between positions {where}" if gaps
+               else f"has uneven slice steps between positions {where}")
+    if not allow_irregular:
+        raise DicerError(
+            f"{folder}: the DICOM series {problem} along the slice normal, where the median step is "
+            f"{median:g} mm (tolerance {tol:g} mm); {'add the missing slice files' if gaps else 'export the series with uniform spacing'}, "
+            f"or set image.allow_irregular_slices: true to resample it to uniform {median:g} mm slices by "
+            "linear interpolation"
+        )
+    count = int(np.floor((depth[-1] - depth[0]) / median + 0.01)) + 1
+    target = depth[0] + median * np.arange(count)
+    # each target slice between its two neighbours in the series, weighted by distance
+    lower = np.clip(np.searchsorted(depth, target, side="right") - 1, 0, depth.size - 2)
+    weight = ((target - depth[lower]) / (depth[lower + 1] - depth[lower])).astype(np.float32)
+    weight = np.clip(weight, 0.0, 1.0)
+    resampled = array[:, :, lower] * (1 - weight) + array[:, :, lower + 1] * weight
+    log.warning("%s: the DICOM series %s; resampled its %d slices to %d uniform slices of %g mm by linear "
+                "interpolation (image.allow_irregular_slices)", folder.name, problem, depth.size, count, median)
+    return resampled.astype(np.float32, copy=False), median
+
+
+def _read_dicom_series(folder: Path, required: bool = True, allow_irregular: bool = False) -> Volume | None:
+    """Read the DICOM series with the most slices; None if there is none and not ``required``.
+
+    Slices are sorted by their position along the slice normal, which also gives the
+    slice spacing; missing, duplicate or unevenly spaced slices are refused unless
+    ``allow_irregular`` (then resampled, duplicates still refused). A file in the folder
+    that looks like a slice but cannot be parsed is refused by name.
+    """
     with _quiet_itk():
         try:
             series = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder))
@@ -342,26 +714,34 @@ def _read_dicom_series(folder: Path, required: bool = True) -> Volume | None:
                 f"{folder}: the folder holds no DICOM series, TIFF or PNG slices; {_SUPPORTED}"
             )
         # the series with the most slices; ties go to the first series ID in sorted order
-        candidates = [(len(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), sid)), sid)
-                      for sid in sorted(series)]
+        members = {sid: sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), sid) for sid in sorted(series)}
+        candidates = [(len(names), sid) for sid, names in members.items()]
         count, chosen = max(candidates, key=lambda c: c[0])  # max keeps the first of equal counts
+        known = {Path(name).name for names in members.values() for name in names}
+        for path in sorted(folder.iterdir(), key=lambda p: _natural_key(p.name)):
+            if (path.is_file() and not path.name.startswith(".") and path.name not in known
+                    and _meant_as_dicom(path)):
+                raise _slice_error(str(path), "not a DICOM file GDCM can parse")
         if len(series) > 1:
             # slice counts only: series and patient identifiers stay out of the log
             log.info("%s: %d DICOM series found (slices: %s); reading the one with the most slices (%d)",
                      folder.name, len(series), ", ".join(str(c) for c, _ in candidates), count)
-        names = sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), chosen)  # ordered by position
-        reader = sitk.ImageSeriesReader()
-        reader.SetFileNames(names)
-        reader.SetOutputPixelType(sitk.sitkFloat32)  # keeps rescale slope/intercept (HU) exact
-        try:
-            image = reader.Execute()
-        except RuntimeError as exc:
-            raise DicerError(f"{folder}: cannot read the DICOM series ({_itk_message(exc)}); check that "
-                             "every slice file is complete") from None
-    return _from_sitk(image, folder)
+        names = list(members[chosen])
+        array, positions, direction, pixel_spacing = _read_dicom_slices(names)
+    normal = direction[:, 2]
+    depth = positions @ normal
+    order = np.argsort(depth, kind="stable")
+    array, depth, positions = array[:, :, order], depth[order], positions[order]
+    names = [names[i] for i in order]
+    dz = 1.0  # a single slice becomes a 2D image; its spacing along z is dropped
+    if len(names) > 1:
+        array, dz = _uniform_slices(array, depth, names, folder, allow_irregular)
+    spacing = (*pixel_spacing, dz)
+    corner = [o - sp / 2 for o, sp in zip(positions[0], spacing)]  # ITK: centre of the first voxel
+    return _finish(array, spacing, corner, folder)
 
 
-def read_image(path: str | os.PathLike, spacing=None) -> Volume:
+def read_image(path: str | os.PathLike, spacing=None, allow_irregular_slices: bool = False) -> Volume:
     """Read an intensity image (CT in HU, MR, ...) from a file or a folder.
 
     Parameters
@@ -372,8 +752,14 @@ def read_image(path: str | os.PathLike, spacing=None) -> Volume:
         slices or PNG slices (stacked along z in natural file-name order).
     spacing : None, float or sequence of float, optional
         Voxel size in mm (x, y[, z]) for inputs that carry none: .npy, TIFF and PNG.
-        Ignored for the other formats, which keep their header spacing. Without it
-        such inputs get 1 mm per axis and a logged warning.
+        For the other formats it replaces only a header spacing that is zero,
+        negative or not finite (else an error). Without it .npy, TIFF and PNG
+        inputs get 1 mm per axis and a logged warning.
+    allow_irregular_slices : bool, optional
+        A DICOM series with missing slices or unevenly spaced slice positions is
+        resampled to its median slice step by linear interpolation along the slice
+        normal (with a logged warning) instead of refused. Duplicate positions are
+        refused either way.
 
     Returns
     -------
@@ -387,13 +773,15 @@ def read_image(path: str | os.PathLike, spacing=None) -> Volume:
     ------
     DicerError
         Missing path, unknown format, empty folder, unreadable or truncated file,
-        colour/vector or 4D image, zero or negative spacing.
+        colour/vector or 4D image, zero, negative or non-finite spacing, NaN or
+        infinite voxels, raw data of another size than the header's, a DICOM series
+        with missing, duplicate or unevenly spaced slices, or a damaged slice file.
     """
     path = Path(path)
     if not path.exists():
         raise DicerError(f"{path}: no such file or folder; check the path (and the image column of the patient sheet)")
     if path.is_dir():
-        return _read_folder(path, spacing)
+        return _read_folder(path, spacing, allow_irregular_slices)
     return _read_file(path, spacing)
 
 

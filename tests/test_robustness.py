@@ -1,0 +1,260 @@
+"""Bad input and faults, one row per case: exit status 2, one ``error:`` line, no traceback,
+and no new or changed file anywhere under the test folder (inputs included).
+
+Each row builds its inputs in a fresh folder, runs the ``dicer`` command in-process, and
+compares a snapshot (every path and the bytes of every file) from before and after.
+docs/robustness.md lists the same cases with their messages.
+"""
+
+import hashlib
+import os
+import shutil
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dicer.cli import main
+
+pydicom = pytest.importorskip("pydicom")
+
+
+# --- inputs ------------------------------------------------------------------------------
+
+
+def write_dicom_series(folder, positions, shape=(12, 10)):
+    """A CT series built from scratch: one int16 slice per z position, slope 1, intercept -1024."""
+    from pydicom.dataset import FileDataset, FileMetaDataset
+    from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
+
+    folder.mkdir(parents=True, exist_ok=True)
+    series_uid = generate_uid(entropy_srcs=["robustness series"])
+    for k, z in enumerate(positions):
+        uid = generate_uid(entropy_srcs=["robustness slice", str(k)])
+        meta = FileMetaDataset()
+        meta.MediaStorageSOPClassUID = CTImageStorage
+        meta.MediaStorageSOPInstanceUID = uid
+        meta.TransferSyntaxUID = ExplicitVRLittleEndian
+        ds = FileDataset(str(folder / f"im{k:03d}.dcm"), {}, file_meta=meta, preamble=b"\0" * 128)
+        ds.SOPClassUID, ds.SOPInstanceUID = CTImageStorage, uid
+        ds.StudyInstanceUID = generate_uid(entropy_srcs=["robustness study"])
+        ds.SeriesInstanceUID = series_uid
+        ds.Modality = "CT"
+        ds.PatientName, ds.PatientID = "Anonymous^Robust", "RB-0001"
+        ds.Rows, ds.Columns = shape[1], shape[0]
+        ds.PixelSpacing = [0.7, 0.7]
+        ds.SliceThickness = 1.0  # deliberately not the step between positions
+        ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
+        ds.ImagePositionPatient = [0.0, 0.0, float(z)]
+        ds.RescaleSlope, ds.RescaleIntercept = 1, -1024
+        ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
+        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 1
+        ds.PixelData = np.full((shape[1], shape[0]), 1000 + 10 * k, np.int16).tobytes()
+        ds.save_as(folder / f"im{k:03d}.dcm", enforce_file_format=True)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory):
+    """A small head phantom, its labels and a mesh, made once and copied into each row."""
+    root = tmp_path_factory.mktemp("base")
+    head, labels, mesh = root / "head.nii.gz", root / "labels.nii.gz", root / "mesh.vtu"
+    assert main(["phantom", "head", "-o", str(head), "--size", "32", "-q"]) == 0
+    assert main(["segment", str(head), "-o", str(labels), "-q"]) == 0
+    assert main(["mesh", str(labels), "-o", str(mesh), "-q"]) == 0
+    return root
+
+
+def _copy(base, tmp_path, name):
+    shutil.copy(base / name, tmp_path / name)
+    return tmp_path / name
+
+
+def _nifti(tmp_path, name, values, pixdim=None):
+    from dicer.image import Volume
+    from dicer.io.images import write_image
+
+    path = tmp_path / name
+    write_image(Volume(values, (1.0, 1.0, 1.0)), path)
+    if pixdim is not None:  # overwrite pixdim[3] (z) in the stored header
+        data = bytearray(path.read_bytes())
+        data[88:92] = struct.pack("<f", pixdim)
+        path.write_bytes(bytes(data))
+    return path
+
+
+def _raw_pair(tmp_path, header_name, nbytes):
+    (tmp_path / "ct.raw").write_bytes(bytes(nbytes))
+    path = tmp_path / header_name
+    if header_name.endswith(".mhd"):
+        path.write_text("ObjectType = Image\nNDims = 3\nDimSize = 8 8 8\nElementSpacing = 1 1 1\n"
+                        "ElementType = MET_SHORT\nElementDataFile = ct.raw\n")
+    else:
+        path.write_text("NRRD0004\ntype: short\ndimension: 3\nsizes: 8 8 8\nspacings: 1 1 1\n"
+                        "encoding: raw\nendian: little\ndata file: ct.raw\n")
+    return path
+
+
+def _damaged_series(tmp_path, how):
+    folder = write_dicom_series(tmp_path / "series", np.arange(6) * 2.0)
+    victim = folder / "im003.dcm"
+    data = victim.read_bytes()
+    victim.write_bytes(data[: len(data) - 60] if how == "truncated" else os.urandom(len(data)))
+    return folder
+
+
+def _hu(tmp_path):
+    values = np.full((8, 8, 8), -1000.0, np.float32)
+    values[2:6, 2:6, 2:6] = 400.0
+    return values
+
+
+def _with(values, index, value):
+    values = values.copy()
+    values[index] = value
+    return values
+
+
+OUT = "labels.nii.gz"
+
+# name -> (build(tmp_path, base) -> argv, text the error line must contain)
+CASES = {
+    # 1. DICOM series
+    "dicom: missing slice": (
+        lambda t, b: ["segment", write_dicom_series(t / "series", [0, 2, 4, 8, 10, 12]), "-o", t / OUT],
+        "misses slices between positions 4 and 8 mm"),
+    "dicom: duplicate position": (
+        lambda t, b: ["segment", write_dicom_series(t / "series", [0, 2, 4, 4, 6, 8]), "-o", t / OUT],
+        "same position along the slice normal (4 mm"),
+    "dicom: uneven steps": (
+        lambda t, b: ["segment", write_dicom_series(t / "series", [0, 2, 4, 7, 8, 10]), "-o", t / OUT],
+        "uneven slice steps between positions 4 and 7 mm"),
+    "dicom: duplicate even with allow_irregular_slices": (
+        lambda t, b: ["segment", write_dicom_series(t / "series", [0, 2, 2, 4]), "-o", t / OUT,
+                      "--set", "image.allow_irregular_slices=true"],
+        "same position"),
+    "dicom: truncated slice file": (
+        lambda t, b: ["segment", _damaged_series(t, "truncated"), "-o", t / OUT], "series/im003.dcm: "),
+    "dicom: random-bytes slice file": (
+        lambda t, b: ["segment", _damaged_series(t, "random"), "-o", t / OUT], "series/im003.dcm: "),
+    # 2. input sanity
+    "NaN voxels": (
+        lambda t, b: ["segment", _nifti(t, "nan.nii.gz", _with(_hu(t), (3, 3, 3), np.nan)), "-o", t / OUT],
+        "nan.nii.gz: 1 NaN voxel value(s)"),
+    "infinite voxels (.npy)": (
+        lambda t, b: ["segment", (np.save(t / "inf.npy", _with(_hu(t), (slice(0, 2), 0, 0), -np.inf)),
+                                  t / "inf.npy")[1], "-o", t / OUT],
+        "inf.npy: 2 infinite voxel value(s)"),
+    "NIfTI pixdim 0": (
+        lambda t, b: ["segment", _nifti(t, "flat.nii", _hu(t), pixdim=0.0), "-o", t / OUT],
+        "flat.nii: the header's voxel spacing (pixdim) is 1, 1, 0 mm"),
+    "NIfTI pixdim NaN": (
+        lambda t, b: ["segment", _nifti(t, "nanpix.nii", _hu(t), pixdim=np.nan), "-o", t / OUT],
+        "image.spacing"),
+    "MetaImage negative spacing": (
+        lambda t, b: ["segment", (t / "neg.mha").write_bytes(
+            b"ObjectType = Image\nNDims = 3\nDimSize = 8 8 8\nElementSpacing = 1 -1 1\n"
+            b"ElementType = MET_UCHAR\nElementDataFile = LOCAL\n" + bytes(512)) and t / "neg.mha", "-o", t / OUT],
+        "neg.mha: the header's voxel spacing is 1, -1, 1 mm"),
+    "MetaImage header with short raw data": (
+        lambda t, b: ["segment", _raw_pair(t, "ct.mhd", 1000), "-o", t / OUT],
+        "ct.mhd: the header promises 8x8x8 elements of 2 byte(s) = 1024 bytes"),
+    "NRRD header with long raw data": (
+        lambda t, b: ["segment", _raw_pair(t, "ct.nhdr", 2048), "-o", t / OUT],
+        "ct.nhdr: the header promises 8x8x8 elements of 2 byte(s) = 1024 bytes"),
+    # 3. outputs: an existing folder
+    **{f"{command}: output is a folder": (
+        (lambda command, name, out: lambda t, b: (
+            (t / out).mkdir(), [command, _copy(b, t, name), "-o", t / out])[1])(command, name, out),
+        "is an existing folder")
+       for command, name, out in [("segment", "head.nii.gz", "l.nii.gz"), ("downsample", "labels.nii.gz", "d.nii.gz"),
+                                  ("fix", "labels.nii.gz", "f.nii.gz"), ("mesh", "labels.nii.gz", "m.vtu"),
+                                  ("merge", "mesh.vtu", "g.vtu"), ("smooth", "mesh.vtu", "s.vtu"),
+                                  ("export", "mesh.vtu", "model.inp"), ("quality", "mesh.vtu", "q.json")]},
+    "phantom: output is a folder": (
+        lambda t, b: ((t / "p.nii.gz").mkdir(), ["phantom", "sphere", "-o", t / "p.nii.gz"])[1],
+        "p.nii.gz: the output (-o) is an existing folder"),
+    "fix: report is a folder": (
+        lambda t, b: ((t / "fix.json").mkdir(),
+                      ["fix", _copy(b, t, "labels.nii.gz"), "-o", t / "f.nii.gz", "--report", t / "fix.json"])[1],
+        "fix.json: the output (--report) is an existing folder"),
+    "run: a result name is a folder": (
+        lambda t, b: ((t / "out" / "mesh.vtu").mkdir(parents=True), ["run", _copy(b, t, "head.nii.gz"), "-o", t / "out"])[1],
+        "mesh.vtu: is a folder where dicer run writes"),
+    # 3. outputs: the input itself
+    **{f"{command}: output is the input": (
+        (lambda command, name: lambda t, b: [command, _copy(b, t, name), "-o", t / name])(command, name),
+        "is the input file itself")
+       for command, name in [("segment", "head.nii.gz"), ("downsample", "labels.nii.gz"), ("fix", "labels.nii.gz"),
+                             ("merge", "mesh.vtu"), ("smooth", "mesh.vtu"), ("export", "mesh.vtu")]},
+    "segment: output is the input by another spelling": (
+        lambda t, b: ["segment", _copy(b, t, "head.nii.gz"), "-o", t / "sub" / ".." / "head.nii.gz"],
+        "is the input file itself"),
+    "quality: output is a stage report given as input": (
+        lambda t, b: ((t / "q.json").write_text("{}\n"),
+                      ["quality", _copy(b, t, "mesh.vtu"), "-o", t / "q.json", "--stage-report", t / "q.json"])[1],
+        "q.json: the output (-o) is the input file itself"),
+    "run: output folder is the input folder": (
+        lambda t, b: ["run", write_dicom_series(t / "series", [0, 2, 4]), "-o", t / "series"],
+        "series: the output (-o) is the input itself"),
+    "quality: one file for two outputs": (
+        lambda t, b: ["quality", _copy(b, t, "mesh.vtu"), "-o", t / "q.json", "--html", t / "q.json"],
+        "q.json: given as the output of both -o and --html"),
+}
+
+
+def _snapshot(root):
+    """Every path under ``root`` with the hash of its bytes (None for folders)."""
+    out = {}
+    for path in sorted(root.rglob("*")):
+        rel = str(path.relative_to(root))
+        out[rel] = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
+    return out
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_bad_input_one_error_line_no_change(tmp_path, capsys, base, case):
+    build, expected = CASES[case]
+    argv = [str(a) for a in build(tmp_path, base)] + ["-q"]
+    before = _snapshot(tmp_path)
+    capsys.readouterr()
+    code = main(argv)
+    err = capsys.readouterr().err
+    errors = [line for line in err.splitlines() if line.startswith("error:")]
+    assert code == 2, err
+    assert len(errors) == 1, err
+    assert "Traceback" not in err
+    assert expected in errors[0], errors[0]
+    assert _snapshot(tmp_path) == before  # nothing new, nothing changed, no temporary file left
+    for secret in ("Anonymous", "Robust", "RB-0001"):
+        assert secret not in err
+
+
+@pytest.mark.parametrize("case", ["dicom: missing slice", "mesh: output is a folder", "segment: output is the input"])
+def test_bad_input_from_the_shell(tmp_path, base, case):
+    """The same promise through a real process: stderr is the one line, nothing else."""
+    build, expected = CASES[case]
+    argv = [str(a) for a in build(tmp_path, base)]
+    before = _snapshot(tmp_path)
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))  # this checkout's dicer
+    proc = subprocess.run([sys.executable, "-m", "dicer", *argv, "-q"], capture_output=True, text=True, env=env)
+    assert proc.returncode == 2
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and expected in lines[0], proc.stderr
+    assert _snapshot(tmp_path) == before
+
+
+def test_allow_irregular_slices_through_the_command(tmp_path, caplog):
+    folder = write_dicom_series(tmp_path / "series", [0, 2, 4, 8, 10, 12], shape=(40, 36))
+    out = tmp_path / "labels.nii.gz"
+    argv = ["segment", str(folder), "-o", str(out), "--set", "image.allow_irregular_slices=true",
+            "--set", "segment.method=manual", "--set", "segment.thresholds=[-500,500]"]
+    assert main(argv) == 0
+    from dicer.io.images import read_labels
+
+    labels = read_labels(out)
+    assert labels.array.shape == (40, 36, 7) and labels.spacing[2] == pytest.approx(2.0)
+    assert "resampled its 6 slices to 7 uniform slices of 2 mm" in caplog.text

@@ -214,6 +214,12 @@ def test_templates_refuse_a_merged_mesh():
         coarsen_mesh(voxel_mesh(labels), levels=1, min_distance=0)
 
 
+def test_merge_stage_refuses_templates_in_3d():
+    voxel = voxel_mesh(ball_labels((24, 24, 24), (10,)))
+    with pytest.raises(DicerError, match="2D"):
+        merge_mesh(voxel, {"method": "templates"})
+
+
 def test_merge_stage_dispatches_to_templates():
     labels = ball_labels((60, 60), (28,))
     voxel = voxel_mesh(labels)

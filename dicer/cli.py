@@ -12,7 +12,9 @@ import contextlib
 import json
 import logging
 import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -541,9 +543,15 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.WARNING if getattr(args, "quiet", False) else logging.INFO,
         format="%(name)s %(message)s", stream=sys.stderr,
     )
+    previous = signal.signal(signal.SIGTERM, _terminate) if threading.current_thread() is threading.main_thread() \
+        else None
     try:
         _check_paths(args)
         args.func(args)
+    except Terminated:
+        print("error: terminated (SIGTERM, e.g. a cluster time limit); no output of the unfinished step was kept",
+              file=sys.stderr)
+        return 143
     except DicerError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -553,7 +561,18 @@ def main(argv: list[str] | None = None) -> int:
     except MemoryError:
         print("error: out of memory; downsample the labels (downsample.factor) or use a larger machine", file=sys.stderr)
         return 2
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     return 0
+
+
+class Terminated(BaseException):
+    """SIGTERM arrived: unwinds like KeyboardInterrupt, so every temporary file is removed."""
+
+
+def _terminate(signum, frame):
+    raise Terminated()
 
 
 if __name__ == "__main__":

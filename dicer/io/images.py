@@ -850,6 +850,17 @@ def _check_volume(volume: Volume, path: Path, what: str) -> None:
     _check_spacing(volume.spacing, path, f"of the {what}")
 
 
+def _same_values(back: np.ndarray, written: np.ndarray) -> bool:
+    """The read-back array equals the written one wherever that is finite (ITK's NIfTI
+    reader turns NaN and infinite values into 0)."""
+    if back.shape != written.shape:
+        return False
+    if written.dtype.kind != "f":
+        return np.array_equal(back, written)
+    finite = np.isfinite(written)
+    return bool(np.array_equal(back[finite], written[finite]))
+
+
 def _write(image: sitk.Image, path: Path, compress: bool) -> None:
     writer = sitk.ImageFileWriter()
     with atomic_path(path) as tmp:
@@ -858,9 +869,20 @@ def _write(image: sitk.Image, path: Path, compress: bool) -> None:
         try:
             with _quiet_itk():
                 writer.Execute(image)
+                # ITK only warns when a write comes up short (a full disk): read the file
+                # back and compare it with what was to be written
+                back = sitk.ReadImage(str(tmp))
         except RuntimeError as exc:
             raise DicerError(f"{path}: cannot write the image ({_itk_message(exc)}); check the disk space "
                              "and the output folder") from None
+        # NIfTI keeps spacing and origin in single precision
+        same = (back.GetSize() == image.GetSize()
+                and np.allclose(back.GetSpacing(), image.GetSpacing(), rtol=1e-6, atol=0)
+                and np.allclose(back.GetOrigin(), image.GetOrigin(), rtol=1e-6, atol=1e-6)
+                and _same_values(sitk.GetArrayViewFromImage(back), sitk.GetArrayViewFromImage(image)))
+        if not same:
+            raise DicerError(f"{path}: the written file does not hold the image (a full disk?); check the disk "
+                             "space and write again, nothing was written")
 
 
 def write_labels(volume: Volume, path: str | os.PathLike) -> None:

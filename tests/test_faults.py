@@ -1,0 +1,106 @@
+"""Faults while writing: a full disk, SIGTERM, temporary files of killed runs."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dicer.errors import DicerError
+from dicer.image import Volume
+from dicer.io.atomic import atomic_path, remove_stale_temporaries
+from dicer.io.images import write_labels
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_temporaries_of_dead_processes_are_removed(tmp_path):
+    target = tmp_path / "model.inp"
+    dead = tmp_path / f".model.inp.{_dead_pid()}.abcdef.tmp.inp"
+    alive = tmp_path / f".model.inp.{os.getppid()}.ghijkl.tmp.inp"
+    other = tmp_path / f".other.inp.{_dead_pid()}.mnopqr.tmp.inp"
+    for f in (dead, alive, other):
+        f.write_text("partial")
+    with atomic_path(target) as tmp:
+        tmp.write_text("*HEADING\n")
+    assert target.read_text() == "*HEADING\n"
+    assert not dead.exists() and alive.exists() and other.exists()
+    assert remove_stale_temporaries(tmp_path / "other.inp") == [other]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([alive.name, "model.inp"])
+
+
+def test_an_os_error_while_writing_is_one_error_and_leaves_the_target(tmp_path):
+    target = tmp_path / "a.txt"
+    target.write_text("old")
+    with pytest.raises(DicerError, match="a.txt: cannot write the file"):
+        with atomic_path(target) as tmp:
+            tmp.write_text("new")
+            raise OSError(5, "Input/output error")
+    assert target.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["a.txt"]
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 256 KiB tmpfs (root only); skipped where it cannot be mounted."""
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    proc = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mount)], capture_output=True)
+    if proc.returncode != 0:
+        pytest.skip("cannot mount a small tmpfs here (needs root): " + proc.stderr.decode()[:80])
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", str(mount)], capture_output=True)
+
+
+def test_full_disk_keeps_the_good_file(small_disk):
+    rng = np.random.default_rng(3)
+    good = small_disk / "labels.nii.gz"
+    write_labels(Volume(np.ones((4, 4, 4), np.uint8), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0)), good)
+    before = good.read_bytes()
+    noise = rng.integers(0, 250, (96, 96, 96)).astype(np.uint8)  # does not compress below 256 KiB
+    with pytest.raises(DicerError, match="labels.nii.gz: .*(disk|does not hold)"):
+        write_labels(Volume(noise, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0)), good)
+    assert good.read_bytes() == before
+    assert [p.name for p in small_disk.iterdir()] == ["labels.nii.gz"]
+
+
+def test_full_disk_through_the_command(small_disk, tmp_path):
+    rng = np.random.default_rng(4)
+    labels = tmp_path / "labels.npy"
+    np.save(labels, rng.integers(1, 3, (40, 40, 40)).astype(np.uint8))
+    out = small_disk / "mesh.vtu"
+    proc = subprocess.run([sys.executable, "-m", "dicer", "mesh", str(labels), "-o", str(out)], capture_output=True,
+                          text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert proc.returncode == 2, proc.stderr
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "mesh.vtu" in errors[0] and "Traceback" not in proc.stderr
+    assert list(small_disk.iterdir()) == []
+
+
+def test_sigterm_keeps_no_partial_output(tmp_path):
+    labels = tmp_path / "labels.npy"
+    np.save(labels, np.ones((150, 150, 150), np.uint8))
+    out = tmp_path / "mesh.vtu"
+    proc = subprocess.Popen([sys.executable, "-m", "dicer", "mesh", str(labels), "-o", str(out)],
+                            stderr=subprocess.PIPE, text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    time.sleep(2.5)  # imports, then meshing and writing 3.4 M hexahedra take several seconds
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err
+    assert [line for line in err.splitlines() if line.startswith("error:")] == [
+        "error: terminated (SIGTERM, e.g. a cluster time limit); no output of the unfinished step was kept"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy"]

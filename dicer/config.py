@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import re
 from collections import Counter
 from importlib import resources
 from pathlib import Path
@@ -82,6 +83,47 @@ def deep_merge(base: dict, override: dict) -> dict:
     return out
 
 
+class _Loader(yaml.SafeLoader):
+    """PyYAML's safe loader with two fixes: a key given twice in one mapping is an error
+    (not a silent last-one-wins), and floats in exponent form without a dot (``1e-9``,
+    ``2E+5``) are numbers as in YAML 1.2 (YAML 1.1 reads them as strings)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise DuplicateKey(key, key_node.start_mark.line + 1, seen[key])
+            seen[key] = key_node.start_mark.line + 1
+        return super().construct_mapping(node, deep=deep)
+
+
+class DuplicateKey(Exception):
+    def __init__(self, key, line, first):
+        super().__init__(key)
+        self.key, self.line, self.first = key, line, first
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"))
+
+
+def _yaml(text: str, source: str):
+    """``text`` parsed with ``_Loader``; DicerError naming ``source`` on bad YAML."""
+    try:
+        return yaml.load(text, Loader=_Loader)  # noqa: S506  (_Loader is a SafeLoader)
+    except DuplicateKey as dup:
+        raise DicerError(f"{source}: key '{dup.key}' is given twice (lines {dup.first} and {dup.line}) in one "
+                         "section; keep one") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark else ""
+        raise DicerError(f"{source}: not valid YAML{where} ({getattr(exc, 'problem', None) or 'syntax'}); "
+                         "fix the syntax (quote strings)") from None
+
+
 def parse_set(item: str, source: str = "--set") -> dict:
     """``a.b.c=VALUE`` -> ``{"a": {"b": {"c": VALUE}}}``; VALUE is read as YAML (``[1,1,1]``, ``0.8``, ``otsu``)."""
     if "=" not in item:
@@ -90,10 +132,7 @@ def parse_set(item: str, source: str = "--set") -> dict:
     parts = key.strip().split(".")
     if not all(parts):
         raise DicerError(f"{source} {item!r}: empty key part; use dotted keys like export.order=2")
-    try:
-        value = yaml.safe_load(text) if text.strip() else None
-    except yaml.YAMLError as exc:
-        raise DicerError(f"{source} {item!r}: value is not valid YAML ({exc.problem}); quote strings") from None
+    value = _yaml(text, f"{source} {item!r}: value") if text.strip() else None
     out: dict = {}
     node = out
     for part in parts[:-1]:
@@ -106,17 +145,20 @@ def read_config_file(path: str | Path) -> dict:
     """Read a YAML configuration file (no defaults, no validation)."""
     path = Path(path)
     try:
-        text = path.read_text()
+        raw = path.read_bytes()
     except FileNotFoundError:
         raise DicerError(f"{path}: config file not found; check the path given to --config") from None
+    except IsADirectoryError:
+        raise DicerError(f"{path}: is a folder; give the config file (YAML) to --config") from None
     except OSError as exc:
         raise DicerError(f"{path}: cannot read config file ({exc.strerror})") from None
     try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark else ""
-        raise DicerError(f"{path}: not valid YAML{where}; fix the syntax") from None
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise DicerError(f"{path}: not UTF-8 text (byte {exc.start + 1}, line {line}); save the config file "
+                         "as UTF-8") from None
+    data = _yaml(text, str(path))
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -126,6 +168,46 @@ def read_config_file(path: str | Path) -> dict:
 
 def _key_path(error: jsonschema.ValidationError) -> str:
     return ".".join(str(p) for p in error.absolute_path) or "(top level)"
+
+
+def _range(node: dict) -> str | None:
+    """The allowed range of a numeric schema node, in words (None if it has no bounds)."""
+    parts = []
+    if "minimum" in node:
+        parts.append(f">= {node['minimum']}")
+    if "exclusiveMinimum" in node:
+        parts.append(f"> {node['exclusiveMinimum']}")
+    if "maximum" in node:
+        parts.append(f"<= {node['maximum']}")
+    if "exclusiveMaximum" in node:
+        parts.append(f"< {node['exclusiveMaximum']}")
+    if not parts:
+        return None
+    kind = "a whole number" if node.get("type") == "integer" else "a number"
+    return f"{kind} {' and '.join(parts)}"
+
+
+def _explain(err: jsonschema.ValidationError) -> str:
+    """A schema error in words that give the allowed values."""
+    value = json.dumps(err.instance) if not isinstance(err.instance, (dict, list)) else type(err.instance).__name__
+    if err.validator in ("oneOf", "anyOf"):
+        allowed = []
+        for sub in err.validator_value:
+            if sub.get("type") == "null":
+                allowed.append("null")
+            elif "enum" in sub:
+                allowed.append("one of " + ", ".join(map(str, sub["enum"])))
+            elif _range(sub):
+                allowed.append(_range(sub))
+            elif "type" in sub:
+                allowed.append(f"a {sub['type']}")
+        if allowed:
+            return f"{value} is not allowed; give {' or '.join(allowed)}"
+    if err.validator in ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum") and _range(err.schema):
+        return f"{value} is out of range; give {_range(err.schema)}"
+    if err.validator == "enum":
+        return f"{value} is not one of {', '.join(map(str, err.validator_value))}"
+    return err.message
 
 
 def validate(config: dict, source: str = "config") -> dict:
@@ -140,7 +222,7 @@ def validate(config: dict, source: str = "config") -> dict:
             name = f"{where}.{extra[0]}" if where != "(top level)" else extra[0]
             known = ", ".join(sorted(err.schema.get("properties", {}))) or "none"
             raise DicerError(f"{source}: unknown key '{name}'; known keys here: {known}")
-        raise DicerError(f"{source}: key '{_key_path(err)}': {err.message}")
+        raise DicerError(f"{source}: key '{_key_path(err)}': {_explain(err)}")
     names = [m["name"] for m in config.get("materials", [])]
     if len(set(names)) != len(names):
         twice = sorted(n for n, count in Counter(names).items() if count > 1)

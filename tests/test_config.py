@@ -144,3 +144,34 @@ def test_many_material_names_without_a_clash_are_quick():
     assert "Left_Gyrus_7" in name_clash(names + ["Left", "Gyrus_7_Right_Gyrus_7"])
     config = load_config(settings={"materials": [{"name": n} for n in names]})
     assert len(config["materials"]) == 5000
+
+
+def test_yaml_keys_given_twice_are_an_error(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("smooth:\n  coefficient: 0.8\nsmooth:\n  tolerance: 0.001\n")
+    with pytest.raises(DicerError, match=r"key 'smooth' is given twice \(lines 1 and 3\)"):
+        load_config(path)
+    with pytest.raises(DicerError, match="key 'a' is given twice"):
+        load_config(sets=["smooth.coefficients={a: 1, a: 2}"])
+
+
+def test_exponent_floats_without_a_dot_are_numbers(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("\ufeffsmooth:\n  tolerance: 1e-5\n")  # a byte-order mark is fine too
+    assert load_config(path)["smooth"]["tolerance"] == 1e-5
+    assert load_config(sets=["smooth.tolerance=2E-4"])["smooth"]["tolerance"] == 2e-4
+    assert load_config(sets=["segment.method=otsu"])["segment"]["method"] == "otsu"
+
+
+def test_config_that_is_not_utf8_names_the_byte(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_bytes(b"materials:\n  - {name: b\xe9}\n")
+    with pytest.raises(DicerError, match=r"c.yaml: not UTF-8 text \(byte 24, line 2\)"):
+        load_config(path)
+
+
+def test_range_errors_state_the_allowed_range():
+    with pytest.raises(DicerError, match=r"'smooth.interior_band': -2 is out of range; give a whole number >= 0$"):
+        load_config(sets=["smooth.interior_band=-2"])
+    with pytest.raises(DicerError, match=r"'smooth.coefficient': 1.5 is not allowed; give null or a number >= 0 and < 1"):
+        load_config(sets=["smooth.coefficient=1.5"])

@@ -638,3 +638,34 @@ def _type_c_sites(w: np.ndarray) -> int:
     """Number of Type C sites: A-A boundary edges off the image's bounding surface."""
     _, sites = _type_c_edges(w)
     return int(sum(np.count_nonzero(s) for s in sites))
+
+
+def remove_islands(labels: np.ndarray, min_voxels: int) -> tuple[np.ndarray, dict]:
+    """Set to background every part of the model smaller than ``min_voxels`` voxels.
+
+    labels : (nx, ny[, nz]) integer label volume, 0 = background.
+    A part is a connected component of the non-background voxels through shared faces
+    (the elements of a mesh hold together only through faces): a part that small floats
+    free of the main body, and one floating element makes a static solve singular.
+    Returns the labels (a copy when anything changed) and a report: the parts found, the
+    parts removed and their voxels, per material.
+    """
+    from scipy import ndimage
+
+    solid = labels != 0
+    parts, n = ndimage.label(solid)
+    report = {"parts": int(n), "removed_parts": 0, "removed_voxels": 0, "removed_by_material": {}}
+    if n == 0 or min_voxels <= 1:
+        return labels, report
+    size = np.bincount(parts.ravel(), minlength=n + 1)
+    small = size < min_voxels
+    small[0] = False
+    if not small.any():
+        return labels, report
+    drop = small[parts]
+    kinds, counts = np.unique(labels[drop], return_counts=True)
+    out = labels.copy()
+    out[drop] = 0
+    report.update(removed_parts=int(small.sum()), removed_voxels=int(drop.sum()),
+                  removed_by_material={str(int(k)): int(c) for k, c in zip(kinds, counts)})
+    return out, report

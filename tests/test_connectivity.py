@@ -297,3 +297,22 @@ def test_hundreds_of_classes_are_fixed():
     assert connectivity_defects(out) == {"type_a": 0, "type_b": 0, "type_c": 0}
     _invariant_holds(out)
     assert np.unique(out).size > 390
+
+
+def test_floating_parts_below_the_size_are_removed():
+    from dicer.connectivity import remove_islands
+
+    labels = np.zeros((20, 20, 20), np.uint8)
+    labels[2:12, 2:12, 2:12] = 1
+    labels[4:8, 4:8, 4:8] = 2  # inside the body: not floating
+    labels[15:17, 15:17, 15:17] = 2  # 8 voxels, floating
+    labels[15, 2, 2] = 1  # 1 voxel
+    labels[12, 12, 12] = 1  # touches the body at a corner only: floating as a mesh
+    out, report = remove_islands(labels, 9)
+    assert report["parts"] == 4 and report["removed_parts"] == 3
+    assert report["removed_voxels"] == 10
+    assert report["removed_by_material"] == {"1": 2, "2": 8}
+    assert np.array_equal(out[2:12, 2:12, 2:12], labels[2:12, 2:12, 2:12])
+    assert out.sum() == labels.sum() - 2 - 16
+    same, report = remove_islands(labels, 0)
+    assert same is labels and report["removed_parts"] == 0

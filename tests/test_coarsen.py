@@ -245,7 +245,7 @@ def label_volumes(draw, dim):
     return fixed
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(labels=label_volumes(2), levels=st.integers(1, 3), distance=st.integers(1, 3))
 def test_random_2d_volumes_keep_every_invariant(labels, levels, distance):
     if not labels.any():

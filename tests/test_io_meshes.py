@@ -77,3 +77,108 @@ def test_read_errors(tmp_path, mesh):
 def test_wrong_extension(tmp_path, mesh):
     with pytest.raises(DicerError, match="VTU"):
         write_mesh(mesh, tmp_path / "m.inp")
+
+
+def _with_extra_data(mesh):
+    rng = np.random.default_rng(0)
+    mesh.point_data["node_class"] = np.arange(mesh.n_points, dtype=np.int8) % 7
+    mesh.point_data["displacement"] = rng.normal(size=(mesh.n_points, 3))
+    mesh.cell_data["coarsening_level"] = np.arange(mesh.n_cells, dtype=np.int64) % 3
+    quality = rng.random(mesh.n_cells).astype(np.float32)
+    quality[0] = np.nan  # free data may hold NaN; the exact check compares bits
+    mesh.cell_data["quality"] = quality
+    return mesh
+
+
+def _assert_same(back, mesh):
+    for a, b in [(back.cells, mesh.cells), (back.points, mesh.points), (back.lattice, mesh.lattice),
+                 (back.material, mesh.material), (back.spacing, mesh.spacing), (back.origin, mesh.origin),
+                 (back.grid_shape, mesh.grid_shape)]:
+        assert np.array_equal(a, b)
+    assert back.cells.dtype == np.int64 and back.material.dtype == np.int32 and back.lattice.dtype == np.int64
+    for got, want in [(back.point_data, mesh.point_data), (back.cell_data, mesh.cell_data)]:
+        assert list(got) == list(want)
+        for key, v in want.items():
+            assert got[key].dtype == v.dtype and got[key].shape == v.shape
+            assert np.array_equal(got[key], v, equal_nan=v.dtype.kind == "f")
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_raw_vtu_round_trip_exact_and_meshio_reads_it(tmp_path, mesh, dim):
+    if dim == 2:
+        mesh = voxel_mesh(np.array([[1, 1, 0], [0, 2, 2]], np.uint8), spacing=(2.0, 3.0), origin=(0.1, -0.7))
+    mesh = _with_extra_data(mesh)
+    path = tmp_path / "m.vtu"
+    write_mesh(mesh, path)
+    head = path.read_bytes()[:2000]
+    assert b'header_type="UInt64"' in head and b'<AppendedData encoding="raw">' in head
+    _assert_same(read_mesh(path), mesh)
+    # meshio (the reference reader) gets the same arrays
+    from dicer.io.meshes import _assemble, _read_meshio
+    _assert_same(_assemble("m", *_read_meshio(path, "m")), mesh)
+    m = meshio.read(path)
+    assert m.cells[0].type == ("quad" if dim == 2 else "hexahedron")
+    assert np.array_equal(m.point_data["lattice"], mesh.lattice)
+    assert np.array_equal(m.cell_data["material"][0], mesh.material)
+
+
+def test_large_mesh_is_checked_without_meshio(tmp_path, mesh, monkeypatch):
+    import dicer.io.meshes as meshes
+
+    def no_meshio(*args):
+        raise AssertionError("meshio read a large mesh")
+
+    monkeypatch.setattr(meshes, "MESHIO_CHECK_CELLS", mesh.n_cells - 1)
+    monkeypatch.setattr(meshes, "_read_meshio", no_meshio)
+    write_mesh(mesh, tmp_path / "m.vtu")
+    _assert_same(read_mesh(tmp_path / "m.vtu"), mesh)
+
+
+def test_raw_vtu_reruns_are_byte_identical(tmp_path, mesh):
+    mesh = _with_extra_data(mesh)
+    write_mesh(mesh, tmp_path / "a.vtu")
+    write_mesh(mesh.copy(), tmp_path / "b.vtu")
+    assert (tmp_path / "a.vtu").read_bytes() == (tmp_path / "b.vtu").read_bytes()
+
+
+@pytest.mark.parametrize("cut", [-1, -20, -200, 0.9, 0.5])
+def test_truncated_raw_vtu_names_the_file(tmp_path, mesh, cut):
+    path = tmp_path / "t.vtu"
+    write_mesh(_with_extra_data(mesh), path)
+    data = path.read_bytes()
+    path.write_bytes(data[:cut] if isinstance(cut, int) else data[:int(len(data) * cut)])
+    with pytest.raises(DicerError, match=r"t\.vtu: cannot read mesh .*is the file complete\?"):
+        read_mesh(path)
+
+
+@pytest.mark.parametrize("old, new", [
+    (b'offset="0"', b'offset="8"'),  # an array points at the wrong place
+    (b'NumberOfPoints="', b'NumberOfPoints="1'),  # counts do not match the data
+    (b'type="Int32" Name="material"', b'type="Int42" Name="material"'),
+    (b"</Points>", b"</Pointz>"),  # not XML any more
+])
+def test_corrupted_raw_vtu_header_names_the_file(tmp_path, mesh, old, new):
+    path = tmp_path / "c.vtu"
+    write_mesh(mesh, path)
+    data = path.read_bytes()
+    assert old in data
+    path.write_bytes(data.replace(old, new, 1))
+    with pytest.raises(DicerError, match=r"c\.vtu: cannot read mesh") as err:
+        read_mesh(path)
+    assert "\n" not in str(err.value)
+
+
+def test_data_vtu_cannot_hold_is_refused(tmp_path, mesh):
+    mesh.cell_data["flag"] = np.ones(mesh.n_cells, bool)
+    with pytest.raises(DicerError, match="'flag' has type bool"):
+        write_mesh(mesh, tmp_path / "m.vtu")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_meshio_written_vtu_is_still_read(tmp_path, mesh):
+    # files of earlier dicer versions (meshio, zlib) and of other writers
+    from dicer.io.meshes import to_meshio
+    path = tmp_path / "old.vtu"
+    meshio.write(path, to_meshio(mesh), binary=True, compression="zlib")
+    back = read_mesh(path)
+    assert np.array_equal(back.cells, mesh.cells) and np.array_equal(back.lattice, mesh.lattice)

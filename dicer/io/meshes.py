@@ -1,18 +1,26 @@
-"""Intermediate meshes as VTU files (meshio), with a read-back check after every write."""
+"""Intermediate meshes as VTU files with raw appended binary data, read back and checked
+exactly before every rename.
+
+The files are VTK XML UnstructuredGrid (ParaView and meshio open them): the XML header
+lists the arrays, then one ``<AppendedData encoding="raw">`` block holds each array as
+an 8-byte size (header_type UInt64) followed by its little-endian bytes. Writing is one
+file write per array and reading one ``np.fromfile`` per array, so both run at disk
+speed; meshio's VTU writer and reader (base64 or zlib) took 5-20 s each on a 6.4 M
+element mesh (see docs/benchmark.md). meshio reads these files too, and checks the
+small ones after writing (MESHIO_CHECK_CELLS). Other VTU files (older dicer files,
+ParaView's) are read with meshio.
+"""
 
 from __future__ import annotations
 
 import contextlib
-import functools
 import io
 import os
-import shutil
-import sys
-import zlib
 from pathlib import Path
+from xml.etree import ElementTree as ET
+from xml.sax.saxutils import quoteattr
 
 import meshio
-import meshio.vtu._vtu  # noqa: F401  (its zlib is swapped while writing, see _fast_vtu_compression)
 import numpy as np
 
 from dicer.errors import DicerError
@@ -22,6 +30,30 @@ from dicer.mesh.model import Mesh
 
 _FIELDS = ("spacing", "origin", "grid_shape")
 
+_VTK_TYPES = {
+    np.dtype(t): n
+    for t, n in [
+        (np.float32, "Float32"), (np.float64, "Float64"),
+        (np.int8, "Int8"), (np.int16, "Int16"), (np.int32, "Int32"), (np.int64, "Int64"),
+        (np.uint8, "UInt8"), (np.uint16, "UInt16"), (np.uint32, "UInt32"), (np.uint64, "UInt64"),
+    ]
+}
+_NUMPY_TYPES = {n: t.newbyteorder("<") for t, n in _VTK_TYPES.items()}
+_VTK_CELL_TYPES = {8: 12, 4: 9}  # corners per element -> VTK_HEXAHEDRON, VTK_QUAD
+
+_ROOT = b'<VTKFile type="UnstructuredGrid" version="1.0" byte_order="LittleEndian" header_type="UInt64">'
+_APPENDED = b'<AppendedData encoding="raw">\n_'
+# the newline before </AppendedData> is needed: meshio's raw-data reader cuts the
+# data at the last newline before that tag
+_TAIL = b"\n</AppendedData>\n</VTKFile>\n"
+_HEAD_MAX = 1 << 20  # the XML before the data: a few dozen array tags, far below this
+
+MESHIO_CHECK_CELLS = 20_000
+"""Meshes up to this many elements are also read back with meshio (the reference VTU
+reader) after writing, which keeps dicer's files in step with it; larger ones only with
+numpy: meshio's reader of raw appended data takes 20-50 times as long as the write
+(under 0.1 s at this size, 48 s for 6.4 M elements; see docs/benchmark.md)."""
+
 
 def to_meshio(mesh: Mesh) -> meshio.Mesh:
     """The Mesh as a meshio.Mesh: cell data ``material``, point data ``lattice``, field data geometry."""
@@ -30,7 +62,8 @@ def to_meshio(mesh: Mesh) -> meshio.Mesh:
     return meshio.Mesh(mesh.points, [(mesh.cell_type, mesh.cells)], point_data=point_data, cell_data=cell_data)
 
 
-def _field_data_xml(mesh: Mesh) -> bytes:
+def _field_data_xml(mesh: Mesh) -> str:
+    # ascii with repr() so that every float reads back bit for bit
     arrays = [
         ("spacing", "Float64", " ".join(repr(float(v)) for v in mesh.spacing)),
         ("origin", "Float64", " ".join(repr(float(v)) for v in mesh.origin)),
@@ -39,43 +72,66 @@ def _field_data_xml(mesh: Mesh) -> bytes:
     rows = "".join(
         f'<DataArray type="{t}" Name="{n}" NumberOfTuples="3" format="ascii">{v}</DataArray>\n' for n, t, v in arrays
     )
-    return f"<FieldData>\n{rows}</FieldData>\n".encode()
+    return f"<FieldData>\n{rows}</FieldData>\n"
 
 
-class _FastZlib:
-    """zlib at level 1 for meshio's VTU writer: its default level 6 took over half of the
-    writing time of a large mesh, for files only slightly smaller."""
+def _extra_array(path: Path, kind: str, key: str, values, count: int) -> np.ndarray:
+    a = np.asarray(values)
+    if a.dtype.newbyteorder("=") not in _VTK_TYPES:
+        raise DicerError(f"{path}: {kind} data {key!r} has type {a.dtype}, which VTU cannot hold; "
+                         "convert it to an integer or float type")
+    if a.ndim not in (1, 2) or a.shape[0] != count:
+        raise DicerError(f"{path}: {kind} data {key!r} has shape {a.shape}; one value or one row of "
+                         f"values per {'node' if kind == 'point' else 'element'} ({count}) is needed")
+    return a
 
-    compress = staticmethod(functools.partial(zlib.compress, level=1))
-    decompress = staticmethod(zlib.decompress)
 
-
-@contextlib.contextmanager
-def _fast_vtu_compression():
-    module = sys.modules["meshio.vtu._vtu"]
-    saved = module.zlib
-    module.zlib = _FastZlib
-    try:
-        yield
-    finally:
-        module.zlib = saved
+def _vtu_arrays(mesh: Mesh, path: Path) -> dict[str, list[tuple[str, np.ndarray]]]:
+    """The arrays of the file by XML section, each C-contiguous and little-endian."""
+    k = mesh.cells.shape[1]
+    sections = {
+        "Points": [("Points", np.asarray(mesh.points, np.float64))],
+        "Cells": [
+            ("connectivity", np.asarray(mesh.cells, np.int64)),
+            ("offsets", np.arange(k, k * mesh.n_cells + 1, k, dtype=np.int64)),
+            ("types", np.full(mesh.n_cells, _VTK_CELL_TYPES[k], np.uint8)),
+        ],
+        "PointData": [("lattice", np.asarray(mesh.lattice, np.int64))]
+        + [(key, _extra_array(path, "point", key, v, mesh.n_points)) for key, v in mesh.point_data.items()
+           if key != "lattice"],
+        "CellData": [("material", np.asarray(mesh.material, np.int32))]
+        + [(key, _extra_array(path, "cell", key, v, mesh.n_cells)) for key, v in mesh.cell_data.items()
+           if key != "material"],
+    }
+    return {
+        s: [(n, np.ascontiguousarray(a, a.dtype.newbyteorder("<"))) for n, a in arrays]
+        for s, arrays in sections.items()
+    }
 
 
 def _write_vtu(mesh: Mesh, path: Path) -> None:
-    # meshio's VTU writer drops field data (its reader keeps it): write with meshio,
-    # then splice a <FieldData> block in after <UnstructuredGrid>.
-    raw = path.with_name(path.name + ".raw.vtu")
-    try:
-        with _fast_vtu_compression():
-            meshio.write(raw, to_meshio(mesh), file_format="vtu", binary=True, compression="zlib")
-        with open(raw, "rb") as src, open(path, "wb") as dst:
-            head = src.read(4096)
-            tag = b"<UnstructuredGrid>\n"
-            at = head.index(tag) + len(tag)
-            dst.write(head[:at] + _field_data_xml(mesh) + head[at:])
-            shutil.copyfileobj(src, dst, 1 << 22)
-    finally:
-        raw.unlink(missing_ok=True)
+    sections = _vtu_arrays(mesh, path)
+    offset, tags, blocks = 0, [], []
+    for section, arrays in sections.items():
+        tags.append(f"<{section}>\n")
+        for name, a in arrays:
+            ncomp = f' NumberOfComponents="{a.shape[1]}"' if a.ndim == 2 and name != "connectivity" else ""
+            tags.append(f'<DataArray type="{_VTK_TYPES[a.dtype.newbyteorder("=")]}" Name={quoteattr(name)}'
+                        f'{ncomp} format="appended" offset="{offset}"/>\n')
+            blocks.append(a)
+            offset += 8 + a.nbytes
+        tags.append(f"</{section}>\n")
+    head = (
+        '<?xml version="1.0"?>\n' + _ROOT.decode() + "\n<UnstructuredGrid>\n" + _field_data_xml(mesh)
+        + f'<Piece NumberOfPoints="{mesh.n_points}" NumberOfCells="{mesh.n_cells}">\n'
+        + "".join(tags) + "</Piece>\n</UnstructuredGrid>\n"
+    ).encode() + _APPENDED
+    with open(path, "wb") as f:
+        f.write(head)
+        for a in blocks:
+            f.write(np.uint64(a.nbytes).astype("<u8").tobytes())
+            f.write(a.reshape(-1).view(np.uint8).data)  # the array's own memory, no copy
+        f.write(_TAIL)
 
 
 def check_mesh(mesh: Mesh, source: str, allow_inverted: bool = False) -> None:
@@ -98,31 +154,137 @@ def check_mesh(mesh: Mesh, source: str, allow_inverted: bool = False) -> None:
             )
 
 
+def _bitwise_equal(a: np.ndarray, b: np.ndarray) -> bool:
+    # bytes, not values: NaN in free data compares equal to itself, -0.0 differs from 0.0
+    a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
+    return a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a.view(np.uint8), b.view(np.uint8))
+
+
+def _same_mesh(a: Mesh, b: Mesh) -> bool:
+    """True if ``b`` (read back) holds exactly ``a`` (written)."""
+    return (
+        a.n_points == b.n_points and a.n_cells == b.n_cells
+        and np.array_equal(a.cells, b.cells) and np.array_equal(a.points, b.points)
+        and np.array_equal(a.material, b.material) and np.array_equal(a.lattice, b.lattice)
+        and np.array_equal(np.asarray(a.spacing, float), b.spacing)
+        and np.array_equal(np.asarray(a.origin, float), b.origin)
+        and np.array_equal(np.asarray(a.grid_shape, np.int64), b.grid_shape)
+        and list(a.point_data) == list(b.point_data) and list(a.cell_data) == list(b.cell_data)
+        and all(_bitwise_equal(np.asarray(v), b.point_data[k]) for k, v in a.point_data.items())
+        and all(_bitwise_equal(np.asarray(v), b.cell_data[k]) for k, v in a.cell_data.items())
+    )
+
+
 def write_mesh(mesh: Mesh, path: str | os.PathLike, allow_inverted: bool = False) -> None:
-    """Write ``mesh`` as VTU atomically, read it back with meshio and check it before keeping it."""
+    """Write ``mesh`` as VTU atomically, read it back and check it before keeping it.
+
+    Every file is read back with dicer's reader and compared array for array (exact);
+    meshes of up to ``MESHIO_CHECK_CELLS`` elements are also read with meshio.
+    """
     path = Path(path)
     if path.suffix.lower() != ".vtu":
         raise DicerError(f"{path}: intermediate meshes are VTU files; name the output *.vtu")
     check_mesh(mesh, str(path), allow_inverted)
     with atomic_path(path) as tmp:
         _write_vtu(mesh, tmp)
-        back = read_mesh(tmp, source=str(path))
         # the file must hold exactly the mesh that passed check_mesh above (so the
         # element metrics need not be computed a second time)
-        same = (back.n_points == mesh.n_points and back.n_cells == mesh.n_cells
-                and np.array_equal(back.cells, mesh.cells) and np.array_equal(back.points, mesh.points)
-                and np.array_equal(back.material, mesh.material) and np.array_equal(back.lattice, mesh.lattice))
-        if not same:
-            raise DicerError(f"{path}: read-back check failed: the file does not hold the mesh written; "
-                             "check the disk and write again")
+        readers = [_read_raw_vtu] + ([_read_meshio] if mesh.n_cells <= MESHIO_CHECK_CELLS else [])
+        for reader in readers:
+            back = _assemble(str(path), *(reader(tmp, str(path)) or _unreadable(str(path))))
+            if not _same_mesh(mesh, back):
+                raise DicerError(f"{path}: read-back check failed: the file does not hold the mesh written; "
+                                 "check the disk and write again")
 
 
-def read_mesh(path: str | os.PathLike, source: str | None = None) -> Mesh:
-    """Read a dicer VTU (or any meshio format holding one hex or quad block with dicer's data)."""
-    path = Path(path)
-    name = source or str(path)
-    if not path.exists():
-        raise DicerError(f"{name}: mesh file not found; check the path")
+def _unreadable(name: str):
+    raise DicerError(f"{name}: cannot read mesh (the VTU header is not dicer's); is the file complete?")
+
+
+def _damaged(name: str, what: str) -> DicerError:
+    return DicerError(f"{name}: cannot read mesh ({what}); is the file complete?")
+
+
+def _read_raw_vtu(path: Path, name: str):
+    """The parts of a dicer VTU with raw appended data, or None for any other file.
+
+    Returns (cell_type, points, cells, point_data, cell_data, field_data) as _assemble takes them.
+    """
+    with open(path, "rb") as f:
+        head = f.read(_HEAD_MAX)
+        at = head.find(_APPENDED)
+        if at < 0 or _ROOT not in head[:at]:
+            return None
+        try:
+            root = ET.fromstring(head[:at] + b"</VTKFile>")
+        except ET.ParseError as exc:
+            raise _damaged(name, f"XML header: {exc}") from None
+        data_start = at + len(_APPENDED)
+        pieces = root.findall("UnstructuredGrid/Piece")
+        if len(pieces) != 1:
+            raise _damaged(name, f"{len(pieces)} pieces in the file, dicer writes one")
+        piece = pieces[0]
+        try:
+            n_points, n_cells = int(piece.get("NumberOfPoints")), int(piece.get("NumberOfCells"))
+            fields = {
+                da.get("Name"): np.array(da.text.split(), _NUMPY_TYPES[da.get("type")])
+                for da in root.iterfind("UnstructuredGrid/FieldData/DataArray")
+            }
+        except (TypeError, ValueError, KeyError, AttributeError) as exc:
+            raise _damaged(name, f"XML header: {type(exc).__name__}: {exc}") from None
+
+        def read(da: ET.Element, rows: int | None) -> np.ndarray:
+            label = f"array {da.get('Name')!r}"
+            if da.get("format") != "appended" or da.get("type") not in _NUMPY_TYPES:
+                raise _damaged(name, f"{label} has format {da.get('format')!r} and type {da.get('type')!r}; "
+                                     "dicer writes appended data of VTK's numeric types")
+            dtype = _NUMPY_TYPES[da.get("type")]
+            try:
+                ncomp = int(da.get("NumberOfComponents", "1"))
+                offset = int(da.get("offset"))
+            except (TypeError, ValueError) as exc:
+                raise _damaged(name, f"{label}: bad NumberOfComponents or offset ({exc})") from None
+            f.seek(data_start + offset)
+            size = np.fromfile(f, "<u8", 1)
+            if size.size != 1:
+                raise _damaged(name, f"{label} is missing: the file is cut short")
+            count, rest = divmod(int(size[0]), dtype.itemsize)
+            if rest or (rows is not None and count != rows * ncomp) or offset < 0:
+                raise _damaged(name, f"{label} has {int(size[0])} bytes, which does not match the header")
+            a = np.fromfile(f, dtype, count)
+            if a.size != count:
+                raise _damaged(name, f"{label} is cut short")
+            ends.append(offset + 8 + a.nbytes)
+            return a.astype(dtype.newbyteorder("="), copy=False) if ncomp == 1 else a.reshape(-1, ncomp)
+
+        def section(tag: str, rows: int | None) -> dict[str, np.ndarray]:
+            node = piece.find(tag)
+            return {} if node is None else {da.get("Name"): read(da, rows) for da in node.iterfind("DataArray")}
+
+        ends: list[int] = []
+        points = section("Points", n_points)
+        cells = section("Cells", None)
+        point_data = section("PointData", n_points)
+        cell_data = section("CellData", n_cells)
+        # nothing may be missing or added after the last array: ParaView checks the closing tags
+        f.seek(data_start + max(ends, default=0))
+        if f.read(len(_TAIL) + 1) != _TAIL:
+            raise _damaged(name, "the end of the file is missing or damaged")
+    if len(points) != 1 or set(cells) != {"connectivity", "offsets", "types"}:
+        raise _damaged(name, "points or cells are missing from the XML header")
+    points = next(iter(points.values())).reshape(n_points, -1)
+    conn, offsets, types = cells["connectivity"], cells["offsets"], cells["types"]
+    k = conn.size // n_cells if n_cells else 0
+    if (k not in _VTK_CELL_TYPES or conn.size != k * n_cells
+            or not np.array_equal(offsets, np.arange(k, k * n_cells + 1, k))
+            or not np.all(types == _VTK_CELL_TYPES[k])):
+        return None  # not one hex or quad block: meshio reads it and says what it holds
+    cell_type = "hexahedron" if k == 8 else "quad"
+    return cell_type, points, conn.reshape(n_cells, k), point_data, cell_data, fields
+
+
+def _read_meshio(path: Path, name: str):
+    """The parts of any mesh file meshio reads, as _read_raw_vtu returns them."""
     try:
         with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
             fmt = "vtu" if path.suffix.lower() == ".vtu" else None
@@ -133,29 +295,49 @@ def read_mesh(path: str | os.PathLike, source: str | None = None) -> Mesh:
     types = {t for t, _ in blocks}
     if types - {"hexahedron", "quad"} or len(types) != 1:
         raise DicerError(f"{name}: expected only hexahedron or only quad elements, found {sorted(types)}")
-    cell_type = types.pop()
-    cells = np.concatenate([d for _, d in blocks]).astype(np.int64)
-    if "material" not in m.cell_data:
+    cells = np.concatenate([d for _, d in blocks])
+    cell_data = {k: np.concatenate(v) for k, v in m.cell_data.items()}
+    return types.pop(), m.points, cells, dict(m.point_data), cell_data, m.field_data
+
+
+def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data) -> Mesh:
+    """A Mesh from the arrays of a file, with dicer's checks of its data."""
+    cells = np.asarray(cells).astype(np.int64, copy=False)
+    if "material" not in cell_data:
         raise DicerError(f"{name}: mesh has no 'material' cell data; make it with 'dicer mesh'")
-    if "lattice" not in m.point_data:
+    if "lattice" not in point_data:
         raise DicerError(f"{name}: mesh has no 'lattice' point data (not made by 'dicer mesh'); remesh from labels with 'dicer mesh'")
-    material = np.concatenate(m.cell_data["material"]).astype(np.int32)
-    lattice = np.asarray(m.point_data["lattice"], dtype=np.int64).reshape(len(m.points), -1)
+    material = np.asarray(cell_data["material"]).astype(np.int32, copy=False).reshape(-1)
+    lattice = np.asarray(point_data["lattice"]).astype(np.int64, copy=False).reshape(len(points), -1)
     if lattice.shape[1] == 2:
         lattice = np.column_stack([lattice, np.zeros(len(lattice), np.int64)])
-    points = np.asarray(m.points, dtype=np.float64)
+    points = np.asarray(points).astype(np.float64, copy=False)
     if points.shape[1] == 2:
         points = np.column_stack([points, np.zeros(len(points))])
-    fd = m.field_data
+    fd = field_data
     spacing = np.asarray(fd.get("spacing", np.ones(3)), float).ravel()
     origin = np.asarray(fd.get("origin", np.zeros(3)), float).ravel()
     if "grid_shape" in fd:
         grid_shape = np.asarray(fd["grid_shape"], np.int64).ravel()
     else:
         grid_shape = lattice.max(axis=0) if len(lattice) else np.zeros(3, np.int64)
-    point_data = {k: np.asarray(v) for k, v in m.point_data.items() if k != "lattice"}
-    cell_data = {k: np.concatenate(v) for k, v in m.cell_data.items() if k != "material"}
+    point_data = {k: np.asarray(v) for k, v in point_data.items() if k != "lattice"}
+    cell_data = {k: np.asarray(v) for k, v in cell_data.items() if k != "material"}
     mesh = Mesh(points, cells, material, lattice, spacing, origin, grid_shape, point_data, cell_data)
     if (cell_type == "quad") != (mesh.dim == 2):
         raise DicerError(f"{name}: inconsistent element type")
     return mesh
+
+
+def read_mesh(path: str | os.PathLike, source: str | None = None) -> Mesh:
+    """Read a dicer VTU (or any meshio format holding one hex or quad block with dicer's data).
+
+    dicer's own VTU files (raw appended data) are read with numpy at disk speed; any
+    other file with meshio.
+    """
+    path = Path(path)
+    name = source or str(path)
+    if not path.exists():
+        raise DicerError(f"{name}: mesh file not found; check the path")
+    parts = _read_raw_vtu(path, name) if path.suffix.lower() == ".vtu" and path.is_file() else None
+    return _assemble(name, *(parts or _read_meshio(path, name)))

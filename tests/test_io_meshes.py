@@ -182,3 +182,20 @@ def test_meshio_written_vtu_is_still_read(tmp_path, mesh):
     meshio.write(path, to_meshio(mesh), binary=True, compression="zlib")
     back = read_mesh(path)
     assert np.array_equal(back.cells, mesh.cells) and np.array_equal(back.lattice, mesh.lattice)
+
+
+def test_a_damaged_size_word_is_refused_before_reading(tmp_path):
+    import numpy as np
+
+    from dicer.errors import DicerError
+    from dicer.io.meshes import read_mesh, write_mesh
+    from dicer.mesh.voxel import voxel_mesh
+
+    path = tmp_path / "m.vtu"
+    write_mesh(voxel_mesh(np.ones((3, 3, 3), np.uint8)), path)
+    data = bytearray(path.read_bytes())
+    at = data.index(b"<AppendedData encoding=\"raw\">\n_") + len(b"<AppendedData encoding=\"raw\">\n_")
+    data[at:at + 8] = (2**60).to_bytes(8, "little")
+    path.write_bytes(bytes(data))
+    with pytest.raises(DicerError, match="m.vtu: .*more than the file holds"):
+        read_mesh(path)

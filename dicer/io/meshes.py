@@ -210,6 +210,7 @@ def _read_raw_vtu(path: Path, name: str):
 
     Returns (cell_type, points, cells, point_data, cell_data, field_data) as _assemble takes them.
     """
+    file_size = path.stat().st_size
     with open(path, "rb") as f:
         head = f.read(_HEAD_MAX)
         at = head.find(_APPENDED)
@@ -249,6 +250,10 @@ def _read_raw_vtu(path: Path, name: str):
             if size.size != 1:
                 raise _damaged(name, f"{label} is missing: the file is cut short")
             count, rest = divmod(int(size[0]), dtype.itemsize)
+            # a damaged size word must not make numpy allocate more than the file holds
+            if int(size[0]) > file_size - (data_start + offset + 8):
+                raise _damaged(name, f"{label} claims {int(size[0])} bytes, more than the file holds: it is cut "
+                                     "short or damaged")
             if rest or (rows is not None and count != rows * ncomp) or offset < 0:
                 raise _damaged(name, f"{label} has {int(size[0])} bytes, which does not match the header")
             a = np.fromfile(f, dtype, count)

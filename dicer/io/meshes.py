@@ -30,6 +30,28 @@ def to_meshio(mesh: Mesh) -> meshio.Mesh:
     return meshio.Mesh(mesh.points, [(mesh.cell_type, mesh.cells)], point_data=point_data, cell_data=cell_data)
 
 
+def names_xml(names, dim: int) -> str:
+    """One field data array per material, named after it and holding ``[label, dim]``.
+
+    This is meshio's own form of named parts (what it reads from and writes to Gmsh's
+    $PhysicalNames), so ``meshio convert`` carries the names on; ParaView lists the
+    arrays, names and labels, under Data Arrays. A VTK string array would name them
+    too, but meshio cannot read string arrays, and many readers of these files use it.
+    """
+    return "".join(f'<DataArray type="Int64" Name="{name}" NumberOfTuples="2" format="ascii">{label} {dim}</DataArray>\n'
+                   for label, name in enumerate(names, start=1))
+
+
+def names_from_field_data(field_data: dict) -> list[str]:
+    """Material names by label from field data written by :func:`names_xml` (empty if none)."""
+    found = {}
+    for name, value in field_data.items():
+        value = np.asarray(value).ravel()
+        if name not in _FIELDS and value.size == 2 and value.dtype.kind in "iu":
+            found[int(value[0])] = name
+    return [found[k] for k in range(1, len(found) + 1)] if set(found) == set(range(1, len(found) + 1)) else []
+
+
 def _field_data_xml(mesh: Mesh) -> bytes:
     arrays = [
         ("spacing", "Float64", " ".join(repr(float(v)) for v in mesh.spacing)),
@@ -39,7 +61,18 @@ def _field_data_xml(mesh: Mesh) -> bytes:
     rows = "".join(
         f'<DataArray type="{t}" Name="{n}" NumberOfTuples="3" format="ascii">{v}</DataArray>\n' for n, t, v in arrays
     )
-    return f"<FieldData>\n{rows}</FieldData>\n".encode()
+    return f"<FieldData>\n{rows}{names_xml(mesh.names, mesh.dim)}</FieldData>\n".encode()
+
+
+def splice_field_data(raw: Path, path: Path, block: bytes) -> None:
+    """Copy the VTU ``raw`` to ``path`` with ``block`` (a <FieldData> element) put in after
+    <UnstructuredGrid>: meshio's VTU writer drops field data (its reader keeps it)."""
+    with open(raw, "rb") as src, open(path, "wb") as dst:
+        head = src.read(4096)
+        tag = b"<UnstructuredGrid>\n"
+        at = head.index(tag) + len(tag)
+        dst.write(head[:at] + block + head[at:])
+        shutil.copyfileobj(src, dst, 1 << 22)
 
 
 class _FastZlib:
@@ -68,12 +101,7 @@ def _write_vtu(mesh: Mesh, path: Path) -> None:
     try:
         with _fast_vtu_compression():
             meshio.write(raw, to_meshio(mesh), file_format="vtu", binary=True, compression="zlib")
-        with open(raw, "rb") as src, open(path, "wb") as dst:
-            head = src.read(4096)
-            tag = b"<UnstructuredGrid>\n"
-            at = head.index(tag) + len(tag)
-            dst.write(head[:at] + _field_data_xml(mesh) + head[at:])
-            shutil.copyfileobj(src, dst, 1 << 22)
+        splice_field_data(raw, path, _field_data_xml(mesh))
     finally:
         raw.unlink(missing_ok=True)
 
@@ -111,7 +139,8 @@ def write_mesh(mesh: Mesh, path: str | os.PathLike, allow_inverted: bool = False
         # element metrics need not be computed a second time)
         same = (back.n_points == mesh.n_points and back.n_cells == mesh.n_cells
                 and np.array_equal(back.cells, mesh.cells) and np.array_equal(back.points, mesh.points)
-                and np.array_equal(back.material, mesh.material) and np.array_equal(back.lattice, mesh.lattice))
+                and np.array_equal(back.material, mesh.material) and np.array_equal(back.lattice, mesh.lattice)
+                and back.names == list(mesh.names))
         if not same:
             raise DicerError(f"{path}: read-back check failed: the file does not hold the mesh written; "
                              "check the disk and write again")
@@ -155,7 +184,8 @@ def read_mesh(path: str | os.PathLike, source: str | None = None) -> Mesh:
         grid_shape = lattice.max(axis=0) if len(lattice) else np.zeros(3, np.int64)
     point_data = {k: np.asarray(v) for k, v in m.point_data.items() if k != "lattice"}
     cell_data = {k: np.concatenate(v) for k, v in m.cell_data.items() if k != "material"}
-    mesh = Mesh(points, cells, material, lattice, spacing, origin, grid_shape, point_data, cell_data)
+    names = names_from_field_data(fd)
+    mesh = Mesh(points, cells, material, lattice, spacing, origin, grid_shape, point_data, cell_data, names)
     if (cell_type == "quad") != (mesh.dim == 2):
         raise DicerError(f"{name}: inconsistent element type")
     return mesh

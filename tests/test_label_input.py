@@ -155,8 +155,7 @@ def test_run_labels_end_to_end(labelled, tmp_path, caplog):
     first = {p.name: p.read_bytes() for p in out.iterdir()}
     assert _cli("run", "--labels", src, "-o", tmp_path / "again", "--config", config) == 0
     for name, data in first.items():
-        if name != "report.html":
-            assert (tmp_path / "again" / name).read_bytes() == data, name
+        assert (tmp_path / "again" / name).read_bytes() == data, name
 
 
 def test_run_labels_defaults_without_map(tmp_path, caplog):

@@ -37,7 +37,27 @@ def _config(args) -> dict:
             raise DicerError(f"--settings: not valid JSON ({exc.msg}); pass a JSON object") from None
         if not isinstance(settings, dict):
             raise DicerError("--settings: pass a JSON object of config sections")
-    return load_config(args.config, args.set or (), settings)
+    config = load_config(args.config, args.set or (), settings)
+    if getattr(args, "materials", None):
+        config["materials"] = _read_materials(args.materials)
+        from dicer.config import validate
+
+        validate(config, args.materials)
+    return config
+
+
+def _read_materials(path: str) -> list[dict]:
+    """The materials list of a materials file written by ``dicer labels`` (--materials)."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise DicerError(f"{path}: materials file not found; write it with dicer labels --materials") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DicerError(f"{path}: cannot read the materials file ({exc}); write it again with "
+                         "dicer labels --materials") from None
+    if not isinstance(data, dict) or not isinstance(data.get("materials"), list):
+        raise DicerError(f"{path}: not a materials file (no materials list); write it with dicer labels --materials")
+    return data["materials"]
 
 
 class _Stage:
@@ -64,9 +84,9 @@ def _check_output(path: str, suffixes: tuple[str, ...], what: str) -> Path:
 
 #: argparse destinations holding output files, with the option that sets them
 OUTPUT_OPTIONS = {"output": "-o", "overlay": "--overlay", "plot": "--plot", "info": "--info", "report": "--report",
-                  "html": "--html"}
+                  "html": "--html", "materials_out": "--materials"}
 #: argparse destinations holding input files or folders
-INPUT_OPTIONS = ("image", "labels", "mesh", "config", "picture", "stage_report")
+INPUT_OPTIONS = ("image", "labels", "mesh", "config", "picture", "stage_report", "materials")
 
 
 def _same(a: Path, b: Path) -> bool:
@@ -193,6 +213,33 @@ def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = 
     return labels
 
 
+def do_labels(labels_path: str, out: Path, config: dict, materials_path: Path | None = None) -> list[dict]:
+    """Map a label volume made elsewhere to materials 1..K (config ``labels``); returns the materials."""
+    from dicer.io.atomic import write_bytes_atomic
+    from dicer.io.images import read_labels
+    from dicer.labels import map_labels, write_mapped_labels
+
+    with _Stage("labels"):
+        labels = read_labels(labels_path)
+        mapped, materials, info = map_labels(labels, config, source=labels_path)
+        write_mapped_labels(mapped, labels_path, out)
+        if materials_path:
+            text = json.dumps({"materials": materials, "values": info["values"]}, indent=1, sort_keys=True)
+            write_bytes_atomic(materials_path, text + "\n")
+        log.info("labels: wrote %s (%d material(s): %s; values %s)", out, len(materials),
+                 json.dumps(info["voxels"]), json.dumps(info["values"]))
+    return materials
+
+
+def downsample_applies(config: dict) -> bool:
+    """Whether downsample.factor or downsample.voxel_size asks for a coarser grid: a label
+    volume given to 'dicer run --labels' is downsampled only then, since the stage's
+    morphology would otherwise reshape a segmentation the user already made."""
+    ds = config["downsample"]
+    factor = ds["factor"]
+    return ds["voxel_size"] is not None or any(f != 1 for f in (factor if isinstance(factor, list) else [factor]))
+
+
 def do_downsample(labels_path: str, out: Path, config: dict):
     from dicer.downsample import downsample
     from dicer.io.images import read_labels, write_labels
@@ -248,7 +295,7 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
         names = {str(k): v for k, v in material_names(config).items()} | {"0": "background"}
         for kind in ("type_a", "type_b", "type_c"):
             report[kind] = {names.get(k, k): v for k, v in report[kind].items()}
-        write_labels(Volume(fixed, labels.spacing, labels.origin), out)
+        write_labels(Volume(fixed, labels.spacing, labels.origin, labels.direction), out)
         _write_report(report_path, report)
         log.info("fix: wrote %s (%d voxels changed; type A %s, type B %s, type C %s; A/B sweeps %s; "
                  "Type C rounds %d + %d, sites per round %s)", out, report["changed_voxels"], report["type_a"], report["type_b"],
@@ -267,6 +314,7 @@ def _mesh_to_mesh(stage: str, func, mesh_path: str, out: Path, report_path: Path
             result, report = func(mesh)
         except DicerError as exc:
             raise DicerError(f"{mesh_path}: {exc}") from None
+        result.names = list(mesh.names)  # the stages move nodes and elements, not materials
         write_mesh(result, out)
         _write_report(report_path, report)
     return result, report
@@ -303,6 +351,7 @@ def do_mesh(labels_path: str, out: Path, config: dict):
             mesh = voxel_mesh(labels.array, labels.spacing, labels.origin)
         except DicerError as exc:
             raise DicerError(f"{labels_path}: {exc}") from None
+        mesh.names = [m["name"] for m in config["materials"]]
         write_mesh(mesh, out)
         log.info("mesh: wrote %s (%d nodes, %d elements)", out, mesh.n_points, mesh.n_cells)
     return mesh
@@ -362,6 +411,12 @@ def cmd_segment(args):
     do_segment(args.image, out, _config(args), overlay=overlay, info_path=info, plot=plot)
 
 
+def cmd_labels(args):
+    out = _check_output(args.output, (".nii", ".nii.gz"), "the label volume")
+    materials = _check_output(args.materials_out, (".json",), "the materials file") if args.materials_out else None
+    do_labels(args.labels, out, _config(args), materials)
+
+
 def cmd_downsample(args):
     do_downsample(args.labels, _check_output(args.output, (".nii", ".nii.gz"), "the label volume"), _config(args))
 
@@ -417,7 +472,7 @@ def cmd_phantom(args):
                  "x".join(f"{s:g}" for s in image.spacing))
 
 
-RUN_OUTPUTS = ("labels.nii.gz", "segmentation.png", "segmentation.json", "thresholds.png", "labels_ds.nii.gz",
+RUN_OUTPUTS = ("labels.nii.gz", "materials.json", "segmentation.png", "segmentation.json", "thresholds.png", "labels_ds.nii.gz",
                "labels_fixed.nii.gz", "fix.json", "mesh.vtu", "merged.vtu", "merge.json", "smoothed.vtu",
                "smooth.json", "model.inp", "model.vtu", "quality.json", "report.html")
 
@@ -425,8 +480,13 @@ RUN_OUTPUTS = ("labels.nii.gz", "segmentation.png", "segmentation.json", "thresh
 def cmd_run(args):
     """segment -> downsample -> fix -> mesh -> merge -> smooth -> export (.inp, .vtu) -> quality, into OUTDIR.
 
+    With --labels: labels (map the given label volume to materials) -> downsample (only when
+    downsample.factor or voxel_size is set) -> fix -> ... as above.
     On failure the files this run wrote are removed again, so no partial result is left.
     """
+    if (args.image is None) == (args.labels is None):
+        raise DicerError("dicer run: give either an IMAGE to segment or --labels LABELS (a label volume), "
+                         "not both and not neither")
     config = _config(args)
     outdir = Path(args.output)
     if outdir.exists() and not outdir.is_dir():
@@ -439,15 +499,23 @@ def cmd_run(args):
         return outdir / name
 
     try:
-        do_segment(args.image, path("labels.nii.gz"), config, overlay=path("segmentation.png"),
-                   info_path=path("segmentation.json"), plot=path("thresholds.png"))
-        do_downsample(str(path("labels.nii.gz")), path("labels_ds.nii.gz"), config)
-        do_fix(str(path("labels_ds.nii.gz")), path("labels_fixed.nii.gz"), config, path("fix.json"))
+        if args.labels is not None:
+            source = args.labels
+            config["materials"] = do_labels(args.labels, path("labels.nii.gz"), config, path("materials.json"))
+        else:
+            source = args.image
+            do_segment(args.image, path("labels.nii.gz"), config, overlay=path("segmentation.png"),
+                       info_path=path("segmentation.json"), plot=path("thresholds.png"))
+        fix_input = path("labels.nii.gz")
+        if args.labels is None or downsample_applies(config):
+            do_downsample(str(path("labels.nii.gz")), path("labels_ds.nii.gz"), config)
+            fix_input = path("labels_ds.nii.gz")
+        do_fix(str(fix_input), path("labels_fixed.nii.gz"), config, path("fix.json"))
         do_mesh(str(path("labels_fixed.nii.gz")), path("mesh.vtu"), config)
         do_merge(str(path("mesh.vtu")), path("merged.vtu"), config, path("merge.json"))
         do_smooth(str(path("merged.vtu")), path("smoothed.vtu"), config, path("smooth.json"))
         for name in ("model.inp", "model.vtu"):
-            do_export(str(path("smoothed.vtu")), path(name), config, input_name=args.image)
+            do_export(str(path("smoothed.vtu")), path(name), config, input_name=source)
         pictures = [str(path(n)) for n in ("segmentation.png", "thresholds.png") if path(n).exists()]
         do_quality(str(path("smoothed.vtu")), path("quality.json"), config,
                    labels_path=str(path("labels_fixed.nii.gz")), html=str(path("report.html")), pictures=pictures,
@@ -464,6 +532,11 @@ def cmd_run(args):
 
 
 # --- parser ---------------------------------------------------------------------------
+
+
+def _add_materials_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--materials", metavar="JSON",
+                   help="materials file from 'dicer labels --materials' (replaces the config's materials)")
 
 
 def _add_config_options(p: argparse.ArgumentParser) -> None:
@@ -489,7 +562,10 @@ def build_parser() -> argparse.ArgumentParser:
         return p
 
     p = command("run", cmd_run, "the whole chain: image -> labels -> mesh -> model.inp, model.vtu, quality.json")
-    p.add_argument("image", metavar="IMAGE", help="image file or DICOM/TIFF/PNG folder")
+    p.add_argument("image", metavar="IMAGE", nargs="?", help="image file or DICOM/TIFF/PNG folder")
+    p.add_argument("--labels", metavar="LABELS",
+                   help="mesh this label volume (" + ", ".join(LABEL_SUFFIXES) + ") instead of segmenting an "
+                        "image; its values become materials by the config's labels section")
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="output folder")
     _add_config_options(p)
 
@@ -502,20 +578,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--info", metavar="JSON", help="also write thresholds, criterion curves and class fractions")
     _add_config_options(p)
 
+    p = command("labels", cmd_labels, "map a label volume made elsewhere to materials 1..K (config labels:)")
+    p.add_argument("labels", metavar="LABELS", help="label volume: " + ", ".join(LABEL_SUFFIXES))
+    p.add_argument("-o", "--output", required=True, metavar="LABELS", help="mapped label volume (.nii.gz)")
+    p.add_argument("--materials", dest="materials_out", metavar="JSON",
+                   help="also write the materials of the mapped labels (give it to the later stages' --materials)")
+    _add_config_options(p)
+
     p = command("downsample", cmd_downsample, "reduce the label volume's resolution, keeping thin classes")
     p.add_argument("labels", metavar="LABELS", help="label volume")
     p.add_argument("-o", "--output", required=True, metavar="LABELS", help="reduced label volume (.nii.gz)")
+    _add_materials_option(p)
     _add_config_options(p)
 
     p = command("fix", cmd_fix, "repair poorly connected voxels (connectivity fixes A, B, C) to a fixed point")
     p.add_argument("labels", metavar="LABELS", help="label volume")
     p.add_argument("-o", "--output", required=True, metavar="LABELS", help="fixed label volume (.nii.gz)")
     p.add_argument("--report", metavar="JSON", help="also write the voxels changed per type and class")
+    _add_materials_option(p)
     _add_config_options(p)
 
     p = command("mesh", cmd_mesh, "one hexahedron (2D: quad) per non-background voxel")
     p.add_argument("labels", metavar="LABELS", help="label volume: " + ", ".join(LABEL_SUFFIXES) + " (.npy: spacing 1)")
     p.add_argument("-o", "--output", required=True, metavar="MESH", help="mesh (.vtu)")
+    _add_materials_option(p)
     _add_config_options(p)
 
     p = command("merge", cmd_merge, "merge pairs of element layers where safe (fewer elements, same surface)")
@@ -534,6 +620,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("mesh", metavar="MESH", help="mesh (.vtu)")
     p.add_argument("-o", "--output", required=True, metavar="MODEL", help="model.inp (Abaqus/CalculiX) or model.vtu (ParaView)")
     p.add_argument("--order", type=int, choices=(1, 2), help="element order (overrides export.order)")
+    _add_materials_option(p)
     _add_config_options(p)
 
     p = command("quality", cmd_quality, "element quality report (JSON, optional HTML)")
@@ -544,6 +631,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--picture", action="append", metavar="PNG", help="a picture to show in the HTML report (repeatable)")
     p.add_argument("--stage-report", action="append", metavar="JSON",
                    help="a stage report (fix.json, merge.json, smooth.json) to include (repeatable)")
+    _add_materials_option(p)
     _add_config_options(p)
 
     p = command("phantom", cmd_phantom, "write a synthetic CT phantom (HU, with noise) for demos and tests")

@@ -23,9 +23,10 @@ from dicer.errors import DicerError
 # through ``params:`` so that editing one section re-runs only the stages that read it.
 STAGE_SECTIONS = {
     "segment": ("image", "materials", "segment"),
+    "labels": ("labels", "materials"),
     "downsample": ("materials", "segment", "downsample"),
     "fix": ("materials", "fix"),
-    "mesh": ("mesh",),
+    "mesh": ("materials", "mesh"),  # the names go into the mesh file
     "merge": ("merge",),
     "smooth": ("smooth",),
     "export": ("materials", "export"),
@@ -227,6 +228,15 @@ def validate(config: dict, source: str = "config") -> dict:
     if len(set(names)) != len(names):
         twice = sorted(n for n, count in Counter(names).items() if count > 1)
         raise DicerError(f"{source}: key 'materials': class names must be unique; {', '.join(twice)} repeat")
+    taken = sorted(set(names) & {"spacing", "origin", "grid_shape"})
+    if taken:
+        raise DicerError(f"{source}: key 'materials': the name {taken[0]} is taken by the grid data of dicer's "
+                         "mesh files; rename the material")
+    section = config.get("labels", {})
+    both = sorted(set(section.get("drop", [])) & {int(k) for k in section.get("map", {})})
+    if both:
+        raise DicerError(f"{source}: key 'labels': label value {both[0]} is both in labels.map and in "
+                         "labels.drop; keep it in one of them")
     clash = name_clash(names, config.get("export", {}).get("sets", SET_KINDS))
     if clash:
         raise DicerError(f"{source}: key 'materials': {clash}")
@@ -294,6 +304,19 @@ def name_clash(names: list[str], sets=SET_KINDS) -> str | None:
     return None
 
 
+def _label_keys(user: dict) -> dict:
+    """``labels.map`` with its keys as strings: YAML reads ``3: brain`` with an integer key,
+    JSON (the workflow's settings) and ``--set labels.map.3=brain`` with a string one, and
+    both must give one config (and one config hash)."""
+    section = user.get("labels")
+    if isinstance(section, dict) and isinstance(section.get("map"), dict):
+        section = dict(section)
+        section["map"] = {(str(k) if isinstance(k, int) and not isinstance(k, bool) else k): v
+                          for k, v in section["map"].items()}
+        user = {**user, "labels": section}
+    return user
+
+
 def load_config(path: str | Path | None = None, sets: list[str] | tuple = (), settings: dict | None = None) -> dict:
     """Defaults <- YAML file <- ``settings`` dict <- ``--set`` items; validated, defaults filled."""
     user: dict = {}
@@ -306,6 +329,7 @@ def load_config(path: str | Path | None = None, sets: list[str] | tuple = (), se
     for item in sets:
         user = deep_merge(user, parse_set(item))
         source = f"{source} with --set" if "--set" not in source else source
+    user = _label_keys(user)
     validate(user, source)  # unknown keys and types, before defaults hide nothing
     config = _fill(copy.deepcopy(user), schema())
     return validate(config, source)

@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from dicer.errors import DicerError
-from dicer.image import Volume
+from dicer.image import Volume, regridded_origin
 from dicer.segment import label_counts, morphology_options
 from dicer.segment.morphology import clean_labels
 
@@ -200,4 +200,4 @@ def downsample(labels: Volume, config: dict, source: str = "") -> tuple[Volume, 
     info.update(shape_after=list(coarse.shape), spacing_after=[round(s, 6) for s in spacing],
                 voxels_before=before,
                 voxels_after={n: v["voxels"] for n, v in label_counts(coarse, names).items()})
-    return Volume(coarse, spacing, labels.origin), info
+    return Volume(coarse, spacing, regridded_origin(labels, spacing), labels.direction), info

@@ -18,18 +18,41 @@ class Volume:
         or labels (integer, 0 = background, 1..K = material class).
     spacing : per-axis voxel size in mm, one value per array axis.
     origin : position of voxel (0, 0, 0)'s corner in mm, one value per array axis.
+    direction : the file's direction cosines (ITK order, row-major, ndim * ndim values),
+        or None for the identity. Stages never apply them (models are in the image's
+        index axes); label volumes carry them only so that every label file dicer
+        writes keeps the orientation, and so the affine, of the label volume it came from.
     """
 
     array: np.ndarray
     spacing: tuple[float, ...]
     origin: tuple[float, ...] | None = None
+    direction: tuple[float, ...] | None = None
 
     def __post_init__(self):
         self.spacing = tuple(float(s) for s in self.spacing)
         if self.origin is None:
             self.origin = (0.0,) * self.array.ndim
         self.origin = tuple(float(o) for o in self.origin)
+        if self.direction is not None:
+            self.direction = tuple(float(d) for d in self.direction)
 
     @property
     def ndim(self) -> int:
         return self.array.ndim
+
+
+def regridded_origin(volume: Volume, spacing) -> tuple[float, ...]:
+    """``Volume.origin`` of the same first-voxel corner on a grid of voxel size ``spacing``.
+
+    ``origin`` is ITK's voxel-centre origin minus half a voxel along each index axis, which
+    is the corner only while the direction is the identity. With a direction D the corner
+    in space is ``itk_origin - D (s / 2)``, so keeping it at a new voxel size s' moves the
+    origin by ``(s - s') / 2 - D (s - s') / 2`` (zero along axes D leaves as they are).
+    """
+    old = np.asarray(volume.spacing, float)
+    half = (old - np.asarray(spacing, float)) / 2
+    if volume.direction is None:
+        return tuple(volume.origin)
+    d = np.asarray(volume.direction, float).reshape(volume.ndim, volume.ndim)
+    return tuple(float(v) for v in np.asarray(volume.origin, float) + half - d @ half)

@@ -100,7 +100,7 @@ def test_parse_set_nests_dotted_keys(parts, value):
 def test_stage_settings_only_hold_their_sections():
     config = load_config()
     assert set(stage_settings(config, "export")) == {"materials", "export"}
-    assert set(stage_settings(config, "mesh")) == {"mesh"}
+    assert set(stage_settings(config, "mesh")) == {"materials", "mesh"}  # names go into the mesh
     changed = load_config(sets=["export.thickness=3"])
     assert stage_settings(changed, "segment") == stage_settings(config, "segment")
     assert stage_settings(changed, "export") != stage_settings(config, "export")

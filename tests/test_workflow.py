@@ -150,3 +150,37 @@ def test_lint_is_clean():
     proc = subprocess.run(SNAKEMAKE + ["-s", str(REPO / "Snakefile"), "-d", str(REPO), "--lint"],
                           capture_output=True, text=True, env=_env(), timeout=120)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+
+
+def test_labels_column_meshes_a_label_volume(tmp_path):
+    """A cohort row with a labels file skips segment (and downsample at factor 1)."""
+    from test_label_input import CONFIG, affine, seven_labels, write_nifti
+
+    workdir = _cohort(tmp_path, {"labels": CONFIG["labels"]})
+    (workdir / "data").mkdir()
+    write_nifti(workdir / "data" / "aseg.nii.gz", seven_labels())
+    (workdir / "config" / "patients.tsv").write_text(
+        "patient\timage\tlabels\toverrides\n"
+        "brain\t\tdata/aseg.nii.gz\t\n"
+        "coarse\t\tdata/aseg.nii.gz\tdownsample.factor=2\n"
+    )
+    _snakemake(workdir)
+    brain = workdir / "results" / "brain"
+    assert affine(brain / "labels.nii.gz") == affine(workdir / "data" / "aseg.nii.gz")
+    assert not (brain / "labels_ds.nii.gz").exists() and not (brain / "segmentation.png").exists()
+    assert (workdir / "results" / "coarse" / "labels_ds.nii.gz").exists()
+    deck = (brain / "model.inp").read_text()
+    assert re.findall(r"^\*ELEMENT, TYPE=C3D8, ELSET=(\w+)$", deck, flags=re.M) == [
+        "white_matter", "grey_matter", "label_4", "cerebellum"]
+    report = json.loads((brain / "quality.json").read_text())
+    assert set(report["materials"]) == {"white_matter", "grey_matter", "label_4", "cerebellum"}
+    assert _planned_jobs(_snakemake(workdir, "-n")) == {}
+
+
+def test_row_with_image_and_labels_is_refused(tmp_path):
+    workdir = _cohort(tmp_path)
+    (workdir / "config" / "patients.tsv").write_text(
+        "patient\timage\tlabels\toverrides\nboth\tresources/phantoms/head.nii.gz\tx.nii.gz\t\n")
+    proc = _snakemake(workdir, "-n", check=False)
+    assert proc.returncode != 0
+    assert "give either an image or a labels file" in proc.stdout + proc.stderr

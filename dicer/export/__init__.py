@@ -105,6 +105,10 @@ class SolverModel:
     def n_cells(self) -> int:
         return int(self.cells.shape[0])
 
+    def name_list(self) -> list[str]:
+        """Material names by label, 1..K (entry i names label i + 1)."""
+        return [self.names[k] for k in range(1, max(self.names) + 1)]
+
     def labels(self) -> list[int]:
         """Material labels present, ascending."""
         return [int(k) for k in np.unique(self.material)]

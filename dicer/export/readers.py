@@ -113,6 +113,12 @@ def check_meshio(path: str | Path, model, file_format: str) -> None:
         raise DicerError("no material cell data read back")
     material = np.concatenate(m.cell_data[key]).astype(np.int32)
     compare(model, np.asarray(m.points, float), cells, material, "the file")
+    # the material names (VTU field data, Gmsh $PhysicalNames) are part of the file too
+    names = {name: int(np.asarray(v).ravel()[0]) for name, v in m.field_data.items()
+             if np.asarray(v).size == 2 and name not in ("spacing", "origin", "grid_shape")}
+    want = {model.names[k]: k for k in (model.labels() if file_format == "gmsh" else model.names)}
+    if names != want:
+        raise DicerError(f"material names {names} read back, expected {want}")
 
 
 # --- strict fixed-width readers -------------------------------------------------------------

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import shutil
 import sys
 import zlib
 from pathlib import Path
@@ -21,7 +20,7 @@ import meshio
 import meshio.vtu._vtu  # noqa: F401  (its zlib is swapped while writing, see _fast_vtu_compression)
 import numpy as np
 
-from dicer.io.meshes import _field_data_xml, to_meshio
+from dicer.io.meshes import _field_data_xml, names_xml, splice_field_data, to_meshio
 from dicer.mesh.metrics import scaled_jacobian
 from dicer.mesh.model import Mesh
 
@@ -59,12 +58,7 @@ def _write_vtu(mesh: Mesh, path: Path) -> None:
     try:
         with _fast_vtu_compression():
             meshio.write(raw, to_meshio(mesh), file_format="vtu", binary=True, compression="zlib")
-        with open(raw, "rb") as src, open(path, "wb") as dst:
-            head = src.read(4096)
-            tag = b"<UnstructuredGrid>\n"
-            at = head.index(tag) + len(tag)
-            dst.write(head[:at] + _field_data_xml(mesh).encode() + head[at:])
-            shutil.copyfileobj(src, dst, 1 << 22)
+        splice_field_data(raw, path, _field_data_xml(mesh).encode())
     finally:
         raw.unlink(missing_ok=True)
 
@@ -73,6 +67,7 @@ def write_vtu(model, mesh: Mesh, path: str | Path) -> None:
     """Write ``model`` (made from ``mesh``) as VTU with material and scaled Jacobian cell data."""
     if model.order == 1:
         out = mesh.copy()
+        out.names = model.name_list()  # the config's names, whatever the mesh carried
         out.cell_data["scaled_jacobian"] = scaled_jacobian(mesh.points, mesh.cells)
         _write_vtu(out, Path(path))
         return
@@ -85,10 +80,19 @@ def write_meshio(model, path: str | Path, file_format: str) -> None:
     points = model.points if model.dim == 3 else model.points[:, :2]
     if file_format == "gmsh":
         tag = model.material.astype(np.int32)
+        # $PhysicalNames: each material's name for its physical tag (its label), of the
+        # elements' dimension, so Gmsh lists the parts by name
+        names = {model.names[k]: np.array([k, model.dim]) for k in model.labels()}
         m = meshio.Mesh(points, [(ctype, model.cells)],
-                        cell_data={"gmsh:physical": [tag], "gmsh:geometrical": [tag]})
+                        cell_data={"gmsh:physical": [tag], "gmsh:geometrical": [tag]}, field_data=names)
         meshio.write(path, m, file_format="gmsh22", binary=False)
         return
     m = meshio.Mesh(model.points, [(ctype, model.cells)],
                     cell_data={"material": [model.material], "scaled_jacobian": [_corner_jacobian(model)]})
-    meshio.write(path, m, file_format="vtu", binary=True, compression="zlib")
+    raw = Path(path).with_name(Path(path).name + ".raw.vtu")
+    try:
+        meshio.write(raw, m, file_format="vtu", binary=True, compression="zlib")
+        block = f"<FieldData>\n{names_xml(model.name_list(), model.dim)}</FieldData>\n".encode()
+        splice_field_data(raw, Path(path), block)
+    finally:
+        raw.unlink(missing_ok=True)

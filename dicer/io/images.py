@@ -123,7 +123,7 @@ def _check_finite(array: np.ndarray, path) -> None:
     raise _nonfinite_error(path, nan, array.size - finite - nan, array.size)
 
 
-def _finish(array: np.ndarray, spacing, origin, path, dtype=np.float32) -> Volume:
+def _finish(array: np.ndarray, spacing, origin, path, dtype=np.float32, direction=None) -> Volume:
     """Drop a singleton axis (3D -> 2D), refuse NaN/Inf voxels and build the Volume."""
     spacing, origin = list(spacing), list(origin)
     singles = [ax for ax, n in enumerate(array.shape) if n == 1]
@@ -131,18 +131,23 @@ def _finish(array: np.ndarray, spacing, origin, path, dtype=np.float32) -> Volum
         ax = singles[0]
         array = np.squeeze(array, axis=ax)
         del spacing[ax], origin[ax]
+        direction = None  # a 3D orientation has no 2D counterpart in general
     if array.ndim not in (2, 3) or min(array.shape) < 2:
         raise DicerError(
             f"{path}: the image has shape {'x'.join(map(str, array.shape))} (x, y, z); dicer meshes 2D or 3D "
             "images with at least 2 voxels along each axis; give a 2D slice or a 3D volume"
         )
     _check_finite(array, path)
-    return Volume(np.ascontiguousarray(array, dtype=dtype), tuple(spacing), tuple(origin))
+    return Volume(np.ascontiguousarray(array, dtype=dtype), tuple(spacing), tuple(origin), direction)
 
 
 def _from_sitk(image: sitk.Image, path, spacing_arg=None, own_spacing=True, nifti=False,
-               dtype=np.float32) -> Volume:
-    """Convert a SimpleITK image to a Volume ([z,y,x] -> [x,y,z], centre origin -> corner)."""
+               dtype=np.float32, keep_direction=False) -> Volume:
+    """Convert a SimpleITK image to a Volume ([z,y,x] -> [x,y,z], centre origin -> corner).
+
+    keep_direction : also keep the direction cosines (label volumes, so the label files
+        written from them keep the input's orientation); images drop them.
+    """
     if image.GetNumberOfComponentsPerPixel() != 1:
         raise DicerError(
             f"{path}: the image has {image.GetNumberOfComponentsPerPixel()} components per voxel "
@@ -155,6 +160,11 @@ def _from_sitk(image: sitk.Image, path, spacing_arg=None, own_spacing=True, nift
         # a 4D NIfTI with a single time point is just a 3D volume
         image = image[:, :, :, 0]
         size, spacing, origin = size[:3], spacing[:3], origin[:3]
+    direction = None
+    if keep_direction and own_spacing and image.GetDimension() in (2, 3):
+        direction = tuple(image.GetDirection())
+        if direction == tuple(np.eye(image.GetDimension()).ravel()):
+            direction = None  # identity: the same files as a Volume without one
     if image.GetDimension() not in (2, 3):
         raise DicerError(
             f"{path}: the image is {image.GetDimension()}D ({'x'.join(map(str, size))}); dicer reads "
@@ -170,7 +180,7 @@ def _from_sitk(image: sitk.Image, path, spacing_arg=None, own_spacing=True, nift
         origin = [0.0] * len(size)
         spacing = _default_spacing(spacing_arg, array.shape, path)
     corner = [o - s / 2 for o, s in zip(origin, spacing)] if own_spacing else origin
-    return _finish(array, spacing, corner, path, dtype=dtype)
+    return _finish(array, spacing, corner, path, dtype=dtype, direction=direction)
 
 
 def _final_ndim(shape) -> int:
@@ -438,7 +448,7 @@ def _spacing_error(path: Path, spacing, what: str) -> DicerError:
     )
 
 
-def _read_file(path: Path, spacing_arg, dtype=np.float32) -> Volume:
+def _read_file(path: Path, spacing_arg, dtype=np.float32, keep_direction=False) -> Volume:
     suffix = _suffix(path)
     if suffix == ".npy":
         return _read_npy(path, spacing_arg, dtype)
@@ -486,7 +496,7 @@ def _read_file(path: Path, spacing_arg, dtype=np.float32) -> Volume:
     # TIFF and PNG resolution tags are unreliable (dpi, not mm): use the given spacing
     own = suffix not in _TIFF + _PNG and not bad_header_spacing
     return _from_sitk(image, path, spacing_arg, own_spacing=own, nifti=suffix in (".nii", ".nii.gz"),
-                      dtype=dtype)
+                      dtype=dtype, keep_direction=keep_direction)
 
 
 def _read_npy(path: Path, spacing_arg, dtype) -> Volume:
@@ -811,7 +821,7 @@ def read_labels(path: str | os.PathLike) -> Volume:
     if path.is_dir() or not path.name.lower().endswith(LABEL_SUFFIXES):
         raise DicerError(f"{path}: label volumes must be one of {', '.join(LABEL_SUFFIXES)}; "
                          "convert the labels to NIfTI (.nii.gz)")
-    volume = _read_file(path, 1.0 if path.suffix.lower() == ".npy" else None, dtype=None)
+    volume = _read_file(path, 1.0 if path.suffix.lower() == ".npy" else None, dtype=None, keep_direction=True)
     array = volume.array
     if array.dtype.kind == "f":
         if not np.all(np.isfinite(array)) or not np.array_equal(array, np.round(array)):
@@ -826,7 +836,7 @@ def read_labels(path: str | os.PathLike) -> Volume:
     dtype = np.uint8 if hi < 256 else np.int16 if hi <= np.iinfo(np.int16).max else np.int32
     if hi > np.iinfo(np.int32).max:
         raise DicerError(f"{path}: label value {hi:g} is too large; number the classes 1..K")
-    return Volume(array.astype(dtype, copy=False), volume.spacing, volume.origin)
+    return Volume(array.astype(dtype, copy=False), volume.spacing, volume.origin, volume.direction)
 
 
 # --- writing -----------------------------------------------------------------------
@@ -838,6 +848,8 @@ def _to_sitk(volume: Volume, array: np.ndarray) -> sitk.Image:
     corner = [float(o) for o in volume.origin]
     image.SetSpacing(spacing)
     image.SetOrigin([c + s / 2 for c, s in zip(corner, spacing)])  # ITK: centre of voxel (0, 0, 0)
+    if volume.direction is not None and len(volume.direction) == array.ndim ** 2:
+        image.SetDirection(volume.direction)
     return image
 
 
@@ -888,9 +900,9 @@ def _write(image: sitk.Image, path: Path, compress: bool) -> None:
 def write_labels(volume: Volume, path: str | os.PathLike) -> None:
     """Write a label volume as NIfTI (.nii or .nii.gz), atomically.
 
-    Stored as uint8 when the largest label is below 256, else uint16; spacing and the
-    voxel-corner origin go into the header (as ITK's voxel-centre origin); nothing else
-    (no metadata from the input image). Two writes of the same volume give identical bytes.
+    Stored as uint8 when the largest label is below 256, else uint16; spacing, the
+    voxel-corner origin (as ITK's voxel-centre origin) and the direction cosines, when the
+    volume has them, go into the header; nothing else (no metadata from the input image). Two writes of the same volume give identical bytes.
 
     Parameters
     ----------

@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import shutil
 from pathlib import Path
 from xml.etree import ElementTree as ET
 from xml.sax.saxutils import quoteattr
@@ -62,6 +63,28 @@ def to_meshio(mesh: Mesh) -> meshio.Mesh:
     return meshio.Mesh(mesh.points, [(mesh.cell_type, mesh.cells)], point_data=point_data, cell_data=cell_data)
 
 
+def names_xml(names, dim: int) -> str:
+    """One field data array per material, named after it and holding ``[label, dim]``.
+
+    This is meshio's own form of named parts (what it reads from and writes to Gmsh's
+    $PhysicalNames), so ``meshio convert`` carries the names on; ParaView lists the
+    arrays, names and labels, under Data Arrays. A VTK string array would name them
+    too, but meshio cannot read string arrays, and many readers of these files use it.
+    """
+    return "".join(f'<DataArray type="Int64" Name="{name}" NumberOfTuples="2" format="ascii">{label} {dim}</DataArray>\n'
+                   for label, name in enumerate(names, start=1))
+
+
+def names_from_field_data(field_data: dict) -> list[str]:
+    """Material names by label from field data written by :func:`names_xml` (empty if none)."""
+    found = {}
+    for name, value in field_data.items():
+        value = np.asarray(value).ravel()
+        if name not in _FIELDS and value.size == 2 and value.dtype.kind in "iu":
+            found[int(value[0])] = name
+    return [found[k] for k in range(1, len(found) + 1)] if set(found) == set(range(1, len(found) + 1)) else []
+
+
 def _field_data_xml(mesh: Mesh) -> str:
     # ascii with repr() so that every float reads back bit for bit
     arrays = [
@@ -72,7 +95,18 @@ def _field_data_xml(mesh: Mesh) -> str:
     rows = "".join(
         f'<DataArray type="{t}" Name="{n}" NumberOfTuples="3" format="ascii">{v}</DataArray>\n' for n, t, v in arrays
     )
-    return f"<FieldData>\n{rows}</FieldData>\n"
+    return f"<FieldData>\n{rows}{names_xml(mesh.names, mesh.dim)}</FieldData>\n"
+
+
+def splice_field_data(raw: Path, path: Path, block: bytes) -> None:
+    """Copy the VTU ``raw`` to ``path`` with ``block`` (a <FieldData> element) put in after
+    <UnstructuredGrid>: meshio's VTU writer drops field data (its reader keeps it)."""
+    with open(raw, "rb") as src, open(path, "wb") as dst:
+        head = src.read(4096)
+        tag = b"<UnstructuredGrid>\n"
+        at = head.index(tag) + len(tag)
+        dst.write(head[:at] + block + head[at:])
+        shutil.copyfileobj(src, dst, 1 << 22)
 
 
 def _extra_array(path: Path, kind: str, key: str, values, count: int) -> np.ndarray:
@@ -172,6 +206,7 @@ def _same_mesh(a: Mesh, b: Mesh) -> bool:
         and list(a.point_data) == list(b.point_data) and list(a.cell_data) == list(b.cell_data)
         and all(_bitwise_equal(np.asarray(v), b.point_data[k]) for k, v in a.point_data.items())
         and all(_bitwise_equal(np.asarray(v), b.cell_data[k]) for k, v in a.cell_data.items())
+        and list(a.names) == list(b.names)
     )
 
 
@@ -328,7 +363,8 @@ def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data)
         grid_shape = lattice.max(axis=0) if len(lattice) else np.zeros(3, np.int64)
     point_data = {k: np.asarray(v) for k, v in point_data.items() if k != "lattice"}
     cell_data = {k: np.asarray(v) for k, v in cell_data.items() if k != "material"}
-    mesh = Mesh(points, cells, material, lattice, spacing, origin, grid_shape, point_data, cell_data)
+    names = names_from_field_data(fd)
+    mesh = Mesh(points, cells, material, lattice, spacing, origin, grid_shape, point_data, cell_data, names)
     if (cell_type == "quad") != (mesh.dim == 2):
         raise DicerError(f"{name}: inconsistent element type")
     return mesh

@@ -477,7 +477,7 @@ def _assemble(mesh: Mesh, keep: np.ndarray, corner_points: np.ndarray, material:
     material = np.concatenate([np.compress(keep, mesh.material), material]).astype(np.int32)
     level = np.concatenate([np.zeros(int(keep.sum()), np.int8), level])
     return Mesh(points, cells, material, lattice, mesh.spacing.copy(), mesh.origin.copy(), mesh.grid_shape.copy(),
-                {}, {LEVEL_DATA: level})
+                {}, {LEVEL_DATA: level}, list(mesh.names))
 
 
 def _report(mesh: Mesh, out: Mesh, keep: np.ndarray, level: np.ndarray, seconds: float, levels: int,

@@ -736,7 +736,7 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
                      time.perf_counter() - t0)
 
     out = Mesh(points, cells.astype(np.int64), material, lattice, mesh.spacing.copy(), mesh.origin.copy(),
-               mesh.grid_shape.copy(), point_data, cell_data)
+               mesh.grid_shape.copy(), point_data, cell_data, list(mesh.names))
     vol_after = _material_volumes(out, ~irregular, on_lattice, size)
     report["elements_after"] = out.n_cells
     report["nodes_after"] = out.n_points

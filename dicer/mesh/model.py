@@ -38,6 +38,8 @@ class Mesh:
     grid_shape : (3,) int64, voxels per axis of the source image (1 for z in 2D);
         its bounding planes are lattice 0 and grid_shape along each axis.
     point_data, cell_data : further per-node / per-element arrays carried through.
+    names : material names by label (names[0] is label 1's), written to VTU files as the
+        field data ``material_name`` so ParaView shows them; empty when unknown.
     """
 
     points: np.ndarray
@@ -49,6 +51,7 @@ class Mesh:
     grid_shape: np.ndarray
     point_data: dict[str, np.ndarray] = field(default_factory=dict)
     cell_data: dict[str, np.ndarray] = field(default_factory=dict)
+    names: list[str] = field(default_factory=list)
 
     @property
     def dim(self) -> int:
@@ -73,5 +76,5 @@ class Mesh:
             self.points.copy(), self.cells.copy(), self.material.copy(), self.lattice.copy(),
             self.spacing.copy(), self.origin.copy(), self.grid_shape.copy(),
             {k: v.copy() for k, v in self.point_data.items()},
-            {k: v.copy() for k, v in self.cell_data.items()},
+            {k: v.copy() for k, v in self.cell_data.items()}, list(self.names),
         )

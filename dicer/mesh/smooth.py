@@ -621,7 +621,7 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
     point_data = dict(mesh.point_data)
     point_data["node_class"] = g.node_class
     out = Mesh(x, mesh.cells, mesh.material, mesh.lattice, mesh.spacing.copy(), mesh.origin.copy(),
-               mesh.grid_shape.copy(), point_data, dict(mesh.cell_data))
+               mesh.grid_shape.copy(), point_data, dict(mesh.cell_data), list(mesh.names))
     # the volume a mesh (and each material) encloses depends on its boundary nodes only:
     # measure it on the elements holding a boundary node, with only those nodes moved
     bc = g.boundary_cells

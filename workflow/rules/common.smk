@@ -2,12 +2,15 @@
 import csv
 import json
 import os
+import re
+import shlex
 import sys
 from pathlib import Path
 
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
+from dicer.cli import downsample_applies
 from dicer.config import deep_merge, load_config, parse_set, stage_settings
 from dicer.errors import DicerError
 
@@ -44,6 +47,9 @@ def _read_patients(path):
             validate(row, "../schemas/patients.schema.yaml")
         except Exception as exc:
             raise WorkflowError(f"{path}, line {number}: {str(exc).splitlines()[0]}")
+        if bool(row.get("image")) == bool(row.get("labels")):
+            raise WorkflowError(f"{path}, line {number}: patient {row['patient']!r}: give either an image or "
+                                "a labels file (a label volume to mesh), not both and not neither")
         if row["patient"] in seen:
             raise WorkflowError(f"{path}, line {number}: patient {row['patient']!r} appears twice")
         seen.add(row["patient"])
@@ -52,7 +58,7 @@ def _read_patients(path):
 
 def _available(row):
     """Phantoms are made by the workflow; other images must exist (the real CT is optional)."""
-    image = row["image"]
+    image = row.get("image") or row["labels"]
     if Path(image).parent == Path(PHANTOM_DIR) or Path(image).exists():
         return True
     print(f"dicer workflow: skipping patient {row['patient']}: {image} not found", file=sys.stderr)
@@ -60,6 +66,17 @@ def _available(row):
 
 
 PATIENTS = {row["patient"]: row for row in _read_patients(CONFIG["workflow"]["patients"]) if _available(row)}
+
+
+def _one_of(names):
+    """A wildcard regex matching exactly these patients (none: a regex that never matches)."""
+    return "|".join(re.escape(n) for n in sorted(names)) or "(?!)"
+
+
+# patients with a label volume made elsewhere skip segment: rule labels makes their labels.nii.gz
+LABEL_PATIENTS = {p for p, row in PATIENTS.items() if row.get("labels")}
+IMAGE_PATIENTS = _one_of(set(PATIENTS) - LABEL_PATIENTS)
+LABELS_PATIENTS = _one_of(LABEL_PATIENTS)
 
 
 def patient_config(patient):
@@ -86,6 +103,41 @@ def phantom_size_option(wildcards):
 
 def patient_image(wildcards):
     return PATIENTS[wildcards.patient]["image"]
+
+
+def patient_labels(wildcards):
+    return PATIENTS[wildcards.patient]["labels"]
+
+
+def fix_input(wildcards):
+    """labels_ds.nii.gz; for a label-volume patient labels.nii.gz unless downsample.factor or
+    voxel_size asks for coarser voxels (dicer run --labels does the same)."""
+    if wildcards.patient in LABEL_PATIENTS and not downsample_applies(patient_config(wildcards.patient)):
+        return patient_file("labels.nii.gz").format(patient=wildcards.patient)
+    return patient_file("labels_ds.nii.gz").format(patient=wildcards.patient)
+
+
+def materials_input(wildcards):
+    """The materials file of a label-volume patient (written by rule labels); none otherwise."""
+    if wildcards.patient in LABEL_PATIENTS:
+        return [patient_file("materials.json").format(patient=wildcards.patient)]
+    return []
+
+
+def materials_option(wildcards, input):
+    """params: --materials FILE for a label-volume patient, else nothing."""
+    return " ".join(f"--materials {shlex.quote(path)}" for path in getattr(input, "materials", []))
+
+
+def pictures(wildcards):
+    """The segmentation overlay shown in the quality page (label-volume patients have none)."""
+    if wildcards.patient in LABEL_PATIENTS:
+        return []
+    return [patient_file("segmentation.png").format(patient=wildcards.patient)]
+
+
+def picture_options(wildcards, input):
+    return " ".join(f"--picture {shlex.quote(path)}" for path in getattr(input, "pictures", []))
 
 
 def all_outputs():

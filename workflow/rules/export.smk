@@ -3,11 +3,13 @@
 
 rule export:
     input:
-        patient_file("smoothed.vtu"),
+        mesh=patient_file("smoothed.vtu"),
+        materials=materials_input,
     output:
         patient_file("model.{ext}"),
     params:
         settings=settings("export"),
+        materials=materials_option,
     conda:
         CONDA_ENV
     log:
@@ -15,14 +17,15 @@ rule export:
     wildcard_constraints:
         ext="inp|vtu|out|neu|k|msh|exo|e|feb",
     shell:
-        "dicer export {input:q} -o {output:q} --settings {params.settings:q} > {log:q} 2>&1"
+        "dicer export {input.mesh:q} -o {output:q} {params.materials} --settings {params.settings:q} > {log:q} 2>&1"
 
 
 rule quality:
     input:
         mesh=patient_file("smoothed.vtu"),
         labels=patient_file("labels_fixed.nii.gz"),
-        overlay=patient_file("segmentation.png"),
+        pictures=pictures,
+        materials=materials_input,
         reports=[patient_file(f"{stage}.json") for stage in ("fix", "merge", "smooth")],
     output:
         json=patient_file("quality.json"),
@@ -34,11 +37,13 @@ rule quality:
         ),
     params:
         settings=settings("quality"),
+        pictures=picture_options,
+        materials=materials_option,
     conda:
         CONDA_ENV
     log:
         "logs/{patient}/quality.log",
     shell:
         "dicer quality {input.mesh:q} --labels {input.labels:q} -o {output.json:q} --html {output.html:q}"
-        " --picture {input.overlay:q} --stage-report {input.reports[0]:q} --stage-report {input.reports[1]:q}"
+        " {params.pictures} {params.materials} --stage-report {input.reports[0]:q} --stage-report {input.reports[1]:q}"
         " --stage-report {input.reports[2]:q} --settings {params.settings:q} > {log:q} 2>&1"

@@ -3,17 +3,19 @@
 
 rule mesh:
     input:
-        patient_file("labels_fixed.nii.gz"),
+        labels=patient_file("labels_fixed.nii.gz"),
+        materials=materials_input,
     output:
         patient_file("mesh.vtu"),
     params:
         settings=settings("mesh"),
+        materials=materials_option,
     conda:
         CONDA_ENV
     log:
         "logs/{patient}/mesh.log",
     shell:
-        "dicer mesh {input:q} -o {output:q} --settings {params.settings:q} > {log:q} 2>&1"
+        "dicer mesh {input.labels:q} -o {output:q} {params.materials} --settings {params.settings:q} > {log:q} 2>&1"
 
 
 rule merge:

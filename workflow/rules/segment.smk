@@ -1,4 +1,5 @@
-# Image -> label volumes: phantoms for the demo cohort, segment, downsample.
+# Image -> label volumes: phantoms for the demo cohort, segment (or labels: a label volume
+# made elsewhere, mapped to materials), downsample, fix.
 
 
 rule phantom:
@@ -27,38 +28,64 @@ rule segment:
         CONDA_ENV
     log:
         "logs/{patient}/segment.log",
+    wildcard_constraints:
+        patient=IMAGE_PATIENTS,
     shell:
         "dicer segment {input:q} -o {output.labels:q} --overlay {output.overlay:q} --info {output.info:q}"
         " --settings {params.settings:q} > {log:q} 2>&1"
 
 
+rule labels:
+    input:
+        patient_labels,
+    output:
+        labels=patient_file("labels.nii.gz"),
+        materials=patient_file("materials.json"),
+    params:
+        settings=settings("labels"),
+    conda:
+        CONDA_ENV
+    log:
+        "logs/{patient}/labels.log",
+    wildcard_constraints:
+        patient=LABELS_PATIENTS,
+    shell:
+        "dicer labels {input:q} -o {output.labels:q} --materials {output.materials:q}"
+        " --settings {params.settings:q} > {log:q} 2>&1"
+
+
 rule downsample:
     input:
-        patient_file("labels.nii.gz"),
+        labels=patient_file("labels.nii.gz"),
+        materials=materials_input,
     output:
         patient_file("labels_ds.nii.gz"),
     params:
         settings=settings("downsample"),
+        materials=materials_option,
     conda:
         CONDA_ENV
     log:
         "logs/{patient}/downsample.log",
     shell:
-        "dicer downsample {input:q} -o {output:q} --settings {params.settings:q} > {log:q} 2>&1"
+        "dicer downsample {input.labels:q} -o {output:q} {params.materials} --settings {params.settings:q}"
+        " > {log:q} 2>&1"
 
 
 rule fix:
     input:
-        patient_file("labels_ds.nii.gz"),
+        labels=fix_input,
+        materials=materials_input,
     output:
         labels=patient_file("labels_fixed.nii.gz"),
         report=patient_file("fix.json"),
     params:
         settings=settings("fix"),
+        materials=materials_option,
     conda:
         CONDA_ENV
     log:
         "logs/{patient}/fix.log",
     shell:
-        "dicer fix {input:q} -o {output.labels:q} --report {output.report:q}"
+        "dicer fix {input.labels:q} -o {output.labels:q} --report {output.report:q} {params.materials}"
         " --settings {params.settings:q} > {log:q} 2>&1"

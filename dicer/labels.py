@@ -1,0 +1,191 @@
+"""Label volumes made elsewhere (3D Slicer, ITK-SNAP, FreeSurfer/SynthSeg, TotalSegmentator)
+turned into dicer's materials 1..K by the config's ``labels`` section.
+
+``resolve_materials`` decides which material each label value becomes, ``map_labels``
+applies it to a volume, and ``write_mapped_labels`` writes the result with the input
+file's own header, so its grid and affine stay exactly those of the input.
+"""
+
+from __future__ import annotations
+
+import gzip
+import logging
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from dicer.config import validate
+from dicer.errors import DicerError
+from dicer.image import MAX_LABEL, Volume
+
+log = logging.getLogger("dicer")
+
+#: properties of a material that has no ``materials`` entry of its name (the schema's item defaults)
+DEFAULT_PROPERTIES = {"youngs_modulus": 1000.0, "poissons_ratio": 0.3, "density": 1.0e-9}
+
+
+def resolve_materials(values, config: dict, source: str = "labels") -> tuple[dict[int, int], list[dict]]:
+    """Which material each label value becomes.
+
+    Parameters
+    ----------
+    values : iterable of int
+        The distinct label values of the volume (0, background, may be among them).
+    config : dict
+        A loaded configuration; its ``labels`` section (``map``: value -> material name,
+        ``drop``: values made background) and ``materials`` (properties, found by name).
+    source : str
+        The label file's name, for messages.
+
+    Returns
+    -------
+    lut : dict
+        Label value -> material number 1..K, or 0 for background and dropped values.
+    materials : list of dict
+        The K materials in number order (name and properties), a valid ``materials``
+        config section. Materials are numbered in the order of their smallest label
+        value, so with no map material k is the k-th non-zero label value.
+
+    Raises
+    ------
+    DicerError
+        No material left (only background and dropped values), or names that would
+        clash in an export.
+    """
+    section = config.get("labels", {})
+    names = {int(k): v for k, v in section.get("map", {}).items()}
+    drop = set(section.get("drop", []))
+    lut: dict[int, int] = {}
+    number: dict[str, int] = {}
+    for value in sorted(int(v) for v in values):
+        if value == 0 or value in drop:
+            lut[value] = 0
+            continue
+        name = names.get(value, f"label_{value}")
+        lut[value] = number.setdefault(name, len(number) + 1)
+    if not number:
+        raise DicerError(f"{source}: no labelled voxels are left (values found: "
+                         f"{', '.join(map(str, sorted(lut))) or 'none'}, dropped: {sorted(drop)}); "
+                         "check labels.drop in the config")
+    given = {m["name"]: m for m in config.get("materials", [])}
+    materials, defaulted = [], []
+    for name in number:
+        if name in given:
+            materials.append({**DEFAULT_PROPERTIES, **given[name]})
+        else:
+            materials.append({"name": name, **DEFAULT_PROPERTIES})
+            defaulted.append(name)
+    if not names:
+        log.info("labels: no labels.map in the config: each of the %d label value(s) is its own material "
+                 "(label_<value>, numbered 1..%d in increasing value order)", len(number), len(number))
+    if defaulted:
+        log.info("labels: no materials entry for %s: default properties (E %g MPa, nu %g, density %g t/mm^3); "
+                 "add materials entries of these names to set them", ", ".join(defaulted),
+                 DEFAULT_PROPERTIES["youngs_modulus"], DEFAULT_PROPERTIES["poissons_ratio"],
+                 DEFAULT_PROPERTIES["density"])
+    if len(materials) > MAX_LABEL:
+        raise DicerError(f"{source}: {len(materials)} materials, more than the {MAX_LABEL} a label volume holds; "
+                         "merge labels with labels.map")
+    try:
+        validate({**config, "materials": materials}, source)
+    except DicerError as exc:
+        raise DicerError(f"{exc} (materials made from the label values by labels.map)") from None
+    return lut, materials
+
+
+def map_labels(volume: Volume, config: dict, source: str = "labels") -> tuple[Volume, list[dict], dict]:
+    """The volume with its label values replaced by material numbers 1..K (0: background).
+
+    Returns
+    -------
+    mapped : Volume
+        Same grid, origin and direction as ``volume``; uint8 or uint16 values.
+    materials : list of dict
+        The materials section for the mapped volume (see ``resolve_materials``).
+    info : dict
+        ``values``: label value -> material name or ``background``, and voxel counts
+        per material.
+    """
+    array = volume.array
+    values, inverse = np.unique(array, return_inverse=True)
+    lut, materials = resolve_materials(values.tolist(), config, source)
+    table = np.array([lut[int(v)] for v in values], dtype=np.uint8 if len(materials) < 256 else np.uint16)
+    mapped = table[inverse].reshape(array.shape)
+    counts = np.bincount(mapped.ravel(), minlength=len(materials) + 1)
+    info = {
+        "values": {str(int(v)): (materials[lut[int(v)] - 1]["name"] if lut[int(v)] else "background")
+                   for v in values},
+        "voxels": {m["name"]: int(counts[i + 1]) for i, m in enumerate(materials)},
+    }
+    return Volume(mapped, volume.spacing, volume.origin, volume.direction), materials, info
+
+
+# --- writing with the input's header ---------------------------------------------------------
+
+# NIfTI-1 datatype codes of the two label types written
+_NIFTI_TYPES = {np.dtype(np.uint8): (2, 8), np.dtype(np.uint16): (512, 16)}
+
+
+def _nifti1_header(path: Path) -> tuple[bytes, str] | None:
+    """The 348-byte header of a single-file NIfTI-1 (.nii, .nii.gz) and its byte order, or None."""
+    opener = gzip.open if path.name.lower().endswith(".gz") else open
+    try:
+        with opener(path, "rb") as f:
+            head = f.read(352)
+    except OSError:
+        return None
+    if len(head) < 348:
+        return None
+    for endian in "<>":
+        if struct.unpack(endian + "i", head[:4])[0] == 348 and head[344:347] == b"n+1":
+            return head[:348], endian
+    return None
+
+
+def _write_nifti_like(header: bytes, endian: str, array: np.ndarray, path: Path) -> None:
+    """Write ``array`` ([x, y, z]) as a .nii.gz with ``header``: only the data type, the
+    intensity scaling and the display range change, so dims, pixdim, qform, sform, codes and
+    the description stay the input's, byte for byte."""
+    from dicer.io.atomic import atomic_path
+
+    head = bytearray(header)
+    datatype, bitpix = _NIFTI_TYPES[array.dtype]
+    struct.pack_into(endian + "2h", head, 70, datatype, bitpix)
+    struct.pack_into(endian + "f", head, 108, 352.0)  # vox_offset: data right after the header
+    struct.pack_into(endian + "2f", head, 112, 1.0, 0.0)  # scl_slope, scl_inter: the values as stored
+    struct.pack_into(endian + "2f", head, 124, float(array.max(initial=0)), 0.0)  # cal_max, cal_min
+    struct.pack_into(endian + "h", head, 68, 0)  # intent_code: plain values, whatever the input's was
+    data = np.asarray(array, dtype=array.dtype.newbyteorder(endian)).tobytes(order="F")  # x fastest
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0, filename="") as f:
+            # mtime 0 and no file name: the same bytes on every rerun
+            f.write(bytes(head) + b"\0\0\0\0" + data)
+        from dicer.io.images import read_labels
+
+        back = read_labels(tmp)
+        if not np.array_equal(back.array, array):
+            raise DicerError(f"{path}: read-back check failed: the file does not hold the labels written; "
+                             "check the disk and write again")
+
+
+def write_mapped_labels(volume: Volume, source: str | Path, path: str | Path) -> None:
+    """Write the mapped label volume ``volume`` read from the label file ``source`` to ``path``.
+
+    A single-file NIfTI-1 input (the usual output of Slicer, ITK-SNAP, FreeSurfer and
+    TotalSegmentator) lends its own header, so the written file has exactly the input's
+    grid, qform and sform (and their codes); any other input goes through
+    :func:`dicer.io.images.write_labels`, which keeps spacing, origin and direction.
+    """
+    from dicer.io.images import write_labels
+
+    source, path = Path(source), Path(path)
+    found = _nifti1_header(source) if source.name.lower().endswith((".nii", ".nii.gz")) else None
+    dims = struct.unpack(found[1] + "8h", found[0][40:56]) if found else None
+    if (found and path.name.lower().endswith(".nii.gz") and volume.array.ndim == 3
+            and dims[0] in (3, 4) and tuple(dims[1:4]) == volume.array.shape and (dims[0] == 3 or dims[4] == 1)):
+        head = bytearray(found[0])
+        struct.pack_into(found[1] + "8h", head, 40, 3, *volume.array.shape, 1, 1, 1, 1)
+        _write_nifti_like(bytes(head), found[1], volume.array, path)
+        return
+    write_labels(volume, path)

@@ -1,0 +1,243 @@
+"""Label volumes made elsewhere: ``dicer run --labels`` and ``dicer labels``, the labels
+section of the config, and material names in every mesh and export."""
+
+import gzip
+import json
+import os
+import re
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import meshio
+import numpy as np
+import pytest
+import yaml
+
+from dicer.cli import main
+from dicer.config import load_config
+from dicer.errors import DicerError
+from dicer.io.images import read_labels
+from dicer.io.meshes import read_mesh
+from dicer.labels import resolve_materials
+
+REPO = Path(__file__).resolve().parents[1]
+
+# MNI-like placement: 1.5 mm voxels, origin at a negative corner, sform and qform code 4 (MNI152)
+SPACING = 1.5
+OFFSET = (-90.0, -125.0, -71.0)
+
+
+def write_nifti(path: Path, array: np.ndarray, spacing=SPACING, offset=OFFSET, code=4) -> None:
+    """A NIfTI-1 .nii.gz written byte by byte, as other tools write them (not through ITK)."""
+    head = bytearray(348)
+    struct.pack_into("<i", head, 0, 348)
+    struct.pack_into("<8h", head, 40, 3, *array.shape, 1, 1, 1, 1)
+    struct.pack_into("<2h", head, 70, 4, 16)  # int16
+    struct.pack_into("<8f", head, 76, 1.0, spacing, spacing, spacing, 1, 1, 1, 1)
+    struct.pack_into("<f", head, 108, 352.0)
+    struct.pack_into("<f", head, 112, 1.0)
+    head[148:148 + 15] = b"made by a tool\0"
+    struct.pack_into("<2h", head, 252, code, code)
+    struct.pack_into("<6f", head, 256, 0.0, 0.0, 0.0, *offset)
+    struct.pack_into("<4f", head, 280, spacing, 0, 0, offset[0])
+    struct.pack_into("<4f", head, 296, 0, spacing, 0, offset[1])
+    struct.pack_into("<4f", head, 312, 0, 0, spacing, offset[2])
+    head[344:348] = b"n+1\0"
+    with gzip.open(path, "wb") as f:
+        f.write(bytes(head) + b"\0" * 4 + array.astype("<i2").tobytes(order="F"))
+
+
+def affine(path: Path) -> dict:
+    """The placement fields of a NIfTI-1 header: pixdim, qform and sform with their codes."""
+    with gzip.open(path, "rb") as f:
+        head = f.read(348)
+    return {
+        "pixdim": struct.unpack("<3f", head[80:92]),
+        "codes": struct.unpack("<2h", head[252:256]),
+        "quatern": struct.unpack("<6f", head[256:280]),
+        "srow": struct.unpack("<12f", head[280:328]),
+    }
+
+
+def seven_labels() -> np.ndarray:
+    """Nested boxes of a FreeSurfer-like labelling: 3 grey around 2 white around 4, a
+    cerebellum split into 7 and 8, a table 99 under it and a blob of 98 in a corner."""
+    a = np.zeros((20, 18, 14), np.int16)
+    a[2:18, 2:16, 2:12] = 3
+    a[5:15, 7:13, 5:10] = 2
+    a[8:12, 9:11, 6:8] = 4
+    a[2:10, 2:6, 2:6] = 7
+    a[10:18, 2:6, 2:6] = 8
+    a[:, :, 0] = 99
+    a[0:2, 16:18, 12:14] = 98
+    return a
+
+
+CONFIG = {
+    "labels": {"map": {2: "white_matter", 3: "grey_matter", 7: "cerebellum", 8: "cerebellum"}, "drop": [98, 99]},
+    "materials": [
+        {"name": "cerebellum", "youngs_modulus": 0.002, "poissons_ratio": 0.49, "density": 1.04e-9},
+        {"name": "white_matter", "youngs_modulus": 0.003, "poissons_ratio": 0.49, "density": 1.04e-9},
+        {"name": "grey_matter", "youngs_modulus": 0.001, "poissons_ratio": 0.49, "density": 1.04e-9},
+    ],
+}
+
+
+def _cli(*args) -> int:
+    return main([str(a) for a in args])
+
+
+@pytest.fixture
+def labelled(tmp_path):
+    src = tmp_path / "aseg.nii.gz"
+    write_nifti(src, seven_labels())
+    config = tmp_path / "labels.yaml"
+    config.write_text(yaml.safe_dump(CONFIG))
+    return src, config
+
+
+def test_resolve_materials_map_drop_merge():
+    config = load_config(settings=CONFIG)
+    lut, materials = resolve_materials([0, 2, 3, 4, 7, 8, 98, 99], config)
+    assert lut == {0: 0, 2: 1, 3: 2, 4: 3, 7: 4, 8: 4, 98: 0, 99: 0}
+    assert [m["name"] for m in materials] == ["white_matter", "grey_matter", "label_4", "cerebellum"]
+    assert materials[0]["youngs_modulus"] == 0.003 and materials[3]["youngs_modulus"] == 0.002
+    assert materials[2] == {"name": "label_4", "youngs_modulus": 1000.0, "poissons_ratio": 0.3, "density": 1.0e-9}
+
+
+def test_yaml_and_settings_keys_give_one_config(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("labels:\n  map: {3: brain}\n")
+    assert load_config(path)["labels"] == load_config(settings={"labels": {"map": {"3": "brain"}}})["labels"]
+    assert load_config(sets=["labels.map.3=brain"])["labels"]["map"] == {"3": "brain"}
+
+
+@pytest.mark.parametrize("labels, message", [
+    ({"map": {"x": "brain"}}, "labels.map"),
+    ({"map": {"3": "9brain"}}, "labels.map.3"),
+    ({"map": {"3": "brain"}, "drop": [3]}, "both in labels.map and in labels.drop"),
+])
+def test_bad_labels_section(labels, message):
+    with pytest.raises(DicerError, match=re.escape(message)):
+        load_config(settings={"labels": labels})
+
+
+def test_run_labels_end_to_end(labelled, tmp_path, caplog):
+    src, config = labelled
+    out = tmp_path / "out"
+    caplog.set_level("INFO", logger="dicer")
+    assert _cli("run", "--labels", src, "-o", out, "--config", config) == 0
+    assert "labels: no materials entry for label_4: default properties" in caplog.text
+    # the mapped labels keep the input's header: grid, qform, sform and codes
+    assert affine(out / "labels.nii.gz") == affine(src)
+    mapped = read_labels(out / "labels.nii.gz").array
+    assert sorted(np.unique(mapped).tolist()) == [0, 1, 2, 3, 4]
+    assert np.array_equal(mapped == 4, np.isin(seven_labels(), (7, 8)))
+    assert not np.any(mapped[:, :, 0]) and not (out / "labels_ds.nii.gz").exists()  # factor 1: no downsample
+    # the fixed labels (written through ITK) keep the placement too
+    fixed = affine(out / "labels_fixed.nii.gz")
+    assert fixed["srow"] == affine(src)["srow"] and fixed["pixdim"] == affine(src)["pixdim"]
+    deck = (out / "model.inp").read_text()
+    elsets = re.findall(r"^\*ELEMENT, TYPE=C3D8, ELSET=(\w+)$", deck, flags=re.M)
+    assert elsets == ["white_matter", "grey_matter", "label_4", "cerebellum"]
+    assert "*MATERIAL, NAME=cerebellum\n*ELASTIC\n0.002," in deck
+    assert "LABEL_98" not in deck.upper() and "LABEL_99" not in deck.upper() and "LABEL_7" not in deck.upper()
+    materials = json.loads((out / "materials.json").read_text())
+    assert [m["name"] for m in materials["materials"]] == ["white_matter", "grey_matter", "label_4", "cerebellum"]
+    assert materials["values"]["99"] == "background" and materials["values"]["8"] == "cerebellum"
+    names = ["white_matter", "grey_matter", "label_4", "cerebellum"]
+    for name in ("mesh.vtu", "merged.vtu", "smoothed.vtu", "model.vtu"):
+        assert read_mesh(out / name).names == names, name
+    assert meshio.read(out / "model.vtu").field_data["cerebellum"].tolist() == [4, 3]  # meshio's [tag, dim]
+    # a rerun writes the same bytes
+    first = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert _cli("run", "--labels", src, "-o", tmp_path / "again", "--config", config) == 0
+    for name, data in first.items():
+        assert (tmp_path / "again" / name).read_bytes() == data, name
+
+
+def test_run_labels_defaults_without_map(tmp_path, caplog):
+    src = tmp_path / "seg.nii.gz"
+    a = np.zeros((12, 10, 8), np.int16)
+    a[2:10, 2:8, 2:6] = 5
+    a[4:8, 4:6, 3:5] = 12
+    write_nifti(src, a)
+    out = tmp_path / "out"
+    caplog.set_level("INFO", logger="dicer")
+    assert _cli("run", "--labels", src, "-o", out) == 0
+    err = caplog.text
+    assert "no labels.map in the config: each of the 2 label value(s) is its own material" in err
+    assert "default properties" in err
+    assert affine(out / "labels.nii.gz") == affine(src)
+    mapped = read_labels(out / "labels.nii.gz").array
+    assert np.array_equal(mapped, np.where(a == 5, 1, np.where(a == 12, 2, 0)))
+    deck = (out / "model.inp").read_text()
+    assert re.findall(r"^\*ELEMENT, TYPE=C3D8, ELSET=(\w+)$", deck, flags=re.M) == ["label_5", "label_12"]
+    assert read_mesh(out / "model.vtu").names == ["label_5", "label_12"]
+
+
+def test_run_labels_with_downsample_keeps_placement(labelled, tmp_path):
+    src, config = labelled
+    out = tmp_path / "out"
+    assert _cli("run", "--labels", src, "-o", out, "--config", config, "--set", "downsample.factor=2") == 0
+    ds = affine(out / "labels_ds.nii.gz")
+    # the first voxel's corner stays where it was: its centre moves half a coarse voxel inwards
+    assert ds["srow"][3::4] == tuple(o + 0.75 for o in OFFSET)
+    assert ds["srow"][0::5] == (3.0, 3.0, 3.0) and ds["pixdim"] == (3.0, 3.0, 3.0)
+
+
+def test_run_needs_image_or_labels(labelled, tmp_path, capsys):
+    src, config = labelled
+    assert _cli("run", "-o", tmp_path / "o") == 2
+    assert "give either an IMAGE" in capsys.readouterr().err
+    assert _cli("run", src, "--labels", src, "-o", tmp_path / "o") == 2
+    assert not (tmp_path / "o").exists()
+
+
+def test_run_labels_all_dropped_is_one_error(tmp_path, capsys):
+    src = tmp_path / "seg.nii.gz"
+    a = np.zeros((6, 6, 6), np.int16)
+    a[1:5, 1:5, 1:5] = 3
+    write_nifti(src, a)
+    out = tmp_path / "out"
+    assert _cli("run", "--labels", src, "-o", out, "--set", "labels.drop=[3]") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"error: {src}: no labelled voxels are left") and "labels.drop" in err[-1]
+    assert not out.exists()
+
+
+def test_stage_commands_with_materials_file(labelled, tmp_path):
+    src, config = labelled
+    assert _cli("labels", src, "-o", tmp_path / "l.nii.gz", "--materials", tmp_path / "m.json",
+                "--config", config) == 0
+    assert _cli("fix", tmp_path / "l.nii.gz", "-o", tmp_path / "f.nii.gz", "--materials", tmp_path / "m.json") == 0
+    assert _cli("mesh", tmp_path / "f.nii.gz", "-o", tmp_path / "m.vtu", "--materials", tmp_path / "m.json") == 0
+    assert read_mesh(tmp_path / "m.vtu").names[3] == "cerebellum"
+    # without the materials file the config's two default materials are too few
+    assert _cli("mesh", tmp_path / "f.nii.gz", "-o", tmp_path / "n.vtu") == 2
+    for ext in ("msh", "k", "vtu"):
+        assert _cli("export", tmp_path / "m.vtu", "-o", tmp_path / f"model.{ext}",
+                    "--materials", tmp_path / "m.json") == 0
+    # Gmsh: $PhysicalNames read back by meshio
+    msh = meshio.read(tmp_path / "model.msh")
+    assert {k: int(v[0]) for k, v in msh.field_data.items()} == {
+        "white_matter": 1, "grey_matter": 2, "label_4": 3, "cerebellum": 4}
+    assert all(int(v[1]) == 3 for v in msh.field_data.values())
+    # LS-DYNA: *PART titles are the material names, PID the label
+    k = (tmp_path / "model.k").read_text()
+    parts = re.findall(r"^\*PART\n(\w+)\n\$#[^\n]*\n\s*(\d+)", k, flags=re.M)
+    assert parts == [("white_matter", "1"), ("grey_matter", "2"), ("label_4", "3"), ("cerebellum", "4")]
+    assert read_mesh(tmp_path / "model.vtu").names == ["white_matter", "grey_matter", "label_4", "cerebellum"]
+
+
+def test_order2_vtu_has_names(labelled, tmp_path):
+    src, config = labelled
+    out = tmp_path / "out"
+    assert _cli("run", "--labels", src, "-o", out, "--config", config) == 0
+    assert _cli("export", out / "smoothed.vtu", "-o", tmp_path / "q.vtu", "--order", "2",
+                "--materials", out / "materials.json") == 0
+    m = meshio.read(tmp_path / "q.vtu")
+    assert {k: v.tolist() for k, v in m.field_data.items()} == {
+        "white_matter": [1, 3], "grey_matter": [2, 3], "label_4": [3, 3], "cerebellum": [4, 3]}

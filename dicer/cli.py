@@ -12,6 +12,7 @@ import contextlib
 import json
 import logging
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -482,7 +483,9 @@ def cmd_run(args):
 
     With --labels: labels (map the given label volume to materials) -> downsample (only when
     downsample.factor or voxel_size is set) -> fix -> ... as above.
-    On failure the files this run wrote are removed again, so no partial result is left.
+    The stages write into a staging folder beside OUTDIR; a finished run moves its files
+    into OUTDIR, a failed one leaves OUTDIR as it was and its finished stage files in
+    OUTDIR.failed (named in the error).
     """
     if (args.image is None) == (args.labels is None):
         raise DicerError("dicer run: give either an IMAGE to segment or --labels LABELS (a label volume), "
@@ -491,44 +494,95 @@ def cmd_run(args):
     outdir = Path(args.output)
     if outdir.exists() and not outdir.is_dir():
         raise DicerError(f"{outdir}: exists and is not a folder; give an output folder with -o")
-    created_dir = not outdir.exists()
-    before = {name: (outdir / name).exists() for name in RUN_OUTPUTS}
+    # every stage writes into a staging folder beside OUTDIR; only a finished run moves its
+    # files into OUTDIR (an existing OUTDIR keeps its old files until then), and a failed
+    # one leaves its finished, checked stage files in OUTDIR.failed for a look or a report
+    staging = outdir.parent / f".{outdir.name}.partial"
+    failed = outdir.parent / f"{outdir.name}.failed"
+    if staging.exists():
+        shutil.rmtree(staging)
+    staging.mkdir(parents=True)
     t0 = time.perf_counter()
+    stage = "start"
 
     def path(name: str) -> Path:
-        return outdir / name
+        return staging / name
+
+    def step(name: str) -> None:
+        nonlocal stage
+        stage = name
 
     try:
         if args.labels is not None:
+            step("labels")
             source = args.labels
             config["materials"] = do_labels(args.labels, path("labels.nii.gz"), config, path("materials.json"))
         else:
+            step("segment")
             source = args.image
             do_segment(args.image, path("labels.nii.gz"), config, overlay=path("segmentation.png"),
                        info_path=path("segmentation.json"), plot=path("thresholds.png"))
         fix_input = path("labels.nii.gz")
         if args.labels is None or downsample_applies(config):
+            step("downsample")
             do_downsample(str(path("labels.nii.gz")), path("labels_ds.nii.gz"), config)
             fix_input = path("labels_ds.nii.gz")
+        step("fix")
         do_fix(str(fix_input), path("labels_fixed.nii.gz"), config, path("fix.json"))
+        step("mesh")
         do_mesh(str(path("labels_fixed.nii.gz")), path("mesh.vtu"), config)
+        step("merge")
         do_merge(str(path("mesh.vtu")), path("merged.vtu"), config, path("merge.json"))
+        step("smooth")
         do_smooth(str(path("merged.vtu")), path("smoothed.vtu"), config, path("smooth.json"))
+        step("export")
         for name in ("model.inp", "model.vtu"):
             do_export(str(path("smoothed.vtu")), path(name), config, input_name=source)
+        step("quality")
         pictures = [str(path(n)) for n in ("segmentation.png", "thresholds.png") if path(n).exists()]
         do_quality(str(path("smoothed.vtu")), path("quality.json"), config,
                    labels_path=str(path("labels_fixed.nii.gz")), html=str(path("report.html")), pictures=pictures,
                    stage_reports=[str(path(n)) for n in ("fix.json", "merge.json", "smooth.json")])
-    except BaseException:
-        with contextlib.suppress(OSError):
-            for name, existed in before.items():
-                if not existed:
-                    (outdir / name).unlink(missing_ok=True)
-            if created_dir and outdir.is_dir() and not any(outdir.iterdir()):
-                outdir.rmdir()
+    except BaseException as exc:
+        kept = _keep_failed(staging, failed)
+        if isinstance(exc, DicerError):
+            where = f"; its finished stage files are in {failed}" if kept else ""
+            # the stage named its file in the staging folder: name it where it now is
+            message = str(exc).replace(str(staging), str(failed)) if kept else str(exc)
+            raise DicerError(f"{message} (dicer run stopped at the {stage} stage{where})") from None
         raise
-    log.info("run: finished in %.1f s; model in %s", time.perf_counter() - t0, path("model.inp"))
+    _publish(staging, outdir)
+    log.info("run: finished in %.1f s; model in %s", time.perf_counter() - t0, outdir / "model.inp")
+
+
+def _keep_failed(staging: Path, failed: Path) -> bool:
+    """Move a failed run's staging folder to ``failed`` (replacing an older one); False if
+    it held no file."""
+    with contextlib.suppress(OSError):
+        if not any(staging.iterdir()):
+            staging.rmdir()
+            return False
+        if failed.exists():
+            shutil.rmtree(failed)
+        staging.rename(failed)
+        return True
+    return False
+
+
+def _publish(staging: Path, outdir: Path) -> None:
+    """Move a finished run's files into ``outdir``: each file by an atomic rename over the
+    old one, then the results of an earlier run that this one did not write are removed
+    (so the folder never mixes two runs' results)."""
+    outdir.mkdir(parents=True, exist_ok=True)
+    written = {p.name for p in staging.iterdir()}
+    for name in sorted(written):
+        os.replace(staging / name, outdir / name)
+    for name in RUN_OUTPUTS:
+        if name not in written:
+            (outdir / name).unlink(missing_ok=True)
+    staging.rmdir()
+
+
 
 
 # --- parser ---------------------------------------------------------------------------

@@ -104,3 +104,37 @@ def test_sigterm_keeps_no_partial_output(tmp_path):
     assert [line for line in err.splitlines() if line.startswith("error:")] == [
         "error: terminated (SIGTERM, e.g. a cluster time limit); no output of the unfinished step was kept"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy"]
+
+
+def test_a_failed_run_leaves_the_old_results_and_keeps_its_stage_files(tmp_path):
+    from dicer.cli import main
+
+    image = tmp_path / "head.nii.gz"
+    assert main(["phantom", "head", "-o", str(image), "-q"]) == 0
+    out = tmp_path / "out"
+    args = ["run", str(image), "-o", str(out), "-q", "--set", "downsample.factor=4"]
+    assert main(args) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert "model.inp" in before and not (tmp_path / ".out.partial").exists()
+    assert main(args + ["--set", "smooth.min_scaled_jacobian=0.99", "--set", "smooth.max_backoff_rounds=0"]) == 2
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    failed = tmp_path / "out.failed"
+    assert {"labels_fixed.nii.gz", "mesh.vtu", "merged.vtu", "fix.json"} <= {p.name for p in failed.iterdir()}
+    assert not (failed / "smoothed.vtu").exists() and not (tmp_path / ".out.partial").exists()
+    # a finished run replaces every result of the earlier one
+    assert main(args) == 0
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_a_failed_run_names_its_stage_and_the_kept_files(tmp_path, capsys):
+    from dicer.cli import main
+
+    image = tmp_path / "head.nii.gz"
+    assert main(["phantom", "head", "-o", str(image), "-q"]) == 0
+    out = tmp_path / "new"
+    assert main(["run", str(image), "-o", str(out), "-q", "--set", "downsample.factor=4",
+                 "--set", "smooth.min_scaled_jacobian=0.99", "--set", "smooth.max_backoff_rounds=0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and str(tmp_path / "new.failed") in err[0]
+    assert "stopped at the smooth stage" in err[0] and ".partial" not in err[0]
+    assert not out.exists()

@@ -17,6 +17,7 @@ from dicer.errors import DicerError
 from dicer.export import export_mesh, prepare_model
 from dicer.export.febio import read_febio
 from dicer.mesh.voxel import voxel_mesh
+from test_export_formats import labels, mesh  # noqa: F401  (the same two-material model)
 
 # From the Exodus II element documentation (1-based): the corners of each side of a
 # hexahedron, and the edges whose mid-edge node is HEX20 node 9..20 (PATRAN's order:
@@ -31,19 +32,6 @@ FEBIO_HEX20_EDGES = [(1, 2), (2, 3), (3, 4), (4, 1), (5, 6), (6, 7), (7, 8), (8,
                      (1, 5), (2, 6), (3, 7), (4, 8)]
 
 
-@pytest.fixture
-def labels():
-    lab = np.zeros((3, 4, 5), np.uint8)
-    lab[:, :, :2] = 1
-    lab[:, 1:3, 2:] = 2
-    return lab
-
-
-@pytest.fixture
-def mesh(labels):
-    m = voxel_mesh(labels, spacing=(0.5, 0.75, 1.25), origin=(-1.0, 2.0, 0.5))
-    m.points += np.random.default_rng(0).uniform(-0.05, 0.05, m.points.shape)
-    return m
 
 
 @pytest.fixture

@@ -499,9 +499,13 @@ def cmd_run(args):
     # one leaves its finished, checked stage files in OUTDIR.failed for a look or a report
     staging = outdir.parent / f".{outdir.name}.partial"
     failed = outdir.parent / f"{outdir.name}.failed"
-    if staging.exists():
-        shutil.rmtree(staging)
-    staging.mkdir(parents=True)
+    try:
+        if staging.exists():
+            shutil.rmtree(staging)
+        staging.mkdir(parents=True)
+    except OSError as exc:
+        raise DicerError(f"{outdir}: cannot write to folder {outdir.parent} ({exc.strerror}); choose a writable "
+                         "output folder") from None
     t0 = time.perf_counter()
     stage = "start"
 

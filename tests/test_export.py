@@ -114,11 +114,12 @@ def test_abaqus_deck_content(tmp_path, mesh, labels, config):
     info = export_mesh(mesh, tmp_path / "model.inp", config, source=src)
     text = (tmp_path / "model.inp").read_text()
     assert info["nodes"] == mesh.n_points and info["elements"] == mesh.n_cells and info["verified"]
-    # provenance: version, input name and checksum, config hash, and no folder or date
+    # provenance: version, the input's checksum, config hash; no name (a DICOM folder's name
+    # can be a patient's), folder or date
     head = text.split("*NODE")[0]
     assert head.startswith("*HEADING\ndicer ")
     assert hashlib.sha256(b"not really an image").hexdigest() in head
-    assert config_hash(config) in head and "scan.nii.gz" in head and str(tmp_path) not in head
+    assert config_hash(config) in head and "scan" not in head and str(tmp_path) not in head
     assert not re.search(r"20\d\d-\d\d-\d\d", text)
     blocks = _blocks(text)
     # nodes numbered 1..N in mesh order, coordinates to 9 significant digits
@@ -415,3 +416,12 @@ def test_cli_exports_every_format(tmp_path, mesh):
         assert (tmp_path / name).stat().st_size > 0
     assert main(["export", str(tmp_path / "mesh.vtu"), "-o", str(tmp_path / "q.inp"), "--order", "2"]) == 0
     assert "TYPE=C3D20," in (tmp_path / "q.inp").read_text()
+
+
+def test_a_dicom_folder_name_never_reaches_the_deck(tmp_path, mesh, config):
+    series = tmp_path / "DOE_JOHN_MRN12345"
+    series.mkdir()
+    (series / "im001.dcm").write_bytes(b"slice")
+    for suffix in (".inp", ".k", ".out", ".feb", ".exo"):
+        export_mesh(mesh, tmp_path / f"model{suffix}", config, source=series)
+        assert b"DOE" not in (tmp_path / f"model{suffix}").read_bytes()

@@ -147,12 +147,13 @@ def file_sha256(path: str | os.PathLike | None) -> str | None:
 
 
 def provenance(source: str | os.PathLike | None, config: dict, element_type: str, order: int) -> list[str]:
-    """Heading lines: dicer version, input name (no folder) and checksum, config hash; no date."""
-    name = Path(source).name if source else "unknown"
+    """Heading lines: dicer version, the input's checksum, config hash; no name, path or date."""
+    # the input is named by its content only: a file or folder name can hold a patient's
+    # name (DICOM folders often do), and no identifier may reach a deck
     digest = file_sha256(source) or "n/a"
     return [
-        f"dicer {__version__} {element_type} model (order {order}) of {name}",
-        f"input {name} sha256 {digest}",
+        f"dicer {__version__} {element_type} model (order {order})",
+        f"input sha256 {digest}",
         f"config sha256/16 {config_hash(config)}",
     ]
 

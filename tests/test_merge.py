@@ -4,7 +4,7 @@ import contextlib
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
@@ -408,6 +408,110 @@ def test_random_2d_volumes_stay_sound(labels, passes):
     assert_sound(out)
     assert neighbour_counts(out).max() <= 4
 
+
+
+# --- merged meshes are smoothable: a node is corner c of at most one element -------------
+
+
+def corner_clashes(mesh):
+    """(node, corner position) pairs held by two or more elements. Smoothing's corner table
+    needs none: in a lattice-aligned mesh a node is corner c only of the element in its
+    c-th octant."""
+    per = mesh.cells.shape[1]
+    key = mesh.cells.astype(np.int64) * per + np.arange(per)
+    return int(np.count_nonzero(np.bincount(key.ravel()) > 1))
+
+
+def assert_merges_and_smooths(labels, **options):
+    from dicer.mesh.smooth import smooth_mesh
+
+    out, report = merge_planes(voxel_mesh(labels), **options)
+    assert corner_clashes(out) == 0
+    assert_sound(out)
+    _, smoothed = smooth_mesh(out, None)  # refuses a node that is the same corner of two elements
+    assert smoothed["inverted_elements"] == 0 and smoothed["min_scaled_jacobian"] >= 0.2, smoothed
+    return out, report, smoothed
+
+
+@pytest.mark.parametrize("rim_moves", [True, False])
+def test_chamfers_of_two_axes_do_not_split_an_empty_voxel(rim_moves):
+    # [x, y] of a volume one voxel thick. The x merge slopes the element of voxel (3, 3)
+    # into the empty voxel (2, 3) from the right, the y merge slopes that of voxel (2, 2)
+    # into it from below: each fills half of it and both held node (2, 4, 0) as corner 3,
+    # so smoothing refused the mesh (it merged to 9 elements). The y step now keeps the
+    # region of that chamfer.
+    labels = np.array([[0, 0, 0, 0, 1], [1, 1, 1, 1, 1], [0, 2, 2, 0, 2], [0, 1, 2, 1, 2]], np.uint8)[:, :, None]
+    assert np.array_equal(fixed(labels), labels)
+    out, report, smoothed = assert_merges_and_smooths(labels, rim_moves=rim_moves)
+    assert (out.n_cells, out.n_points) == (10, 36)
+    assert [s["elements_after"] for s in report["steps"]] == [11, 10, 10]
+    assert report["steps"][1]["shared_corners"] == 2 and report["steps"][1]["blocked_connectivity"] == 1
+    assert smoothed["min_scaled_jacobian"] >= 0.6
+
+
+@pytest.mark.parametrize("labels, passes, counts", [
+    # 2D [x, y]: the x merge joins rim node (3, 3) to node (4, 3), so the element of voxel
+    # (2, 3) fills half of the empty voxel (3, 3); the y merge sloped the element of voxel
+    # (3, 4) down into the other half, both holding (4, 3) as corner 1 (merged to 9)
+    ([[1, 0, 0, 0, 0, 0, 0, 0], [0, 0, 0, 0, 0, 1, 1, 1], [0, 0, 0, 1, 2, 2, 0, 1],
+      [0, 0, 0, 0, 2, 2, 2, 2], [0, 0, 0, 2, 2, 0, 0, 0]], (1, 2), (14, 10, 21)),
+    # 3D, default passes: the same after an x merge with joined rim nodes (merged to 25)
+    ([[[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 1, 0]],
+      [[0, 0, 0, 0], [1, 1, 0, 0], [1, 1, 1, 0], [0, 0, 1, 0]],
+      [[0, 0, 0, 0], [2, 2, 0, 0], [1, 1, 1, 0], [0, 0, 0, 0]],
+      [[0, 0, 0, 0], [1, 0, 0, 0], [1, 1, 1, 0], [0, 0, 1, 0]],
+      [[0, 0, 0, 0], [1, 0, 0, 0], [0, 0, 0, 0], [0, 0, 1, 0]],
+      [[0, 0, 0, 0], [1, 0, 0, 0], [0, 0, 1, 1], [0, 0, 1, 1]],
+      [[0, 0, 0, 1], [1, 0, 0, 1], [0, 0, 1, 1], [0, 0, 0, 2]]], (1, 1, 1), (30, 26, 81)),
+])
+def test_a_joined_rim_node_and_a_later_chamfer_do_not_share_a_corner(labels, passes, counts):
+    labels = np.array(labels, np.uint8)
+    assert np.array_equal(fixed(labels), labels)
+    out, report, _ = assert_merges_and_smooths(labels, passes=passes)
+    assert (report["elements_before"], out.n_cells, out.n_points) == counts
+    assert sum(s["rim_nodes_joined"] for s in report["steps"] if s["axis"] == "x") >= 1
+    assert sum(s.get("shared_corners", 0) for s in report["steps"]) == 2
+
+
+def touches_every_bounding_plane(labels):
+    return all(np.take(labels, i, axis=d).any() for d in range(labels.ndim) for i in (0, -1))
+
+
+@st.composite
+def multi_material_volumes(draw, dim):
+    """Noise of background and two materials, made well connected, with material on every
+    bounding plane. 3D: one to three noise slices, each repeated one to three times, stacked
+    along a random axis; in such thin layered volumes chamfers of two axes meet often."""
+    noise = arrays(np.uint8, st.tuples(st.integers(8, 24), st.integers(8, 24)), elements=st.integers(0, 2),
+                   fill=st.nothing())  # every voxel drawn: noise, not one value with a few others
+    if dim == 2:
+        labels = draw(noise)
+    else:
+        first = draw(noise)
+        same_shape = arrays(np.uint8, first.shape, elements=st.integers(0, 2), fill=st.nothing())
+        slices = [first] + draw(st.lists(same_shape, max_size=2))
+        repeat = draw(st.lists(st.integers(1, 3), min_size=len(slices), max_size=len(slices)))
+        labels = np.moveaxis(np.stack(slices, axis=2).repeat(repeat, axis=2), 2, draw(st.integers(0, 2)))
+    labels = fixed(labels)
+    assume(touches_every_bounding_plane(labels) and np.unique(labels[labels > 0]).size == 2)
+    return labels
+
+
+# Before merging refused a node at the same corner of two elements, about 1 example in 30
+# (2D) and 1 in 10 (3D) failed, so these counts catch it nearly always (about 10 s each).
+_SMOOTHABLE = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much])
+
+
+@settings(max_examples=400, **_SMOOTHABLE)
+@given(multi_material_volumes(2), st.tuples(st.integers(1, 2), st.integers(1, 2)), st.booleans())
+def test_random_2d_volumes_merge_to_smoothable_meshes(labels, passes, y_first):
+    assert_merges_and_smooths(labels, passes=passes, axes=(1, 0, 2) if y_first else (0, 1, 2))
+
+
+@settings(max_examples=150, **_SMOOTHABLE)
+@given(multi_material_volumes(3), st.tuples(*[st.integers(1, 2)] * 3), st.permutations([0, 1, 2]), st.booleans())
+def test_random_3d_volumes_merge_to_smoothable_meshes(labels, passes, axes, rim_moves):
+    assert_merges_and_smooths(labels, passes=passes, axes=tuple(axes), rim_moves=rim_moves)
 
 def test_config_section_drives_the_merge():
     from dicer.mesh.merge import DEFAULTS, merge_mesh

@@ -97,7 +97,13 @@ def test_sigterm_keeps_no_partial_output(tmp_path):
     out = tmp_path / "mesh.vtu"
     proc = subprocess.Popen([sys.executable, "-m", "dicer", "mesh", str(labels), "-o", str(out)],
                             stderr=subprocess.PIPE, text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
-    time.sleep(2.5)  # imports, then meshing and writing 3.4 M hexahedra take several seconds
+    # signal while the mesh is being written: its temporary file exists from the start of
+    # the write to the rename after the read-back check
+    deadline = time.monotonic() + 120
+    while not list(tmp_path.glob(".mesh.vtu.*.tmp*")):
+        assert proc.poll() is None, "the command ended before it began writing"
+        assert time.monotonic() < deadline
+        time.sleep(0.005)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 143, err

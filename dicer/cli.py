@@ -358,13 +358,13 @@ def do_mesh(labels_path: str, out: Path, config: dict):
     return mesh
 
 
-def do_export(mesh_path: str, out: Path, config: dict, input_name: str | None = None):
+def do_export(mesh_path: str, out: Path, config: dict):
     from dicer.export import export_mesh
     from dicer.io.meshes import read_mesh
 
     with _Stage("export"):
         mesh = read_mesh(mesh_path)
-        info = export_mesh(mesh, out, config, source=input_name or mesh_path)
+        info = export_mesh(mesh, out, config, source=mesh_path)
         log.info("export: wrote %s (%s)", out, json.dumps(info, sort_keys=True))
 
 
@@ -519,11 +519,9 @@ def cmd_run(args):
     try:
         if args.labels is not None:
             step("labels")
-            source = args.labels
             config["materials"] = do_labels(args.labels, path("labels.nii.gz"), config, path("materials.json"))
         else:
             step("segment")
-            source = args.image
             do_segment(args.image, path("labels.nii.gz"), config, overlay=path("segmentation.png"),
                        info_path=path("segmentation.json"), plot=path("thresholds.png"))
         fix_input = path("labels.nii.gz")
@@ -541,7 +539,7 @@ def cmd_run(args):
         do_smooth(str(path("merged.vtu")), path("smoothed.vtu"), config, path("smooth.json"))
         step("export")
         for name in ("model.inp", "model.vtu"):
-            do_export(str(path("smoothed.vtu")), path(name), config, input_name=source)
+            do_export(str(path("smoothed.vtu")), path(name), config)
         step("quality")
         pictures = [str(path(n)) for n in ("segmentation.png", "thresholds.png") if path(n).exists()]
         do_quality(str(path("smoothed.vtu")), path("quality.json"), config,

@@ -148,3 +148,18 @@ def test_console_script_exit_status(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.strip().startswith("error: ") and "none.npy" in proc.stderr
     assert not (tmp_path / "m.vtu").exists()
+
+
+def test_model_heading_is_the_same_from_run_and_from_the_stage(tmp_path):
+    # the provenance heading depends on the exported mesh and the export settings only,
+    # so dicer run and dicer export (and the workflow's export rule) write the same lines
+    from dicer.cli import main
+
+    image = tmp_path / "head.nii.gz"
+    assert main(["phantom", "head", "-o", str(image), "-q"]) == 0
+    out = tmp_path / "out"
+    assert main(["run", str(image), "-o", str(out), "-q", "--set", "downsample.factor=4"]) == 0
+    assert main(["export", str(out / "smoothed.vtu"), "-o", str(tmp_path / "again.inp"), "-q"]) == 0
+    head = (out / "model.inp").read_text().split("*NODE")[0]
+    assert head == (tmp_path / "again.inp").read_text().split("*NODE")[0]
+    assert "mesh sha256 " in head and "head.nii" not in head

@@ -184,3 +184,16 @@ def test_row_with_image_and_labels_is_refused(tmp_path):
     proc = _snakemake(workdir, "-n", check=False)
     assert proc.returncode != 0
     assert "give either an image or a labels file" in proc.stdout + proc.stderr
+
+
+def test_workflow_heading_equals_the_stage_commands(cohort, tmp_path):
+    # the workflow's export rule gets only the export sections; the heading depends on
+    # nothing else, so exporting the same mesh by hand gives the same heading
+    folder = cohort / "results" / "head"
+    again = tmp_path / "again.inp"
+    proc = subprocess.run(["dicer", "export", str(folder / "smoothed.vtu"), "-o", str(again), "-q",
+                           "--config", str(cohort / "config" / "config.yaml")],
+                          capture_output=True, text=True, env=_env(), timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    head = (folder / "model.inp").read_text().split("*NODE")[0]
+    assert head == again.read_text().split("*NODE")[0] and "mesh sha256 " in head

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from dicer import __version__
-from dicer.config import SET_KINDS, config_hash, name_clash
+from dicer.config import SET_KINDS, config_hash, name_clash, stage_settings
 from dicer.errors import DicerError
 from dicer.image import MAX_LABEL
 from dicer.io.atomic import atomic_path
@@ -147,14 +147,20 @@ def file_sha256(path: str | os.PathLike | None) -> str | None:
 
 
 def provenance(source: str | os.PathLike | None, config: dict, element_type: str, order: int) -> list[str]:
-    """Heading lines: dicer version, the input's checksum, config hash; no name, path or date."""
+    """Heading lines: dicer version, the checksum of the mesh the deck is made from, the
+    hash of the settings export reads; no name, path or date.
+
+    The same for ``dicer run``, ``dicer export`` and the workflow: each exports the same
+    smoothed mesh file with the same ``materials`` and ``export`` sections (what happened
+    upstream is in that mesh), so the heading is the same byte for byte.
+    """
     # the input is named by its content only: a file or folder name can hold a patient's
     # name (DICOM folders often do), and no identifier may reach a deck
     digest = file_sha256(source) or "n/a"
     return [
         f"dicer {__version__} {element_type} model (order {order})",
-        f"input sha256 {digest}",
-        f"config sha256/16 {config_hash(config)}",
+        f"mesh sha256 {digest}",
+        f"config sha256/16 {config_hash(stage_settings(config, 'export'))}",
     ]
 
 

@@ -144,6 +144,26 @@ def test_bad_override_names_the_patient(tmp_path):
     assert "bone" in out and "downsample.factor" in out
 
 
+def test_missing_image_stops_the_run_unless_skipped(tmp_path):
+    workdir = _cohort(tmp_path, {"workflow": {"skip_missing": False}})
+    proc = _snakemake(workdir, "-n", check=False)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode != 0
+    assert "patients.tsv, line 4: patient 'absent': no/such/scan.nii.gz not found" in out
+    assert "workflow.skip_missing" in out
+
+
+def test_sheet_with_a_byte_order_mark_and_a_bad_column(tmp_path):
+    workdir = _cohort(tmp_path)
+    sheet = workdir / "config" / "patients.tsv"
+    sheet.write_bytes(b"\xef\xbb\xbf" + sheet.read_bytes())
+    assert _snakemake(workdir, "-n", check=False).returncode == 0
+    sheet.write_text(sheet.read_text(encoding="utf-8-sig").replace("patient\timage", "patient\tscan"))
+    proc = _snakemake(workdir, "-n", check=False)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode != 0 and "line 2: unknown column 'scan'" in out
+
+
 @pytest.mark.skipif(shutil.which("snakemake") is None and not (Path(sys.executable).parent / "snakemake").exists(),
                     reason="snakemake not installed")
 def test_lint_is_clean():

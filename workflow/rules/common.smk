@@ -36,17 +36,21 @@ def patient_file(name):
 def _read_patients(path):
     if not Path(path).exists():
         raise WorkflowError(f"{path}: cohort sheet not found; set workflow.patients in the config")
-    with open(path, newline="") as handle:
-        rows = [
-            {k: (v or "").strip() for k, v in row.items() if k}
-            for row in csv.DictReader(handle, delimiter="\t")
-        ]
+    try:
+        # utf-8-sig: a byte-order mark (spreadsheet exports) is not part of the first column's name
+        with open(path, newline="", encoding="utf-8-sig") as handle:
+            rows = [
+                {k: (v or "").strip() for k, v in row.items() if k}
+                for row in csv.DictReader(handle, delimiter="\t")
+            ]
+    except UnicodeDecodeError as exc:
+        raise WorkflowError(f"{path}: not UTF-8 text (byte {exc.start + 1}); save the cohort sheet as UTF-8")
     seen = set()
     for number, row in enumerate(rows, start=2):
         try:
             validate(row, "../schemas/patients.schema.yaml")
         except Exception as exc:
-            raise WorkflowError(f"{path}, line {number}: {str(exc).splitlines()[0]}")
+            raise WorkflowError(f"{path}, line {number}: {_sheet_problem(row, exc)}")
         if bool(row.get("image")) == bool(row.get("labels")):
             raise WorkflowError(f"{path}, line {number}: patient {row['patient']!r}: give either an image or "
                                 "a labels file (a label volume to mesh), not both and not neither")
@@ -56,16 +60,44 @@ def _read_patients(path):
     return rows
 
 
-def _available(row):
-    """Phantoms are made by the workflow; other images must exist (the real CT is optional)."""
+def _sheet_problem(row, exc):
+    """The cohort-sheet row's problem, naming the column (snakemake's validate says only
+    that the row is invalid)."""
+    import jsonschema
+    import yaml
+
+    schema = yaml.safe_load((Path(workflow.basedir) / "workflow" / "schemas" / "patients.schema.yaml").read_text())
+    errors = sorted(jsonschema.Draft202012Validator(schema).iter_errors(row), key=lambda e: list(e.path))
+    if not errors:
+        return str(exc).splitlines()[0]
+    err = errors[0]
+    if err.validator == "additionalProperties":
+        extra = sorted(set(row) - set(schema["properties"]))
+        return (f"unknown column {', '.join(map(repr, extra))}; the columns are "
+                f"{', '.join(schema['properties'])}")
+    if err.validator == "required":
+        return f"{err.message}; every row needs a patient code"
+    column = ".".join(map(str, err.path)) or "row"
+    return f"column {column!r}: {err.message}"
+
+
+def _available(row, number, sheet):
+    """Phantoms are made by the workflow; other images must exist, unless workflow.skip_missing."""
     image = row.get("image") or row["labels"]
     if Path(image).parent == Path(PHANTOM_DIR) or Path(image).exists():
         return True
+    if not CONFIG["workflow"]["skip_missing"]:
+        raise WorkflowError(f"{sheet}, line {number}: patient {row['patient']!r}: {image} not found; fix the "
+                            "path, or set workflow.skip_missing: true to skip such rows")
     print(f"dicer workflow: skipping patient {row['patient']}: {image} not found", file=sys.stderr)
     return False
 
 
-PATIENTS = {row["patient"]: row for row in _read_patients(CONFIG["workflow"]["patients"]) if _available(row)}
+PATIENTS = {
+    row["patient"]: row
+    for number, row in enumerate(_read_patients(CONFIG["workflow"]["patients"]), start=2)
+    if _available(row, number, CONFIG["workflow"]["patients"])
+}
 
 
 def _one_of(names):

@@ -105,6 +105,15 @@ class SolverModel:
     def n_cells(self) -> int:
         return int(self.cells.shape[0])
 
+    def face_sets(self) -> dict[str, np.ndarray]:
+        """Element-face set name -> (F, 2) rows (element index, face number): EXTERIOR, then
+        the interfaces (Exodus side sets, FEBio surfaces)."""
+        out = {}
+        if self.exterior is not None and self.exterior.size:
+            out["EXTERIOR"] = self.exterior
+        out.update(self.interfaces)
+        return out
+
     def name_list(self) -> list[str]:
         """Material names by label, 1..K (entry i names label i + 1)."""
         return [self.names[k] for k in range(1, max(self.names) + 1)]

@@ -70,14 +70,6 @@ def _names(var, names: list[str]) -> None:
     var[:] = data
 
 
-def _side_sets(model) -> dict[str, np.ndarray]:
-    sets = {}
-    if model.exterior is not None and model.exterior.size:
-        sets["EXTERIOR"] = model.exterior
-    sets.update(model.interfaces)
-    return sets
-
-
 def write_exodus(model, path: str | Path) -> None:
     """Write the SolverModel ``model`` as an Exodus II file at ``path`` (see the module notes)."""
     try:
@@ -102,7 +94,7 @@ def _write(model, path: str | Path) -> None:
     position = np.empty(model.n_cells, np.int64)  # element index -> 1-based position in the file
     position[block_order] = np.arange(1, model.n_cells + 1)
     node_sets = model.node_sets
-    side_sets = _side_sets(model)
+    side_sets = model.face_sets()
     all_names = [model.names[k] for k, _ in blocks] + list(node_sets) + list(side_sets)
     len_name = max([32] + [len(n) for n in all_names]) + 1
     # provenance without the input's name (it may name a patient): its checksum and the config hash
@@ -267,7 +259,7 @@ def check_exodus(path: str | Path, model) -> None:
             raise DicerError(f"node set {name} differs")
     position = np.empty(model.n_cells, np.int64)
     position[block_order] = np.arange(1, model.n_cells + 1)
-    want = _side_sets(model)
+    want = model.face_sets()
     if list(got["side_sets"]) != list(want):
         raise DicerError(f"side sets {list(got['side_sets'])} read back, expected {list(want)}")
     sides = side_numbers(model.dim)

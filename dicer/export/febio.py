@@ -64,15 +64,6 @@ def facets(model, faces: np.ndarray) -> np.ndarray:
     return model.cells[faces[:, 0][:, None], table[faces[:, 1] - 1]]
 
 
-def surfaces(model) -> dict[str, np.ndarray]:
-    """Surface name -> (F, 2) rows (element index, face number): EXTERIOR, then the interfaces."""
-    out = {}
-    if model.exterior is not None and model.exterior.size:
-        out["EXTERIOR"] = model.exterior
-    out.update(model.interfaces)
-    return out
-
-
 def _rows(stream, tag: bytes, ids: np.ndarray, values: np.ndarray, width: int, fmt: Sci | None = None) -> None:
     """Lines ``<tag id="ID">v1,v2,...</tag>`` for every row of ``values`` (ints, or floats with ``fmt``)."""
     indent = b"\t\t\t<" + tag + b' id="'
@@ -128,7 +119,7 @@ def write_febio(model, path: str | Path, material_type: str = "isotropic elastic
             w(text[:-1].replace(b"\n", b",\n") + b"\n")
             w(b"\t\t</NodeSet>\n")
         ftype = FACET_TYPES[model.order].encode()
-        for name, faces in surfaces(model).items():
+        for name, faces in model.face_sets().items():
             w(f'\t\t<Surface name="{name}">\n'.encode())
             _rows(f, ftype, np.arange(1, faces.shape[0] + 1), facets(model, faces) + 1, width)
             w(b"\t\t</Surface>\n")
@@ -336,7 +327,7 @@ def check_febio(path: str | Path, model, material_type: str = "isotropic elastic
     for name, ids in model.node_sets.items():
         if not np.array_equal(got["node_sets"][name], ids):
             raise DicerError(f"node set {name} differs")
-    want_s = surfaces(model)
+    want_s = model.face_sets()
     if list(got["surfaces"]) != list(want_s):
         raise DicerError(f"surfaces {list(got['surfaces'])} read back, expected {list(want_s)}")
     for name, faces in want_s.items():

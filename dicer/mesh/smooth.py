@@ -250,16 +250,16 @@ def _corner_slots(cells: np.ndarray, n_points: int) -> np.ndarray:
     return slots
 
 
-def _holding(slots: np.ndarray | None, nodes: np.ndarray, n_cells: int, cells: np.ndarray | None = None
-             ) -> np.ndarray:
+def _holding(slots: np.ndarray | None, nodes: np.ndarray, n_cells: int, cells: np.ndarray | None = None,
+             n_points: int = 0) -> np.ndarray:
     """(n_cells,) bool: the elements holding any of ``nodes`` (from the corner table, or
-    without one from ``cells``)."""
+    without one from ``cells`` of a mesh of ``n_points`` nodes)."""
     if slots is None:
-        mark = np.zeros(int(cells.max()) + 1, bool)
+        mark = np.zeros(n_points, bool)
         mark[nodes] = True
         out = np.zeros(n_cells, bool)
         for start in range(0, n_cells, _ROWS):
-            out[start : start + _ROWS] = mark[cells[start : start + _ROWS]].any(axis=1)
+            out[start + _touching(cells[start : start + _ROWS], mark)] = True
         return out
     cand = slots[:, nodes].ravel()
     mark = np.zeros(n_cells, bool)
@@ -291,7 +291,7 @@ def _band(cells: np.ndarray, slots: np.ndarray, boundary: np.ndarray, boundary_c
         if nodes.size == 0:
             break
         seen[nodes] = True
-        holding = _holding(slots, nodes, m, cells)
+        holding = _holding(slots, nodes, m, cells, n)
         # the next layer: elements not met before (the nodes of the others are all seen)
         layer_cells = np.flatnonzero(holding & ~in_cells)
         in_cells |= holding
@@ -376,7 +376,7 @@ class _InteriorGraph(_Interior):
         if m == 0:
             return
         local = HEX_EDGES if cells.shape[1] == 8 else QUAD_EDGES
-        near = _holding(None, band_nodes, cells.shape[0], cells)
+        near = _holding(None, band_nodes, cells.shape[0], cells, n)
         sub = cells[near]
         a = sub[:, local[:, 0]].ravel()
         b = sub[:, local[:, 1]].ravel()

@@ -36,6 +36,7 @@ import numpy as np
 from scipy import ndimage
 
 from dicer.errors import DicerError
+from dicer.mesh.merge import _lattice_boxes
 from dicer.mesh.metrics import element_volumes
 from dicer.mesh.model import HEX_CORNERS, LEVEL_DATA, QUAD_CORNERS, Mesh
 
@@ -354,13 +355,11 @@ def _voxels_of(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     lattice = np.asarray(mesh.lattice, np.int64)
     if lattice.shape != (mesh.n_points, 3) or lattice.min() < 0 or np.any(lattice[:, :dim].max(axis=0) > shape):
         raise DicerError("node lattice indices lie outside the image grid; remesh from the labels with 'dicer mesh'")
-    key, stride = _lattice_keys(lattice, shape)
-    offsets = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim] @ stride
-    for start in range(0, mesh.n_cells, _ROWS):
-        kc = key[mesh.cells[start : start + _ROWS]]
-        if not np.array_equal(kc - kc[:, :1], np.broadcast_to(offsets, kc.shape)):
-            raise DicerError("merge.method=templates needs a voxel mesh (one element per voxel, as 'dicer mesh' "
-                             "writes it); this mesh was merged or edited already")
+    # every element a lattice box (the test plane merging uses) of one voxel
+    box, size = _lattice_boxes(mesh.cells, lattice, dim)
+    if not (box.all() and np.all(size == 1)):
+        raise DicerError("merge.method=templates needs a voxel mesh (one element per voxel, as 'dicer mesh' "
+                         "writes it); this mesh was merged or edited already")
     first = lattice[mesh.cells[:, 0], :dim]
     if np.any(first >= np.asarray(shape)):
         raise DicerError("element lattice indices lie outside the image grid; remesh from the labels with 'dicer mesh'")

@@ -316,6 +316,7 @@ def _mesh_to_mesh(stage: str, func, mesh_path: str, out: Path, report_path: Path
         except DicerError as exc:
             raise DicerError(f"{mesh_path}: {exc}") from None
         result.names = list(mesh.names)  # the stages move nodes and elements, not materials
+        result.direction = mesh.direction  # nor the image's orientation (applied on export)
         write_mesh(result, out)
         _write_report(report_path, report)
     return result, report
@@ -348,8 +349,10 @@ def do_mesh(labels_path: str, out: Path, config: dict):
     with _Stage("mesh"):
         labels = read_labels(labels_path)
         _check_labels(labels, labels_path, config)
+        # mesh.coordinates: scanner keeps the image's direction cosines for the exports
+        direction = labels.direction if config["mesh"]["coordinates"] == "scanner" else None
         try:
-            mesh = voxel_mesh(labels.array, labels.spacing, labels.origin)
+            mesh = voxel_mesh(labels.array, labels.spacing, labels.origin, direction)
         except DicerError as exc:
             raise DicerError(f"{labels_path}: {exc}") from None
         mesh.names = [m["name"] for m in config["materials"]]

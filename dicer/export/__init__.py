@@ -25,6 +25,7 @@ from dicer.config import SET_KINDS, config_hash, name_clash, stage_settings
 from dicer.errors import DicerError
 from dicer.image import MAX_LABEL
 from dicer.io.atomic import atomic_path
+from dicer.mesh.frame import HEX20_MIRROR, HEX_FACE_MIRROR, HEX_MIRROR, mirrored, to_scanner
 from dicer.mesh.model import Mesh
 
 FORMATS = {
@@ -452,7 +453,35 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
                     model.node_sets["XYZ"[axis] + side] = ids
     if kinds & {"materials", "interfaces", "exterior"}:
         _surface_sets(model, kinds, nb_mat)
+    if mesh.direction is not None:
+        _to_scanner_frame(model, mesh)
     return model
+
+
+def _to_scanner_frame(model: SolverModel, mesh: Mesh) -> None:
+    """Move the model from the lattice frame into scanner coordinates (docs/coordinates.md).
+
+    Node sets and element numbers stay as they are; with a reflection in the direction
+    cosines the corners go in their mirrored order (else every element would be inverted)
+    and the bottom and top face numbers of the face sets swap with them.
+    """
+    model.points = to_scanner(model.points, mesh.spacing, mesh.origin, mesh.direction)
+    if mirrored(mesh.direction):
+        model.cells = model.cells[:, HEX_MIRROR if model.order == 1 else HEX20_MIRROR]
+        for rows in [model.exterior, *model.interfaces.values()]:
+            if rows is not None and rows.size:
+                rows[:, 1] = HEX_FACE_MIRROR[rows[:, 1]]
+                rows[:] = rows[np.lexsort((rows[:, 0], rows[:, 1]))]  # grouped by face number again
+
+
+def scanner_mesh(mesh: Mesh, model: SolverModel) -> Mesh:
+    """The linear ``mesh`` as exported: ``model``'s points and cells, marked as scanner coordinates
+    (so that reading the file back gives the lattice frame again); ``mesh`` itself if it has no direction."""
+    if mesh.direction is None:
+        return mesh
+    out = mesh.copy()
+    out.points, out.cells, out.scanner = model.points, model.cells, True
+    return out
 
 
 def _write(fmt: str, model: SolverModel, mesh: Mesh, tmp: Path, ex: dict) -> None:
@@ -463,7 +492,7 @@ def _write(fmt: str, model: SolverModel, mesh: Mesh, tmp: Path, ex: dict) -> Non
     elif fmt == "vtu":
         from dicer.export.vtu import write_vtu
 
-        write_vtu(model, mesh, tmp)
+        write_vtu(model, scanner_mesh(mesh, model) if model.order == 1 else mesh, tmp)
     elif fmt == "patran":
         from dicer.export.patran import write_patran
 

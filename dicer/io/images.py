@@ -4,11 +4,14 @@ Conventions shared by every function here:
 
 - Arrays are indexed ``[x, y, z]`` (SimpleITK's arrays are ``[z, y, x]``; they are
   transposed on the way in and out) and spacing is given in the same order, in mm.
-- ``Volume.origin`` is the position of the *corner* of voxel (0, 0, 0). ITK stores the
-  *centre* of that voxel, so ``corner = itk_origin - spacing / 2`` on reading and the
-  reverse on writing. Direction cosines are ignored: the voxel grid is taken as
-  axis-aligned, which is what the hexahedral lattice needs; a scan acquired with a
-  tilted or flipped orientation is meshed in its own voxel frame.
+- ``Volume.origin`` is ITK's origin (the *centre* of voxel (0, 0, 0)) minus half a voxel
+  along each index axis: ``origin = itk_origin - spacing / 2`` on reading and the reverse
+  on writing. It is the corner of that voxel while the direction is the identity.
+- ``Volume.direction`` holds the file's direction cosines (NIfTI sform/qform as ITK reads
+  them, DICOM Image Orientation (Patient), NRRD space directions, MetaImage
+  TransformMatrix), or None for the identity, 2D images and formats without one (.npy,
+  TIFF, PNG). Stages keep the voxel grid axis-aligned (the lattice frame); the exports
+  place the model in scanner coordinates with it (docs/coordinates.md).
 - A 3D image with one axis of a single voxel (one slice, a single PNG, a one-file
   DICOM series) becomes a 2D Volume; that axis is dropped with its spacing and origin.
 """
@@ -145,8 +148,8 @@ def _from_sitk(image: sitk.Image, path, spacing_arg=None, own_spacing=True, nift
                dtype=np.float32, keep_direction=False) -> Volume:
     """Convert a SimpleITK image to a Volume ([z,y,x] -> [x,y,z], centre origin -> corner).
 
-    keep_direction : also keep the direction cosines (label volumes, so the label files
-        written from them keep the input's orientation); images drop them.
+    keep_direction : also keep the direction cosines (so the label files written from
+        the volume keep the input's orientation, and the model its place in the scanner).
     """
     if image.GetNumberOfComponentsPerPixel() != 1:
         raise DicerError(
@@ -748,7 +751,10 @@ def _read_dicom_series(folder: Path, required: bool = True, allow_irregular: boo
         array, dz = _uniform_slices(array, depth, names, folder, allow_irregular)
     spacing = (*pixel_spacing, dz)
     corner = [o - sp / 2 for o, sp in zip(positions[0], spacing)]  # ITK: centre of the first voxel
-    return _finish(array, spacing, corner, folder)
+    # columns: row and column directions of Image Orientation (Patient), then the slice
+    # normal, along which the slices were sorted: the index axes' directions in LPS
+    cosines = None if np.array_equal(direction, np.eye(3)) else tuple(direction.ravel())
+    return _finish(array, spacing, corner, folder, direction=cosines)
 
 
 def read_image(path: str | os.PathLike, spacing=None, allow_irregular_slices: bool = False) -> Volume:
@@ -777,7 +783,8 @@ def read_image(path: str | os.PathLike, spacing=None, allow_irregular_slices: bo
         ``array`` float32 of shape (nx, ny[, nz]); DICOM values have the rescale slope
         and intercept applied (CT in HU). A multi-page TIFF is a 3D stack; a single
         page or a single slice gives a 2D Volume. ``.npy`` arrays are taken as
-        indexed [x, y(, z)] with origin 0.
+        indexed [x, y(, z)] with origin 0. ``direction``: the header's direction
+        cosines of a 3D NIfTI, NRRD, MetaImage or DICOM series (None: identity).
 
     Raises
     ------
@@ -792,7 +799,7 @@ def read_image(path: str | os.PathLike, spacing=None, allow_irregular_slices: bo
         raise DicerError(f"{path}: no such file or folder; check the path (and the image column of the patient sheet)")
     if path.is_dir():
         return _read_folder(path, spacing, allow_irregular_slices)
-    return _read_file(path, spacing)
+    return _read_file(path, spacing, keep_direction=True)
 
 
 def read_labels(path: str | os.PathLike) -> Volume:

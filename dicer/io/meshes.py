@@ -26,10 +26,11 @@ import numpy as np
 
 from dicer.errors import DicerError
 from dicer.io.atomic import atomic_path
+from dicer.mesh.frame import HEX_MIRROR, check_direction, mirrored, to_lattice
 from dicer.mesh.metrics import scaled_jacobian
 from dicer.mesh.model import Mesh
 
-_FIELDS = ("spacing", "origin", "grid_shape")
+_FIELDS = ("spacing", "origin", "grid_shape", "direction", "scanner_coordinates")
 
 _VTK_TYPES = {
     np.dtype(t): n
@@ -92,8 +93,14 @@ def _field_data_xml(mesh: Mesh) -> str:
         ("origin", "Float64", " ".join(repr(float(v)) for v in mesh.origin)),
         ("grid_shape", "Int64", " ".join(str(int(v)) for v in mesh.grid_shape)),
     ]
+    if mesh.direction is not None:
+        # only when set: meshes of axis-aligned images keep the bytes they always had
+        arrays.append(("direction", "Float64", " ".join(repr(float(v)) for v in np.ravel(mesh.direction))))
+    if mesh.scanner:
+        arrays.append(("scanner_coordinates", "Int64", "1"))
     rows = "".join(
-        f'<DataArray type="{t}" Name="{n}" NumberOfTuples="3" format="ascii">{v}</DataArray>\n' for n, t, v in arrays
+        f'<DataArray type="{t}" Name="{n}" NumberOfTuples="{len(v.split())}" format="ascii">{v}</DataArray>\n'
+        for n, t, v in arrays
     )
     return f"<FieldData>\n{rows}{names_xml(mesh.names, mesh.dim)}</FieldData>\n"
 
@@ -207,6 +214,8 @@ def _same_mesh(a: Mesh, b: Mesh) -> bool:
         and all(_bitwise_equal(np.asarray(v), b.point_data[k]) for k, v in a.point_data.items())
         and all(_bitwise_equal(np.asarray(v), b.cell_data[k]) for k, v in a.cell_data.items())
         and list(a.names) == list(b.names)
+        and (a.direction is None) == (b.direction is None)
+        and (a.direction is None or np.array_equal(np.asarray(a.direction, float), b.direction))
     )
 
 
@@ -364,7 +373,21 @@ def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data)
     point_data = {k: np.asarray(v) for k, v in point_data.items() if k != "lattice"}
     cell_data = {k: np.asarray(v) for k, v in cell_data.items() if k != "material"}
     names = names_from_field_data(fd)
-    mesh = Mesh(points, cells, material, lattice, spacing, origin, grid_shape, point_data, cell_data, names)
+    direction = None
+    if "direction" in fd:
+        direction = np.asarray(fd["direction"], np.float64).ravel()
+        if direction.size != 9 or cells.shape[1] != 8:
+            raise DicerError(f"{name}: field data 'direction' has {direction.size} values for a "
+                             f"{'3D' if cells.shape[1] == 8 else '2D'} mesh; 3D meshes hold 9 (row-major 3x3): "
+                             "remesh from the labels with 'dicer mesh'")
+        direction = check_direction(direction, 3, name)
+    if direction is not None and int(np.asarray(fd.get("scanner_coordinates", [0])).ravel()[0]) == 1:
+        # an exported model: back from scanner coordinates into the lattice frame the stages work in
+        points = to_lattice(points, spacing, origin, direction)
+        if mirrored(direction):
+            cells = cells[:, HEX_MIRROR]
+    mesh = Mesh(points, cells, material, lattice, spacing, origin, grid_shape, point_data, cell_data, names,
+                direction)
     if (cell_type == "quad") != (mesh.dim == 2):
         raise DicerError(f"{name}: inconsistent element type")
     return mesh

@@ -2,7 +2,9 @@
 
 Index convention used throughout dicer: image arrays are indexed ``[x, y, z]``
 (``[x, y]`` in 2D) and a node's ``lattice`` index ``(i, j, k)`` is the voxel corner
-``origin + (i, j, k) * spacing`` before any smoothing moves it.
+``origin + (i, j, k) * spacing`` before any smoothing moves it. Every stage works in
+this axis-aligned *lattice frame*; ``direction`` (when set) says how the exports turn it
+into scanner coordinates (:mod:`dicer.mesh.frame`, docs/coordinates.md).
 """
 
 from __future__ import annotations
@@ -38,8 +40,13 @@ class Mesh:
     grid_shape : (3,) int64, voxels per axis of the source image (1 for z in 2D);
         its bounding planes are lattice 0 and grid_shape along each axis.
     point_data, cell_data : further per-node / per-element arrays carried through.
-    names : material names by label (names[0] is label 1's), written to VTU files as the
-        field data ``material_name`` so ParaView shows them; empty when unknown.
+    names : material names by label (names[0] is label 1's), written to VTU files as one
+        field data array per material so ParaView shows them; empty when unknown.
+    direction : (3, 3) float64 direction cosines of the source image (column j: scanner
+        direction of index axis j), or None (identity, 2D, or mesh.coordinates: index).
+        ``points`` stay in the lattice frame; the exports apply it.
+    scanner : True when ``points`` and ``cells`` are already in the scanner frame (an
+        exported model.vtu): reading such a file turns it back into the lattice frame.
     """
 
     points: np.ndarray
@@ -52,6 +59,8 @@ class Mesh:
     point_data: dict[str, np.ndarray] = field(default_factory=dict)
     cell_data: dict[str, np.ndarray] = field(default_factory=dict)
     names: list[str] = field(default_factory=list)
+    direction: np.ndarray | None = None
+    scanner: bool = False
 
     @property
     def dim(self) -> int:
@@ -77,4 +86,5 @@ class Mesh:
             self.spacing.copy(), self.origin.copy(), self.grid_shape.copy(),
             {k: v.copy() for k, v in self.point_data.items()},
             {k: v.copy() for k, v in self.cell_data.items()}, list(self.names),
+            None if self.direction is None else self.direction.copy(), self.scanner,
         )

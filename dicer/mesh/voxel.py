@@ -7,17 +7,20 @@ from contextlib import contextmanager
 import numpy as np
 
 from dicer.errors import DicerError
+from dicer.mesh.frame import check_direction
 from dicer.mesh.model import HEX_CORNERS, QUAD_CORNERS, Mesh
 
 _BLOCK = 1 << 16
 """Grid points per slab of x planes: a slab's temporaries stay in cache."""
 
 
-def voxel_mesh(labels: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0)) -> Mesh:
+def voxel_mesh(labels: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), direction=None) -> Mesh:
     """Mesh every non-zero voxel of ``labels`` as one hexahedron (a quad in 2D).
 
     labels : (nx, ny, nz) or (nx, ny) integer array, 0 = background, 1..K = material.
-    spacing, origin : voxel size and image origin in mm (2 or 3 values).
+    spacing, origin : voxel size and image origin (``Volume.origin``) in mm (2 or 3 values).
+    direction : None or 9 direction cosines (ITK order, row-major) of a 3D image; kept
+        in the Mesh for the exports (scanner coordinates), nodes stay in the lattice frame.
     Returns a Mesh whose nodes are shared between neighbouring elements, numbered
     in C order of their lattice index; elements are in C order of their voxel.
     """
@@ -27,6 +30,7 @@ def voxel_mesh(labels: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.
     if not np.issubdtype(labels.dtype, np.integer):
         raise DicerError(f"labels have dtype {labels.dtype}; an integer label image is needed")
     dim = labels.ndim
+    direction = check_direction(direction, dim)
     spacing3 = np.ones(3)
     origin3 = np.zeros(3)
     spacing3[:dim] = np.asarray(spacing, dtype=float)[:dim]
@@ -41,7 +45,7 @@ def voxel_mesh(labels: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.
     with _small_pages():
         points, cells, lattice = _hexahedra(solid, corners, spacing3, origin3)
         material = vol[solid].astype(np.int32)
-    return Mesh(points, cells, material, lattice, spacing3, origin3, grid_shape)
+    return Mesh(points, cells, material, lattice, spacing3, origin3, grid_shape, direction=direction)
 
 
 def _hexahedra(solid: np.ndarray, corners: np.ndarray, spacing3: np.ndarray, origin3: np.ndarray):

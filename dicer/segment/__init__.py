@@ -147,8 +147,8 @@ def segment(image: Volume, config: dict, source: str = "") -> tuple[Volume, dict
     Returns
     -------
     labels : Volume
-        uint8 array of the image's shape (0 background, 1..K classes), same spacing
-        and origin.
+        uint8 array of the image's shape (0 background, 1..K classes), same spacing,
+        origin and direction.
     info : dict
         ``method``, ``thresholds`` (K floats, the lower bound of each class),
         ``classes`` (voxels and fraction per class after morphology),
@@ -207,4 +207,4 @@ def segment(image: Volume, config: dict, source: str = "") -> tuple[Volume, dict
     info["classes"] = label_counts(labels, names)
     info["seconds"] = {"thresholds": round(t_threshold - t0, 3),
                        "total": round(time.perf_counter() - t0, 3)}
-    return Volume(labels, image.spacing, image.origin), info
+    return Volume(labels, image.spacing, image.origin, image.direction), info

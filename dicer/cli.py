@@ -189,15 +189,17 @@ def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = 
                plot: Path | None = None):
     from dicer.config import material_names
     from dicer.io.atomic import write_bytes_atomic
-    from dicer.io.images import read_image, write_labels
+    from dicer.io.images import read_image
     from dicer.io.pictures import save_overlay_png, save_threshold_plot
+    from dicer.labels import write_mapped_labels
     from dicer.segment import segment
 
     with _Stage("segment"):
         image = read_image(image_path, spacing=config["image"]["spacing"],
                            allow_irregular_slices=config["image"]["allow_irregular_slices"])
         labels, info = segment(image, config, source=image_path)
-        write_labels(labels, out)
+        # a NIfTI scan lends its header: the labels overlay it with exactly its affine
+        write_mapped_labels(labels, image_path, out)
         names = list(material_names(config).values())
         if overlay:
             title = f"{info['method']} thresholds " + ", ".join(f"{n} {t:g}" for n, t in zip(names, info["thresholds"]))
@@ -257,7 +259,8 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
     from dicer.config import material_names
     from dicer.connectivity import fix_connectivity, remove_islands
     from dicer.image import Volume
-    from dicer.io.images import read_labels, write_labels
+    from dicer.io.images import read_labels
+    from dicer.labels import write_mapped_labels
 
     with _Stage("fix"):
         labels = read_labels(labels_path)
@@ -296,7 +299,8 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
         names = {str(k): v for k, v in material_names(config).items()} | {"0": "background"}
         for kind in ("type_a", "type_b", "type_c"):
             report[kind] = {names.get(k, k): v for k, v in report[kind].items()}
-        write_labels(Volume(fixed, labels.spacing, labels.origin, labels.direction), out)
+        # same grid: the input's NIfTI header is kept, so the affine stays exactly the input's
+        write_mapped_labels(Volume(fixed, labels.spacing, labels.origin, labels.direction), labels_path, out)
         _write_report(report_path, report)
         log.info("fix: wrote %s (%d voxels changed; type A %s, type B %s, type C %s; A/B sweeps %s; "
                  "Type C rounds %d + %d, sites per round %s)", out, report["changed_voxels"], report["type_a"], report["type_b"],

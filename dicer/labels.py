@@ -169,13 +169,38 @@ def _write_nifti_like(header: bytes, endian: str, array: np.ndarray, path: Path)
                              "check the disk and write again")
 
 
+def _same_placement(volume: Volume, source: Path) -> bool:
+    """Whether ``source``'s header places its voxels as ``volume`` does (not so when
+    image.spacing replaced a broken header spacing): only then may it lend its header."""
+    import SimpleITK as sitk
+
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(source))
+    try:
+        reader.ReadImageInformation()
+    except RuntimeError:
+        return False
+    n = volume.array.ndim
+    spacing = np.asarray(reader.GetSpacing()[:n], float)
+    centre = np.asarray(volume.origin, float) + np.asarray(volume.spacing, float) / 2
+    direction = np.eye(n).ravel() if volume.direction is None else np.asarray(volume.direction, float)
+    header_direction = np.asarray(reader.GetDirection(), float).reshape(reader.GetDimension(), -1)[:n, :n]
+    # NIfTI keeps spacing and offsets in float32: compare at that precision
+    return bool(np.allclose(spacing, volume.spacing, rtol=1e-6, atol=0)
+                and np.allclose(reader.GetOrigin()[:n], centre, rtol=1e-6, atol=1e-5)
+                and np.allclose(header_direction.ravel(), direction, atol=1e-6))
+
+
 def write_mapped_labels(volume: Volume, source: str | Path, path: str | Path) -> None:
-    """Write the mapped label volume ``volume`` read from the label file ``source`` to ``path``.
+    """Write the label volume ``volume``, on the grid of the image or label file ``source``, to ``path``.
 
     A single-file NIfTI-1 input (the usual output of Slicer, ITK-SNAP, FreeSurfer and
     TotalSegmentator) lends its own header, so the written file has exactly the input's
-    grid, qform and sform (and their codes); any other input goes through
+    grid, qform and sform (and their codes): ITK would write the affine again from its
+    double-precision direction, which can move the float32 sform by a unit in the last
+    place (about 1e-7 mm per mm). Any other input goes through
     :func:`dicer.io.images.write_labels`, which keeps spacing, origin and direction.
+    Used for every label file on its input's grid (labels, segment, fix).
     """
     from dicer.io.images import write_labels
 
@@ -183,7 +208,8 @@ def write_mapped_labels(volume: Volume, source: str | Path, path: str | Path) ->
     found = _nifti1_header(source) if source.name.lower().endswith((".nii", ".nii.gz")) else None
     dims = struct.unpack(found[1] + "8h", found[0][40:56]) if found else None
     if (found and path.name.lower().endswith(".nii.gz") and volume.array.ndim == 3
-            and dims[0] in (3, 4) and tuple(dims[1:4]) == volume.array.shape and (dims[0] == 3 or dims[4] == 1)):
+            and dims[0] in (3, 4) and tuple(dims[1:4]) == volume.array.shape and (dims[0] == 3 or dims[4] == 1)
+            and _same_placement(volume, source)):
         head = bytearray(found[0])
         struct.pack_into(found[1] + "8h", head, 40, 3, *volume.array.shape, 1, 1, 1, 1)
         _write_nifti_like(bytes(head), found[1], volume.array, path)

@@ -245,12 +245,14 @@ def downsample_applies(config: dict) -> bool:
 
 def do_downsample(labels_path: str, out: Path, config: dict):
     from dicer.downsample import downsample
-    from dicer.io.images import read_labels, write_labels
+    from dicer.io.images import read_labels
+    from dicer.labels import write_mapped_labels
 
     with _Stage("downsample"):
         labels = read_labels(labels_path)
         reduced, info = downsample(labels, config, source=labels_path)
-        write_labels(reduced, out)
+        # factor 1 keeps the grid, and then the input's header (exactly its affine)
+        write_mapped_labels(reduced, labels_path, out)
         log.info("downsample: wrote %s (%s)", out, json.dumps(info, sort_keys=True))
     return reduced
 

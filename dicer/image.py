@@ -17,11 +17,13 @@ class Volume:
     array : (nx, ny[, nz]) array indexed [x, y, z]; intensities (float32, HU for CT)
         or labels (integer, 0 = background, 1..K = material class).
     spacing : per-axis voxel size in mm, one value per array axis.
-    origin : position of voxel (0, 0, 0)'s corner in mm, one value per array axis.
+    origin : ITK's origin (centre of voxel (0, 0, 0)) minus half a voxel along each
+        index axis, in mm, one value per array axis: that voxel's corner when the
+        direction is the identity.
     direction : the file's direction cosines (ITK order, row-major, ndim * ndim values),
-        or None for the identity. Stages never apply them (models are in the image's
-        index axes); label volumes carry them only so that every label file dicer
-        writes keeps the orientation, and so the affine, of the label volume it came from.
+        or None for the identity. Stages work in the index axes; label files keep them
+        (so their affine), and the exports place the model in scanner coordinates with
+        them (docs/coordinates.md).
     """
 
     array: np.ndarray

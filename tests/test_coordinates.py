@@ -337,3 +337,19 @@ def test_every_format_of_a_flipped_image_reads_back(tmp_path, suffix):
         path = tmp_path / f"model{order}{suffix}"
         info = export_mesh(mesh, path, config(**{"export.order": order}))  # written, read back, checked
         assert info["verified"] and info["elements"] == mesh.n_cells
+
+
+def test_sheared_header_is_one_error_and_index_meshes_it(tmp_path, capsys):
+    image = sitk.GetImageFromArray(np.ascontiguousarray(labels_array().T))
+    sheared = np.eye(3)
+    sheared[0, 1] = 0.2
+    image.SetDirection(tuple(sheared.ravel()))  # ITK keeps it, columns normalised
+    sitk.WriteImage(image, str(tmp_path / "shear.nrrd"))
+    out = tmp_path / "mesh.vtu"
+    argv = ["mesh", str(tmp_path / "shear.nrrd"), "-o", str(out), "--set", "materials=[{name: a}, {name: b}]"]
+    assert main(argv) == 2 and not out.exists()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"error: {tmp_path / 'shear.nrrd'}: the image's direction cosines are not orthonormal (largest "
+                   "error of D^T D - I: 0.196), so no rigid motion puts the mesh in scanner coordinates; fix the "
+                   "image header's orientation, or set mesh.coordinates: index to mesh in the image's index axes"]
+    assert main(argv + ["--set", "mesh.coordinates=index", "-q"]) == 0 and read_mesh(out).direction is None

@@ -161,10 +161,20 @@ def test_coarse_model_matches_its_labels(coarse_run):
     assert inp.count("*ELEMENT, TYPE=C3D8, ELSET=") == 2
     assert "Z0" in deck_sets(coarse_run / "model.inp")
     assert "*STEP" not in inp
-    # smoothing keeps nodes inside the grid's box (bounding-plane nodes stay on their planes)
+    # smoothing keeps nodes inside the grid's box (bounding-plane nodes stay on their planes):
+    # in the lattice frame, which reading model.vtu with dicer gives back
+    from dicer.io.meshes import read_mesh
+    from dicer.mesh.frame import to_scanner
+
+    lattice_frame = read_mesh(coarse_run / "model.vtu")
     lo = np.asarray(labels.origin) - 1e-6
     hi = np.asarray(labels.origin) + np.array(labels.array.shape) * np.asarray(labels.spacing) + 1e-6
-    assert np.all((model.points >= lo) & (model.points <= hi))
+    assert np.all((lattice_frame.points >= lo) & (lattice_frame.points <= hi))
+    # the file itself is in scanner coordinates: this NIfTI's direction is diag(-1, -1, 1) (RAS
+    # storage read as LPS), so the model turns half a turn about z through voxel (0, 0, 0)'s centre
+    assert np.array_equal(np.reshape(labels.direction, (3, 3)), np.diag([-1.0, -1.0, 1.0]))
+    assert np.abs(model.points - to_scanner(lattice_frame.points, labels.spacing, labels.origin,
+                                            np.diag([-1.0, -1.0, 1.0]))).max() < 1e-9
     quality = json.loads((coarse_run / "quality.json").read_text())
     assert quality["elements"] == n_elements and quality["inverted_elements"] == 0
     assert quality["scaled_jacobian"]["min"] >= 0.2 - 1e-9

@@ -39,7 +39,7 @@ HEX_FACE_MIRROR = np.array([0, 2, 1, 3, 4, 5, 6])
 S1 and S2 (bottom and top) swap, the side faces keep their numbers."""
 
 
-def check_direction(direction, dim: int, source: str = "the image") -> np.ndarray | None:
+def check_direction(direction, dim: int, source: str | None = None) -> np.ndarray | None:
     """The direction cosines as a (3, 3) float64 matrix, or None for the identity or a 2D mesh.
 
     direction : None or ``dim * dim`` values, row-major (ITK's ``GetDirection``); column j
@@ -55,7 +55,8 @@ def check_direction(direction, dim: int, source: str = "the image") -> np.ndarra
     err = float(np.abs(d.T @ d - np.eye(3)).max()) if np.all(np.isfinite(d)) else np.inf
     if not err <= 1e-4:  # header cosines are rounded (DICOM: a few decimals), not sheared
         raise DicerError(
-            f"{source}: the direction cosines are not orthonormal (largest error of D^T D - I: {err:.3g}), so "
+            f"{source + ': ' if source else ''}the image's direction cosines are not orthonormal (largest "
+            f"error of D^T D - I: {err:.3g}), so "
             "no rigid motion puts the mesh in scanner coordinates; fix the image header's orientation, or set "
             "mesh.coordinates: index to mesh in the image's index axes"
         )

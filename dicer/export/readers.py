@@ -135,7 +135,7 @@ class _Lines:
     def __init__(self, path: str | Path):
         self.data = Path(path).read_bytes()
         if not self.data.endswith(b"\n"):
-            raise DicerError("the file does not end with a newline (truncated?)")
+            raise DicerError("the file ends in the middle of a line (truncated?)")
         self.arr = np.frombuffer(self.data, np.uint8)
         self.ends = np.flatnonzero(self.arr == 10)
         self.starts = np.concatenate([[0], self.ends[:-1] + 1])
@@ -160,19 +160,31 @@ class _Lines:
             return view
         return self.arr[at[:, None] + np.arange(width)]
 
-    def ints(self, rows: np.ndarray, first: int, width: int, what: str) -> np.ndarray:
-        cols = np.ascontiguousarray(self.columns(rows, first, width))
+    def _convert(self, rows: np.ndarray, first: int, width: int, dtype, what: str, kind: str) -> np.ndarray:
+        cols = np.ascontiguousarray(self.columns(rows, first, width)).view(f"S{width}").ravel()
         try:
-            return cols.view(f"S{width}").ravel().astype(np.int64)
+            return cols.astype(dtype)
         except ValueError:
-            raise DicerError(f"{what}: not an integer in columns {first + 1}-{first + width}") from None
+            pass
+        # name the first line that does not convert: find its chunk, then the line (error path only)
+        for start in range(0, cols.size, 1 << 12):
+            try:
+                cols[start : start + (1 << 12)].astype(dtype)
+            except ValueError:
+                for i in range(start, min(start + (1 << 12), cols.size)):
+                    try:
+                        cols[i : i + 1].astype(dtype)
+                    except ValueError:
+                        text = cols[i].decode("ascii", "replace")
+                        raise DicerError(f"line {int(rows[i]) + 1}: {what}: {text!r} in columns "
+                                         f"{first + 1}-{first + width} is not {kind}") from None
+        raise DicerError(f"{what}: not {kind} in columns {first + 1}-{first + width}")
+
+    def ints(self, rows: np.ndarray, first: int, width: int, what: str) -> np.ndarray:
+        return self._convert(rows, first, width, np.int64, what, "an integer")
 
     def floats(self, rows: np.ndarray, first: int, width: int, what: str) -> np.ndarray:
-        cols = np.ascontiguousarray(self.columns(rows, first, width))
-        try:
-            return cols.view(f"S{width}").ravel().astype(np.float64)
-        except ValueError:
-            raise DicerError(f"{what}: not a number in columns {first + 1}-{first + width}") from None
+        return self._convert(rows, first, width, np.float64, what, "a number")
 
     def expect(self, rows: np.ndarray, first: int, text: bytes, what: str) -> None:
         got = self.columns(rows, first, len(text))
@@ -181,6 +193,8 @@ class _Lines:
             raise DicerError(f"line {bad + 1}: expected {text.decode()!r} for {what}")
 
     def lengths_are(self, rows: np.ndarray, n: int, what: str) -> None:
+        if rows.size and rows.max() >= len(self):
+            raise DicerError(f"the file ends after {len(self)} lines, before its {what} cards (truncated?)")
         if rows.size and np.any(self.lengths[rows] != n):
             bad = int(rows[np.flatnonzero(self.lengths[rows] != n)[0]])
             raise DicerError(f"line {bad + 1}: {what} card has {self.lengths[bad]} columns, expected {n}")
@@ -213,8 +227,22 @@ def read_patran(path: str | Path) -> dict:
 
     Returns points (N, 3), cells (M, k) 0-based in VTK/Abaqus node order, material
     (M,) property ids, title, dim and order. Nodes and elements must be numbered
-    1..N and 1..M in order; any other layout raises DicerError.
+    1..N and 1..M in order; any other layout raises DicerError naming the file and line.
     """
+    return _named(_read_patran, path)
+
+
+def _named(reader, path: str | Path) -> dict:
+    """``reader(path)`` with the file's name at the head of its error message."""
+    try:
+        return reader(path)
+    except DicerError as exc:
+        raise DicerError(f"{path}: {exc}; dicer's strict readers read files exactly as dicer writes them: "
+                         "export the mesh again") from None
+
+
+def _read_patran(path: str | Path) -> dict:
+    """:func:`read_patran` with messages that start at the line."""
     from dicer.export.patran import PATRAN_HEX20
 
     lines = _Lines(path)
@@ -271,8 +299,14 @@ def read_lsdyna(path: str | Path) -> dict:
     """Read an LS-DYNA keyword file as dicer writes it, strictly (fixed-width cards).
 
     Returns points, cells (0-based), material (part ids), parts (pid -> title),
-    materials (mid -> (ro, e, pr)), node_sets (title -> 0-based ids) and title.
+    materials (mid -> (ro, e, pr)), node_sets (title -> 0-based ids) and title; anything
+    out of place raises DicerError naming the file and line.
     """
+    return _named(_read_lsdyna, path)
+
+
+def _read_lsdyna(path: str | Path) -> dict:
+    """:func:`read_lsdyna` with messages that start at the line."""
     lines = _Lines(path)
     n = len(lines)
     is_key = lines.arr[lines.starts[lines.lengths > 0]] == ord("*")
@@ -352,7 +386,7 @@ def read_lsdyna(path: str | Path) -> dict:
 
 def check_patran(path: str | Path, model) -> None:
     """Re-read a PATRAN neutral file with :func:`read_patran` and compare it with ``model``."""
-    got = read_patran(path)
+    got = _read_patran(path)
     if (got["dim"], got["order"]) != (model.dim, model.order):
         raise DicerError("element shape or order differs")
     compare(model, got["points"], got["cells"], got["material"], "the neutral file", digits=9)
@@ -360,7 +394,7 @@ def check_patran(path: str | Path, model) -> None:
 
 def check_lsdyna(path: str | Path, model) -> None:
     """Re-read an LS-DYNA keyword file with :func:`read_lsdyna` and compare it with ``model``."""
-    got = read_lsdyna(path)
+    got = _read_lsdyna(path)
     compare(model, got["points"], got["cells"], got["material"], "the keyword file", digits=9)
     for name, ids in model.node_sets.items():
         if not np.array_equal(got["node_sets"].get(name, np.zeros(0)), ids):
@@ -387,13 +421,17 @@ def _map_file(path: Path):
     with open(path, "rb") as f:
         if os.fstat(f.fileno()).st_size == 0:
             raise FormatError(0, "the file is empty")
+        if hasattr(mmap, "MAP_POPULATE"):  # Linux: map every page at once, not one fault per page
+            return mmap.mmap(f.fileno(), 0, flags=mmap.MAP_SHARED | mmap.MAP_POPULATE, prot=mmap.PROT_READ)
         return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
 
 
 def _where(arr: np.ndarray, offset: int) -> str:
-    """``line L, column C`` of the byte ``offset`` (counted only when an error is reported)."""
-    offset = min(max(offset, 0), arr.size)
-    head = arr[:offset]
+    """``line L, column C`` of the byte ``offset`` (counted only when an error is reported), or
+    ``at the end of the file``."""
+    if offset >= arr.size:
+        return "at the end of the file"
+    head = arr[: max(offset, 0)]
     nl = np.flatnonzero(head == 10)
     line = nl.size + 1
     column = offset - (int(nl[-1]) + 1 if nl.size else 0) + 1
@@ -482,7 +520,7 @@ def _parse_abaqus(data, arr: np.ndarray) -> dict:
 
     size = arr.size
     if arr[-1] != 10:
-        raise FormatError(size, "the file ends in the middle of a line (truncated?)")
+        raise FormatError(size - 1, "the file ends in the middle of this line (truncated?)")
     if arr[0] != ord("*"):
         raise FormatError(0, "a deck starts with a keyword line (*HEADING or *NODE)")
     # keyword lines: a '*' at a line start; a search of the bytes, one step per keyword
@@ -573,10 +611,18 @@ def _parse_abaqus(data, arr: np.ndarray) -> dict:
             raise FormatError(s, f"unexpected keyword *{key} (dicer's decks hold no such card)")
     if out["points"] is None or not out["blocks"]:
         raise FormatError(size, "no *NODE or no *ELEMENT block (truncated?)")
+    # a deck cut at a line end is whole up to there: its last cards tell (every block has a
+    # section, every section a material with its constants)
+    for name, _ in out["blocks"]:
+        section = out["sections"].get(name)
+        if section is None:
+            raise FormatError(size, f"ELSET={name} has no *SOLID SECTION (truncated?)")
+        if set(out["materials"].get(section[0], {})) != {"elastic", "density"}:
+            raise FormatError(size, f"material {section[0]} of ELSET={name} lacks *ELASTIC or *DENSITY (truncated?)")
     n_nodes = out["points"].shape[0]
     n_cells = sum(ids.size for _, ids in out["blocks"])
     seen = np.zeros(n_cells, bool)
-    cells = np.empty((n_cells, conn[0][1].shape[1]), np.int64)
+    cells = np.empty((n_cells, conn[0][1].shape[1]), conn[0][1].dtype)
     for (name, ids), (a, c) in zip(out["blocks"], conn):
         # increasing within a block (as written) and unseen in the others: each number once
         if ids[0] < 0 or ids[-1] >= n_cells or np.any(ids[1:] <= ids[:-1]) or seen[ids].any():
@@ -585,7 +631,8 @@ def _parse_abaqus(data, arr: np.ndarray) -> dict:
         if c.min() < 1 or c.max() > n_nodes:
             raise FormatError(a, f"elements of ELSET={name} refer to nodes that do not exist")
         seen[ids] = True
-        cells[ids] = c - 1
+        cells[ids] = c
+    cells -= 1
     for kind, limit in (("node_sets", n_nodes), ("element_sets", n_cells)):
         for name, ids in out[kind].items():
             if ids[0] < 0 or ids[-1] >= limit:
@@ -615,7 +662,7 @@ def read_abaqus(path: str | Path) -> dict:
     """Read an Abaqus/CalculiX deck as dicer writes it, strictly and at array speed.
 
     Returns points (N, 3) float64 (bit for bit what ``float`` gives for each number),
-    cells (M, k) int64 0-based in element number order, element_type, blocks
+    cells (M, k) 0-based in element number order (int32 up to 9-digit numbers, else int64), element_type, blocks
     [(ELSET name, 0-based element indices)] in file order, node_sets and element_sets
     {name: 0-based ids}, surfaces {name: [(element set, face)]}, materials {name:
     {"elastic": (E, nu), "density": (rho,)}}, sections {ELSET: (material, [data])} and
@@ -623,11 +670,7 @@ def read_abaqus(path: str | Path) -> dict:
     once each; fields must be fixed-width as dicer writes them. Anything else raises
     DicerError naming the file, the line and the column.
     """
-    try:
-        return _read_abaqus(path)
-    except DicerError as exc:
-        raise DicerError(f"{path}: {exc}; dicer's strict reader reads decks exactly as dicer writes "
-                         "them: export the mesh again (or read the deck with meshio)") from None
+    return _named(_read_abaqus, path)
 
 
 def check_abaqus(path: str | Path, model) -> None:

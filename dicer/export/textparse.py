@@ -181,20 +181,21 @@ def _check(u: np.ndarray, layout: Layout) -> tuple[np.ndarray, np.ndarray]:
     canon = u - d  # digits -> '0'
     canon |= layout.ormask
     bad = canon != layout.template
-    if layout.pairs.size:
-        # a digit followed by a blank inside an integer: not right-aligned
-        bad[:, :-1] |= dig[:, :-1] & ~dig[:, 1:] & layout.pairs
     for cols, allowed in ((layout.signs, (_SPACE, _MINUS)), (layout.esigns, (_PLUS, _MINUS))):
         if cols.size:
             s = u[:, cols]
             bad[:, cols] = (s != allowed[0]) & (s != allowed[1])
-    if bad.any():
-        flat = int(np.argmax(bad.ravel()))
-        row, col = divmod(flat, layout.length)
-        byte = int(u[row, col])
-        if layout.klass[col] == _C_INT and dig[row, col]:
-            raise FormatError(flat, "an integer that is not right-aligned in its field")
-        raise FormatError(flat, _describe(layout, col, byte))
+    # a digit followed by a blank inside an integer: not right-aligned
+    shifted = np.zeros_like(bad)
+    if layout.pairs.size:
+        shifted[:, :-1] = dig[:, :-1] & ~dig[:, 1:] & layout.pairs
+    if bad.any() or shifted.any():
+        row = int(np.argmax((bad | shifted).any(axis=1)))
+        if bad[row].any():  # a wrong character says more than the alignment it upsets
+            col = int(np.argmax(bad[row]))
+            raise FormatError(row * layout.length + col, _describe(layout, col, int(u[row, col])))
+        col = int(np.argmax(shifted[row]))
+        raise FormatError(row * layout.length + col, "an integer that is not right-aligned in its field")
     return d, dig
 
 
@@ -238,13 +239,14 @@ def _values(layout: Layout, d: np.ndarray, u: np.ndarray, ints: np.ndarray, real
 def parse_records(buf: np.ndarray, layout: Layout, chunk: int = CHUNK_ROWS) -> tuple[np.ndarray, np.ndarray]:
     """Check and convert ``buf`` ((n * layout.length,) uint8, n whole records).
 
-    Returns ints (n, number of integer fields) int64 and reals (n, number of real fields)
-    float64. Raises FormatError at the first byte that does not fit, or when ``buf`` does
+    Returns ints (n, number of integer fields), int32 if every integer field is at most 9
+    columns wide, else int64, and reals (n, number of real fields) float64. Raises FormatError at the first byte that does not fit, or when ``buf`` does
     not hold whole records (offset of the incomplete last record).
     """
     n, rest = divmod(buf.size, layout.length)
     rows = buf[: n * layout.length].reshape(n, layout.length)
-    ints = np.empty((n, layout.kinds.count("i")), np.int64)
+    wide = any(run.kind == "i" and run.width > 9 for run in layout.runs)
+    ints = np.empty((n, layout.kinds.count("i")), np.int64 if wide else np.int32)  # 9 digits fit int32
     reals = np.empty((n, layout.kinds.count("f")), np.float64)
     for start in range(0, n, chunk):
         u = rows[start : start + chunk]

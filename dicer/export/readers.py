@@ -20,7 +20,14 @@ from pathlib import Path
 import numpy as np
 
 from dicer.errors import DicerError
-from dicer.export.textparse import FormatError, layout_of, parse_int_list, parse_records, record_length
+from dicer.export.textparse import (
+    FormatError,
+    layout_of,
+    parse_column,
+    parse_int_list,
+    parse_records,
+    record_length,
+)
 
 MESHIO_TYPES = {(3, 1): "hexahedron", (3, 2): "hexahedron20", (2, 1): "quad", (2, 2): "quad8"}
 
@@ -161,7 +168,15 @@ class _Lines:
         return self.arr[at[:, None] + np.arange(width)]
 
     def _convert(self, rows: np.ndarray, first: int, width: int, dtype, what: str, kind: str) -> np.ndarray:
-        cols = np.ascontiguousarray(self.columns(rows, first, width)).view(f"S{width}").ravel()
+        view = self.columns(rows, first, width)
+        if rows.size > 64:  # the fields as dicer writes them, at array speed (dicer.export.textparse)
+            try:
+                values = parse_column(view)
+                if values.dtype.kind == np.dtype(dtype).kind:
+                    return values.astype(dtype, copy=False)
+            except FormatError:
+                pass  # a negative integer or a bad field: numpy's conversion takes or names it
+        cols = np.ascontiguousarray(view).view(f"S{width}").ravel()
         try:
             return cols.astype(dtype)
         except ValueError:

@@ -36,7 +36,7 @@ CHUNK_ROWS = 1 << 15
 _ZERO, _SPACE, _MINUS, _PLUS = 48, 32, 45, 43
 _POW10 = 10.0 ** np.arange(23)  # exact powers of ten (10**22 is the largest exact double)
 _INT = re.compile(rb" *[0-9]+")
-_REAL = re.compile(rb"[ -][0-9]\.[0-9]+[eE][+-][0-9]{2}")
+_REAL = re.compile(rb" *[ -][0-9]\.[0-9]+[eE][+-][0-9]{2}")  # right-aligned: blank padding first
 
 # column classes, for messages
 _C_SEP, _C_INT, _C_DIGIT, _C_SIGN, _C_ESIGN, _C_LETTER = range(6)
@@ -117,9 +117,10 @@ def _runs(fields: list[Run]) -> tuple:
     return tuple(out)
 
 
-def layout_of(record: bytes) -> Layout:
+def layout_of(record: bytes, terminated: bool = True) -> Layout:
     """The layout of ``record``: fields separated by ``,`` or a newline (``,\\n`` continues a
-    record on the next line), each a blank-padded integer or a real ``[ -]d.ddd[eE][+-]XX``."""
+    record on the next line), each a blank-padded integer or a blank-padded real
+    ``[ -]d.ddd[eE][+-]XX``; ``terminated``: the record ends with a newline."""
     n = len(record)
     template = np.frombuffer(record, np.uint8).copy()
     ormask = np.zeros(n, np.uint8)
@@ -140,7 +141,8 @@ def layout_of(record: bytes) -> Layout:
             fields.append(Run("i", a, 0, 1, b - a, tuple(range(b - a))))
         elif _REAL.fullmatch(text):
             kinds.append("f")
-            e = a + text.upper().index(b"E")
+            f0, a = a, a + re.search(rb"[0-9]", text).start() - 1  # a: the sign's column (blanks before it)
+            e = f0 + text.upper().index(b"E")
             template[a] = ormask[a] = 0xFF  # sign: checked by column
             klass[a] = _C_SIGN
             signs.append(a)
@@ -155,12 +157,12 @@ def layout_of(record: bytes) -> Layout:
             esigns.append(e + 1)
             template[e + 2 : e + 4] = _ZERO
             klass[e + 2 : e + 4] = _C_DIGIT
-            fields.append(Run("f", a, 0, 1, b - a, tuple(c - a for c in digits), (e + 2 - a, e + 3 - a), 0,
-                              e + 1 - a, e - a - 3))
+            fields.append(Run("f", f0, 0, 1, b - f0, tuple(c - f0 for c in digits), (e + 2 - f0, e + 3 - f0),
+                              a - f0, e + 1 - f0, e - a - 3))
         else:
             raise FormatError(a, f"{text.decode('ascii', 'replace').strip()!r} is neither an integer nor a "
                                  "number in scientific notation")
-    if not record.endswith(b"\n"):
+    if terminated and not record.endswith(b"\n"):
         raise FormatError(n, "the record does not end with a newline")
     return Layout(length=n, kinds="".join(kinds), template=template, ormask=ormask, klass=klass, pairs=pairs,
                   signs=np.array(signs, np.intp), esigns=np.array(esigns, np.intp), runs=_runs(fields))
@@ -216,13 +218,13 @@ def _values(layout: Layout, d: np.ndarray, u: np.ndarray, ints: np.ndarray, real
     r = d.shape[0]
     ni = nf = 0
     for run in layout.runs:
-        shape, strides = (r, run.count, run.width), (layout.length, run.stride, 1)
-        view = as_strided(d[:, run.start :], shape, strides)
+        shape = (r, run.count, run.width)
+        view = as_strided(d[:, run.start :], shape, (d.strides[0], run.stride, 1))
         if run.kind == "i":
             ints[:, ni : ni + run.count] = _horner(view, run.digits, np.int32 if run.width <= 9 else np.int64)
             ni += run.count
             continue
-        raw = as_strided(u[:, run.start :], shape, strides)
+        raw = as_strided(u[:, run.start :], shape, (u.strides[0], run.stride, 1))
         m = _horner(view, run.digits, np.float64)  # exact: at most 15 digits (layout_of)
         k = _horner(view, run.exp, np.int32)
         np.negative(k, out=k, where=raw[:, :, run.esign] == _MINUS)
@@ -303,3 +305,27 @@ def parse_int_list(buf: np.ndarray, per_line: int) -> np.ndarray:
         raise FormatError(i * width + width - 1, f"{got} where {'a line end' if want[i] == 10 else repr(',')} belongs")
     ints, _ = parse_records(buf, layout)
     return ints[:, 0]
+
+
+def parse_column(cols: np.ndarray) -> np.ndarray:
+    """(n,) values of a fixed-width column: ``cols`` (n, width) uint8 (rows may be strided, columns
+    contiguous), all right-aligned non-negative integers (int64) or all blank-padded reals
+    ``[ -]d.ddd[eE][+-]XX`` of one shape (float64). FormatError (offset ``row * width + column``)
+    at the first field that does not fit the first one's shape."""
+    n, width = cols.shape
+    if n == 0:
+        return np.zeros(0)
+    layout = layout_of(cols[0].tobytes(), terminated=False)
+    if len(layout.kinds) != 1 or layout.runs[0].start != 0 or layout.runs[0].width != width:
+        raise FormatError(0, "not one right-aligned number filling the column")
+    out = np.empty((n, 1), np.int64 if layout.kinds == "i" else np.float64)
+    none = np.empty((n, 0), out.dtype)
+    for start in range(0, n, CHUNK_ROWS):
+        u = cols[start : start + CHUNK_ROWS]
+        try:
+            d, _ = _check(u, layout)
+        except FormatError as exc:
+            raise FormatError(start * width + exc.offset, exc.message) from None
+        part = out[start : start + CHUNK_ROWS]
+        _values(layout, d, u, *((part, none[: u.shape[0]]) if layout.kinds == "i" else (none[: u.shape[0]], part)))
+    return out[:, 0]

@@ -436,9 +436,18 @@ def _map_file(path: Path):
     with open(path, "rb") as f:
         if os.fstat(f.fileno()).st_size == 0:
             raise FormatError(0, "the file is empty")
-        if hasattr(mmap, "MAP_POPULATE"):  # Linux: map every page at once, not one fault per page
-            return mmap.mmap(f.fileno(), 0, flags=mmap.MAP_SHARED | mmap.MAP_POPULATE, prot=mmap.PROT_READ)
         return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+
+
+def _release(data, a: int, b: int) -> None:
+    """Unmap the pages of data[a:b] once parsed: the deck is read once, and a mapped page counts
+    in the process's memory until the mapping ends (they stay in the page cache)."""
+    import mmap
+
+    if isinstance(data, mmap.mmap) and hasattr(mmap, "MADV_DONTNEED"):
+        first = a // mmap.PAGESIZE * mmap.PAGESIZE
+        if b > first:
+            data.madvise(mmap.MADV_DONTNEED, first, b - first)
 
 
 def _where(arr: np.ndarray, offset: int) -> str:
@@ -528,6 +537,41 @@ def _int_list(arr: np.ndarray, a: int, b: int, what: str) -> np.ndarray:
     return ids
 
 
+def _stride(arr: np.ndarray, a: int, key: str, params: dict) -> int:
+    """Bytes per record of a large fixed-width block (nodes, elements, sets), 0 for other blocks."""
+    from dicer.export import ELEMENT_TYPES
+
+    head = arr[a : a + 4096]
+    if key == "NODE":
+        return record_length(head)
+    if key == "ELEMENT":
+        kind = ELEMENT_TYPES.get(params.get("TYPE", "").upper())
+        return record_length(head, continued=kind is not None and NODES_PER_ELEMENT[kind] + 1 > _PER_LINE)
+    if key in ("NSET", "ELSET"):
+        cut = np.flatnonzero((head == ord(",")) | (head == 10))
+        return int(cut[0]) + 1 if cut.size else 0
+    return 0
+
+
+def _block_end(data, arr: np.ndarray, a: int, stride: int = 0) -> int:
+    """Where the data lines from ``a`` on end: the start of the next keyword line, or the file's end.
+
+    stride : bytes per record of a fixed-width block, whose next keyword starts a record:
+    one byte per record is looked at instead of every byte. When the records are broken
+    (a line cut short), the first '*' at a record start may be missed or false; the block's
+    parse then fails at the first broken record, which is the error to report anyway.
+    """
+    if stride > 0:
+        starts = arr[a::stride]
+        hit = int(np.argmax(starts == ord("*"))) if starts.size else 0
+        if not starts.size or starts[hit] != ord("*"):
+            return arr.size
+        if arr[a + hit * stride - 1] == 10:
+            return a + hit * stride
+    at = data.find(b"\n*", a - 1)
+    return arr.size if at < 0 else at + 1
+
+
 def _parse_abaqus(data, arr: np.ndarray) -> dict:
     """The deck ``data`` (bytes or mmap; ``arr``: the same as uint8) as :func:`read_abaqus`
     returns it; FormatError on a flaw."""
@@ -538,30 +582,27 @@ def _parse_abaqus(data, arr: np.ndarray) -> dict:
         raise FormatError(size - 1, "the file ends in the middle of this line (truncated?)")
     if arr[0] != ord("*"):
         raise FormatError(0, "a deck starts with a keyword line (*HEADING or *NODE)")
-    # keyword lines: a '*' at a line start; a search of the bytes, one step per keyword
-    starts, at = [0], 0
-    while True:
-        at = data.find(b"\n*", at)
-        if at < 0:
-            break
-        starts.append(at + 1)
-        at += 1
-    starts.append(size)
     out = {"heading": [], "points": None, "element_type": None, "blocks": [], "node_sets": {},
            "element_sets": {}, "surfaces": {}, "materials": {}, "sections": {}}
-    conn, material = [], None
-    for s, nxt in zip(starts[:-1], starts[1:]):
+    conn, material, nxt = [], None, 0
+    while nxt < size:
+        s = nxt  # a keyword line
         e = data.find(b"\n", s)
-        a, b = e + 1, nxt  # the data lines
+        a = e + 1  # its data lines run to the next keyword line
         try:
             line = bytes(data[s:e]).decode("ascii")
         except UnicodeDecodeError:
             raise FormatError(s, "a non-ASCII character in a keyword line") from None
         if line.startswith("**"):
-            if b > a:
+            nxt = _block_end(data, arr, a)
+            if nxt > a:
                 raise FormatError(a, "data lines after a comment line")
             continue
         key, params = _keyword(line, s)
+        stride = _stride(arr, a, key, params)
+        b = nxt = _block_end(data, arr, a, stride)
+        if stride:
+            _release(data, a, b)  # the scan for the block's end touched one byte per record
         if key == "HEADING":
             if out["heading"] or out["points"] is not None:
                 raise FormatError(s, "*HEADING after the start of the model or twice")
@@ -570,6 +611,7 @@ def _parse_abaqus(data, arr: np.ndarray) -> dict:
             if out["points"] is not None:
                 raise FormatError(s, "a second *NODE block (dicer writes one)")
             ints, reals = _records(arr, a, b, "ifff", "a *NODE line")
+            _release(data, a, b)
             if not np.array_equal(ints[:, 0], np.arange(1, ints.shape[0] + 1)):
                 bad = int(np.flatnonzero(ints[:, 0] != np.arange(1, ints.shape[0] + 1))[0])
                 raise FormatError(a + bad * (b - a) // ints.shape[0], "node numbers do not run 1, 2, ... in order")
@@ -589,6 +631,7 @@ def _parse_abaqus(data, arr: np.ndarray) -> dict:
             k = NODES_PER_ELEMENT[ELEMENT_TYPES[etype]]
             ints, _ = _records(arr, a, b, "i" * (k + 1), f"a *ELEMENT line of ELSET={name}",
                                _PER_LINE if k + 1 > _PER_LINE else 0)
+            _release(data, a, b)
             out["blocks"].append((name, ints[:, 0] - 1))
             conn.append((a, ints[:, 1:]))
         elif key in ("NSET", "ELSET"):

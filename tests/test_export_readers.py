@@ -291,3 +291,19 @@ def test_lsdyna_reader_rejects_truncated_and_corrupted_files(tmp_path, mesh):
         read_lsdyna(tmp_path / "bad.k")
     got = read_lsdyna(tmp_path / "m.k")
     assert got["points"].shape == (mesh.n_points, 3) and np.array_equal(got["cells"], mesh.cells)
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_abaqus_reader_names_a_line_cut_short_or_run_on(tmp_path, mesh, order):
+    # a line of another length breaks the record grid the block's end is found on; the error
+    # must still name that line
+    export_mesh(mesh, tmp_path / "m.inp", _config(2, order=order))
+    lines = _lines(tmp_path / "m.inp")
+    for key, offset in ((b"*NODE", 5), (b"*ELEMENT", 3), (b"*NSET, NSET=EXTERIOR", 1)):
+        row = _line_no(lines, key) + offset
+        for text in (lines[row][:10] + lines[row][11:], lines[row][:10] + b"1" + lines[row][10:]):
+            bad = list(lines)
+            bad[row] = text
+            (tmp_path / "bad.inp").write_bytes(b"".join(bad))
+            with pytest.raises(DicerError, match=rf"bad\.inp: line {row + 1}, column 1[0-6]: .* belongs"):
+                read_abaqus(tmp_path / "bad.inp")

@@ -525,7 +525,7 @@ def _records(arr: np.ndarray, a: int, b: int, kinds: str, what: str, entries_fir
 
 
 def _int_list(arr: np.ndarray, a: int, b: int, what: str) -> np.ndarray:
-    """(n,) int64 of a set's data lines, 1-based ids as written, checked strictly increasing."""
+    """(n,) ids of a set's data lines, 1-based as written, checked strictly increasing."""
     if b == a:
         raise FormatError(a, f"{what} without data lines")
     try:

@@ -169,7 +169,8 @@ def layout_of(record: bytes, terminated: bool = True) -> Layout:
 
 
 def _describe(layout: Layout, col: int, byte: int) -> str:
-    want = _EXPECTED[int(layout.klass[col])].format(sep=repr(chr(layout.template[col])).replace("'\\n'", "a line end"))
+    sep = "a line end" if layout.template[col] == 10 else repr(chr(layout.template[col]))
+    want = _EXPECTED[int(layout.klass[col])].format(sep=sep)
     got = "a line end" if byte == 10 else repr(chr(byte))
     return f"{got} where {want} belongs"
 
@@ -242,8 +243,9 @@ def parse_records(buf: np.ndarray, layout: Layout, chunk: int = CHUNK_ROWS) -> t
     """Check and convert ``buf`` ((n * layout.length,) uint8, n whole records).
 
     Returns ints (n, number of integer fields), int32 if every integer field is at most 9
-    columns wide, else int64, and reals (n, number of real fields) float64. Raises FormatError at the first byte that does not fit, or when ``buf`` does
-    not hold whole records (offset of the incomplete last record).
+    columns wide, else int64, and reals (n, number of real fields) float64. Raises
+    FormatError at the first byte that does not fit, or when ``buf`` does not hold whole
+    records (offset of the incomplete last record).
     """
     n, rest = divmod(buf.size, layout.length)
     rows = buf[: n * layout.length].reshape(n, layout.length)
@@ -279,7 +281,8 @@ def record_length(buf: np.ndarray | bytes, continued: bool = False) -> int:
 
 def parse_int_list(buf: np.ndarray, per_line: int) -> np.ndarray:
     """The integers of a set list: lines of ``per_line`` right-aligned fields of one width joined by
-    ``,`` (the last line may be shorter), every line ending in a newline. Returns (n,) int64."""
+    ``,`` (the last line may be shorter), every line ending in a newline. Returns (n,) int32
+    (int64 for fields wider than 9 columns)."""
     first = bytes(buf[:4096])
     cut = re.search(rb"[,\n]", first)
     if cut is None:

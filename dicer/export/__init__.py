@@ -170,8 +170,16 @@ def provenance(source: str | os.PathLike | None, config: dict, element_type: str
     return [
         f"dicer {__version__} {element_type} model (order {order})",
         f"mesh sha256 {digest}",
-        f"config sha256/16 {config_hash(stage_settings(config, 'export'))}",
+        f"config sha256/16 {settings_hash(config)}",
     ]
+
+
+def settings_hash(config: dict) -> str:
+    """Hash of the ``materials`` and ``export`` settings that shape the file (all but ``export.verify``:
+    how a file is checked does not change it)."""
+    settings = stage_settings(config, "export")
+    settings.get("export", {}).pop("verify", None)
+    return config_hash(settings)
 
 
 def resolve_element_type(mesh: Mesh, config: dict, path: Path) -> tuple[str, int]:
@@ -519,7 +527,9 @@ def _verify(fmt: str, model: SolverModel, tmp: Path, path: Path, ex: dict) -> No
     from dicer.export import readers
 
     try:
-        if fmt == "abaqus":
+        if fmt == "abaqus" and ex.get("verify", "strict") == "meshio":
+            readers.check_abaqus_meshio(tmp, model)
+        elif fmt == "abaqus":
             readers.check_abaqus(tmp, model)
         elif fmt in ("vtu", "gmsh"):
             readers.check_meshio(tmp, model, fmt)
@@ -536,7 +546,8 @@ def _verify(fmt: str, model: SolverModel, tmp: Path, path: Path, ex: dict) -> No
         elif fmt == "lsdyna":
             readers.check_lsdyna(tmp, model)
     except DicerError as exc:
-        raise DicerError(f"{path}: read-back check failed: {exc}; the file was not written") from None
+        raise DicerError(f"{path}: read-back check failed: {exc}; the file was not written: check the disk "
+                         "and export again") from None
 
 
 def export_mesh(mesh: Mesh, path: str | os.PathLike, config: dict, source: str | os.PathLike | None = None,
@@ -545,7 +556,8 @@ def export_mesh(mesh: Mesh, path: str | os.PathLike, config: dict, source: str |
 
     config : the dicer configuration (``materials`` and ``export`` sections).
     source : the input the model was made from (its name and SHA-256 go into the provenance).
-    verify : read the file back and check it before renaming it into place (default).
+    verify : read the file back and check it before renaming it into place (default); an
+        Abaqus deck with dicer's strict reader, or meshio's when ``export.verify`` is meshio.
     On any problem: DicerError, and no file at ``path``.
     """
     path = Path(path)

@@ -1,21 +1,33 @@
-"""Read-back checks of every export, and strict readers for the formats meshio does not read.
+"""Read-back checks of every export, and strict readers of the text decks dicer writes.
 
-``check_abaqus`` and ``check_meshio`` re-read a file with meshio; ``read_patran``
-and ``read_lsdyna`` parse PATRAN neutral and LS-DYNA keyword files column by
-column as their specifications lay them out, and raise DicerError on anything
-out of place (the tests use them for round trips). Every ``check_*`` compares
-node count, coordinates (to print precision), connectivity and materials with
-the model that was written and raises DicerError on the first difference.
+``read_abaqus``, ``read_patran`` and ``read_lsdyna`` parse dicer's own Abaqus/CalculiX,
+PATRAN neutral and LS-DYNA keyword files as their writers lay them out (fixed-width
+fields, whole blocks at a time with numpy) and raise DicerError, naming the line, on
+anything out of place. ``check_abaqus`` (the default read-back of ``.inp`` decks) and
+``check_abaqus_meshio`` (``export.verify: meshio``) re-read a deck with dicer's reader or
+meshio's; ``check_meshio`` re-reads VTU and Gmsh files with meshio. Every ``check_*``
+compares node count, coordinates (to print precision), connectivity and materials
+with the model that was written, and the sets the file holds, and raises DicerError
+on the first difference.
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
 from pathlib import Path
 
 import numpy as np
 
 from dicer.errors import DicerError
+from dicer.export.textparse import (
+    FormatError,
+    layout_of,
+    parse_column,
+    parse_int_list,
+    parse_records,
+    record_length,
+)
 
 MESHIO_TYPES = {(3, 1): "hexahedron", (3, 2): "hexahedron20", (2, 1): "quad", (2, 2): "quad8"}
 
@@ -63,8 +75,8 @@ def compare(model, points: np.ndarray, cells: np.ndarray, material: np.ndarray, 
         raise DicerError(f"{what}: element materials differ")
 
 
-def check_abaqus(path: str | Path, model) -> None:
-    """Re-read an Abaqus deck with meshio and compare it with ``model``."""
+def check_abaqus_meshio(path: str | Path, model) -> None:
+    """Re-read an Abaqus deck with meshio and compare it with ``model`` (``export.verify: meshio``)."""
     import meshio
 
     try:
@@ -130,7 +142,7 @@ class _Lines:
     def __init__(self, path: str | Path):
         self.data = Path(path).read_bytes()
         if not self.data.endswith(b"\n"):
-            raise DicerError("the file does not end with a newline (truncated?)")
+            raise DicerError("the file ends in the middle of a line (truncated?)")
         self.arr = np.frombuffer(self.data, np.uint8)
         self.ends = np.flatnonzero(self.arr == 10)
         self.starts = np.concatenate([[0], self.ends[:-1] + 1])
@@ -155,19 +167,39 @@ class _Lines:
             return view
         return self.arr[at[:, None] + np.arange(width)]
 
-    def ints(self, rows: np.ndarray, first: int, width: int, what: str) -> np.ndarray:
-        cols = np.ascontiguousarray(self.columns(rows, first, width))
+    def _convert(self, rows: np.ndarray, first: int, width: int, dtype, what: str, kind: str) -> np.ndarray:
+        view = self.columns(rows, first, width)
+        if rows.size > 64:  # the fields as dicer writes them, at array speed (dicer.export.textparse)
+            try:
+                values = parse_column(view)
+                if values.dtype.kind == np.dtype(dtype).kind:
+                    return values.astype(dtype, copy=False)
+            except FormatError:
+                pass  # a negative integer or a bad field: numpy's conversion takes or names it
+        cols = np.ascontiguousarray(view).view(f"S{width}").ravel()
         try:
-            return cols.view(f"S{width}").ravel().astype(np.int64)
+            return cols.astype(dtype)
         except ValueError:
-            raise DicerError(f"{what}: not an integer in columns {first + 1}-{first + width}") from None
+            pass
+        # name the first line that does not convert: find its chunk, then the line (error path only)
+        for start in range(0, cols.size, 1 << 12):
+            try:
+                cols[start : start + (1 << 12)].astype(dtype)
+            except ValueError:
+                for i in range(start, min(start + (1 << 12), cols.size)):
+                    try:
+                        cols[i : i + 1].astype(dtype)
+                    except ValueError:
+                        text = cols[i].decode("ascii", "replace")
+                        raise DicerError(f"line {int(rows[i]) + 1}: {what}: {text!r} in columns "
+                                         f"{first + 1}-{first + width} is not {kind}") from None
+        raise DicerError(f"{what}: not {kind} in columns {first + 1}-{first + width}")
+
+    def ints(self, rows: np.ndarray, first: int, width: int, what: str) -> np.ndarray:
+        return self._convert(rows, first, width, np.int64, what, "an integer")
 
     def floats(self, rows: np.ndarray, first: int, width: int, what: str) -> np.ndarray:
-        cols = np.ascontiguousarray(self.columns(rows, first, width))
-        try:
-            return cols.view(f"S{width}").ravel().astype(np.float64)
-        except ValueError:
-            raise DicerError(f"{what}: not a number in columns {first + 1}-{first + width}") from None
+        return self._convert(rows, first, width, np.float64, what, "a number")
 
     def expect(self, rows: np.ndarray, first: int, text: bytes, what: str) -> None:
         got = self.columns(rows, first, len(text))
@@ -176,6 +208,8 @@ class _Lines:
             raise DicerError(f"line {bad + 1}: expected {text.decode()!r} for {what}")
 
     def lengths_are(self, rows: np.ndarray, n: int, what: str) -> None:
+        if rows.size and rows.max() >= len(self):
+            raise DicerError(f"the file ends after {len(self)} lines, before its {what} cards (truncated?)")
         if rows.size and np.any(self.lengths[rows] != n):
             bad = int(rows[np.flatnonzero(self.lengths[rows] != n)[0]])
             raise DicerError(f"line {bad + 1}: {what} card has {self.lengths[bad]} columns, expected {n}")
@@ -208,8 +242,22 @@ def read_patran(path: str | Path) -> dict:
 
     Returns points (N, 3), cells (M, k) 0-based in VTK/Abaqus node order, material
     (M,) property ids, title, dim and order. Nodes and elements must be numbered
-    1..N and 1..M in order; any other layout raises DicerError.
+    1..N and 1..M in order; any other layout raises DicerError naming the file and line.
     """
+    return _named(_read_patran, path)
+
+
+def _named(reader, path: str | Path) -> dict:
+    """``reader(path)`` with the file's name at the head of its error message."""
+    try:
+        return reader(path)
+    except DicerError as exc:
+        raise DicerError(f"{path}: {exc}; dicer's strict readers read files exactly as dicer writes them: "
+                         "export the mesh again") from None
+
+
+def _read_patran(path: str | Path) -> dict:
+    """:func:`read_patran` with messages that start at the line."""
     from dicer.export.patran import PATRAN_HEX20
 
     lines = _Lines(path)
@@ -266,8 +314,14 @@ def read_lsdyna(path: str | Path) -> dict:
     """Read an LS-DYNA keyword file as dicer writes it, strictly (fixed-width cards).
 
     Returns points, cells (0-based), material (part ids), parts (pid -> title),
-    materials (mid -> (ro, e, pr)), node_sets (title -> 0-based ids) and title.
+    materials (mid -> (ro, e, pr)), node_sets (title -> 0-based ids) and title; anything
+    out of place raises DicerError naming the file and line.
     """
+    return _named(_read_lsdyna, path)
+
+
+def _read_lsdyna(path: str | Path) -> dict:
+    """:func:`read_lsdyna` with messages that start at the line."""
     lines = _Lines(path)
     n = len(lines)
     is_key = lines.arr[lines.starts[lines.lengths > 0]] == ord("*")
@@ -347,7 +401,7 @@ def read_lsdyna(path: str | Path) -> dict:
 
 def check_patran(path: str | Path, model) -> None:
     """Re-read a PATRAN neutral file with :func:`read_patran` and compare it with ``model``."""
-    got = read_patran(path)
+    got = _read_patran(path)
     if (got["dim"], got["order"]) != (model.dim, model.order):
         raise DicerError("element shape or order differs")
     compare(model, got["points"], got["cells"], got["material"], "the neutral file", digits=9)
@@ -355,7 +409,7 @@ def check_patran(path: str | Path, model) -> None:
 
 def check_lsdyna(path: str | Path, model) -> None:
     """Re-read an LS-DYNA keyword file with :func:`read_lsdyna` and compare it with ``model``."""
-    got = read_lsdyna(path)
+    got = _read_lsdyna(path)
     compare(model, got["points"], got["cells"], got["material"], "the keyword file", digits=9)
     for name, ids in model.node_sets.items():
         if not np.array_equal(got["node_sets"].get(name, np.zeros(0)), ids):
@@ -363,3 +417,366 @@ def check_lsdyna(path: str | Path, model) -> None:
     for k in model.labels():
         if got["parts"].get(k, {}).get("title") != model.names[k] or k not in got["materials"]:
             raise DicerError(f"part or material {model.names[k]} missing")
+
+
+# --- strict Abaqus / CalculiX reader --------------------------------------------------------
+
+NODES_PER_ELEMENT = {(3, 1): 8, (3, 2): 20, (2, 1): 4, (2, 2): 8}
+_PER_LINE = 16  # entries per data line (Abaqus, CalculiX); a longer element record continues
+_SMALL_BLOCK = 1 << 16  # bytes: heading, surface and material blocks are a few lines
+
+
+def _map_file(path: Path):
+    """The file memory-mapped read-only (no copy of a deck of GBs; pages come from the page cache).
+
+    Nothing a reader returns views the mapping, so it is unmapped when the reader returns.
+    """
+    import mmap
+
+    with open(path, "rb") as f:
+        if os.fstat(f.fileno()).st_size == 0:
+            raise FormatError(0, "the file is empty")
+        return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+
+
+def _release(data, a: int, b: int) -> None:
+    """Unmap the pages of data[a:b] once parsed: the deck is read once, and a mapped page counts
+    in the process's memory until the mapping ends (they stay in the page cache)."""
+    import mmap
+
+    if isinstance(data, mmap.mmap) and hasattr(mmap, "MADV_DONTNEED"):
+        first = a // mmap.PAGESIZE * mmap.PAGESIZE
+        if b > first:
+            data.madvise(mmap.MADV_DONTNEED, first, b - first)
+
+
+def _where(arr: np.ndarray, offset: int) -> str:
+    """``line L, column C`` of the byte ``offset`` (counted only when an error is reported), or
+    ``at the end of the file``."""
+    if offset >= arr.size:
+        return "at the end of the file"
+    head = arr[: max(offset, 0)]
+    nl = np.flatnonzero(head == 10)
+    line = nl.size + 1
+    column = offset - (int(nl[-1]) + 1 if nl.size else 0) + 1
+    return f"line {line}, column {column}"
+
+
+def _keyword(text: str, at: int) -> tuple[str, dict[str, str]]:
+    """``*KEY, A=b, ...`` -> ("KEY", {"A": "b"}); keyword and parameter names upper case."""
+    parts = [p.strip() for p in text[1:].split(",")]
+    params = {}
+    for p in parts[1:]:
+        name, eq, value = p.partition("=")
+        if not eq or not name.strip() or not value.strip():
+            raise FormatError(at, f"parameter {p!r} of *{parts[0]} is not NAME=value")
+        params[name.strip().upper()] = value.strip()
+    return parts[0].upper(), params
+
+
+def _need(params: dict, key: str, keyword: str, at: int) -> str:
+    if key not in params:
+        raise FormatError(at, f"*{keyword} without its {key}= parameter")
+    return params[key]
+
+
+def _small_lines(arr: np.ndarray, a: int, b: int, keyword: str) -> list[str]:
+    """The data lines of a short block as text."""
+    if b - a > _SMALL_BLOCK:
+        raise FormatError(a, f"*{keyword} has {b - a} bytes of data lines, far more than it takes")
+    try:
+        return arr[a:b].tobytes().decode("ascii").split("\n")[:-1]
+    except UnicodeDecodeError:
+        raise FormatError(a, f"a non-ASCII character in the data of *{keyword}") from None
+
+
+def _numbers(lines: list[str], count: int, keyword: str, a: int) -> list[float]:
+    if len(lines) != 1:
+        raise FormatError(a, f"*{keyword} takes one data line, the deck has {len(lines)}")
+    fields = [f.strip() for f in lines[0].split(",")]
+    try:
+        values = [float(f) for f in fields]
+    except ValueError:
+        raise FormatError(a, f"*{keyword} data {lines[0]!r} is not {count} number(s)") from None
+    if len(values) != count or not all(np.isfinite(values)):
+        raise FormatError(a, f"*{keyword} data {lines[0]!r} is not {count} finite number(s)")
+    return values
+
+
+def _records(arr: np.ndarray, a: int, b: int, kinds: str, what: str, entries_first_line: int = 0):
+    """Parse the fixed-width block arr[a:b] whose records hold fields ``kinds`` (``i``/``f``)."""
+    buf = arr[a:b]
+    if buf.size == 0:
+        raise FormatError(a, f"{what} without data lines")
+    length = record_length(buf, continued=entries_first_line > 0)
+    if length == 0:
+        raise FormatError(a, f"{what}: no line end in the first record")
+    try:
+        first = bytes(buf[:length])
+        layout = layout_of(first)
+        if layout.kinds != kinds:
+            raise FormatError(0, f"{what} lines hold {len(layout.kinds)} entries "
+                                 f"({layout.kinds.count('f')} real), expected {len(kinds)} ({kinds.count('f')} real)")
+        if entries_first_line and first.split(b"\n")[0].count(b",") != entries_first_line:
+            raise FormatError(0, f"{what} lines continue after other than {entries_first_line} entries")
+        return parse_records(buf, layout)
+    except FormatError as exc:
+        raise FormatError(a + exc.offset, f"{what}: {exc.message}") from None
+
+
+def _int_list(arr: np.ndarray, a: int, b: int, what: str) -> np.ndarray:
+    """(n,) ids of a set's data lines, 1-based as written, checked strictly increasing."""
+    if b == a:
+        raise FormatError(a, f"{what} without data lines")
+    try:
+        ids = parse_int_list(arr[a:b], _PER_LINE)
+    except FormatError as exc:
+        raise FormatError(a + exc.offset, f"{what}: {exc.message}") from None
+    if ids.size > 1 and not np.all(ids[1:] > ids[:-1]):
+        raise FormatError(a, f"{what}: ids not in increasing order")
+    return ids
+
+
+def _stride(arr: np.ndarray, a: int, key: str, params: dict) -> int:
+    """Bytes per record of a large fixed-width block (nodes, elements, sets), 0 for other blocks."""
+    from dicer.export import ELEMENT_TYPES
+
+    head = arr[a : a + 4096]
+    if key == "NODE":
+        return record_length(head)
+    if key == "ELEMENT":
+        kind = ELEMENT_TYPES.get(params.get("TYPE", "").upper())
+        return record_length(head, continued=kind is not None and NODES_PER_ELEMENT[kind] + 1 > _PER_LINE)
+    if key in ("NSET", "ELSET"):
+        cut = np.flatnonzero((head == ord(",")) | (head == 10))
+        return int(cut[0]) + 1 if cut.size else 0
+    return 0
+
+
+def _block_end(data, arr: np.ndarray, a: int, stride: int = 0) -> int:
+    """Where the data lines from ``a`` on end: the start of the next keyword line, or the file's end.
+
+    stride : bytes per record of a fixed-width block, whose next keyword starts a record:
+    one byte per record is looked at instead of every byte. When the records are broken
+    (a line cut short), the first '*' at a record start may be missed or false; the block's
+    parse then fails at the first broken record, which is the error to report anyway.
+    """
+    if stride > 0:
+        starts = arr[a::stride]
+        hit = int(np.argmax(starts == ord("*"))) if starts.size else 0
+        if not starts.size or starts[hit] != ord("*"):
+            return arr.size
+        if arr[a + hit * stride - 1] == 10:
+            return a + hit * stride
+    at = data.find(b"\n*", a - 1)
+    return arr.size if at < 0 else at + 1
+
+
+def _parse_abaqus(data, arr: np.ndarray) -> dict:
+    """The deck ``data`` (bytes or mmap; ``arr``: the same as uint8) as :func:`read_abaqus`
+    returns it; FormatError on a flaw."""
+    from dicer.export import ELEMENT_TYPES
+
+    size = arr.size
+    if arr[-1] != 10:
+        raise FormatError(size - 1, "the file ends in the middle of this line (truncated?)")
+    if arr[0] != ord("*"):
+        raise FormatError(0, "a deck starts with a keyword line (*HEADING or *NODE)")
+    out = {"heading": [], "points": None, "element_type": None, "blocks": [], "node_sets": {},
+           "element_sets": {}, "surfaces": {}, "materials": {}, "sections": {}}
+    conn, material, nxt = [], None, 0
+    while nxt < size:
+        s = nxt  # a keyword line
+        e = data.find(b"\n", s)
+        a = e + 1  # its data lines run to the next keyword line
+        try:
+            line = bytes(data[s:e]).decode("ascii")
+        except UnicodeDecodeError:
+            raise FormatError(s, "a non-ASCII character in a keyword line") from None
+        if line.startswith("**"):
+            nxt = _block_end(data, arr, a)
+            if nxt > a:
+                raise FormatError(a, "data lines after a comment line")
+            continue
+        key, params = _keyword(line, s)
+        stride = _stride(arr, a, key, params)
+        b = nxt = _block_end(data, arr, a, stride)
+        if stride:
+            _release(data, a, b)  # the scan for the block's end touched one byte per record
+        if key == "HEADING":
+            if out["heading"] or out["points"] is not None:
+                raise FormatError(s, "*HEADING after the start of the model or twice")
+            out["heading"] = _small_lines(arr, a, b, key) or [""]
+        elif key == "NODE":
+            if out["points"] is not None:
+                raise FormatError(s, "a second *NODE block (dicer writes one)")
+            ints, reals = _records(arr, a, b, "ifff", "a *NODE line")
+            _release(data, a, b)
+            if not np.array_equal(ints[:, 0], np.arange(1, ints.shape[0] + 1)):
+                bad = int(np.flatnonzero(ints[:, 0] != np.arange(1, ints.shape[0] + 1))[0])
+                raise FormatError(a + bad * (b - a) // ints.shape[0], "node numbers do not run 1, 2, ... in order")
+            out["points"] = reals
+        elif key == "ELEMENT":
+            etype = _need(params, "TYPE", key, s).upper()
+            name = _need(params, "ELSET", key, s)
+            if etype not in ELEMENT_TYPES:
+                raise FormatError(s, f"unknown element type {etype}")
+            if out["element_type"] not in (None, etype):
+                raise FormatError(s, f"element type {etype} after {out['element_type']} (dicer writes one type)")
+            if out["points"] is None:
+                raise FormatError(s, "*ELEMENT before *NODE")
+            if any(name == n for n, _ in out["blocks"]):
+                raise FormatError(s, f"a second element block for ELSET={name}")
+            out["element_type"] = etype
+            k = NODES_PER_ELEMENT[ELEMENT_TYPES[etype]]
+            ints, _ = _records(arr, a, b, "i" * (k + 1), f"a *ELEMENT line of ELSET={name}",
+                               _PER_LINE if k + 1 > _PER_LINE else 0)
+            _release(data, a, b)
+            out["blocks"].append((name, ints[:, 0] - 1))
+            conn.append((a, ints[:, 1:]))
+        elif key in ("NSET", "ELSET"):
+            name = _need(params, key, key, s)
+            sets = out["node_sets" if key == "NSET" else "element_sets"]
+            if name in sets or len(params) != 1:
+                raise FormatError(s, f"*{key}, {key}={name} twice or with other parameters")
+            sets[name] = _int_list(arr, a, b, f"*{key}, {key}={name}") - 1
+        elif key == "SURFACE":
+            name = _need(params, "NAME", key, s)
+            if params.get("TYPE", "").upper() != "ELEMENT" or name in out["surfaces"]:
+                raise FormatError(s, f"*SURFACE, NAME={name} twice or not TYPE=ELEMENT")
+            rows = [tuple(p.strip() for p in t.split(",")) for t in _small_lines(arr, a, b, key)]
+            if not rows or any(len(r) != 2 for r in rows):
+                raise FormatError(a, f"*SURFACE, NAME={name} data lines are not 'element set, face'")
+            out["surfaces"][name] = rows
+        elif key == "MATERIAL":
+            material = _need(params, "NAME", key, s)
+            if material in out["materials"]:
+                raise FormatError(s, f"*MATERIAL, NAME={material} twice")
+            out["materials"][material] = {}
+        elif key in ("ELASTIC", "DENSITY"):
+            if material is None or key.lower() in out["materials"][material] or params:
+                raise FormatError(s, f"*{key} outside a *MATERIAL, twice in one, or with parameters")
+            out["materials"][material][key.lower()] = tuple(
+                _numbers(_small_lines(arr, a, b, key), 2 if key == "ELASTIC" else 1, key, a))
+        elif key == "SOLID SECTION":
+            name = _need(params, "ELSET", key, s)
+            lines = _small_lines(arr, a, b, key)
+            if name in out["sections"] or len(lines) > 1:
+                raise FormatError(s, f"*SOLID SECTION, ELSET={name} twice or with more than one data line")
+            out["sections"][name] = (_need(params, "MATERIAL", key, s),
+                                     _numbers(lines, 1, key, a) if lines else [])
+        else:
+            raise FormatError(s, f"unexpected keyword *{key} (dicer's decks hold no such card)")
+    if out["points"] is None or not out["blocks"]:
+        raise FormatError(size, "no *NODE or no *ELEMENT block (truncated?)")
+    # a deck cut at a line end is whole up to there: its last cards tell (every block has a
+    # section, every section a material with its constants)
+    for name, _ in out["blocks"]:
+        section = out["sections"].get(name)
+        if section is None:
+            raise FormatError(size, f"ELSET={name} has no *SOLID SECTION (truncated?)")
+        if set(out["materials"].get(section[0], {})) != {"elastic", "density"}:
+            raise FormatError(size, f"material {section[0]} of ELSET={name} lacks *ELASTIC or *DENSITY (truncated?)")
+    n_nodes = out["points"].shape[0]
+    n_cells = sum(ids.size for _, ids in out["blocks"])
+    seen = np.zeros(n_cells, bool)
+    cells = np.empty((n_cells, conn[0][1].shape[1]), conn[0][1].dtype)
+    for (name, ids), (a, c) in zip(out["blocks"], conn):
+        # increasing within a block (as written) and unseen in the others: each number once
+        if ids[0] < 0 or ids[-1] >= n_cells or np.any(ids[1:] <= ids[:-1]) or seen[ids].any():
+            raise FormatError(a, f"element numbers of ELSET={name} are not increasing, repeat, or leave "
+                                 f"gaps in 1..{n_cells}")
+        if c.min() < 1 or c.max() > n_nodes:
+            raise FormatError(a, f"elements of ELSET={name} refer to nodes that do not exist")
+        seen[ids] = True
+        cells[ids] = c
+    cells -= 1
+    for kind, limit in (("node_sets", n_nodes), ("element_sets", n_cells)):
+        for name, ids in out[kind].items():
+            if ids[0] < 0 or ids[-1] >= limit:
+                raise FormatError(size, f"set {name} refers to {kind.split('_')[0]}s that do not exist")
+    out["cells"] = cells
+    return out
+
+
+def _read_abaqus(path: str | Path) -> dict:
+    """:func:`read_abaqus` with messages that start at the line (the caller names the file)."""
+    try:
+        data = _map_file(Path(path))
+    except OSError as exc:
+        raise DicerError(f"cannot read the file ({exc.strerror or exc})") from None
+    except FormatError as exc:
+        raise DicerError(exc.message) from None
+    arr = np.frombuffer(data, np.uint8)
+    try:
+        return _parse_abaqus(data, arr)
+    except FormatError as exc:
+        message = f"{_where(arr, exc.offset)}: {exc.message}"
+    del arr, data  # the error below must not keep the file mapped through its traceback
+    raise DicerError(message)
+
+
+def read_abaqus(path: str | Path) -> dict:
+    """Read an Abaqus/CalculiX deck as dicer writes it, strictly and at array speed.
+
+    Returns points (N, 3) float64 (bit for bit what ``float`` gives for each number),
+    cells (M, k) 0-based in element number order (int32 up to 9-digit numbers, else int64), element_type, blocks
+    [(ELSET name, 0-based element indices)] in file order, node_sets and element_sets
+    {name: 0-based ids}, surfaces {name: [(element set, face)]}, materials {name:
+    {"elastic": (E, nu), "density": (rho,)}}, sections {ELSET: (material, [data])} and
+    heading (the *HEADING lines). Nodes must be numbered 1..N in order and elements 1..M
+    once each; fields must be fixed-width as dicer writes them. Anything else raises
+    DicerError naming the file, the line and the column.
+    """
+    return _named(_read_abaqus, path)
+
+
+def check_abaqus(path: str | Path, model) -> None:
+    """Re-read an Abaqus deck with dicer's strict reader and compare all of it with ``model``:
+    heading, nodes, elements and their material blocks, node and element sets, the
+    exterior surface, materials and sections."""
+    from dicer.export.abaqus import _num
+
+    got = _read_abaqus(path)
+    if got["element_type"] != model.element_type:
+        raise DicerError(f"element type {got['element_type']} read back, expected {model.element_type}")
+    want_heading = [model.heading[0]] if model.use_heading else []
+    if got["heading"] != want_heading:
+        raise DicerError(f"*HEADING {got['heading']} read back, expected {want_heading}")
+    blocks = model.blocks()
+    names = [name for name, _ in got["blocks"]]
+    if names != [model.names[k] for k, _ in blocks]:
+        raise DicerError(f"element blocks {names} read back, expected {[model.names[k] for k, _ in blocks]}")
+    material = np.zeros(got["cells"].shape[0], np.int32)
+    for (name, ids), (k, elements) in zip(got["blocks"], blocks):
+        if not np.array_equal(ids, elements):
+            raise DicerError(f"material set {name} does not hold its {elements.size} elements")
+        material[ids] = k
+    compare(model, got["points"], got["cells"], material, "the deck")
+    _same_sets("node set", got["node_sets"], model.node_sets)
+    faces = model.exterior if model.exterior is not None else np.zeros((0, 2), np.int64)
+    present = np.unique(faces[:, 1]).tolist()
+    _same_sets("element set", got["element_sets"],
+               {f"EXTERIOR_S{s}": np.sort(faces[faces[:, 1] == s, 0]) for s in present})
+    surfaces = {"EXTERIOR": [(f"EXTERIOR_S{s}", f"S{s}") for s in present]} if present else {}
+    if got["surfaces"] != surfaces:
+        raise DicerError(f"surfaces {got['surfaces']} read back, expected {surfaces}")
+    labels = model.labels()
+    materials = {model.names[k]: {"elastic": (float(_num(model.props[k]["youngs_modulus"])),
+                                              float(_num(model.props[k]["poissons_ratio"]))),
+                                  "density": (float(_num(model.props[k]["density"])),)} for k in labels}
+    if got["materials"] != materials:
+        raise DicerError(f"materials {got['materials']} read back, expected {materials}")
+    thickness = [float(_num(model.thickness))] if model.dim == 2 else []
+    sections = {model.names[k]: (model.names[k], thickness) for k in labels}
+    if got["sections"] != sections:
+        raise DicerError(f"sections {got['sections']} read back, expected {sections}")
+
+
+def _same_sets(kind: str, got: dict[str, np.ndarray], want: dict[str, np.ndarray]) -> None:
+    if set(got) != set(want):
+        extra, missing = sorted(set(got) - set(want)), sorted(set(want) - set(got))
+        raise DicerError(f"{kind}s differ: {extra or 'none'} read back but not written, {missing or 'none'} missing")
+    for name, ids in want.items():
+        if not np.array_equal(got[name], ids):
+            raise DicerError(f"{kind} {name} differs")

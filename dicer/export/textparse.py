@@ -1,0 +1,334 @@
+"""Vectorised strict parsing of fixed-width text records: the inverse of :mod:`dicer.export.textfmt`.
+
+dicer's text decks are runs of records (one line, or two for a continued element)
+of a fixed length: blank-padded integers, numbers in scientific notation of a fixed
+width, separators in fixed columns. :func:`layout_of` reads the layout off the first
+record of a run; :func:`parse_records` then checks and converts every record of the
+run with whole-array numpy operations, a chunk of rows at a time:
+
+* every byte is checked against the layout with elementwise operations only (digits
+  are mapped to ``'0'``, one OR mask folds ``' '`` into ``'0'`` where an integer may be
+  blank-padded, and the result must equal a template row); integers must be
+  right-aligned, signs are checked column by column;
+* digits become numbers column by column (``v = 10 v + digit``), each step over every
+  field of a run of equally spaced fields at once (strided views);
+* a number ``[ -]d.ddd[eE][+-]XX`` becomes its integer mantissa ``M`` and exponent
+  ``k``; ``M * 10**k`` (or ``M / 10**-k``) is one correctly rounded operation on exact
+  operands while ``|k| <= 22``, so the result is bit for bit what ``float(text)``
+  gives (beyond that, those few fields go through ``float``).
+
+Anything out of place raises :class:`FormatError` with the byte offset of the first
+bad character, which the reader of the file turns into a line and column.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.lib.stride_tricks import as_strided
+
+CHUNK_ROWS = 1 << 15
+"""Records checked and converted per pass: temporaries stay a few MB (cache-sized)."""
+
+_ZERO, _SPACE, _MINUS, _PLUS = 48, 32, 45, 43
+_POW10 = 10.0 ** np.arange(23)  # exact powers of ten (10**22 is the largest exact double)
+_INT = re.compile(rb" *[0-9]+")
+_REAL = re.compile(rb" *[ -][0-9]\.[0-9]+[eE][+-][0-9]{2}")  # right-aligned: blank padding first
+
+# column classes, for messages
+_C_SEP, _C_INT, _C_DIGIT, _C_SIGN, _C_ESIGN, _C_LETTER = range(6)
+_EXPECTED = {_C_SEP: "{sep}", _C_INT: "a digit or a blank", _C_DIGIT: "a digit", _C_SIGN: "a blank or '-'",
+             _C_ESIGN: "'+' or '-'", _C_LETTER: "{sep}"}
+
+
+class FormatError(Exception):
+    """A record that does not fit its layout; ``offset``: bytes into the parsed buffer of the
+    first bad character."""
+
+    def __init__(self, offset: int, message: str):
+        super().__init__(message)
+        self.offset = int(offset)
+        self.message = message
+
+
+@dataclass(frozen=True)
+class Run:
+    """``count`` fields of one shape, ``stride`` bytes apart from column ``start`` on.
+
+    kind : ``"i"`` or ``"f"``; width : columns per field. digits : offsets (from the field's
+    first column) of the integer's or mantissa's digit columns, most significant first.
+    Reals only: exp, the two exponent digit offsets; sign, esign, the offsets of the
+    mantissa's and exponent's signs; after, the digits after the point.
+    """
+
+    kind: str
+    start: int
+    stride: int
+    count: int
+    width: int
+    digits: tuple
+    exp: tuple = ()
+    sign: int = 0
+    esign: int = 0
+    after: int = 0
+
+    def shape(self) -> tuple:
+        return (self.kind, self.width, self.digits, self.exp, self.sign, self.esign, self.after)
+
+
+@dataclass(frozen=True)
+class Layout:
+    """The fixed layout of one kind of record.
+
+    length : bytes per record (newlines included). kinds : ``"i"`` or ``"f"`` per field.
+    template, ormask : (length,) uint8; a record is valid where ``canon(u) | ormask ==
+    template`` (``canon`` maps digits to ``'0'``), and in its sign columns.
+    klass : (length,) column class (messages). pairs : (length - 1,) bool, True where
+    columns j and j + 1 lie in one integer field (right alignment).
+    signs, esigns : columns of mantissa and exponent signs.
+    runs : the fields as :class:`Run` s of equally spaced fields of one shape, in order.
+    """
+
+    length: int
+    kinds: str
+    template: np.ndarray
+    ormask: np.ndarray
+    klass: np.ndarray
+    pairs: np.ndarray
+    signs: np.ndarray
+    esigns: np.ndarray
+    runs: tuple
+
+
+def _runs(fields: list[Run]) -> tuple:
+    """Merge consecutive one-field runs of one shape and a constant spacing."""
+    out: list[Run] = []
+    for f in fields:
+        last = out[-1] if out else None
+        if last is not None and last.shape() == f.shape() and (
+                last.count == 1 or f.start - (last.start + (last.count - 1) * last.stride) == last.stride):
+            out[-1] = dataclasses.replace(last, count=last.count + 1, stride=f.start - last.start
+                                          if last.count == 1 else last.stride)
+        else:
+            out.append(f)
+    return tuple(out)
+
+
+def layout_of(record: bytes, terminated: bool = True) -> Layout:
+    """The layout of ``record``: fields separated by ``,`` or a newline (``,\\n`` continues a
+    record on the next line), each a blank-padded integer or a blank-padded real
+    ``[ -]d.ddd[eE][+-]XX``; ``terminated``: the record ends with a newline."""
+    n = len(record)
+    template = np.frombuffer(record, np.uint8).copy()
+    ormask = np.zeros(n, np.uint8)
+    klass = np.full(n, _C_SEP, np.uint8)
+    pairs = np.zeros(max(n - 1, 0), bool)
+    signs, esigns, fields, kinds = [], [], [], []
+    for m in re.finditer(rb"[^,\n]+", record):
+        a, b, text = m.start(), m.end(), m.group()
+        if _INT.fullmatch(text):
+            if len(text.strip()) > 18:
+                raise FormatError(a, "an integer of more than 18 digits")
+            kinds.append("i")
+            template[a:b] = _ZERO
+            ormask[a : b - 1] = 0x10  # ' ' | 0x10 == '0': blanks allowed but in the last column
+            klass[a:b] = _C_INT
+            klass[b - 1] = _C_DIGIT
+            pairs[a : b - 1] = True
+            fields.append(Run("i", a, 0, 1, b - a, tuple(range(b - a))))
+        elif _REAL.fullmatch(text):
+            kinds.append("f")
+            f0, a = a, a + re.search(rb"[0-9]", text).start() - 1  # a: the sign's column (blanks before it)
+            e = f0 + text.upper().index(b"E")
+            template[a] = ormask[a] = 0xFF  # sign: checked by column
+            klass[a] = _C_SIGN
+            signs.append(a)
+            digits = [a + 1] + list(range(a + 3, e))
+            if len(digits) > 15:
+                raise FormatError(a, "a number of more than 15 significant digits")
+            template[digits] = _ZERO
+            klass[digits] = _C_DIGIT
+            klass[[a + 2, e]] = _C_LETTER
+            template[e + 1] = ormask[e + 1] = 0xFF
+            klass[e + 1] = _C_ESIGN
+            esigns.append(e + 1)
+            template[e + 2 : e + 4] = _ZERO
+            klass[e + 2 : e + 4] = _C_DIGIT
+            fields.append(Run("f", f0, 0, 1, b - f0, tuple(c - f0 for c in digits), (e + 2 - f0, e + 3 - f0),
+                              a - f0, e + 1 - f0, e - a - 3))
+        else:
+            raise FormatError(a, f"{text.decode('ascii', 'replace').strip()!r} is neither an integer nor a "
+                                 "number in scientific notation")
+    if terminated and not record.endswith(b"\n"):
+        raise FormatError(n, "the record does not end with a newline")
+    return Layout(length=n, kinds="".join(kinds), template=template, ormask=ormask, klass=klass, pairs=pairs,
+                  signs=np.array(signs, np.intp), esigns=np.array(esigns, np.intp), runs=_runs(fields))
+
+
+def _describe(layout: Layout, col: int, byte: int) -> str:
+    sep = "a line end" if layout.template[col] == 10 else repr(chr(layout.template[col]))
+    want = _EXPECTED[int(layout.klass[col])].format(sep=sep)
+    got = "a line end" if byte == 10 else repr(chr(byte))
+    return f"{got} where {want} belongs"
+
+
+def _check(u: np.ndarray, layout: Layout) -> tuple[np.ndarray, np.ndarray]:
+    """Raise FormatError (offset into ``u``'s rows) at the first bad byte; return (digit values, 0
+    elsewhere; digit mask)."""
+    d = u - np.uint8(_ZERO)  # digits 0..9, every other byte wraps above 9
+    dig = d < 10
+    d *= dig  # digit values, 0 elsewhere
+    canon = u - d  # digits -> '0'
+    canon |= layout.ormask
+    bad = canon != layout.template
+    for cols, allowed in ((layout.signs, (_SPACE, _MINUS)), (layout.esigns, (_PLUS, _MINUS))):
+        if cols.size:
+            s = u[:, cols]
+            bad[:, cols] = (s != allowed[0]) & (s != allowed[1])
+    # a digit followed by a blank inside an integer: not right-aligned
+    shifted = np.zeros_like(bad)
+    if layout.pairs.size:
+        shifted[:, :-1] = dig[:, :-1] & ~dig[:, 1:] & layout.pairs
+    if bad.any() or shifted.any():
+        row = int(np.argmax((bad | shifted).any(axis=1)))
+        if bad[row].any():  # a wrong character says more than the alignment it upsets
+            col = int(np.argmax(bad[row]))
+            raise FormatError(row * layout.length + col, _describe(layout, col, int(u[row, col])))
+        col = int(np.argmax(shifted[row]))
+        raise FormatError(row * layout.length + col, "an integer that is not right-aligned in its field")
+    return d, dig
+
+
+def _horner(view: np.ndarray, offsets: tuple, dtype) -> np.ndarray:
+    """(r, k) values of the digit columns ``offsets`` (most significant first) of ``view`` (r, k, w)."""
+    acc = view[:, :, offsets[0]].astype(dtype)
+    for o in offsets[1:]:
+        acc *= 10
+        acc += view[:, :, o]
+    return acc
+
+
+def _values(layout: Layout, d: np.ndarray, u: np.ndarray, ints: np.ndarray, reals: np.ndarray) -> None:
+    """Convert checked rows (``d``: digit values, 0 elsewhere; ``u``: the bytes) into ``ints`` / ``reals``.
+
+    One pass per digit column of a run of fields, over all its fields at once (strided views).
+    """
+    r = d.shape[0]
+    ni = nf = 0
+    for run in layout.runs:
+        shape = (r, run.count, run.width)
+        view = as_strided(d[:, run.start :], shape, (d.strides[0], run.stride, 1))
+        if run.kind == "i":
+            ints[:, ni : ni + run.count] = _horner(view, run.digits, np.int32 if run.width <= 9 else np.int64)
+            ni += run.count
+            continue
+        raw = as_strided(u[:, run.start :], shape, (u.strides[0], run.stride, 1))
+        m = _horner(view, run.digits, np.float64)  # exact: at most 15 digits (layout_of)
+        k = _horner(view, run.exp, np.int32)
+        np.negative(k, out=k, where=raw[:, :, run.esign] == _MINUS)
+        k -= run.after
+        x = np.where(k >= 0, m * _POW10[np.clip(k, 0, 22)], m / _POW10[np.clip(-k, 0, 22)])
+        far = np.argwhere(np.abs(k) > 22)
+        for i, j in far:  # 10**|k| is not exact there: let Python round these (rare) fields
+            x[i, j] = float(bytes(raw[i, j, run.sign + 1 :]))  # unsigned: the sign comes below
+        np.negative(x, out=x, where=raw[:, :, run.sign] == _MINUS)
+        reals[:, nf : nf + run.count] = x
+        nf += run.count
+
+
+def parse_records(buf: np.ndarray, layout: Layout, chunk: int = CHUNK_ROWS) -> tuple[np.ndarray, np.ndarray]:
+    """Check and convert ``buf`` ((n * layout.length,) uint8, n whole records).
+
+    Returns ints (n, number of integer fields), int32 if every integer field is at most 9
+    columns wide, else int64, and reals (n, number of real fields) float64. Raises
+    FormatError at the first byte that does not fit, or when ``buf`` does not hold whole
+    records (offset of the incomplete last record).
+    """
+    n, rest = divmod(buf.size, layout.length)
+    rows = buf[: n * layout.length].reshape(n, layout.length)
+    wide = any(run.kind == "i" and run.width > 9 for run in layout.runs)
+    ints = np.empty((n, layout.kinds.count("i")), np.int64 if wide else np.int32)  # 9 digits fit int32
+    reals = np.empty((n, layout.kinds.count("f")), np.float64)
+    for start in range(0, n, chunk):
+        u = rows[start : start + chunk]
+        try:
+            d, _ = _check(u, layout)
+        except FormatError as exc:
+            raise FormatError(start * layout.length + exc.offset, exc.message) from None
+        _values(layout, d, u, ints[start : start + chunk], reals[start : start + chunk])
+    if rest:
+        raise FormatError(n * layout.length, f"a record of {rest} bytes where {layout.length} belong "
+                                             "(a line cut short or run on)")
+    return ints, reals
+
+
+def record_length(buf: np.ndarray | bytes, continued: bool = False) -> int:
+    """Bytes up to and including the first newline of ``buf`` (``continued``: the first newline
+    not preceded by a comma); 0 if there is none."""
+    data = bytes(buf[:4096])
+    at = 0
+    while True:
+        i = data.find(b"\n", at)
+        if i < 0:
+            return 0
+        if not (continued and i > 0 and data[i - 1 : i] == b","):
+            return i + 1
+        at = i + 1
+
+
+def parse_int_list(buf: np.ndarray, per_line: int) -> np.ndarray:
+    """The integers of a set list: lines of ``per_line`` right-aligned fields of one width joined by
+    ``,`` (the last line may be shorter), every line ending in a newline. Returns (n,) int32
+    (int64 for fields wider than 9 columns)."""
+    first = bytes(buf[:4096])
+    cut = re.search(rb"[,\n]", first)
+    if cut is None:
+        raise FormatError(0, "a set line without a comma or line end")
+    width = cut.start() + 1  # one field and its separator
+    layout = layout_of(first[: width - 1] + b"\n")
+    # the separator column (',' or a line end by position) is checked here, not by the layout
+    template, ormask = layout.template.copy(), layout.ormask.copy()
+    template[-1] = ormask[-1] = 0xFF
+    layout = dataclasses.replace(layout, template=template, ormask=ormask)
+    n, rest = divmod(buf.size, width)
+    if rest:
+        raise FormatError(n * width, "a set line cut short or run on")
+    cells = buf.reshape(n, width)
+    seps = cells[:, -1]
+    want = np.full(n, ord(","), np.uint8)
+    want[per_line - 1 :: per_line] = 10
+    want[-1] = 10
+    bad = np.flatnonzero(seps != want)
+    if bad.size:
+        i = int(bad[0])
+        got = "a line end" if seps[i] == 10 else repr(chr(seps[i]))
+        raise FormatError(i * width + width - 1, f"{got} where {'a line end' if want[i] == 10 else repr(',')} belongs")
+    ints, _ = parse_records(buf, layout)
+    return ints[:, 0]
+
+
+def parse_column(cols: np.ndarray) -> np.ndarray:
+    """(n,) values of a fixed-width column: ``cols`` (n, width) uint8 (rows may be strided, columns
+    contiguous), all right-aligned non-negative integers (int64) or all blank-padded reals
+    ``[ -]d.ddd[eE][+-]XX`` of one shape (float64). FormatError (offset ``row * width + column``)
+    at the first field that does not fit the first one's shape."""
+    n, width = cols.shape
+    if n == 0:
+        return np.zeros(0)
+    layout = layout_of(cols[0].tobytes(), terminated=False)
+    if len(layout.kinds) != 1 or layout.runs[0].start != 0 or layout.runs[0].width != width:
+        raise FormatError(0, "not one right-aligned number filling the column")
+    out = np.empty((n, 1), np.int64 if layout.kinds == "i" else np.float64)
+    none = np.empty((n, 0), out.dtype)
+    for start in range(0, n, CHUNK_ROWS):
+        u = cols[start : start + CHUNK_ROWS]
+        try:
+            d, _ = _check(u, layout)
+        except FormatError as exc:
+            raise FormatError(start * width + exc.offset, exc.message) from None
+        part = out[start : start + CHUNK_ROWS]
+        _values(layout, d, u, *((part, none[: u.shape[0]]) if layout.kinds == "i" else (none[: u.shape[0]], part)))
+    return out[:, 0]

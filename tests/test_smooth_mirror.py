@@ -151,3 +151,37 @@ def test_kirsch_quarter_plate_rim_stays_on_the_hole():
     assert np.all(out.points[rim[0], 1:] == 0) and np.all(out.points[rim[1], [0, 2]] == 0)
     free, _ = smooth_mesh(m, {"bounding_planes": "free"})
     assert np.linalg.norm(free.points[rim, :2], axis=1).min() > 7.4  # measured 7.478: the corner rounds
+
+
+def test_slabs_mirrored_at_both_faces_are_one_endless_prism(disc):
+    # the low and high plane of an axis are two mirrors: slabs of the disc 1, 2 and 4 voxels
+    # thick are all the same endless prism. At tolerance 1e-7 (at the default 1e-4 the
+    # thicker slabs' slice-to-slice modes, seeded by rounding, leave up to 1e-4)
+    layers = []
+    for thickness in (1, 2, 4):
+        m = voxel_mesh(np.repeat(disc[:, :, None], thickness, axis=2))
+        out, rep = smooth_mesh(m, {"tolerance": 1e-7})
+        assert rep["node_classes"]["X"] == 0 and rep["node_classes"]["A"] == 0
+        bottom = np.flatnonzero(m.lattice[:, 2] == 0)
+        bottom = bottom[np.lexsort((m.lattice[bottom, 1], m.lattice[bottom, 0]))]
+        layers.append((out.points[bottom, :2], out.point_data["node_class"][bottom]))
+    for xy, cls in layers[1:]:
+        assert np.abs(xy - layers[0][0]).max() < 1e-6  # measured 2.2e-7
+        assert np.array_equal(cls, layers[0][1])
+
+
+def test_chamfer_meeting_a_mirror_plane_keeps_its_rim_node_on_the_boundary():
+    # merged 2D mesh: a chamfer runs from node (0, 2) on the plane x = 0 to (1, 0), so (0, 2)
+    # holds two elements of one material (four, mirrored) yet lies on a boundary edge
+    merge = pytest.importorskip("dicer.mesh.merge")
+    lab = np.zeros((4, 21), np.uint8)
+    lab[0, 2:4] = [2, 1]
+    lab[1, 1:3] = 2
+    lab[2, 0:2] = 1
+    lab[3, 20] = 1
+    merged, _ = merge.merge_planes(voxel_mesh(lab), passes=(1, 1), axes=(0, 1, 2))
+    g = boundary_graph(merged, mirror=True)
+    rim = np.flatnonzero(np.all(merged.points[:, :2] == [0.0, 2.0], axis=1))
+    assert rim.size == 1 and g.boundary[rim[0]] and g.node_class[rim[0]] != 0
+    out, rep = smooth_mesh(merged, {})
+    assert rep["inverted_elements"] == 0 and rep["min_scaled_jacobian"] >= 0.2

@@ -48,7 +48,7 @@ from dicer.mesh.model import LEVEL_DATA, Mesh
 
 __all__ = ["NODE_CLASSES", "BoundaryGraph", "boundary_graph", "classify_nodes", "with_node_classes",
            "HEX_EDGES", "QUAD_EDGES", "node_cell_counts", "class_counts", "bounding_planes", "plane_bits",
-           "mirror_weights", "mirror_share"]
+           "plane_axes", "mirror_weights", "mirror_share"]
 
 NODE_CLASSES = ("interior", "A", "B", "C", "D", "E", "F", "X")
 """Names of the ``node_class`` codes 0..7."""
@@ -101,35 +101,51 @@ class BoundaryGraph:
         return sp.csr_matrix((w, (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(nodes.size, nodes.size))
 
 
-def bounding_planes(mesh: Mesh, points: np.ndarray | None = None) -> np.ndarray:
-    """(N, 3) bool: the node lies on the image's bounding plane (lattice 0 or grid_shape)
-    normal to that axis (within 1e-6 voxel; never along z in 2D)."""
+def _plane_sides(mesh: Mesh, points: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) bool twice: the node lies on the image's low / high bounding plane normal to
+    that axis (lattice 0 / grid_shape, within 1e-6 voxel; never along z in 2D)."""
     pts = mesh.points if points is None else points
     lo = np.asarray(mesh.origin, float)
     hi = lo + np.asarray(mesh.grid_shape, float) * np.asarray(mesh.spacing, float)
     tol = 1e-6 * np.asarray(mesh.spacing, float)
-    out = (np.abs(pts - lo) <= tol) | (np.abs(pts - hi) <= tol)
-    out[:, mesh.dim:] = False
-    return out
+    on_lo, on_hi = np.abs(pts - lo) <= tol, np.abs(pts - hi) <= tol
+    on_lo[:, mesh.dim:] = on_hi[:, mesh.dim:] = False
+    return on_lo, on_hi
 
 
-def plane_bits(on_planes: np.ndarray) -> np.ndarray:
-    """(N,) uint8 with bit a set for a node on a bounding plane normal to axis a."""
-    return (on_planes.astype(np.uint8) << np.arange(on_planes.shape[1], dtype=np.uint8)).sum(axis=1, dtype=np.uint8)
+def bounding_planes(mesh: Mesh, points: np.ndarray | None = None) -> np.ndarray:
+    """(N, 3) bool: the node lies on a bounding plane of the image normal to that axis."""
+    on_lo, on_hi = _plane_sides(mesh, points)
+    return on_lo | on_hi
 
 
-_POPCOUNT = np.array([bin(i).count("1") for i in range(8)], np.int64)
+def plane_bits(mesh: Mesh, points: np.ndarray | None = None) -> np.ndarray:
+    """(N,) uint8: bit a set for a node on the low bounding plane normal to axis a, bit
+    3 + a on the high one (the two planes of an axis are two mirrors: a slab one voxel
+    thick, mirrored at both, is endless)."""
+    on_lo, on_hi = _plane_sides(mesh, points)
+    weights = np.left_shift(np.uint8(1), np.arange(6, dtype=np.uint8))
+    return (np.concatenate([on_lo, on_hi], axis=1).astype(np.uint8) * weights).sum(axis=1, dtype=np.uint8)
+
+
+def plane_axes(planes: np.ndarray) -> np.ndarray:
+    """(N, 3) bool from ``plane_bits``: the node lies on a plane normal to that axis."""
+    either = (planes | (planes >> 3)) & 7
+    return ((either[:, None] >> np.arange(3, dtype=np.uint8)) & 1) == 1
+
+
+_POPCOUNT = np.array([bin(i).count("1") for i in range(64)], np.int64)
 
 
 def mirror_weights(planes_n: np.ndarray, planes_j: np.ndarray) -> np.ndarray:
     """Copies of node j next to node n in the mirrored model: one per reflection across
     the planes n lies on and j does not (2^count; 1 without mirrors)."""
-    return np.left_shift(1, _POPCOUNT[planes_n & ~planes_j & 7]).astype(np.float64)
+    return np.left_shift(1, _POPCOUNT[planes_n & ~planes_j & 63]).astype(np.float64)
 
 
 def mirror_share(planes: np.ndarray) -> np.ndarray:
     """A node's share of the mirrored model relative to a node on no plane: 2^-(its planes)."""
-    return np.ldexp(1.0, -_POPCOUNT[planes & 7])
+    return np.ldexp(1.0, -_POPCOUNT[planes & 63])
 
 
 _ROWS = 65536  # elements per block of the passes over all elements (a block stays in the cache)
@@ -295,7 +311,7 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
         uniform = _uniform(cells, rank, n, kinds.size)
     else:
         cnt, uniform = _slot_counts(slots, rank, kinds.size)
-    planes = plane_bits(bounding_planes(mesh, pts)) if mirror else np.zeros(n, np.uint8)
+    planes = plane_bits(mesh, pts) if mirror else np.zeros(n, np.uint8)
     if planes.any():
         # a node on k mirror planes holds 2^k copies of each of its elements
         cnt = cnt.astype(np.int64) << _POPCOUNT[planes]
@@ -307,11 +323,15 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
         inner = np.zeros(n, bool)
         inner[cells[np.asarray(level) > 0]] = True
         boundary &= ~(inner & uniform)
+    # a plane node can count a full block of one material and still lie on a boundary edge
+    # (a chamfer of a merged mesh meeting the plane at an angle leaves a gap in its fan):
+    # its edges are examined too, and it is a boundary node if one is a boundary edge
+    maybe = (planes != 0) & (cnt > 0) & ~boundary
     del cnt, uniform
 
     # the elements holding a boundary node, and their edges between two boundary nodes, with
     # nodes numbered among the boundary nodes (p: that number, -1 for other nodes)
-    pre = np.flatnonzero(boundary)
+    pre = np.flatnonzero(boundary | maybe)
     idx = np.int32 if n < 2**31 else np.int64
     p = np.full(n, -1, idx)
     p[pre] = np.arange(pre.size, dtype=idx)
@@ -372,6 +392,8 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
     degree[pre] = deg
     # boundary nodes are exactly the nodes on boundary edges (a node of a single-material
     # unit block with empty slots has them); keep the two definitions in step
+    if maybe.any():
+        boundary[pre[deg > 0]] = True
     on_edge = deg > 0
     if not on_edge.all():
         boundary[pre[~on_edge]] = False
@@ -396,7 +418,7 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
                 eb, weights=w_ba * u[:, c], minlength=bn.size)
     if planes.any():
         # the reflected copies cancel the components normal to the node's planes
-        usum[((planes[bn, None] >> np.arange(3, dtype=np.uint8)) & 1) == 1] = 0.0
+        usum[plane_axes(planes[bn])] = 0.0
     flat = np.einsum("ij,ij->i", usum, usum) < 0.25
 
     # classes of the boundary nodes
@@ -417,6 +439,8 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
         cb[(deg == 2) & flat] = 4
     cls = np.zeros(n, np.int8)
     cls[bn] = cb
+    if maybe.any():  # elements held only by plane nodes that turned out interior are not boundary cells
+        cand = cand[boundary[cells[cand]].any(axis=1)]
     return BoundaryGraph(boundary, edges, degree, cls, cand, planes)
 
 

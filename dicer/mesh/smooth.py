@@ -53,7 +53,7 @@ import scipy.sparse as sp
 
 from dicer.errors import DicerError
 from dicer.mesh.boundary import (HEX_EDGES, NODE_CLASSES, QUAD_EDGES, boundary_graph, bounding_planes, class_counts,
-                                 mirror_share, mirror_weights)
+                                 mirror_share, mirror_weights, plane_axes)
 from dicer.mesh.metrics import element_volumes, hex_scaled_jacobian_t, hex_volumes_t, scaled_jacobian
 from dicer.mesh.model import HEX_CORNERS, LEVEL_DATA, QUAD_CORNERS, Mesh
 
@@ -395,7 +395,7 @@ class _Interior:
         if part.any():
             rows = np.flatnonzero(part)
             found = _axis_neighbours(cells, slots, band_nodes[rows])
-            on = ((bits[rows, None] >> np.arange(dim, dtype=np.uint8)) & 1) == 1
+            on = plane_axes(bits[rows])
             for a in range(dim):
                 for col, opp in ((a, a + dim), (a + dim, a)):
                     mirror = (found[:, col] < 0) & on[:, a]
@@ -413,7 +413,7 @@ class _Interior:
         """The free coordinates (3, m) and CG weights of the band nodes on mirror planes ``bits``."""
         self.free = self.weight = None
         if bits.any():
-            self.free = (((bits[None, :] >> np.arange(3, dtype=np.uint8)[:, None]) & 1) == 0).astype(np.float32)
+            self.free = (~plane_axes(bits)).T.astype(np.float32)
             self.weight = np.tile(mirror_share(bits), 3).astype(np.float32)
 
     def solve(self, u_boundary: np.ndarray, tol: float) -> tuple[np.ndarray, int]:

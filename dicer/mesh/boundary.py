@@ -28,6 +28,12 @@ voxel meshes and on plane-merged meshes.
   In 2D (quads) every boundary node of a fixed mesh has R = 2: collinear edges give D
   (flat), perpendicular ones B (corner); other counts are X.
   Empty element slots (background, or outside the image) count as one more kind.
+
+* With ``mirror=True`` the image's bounding planes are mirrors (symmetry cuts): every
+  count is taken in the model reflected across the planes a node or edge lies on, so a
+  plane node gets the kind, class and boundary edges it has in the whole, mirrored model.
+  A node on k planes sees 2^k copies of its elements; a neighbour off one of those planes
+  is seen 2 (or 4, 8) times, once per reflection (the edge weights of ``adjacency``).
 """
 
 from __future__ import annotations
@@ -41,7 +47,8 @@ from dicer.errors import DicerError
 from dicer.mesh.model import LEVEL_DATA, Mesh
 
 __all__ = ["NODE_CLASSES", "BoundaryGraph", "boundary_graph", "classify_nodes", "with_node_classes",
-           "HEX_EDGES", "QUAD_EDGES", "node_cell_counts", "class_counts"]
+           "HEX_EDGES", "QUAD_EDGES", "node_cell_counts", "class_counts", "bounding_planes", "plane_bits",
+           "plane_axes", "mirror_weights", "mirror_share"]
 
 NODE_CLASSES = ("interior", "A", "B", "C", "D", "E", "F", "X")
 """Names of the ``node_class`` codes 0..7."""
@@ -63,6 +70,7 @@ class BoundaryGraph:
     degree : (N,) int64, boundary edges per node (R in the smoothing equation).
     node_class : (N,) int8, codes of NODE_CLASSES.
     boundary_cells : sorted indices of the elements holding a boundary node.
+    planes : (N,) uint8, the mirror planes a node lies on (``plane_bits``; all 0 without mirrors).
     """
 
     boundary: np.ndarray
@@ -70,10 +78,13 @@ class BoundaryGraph:
     degree: np.ndarray
     node_class: np.ndarray
     boundary_cells: np.ndarray
+    planes: np.ndarray | None = None
 
     def adjacency(self, nodes: np.ndarray | None = None) -> sp.csr_matrix:
-        """Symmetric 0/1 adjacency of the boundary graph, restricted to ``nodes`` (default:
-        the boundary nodes, in increasing order); rows and columns follow ``nodes``."""
+        """Adjacency of the boundary graph, restricted to ``nodes`` (default: the boundary
+        nodes, in increasing order); rows and columns follow ``nodes``. Entry (n, j) is the
+        number of mirror copies of j next to n (``mirror_weights``): 1 without mirrors,
+        when the matrix is symmetric; its row sums are ``degree``."""
         if nodes is None:
             nodes = np.flatnonzero(self.boundary)
         pos = np.full(self.boundary.size, -1, np.int32 if self.boundary.size < 2**31 else np.int64)
@@ -81,8 +92,60 @@ class BoundaryGraph:
         a, b = pos[self.edges[:, 0]], pos[self.edges[:, 1]]
         keep = (a >= 0) & (b >= 0)
         a, b = a[keep], b[keep]
-        ones = np.ones(2 * a.size)
-        return sp.csr_matrix((ones, (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(nodes.size, nodes.size))
+        if self.planes is None or not self.planes.any():
+            w = np.ones(2 * a.size)
+        else:
+            ea, eb = self.edges[keep, 0], self.edges[keep, 1]
+            w = np.concatenate([mirror_weights(self.planes[ea], self.planes[eb]),
+                                mirror_weights(self.planes[eb], self.planes[ea])])
+        return sp.csr_matrix((w, (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(nodes.size, nodes.size))
+
+
+def _plane_sides(mesh: Mesh, points: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) bool twice: the node lies on the image's low / high bounding plane normal to
+    that axis (lattice 0 / grid_shape, within 1e-6 voxel; never along z in 2D)."""
+    pts = mesh.points if points is None else points
+    lo = np.asarray(mesh.origin, float)
+    hi = lo + np.asarray(mesh.grid_shape, float) * np.asarray(mesh.spacing, float)
+    tol = 1e-6 * np.asarray(mesh.spacing, float)
+    on_lo, on_hi = np.abs(pts - lo) <= tol, np.abs(pts - hi) <= tol
+    on_lo[:, mesh.dim:] = on_hi[:, mesh.dim:] = False
+    return on_lo, on_hi
+
+
+def bounding_planes(mesh: Mesh, points: np.ndarray | None = None) -> np.ndarray:
+    """(N, 3) bool: the node lies on a bounding plane of the image normal to that axis."""
+    on_lo, on_hi = _plane_sides(mesh, points)
+    return on_lo | on_hi
+
+
+def plane_bits(mesh: Mesh, points: np.ndarray | None = None) -> np.ndarray:
+    """(N,) uint8: bit a set for a node on the low bounding plane normal to axis a, bit
+    3 + a on the high one (the two planes of an axis are two mirrors: a slab one voxel
+    thick, mirrored at both, is endless)."""
+    on_lo, on_hi = _plane_sides(mesh, points)
+    weights = np.left_shift(np.uint8(1), np.arange(6, dtype=np.uint8))
+    return (np.concatenate([on_lo, on_hi], axis=1).astype(np.uint8) * weights).sum(axis=1, dtype=np.uint8)
+
+
+def plane_axes(planes: np.ndarray) -> np.ndarray:
+    """(N, 3) bool from ``plane_bits``: the node lies on a plane normal to that axis."""
+    either = (planes | (planes >> 3)) & 7
+    return ((either[:, None] >> np.arange(3, dtype=np.uint8)) & 1) == 1
+
+
+_POPCOUNT = np.array([bin(i).count("1") for i in range(64)], np.int64)
+
+
+def mirror_weights(planes_n: np.ndarray, planes_j: np.ndarray) -> np.ndarray:
+    """Copies of node j next to node n in the mirrored model: one per reflection across
+    the planes n lies on and j does not (2^count; 1 without mirrors)."""
+    return np.left_shift(1, _POPCOUNT[planes_n & ~planes_j & 63]).astype(np.float64)
+
+
+def mirror_share(planes: np.ndarray) -> np.ndarray:
+    """A node's share of the mirrored model relative to a node on no plane: 2^-(its planes)."""
+    return np.ldexp(1.0, -_POPCOUNT[planes & 63])
 
 
 _ROWS = 65536  # elements per block of the passes over all elements (a block stays in the cache)
@@ -220,7 +283,8 @@ def _edge_counts_sorted(lo: np.ndarray, hi: np.ndarray, rank: np.ndarray, n: int
     return first.astype(lo.dtype), second.astype(hi.dtype), total, top
 
 
-def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarray | None = None) -> BoundaryGraph:
+def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarray | None = None,
+                   mirror: bool = False) -> BoundaryGraph:
     """Boundary nodes, boundary edges, their counts and the node classes of ``mesh``.
 
     ``points`` (default ``mesh.points``) is the geometry used to tell B from D (and
@@ -228,6 +292,9 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
     result) is the (corners, N) table of the element in which each node is corner c (-1:
     none) of a mesh in which a node is corner c of at most one element (lattice-aligned
     elements, as made by 'dicer mesh'); with it no pass over all elements is needed.
+    ``mirror``: the bounding planes are mirrors (see the module docstring); ``degree``
+    and the classes are then those of the mirrored model, ``planes`` says which nodes
+    lie on which plane.
     """
     _check(mesh)
     n = mesh.n_points
@@ -244,6 +311,10 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
         uniform = _uniform(cells, rank, n, kinds.size)
     else:
         cnt, uniform = _slot_counts(slots, rank, kinds.size)
+    planes = plane_bits(mesh, pts) if mirror else np.zeros(n, np.uint8)
+    if planes.any():
+        # a node on k mirror planes holds 2^k copies of each of its elements
+        cnt = cnt.astype(np.int64) << _POPCOUNT[planes]
     boundary = (cnt > 0) & ~((cnt == full) & uniform)
     level = mesh.cell_data.get(LEVEL_DATA)
     if level is not None and np.any(level > 0):
@@ -252,11 +323,15 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
         inner = np.zeros(n, bool)
         inner[cells[np.asarray(level) > 0]] = True
         boundary &= ~(inner & uniform)
+    # a plane node can count a full block of one material and still lie on a boundary edge
+    # (a chamfer of a merged mesh meeting the plane at an angle leaves a gap in its fan):
+    # its edges are examined too, and it is a boundary node if one is a boundary edge
+    maybe = (planes != 0) & (cnt > 0) & ~boundary
     del cnt, uniform
 
     # the elements holding a boundary node, and their edges between two boundary nodes, with
     # nodes numbered among the boundary nodes (p: that number, -1 for other nodes)
-    pre = np.flatnonzero(boundary)
+    pre = np.flatnonzero(boundary | maybe)
     idx = np.int32 if n < 2**31 else np.int64
     p = np.full(n, -1, idx)
     p[pre] = np.arange(pre.size, dtype=idx)
@@ -293,6 +368,10 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
     count_edges = _edge_counts_packed if kinds.size <= _PACKED_KINDS else _edge_counts_sorted
     e_lo, e_hi, total, top = count_edges(lo, hi, mat, pre.size, kinds.size)
     del lo, hi, mat
+    if planes.any():
+        # an edge lying in k mirror planes has 2^k copies of each of its element slots
+        shift = _POPCOUNT[planes[pre[e_lo]] & planes[pre[e_hi]]]
+        top, total = top.astype(np.int64) << shift, total.astype(np.int64) << shift
     is_b = top < edge_slots
     biggest = np.maximum(top, edge_slots - total)  # empty slots are one more kind
     ea, eb = e_lo[is_b], e_hi[is_b].astype(idx)
@@ -300,11 +379,21 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
     del e_lo, e_hi, total, top, is_b
     edges = np.stack([pre[ea], pre[eb]], axis=1)
 
-    deg = np.bincount(ea, minlength=pre.size) + np.bincount(eb, minlength=pre.size)
+    if planes.any():
+        # the copies of each neighbour in the mirrored model (w_ab: copies of b next to a)
+        w_ab = mirror_weights(planes[edges[:, 0]], planes[edges[:, 1]])
+        w_ba = mirror_weights(planes[edges[:, 1]], planes[edges[:, 0]])
+        deg = (np.bincount(ea, weights=w_ab, minlength=pre.size)
+               + np.bincount(eb, weights=w_ba, minlength=pre.size)).astype(np.int64)
+    else:
+        w_ab = w_ba = None
+        deg = np.bincount(ea, minlength=pre.size) + np.bincount(eb, minlength=pre.size)
     degree = np.zeros(n, np.int64)
     degree[pre] = deg
     # boundary nodes are exactly the nodes on boundary edges (a node of a single-material
     # unit block with empty slots has them); keep the two definitions in step
+    if maybe.any():
+        boundary[pre[deg > 0]] = True
     on_edge = deg > 0
     if not on_edge.all():
         boundary[pre[~on_edge]] = False
@@ -321,8 +410,15 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
     u = d / length[:, None]
     usum = np.zeros((bn.size, 3))
     for c in range(3):
-        usum[:, c] = np.bincount(ea, weights=u[:, c], minlength=bn.size) - np.bincount(
-            eb, weights=u[:, c], minlength=bn.size)
+        if w_ab is None:
+            usum[:, c] = np.bincount(ea, weights=u[:, c], minlength=bn.size) - np.bincount(
+                eb, weights=u[:, c], minlength=bn.size)
+        else:
+            usum[:, c] = np.bincount(ea, weights=w_ab * u[:, c], minlength=bn.size) - np.bincount(
+                eb, weights=w_ba * u[:, c], minlength=bn.size)
+    if planes.any():
+        # the reflected copies cancel the components normal to the node's planes
+        usum[plane_axes(planes[bn])] = 0.0
     flat = np.einsum("ij,ij->i", usum, usum) < 0.25
 
     # classes of the boundary nodes
@@ -343,7 +439,9 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
         cb[(deg == 2) & flat] = 4
     cls = np.zeros(n, np.int8)
     cls[bn] = cb
-    return BoundaryGraph(boundary, edges, degree, cls, cand)
+    if maybe.any():  # elements held only by plane nodes that turned out interior are not boundary cells
+        cand = cand[boundary[cells[cand]].any(axis=1)]
+    return BoundaryGraph(boundary, edges, degree, cls, cand, planes)
 
 
 def classify_nodes(mesh: Mesh) -> np.ndarray:

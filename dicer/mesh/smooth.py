@@ -9,8 +9,10 @@
    strictly diagonally dominant (so positive definite) system
    ``(R_n/k_n) x_n - sum x_j = R_n (1/k_n - 1) x_n^0``, solved for the three coordinates
    at once by Jacobi-preconditioned conjugate gradients (on displacements, in single
-   precision). Nodes with k_n = 0 stay put. Nodes on a bounding plane of the image keep
-   that coordinate (a Dirichlet value). With ``shrink_compensation`` the solve S is
+   precision). Nodes with k_n = 0 stay put. Nodes on a bounding plane of the image follow
+   ``bounding_planes``: ``mirror`` (default) smooths them as in the model reflected
+   across the plane (see below), ``fixed`` keeps them still, ``free`` smooths the cut
+   face as a surface of its own (in the plane with ``keep_bounding_planes``). With ``shrink_compensation`` the solve S is
    applied twice, x = (2S - S^2) x0 ("twicing"): the stair steps go, the shrinkage of
    curved surfaces does not.
 2. **Interior solve.** With boundary nodes fixed, the displacement u of interior nodes
@@ -27,6 +29,16 @@
    worst element. (The scaled Jacobian before smoothing is computed only for elements
    that fail: an element already below the floor fails only if it got worse.)
 
+**Mirror planes.** The bounding planes are treated as symmetry planes: the boundary
+graph and node classes are those of the model reflected across them (``boundary_graph``
+with ``mirror=True``), a plane node's neighbour off the plane counts once per reflected
+copy, and the plane node keeps its normal coordinate (in the mirrored model symmetry
+keeps it there). Both solves are then the mirrored model's solves restricted to the
+image: the operator (row n: copies of j next to n) is self-adjoint in the inner product
+that weighs node n by 2^-(planes it lies on), its share of the mirrored model, and the
+conjugate gradients use that inner product, so their iterates are the mirrored model's
+(to rounding), whatever the tolerance.
+
 The arithmetic is single-threaded numpy and scipy.sparse (no BLAS calls, whose threaded
 sums depend on the thread count): the same input gives the same output, bit for bit,
 whatever the number of threads.
@@ -40,15 +52,17 @@ import numpy as np
 import scipy.sparse as sp
 
 from dicer.errors import DicerError
-from dicer.mesh.boundary import HEX_EDGES, NODE_CLASSES, QUAD_EDGES, boundary_graph, class_counts
+from dicer.mesh.boundary import (HEX_EDGES, NODE_CLASSES, QUAD_EDGES, boundary_graph, bounding_planes, class_counts,
+                                 mirror_share, mirror_weights, plane_axes)
 from dicer.mesh.metrics import element_volumes, hex_scaled_jacobian_t, hex_volumes_t, scaled_jacobian
-from dicer.mesh.model import LEVEL_DATA, Mesh
+from dicer.mesh.model import HEX_CORNERS, LEVEL_DATA, QUAD_CORNERS, Mesh
 
 __all__ = ["DEFAULTS", "smooth_mesh", "smoothing_settings"]
 
 DEFAULTS = {
     "coefficient": None,
     "coefficients": {"A": 0.85, "B": 0.85, "C": 0.9, "D": 0.95, "E": 0.9, "F": 0.9},
+    "bounding_planes": "mirror",
     "keep_bounding_planes": True,
     "interior": True,
     "shrink_compensation": True,
@@ -59,6 +73,7 @@ DEFAULTS = {
     "tolerance": 1e-4,
 }
 _CLASS_LETTERS = ("A", "B", "C", "D", "E", "F")
+_PLANE_MODES = ("mirror", "fixed", "free")
 
 
 def smoothing_settings(section: dict | None) -> dict:
@@ -102,6 +117,11 @@ def smoothing_settings(section: dict | None) -> dict:
     for key in ("keep_bounding_planes", "interior", "shrink_compensation"):
         if not isinstance(s[key], bool):
             raise DicerError(f"smooth.{key} = {s[key]!r} must be true or false")
+    if s["bounding_planes"] not in _PLANE_MODES:
+        raise DicerError(f"smooth.bounding_planes = {s['bounding_planes']!r}: use mirror, fixed or free")
+    if not s["keep_bounding_planes"] and s["bounding_planes"] != "free":
+        raise DicerError("smooth.keep_bounding_planes = false lets plane nodes leave their plane, which only "
+                         "bounding_planes: free does; set smooth.bounding_planes: free with it")
     return s
 
 
@@ -117,14 +137,22 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.einsum("i,i->", a, b))
 
 
-def _pcg(apply, b: np.ndarray, inv_diag: np.ndarray | None, tol: float, maxiter: int) -> tuple[np.ndarray, int]:
+def _wdot(w: np.ndarray):
+    """a . b weighted by w, in one thread."""
+    return lambda a, b: float(np.einsum("i,i,i->", w, a, b))
+
+
+def _pcg(apply, b: np.ndarray, inv_diag: np.ndarray | None, tol: float, maxiter: int,
+         weight: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Conjugate gradients on A x = b, ``apply(p)`` giving A p.
 
     ``b`` holds the columns of a block-diagonal system stacked into one vector (the block
     system is symmetric positive definite when each block is). Preconditioned by
     ``inv_diag`` (None: none), until ||r|| <= tol * ||b||. Vector updates are in place.
+    ``weight``: the inner product sum w a b (A self-adjoint in it; None: w = 1).
     """
-    bnorm = float(np.sqrt(_dot(b, b)))
+    _dot_ = _dot if weight is None else _wdot(weight)
+    bnorm = float(np.sqrt(_dot_(b, b)))
     x = np.zeros_like(b)
     if bnorm == 0:
         return x, 0
@@ -132,24 +160,24 @@ def _pcg(apply, b: np.ndarray, inv_diag: np.ndarray | None, tol: float, maxiter:
     r = b.copy()
     z = r if inv_diag is None else r * inv_diag
     p = z.copy()
-    rz = _dot(r, z)
+    rz = _dot_(r, z)
     target = tol * bnorm
     for it in range(1, maxiter + 1):
         q = apply(p)
-        pq = _dot(p, q)
+        pq = _dot_(p, q)
         if pq <= 0:
             return x, it
         alpha = rz / pq
         x += np.multiply(p, alpha, out=buf)
         r -= np.multiply(q, alpha, out=buf)
-        rr = _dot(r, r)
+        rr = _dot_(r, r)
         if np.sqrt(rr) <= target:
             return x, it
         if inv_diag is None:
             rz_new = rr  # z is r
         else:
             np.multiply(r, inv_diag, out=z)
-            rz_new = _dot(r, z)
+            rz_new = _dot_(r, z)
         p *= rz_new / rz
         p += z
         rz = rz_new
@@ -171,9 +199,12 @@ class _BoundarySystem:
     k = 0 or no boundary edge. The three coordinates are solved at once, stacked x | y | z,
     on the block-diagonal operator diag(R/k) - adjacency, whose block for a coordinate keeps
     only the edges between nodes free in it (a fixed coordinate's displacement is 0).
+    With mirror planes ``adj`` holds the copies of a neighbour (not symmetric) and
+    ``weight`` the nodes' shares of the mirrored model, the CG inner product.
     """
 
-    def __init__(self, adj: sp.csr_matrix, degree: np.ndarray, k: np.ndarray, fixed: np.ndarray):
+    def __init__(self, adj: sp.csr_matrix, degree: np.ndarray, k: np.ndarray, fixed: np.ndarray,
+                 weight: np.ndarray | None = None):
         n = degree.size
         self.adj, self.degree = adj, degree
         self.fixed = fixed | (k <= 0)[:, None] | (degree == 0)[:, None]
@@ -182,18 +213,20 @@ class _BoundarySystem:
         diag = (degree / kk).astype(np.float32)
         inv_diag = np.where(diag > 0, 1.0 / np.where(diag > 0, diag, 1.0), 1.0).astype(np.float32)
         self.inv_diag = np.tile(inv_diag, 3)
+        self.weight = None if weight is None else np.tile(weight.astype(np.float32), 3)
         self.diag = np.where(self.free.T, diag, np.float32(1.0)).ravel()
         rows = np.repeat(np.arange(n), np.diff(adj.indptr))
         cols = adj.indices
-        indices, counts = [], []
+        indices, counts, data = [], [], []
         for d in range(3):
             keep = self.free[rows, d] & self.free[cols, d]
             indices.append(cols[keep].astype(np.int64) + d * n)
             counts.append(np.bincount(rows[keep], minlength=n))
+            data.append(adj.data[keep].astype(np.float32))  # copies of the neighbour: 1, 2, 4 or 8
         indptr = np.zeros(3 * n + 1, np.int64)
         np.cumsum(np.concatenate(counts), out=indptr[1:])
         indices = np.concatenate(indices)
-        self.mat = sp.csr_matrix((np.ones(indices.size, np.float32), indices, indptr), shape=(3 * n, 3 * n))
+        self.mat = sp.csr_matrix((np.concatenate(data), indices, indptr), shape=(3 * n, 3 * n))
 
     def step(self, y: np.ndarray, tol: float) -> tuple[np.ndarray, int]:
         """The displacement S(y) - y of the boundary system applied to positions ``y``.
@@ -215,7 +248,7 @@ class _BoundarySystem:
             np.subtract(buf, out, out=out)
             return out
 
-        delta, it = _pcg(apply, b, self.inv_diag, tol, 2000)
+        delta, it = _pcg(apply, b, self.inv_diag, tol, 2000, self.weight)
         return np.where(self.fixed, 0.0, delta.reshape(3, n).T.astype(np.float64)), it
 
 
@@ -304,16 +337,40 @@ _FORWARD = {8: (0, (1, 3, 4)), 4: (0, (1, 3))}
 _BACKWARD = {8: (6, (7, 5, 2)), 4: (2, (3, 1))}
 
 
+def _axis_neighbours(cells: np.ndarray, slots: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+    """(len(nodes), 2*dim) the neighbours along +x, +y, (+z), -x, -y, (-z) found in any
+    element holding the node (-1: no element on that side), for nodes without a full block."""
+    per = cells.shape[1]
+    dim = 3 if per == 8 else 2
+    corners = (HEX_CORNERS if per == 8 else QUAD_CORNERS)[:, :dim]
+    code = corners @ (1 << np.arange(dim))
+    corner_of = {int(c): i for i, c in enumerate(code)}
+    out = np.full((nodes.size, 2 * dim), -1, np.int64)
+    for a in range(dim):
+        for side in (0, 1):  # 0: towards +a (the node is a low corner along a), 1: towards -a
+            col = a + side * dim
+            for c in np.flatnonzero(corners[:, a] == side):
+                other = corner_of[int(code[c]) ^ (1 << a)]
+                e = slots[c][nodes]
+                take = (out[:, col] < 0) & (e >= 0)
+                out[take, col] = cells[e[take], other]
+    return out
+
+
 class _Interior:
     """The interior Laplace system on a band of interior nodes, assembled once.
 
     An interior node has a full unit block, so its 2*dim edge neighbours are the
     neighbouring corners in its +++ and --- elements. ``m_bb`` couples band nodes,
     ``m_bB`` band nodes to boundary nodes (the nodes ``bnodes``, in that order).
+    With mirror planes (``planes``, bits per node) an interior node on a plane has half
+    (a quarter, an eighth) of its block: the neighbour missing across the plane is the
+    mirror copy of the one opposite, so that one counts twice, and the normal coordinate
+    of the node stays 0 (``free``); ``weight`` is the CG inner product (see _BoundarySystem).
     """
 
     def __init__(self, cells: np.ndarray, slots: np.ndarray, band_nodes: np.ndarray, boundary: np.ndarray,
-                 bnodes: np.ndarray):
+                 bnodes: np.ndarray, planes: np.ndarray | None = None):
         n = boundary.size
         per = cells.shape[1]
         m = band_nodes.size
@@ -324,19 +381,40 @@ class _Interior:
         pos = np.full(n, -1, np.int32)  # n < 2^31 (checked by _corner_slots)
         pos[band_nodes] = np.arange(m, dtype=np.int32)
         pos[bnodes] = -2 - np.arange(bnodes.size, dtype=np.int32)
-        nb = np.empty((m, 2 * len(_FORWARD[per][1])), np.int32)  # neighbours, in pos numbers
+        dim = len(_FORWARD[per][1])
+        nb = np.empty((m, 2 * dim), np.int32)  # neighbours, in pos numbers
+        part = np.zeros(m, bool)  # band nodes without a full block
         j = 0
         for corner, nbrs in (_FORWARD[per], _BACKWARD[per]):
             owner = slots[corner][band_nodes]
-            if np.any(owner < 0):
-                raise DicerError("an interior node lacks a full unit block of elements; the mesh is not conforming")
+            part |= owner < 0
             for c in nbrs:
-                nb[:, j] = pos[cells[owner, c]]
+                nb[:, j] = pos[cells[np.maximum(owner, 0), c]]
                 j += 1
+        bits = np.zeros(m, np.uint8) if planes is None else planes[band_nodes]
+        if part.any():
+            rows = np.flatnonzero(part)
+            found = _axis_neighbours(cells, slots, band_nodes[rows])
+            on = plane_axes(bits[rows])
+            for a in range(dim):
+                for col, opp in ((a, a + dim), (a + dim, a)):
+                    mirror = (found[:, col] < 0) & on[:, a]
+                    found[mirror, col] = found[mirror, opp]  # the reflected copy of the opposite neighbour
+            if np.any(found < 0):
+                raise DicerError("an interior node lacks a full unit block of elements; the mesh is not conforming")
+            nb[rows] = pos[found]
         del pos
         self.m_bb = _csr_rows(nb, nb >= 0, m, np.float32)  # neighbours of another kind: no entry
         self.m_bB = _csr_rows(-2 - nb, nb <= -2, bnodes.size, np.float64)
         self.deg = np.float32(nb.shape[1])
+        self._mirror(bits)
+
+    def _mirror(self, bits: np.ndarray) -> None:
+        """The free coordinates (3, m) and CG weights of the band nodes on mirror planes ``bits``."""
+        self.free = self.weight = None
+        if bits.any():
+            self.free = (~plane_axes(bits)).T.astype(np.float32)
+            self.weight = np.tile(mirror_share(bits), 3).astype(np.float32)
 
     def solve(self, u_boundary: np.ndarray, tol: float) -> tuple[np.ndarray, int]:
         """Displacements of the band nodes given those of the boundary nodes (B, 3)."""
@@ -347,17 +425,22 @@ class _Interior:
         b = np.empty(3 * m, np.float32)
         for d in range(3):
             b[d * m : (d + 1) * m] = self.m_bB @ ub[d]
-        deg, m_bb = self.deg, self.m_bb
+        deg, m_bb, free = self.deg, self.m_bb, self.free
+        if free is not None:
+            b *= free.ravel()  # a plane node's normal displacement is 0
         out, buf = np.empty_like(b), np.empty_like(b)
 
         def apply(v):
             for d in range(3):
                 part = slice(d * m, (d + 1) * m)
                 np.multiply(v[part], deg, out=buf[part])
-                np.subtract(buf[part], m_bb @ v[part], out=out[part])
+                nbrs = m_bb @ v[part]
+                if free is not None:
+                    nbrs *= free[d]
+                np.subtract(buf[part], nbrs, out=out[part])
             return out
 
-        u, it = _pcg(apply, b, None, tol, 5000)
+        u, it = _pcg(apply, b, None, tol, 5000, self.weight)
         return u.reshape(3, m).T.astype(np.float64), it
 
 
@@ -367,9 +450,11 @@ class _InteriorGraph(_Interior):
 
     A band node's displacement is the mean of its edge neighbours' (those beyond the band
     count as 0), as in ``_Interior``; only the neighbour count varies from node to node.
+    A neighbour counts once per mirror copy (``mirror_weights``).
     """
 
-    def __init__(self, cells: np.ndarray, band_nodes: np.ndarray, boundary: np.ndarray, bnodes: np.ndarray):
+    def __init__(self, cells: np.ndarray, band_nodes: np.ndarray, boundary: np.ndarray, bnodes: np.ndarray,
+                 planes: np.ndarray | None = None):
         n = boundary.size
         m = band_nodes.size
         self.nodes = band_nodes
@@ -389,13 +474,14 @@ class _InteriorGraph(_Interior):
         row = pos[a]
         keep = row >= 0
         row, col = row[keep], b[keep]
-        deg = np.bincount(row, minlength=m).astype(np.float32)
+        w = np.ones(row.size) if planes is None else mirror_weights(planes[a[keep]], planes[col])
+        deg = np.bincount(row, weights=w, minlength=m).astype(np.float32)
         in_band = pos[col] >= 0
-        self.m_bb = sp.csr_matrix((np.ones(int(in_band.sum()), np.float32), (row[in_band], pos[col[in_band]])),
-                                  shape=(m, m))
+        self.m_bb = sp.csr_matrix((w[in_band].astype(np.float32), (row[in_band], pos[col[in_band]])), shape=(m, m))
         on_b = bpos[col] >= 0
-        self.m_bB = sp.csr_matrix((np.ones(int(on_b.sum())), (row[on_b], bpos[col[on_b]])), shape=(m, bnodes.size))
+        self.m_bB = sp.csr_matrix((w[on_b], (row[on_b], bpos[col[on_b]])), shape=(m, bnodes.size))
         self.deg = deg
+        self._mirror(np.zeros(m, np.uint8) if planes is None else planes[band_nodes])
 
 
 def _graded(mesh: Mesh) -> bool:
@@ -459,18 +545,6 @@ class _Elements:
         return hex_scaled_jacobian_t(self.last, self.local)
 
 
-def _plane_fixed(mesh: Mesh, nodes: np.ndarray) -> np.ndarray:
-    """(len(nodes), 3) bool: the coordinate lies on a bounding plane of the image."""
-    pts = mesh.points[nodes]
-    lo = np.asarray(mesh.origin, float)
-    hi = lo + np.asarray(mesh.grid_shape, float) * np.asarray(mesh.spacing, float)
-    tol = 1e-6 * np.asarray(mesh.spacing, float)
-    out = (np.abs(pts - lo) <= tol) | (np.abs(pts - hi) <= tol)
-    if mesh.dim == 2:
-        out[:, 2] = True
-    return out
-
-
 def _check_input(mesh: Mesh) -> None:
     if mesh.n_cells == 0 or mesh.n_points == 0:
         raise DicerError("the mesh is empty (no elements); mesh a label volume with material voxels first")
@@ -503,7 +577,8 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
         except DicerError as err:  # raised after the classification's own checks
             slots_error = err
     t_slots = time.perf_counter() - t0
-    g = boundary_graph(mesh, x0, slots)
+    mode = s["bounding_planes"]
+    g = boundary_graph(mesh, x0, slots, mirror=mode == "mirror")
     if slots_error is not None:
         raise slots_error
     timings["classify"] = time.perf_counter() - t0 - t_slots
@@ -518,22 +593,27 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
             coef_by_code[code] = s["coefficients"][name]
     coef_by_code[7] = min(s["coefficients"].values())  # irregular nodes: the most cautious value
     k = coef_by_code[cls]
-    if mesh.dim == 2:
+    on_plane = bounding_planes(mesh, x0[bnodes])
+    if mode == "fixed":
+        fixed = np.repeat(on_plane.any(axis=1, keepdims=True), 3, axis=1)
+    elif mode == "free" and not s["keep_bounding_planes"]:
         fixed = np.zeros((bnodes.size, 3), bool)
+    else:  # mirror (symmetry keeps plane nodes in their planes) or free in the plane
+        fixed = on_plane
+    del on_plane
+    if mesh.dim == 2:
         fixed[:, 2] = True
-        if s["keep_bounding_planes"]:
-            fixed |= _plane_fixed(mesh, bnodes)
-    else:
-        fixed = _plane_fixed(mesh, bnodes) if s["keep_bounding_planes"] else np.zeros((bnodes.size, 3), bool)
+    planes = g.planes if mode == "mirror" and g.planes.any() else None
+    share = None if planes is None else mirror_share(planes[bnodes])
     xb0 = x0[bnodes]
 
     t1 = time.perf_counter()
     if s["interior"]:
         band_nodes, touched = _band(mesh.cells, slots, g.boundary, g.boundary_cells, s["interior_band"])
         if graded:
-            interior = _InteriorGraph(mesh.cells, band_nodes, g.boundary, bnodes)
+            interior = _InteriorGraph(mesh.cells, band_nodes, g.boundary, bnodes, planes)
         else:
-            interior = _Interior(mesh.cells, slots, band_nodes, g.boundary, bnodes)
+            interior = _Interior(mesh.cells, slots, band_nodes, g.boundary, bnodes, planes)
         del slots
     else:
         band_nodes = np.zeros(0, np.int64)
@@ -552,7 +632,7 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
     it_b = it_i = 0
     while True:
         ts = time.perf_counter()
-        system = _BoundarySystem(adj, degree, k, fixed)
+        system = _BoundarySystem(adj, degree, k, fixed, share)
         d1, itb = system.step(xb0, s["tolerance"])
         it_b += itb
         if s["shrink_compensation"]:
@@ -652,6 +732,7 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
         "coefficients": dict(s["coefficients"]),
         "interior_nodes_solved": int(band_nodes.size),
         "interior_band": s["interior_band"],
+        "bounding_planes": mode,
         "boundary_iterations": int(it_b),
         "interior_iterations": int(it_i),
         "backoff_rounds": rounds,

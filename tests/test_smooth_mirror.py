@@ -1,0 +1,187 @@
+"""Bounding planes as mirrors: smoothing a cut model gives what smoothing the whole model
+gives, restricted to the part (issue #17)."""
+
+import numpy as np
+import pytest
+
+from dicer.connectivity import fix_connectivity
+from dicer.mesh import smooth as smooth_module
+from dicer.mesh.boundary import boundary_graph
+from dicer.mesh.smooth import smooth_mesh
+from dicer.mesh.voxel import voxel_mesh
+
+
+def shells(n, dim, layers):
+    """An n^dim label image of concentric shells (r_in, r_out, material) about the
+    image centre, a voxel corner: exactly symmetric about the mid planes."""
+    g = np.arange(n) + 0.5 - n / 2
+    r = np.sqrt(sum(x**2 for x in np.meshgrid(*([g] * dim), indexing="ij")))
+    lab = np.zeros((n,) * dim, np.uint8)
+    for lo, hi, mat in layers:
+        lab[(r >= lo) & (r < hi)] = mat
+    return lab
+
+
+def node_index(mesh):
+    """Lookup array: lattice (i, j, k) -> node number (-1: none)."""
+    shape = tuple(int(s) + 1 for s in mesh.grid_shape)
+    table = np.full(shape, -1, np.int64)
+    table[tuple(mesh.lattice.T)] = np.arange(mesh.n_points)
+    return table
+
+
+def mirror_asymmetry(mesh, out, axes):
+    """Largest change of the smoothed nodes under reflection across each mid plane."""
+    table = node_index(mesh)
+    worst = 0.0
+    for a in axes:
+        n = int(mesh.grid_shape[a])
+        lat = mesh.lattice.copy()
+        lat[:, a] = n - lat[:, a]
+        image = out.points[table[tuple(lat.T)]].copy()
+        image[:, a] = n * mesh.spacing[a] - image[:, a]
+        worst = max(worst, float(np.abs(image - out.points).max()))
+    return worst
+
+
+def cut_versus_full(lab, cut_axes, settings=None):
+    """Smooth the full model and its part beyond the mid planes normal to ``cut_axes``;
+    (part's max difference from the full model's nodes, full model's asymmetry, reports)."""
+    full_mesh = voxel_mesh(lab)
+    half = [int(s) // 2 for s in lab.shape]
+    part_lab = lab[tuple(slice(half[a], None) if a in cut_axes else slice(None) for a in range(lab.ndim))]
+    part_mesh = voxel_mesh(part_lab)
+    full, rep_full = smooth_mesh(full_mesh, settings or {})
+    part, rep_part = smooth_mesh(part_mesh, settings or {})
+    offset = np.zeros(3, np.int64)
+    offset[list(cut_axes)] = [half[a] for a in cut_axes]
+    rows = node_index(full_mesh)[tuple((part_mesh.lattice + offset).T)]
+    assert np.all(rows >= 0)
+    diff = float(np.abs(part.points + offset * part_mesh.spacing - full.points[rows]).max())
+    same_classes = np.array_equal(part.point_data["node_class"], full.point_data["node_class"][rows])
+    return diff, same_classes, mirror_asymmetry(full_mesh, full, cut_axes), rep_full, rep_part
+
+
+DISC = [(7.3, 11.2, 1), (11.2, 15.6, 2)]  # a disc with a hole, two materials
+BALL = [(5.2, 8.1, 2), (8.1, 12.3, 1)]  # a ball with a cavity, two materials
+
+
+@pytest.fixture(scope="module")
+def disc():
+    lab = shells(40, 2, DISC)
+    fixed, _ = fix_connectivity(lab)
+    assert np.array_equal(fixed, lab)  # nothing to fix: the image stays symmetric
+    return lab
+
+
+@pytest.fixture(scope="module")
+def ball():
+    lab = shells(32, 3, BALL)
+    fixed, _ = fix_connectivity(lab)
+    assert np.array_equal(fixed, lab)
+    return lab
+
+
+@pytest.mark.parametrize("cut", [(0,), (0, 1)], ids=["half", "quarter"])
+def test_2d_quarter_smooths_like_the_whole_disc(disc, cut):
+    diff, same_classes, asym, rep_full, rep_part = cut_versus_full(disc, cut)
+    assert asym < 1e-7  # measured 2.2e-8: the whole model smooths symmetrically
+    assert diff < 1e-6  # measured 2.5e-7 (quarter)
+    assert same_classes
+    # same solves: the same conjugate-gradient iterations, the same back-off
+    assert rep_part["boundary_iterations"] == rep_full["boundary_iterations"] == 74
+    assert rep_part["backoff_rounds"] == rep_full["backoff_rounds"] == 1
+    assert rep_part["bounding_planes"] == "mirror"
+
+
+@pytest.mark.parametrize("cut", [(0,), (0, 1), (0, 1, 2)], ids=["half", "quarter", "octant"])
+def test_3d_octant_smooths_like_the_whole_ball(ball, cut):
+    diff, same_classes, asym, rep_full, rep_part = cut_versus_full(ball, cut)
+    assert asym < 1e-6  # measured 1.6e-7
+    assert diff < 1e-6  # measured 2.4e-7 (octant)
+    assert same_classes
+    assert rep_part["boundary_iterations"] == rep_full["boundary_iterations"]
+    assert rep_part["interior_iterations"] == rep_full["interior_iterations"]
+
+
+def test_free_and_fixed_planes_do_not_mirror(ball, disc):
+    # the former behaviour (free) and held planes (fixed) smooth the cut face as a surface
+    diff, same_classes, *_ = cut_versus_full(disc, (0, 1), {"bounding_planes": "free"})
+    assert diff > 0.3 and not same_classes
+    diff, same_classes, *_ = cut_versus_full(ball, (0, 1, 2), {"bounding_planes": "fixed"})
+    assert diff > 0.2 and not same_classes
+
+
+def test_graph_interior_solve_mirrors_alike(ball, monkeypatch):
+    # the interior solve of graded meshes (from element edges) mirrors like the lattice one
+    part = voxel_mesh(ball[16:, 16:, 16:])
+    lattice, _ = smooth_mesh(part, {})
+    monkeypatch.setattr(smooth_module, "_graded", lambda mesh: True)
+    graph, rep = smooth_mesh(part, {})
+    assert rep["interior_nodes_solved"] > 0
+    assert np.abs(graph.points - lattice.points).max() < 1e-6
+
+
+def test_plane_nodes_inside_a_material_are_interior(ball):
+    part = voxel_mesh(ball[16:, 16:, 16:])
+    on_plane = np.any(part.points == 0, axis=1)
+    mirrored = boundary_graph(part, mirror=True)
+    cut = boundary_graph(part)
+    assert cut.boundary[on_plane].all()  # without mirrors the cut face is a surface
+    # with mirrors only the cavity's and the ball's outlines and the interface stay boundary
+    assert 0 < mirrored.boundary[on_plane].sum() < 0.5 * on_plane.sum()
+    assert mirrored.node_class.max() < 7  # every boundary node in a class A-F
+
+
+def kirsch_quarter(n=40, a=7.0):
+    g = np.arange(n) + 0.5
+    return (np.sqrt(g[:, None] ** 2 + g[None, :] ** 2) >= a).astype(np.uint8)  # hole about the corner
+
+
+def test_kirsch_quarter_plate_rim_stays_on_the_hole():
+    lab = kirsch_quarter()
+    fixed, _ = fix_connectivity(lab)
+    assert np.array_equal(fixed, lab)
+    m = voxel_mesh(lab)
+    rim = np.concatenate([np.flatnonzero(np.all(m.points[:, :2] == p, axis=1)) for p in ([7.0, 0.0], [0.0, 7.0])])
+    assert rim.size == 2  # on y = 0 and on x = 0
+    out, _ = smooth_mesh(m, {})
+    r = np.linalg.norm(out.points[rim, :2], axis=1)
+    assert np.abs(r - 7.0).max() < 0.01  # measured 7.0070 on both symmetry lines
+    assert np.all(out.points[rim[0], 1:] == 0) and np.all(out.points[rim[1], [0, 2]] == 0)
+    free, _ = smooth_mesh(m, {"bounding_planes": "free"})
+    assert np.linalg.norm(free.points[rim, :2], axis=1).min() > 7.4  # measured 7.478: the corner rounds
+
+
+def test_slabs_mirrored_at_both_faces_are_one_endless_prism(disc):
+    # the low and high plane of an axis are two mirrors: slabs of the disc 1, 2 and 4 voxels
+    # thick are all the same endless prism. At tolerance 1e-7 (at the default 1e-4 the
+    # thicker slabs' slice-to-slice modes, seeded by rounding, leave up to 1e-4)
+    layers = []
+    for thickness in (1, 2, 4):
+        m = voxel_mesh(np.repeat(disc[:, :, None], thickness, axis=2))
+        out, rep = smooth_mesh(m, {"tolerance": 1e-7})
+        assert rep["node_classes"]["X"] == 0 and rep["node_classes"]["A"] == 0
+        bottom = np.flatnonzero(m.lattice[:, 2] == 0)
+        bottom = bottom[np.lexsort((m.lattice[bottom, 1], m.lattice[bottom, 0]))]
+        layers.append((out.points[bottom, :2], out.point_data["node_class"][bottom]))
+    for xy, cls in layers[1:]:
+        assert np.abs(xy - layers[0][0]).max() < 1e-6  # measured 2.2e-7
+        assert np.array_equal(cls, layers[0][1])
+
+
+def test_chamfer_meeting_a_mirror_plane_keeps_its_rim_node_on_the_boundary():
+    # merged 2D mesh: a chamfer runs from node (0, 2) on the plane x = 0 to (1, 0), so (0, 2)
+    # holds two elements of one material (four, mirrored) yet lies on a boundary edge
+    merge = pytest.importorskip("dicer.mesh.merge")
+    lab = np.zeros((4, 21), np.uint8)
+    lab[0, 2:4] = [2, 1]
+    lab[1, 1:3] = 2
+    lab[2, 0:2] = 1
+    lab[3, 20] = 1
+    merged, _ = merge.merge_planes(voxel_mesh(lab), passes=(1, 1), axes=(0, 1, 2))
+    g = boundary_graph(merged, mirror=True)
+    rim = np.flatnonzero(np.all(merged.points[:, :2] == [0.0, 2.0], axis=1))
+    assert rim.size == 1 and g.boundary[rim[0]] and g.node_class[rim[0]] != 0
+    out, rep = smooth_mesh(merged, {})
+    assert rep["inverted_elements"] == 0 and rep["min_scaled_jacobian"] >= 0.2

@@ -19,7 +19,7 @@ system:
 $(BIN)/dicer: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e '.[test]'
+	$(BIN)/pip install -q -e '.[test,slurm]'
 	@touch $@
 
 setup: system $(BIN)/dicer

@@ -82,6 +82,10 @@ COEFFICIENTS = {
     "export_vtu": (62, 516.1, 0.6, 22.5),
     "quality": (156, 853.9, 0.7, 16.7),
 }
+#: elements per coarse voxel assumed before the mesh exists (a patient's group job is sized
+#: before any of its stages ran): measured 0.30 (head phantoms, head CT) to 0.52 (long
+#: bone); a fuller scan runs out of memory on the first attempt and gets twice on the retry
+ELEMENT_FRACTION = 0.5
 #: requested memory over the fitted peak: room for other library versions and inputs
 MEMORY_MARGIN = 1.15
 #: requested time over the fitted seconds (a shared, loaded node), plus a minute for
@@ -108,12 +112,12 @@ def estimate(stage: str, voxels: int, voxels_ds: int | None = None, elements: in
     runtime = ceil(START_UP_MINUTES + TIME_MARGIN * (base_s + s_per_million * size / 1e6) / 60) * attempt
 
     size is the stage's SIZE_OF: the scan's voxel count, the voxel count after downsampling
-    (default: voxels) or the mesh's element count (default: voxels_ds, one element per voxel,
-    an upper bound used before the mesh exists).
+    (default: voxels) or the mesh's element count (default, before the mesh exists:
+    ELEMENT_FRACTION * voxels_ds).
     """
     key = _stage_key(stage)
     voxels_ds = voxels if voxels_ds is None else voxels_ds
-    elements = voxels_ds if elements is None else elements
+    elements = max(1, int(ELEMENT_FRACTION * voxels_ds)) if elements is None else elements
     size = {"voxels": voxels, "voxels_ds": voxels_ds, "elements": elements}[SIZE_OF[key]] / 1e6
     base_mb, mb_per_m, base_s, s_per_m = COEFFICIENTS[key]
     attempt = max(1, int(attempt))

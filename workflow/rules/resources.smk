@@ -47,13 +47,14 @@ def _scan_size_of(patient, exists):
     return voxels, max(1, coarse)
 
 
-def _elements(patient, coarse):
-    """The mesh's element count once mesh.vtu exists; before, one element per coarse voxel."""
+def _elements(patient):
+    """The mesh's element count once mesh.vtu exists; before, None (the formula assumes
+    dicer.resources.ELEMENT_FRACTION of the coarse voxels)."""
     mesh = Path(patient_file("mesh.vtu").format(patient=patient))
     try:
         return mesh_elements(mesh)
     except (OSError, ValueError):
-        return coarse
+        return None
 
 
 def _estimate(stage, wildcards, attempt):
@@ -63,7 +64,7 @@ def _estimate(stage, wildcards, attempt):
     if stage == "export":
         stage = f"export_{wildcards.ext}"
     voxels, coarse = _scan_size(wildcards.patient)
-    return estimate(stage, voxels=voxels, voxels_ds=coarse, elements=_elements(wildcards.patient, coarse),
+    return estimate(stage, voxels=voxels, voxels_ds=coarse, elements=_elements(wildcards.patient),
                     attempt=attempt)
 
 

@@ -39,4 +39,4 @@ bench: setup
 	$(BIN)/python -m dicer.bench
 
 clean:
-	rm -rf results logs .snakemake
+	rm -rf results logs benchmarks .snakemake

@@ -19,7 +19,7 @@ system:
 $(BIN)/dicer: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e '.[test]'
+	$(BIN)/pip install -q -e '.[test,slurm]'
 	@touch $@
 
 setup: system $(BIN)/dicer
@@ -39,4 +39,4 @@ bench: setup
 	$(BIN)/python -m dicer.bench
 
 clean:
-	rm -rf results logs .snakemake
+	rm -rf results logs benchmarks .snakemake

@@ -15,6 +15,7 @@ envvars:
 
 
 include: "workflow/rules/common.smk"
+include: "workflow/rules/resources.smk"
 include: "workflow/rules/segment.smk"
 include: "workflow/rules/mesh.smk"
 include: "workflow/rules/export.smk"

@@ -7,6 +7,7 @@ gives every key a default, so ``load_config()`` with no arguments is valid.
 from __future__ import annotations
 
 import copy
+import functools
 import hashlib
 import json
 import re
@@ -35,9 +36,16 @@ STAGE_SECTIONS = {
 
 
 def schema() -> dict:
-    """The configuration JSON Schema as a dict."""
+    """The configuration JSON Schema as a dict (a fresh copy: callers may change it)."""
+    return copy.deepcopy(_schema())
+
+
+@functools.lru_cache(maxsize=1)
+def _schema() -> dict:
+    # parsed once per process (with libyaml when present): every config load and each
+    # Snakemake job's start-up reads it
     text = resources.files("dicer").joinpath("schemas/config.schema.yaml").read_text()
-    return yaml.safe_load(text)
+    return yaml.load(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
 
 
 def _defaults(node: dict):

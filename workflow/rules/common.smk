@@ -1,5 +1,6 @@
 # Config validation, the cohort sheet and per-stage settings. No algorithm here.
 import csv
+import functools
 import json
 import os
 import re
@@ -111,8 +112,10 @@ IMAGE_PATIENTS = _one_of(set(PATIENTS) - LABEL_PATIENTS)
 LABELS_PATIENTS = _one_of(LABEL_PATIENTS)
 
 
+@functools.lru_cache(maxsize=None)
 def patient_config(patient):
-    """The workflow config with the patient's overrides applied, validated."""
+    """The workflow config with the patient's overrides applied, validated (once per patient and
+    run: callers must not change the returned dict)."""
     overrides = [item.strip() for item in PATIENTS[patient].get("overrides", "").split(";") if item.strip()]
     merged = config
     for item in overrides:

@@ -12,6 +12,12 @@ rule export:
         materials=materials_option,
     conda:
         CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=mem_mb("export"),
+        runtime=runtime("export"),
+    benchmark:
+        benchmark_file("export_{ext}"),
     log:
         "logs/{patient}/export_{ext}.log",
     wildcard_constraints:
@@ -41,6 +47,12 @@ rule quality:
         materials=materials_option,
     conda:
         CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=mem_mb("quality"),
+        runtime=runtime("quality"),
+    benchmark:
+        benchmark_file("quality"),
     log:
         "logs/{patient}/quality.log",
     shell:

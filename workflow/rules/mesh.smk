@@ -12,6 +12,12 @@ rule mesh:
         materials=materials_option,
     conda:
         CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=mem_mb("mesh"),
+        runtime=runtime("mesh"),
+    benchmark:
+        benchmark_file("mesh"),
     log:
         "logs/{patient}/mesh.log",
     shell:
@@ -28,6 +34,12 @@ rule merge:
         settings=settings("merge"),
     conda:
         CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=mem_mb("merge"),
+        runtime=runtime("merge"),
+    benchmark:
+        benchmark_file("merge"),
     log:
         "logs/{patient}/merge.log",
     shell:
@@ -45,6 +57,12 @@ rule smooth:
         settings=settings("smooth"),
     conda:
         CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=mem_mb("smooth"),
+        runtime=runtime("smooth"),
+    benchmark:
+        benchmark_file("smooth"),
     log:
         "logs/{patient}/smooth.log",
     shell:

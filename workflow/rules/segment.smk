@@ -9,6 +9,12 @@ rule phantom:
         size=phantom_size_option,
     conda:
         CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=mem_mb("phantom"),
+        runtime=runtime("phantom"),
+    benchmark:
+        os.path.join("benchmarks", "phantoms", "{name}.tsv"),
     log:
         "logs/phantoms/{name}.log",
     shell:
@@ -26,6 +32,12 @@ rule segment:
         settings=settings("segment"),
     conda:
         CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=mem_mb("segment"),
+        runtime=runtime("segment"),
+    benchmark:
+        benchmark_file("segment"),
     log:
         "logs/{patient}/segment.log",
     wildcard_constraints:
@@ -45,6 +57,12 @@ rule labels:
         settings=settings("labels"),
     conda:
         CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=mem_mb("labels"),
+        runtime=runtime("labels"),
+    benchmark:
+        benchmark_file("labels"),
     log:
         "logs/{patient}/labels.log",
     wildcard_constraints:
@@ -65,6 +83,12 @@ rule downsample:
         materials=materials_option,
     conda:
         CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=mem_mb("downsample"),
+        runtime=runtime("downsample"),
+    benchmark:
+        benchmark_file("downsample"),
     log:
         "logs/{patient}/downsample.log",
     shell:
@@ -84,6 +108,12 @@ rule fix:
         materials=materials_option,
     conda:
         CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=mem_mb("fix"),
+        runtime=runtime("fix"),
+    benchmark:
+        benchmark_file("fix"),
     log:
         "logs/{patient}/fix.log",
     shell:

@@ -1,0 +1,126 @@
+"""Cluster resources of the workflow's stages, estimated from the input's size.
+
+Sizes are read from headers only (no voxel data): the scan's voxel count, and the mesh's
+element count once a mesh exists. The formula and the peaks it was fitted to are in
+docs/cluster.md; workflow/rules/resources.smk turns them into Snakemake resources.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+
+def scan_header(path: str | os.PathLike) -> tuple[int, tuple[float, ...] | None]:
+    """(voxel count, voxel size in mm or None) of an image or label volume, from its header.
+
+    NIfTI, NRRD, MetaImage: SimpleITK's header read; ``.npy``: the array header; a folder
+    of slices (DICOM, TIFF, PNG) or an unreadable file: its size in bytes / 2 (2 bytes a voxel).
+    """
+    path = Path(path)
+    if path.is_dir():
+        return max(1, sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) // 2), None
+    if path.suffix == ".npy":
+        try:
+            return int(np.prod(np.load(path, mmap_mode="r").shape)), None
+        except (OSError, ValueError):
+            return max(1, path.stat().st_size // 2), None
+    import SimpleITK as sitk
+
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(path))
+    try:
+        reader.ReadImageInformation()
+    except RuntimeError:  # not an image SimpleITK reads (the stage will say why)
+        return max(1, path.stat().st_size // 2), None
+    return int(np.prod(reader.GetSize())), tuple(reader.GetSpacing())
+
+
+def scan_voxels(path: str | os.PathLike) -> int:
+    """Voxel count of an image or label volume, from its header (see scan_header)."""
+    return scan_header(path)[0]
+
+
+_CELLS = re.compile(rb'NumberOfCells="(\d+)"')
+
+
+def mesh_elements(path: str | os.PathLike) -> int:
+    """Element count of a VTU mesh, from its <Piece> header (the first 4 kB)."""
+    with open(path, "rb") as handle:
+        match = _CELLS.search(handle.read(4096))
+    if match is None:
+        raise ValueError(f"{path}: no NumberOfCells in the VTU header")
+    return int(match.group(1))
+
+
+#: the size each stage's memory and time grow with: the scan's voxels, the voxels after
+#: downsampling, or the mesh's elements
+SIZE_OF = {
+    "phantom": "voxels", "segment": "voxels", "labels": "voxels", "downsample": "voxels",
+    "fix": "voxels_ds", "mesh": "voxels_ds", "merge": "elements", "smooth": "elements",
+    "export_inp": "elements", "export_vtu": "elements", "quality": "elements",
+}
+
+#: stage -> (baseline MB, MB per million of its size, baseline s, s per million), fitted by
+#: workflow/scripts/fit_resources.py to docs/cluster-measurements.tsv: the baseline is the
+#: smallest measured peak (the interpreter with numpy, scipy, SimpleITK and meshio loaded,
+#: which dominates small scans), the slope the steepest growth seen over the cases
+COEFFICIENTS = {
+    "phantom": (133, 21.8, 0.3, 1.4),
+    "segment": (198, 21.3, 1.7, 5.8),
+    "labels": (137, 27.5, 0.5, 2.1),
+    "downsample": (156, 16.3, 0.8, 1.4),
+    "fix": (169, 25.6, 1.2, 3.7),
+    "mesh": (161, 76.2, 0.7, 3.2),
+    "merge": (96, 515.5, 1.1, 25.9),
+    "smooth": (79, 401.6, 0.9, 22.8),
+    "export_inp": (62, 658.6, 0.8, 46.2),
+    "export_vtu": (62, 516.1, 0.6, 22.5),
+    "quality": (156, 853.9, 0.7, 16.7),
+}
+#: elements per coarse voxel assumed before the mesh exists (a patient's group job is sized
+#: before any of its stages ran): measured 0.30 (head phantoms, head CT) to 0.52 (long
+#: bone); a fuller scan runs out of memory on the first attempt and gets twice on the retry
+ELEMENT_FRACTION = 0.5
+#: requested memory over the fitted peak: room for other library versions and inputs
+MEMORY_MARGIN = 1.15
+#: requested time over the fitted seconds (a shared, loaded node), plus a minute for
+#: Snakemake's own start-up inside the job
+TIME_MARGIN = 3.0
+START_UP_MINUTES = 1
+
+
+def _stage_key(stage: str) -> str:
+    """export_<ext>: text decks (inp, out, neu, k, msh, feb) and binary files (exo, e) as
+    export_inp (the heavier), VTU as export_vtu."""
+    if stage.startswith("export_") and stage not in COEFFICIENTS:
+        return "export_inp"
+    if stage not in COEFFICIENTS:
+        raise ValueError(f"no resource formula for stage {stage!r}; stages: {', '.join(COEFFICIENTS)}")
+    return stage
+
+
+def estimate(stage: str, voxels: int, voxels_ds: int | None = None, elements: int | None = None,
+             attempt: int = 1) -> tuple[int, int]:
+    """(mem_mb, runtime in minutes) to request for one stage, ``attempt`` times the first.
+
+    mem_mb = ceil(MEMORY_MARGIN * (base_mb + mb_per_million * size / 1e6)) * attempt
+    runtime = ceil(START_UP_MINUTES + TIME_MARGIN * (base_s + s_per_million * size / 1e6) / 60) * attempt
+
+    size is the stage's SIZE_OF: the scan's voxel count, the voxel count after downsampling
+    (default: voxels) or the mesh's element count (default, before the mesh exists:
+    ELEMENT_FRACTION * voxels_ds).
+    """
+    key = _stage_key(stage)
+    voxels_ds = voxels if voxels_ds is None else voxels_ds
+    elements = max(1, int(ELEMENT_FRACTION * voxels_ds)) if elements is None else elements
+    size = {"voxels": voxels, "voxels_ds": voxels_ds, "elements": elements}[SIZE_OF[key]] / 1e6
+    base_mb, mb_per_m, base_s, s_per_m = COEFFICIENTS[key]
+    attempt = max(1, int(attempt))
+    mem = math.ceil(MEMORY_MARGIN * (base_mb + mb_per_m * size)) * attempt
+    minutes = math.ceil(START_UP_MINUTES + TIME_MARGIN * (base_s + s_per_m * size) / 60) * attempt
+    return mem, minutes

@@ -487,6 +487,31 @@ RUN_OUTPUTS = ("labels.nii.gz", "materials.json", "segmentation.png", "segmentat
                "smooth.json", "model.inp", "model.vtu", "quality.json", "report.html")
 
 
+def _check_memory(source: str, config: dict) -> None:
+    """DicerError when the run's fitted peak memory (dicer/resources.py) exceeds what this
+    machine or job may use, before any stage allocates: the kernel would otherwise kill the
+    run without a message."""
+    import numpy as np
+
+    from dicer.downsample import reduction_factor
+    from dicer.resources import machine_memory_mb, run_peak_mb, scan_header
+
+    voxels, spacing = scan_header(source)
+    factor = (reduction_factor(spacing or (1.0, 1.0, 1.0), config, source=source)
+              if downsample_applies(config) else 1)
+    need, have = run_peak_mb(voxels, factor), machine_memory_mb()
+    if have is None or need <= have:
+        return
+    coarser = [np.maximum(factor, f) for f in range(2, 9)]
+    fits = [(f, run_peak_mb(voxels, c)) for f, c in zip(range(2, 9), coarser) if run_peak_mb(voxels, c) <= 0.8 * have]
+    hint = (f"set downsample.factor: {fits[0][0]} (about {fits[0][1] / 1024:.1f} GB)" if fits
+            else "crop or downsample the scan")
+    shown = "x".join(str(int(f)) for f in np.atleast_1d(factor))
+    raise DicerError(f"{source}: {voxels:,} voxels at downsample factor {shown} need about {need / 1024:.1f} GB "
+                     f"of memory, this machine (or job) has {have / 1024:.1f} GB; {hint}, or use a larger machine "
+                     "(--skip-memory-check runs anyway)")
+
+
 def cmd_run(args):
     """segment -> downsample -> fix -> mesh -> merge -> smooth -> export (.inp, .vtu) -> quality, into OUTDIR.
 
@@ -503,6 +528,8 @@ def cmd_run(args):
     outdir = Path(args.output)
     if outdir.exists() and not outdir.is_dir():
         raise DicerError(f"{outdir}: exists and is not a folder; give an output folder with -o")
+    if not args.skip_memory_check:
+        _check_memory(args.labels if args.image is None else args.image, config)
     # every stage writes into a staging folder beside OUTDIR; only a finished run moves its
     # files into OUTDIR (an existing OUTDIR keeps its old files until then), and a failed
     # one leaves its finished, checked stage files in OUTDIR.failed for a look or a report
@@ -632,6 +659,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="mesh this label volume (" + ", ".join(LABEL_SUFFIXES) + ") instead of segmenting an "
                         "image; its values become materials by the config's labels section")
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="output folder")
+    p.add_argument("--skip-memory-check", action="store_true",
+                   help="run even when the estimated peak memory exceeds what this machine or job has")
     _add_config_options(p)
 
     p = command("segment", cmd_segment, "classify voxels into the configured materials (labels 1..K)")

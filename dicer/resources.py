@@ -124,3 +124,34 @@ def estimate(stage: str, voxels: int, voxels_ds: int | None = None, elements: in
     mem = math.ceil(MEMORY_MARGIN * (base_mb + mb_per_m * size)) * attempt
     minutes = math.ceil(START_UP_MINUTES + TIME_MARGIN * (base_s + s_per_m * size) / 60) * attempt
     return mem, minutes
+
+
+def run_peak_mb(voxels: int, factor=1) -> int:
+    """Fitted peak memory (MB) of the heaviest stage of ``dicer run`` on a scan of ``voxels``
+    voxels downsampled by ``factor`` (int or one per axis), before any mesh exists (elements
+    taken as ELEMENT_FRACTION of the downsampled voxels)."""
+    factor = np.asarray(factor, dtype=np.int64)
+    reduction = int(factor ** 3 if factor.ndim == 0 else np.prod(factor))
+    voxels_ds = max(1, voxels // max(1, reduction))
+    peaks = []
+    for stage in ("segment", "downsample", "fix", "mesh", "merge", "smooth", "export_inp", "export_vtu", "quality"):
+        peaks.append(estimate(stage, voxels, voxels_ds)[0] / MEMORY_MARGIN)
+    return int(max(peaks))
+
+
+def machine_memory_mb() -> int | None:
+    """Memory this process may use in MB: the smaller of the machine's physical memory and
+    a cgroup (container, cluster job) limit; None where neither can be read."""
+    limits = []
+    try:
+        limits.append(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2**20)
+    except (ValueError, OSError, AttributeError):
+        pass
+    for name in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            text = Path(name).read_text().strip()
+        except OSError:
+            continue
+        if text.isdigit() and int(text) < 2**60:
+            limits.append(int(text) // 2**20)
+    return min(limits) if limits else None

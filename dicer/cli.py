@@ -496,14 +496,17 @@ def _check_memory(source: str, config: dict) -> None:
     from dicer.downsample import reduction_factor
     from dicer.resources import machine_memory_mb, run_peak_mb, scan_header
 
-    voxels, spacing = scan_header(source)
+    try:
+        voxels, spacing = scan_header(source)
+    except OSError:  # missing or unreadable: the first stage names the problem
+        return
     factor = (reduction_factor(spacing or (1.0, 1.0, 1.0), config, source=source)
               if downsample_applies(config) else 1)
     need, have = run_peak_mb(voxels, factor), machine_memory_mb()
     if have is None or need <= have:
         return
-    coarser = [np.maximum(factor, f) for f in range(2, 9)]
-    fits = [(f, run_peak_mb(voxels, c)) for f, c in zip(range(2, 9), coarser) if run_peak_mb(voxels, c) <= 0.8 * have]
+    peaks = [(f, run_peak_mb(voxels, np.maximum(factor, f))) for f in range(2, 9)]
+    fits = [(f, peak) for f, peak in peaks if peak <= 0.8 * have]
     hint = (f"set downsample.factor: {fits[0][0]} (about {fits[0][1] / 1024:.1f} GB)" if fits
             else "crop or downsample the scan")
     shown = "x".join(str(int(f)) for f in np.atleast_1d(factor))

@@ -57,3 +57,11 @@ def test_skip_memory_check_runs_anyway(tmp_path, monkeypatch):
     out = tmp_path / "out"
     assert main(["run", "--labels", str(tmp_path / "labels.npy"), "-o", str(out), "--skip-memory-check"]) == 0
     assert (out / "model.inp").exists()
+
+
+def test_a_missing_input_is_named_by_the_stage_not_the_memory_check(tmp_path, capsys):
+    for args in (["run", str(tmp_path / "nope.nii.gz")], ["run", "--labels", str(tmp_path / "nope.npy")]):
+        assert main(args + ["-o", str(tmp_path / "out")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error: ") and "nope." in err[0]
+        assert not (tmp_path / "out").exists()

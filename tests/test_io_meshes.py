@@ -4,6 +4,7 @@ import pytest
 
 from dicer.errors import DicerError
 from dicer.io.meshes import read_mesh, write_mesh
+from dicer.mesh.metrics import edge_ratio, scaled_jacobian
 from dicer.mesh.voxel import voxel_mesh
 
 
@@ -114,12 +115,30 @@ def test_raw_vtu_round_trip_exact_and_meshio_reads_it(tmp_path, mesh, dim):
     assert b'header_type="UInt64"' in head and b'<AppendedData encoding="raw">' in head
     _assert_same(read_mesh(path), mesh)
     # meshio (the reference reader) gets the same arrays
-    from dicer.io.meshes import _assemble, _read_meshio
-    _assert_same(_assemble("m", *_read_meshio(path, "m")), mesh)
+    # (with the quality arrays the file adds, which read_mesh leaves out)
+    from dicer.io.meshes import _assemble, _read_meshio, with_quality
+    _assert_same(_assemble("m", *_read_meshio(path, "m")), with_quality(mesh))
     m = meshio.read(path)
     assert m.cells[0].type == ("quad" if dim == 2 else "hexahedron")
     assert np.array_equal(m.point_data["lattice"], mesh.lattice)
     assert np.array_equal(m.cell_data["material"][0], mesh.material)
+    assert list(m.cell_data)[:3] == ["material", "scaled_jacobian", "edge_ratio"]
+    assert np.array_equal(m.cell_data["scaled_jacobian"][0], scaled_jacobian(mesh.points, mesh.cells))
+    assert np.array_equal(m.cell_data["edge_ratio"][0], edge_ratio(mesh.points, mesh.cells))
+
+
+def test_quality_arrays_follow_the_nodes(tmp_path, mesh):
+    """Each written mesh holds the quality of its own nodes, not values carried from its input."""
+    path = tmp_path / "a.vtu"
+    write_mesh(mesh, path)
+    moved = read_mesh(path)
+    assert "scaled_jacobian" not in moved.cell_data and "edge_ratio" not in moved.cell_data
+    assert np.allclose(meshio.read(path).cell_data["edge_ratio"][0], 2.0 / 0.5, rtol=1e-12)
+    moved.points = moved.points * [1.0, 1.0, 3.0]  # every element 3 times as tall: 6 mm by 0.5 mm
+    write_mesh(moved, tmp_path / "b.vtu")
+    m = meshio.read(tmp_path / "b.vtu")
+    assert np.allclose(m.cell_data["edge_ratio"][0], 6.0 / 0.5, rtol=1e-12)
+    assert np.allclose(m.cell_data["scaled_jacobian"][0], 1.0, rtol=1e-12)
 
 
 def test_large_mesh_is_checked_without_meshio(tmp_path, mesh, monkeypatch):

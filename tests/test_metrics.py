@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from dicer.mesh.metrics import (corner_scaled_jacobians, edge_ratio, element_volumes, hex_scaled_jacobian_t,
+                                skew,
                                 hex_volumes_t, scaled_jacobian)
 from dicer.mesh.model import HEX_CORNERS, QUAD_CORNERS
 
@@ -100,3 +101,28 @@ def test_quads():
     assert scaled_jacobian(rhomb, cell)[0] == pytest.approx(np.sqrt(0.5))
     flipped = sq[[0, 3, 2, 1]]
     assert scaled_jacobian(flipped, cell)[0] == pytest.approx(-1.0)
+
+
+def test_edge_ratio_blocks_and_quads():
+    rng = np.random.default_rng(5)
+    pts = CUBE + rng.uniform(-0.2, 0.2, (8, 3))
+    many = np.repeat(CELL, 1000, axis=0)
+    er = edge_ratio(pts, many, chunk=7)  # blocks that do not divide the count
+    pairs = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]])
+    lengths = np.linalg.norm(pts[pairs[:, 1]] - pts[pairs[:, 0]], axis=1)
+    assert np.allclose(er, lengths.max() / lengths.min(), rtol=1e-14, atol=0)
+    quad = QUAD_CORNERS.astype(float) * [4.0, 1.0, 0.0]
+    assert edge_ratio(quad, np.arange(4)[None, :])[0] == pytest.approx(4.0)
+
+
+def test_skew():
+    assert skew(CUBE * [2.0, 3.0, 0.5], CELL)[0] == 0.0
+    pts = CUBE.copy()
+    pts[:, 0] += pts[:, 2]  # z axis leans 45 degrees towards x: cos 45 between them
+    assert skew(pts, CELL)[0] == pytest.approx(np.sqrt(0.5), abs=1e-15)
+    par = QUAD_CORNERS.astype(float)
+    par[:, 0] += 0.5 * par[:, 1]  # parallelogram: axes (1, 0) and (0.5, 1)
+    assert skew(par, np.arange(4)[None, :])[0] == pytest.approx(0.5 / np.sqrt(1.25))
+    flat = CUBE.copy()
+    flat[4:, 2] = 0.0  # zero-length z axis: 0 as verdict has it
+    assert skew(flat, CELL)[0] == 0.0

@@ -125,6 +125,13 @@ def check_meshio(path: str | Path, model, file_format: str) -> None:
         raise DicerError("no material cell data read back")
     material = np.concatenate(m.cell_data[key]).astype(np.int32)
     compare(model, np.asarray(m.points, float), cells, material, "the file")
+    if file_format == "vtu":
+        from dicer.mesh.metrics import QUALITY_DATA
+
+        for name in QUALITY_DATA:
+            got = np.concatenate(m.cell_data.get(name, [np.empty(0)]))
+            if got.shape != (model.n_cells,):
+                raise DicerError(f"cell data {name} read back with {got.size} values for {model.n_cells} elements")
     # the material names (VTU field data, Gmsh $PhysicalNames) are part of the file too
     names = {name: int(np.asarray(v).ravel()[0]) for name, v in m.field_data.items()
              if np.asarray(v).size == 2 and name not in ("spacing", "origin", "grid_shape")}

@@ -1,11 +1,11 @@
-"""VTU export for ParaView (cell data ``material`` and ``scaled_jacobian``) and Gmsh through meshio.
+"""VTU export for ParaView (cell data ``material``, ``scaled_jacobian`` and ``edge_ratio``) and Gmsh through meshio.
 
 Order 1 is written with meshio (zlib level 1) plus dicer's grid field data, so the
 file is also a valid dicer mesh (``lattice`` point data, grid field data) that every
 stage can read; unlike the intermediate meshes (raw data, :mod:`dicer.io.meshes`) the
 delivered file stays compressed, about a sixth of the raw size, and meshio's check of
 it reads zlib data several times faster than raw appended data. Order 2 is written with meshio as ``hexahedron20`` /
-``quad8`` cells; the scaled Jacobian is then that of the element's corners.
+``quad8`` cells; the quality arrays are then those of the element's corners.
 """
 
 from __future__ import annotations
@@ -21,15 +21,15 @@ import meshio.vtu._vtu  # noqa: F401  (its zlib is swapped while writing, see _f
 import numpy as np
 
 from dicer.io.meshes import _field_data_xml, names_xml, splice_field_data, to_meshio
-from dicer.mesh.metrics import scaled_jacobian
+from dicer.mesh.metrics import quality_arrays
 from dicer.mesh.model import Mesh
 
 MESHIO_TYPES = {(3, 1): "hexahedron", (3, 2): "hexahedron20", (2, 1): "quad", (2, 2): "quad8"}
 
 
-def _corner_jacobian(model) -> np.ndarray:
+def _corner_quality(model) -> dict[str, np.ndarray]:
     k = 8 if model.dim == 3 else 4
-    return scaled_jacobian(model.points, model.cells[:, :k])
+    return quality_arrays(model.points, model.cells[:, :k])
 
 
 class _FastZlib:
@@ -64,11 +64,11 @@ def _write_vtu(mesh: Mesh, path: Path) -> None:
 
 
 def write_vtu(model, mesh: Mesh, path: str | Path) -> None:
-    """Write ``model`` (made from ``mesh``) as VTU with material and scaled Jacobian cell data."""
+    """Write ``model`` (made from ``mesh``) as VTU with material and quality cell data."""
     if model.order == 1:
         out = mesh.copy()
         out.names = model.name_list()  # the config's names, whatever the mesh carried
-        out.cell_data["scaled_jacobian"] = scaled_jacobian(mesh.points, mesh.cells)
+        out.cell_data = quality_arrays(mesh.points, mesh.cells) | out.cell_data
         _write_vtu(out, Path(path))
         return
     write_meshio(model, path, "vtu")
@@ -88,7 +88,8 @@ def write_meshio(model, path: str | Path, file_format: str) -> None:
         meshio.write(path, m, file_format="gmsh22", binary=False)
         return
     m = meshio.Mesh(model.points, [(ctype, model.cells)],
-                    cell_data={"material": [model.material], "scaled_jacobian": [_corner_jacobian(model)]})
+                    cell_data={"material": [model.material],
+                               **{k: [v] for k, v in _corner_quality(model).items()}})
     raw = Path(path).with_name(Path(path).name + ".raw.vtu")
     try:
         meshio.write(raw, m, file_format="vtu", binary=True, compression="zlib")

@@ -17,6 +17,7 @@ import contextlib
 import io
 import os
 import shutil
+from dataclasses import replace
 from pathlib import Path
 from xml.etree import ElementTree as ET
 from xml.sax.saxutils import quoteattr
@@ -27,7 +28,7 @@ import numpy as np
 from dicer.errors import DicerError
 from dicer.io.atomic import atomic_path
 from dicer.mesh.frame import HEX_MIRROR, check_direction, mirrored, to_lattice
-from dicer.mesh.metrics import scaled_jacobian
+from dicer.mesh.metrics import QUALITY_DATA, quality_arrays, scaled_jacobian
 from dicer.mesh.model import Mesh
 
 _FIELDS = ("spacing", "origin", "grid_shape", "direction", "scanner_coordinates")
@@ -175,8 +176,9 @@ def _write_vtu(mesh: Mesh, path: Path) -> None:
         f.write(_TAIL)
 
 
-def check_mesh(mesh: Mesh, source: str, allow_inverted: bool = False) -> None:
-    """Raise DicerError unless ``mesh`` is a sound linear hex/quad mesh."""
+def check_mesh(mesh: Mesh, source: str, allow_inverted: bool = False) -> np.ndarray | None:
+    """Raise DicerError unless ``mesh`` is a sound linear hex/quad mesh; returns the
+    elements' scaled Jacobians when it computed them (not with ``allow_inverted``)."""
     if mesh.n_cells == 0:
         raise DicerError(f"{source}: mesh has no elements")
     if not np.all(np.isfinite(mesh.points)):
@@ -193,6 +195,8 @@ def check_mesh(mesh: Mesh, source: str, allow_inverted: bool = False) -> None:
                 f"{source}: {bad.size} degenerate or inverted element(s), e.g. element {bad[0] + 1} "
                 f"(scaled Jacobian {sj[bad[0]]:.3f})"
             )
+        return sj
+    return None
 
 
 def _bitwise_equal(a: np.ndarray, b: np.ndarray) -> bool:
@@ -223,12 +227,15 @@ def write_mesh(mesh: Mesh, path: str | os.PathLike, allow_inverted: bool = False
     """Write ``mesh`` as VTU atomically, read it back and check it before keeping it.
 
     Every file is read back with dicer's reader and compared array for array (exact);
-    meshes of up to ``MESHIO_CHECK_CELLS`` elements are also read with meshio.
+    meshes of up to ``MESHIO_CHECK_CELLS`` elements are also read with meshio. The file
+    also holds the elements' quality (:data:`~dicer.mesh.metrics.QUALITY_DATA` cell data)
+    for viewing; :func:`read_mesh` leaves it out again.
     """
     path = Path(path)
     if path.suffix.lower() != ".vtu":
         raise DicerError(f"{path}: intermediate meshes are VTU files; name the output *.vtu")
-    check_mesh(mesh, str(path), allow_inverted)
+    sj = check_mesh(mesh, str(path), allow_inverted)
+    mesh = with_quality(mesh, sj)
     with atomic_path(path) as tmp:
         _write_vtu(mesh, tmp)
         # the file must hold exactly the mesh that passed check_mesh above (so the
@@ -239,6 +246,12 @@ def write_mesh(mesh: Mesh, path: str | os.PathLike, allow_inverted: bool = False
             if not _same_mesh(mesh, back):
                 raise DicerError(f"{path}: read-back check failed: the file does not hold the mesh written; "
                                  "check the disk and write again")
+
+
+def with_quality(mesh: Mesh, sj: np.ndarray | None = None) -> Mesh:
+    """``mesh`` (not copied) with the quality cell data of its nodes as they are, after ``material``."""
+    cell_data = {k: v for k, v in mesh.cell_data.items() if k not in QUALITY_DATA}
+    return replace(mesh, cell_data=quality_arrays(mesh.points, mesh.cells, sj) | cell_data)
 
 
 def _unreadable(name: str):
@@ -404,4 +417,9 @@ def read_mesh(path: str | os.PathLike, source: str | None = None) -> Mesh:
     if not path.exists():
         raise DicerError(f"{name}: mesh file not found; check the path")
     parts = _read_raw_vtu(path, name) if path.suffix.lower() == ".vtu" and path.is_file() else None
-    return _assemble(name, *(parts or _read_meshio(path, name)))
+    mesh = _assemble(name, *(parts or _read_meshio(path, name)))
+    # the quality arrays describe the nodes as they were written: a stage that moves them
+    # would carry stale values on, so every writer computes them afresh
+    for key in QUALITY_DATA:
+        mesh.cell_data.pop(key, None)
+    return mesh

@@ -85,7 +85,7 @@ def _check_output(path: str, suffixes: tuple[str, ...], what: str) -> Path:
 
 #: argparse destinations holding output files, with the option that sets them
 OUTPUT_OPTIONS = {"output": "-o", "overlay": "--overlay", "plot": "--plot", "info": "--info", "report": "--report",
-                  "html": "--html", "materials_out": "--materials"}
+                  "html": "--html", "materials_out": "--materials", "csv": "--csv"}
 #: argparse destinations holding input files or folders
 INPUT_OPTIONS = ("image", "labels", "mesh", "config", "picture", "stage_report", "materials")
 
@@ -378,7 +378,7 @@ def do_export(mesh_path: str, out: Path, config: dict):
 
 
 def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None = None, html: str | None = None,
-               pictures: list[str] = (), stage_reports: list[str] = ()):
+               pictures: list[str] = (), stage_reports: list[str] = (), csv: Path | None = None):
     from dicer.io.atomic import write_bytes_atomic
     from dicer.io.meshes import read_mesh
     from dicer.quality import quality_report, render_html
@@ -404,6 +404,10 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
             page_dir = Path(html).resolve().parent
             links = [os.path.relpath(Path(p).resolve(), page_dir) for p in pictures]
             write_bytes_atomic(html, render_html(report, links))
+        if csv:
+            from dicer.io.metrics_csv import write_metrics_csv
+
+            write_metrics_csv(mesh, csv)
         write_bytes_atomic(out, text)
         log.info("quality: wrote %s (min scaled Jacobian %.3f, %d inverted)", out,
                  report["scaled_jacobian"]["min"], report["inverted_elements"])
@@ -463,9 +467,10 @@ def cmd_export(args):
 
 
 def cmd_quality(args):
+    csv = _check_output(args.csv, (".csv",), "the metrics table") if args.csv else None
     do_quality(args.mesh, _check_output(args.output, (".json",), "the quality report"), _config(args),
                labels_path=args.labels, html=args.html, pictures=args.picture or [],
-               stage_reports=args.stage_report or [])
+               stage_reports=args.stage_report or [], csv=csv)
 
 
 def cmd_phantom(args):
@@ -725,6 +730,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, metavar="JSON", help="quality report (.json)")
     p.add_argument("--labels", metavar="LABELS", help="label volume the mesh came from (for voxel counts)")
     p.add_argument("--html", metavar="HTML", help="also write a readable HTML report")
+    p.add_argument("--csv", metavar="CSV",
+                   help="also write every element's metrics, one line per element in automesh's metrics "
+                        "columns (edge ratio, scaled Jacobian, skew, volume)")
     p.add_argument("--picture", action="append", metavar="PNG", help="a picture to show in the HTML report (repeatable)")
     p.add_argument("--stage-report", action="append", metavar="JSON",
                    help="a stage report (fix.json, merge.json, smooth.json) to include (repeatable)")

@@ -1,0 +1,118 @@
+"""Per-element quality metrics as CSV, in the columns of automesh's ``metrics`` command.
+
+One header line, then one line per element in mesh order (line i + 1 is element i + 1,
+the element numbers of every export)::
+
+    maximum edge ratio,minimum scaled jacobian,maximum skew,element volume
+    1.000000e+00,1.000000e+00,0.000000e+00,8.000000e+00
+
+Columns (verdict definitions, :mod:`dicer.mesh.metrics`): longest over shortest edge;
+the minimum corner scaled Jacobian; skew, the largest |cos| between the principal axes;
+the element's volume in mm^3 (a quad's area in mm^2). Numbers carry 7 significant digits
+(``%.6e``, as automesh writes them). Lines are formatted in bulk by
+:mod:`dicer.export.textfmt`, and the file is parsed back at array speed and compared
+with the values before it is renamed into place.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from dicer.errors import DicerError
+from dicer.export.textfmt import Float, Sci, compact_rows
+from dicer.io.atomic import atomic_path
+from dicer.mesh.metrics import edge_ratio, element_volumes, scaled_jacobian, skew
+from dicer.mesh.model import Mesh
+
+HEADER = b"maximum edge ratio,minimum scaled jacobian,maximum skew,element volume\n"
+"""automesh's header line, byte for byte."""
+
+_FMT = Sci(7, b"e")  # d.dddddde+XX: 7 significant digits
+_DIGITS = 7
+
+
+def element_metrics(mesh: Mesh) -> np.ndarray:
+    """(M, 4) float64: the CSV's columns for every element, in mesh order."""
+    return np.column_stack([edge_ratio(mesh.points, mesh.cells), scaled_jacobian(mesh.points, mesh.cells),
+                            skew(mesh.points, mesh.cells), element_volumes(mesh.points, mesh.cells)])
+
+
+def _lines(values: np.ndarray):
+    fields = [Float(values[:, 0], _FMT)] + [Float(values[:, j], _FMT, b",") for j in (1, 2, 3)] + [b"\n"]
+    return compact_rows(fields, values.shape[0])
+
+
+def parse_metrics_csv(data: bytes, name: str = "metrics CSV") -> np.ndarray:
+    """(M, 4) float64 from the bytes of a file :func:`write_metrics_csv` wrote (vectorised).
+
+    Every field must be ``[-]d.dddddde[+-]XX``; anything else is a DicerError naming the line.
+    """
+    if not data.startswith(HEADER):
+        raise DicerError(f"{name}: the first line is not the metrics header {HEADER.decode().strip()!r}")
+    body = np.frombuffer(data, np.uint8)[len(HEADER):]
+    if body.size == 0:
+        return np.empty((0, 4))
+    if body[-1] != 10:
+        raise DicerError(f"{name}: the last line is cut short")
+    sep = np.flatnonzero((body == 44) | (body == 10))
+    if sep.size % 4 or np.any(body[sep[3::4]] != 10) or np.any(body[sep[np.arange(sep.size) % 4 != 3]] != 44):
+        raise DicerError(f"{name}: a line does not hold 4 comma-separated values")
+    start = np.r_[0, sep[:-1] + 1]
+    neg = body[start] == 45
+    s = start + neg
+    width = 5 + _DIGITS  # d . 6 digits e sign 2 digits
+    ok = (sep - s) == width
+    s = np.where(ok, s, 0)
+    mask = np.array([0, 1] + [0] * (_DIGITS - 1) + [1, 1, 0, 0], bool)  # fixed characters
+    offsets = np.arange(width)
+    chars = body[s[:, None] + offsets]
+    digits = chars[:, ~mask].astype(np.int64) - 48
+    ok &= np.all((digits >= 0) & (digits <= 9), axis=1)
+    ok &= (chars[:, 1] == 46) & (chars[:, _DIGITS + 1] == 101) & np.isin(chars[:, _DIGITS + 2], (43, 45))
+    if not ok.all():
+        bad = int(np.flatnonzero(~ok)[0])
+        raise DicerError(f"{name}: line {bad // 4 + 2} holds a value that is not [-]d.dddddde[+-]XX")
+    mantissa = digits[:, :_DIGITS] @ (10 ** np.arange(_DIGITS - 1, -1, -1, dtype=np.int64))
+    exponent = (digits[:, _DIGITS] * 10 + digits[:, _DIGITS + 1]) * np.where(chars[:, _DIGITS + 2] == 45, -1, 1)
+    k = exponent - (_DIGITS - 1)
+    # one correctly rounded operation, as a decimal parser gives: 2.400000e+01 is 24.0 exactly
+    with np.errstate(over="ignore"):
+        value = np.where(k >= 0, mantissa * 10.0 ** np.maximum(k, 0), mantissa / 10.0 ** np.maximum(-k, 0))
+    return np.where(neg, -value, value).reshape(-1, 4)
+
+
+def read_metrics_csv(path: str | os.PathLike) -> np.ndarray:
+    """(M, 4) float64 from a metrics CSV written by :func:`write_metrics_csv`."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise DicerError(f"{path}: cannot read the metrics CSV ({exc.strerror})") from None
+    return parse_metrics_csv(data, str(path))
+
+
+def write_metrics_csv(mesh: Mesh, path: str | os.PathLike) -> np.ndarray:
+    """Write the per-element metrics of ``mesh`` to ``path`` atomically; returns them (M, 4).
+
+    The file is read back and every value compared with what was meant (within half a
+    unit of the 7th significant digit) before it is renamed into place.
+    """
+    values = element_metrics(mesh)
+    if not np.all(np.isfinite(values)):
+        bad = int(np.flatnonzero(~np.all(np.isfinite(values), axis=1))[0])
+        raise DicerError(f"{path}: element {bad + 1} has a zero-length edge (non-finite edge ratio); "
+                         "remesh from the labels with 'dicer mesh'")
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(HEADER)
+            for chunk in _lines(values):
+                f.write(chunk)
+        back = read_metrics_csv(tmp)
+        # a printed value is within half a unit of its 7th digit; the parse adds a rounding or two
+        tol = np.abs(values) * (0.5 * 10.0 ** (1 - _DIGITS) + 1e-15)
+        if back.shape != values.shape or np.any(np.abs(back - values) > tol):
+            raise DicerError(f"{path}: read-back check failed: the file does not hold the metrics written; "
+                             "check the disk and write again")
+    return values

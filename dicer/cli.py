@@ -120,6 +120,12 @@ def _check_paths(args) -> None:
         for item in value if isinstance(value, list) else [value]:
             if item:
                 inputs.append(Path(item))
+    if args.command == "surface":
+        outdir = Path(args.output)
+        if outdir.exists() and not outdir.is_dir():
+            raise DicerError(f"{outdir}: exists and is not a folder; dicer surface writes <material>.stl files "
+                             "into the folder given with -o")
+        return
     if args.command == "run":
         outdir = Path(args.output)
         for inp in inputs:
@@ -377,6 +383,18 @@ def do_export(mesh_path: str, out: Path, config: dict):
         log.info("export: wrote %s (%s)", out, json.dumps(info, sort_keys=True))
 
 
+def do_surface(mesh_path: str, outdir: Path, config: dict, only: list[str] | None = None) -> dict:
+    from dicer.export.stl import write_surfaces
+    from dicer.io.meshes import read_mesh
+
+    with _Stage("surface"):
+        mesh = read_mesh(mesh_path)
+        info = write_surfaces(mesh, outdir, [m["name"] for m in config["materials"]], only)
+        log.info("surface: wrote %s", ", ".join(f"{outdir / v['file']} ({v['triangles']} triangles, "
+                                                 f"{v['volume_mm3']:.6g} mm^3)" for v in info.values()))
+    return info
+
+
 def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None = None, html: str | None = None,
                pictures: list[str] = (), stage_reports: list[str] = (), csv: Path | None = None):
     from dicer.io.atomic import write_bytes_atomic
@@ -471,6 +489,10 @@ def cmd_quality(args):
     do_quality(args.mesh, _check_output(args.output, (".json",), "the quality report"), _config(args),
                labels_path=args.labels, html=args.html, pictures=args.picture or [],
                stage_reports=args.stage_report or [], csv=csv)
+
+
+def cmd_surface(args):
+    do_surface(args.mesh, Path(args.output), _config(args), args.material)
 
 
 def cmd_phantom(args):
@@ -722,6 +744,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("mesh", metavar="MESH", help="mesh (.vtu)")
     p.add_argument("-o", "--output", required=True, metavar="MODEL", help="model.inp (Abaqus/CalculiX) or model.vtu (ParaView)")
     p.add_argument("--order", type=int, choices=(1, 2), help="element order (overrides export.order)")
+    _add_materials_option(p)
+    _add_config_options(p)
+
+    p = command("surface", cmd_surface, "a closed STL surface per material (for CAD and viewing)")
+    p.add_argument("mesh", metavar="MESH", help="mesh (.vtu), e.g. smoothed.vtu or model.vtu")
+    p.add_argument("-o", "--output", required=True, metavar="FOLDER",
+                   help="folder to write <material>.stl into (binary STL, mm, scanner coordinates)")
+    p.add_argument("--material", action="append", metavar="NAME",
+                   help="only this material (repeatable; default: every material in the mesh)")
     _add_materials_option(p)
     _add_config_options(p)
 

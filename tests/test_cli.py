@@ -25,7 +25,7 @@ def head(tmp_path_factory):
 
 
 def test_help_for_every_command():
-    for command in ("run", "segment", "downsample", "fix", "mesh", "merge", "smooth", "export", "quality", "phantom"):
+    for command in ("run", "segment", "downsample", "fix", "mesh", "merge", "smooth", "export", "quality", "surface", "phantom"):
         proc = subprocess.run([sys.executable, "-m", "dicer", command, "--help"], capture_output=True, text=True)
         assert proc.returncode == 0 and "usage: dicer " + command in proc.stdout
 

@@ -191,6 +191,17 @@ def _check_labels(labels, path: str, config: dict) -> None:
                          f"list one material per label 1..{top} under materials: in the config")
 
 
+def _crop(volume, config: dict, source: str):
+    """``volume`` cut to ``image.crop`` (if set), logged; (volume, summary or None)."""
+    from dicer.crop import crop_volume
+
+    volume, info = crop_volume(volume, config["image"]["crop"], source)
+    if info:
+        log.info("crop: %s voxels -> %s (voxels %s to %s, max exclusive)", "x".join(map(str, info["shape_before"])),
+                 "x".join(map(str, info["shape"])), info["start"], info["stop"])
+    return volume, info
+
+
 def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = None, info_path: Path | None = None,
                plot: Path | None = None):
     from dicer.config import material_names
@@ -203,7 +214,10 @@ def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = 
     with _Stage("segment"):
         image = read_image(image_path, spacing=config["image"]["spacing"],
                            allow_irregular_slices=config["image"]["allow_irregular_slices"])
+        image, cropped = _crop(image, config, image_path)
         labels, info = segment(image, config, source=image_path)
+        if cropped:
+            info["crop"] = cropped
         # a NIfTI scan lends its header: the labels overlay it with exactly its affine
         write_mapped_labels(labels, image_path, out)
         names = list(material_names(config).values())
@@ -229,7 +243,7 @@ def do_labels(labels_path: str, out: Path, config: dict, materials_path: Path | 
     from dicer.labels import map_labels, write_mapped_labels
 
     with _Stage("labels"):
-        labels = read_labels(labels_path)
+        labels, _ = _crop(read_labels(labels_path), config, labels_path)
         mapped, materials, info = map_labels(labels, config, source=labels_path)
         write_mapped_labels(mapped, labels_path, out)
         if materials_path:
@@ -514,6 +528,21 @@ RUN_OUTPUTS = ("labels.nii.gz", "materials.json", "segmentation.png", "segmentat
                "smooth.json", "model.inp", "model.vtu", "quality.json", "report.html")
 
 
+def _cropped_voxels(voxels: int, spacing, crop: dict | None) -> int:
+    """The voxels image.crop keeps of a scan of ``voxels`` (an estimate for unit mm: the
+    box's extent over the voxel size, as for an axis-aligned scan)."""
+    import numpy as np
+
+    if crop is None:
+        return voxels
+    extent = np.abs(np.subtract(crop["max"], crop["min"]))
+    if crop["unit"] == "mm":
+        if spacing is None or len(spacing) != extent.size:
+            return voxels
+        extent = np.floor(extent / np.asarray(spacing, float)) + 1
+    return int(min(voxels, np.prod(extent)))
+
+
 def _check_memory(source: str, config: dict) -> None:
     """DicerError when the run's fitted peak memory (dicer/resources.py) exceeds what this
     machine or job may use, before any stage allocates: the kernel would otherwise kill the
@@ -529,7 +558,10 @@ def _check_memory(source: str, config: dict) -> None:
         return
     factor = (reduction_factor(spacing or (1.0, 1.0, 1.0), config, source=source)
               if downsample_applies(config) else 1)
+    whole, voxels = voxels, _cropped_voxels(voxels, spacing, config["image"]["crop"])
     need, have = run_peak_mb(voxels, factor), machine_memory_mb()
+    if voxels < whole:  # the whole scan is read (as float32) before it is cut
+        need += whole * 4 / 2**20
     if have is None or need <= have:
         return
     peaks = [(f, run_peak_mb(voxels, np.maximum(factor, f))) for f in range(2, 9)]

@@ -24,7 +24,7 @@ from dicer.errors import DicerError
 # through ``params:`` so that editing one section re-runs only the stages that read it.
 STAGE_SECTIONS = {
     "segment": ("image", "materials", "segment"),
-    "labels": ("labels", "materials"),
+    "labels": ("image", "labels", "materials"),  # image.crop
     "downsample": ("materials", "segment", "downsample"),
     "fix": ("materials", "fix"),
     "mesh": ("materials", "mesh"),  # the names go into the mesh file

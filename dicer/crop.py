@@ -1,0 +1,76 @@
+"""Crop an image or label volume to a region of interest before meshing (``image.crop``).
+
+The cropped volume keeps its place in the scanner: its first voxel is voxel ``start`` of
+the input, so the origin moves by ``D (spacing * start)`` (D the direction cosines) and
+spacing and direction stay; label files written from it overlay the input scan, and the
+model sits where the uncropped one would (docs/coordinates.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dicer.errors import DicerError
+from dicer.image import Volume
+
+
+def _direction(volume: Volume) -> np.ndarray:
+    n = volume.ndim
+    return np.eye(n) if volume.direction is None else np.asarray(volume.direction, float).reshape(n, n)
+
+
+def crop_box(volume: Volume, crop: dict, source: str) -> tuple[np.ndarray, np.ndarray]:
+    """(start, stop) voxel indices, (ndim,) int64 each, of ``crop`` on ``volume``: the voxels
+    ``start[i] <= index[i] < stop[i]``.
+
+    unit voxels: min and max are those indices (max exclusive, like a Python slice), and
+    must lie in the image. unit mm: min and max are opposite corners of a box in scanner
+    coordinates (LPS, mm, the exported model's frame); the region is the smallest index box
+    holding every voxel whose centre lies in the box (exactly those voxels unless the image
+    is oblique), clipped to the image.
+    """
+    shape = np.array(volume.array.shape, np.int64)
+    n = volume.ndim
+    lo, hi = np.asarray(crop["min"], float), np.asarray(crop["max"], float)
+    if lo.size != n or hi.size != n:
+        raise DicerError(f"{source}: image.crop gives {lo.size} and {hi.size} values for a {n}D image of "
+                         f"{'x'.join(map(str, shape))} voxels; give {n} values in min and in max")
+    if crop["unit"] == "voxels":
+        if np.any(lo != np.round(lo)) or np.any(hi != np.round(hi)):
+            raise DicerError(f"{source}: image.crop in voxels needs whole voxel indices, got min {lo.tolist()} "
+                             f"max {hi.tolist()}; round them or give unit: mm")
+        start, stop = lo.astype(np.int64), hi.astype(np.int64)
+        if np.any(start < 0) or np.any(stop > shape) or np.any(stop <= start):
+            raise DicerError(f"{source}: image.crop min {start.tolist()} max {stop.tolist()} (voxels, max "
+                             f"exclusive) is not a box inside the image's {'x'.join(map(str, shape))} voxels; "
+                             f"give 0 <= min < max <= {shape.tolist()}")
+        return start, stop
+    # mm: the box's corners in continuous voxel index (0 at the centre of voxel 0)
+    spacing = np.asarray(volume.spacing, float)
+    d = _direction(volume)
+    # Volume.origin is ITK's origin (centre of voxel 0) minus half a voxel along each index axis
+    centre0 = np.asarray(volume.origin, float) + spacing / 2
+    corners = np.array(np.meshgrid(*[[a, b] for a, b in zip(lo, hi)], indexing="ij")).reshape(n, -1)
+    index = np.linalg.solve(d, corners - centre0[:, None]) / spacing[:, None]
+    eps = 1e-9  # a box edge through a voxel centre keeps that voxel
+    start = np.maximum(np.ceil(index.min(axis=1) - eps), 0).astype(np.int64)
+    stop = np.minimum(np.floor(index.max(axis=1) + eps) + 1, shape).astype(np.int64)
+    if np.any(stop <= start):
+        raise DicerError(f"{source}: the image.crop box min {lo.tolist()} max {hi.tolist()} (mm, scanner "
+                         "coordinates) holds no voxel centre of the image; check the box against the "
+                         "scan's extent (or give unit: voxels)")
+    return start, stop
+
+
+def crop_volume(volume: Volume, crop: dict | None, source: str) -> tuple[Volume, dict | None]:
+    """``volume`` cut to ``crop`` (the ``image.crop`` setting; None: unchanged) and a summary
+    (start, stop, shape before and after), or None when nothing was cut."""
+    if crop is None:
+        return volume, None
+    start, stop = crop_box(volume, crop, source)
+    spacing = np.asarray(volume.spacing, float)
+    origin = np.asarray(volume.origin, float) + _direction(volume) @ (spacing * start)
+    array = np.ascontiguousarray(volume.array[tuple(slice(a, b) for a, b in zip(start.tolist(), stop.tolist()))])
+    info = {"start": start.tolist(), "stop": stop.tolist(), "shape_before": list(volume.array.shape),
+            "shape": list(array.shape)}
+    return Volume(array, volume.spacing, tuple(origin.tolist()), volume.direction), info

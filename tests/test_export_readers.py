@@ -307,3 +307,31 @@ def test_abaqus_reader_names_a_line_cut_short_or_run_on(tmp_path, mesh, order):
             (tmp_path / "bad.inp").write_bytes(b"".join(bad))
             with pytest.raises(DicerError, match=rf"bad\.inp: line {row + 1}, column 1[0-6]: .* belongs"):
                 read_abaqus(tmp_path / "bad.inp")
+
+
+def test_patran_names_the_materials_in_packet_21(tmp_path):
+    import numpy as np
+
+    from dicer.config import load_config
+    from dicer.export import export_mesh
+    from dicer.export.readers import read_patran
+    from dicer.mesh.voxel import voxel_mesh
+
+    labels = np.zeros((4, 3, 3), np.uint8)
+    labels[:2] = 1
+    labels[2:, :2] = 2
+    labels[3, 2, 2] = 3
+    mesh = voxel_mesh(labels)
+    config = load_config(settings={"materials": [{"name": "white_matter_left"}, {"name": "white_matter_right"},
+                                                 {"name": "csf"}]})
+    for order in (1, 2):
+        config["export"]["order"] = order
+        path = tmp_path / f"m{order}.out"
+        export_mesh(mesh, path, config)  # read back and checked, components included
+        got = read_patran(path)["components"]
+        # names cut to the card's 12 columns, made distinct by their label where the cut makes them equal
+        assert {k: v[0] for k, v in got.items()} == {1: "white_matt_1", 2: "white_matt_2", 3: "csf"}
+        for label, (_, pairs) in got.items():
+            assert np.array_equal(pairs[:, 1], np.flatnonzero(mesh.material == label) + 1)
+            assert set(pairs[:, 0].tolist()) == {12 if order == 1 else 112}
+        assert sum(len(v[1]) for v in got.values()) == mesh.n_cells == 31

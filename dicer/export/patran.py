@@ -14,6 +14,11 @@ followed by KC data cards:
   20-node hexahedra list their mid-edge nodes as PATRAN does: the bottom edges,
   the vertical edges, then the top edges (VTK and Abaqus put the top edges
   before the vertical ones).
+* 21 named component, one per material present (ID = material label): IV = twice the
+  material's element count, KC = 1 + IV/10 rounded up; card 1 the material's name
+  ``(A12)``, then (type, element number) pairs ``(10I8)``, the last card holding what is
+  left. Type 12 is an 8-node hexahedron, 112 a 20-node one, 8 and 108 quads. PATRAN
+  lists these groups by name; the property id of packet 02 is the label as before.
 * 99 end of file.
 
 Each kind of packet is a fixed number of fixed-width lines, so whole blocks of
@@ -26,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dicer.export.textfmt import Float, Int, Sci, write_rows
+from dicer.export.textfmt import Float, Int, Sci, int_lines, write_rows
 
 E16 = Sci(9, b"E", fortran=True, width=16)
 PATRAN_HEX20 = np.r_[0:8, 8:12, 16:20, 12:16]
@@ -39,6 +44,32 @@ def header(it: int, ident: int, iv: int, kc: int, *n: int) -> bytes:
     """One ``(I2,8I8)`` header card."""
     n = tuple(n) + (0,) * (5 - len(n))
     return (f"{it:2d}{ident:8d}{iv:8d}{kc:8d}" + "".join(f"{v:8d}" for v in n) + "\n").encode()
+
+
+COMPONENT_TYPES = {(3, 1): 12, (3, 2): 112, (2, 1): 8, (2, 2): 108}
+"""Named-component entity type of the model's elements, by (dimension, order)."""
+
+
+def component_names(model) -> dict[int, str]:
+    """Label -> packet 21 name of each material present: its name cut to the 12 columns of the
+    card, ended by ``_<label>`` where two cut names would be the same."""
+    cut = {k: model.names[k][:12] for k in model.labels()}
+    seen = [v for v in cut.values()]
+    return {k: v if seen.count(v) == 1 else f"{model.names[k][:11 - len(str(k))]}_{k}" for k, v in cut.items()}
+
+
+def _components(f, model) -> None:
+    """Packet 21 per material present: its name and (type, element number) pairs."""
+    kind = COMPONENT_TYPES[(model.dim, model.order)]
+    names = component_names(model)
+    for label, elements in model.blocks():
+        pairs = np.empty((elements.size, 2), np.int64)
+        pairs[:, 0] = kind
+        pairs[:, 1] = elements + 1
+        iv = 2 * elements.size
+        f.write(header(21, label, iv, 1 + -(-iv // 10)))
+        f.write(names[label].encode() + b"\n")
+        f.write(int_lines(pairs.ravel(), 10, 8, sep=b""))
 
 
 def patran_order(model) -> np.ndarray:
@@ -82,4 +113,5 @@ def write_patran(model, path: str | Path) -> None:
                 fields.append(Int(c[:, j], 8))
             fields.append(b"\n")
             write_rows(f, fields, c.shape[0])
+        _components(f, model)
         f.write(header(99, 0, 0, 1))

@@ -263,6 +263,26 @@ def _named(reader, path: str | Path) -> dict:
                          "export the mesh again") from None
 
 
+def _patran_component(lines: _Lines, row: int) -> tuple[int, int, str, np.ndarray]:
+    """The packet 21 at line ``row``: (line after it, ID, name, (n, 2) type and element pairs)."""
+    h = _patran_headers(lines, np.array([row]), 21, "named component header")[0]
+    iv, kc = int(h[2]), int(h[3])
+    if iv % 2 or kc != 1 + -(-iv // 10):
+        raise DicerError(f"line {row + 1}: named component with {iv} values in {kc} cards")
+    name = lines.text(row + 1)
+    if not 0 < len(name) <= 12:
+        raise DicerError(f"line {row + 2}: a component name of 1 to 12 characters is expected")
+    full, rest = divmod(iv, 10)
+    rows = row + 2 + np.arange(full)
+    lines.lengths_are(rows, 80, "named component")
+    values = [np.column_stack([lines.ints(rows, 8 * j, 8, "named component") for j in range(10)]).ravel()]
+    if rest:
+        last = np.array([row + 2 + full])
+        lines.lengths_are(last, 8 * rest, "named component")
+        values.append(np.array([lines.ints(last, 8 * j, 8, "named component")[0] for j in range(rest)]))
+    return row + 1 + kc, int(h[1]), name, np.concatenate(values).reshape(-1, 2)
+
+
 def _read_patran(path: str | Path) -> dict:
     """:func:`read_patran` with messages that start at the line."""
     from dicer.export.patran import PATRAN_HEX20
@@ -304,6 +324,10 @@ def _read_patran(path: str | Path) -> dict:
     for j in range(nn):
         cells[:, j] = lines.ints(rows + 2 + j // 10, 8 * (j % 10), 8, "element node")
     end = e0 + (1 + kc) * n_elems
+    components = {}
+    while end < len(lines) and lines.ints(np.array([end]), 0, 2, "packet type")[0] == 21:
+        end, label, name, pairs = _patran_component(lines, end)
+        components[label] = (name, pairs)
     _patran_headers(lines, np.array([end]), 99, "end of file")
     if len(lines) != end + 1:
         raise DicerError("data after the end-of-file packet 99")
@@ -314,7 +338,8 @@ def _read_patran(path: str | Path) -> dict:
         cells = back
     if cells.min() < 1 or cells.max() > n_nodes:
         raise DicerError("elements refer to nodes that do not exist")
-    return {"points": points, "cells": cells - 1, "material": material, "title": title, "dim": dim, "order": order}
+    return {"points": points, "cells": cells - 1, "material": material, "title": title, "dim": dim, "order": order,
+            "components": components}
 
 
 def read_lsdyna(path: str | Path) -> dict:
@@ -412,6 +437,16 @@ def check_patran(path: str | Path, model) -> None:
     if (got["dim"], got["order"]) != (model.dim, model.order):
         raise DicerError("element shape or order differs")
     compare(model, got["points"], got["cells"], got["material"], "the neutral file", digits=9)
+    from dicer.export.patran import COMPONENT_TYPES, component_names
+
+    names = component_names(model)
+    if sorted(got["components"]) != sorted(names):
+        raise DicerError(f"named components {sorted(got['components'])} read back, materials {sorted(names)} written")
+    for label, elements in model.blocks():
+        name, pairs = got["components"][label]
+        if (name != names[label] or not np.all(pairs[:, 0] == COMPONENT_TYPES[(model.dim, model.order)])
+                or not np.array_equal(pairs[:, 1], elements + 1)):
+            raise DicerError(f"named component {label} ({names[label]}) differs")
 
 
 def check_lsdyna(path: str | Path, model) -> None:

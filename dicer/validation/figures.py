@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dicer.validation.study import COEFFICIENTS
+from dicer.validation.study import COEFFICIENTS, kirsch_settings
 
 KIRSCH_EXACT = 3.0
 _PNG = {"dpi": 110, "metadata": {"Software": None}}  # no version string: same bytes on a rerun
@@ -84,7 +84,7 @@ def lame_figure(results: dict, path: str | os.PathLike) -> None:
     nodes, bars from the lowest to the highest node."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
-    rows = {k: v for k, v in results["lame"].items() if "+" not in k}
+    rows = dict(sorted(((k, v) for k, v in results["lame"].items() if "+" not in k), key=lambda kv: float(kv[0][2:])))
     a = np.array([float(k[2:]) for k in rows])
     ax.axhspan(0.97, 1.03, color="0.9", label="± 3 %")
     for etype, shift, color in (("C3D8", 0.97, "C0"), ("C3D20", 1.03, "C3")):
@@ -93,7 +93,10 @@ def lame_figure(results: dict, path: str | os.PathLike) -> None:
         lo = mean - np.array([r[etype]["min"] for r in rows.values()]) / exact
         hi = np.array([r[etype]["max"] for r in rows.values()]) / exact - mean
         ax.errorbar(a * shift, mean, yerr=[lo, hi], fmt="o-", color=color, capsize=3, label=f"{etype}: mean, node range")
+        fit = np.array([r[etype]["wall_fit"] for r in rows.values()]) / exact
+        ax.plot(a * shift, fit, "D", mfc="none", color=color, label=f"{etype}: wall fit at r = a")
     ax.set_xscale("log")
+    ax.minorticks_off()
     ax.set_xticks(a, [f"{v:g}" for v in a])
     ax.set_xlabel("inner radius a (voxels); outer radius 2a")
     ax.set_ylabel("bore hoop stress / exact")
@@ -111,7 +114,9 @@ def kirsch_table(results: dict, part: str) -> str:
     head = ("| setting | min SJ | inverted | CPS4 σx(90°) | error % | CPS4 largest (angle) | "
             "CPS8 σx(90°) | error % | CPS8 largest (angle) |\n|---|---|---|---|---|---|---|---|---|\n")
     lines = []
-    for name, r in results["kirsch"][part].items():
+    rows = results["kirsch"][part]
+    for name in [n for n in kirsch_settings() if n in rows]:  # the study's order, whatever the dict's
+        r = rows[name]
         cells = [name, f"{r['min_sj']:.3f}", str(r["inverted"])]
         for etype in ("CPS4", "CPS8"):
             e = r[etype]
@@ -131,7 +136,7 @@ def lame_table(results: dict) -> str:
             "wall fit % | C3D20 mean | error % | node range % | wall fit % |\n"
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
     lines = []
-    for name, r in results["lame"].items():
+    for name, r in sorted(results["lame"].items(), key=lambda kv: ("+" in kv[0], float(kv[0][2:].split("+")[0]))):
         cells = [name, str(r["C3D8"]["elements"]), f"{r['min_sj']:.3f}", str(r["inverted"]),
                  f"{r['C3D8']['exact']:.4f}"]
         for etype in ("C3D8", "C3D20"):

@@ -1,0 +1,156 @@
+"""The validation cases end to end: label image -> dicer's stages -> CalculiX -> stresses.
+
+Kirsch: a plate with a round hole (radius ``a`` voxels, 1 mm voxels) under a uniform
+tension sigma_0 = 1 MPa along x, plane stress (CPS4 / CPS8). The quarter plate lies on
+rollers on its symmetry lines (X0: u_x = 0, Y0: u_y = 0) and is pulled on X1; the full
+plate is pulled on X0 and X1 and held at two nodes only (the mid-points of X0 and X1),
+which take no load. Read on the hole's rim: the hoop stress at every rim node.
+
+Lamé: a tube (radii a < b voxels) under internal pressure p = 1 MPa, a slice of a long
+cylinder in plane strain (u_z = 0 on Z0 and Z1; the quarter on rollers on X0, Y0).
+Read at the bore: the hoop stress at every bore node.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from dicer.validation import analytic, geometry
+from dicer.validation.calculix import read_frd_stress, run_ccx
+from dicer.validation.models import Deck, build, dload
+
+
+def hoop(points: np.ndarray, stress: np.ndarray, centre) -> tuple[np.ndarray, np.ndarray]:
+    """(theta (N,) radians in (-pi, pi], hoop stress (N,)) at nodes ``points`` (N, >=2) about
+    the axis through ``centre`` (x, y) along z, from stresses (N, 6) xx yy zz xy yz zx."""
+    theta = np.arctan2(points[:, 1] - centre[1], points[:, 0] - centre[0])
+    s, c = np.sin(theta), np.cos(theta)
+    return theta, stress[:, 0] * s * s + stress[:, 1] * c * c - 2.0 * stress[:, 3] * s * c
+
+
+def _nodal_stress(frd: Path, n_points: int) -> np.ndarray:
+    ids, stress = read_frd_stress(frd)
+    out = np.full((n_points, 6), np.nan)
+    out[ids - 1] = stress
+    return out
+
+
+def _solve_kirsch(deck_path: Path, part: str, centre, radius: float) -> dict:
+    deck = Deck.read(deck_path)
+    x = deck.points[:, 0]
+    x1 = deck.plane_faces(0, 1)
+    if part == "quarter":
+        step = "*BOUNDARY\nX0, 1, 1, 0\nY0, 2, 2, 0\n"
+        loaded = x1
+    else:  # two nodes on the x mid-line, on X0 and X1: a statically determinate hold
+        mid = deck.points[:, 1] - centre[1]
+        low = np.flatnonzero(x == x.min())
+        high = np.flatnonzero(x == x.max())
+        a, b = low[np.argmin(np.abs(mid[low]))], high[np.argmin(np.abs(mid[high]))]
+        step = f"*NSET, NSET=HOLD_A\n{a + 1}\n*NSET, NSET=HOLD_B\n{b + 1}\n*BOUNDARY\nHOLD_A, 1, 2, 0\nHOLD_B, 2, 2, 0\n"
+        loaded = x1 | deck.plane_faces(0, 0)
+    step += ("*STEP\n*STATIC\n" + dload(deck.face_elements[loaded], deck.face_numbers[loaded], -1.0)
+             + "*EL FILE\nS\n*END STEP\n")
+    frd = run_ccx(deck_path.parent, f"*INCLUDE, INPUT={deck_path.name}\n{step}", job=f"kirsch_{deck_path.stem}")
+    stress = _nodal_stress(frd, len(deck.points))
+    free = deck.free_faces()
+    rim = np.unique(deck.face_nodes()[free])
+    rim = rim[np.hypot(*(deck.points[rim, :2] - centre).T) < 2 * radius]
+    theta, s_hoop = hoop(deck.points[rim], stress[rim], centre)
+    order = np.argsort(theta, kind="stable")
+    theta, s_hoop, s_xx = theta[order], s_hoop[order], stress[rim[order], 0]
+    at_90 = [float(np.interp(t, theta, s_xx)) for t in (np.pi / 2, -np.pi / 2) if theta[0] <= t <= theta[-1]]
+    top = int(np.argmax(s_hoop))
+    return {
+        "elements": int(deck.cells.shape[0]),
+        "nodes": int(deck.points.shape[0]),
+        "sigma_x_90": float(np.mean(at_90)),
+        "sigma_x_90_each": at_90,
+        "peak": float(s_hoop[top]),
+        "peak_angle_deg": float(np.degrees(np.arccos(abs(np.cos(theta[top]))))),  # folded into [0, 90]
+        "rim_radius_90": float(np.interp(np.pi / 2, theta, np.hypot(*(deck.points[rim[order], :2] - centre).T))),
+        "rim_theta_deg": np.degrees(theta).tolist(),
+        "rim_hoop": s_hoop.tolist(),
+    }
+
+
+def kirsch(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (), radius: float = 7.0,
+           width: int = 140, orders=(1, 2), offset=(0.0, 0.0)) -> dict:
+    """The Kirsch plate (``geometry.kirsch_plate``) meshed with ``--set`` overrides ``sets`` and
+    solved at each element order. Returns {"min_sj", "inverted", "backed_off", order: {...}}
+    where each order gives sigma_x / sigma_0 at theta = 90 degrees (the mean over the
+    points at +-90 degrees the part holds), the largest rim hoop stress and its angle from
+    the load axis (degrees, folded into [0, 90]), the rim node radius at 90 degrees and
+    the rim's hoop stresses by angle. ``offset``: the full plate's hole centre off the image
+    centre (voxels)."""
+    labels = geometry.kirsch_plate(radius, width, part, offset)
+    centre = np.zeros(2) if part == "quarter" else np.full(2, width / 2) + offset
+    built = build(labels, folder, sets, orders)
+    out = {"min_sj": built["quality"]["scaled_jacobian"]["min"], "inverted": built["quality"]["inverted_elements"],
+           "backed_off": built["smooth"]["backed_off_nodes"]}
+    for order, path in built["decks"].items():
+        out[order] = _solve_kirsch(path, part, centre, radius)
+    return out
+
+
+def _solve_lame(deck_path: Path, part: str, centre, inner: float, outer: float) -> dict:
+    deck = Deck.read(deck_path)
+    free = deck.free_faces()
+    nodes = deck.face_nodes()
+    r = np.hypot(*(deck.points[:, :2] - centre).T)
+    bore_faces = free & np.all(r[nodes] < 0.5 * (inner + outer), axis=1)
+    step = "*BOUNDARY\nZ0, 3, 3, 0\nZ1, 3, 3, 0\n"
+    if part == "quarter":
+        step += "X0, 1, 1, 0\nY0, 2, 2, 0\n"
+    else:  # rigid motions in the plane: two nodes on the bore's x axis, on either side
+        on_x = np.flatnonzero((np.abs(deck.points[:, 1] - centre[1]) < 1e-9) & (deck.points[:, 2] == 0))
+        a, b = on_x[np.argmin(deck.points[on_x, 0])], on_x[np.argmax(deck.points[on_x, 0])]
+        step += f"*NSET, NSET=HOLD_A\n{a + 1}\n*NSET, NSET=HOLD_B\n{b + 1}\n*BOUNDARY\nHOLD_A, 1, 2, 0\nHOLD_B, 2, 2, 0\n"
+    step += ("*STEP\n*STATIC\n" + dload(deck.face_elements[bore_faces], deck.face_numbers[bore_faces], 1.0)
+             + "*EL FILE\nS\n*END STEP\n")
+    frd = run_ccx(deck_path.parent, f"*INCLUDE, INPUT={deck_path.name}\n{step}", job=f"lame_{deck_path.stem}")
+    stress = _nodal_stress(frd, len(deck.points))
+    bore = np.unique(nodes[bore_faces])
+    _, s_hoop = hoop(deck.points[bore], stress[bore], centre)
+    exact = float(analytic.lame_hoop(inner, inner, outer))
+    # the field inside the wall: least squares of A + B / r^2 (Lamé's form) through the nodes
+    # more than 1.5 voxels from either surface, evaluated at the bore
+    wall = np.flatnonzero((r >= inner + 1.5) & (r <= outer - 1.5) & np.isfinite(stress[:, 0]))
+    _, s_wall = hoop(deck.points[wall], stress[wall], centre)
+    coef, *_ = np.linalg.lstsq(np.column_stack([np.ones(wall.size), r[wall] ** -2.0]), s_wall, rcond=None)
+    fit = float(coef[0] + coef[1] / inner**2)
+    return {
+        "elements": int(deck.cells.shape[0]),
+        "nodes": int(deck.points.shape[0]),
+        "bore_nodes": int(bore.size),
+        "exact": exact,
+        "mean": float(s_hoop.mean()),
+        "min": float(s_hoop.min()),
+        "max": float(s_hoop.max()),
+        "error_mean": float(s_hoop.mean() / exact - 1.0),
+        "error_worst": float(s_hoop[np.argmax(np.abs(s_hoop - exact))] / exact - 1.0),
+        "bore_radius_mean": float(r[bore].mean()),
+        "wall_fit": fit,
+        "error_wall_fit": fit / exact - 1.0,
+    }
+
+
+def lame(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (), inner: float = 7.0,
+         outer: float = 14.0, length: int = 2, orders=(1, 2)) -> dict:
+    """The Lamé cylinder (``geometry.lame_cylinder``) meshed with ``--set`` overrides ``sets``
+    and solved at each element order. Returns {"min_sj", "inverted", order: {...}} where each
+    order gives the bore hoop stress / p (mean, min, max over the bore nodes), the exact
+    value, the relative errors of the mean and of the worst node, and the wall fit: Lamé's
+    form A + B / r^2 fitted to the hoop stress at the nodes inside the wall, at r = a."""
+    labels = geometry.lame_cylinder(inner, outer, length, part)
+    half = labels.shape[0] / 2
+    centre = np.zeros(2) if part == "quarter" else np.full(2, half)
+    built = build(labels, folder, sets, orders)
+    out = {"min_sj": built["quality"]["scaled_jacobian"]["min"], "inverted": built["quality"]["inverted_elements"],
+           "backed_off": built["smooth"]["backed_off_nodes"]}
+    for order, path in built["decks"].items():
+        out[order] = _solve_lame(path, part, centre, inner, outer)
+    return out

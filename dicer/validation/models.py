@@ -1,0 +1,121 @@
+"""Models of the validation cases made by dicer's own command, and the parts of their decks
+the load steps need.
+
+``build`` runs ``dicer run --labels`` on a label image (fix, mesh, merge, smooth, export
+to ``model.inp``, quality) with ``--set`` overrides, then ``dicer export --order 2`` on the
+smoothed mesh, exactly as a user would. ``Deck`` reads a written deck back (dicer's strict
+reader) and finds element faces: on a bounding plane of the model, or free (the exterior
+less the bounding planes: a hole's rim, a bore).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dicer.errors import DicerError
+
+E_MODULUS, POISSON = 1000.0, 0.3  # MPa, -; stress ratios do not depend on them
+
+CONFIG = f"""\
+labels:
+  map: {{1: solid}}
+materials:
+  - {{name: solid, youngs_modulus: {E_MODULUS}, poissons_ratio: {POISSON}}}
+export:
+  thickness: 1.0
+"""
+
+
+def build(labels: np.ndarray, folder: str | os.PathLike, sets: list[str] = (), orders=(1, 2)) -> dict:
+    """Make the models of ``labels`` (uint8 [x, y(, z)], 1 mm voxels) in ``folder``.
+
+    sets : ``--set KEY=VALUE`` overrides (e.g. ``smooth.coefficient=0.8``).
+    Returns {"decks": {order: path of the deck}, "quality": quality.json, "smooth": the smooth
+    stage's report}. DicerError when a stage fails.
+    """
+    from dicer.cli import main
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    np.save(folder / "labels.npy", labels)
+    (folder / "config.yaml").write_text(CONFIG)
+    out = folder / "run"
+    common = ["--config", str(folder / "config.yaml")] + [a for s in sets for a in ("--set", s)] + ["-q"]
+    if main(["run", "--labels", str(folder / "labels.npy"), "-o", str(out), *common]) != 0:
+        raise DicerError(f"{folder}: dicer run failed")
+    decks = {}
+    for order in orders:
+        deck = out / ("model.inp" if order == 1 else f"model_order{order}.inp")
+        if order != 1 and main(["export", str(out / "smoothed.vtu"), "-o", str(deck), "--order", str(order),
+                                *common]) != 0:
+            raise DicerError(f"{folder}: dicer export --order {order} failed")
+        decks[order] = deck
+    return {"decks": decks, "quality": json.loads((out / "quality.json").read_text()),
+            "smooth": json.loads((out / "smooth.json").read_text())}
+
+
+@dataclass
+class Deck:
+    """A deck dicer wrote: points (N, 3) mm, cells (M, k) 0-based, dim, order, and its
+    exterior faces as (F,) element indices and (F,) face numbers 1.. (Abaqus S1..S6 / S1..S4)."""
+
+    points: np.ndarray
+    cells: np.ndarray
+    dim: int
+    order: int
+    face_elements: np.ndarray
+    face_numbers: np.ndarray
+
+    @classmethod
+    def read(cls, path: str | os.PathLike) -> "Deck":
+        from dicer.export import ELEMENT_TYPES
+        from dicer.export.readers import read_abaqus
+
+        d = read_abaqus(path)
+        dim, order = ELEMENT_TYPES[d["element_type"]]
+        sets = d["element_sets"]
+        names = [f"EXTERIOR_S{k}" for k in range(1, 7) if f"EXTERIOR_S{k}" in sets]
+        elements = np.concatenate([sets[n] for n in names]).astype(np.int64)
+        numbers = np.concatenate([np.full(sets[n].size, int(n[-1])) for n in names])
+        return cls(d["points"], np.asarray(d["cells"], np.int64), dim, order, elements, numbers)
+
+    def face_nodes(self, corners_only: bool = False) -> np.ndarray:
+        """(F, k) node indices of the exterior faces (corners first, then mid-edge nodes)."""
+        from dicer.export import HEX20_FACES, HEX_FACES, QUAD8_EDGES, QUAD_EDGES
+
+        if self.dim == 3:
+            table = HEX20_FACES if self.order == 2 and not corners_only else HEX_FACES
+        else:
+            table = QUAD8_EDGES if self.order == 2 and not corners_only else QUAD_EDGES
+        return self.cells[self.face_elements[:, None], table[self.face_numbers - 1]]
+
+    def _in_plane(self, axis: int, value: float) -> np.ndarray:
+        extent = float(np.ptp(self.points[:, : self.dim], axis=0).max())
+        coord = self.points[self.face_nodes(corners_only=True), axis]
+        return np.all(np.abs(coord - value) <= 1e-9 * extent, axis=1)
+
+    def plane_faces(self, axis: int, side: int) -> np.ndarray:
+        """Boolean (F,): exterior faces lying in the model's low (side 0) or high (1) bounding
+        plane normal to ``axis``."""
+        col = self.points[:, axis]
+        return self._in_plane(axis, float(col.max() if side else col.min()))
+
+    def free_faces(self) -> np.ndarray:
+        """Boolean (F,): exterior faces in none of the bounding planes."""
+        on = np.zeros(self.face_elements.size, bool)
+        for axis in range(self.dim):
+            for side in (0, 1):
+                on |= self.plane_faces(axis, side)
+        return ~on
+
+
+def dload(elements: np.ndarray, numbers: np.ndarray, pressure: float) -> str:
+    """``*DLOAD`` lines: a uniform pressure (MPa; negative pulls) on element faces (0-based
+    element indices, face numbers 1..)."""
+    rows = np.char.add(np.char.add((elements + 1).astype(str), ", P"), numbers.astype(str))
+    return "*DLOAD\n" + "\n".join(np.char.add(rows, f", {float(pressure)!r}").tolist()) + "\n"

@@ -124,7 +124,10 @@ class ImageSurface:
         m_hi = m_lo + np.asarray(mesh.grid_shape, float)[:dim] * np.asarray(mesh.spacing, float)[:dim]
         i_lo, i_hi = origin, origin + np.asarray(arr.shape, float) * spacing
         tol = 1e-3 * spacing
-        if np.any(m_lo < i_lo - tol) or np.any(m_hi > i_hi + tol):
+        # downsampling pads the grid up to a whole number of coarse voxels (less than one
+        # on either side); beyond the image the nearest value is sampled
+        pad = np.asarray(mesh.spacing, float)[:dim]
+        if np.any(m_lo < i_lo - pad - tol) or np.any(m_hi > i_hi + pad + tol):
             fmt = lambda v: "(" + ", ".join(f"{c:g}" for c in v) + ")"  # noqa: E731
             raise DicerError(f"{source}: the image spans {fmt(i_lo)}..{fmt(i_hi)} mm, the mesh's grid "
                              f"{fmt(m_lo)}..{fmt(m_hi)} mm; give the scan the mesh was segmented from")

@@ -87,7 +87,7 @@ def _check_output(path: str, suffixes: tuple[str, ...], what: str) -> Path:
 OUTPUT_OPTIONS = {"output": "-o", "overlay": "--overlay", "plot": "--plot", "info": "--info", "report": "--report",
                   "html": "--html", "materials_out": "--materials", "csv": "--csv"}
 #: argparse destinations holding input files or folders
-INPUT_OPTIONS = ("image", "labels", "mesh", "config", "picture", "stage_report", "materials")
+INPUT_OPTIONS = ("image", "labels", "mesh", "config", "picture", "stage_report", "materials", "thresholds")
 
 
 def _same(a: Path, b: Path) -> bool:
@@ -331,6 +331,10 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
     return report
 
 
+class _InputError(DicerError):
+    """A stage's error about another input than the mesh (it names that file)."""
+
+
 def _mesh_to_mesh(stage: str, func, mesh_path: str, out: Path, report_path: Path | None):
     """Read a mesh, apply ``func(mesh) -> (mesh, report)``, write the mesh (checked) and report."""
     from dicer.io.meshes import read_mesh, write_mesh
@@ -339,6 +343,8 @@ def _mesh_to_mesh(stage: str, func, mesh_path: str, out: Path, report_path: Path
         mesh = read_mesh(mesh_path)
         try:
             result, report = func(mesh)
+        except _InputError as exc:  # names its own file
+            raise DicerError(str(exc)) from None
         except DicerError as exc:
             raise DicerError(f"{mesh_path}: {exc}") from None
         result.names = list(mesh.names)  # the stages move nodes and elements, not materials
@@ -358,11 +364,50 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
     return merged
 
 
-def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None = None):
+def _read_thresholds(path: str | None, config: dict, image_path: str) -> list:
+    """The thresholds segmentation chose: from its info file (dicer segment --info), or
+    the config's manual segment.thresholds."""
+    if path is None:
+        if config["segment"].get("method") == "manual" and config["segment"].get("thresholds"):
+            return config["segment"]["thresholds"]
+        raise DicerError(f"{image_path}: --image needs the thresholds segmentation chose; give --thresholds "
+                         "segmentation.json (written by dicer segment --info)")
+    try:
+        data = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise DicerError(f"{path}: thresholds file not found; write it with dicer segment --info") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DicerError(f"{path}: cannot read the thresholds ({exc}); write it again with dicer segment --info") \
+            from None
+    thresholds = data.get("thresholds") if isinstance(data, dict) else None
+    if not isinstance(thresholds, list):
+        raise DicerError(f"{path}: no thresholds list in the file; give the segmentation.json of dicer segment --info")
+    return thresholds
+
+
+def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None = None,
+              image_path: str | None = None, thresholds_path: str | None = None):
     from dicer.mesh.smooth import smooth_mesh
 
-    smoothed, report = _mesh_to_mesh("smooth", lambda m: smooth_mesh(m, config["smooth"]), mesh_path, out,
-                                     report_path)
+    image = thresholds = None
+    if image_path is not None and config["smooth"].get("surface_from_image", True):
+        from dicer.io.images import read_image
+
+        thresholds = _read_thresholds(thresholds_path, config, image_path)
+        image = read_image(image_path, spacing=config["image"]["spacing"],
+                           allow_irregular_slices=config["image"]["allow_irregular_slices"])
+
+    def run(m):
+        try:
+            return smooth_mesh(m, config["smooth"], image=image, thresholds=thresholds,
+                               image_source=image_path or "image")
+        except DicerError as exc:
+            text = str(exc)
+            if image_path and (text.startswith(image_path) or (thresholds_path and text.startswith(thresholds_path))):
+                raise _InputError(text) from None
+            raise
+
+    smoothed, report = _mesh_to_mesh("smooth", run, mesh_path, out, report_path)
     log.info("smooth: wrote %s (%s)", out, json.dumps(_stable(report), sort_keys=True)[:600])
     return smoothed
 
@@ -479,7 +524,8 @@ def cmd_merge(args):
 
 def cmd_smooth(args):
     report = _check_output(args.report, (".json",), "the smoothing report") if args.report else None
-    do_smooth(args.mesh, _check_output(args.output, (".vtu",), "the mesh"), _config(args), report)
+    do_smooth(args.mesh, _check_output(args.output, (".vtu",), "the mesh"), _config(args), report,
+              image_path=args.image, thresholds_path=args.thresholds)
 
 
 def cmd_mesh(args):
@@ -634,7 +680,10 @@ def cmd_run(args):
         step("merge")
         do_merge(str(path("mesh.vtu")), path("merged.vtu"), config, path("merge.json"))
         step("smooth")
-        do_smooth(str(path("merged.vtu")), path("smoothed.vtu"), config, path("smooth.json"))
+        # a segmented scan lends its grey values: the surface goes onto its iso-surfaces
+        scan = (args.image, str(path("segmentation.json"))) if args.labels is None else (None, None)
+        do_smooth(str(path("merged.vtu")), path("smoothed.vtu"), config, path("smooth.json"),
+                  image_path=scan[0], thresholds_path=scan[1])
         step("export")
         for name in ("model.inp", "model.vtu"):
             do_export(str(path("smoothed.vtu")), path(name), config)
@@ -770,6 +819,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("mesh", metavar="MESH", help="mesh (.vtu) from 'dicer mesh' or 'dicer merge'")
     p.add_argument("-o", "--output", required=True, metavar="MESH", help="smoothed mesh (.vtu)")
     p.add_argument("--report", metavar="JSON", help="also write node class counts, back-offs and quality")
+    p.add_argument("--image", metavar="IMAGE",
+                   help="the scan the labels were segmented from: boundary nodes move onto its threshold "
+                        "iso-surfaces (smooth.surface_from_image)")
+    p.add_argument("--thresholds", metavar="JSON",
+                   help="with --image: segmentation.json of 'dicer segment --info' (its thresholds); "
+                        "default: the config's manual segment.thresholds")
     _add_config_options(p)
 
     p = command("export", cmd_export, "write the mesh for a solver or viewer (format from the file extension)")

@@ -82,6 +82,11 @@ COEFFICIENTS = {
     "export_vtu": (62, 516.1, 0.6, 22.5),
     "quality": (156, 853.9, 0.7, 16.7),
 }
+#: smooth with the scan (smooth.surface_from_image): the image reader's libraries at import
+#: and the scan (float32, its smoothed crop) on top of the mesh, per million scan voxels;
+#: added to the smooth request of a patient with a scan (``estimate(..., scan=True)``;
+#: taken from the segment stage's fit, which reads the same scan)
+SMOOTH_SCAN = (119, 21.3, 0.8, 5.8)
 #: elements per coarse voxel assumed before the mesh exists (a patient's group job is sized
 #: before any of its stages ran): measured 0.30 (head phantoms, head CT) to 0.52 (long
 #: bone); a fuller scan runs out of memory on the first attempt and gets twice on the retry
@@ -109,8 +114,10 @@ def _stage_key(stage: str) -> str:
 
 
 def estimate(stage: str, voxels: int, voxels_ds: int | None = None, elements: int | None = None,
-             attempt: int = 1) -> tuple[int, int]:
+             attempt: int = 1, scan: bool = False) -> tuple[int, int]:
     """(mem_mb, runtime in minutes) to request for one stage, ``attempt`` times the first.
+
+    ``scan``: the smooth stage reads the scan too (a segmented patient: SMOOTH_SCAN added).
 
     mem_mb = ceil(MEMORY_MARGIN * (BASELINE_FACTOR * base_mb + mb_per_million * size / 1e6)) * attempt
     runtime = ceil(START_UP_MINUTES + TIME_MARGIN * (base_s + s_per_million * size / 1e6) / 60) * attempt
@@ -125,8 +132,14 @@ def estimate(stage: str, voxels: int, voxels_ds: int | None = None, elements: in
     size = {"voxels": voxels, "voxels_ds": voxels_ds, "elements": elements}[SIZE_OF[key]] / 1e6
     base_mb, mb_per_m, base_s, s_per_m = COEFFICIENTS[key]
     attempt = max(1, int(attempt))
-    mem = math.ceil(MEMORY_MARGIN * (BASELINE_FACTOR * base_mb + mb_per_m * size)) * attempt
-    minutes = math.ceil(START_UP_MINUTES + TIME_MARGIN * (base_s + s_per_m * size) / 60) * attempt
+    if key == "smooth" and scan:
+        scan_mb, scan_mb_per_m, scan_s, scan_s_per_m = SMOOTH_SCAN
+        base_mb, base_s = base_mb + scan_mb, base_s + scan_s
+        extra_mb, extra_s = scan_mb_per_m * voxels / 1e6, scan_s_per_m * voxels / 1e6
+    else:
+        extra_mb = extra_s = 0.0
+    mem = math.ceil(MEMORY_MARGIN * (BASELINE_FACTOR * base_mb + mb_per_m * size + extra_mb)) * attempt
+    minutes = math.ceil(START_UP_MINUTES + TIME_MARGIN * (base_s + s_per_m * size + extra_s) / 60) * attempt
     return mem, minutes
 
 

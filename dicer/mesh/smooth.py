@@ -54,7 +54,7 @@ import scipy.sparse as sp
 from dicer.errors import DicerError
 from dicer.mesh.boundary import (HEX_EDGES, NODE_CLASSES, QUAD_EDGES, boundary_graph, bounding_planes, class_counts,
                                  mirror_share, mirror_weights, plane_axes)
-from dicer.mesh.metrics import element_volumes, hex_scaled_jacobian_t, hex_volumes_t, scaled_jacobian
+from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes, hex_scaled_jacobian_t, hex_volumes_t, scaled_jacobian
 from dicer.mesh.model import HEX_CORNERS, LEVEL_DATA, QUAD_CORNERS, Mesh
 
 __all__ = ["DEFAULTS", "smooth_mesh", "smoothing_settings"]
@@ -71,8 +71,11 @@ DEFAULTS = {
     "backoff_factor": 0.5,
     "max_backoff_rounds": 8,
     "tolerance": 1e-4,
+    "surface_from_image": True,
+    "image_sigma": 0.5,
 }
 _CLASS_LETTERS = ("A", "B", "C", "D", "E", "F")
+_PULL_ROUNDS = 5  # guard rounds per solve that back off the pull onto the image's surface
 _PLANE_MODES = ("mirror", "fixed", "free")
 
 
@@ -114,7 +117,10 @@ def smoothing_settings(section: dict | None) -> dict:
     tol = s["tolerance"]
     if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not (0 < tol < 1):
         raise DicerError(f"smooth.tolerance = {tol!r} must lie in (0, 1)")
-    for key in ("keep_bounding_planes", "interior", "shrink_compensation"):
+    sigma = s["image_sigma"]
+    if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not (0 <= sigma <= 3):
+        raise DicerError(f"smooth.image_sigma = {sigma!r} must lie in [0, 3] (voxels of the image)")
+    for key in ("keep_bounding_planes", "interior", "shrink_compensation", "surface_from_image"):
         if not isinstance(s[key], bool):
             raise DicerError(f"smooth.{key} = {s[key]!r} must be true or false")
     if s["bounding_planes"] not in _PLANE_MODES:
@@ -555,16 +561,32 @@ def _check_input(mesh: Mesh) -> None:
         raise DicerError("the mesh has non-finite node coordinates; remesh from the labels")
 
 
-def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, dict]:
+def smooth_mesh(mesh: Mesh, config_section: dict | None = None, image=None, thresholds=None,
+                image_source: str = "image") -> tuple[Mesh, dict]:
     """Smooth ``mesh`` (boundary solve per node class, interior Laplace, quality guard).
 
     ``config_section`` is the ``smooth:`` config section (missing keys take DEFAULTS).
-    Returns the smoothed mesh (same topology, with point data ``node_class``) and a report
-    dict. Raises DicerError on bad settings, an empty mesh, a mesh without lattice data,
-    or a mesh the guard cannot bring above ``min_scaled_jacobian``.
+    ``image`` (a ``dicer.image.Volume``, the scan the labels were segmented from) and
+    ``thresholds`` (the lower bound of each material 1..K in its units, as segmentation
+    chose them) move the boundary nodes onto the scan's iso-surfaces after the boundary
+    solve (``dicer.mesh.subvoxel``; ``smooth.surface_from_image``); without them the result
+    is the labels' alone. Returns the smoothed mesh (same topology, with point data
+    ``node_class``) and a report dict. Raises DicerError on bad settings, an empty mesh, a
+    mesh without lattice data, an image or thresholds that do not fit the mesh, or a mesh
+    the guard cannot bring above ``min_scaled_jacobian``.
     """
     s = smoothing_settings(config_section)
     _check_input(mesh)
+    surface = None
+    if image is not None and s["surface_from_image"]:
+        from dicer.mesh.subvoxel import ImageSurface, check_thresholds_for_mesh
+
+        if thresholds is None:
+            raise DicerError(f"{image_source}: the thresholds segmentation chose are needed with the image")
+        t_img = time.perf_counter()
+        surface = ImageSurface(image, check_thresholds_for_mesh(thresholds, mesh, image_source), mesh,
+                               s["image_sigma"], image_source)
+        t_img = time.perf_counter() - t_img
     t0 = time.perf_counter()
     timings = {}
     x0 = np.asarray(mesh.points, float)
@@ -599,8 +621,7 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
     elif mode == "free" and not s["keep_bounding_planes"]:
         fixed = np.zeros((bnodes.size, 3), bool)
     else:  # mirror (symmetry keeps plane nodes in their planes) or free in the plane
-        fixed = on_plane
-    del on_plane
+        fixed = on_plane.copy()
     if mesh.dim == 2:
         fixed[:, 2] = True
     planes = g.planes if mode == "mirror" and g.planes.any() else None
@@ -621,6 +642,16 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
         interior = None
     checked = _Elements(mesh.cells, touched, mesh.n_points)
     timings["assemble"] = time.perf_counter() - t1 + t_slots
+    if surface is not None:
+        from dicer.mesh.subvoxel import NodeSides, project
+
+        t2 = time.perf_counter()
+        sides = NodeSides(mesh, bnodes, g.boundary_cells, x0, on_plane, fixed, surface.thresholds)
+        pull = (k > 0).astype(float)  # the share of its move onto the iso-surface a node makes
+        backed_pull = np.zeros(bnodes.size, bool)
+        pull_rounds = 0
+        timings["image"] = time.perf_counter() - t2 + t_img
+    del on_plane
 
     floor = float(s["min_scaled_jacobian"])
     backed = np.zeros(bnodes.size, bool)
@@ -644,26 +675,54 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
         else:
             xb = xb0 + d1
         del system
-        if x is None:
-            x = x0.copy()
-        x[bnodes] = xb
-        if interior is not None and band_nodes.size:
-            u, iti = interior.solve(xb - xb0, s["tolerance"])
-            it_i += iti
-            x_band = x_band0 + u
-            x[band_nodes] = x_band
-        tg = time.perf_counter()
-        t_solve += tg - ts
-        sj = checked.scaled_jacobian(x)
-        bad = (sj < floor) | (sj <= 0)
-        if bad.any():
-            # elements that were already below the floor before smoothing only fail if they
-            # got worse (their value before is needed only here)
-            which = np.flatnonzero(bad)
-            before = checked.scaled_jacobian(x0, which)
-            after = sj[which]
-            bad[which] = ~((before < floor) & (after >= before - 1e-12) & (before > 0))
-        t_guard += time.perf_counter() - tg
+        xb_labels = xb
+        if surface is not None:
+            # onto the scan's iso-surfaces (the guard backs this move off first, below)
+            yb, image_info = project(surface, sides, adj, degree, x0, bnodes, xb, floor)
+        pull_round = 0
+        while True:
+            if surface is not None:
+                xb = xb_labels + pull[:, None] * (yb - xb_labels)
+            if x is None:
+                x = x0.copy()
+            x[bnodes] = xb
+            if interior is not None and band_nodes.size:
+                u, iti = interior.solve(xb - xb0, s["tolerance"])
+                it_i += iti
+                x_band = x_band0 + u
+                x[band_nodes] = x_band
+            tg = time.perf_counter()
+            t_solve += tg - ts
+            sj = checked.scaled_jacobian(x)
+            bad = (sj < floor) | (sj <= 0)
+            if bad.any():
+                # elements that were already below the floor before smoothing only fail if they
+                # got worse (their value before is needed only here)
+                which = np.flatnonzero(bad)
+                before = checked.scaled_jacobian(x0, which)
+                after = sj[which]
+                bad[which] = ~((before < floor) & (after >= before - 1e-12) & (before > 0))
+            t_guard += time.perf_counter() - tg
+            ts = time.perf_counter()
+            if surface is None or not bad.any() or pull_round >= _PULL_ROUNDS:
+                break
+            # the pull of the nodes at the failing corners gives way (halved, then dropped);
+            # the labels' solution stays as it is
+            if bpos is None:
+                bpos = np.full(mesh.n_points, -1, np.int64)
+                bpos[bnodes] = np.arange(bnodes.size)
+            failing = mesh.cells[touched[bad]]
+            corner = corner_scaled_jacobians(x, failing)
+            pulled = bpos[failing[(corner < floor) | (corner <= 0)]]
+            pulled = np.unique(pulled[pulled >= 0])
+            pulled = pulled[pull[pulled] > 0]
+            if pulled.size == 0:
+                break
+            pull[pulled] *= 0.5
+            pull[pulled[pull[pulled] < 0.1]] = 0.0
+            backed_pull[pulled] = True
+            pull_round += 1
+            pull_rounds += 1
         if not bad.any():
             break
         if rounds >= s["max_backoff_rounds"]:
@@ -677,14 +736,14 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
                 "lower smooth.coefficient or smooth.min_scaled_jacobian")
         rounds += 1
         last = rounds >= max(1, s["max_backoff_rounds"] - 2)
-        nodes = np.unique(mesh.cells[touched[bad]].ravel())
         if bpos is None:
             bpos = np.full(mesh.n_points, -1, np.int64)
             bpos[bnodes] = np.arange(bnodes.size)
+        nodes = np.unique(mesh.cells[touched[bad]].ravel())
         for _ in range(4):
             sel = bpos[nodes]
             sel = sel[(sel >= 0)]
-            sel = sel[k[sel] > 0]
+            sel = sel[(k[sel] > 0) | (pull[sel] > 0)] if surface is not None else sel[k[sel] > 0]
             if sel.size:
                 break
             mark = np.zeros(mesh.n_points, bool)
@@ -693,6 +752,8 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
         if sel.size == 0:
             rounds = s["max_backoff_rounds"]  # nothing left to back off: report on the next pass
             continue
+        if surface is not None:
+            pull[sel] = 0.0  # then the labels' smoothing backs off as without an image
         k[sel] = 0.0 if last else k[sel] * s["backoff_factor"]
         k[sel[k[sel] < 0.02]] = 0.0
         backed[sel] = True
@@ -744,6 +805,10 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, d
         "volume_change_by_material": volume_change,
         "max_displacement_mm": max_disp,
         "mean_boundary_displacement_mm": float(bdisp.mean()) if bdisp.size else 0.0,
+        **({"surface_from_image": {**image_info, "image_sigma": s["image_sigma"], "pull_backoff_rounds": pull_rounds,
+                                   "pull_backed_off_nodes": int(backed_pull.sum()),
+                                   "nodes_on_the_image_surface": int(np.count_nonzero(pull == 1.0))}}
+           if surface is not None else {}),
         "seconds": {**{k_: round(v, 3) for k_, v in timings.items()}, "solve": round(t_solve, 3),
                     "guard": round(t_guard, 3), "total": round(time.perf_counter() - t0, 3)},
     }

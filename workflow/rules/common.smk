@@ -164,6 +164,23 @@ def materials_option(wildcards, input):
     return " ".join(f"--materials {shlex.quote(path)}" for path in getattr(input, "materials", []))
 
 
+def scan_input(wildcards):
+    """The scan and its segmentation.json for a segmented patient (the smooth stage places
+    the surface on the scan's iso-surfaces, smooth.surface_from_image); none for a
+    label-volume patient."""
+    if wildcards.patient in LABEL_PATIENTS:
+        return {}
+    return {"image": patient_image(wildcards),
+            "thresholds": patient_file("segmentation.json").format(patient=wildcards.patient)}
+
+
+def scan_option(wildcards, input):
+    """params: --image SCAN --thresholds segmentation.json for a segmented patient, else nothing."""
+    if "image" not in input.keys():
+        return ""
+    return f"--image {shlex.quote(input.image)} --thresholds {shlex.quote(input.thresholds)}"
+
+
 def pictures(wildcards):
     """The segmentation overlay shown in the quality page (label-volume patients have none)."""
     if wildcards.patient in LABEL_PATIENTS:

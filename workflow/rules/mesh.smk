@@ -49,12 +49,14 @@ rule merge:
 
 rule smooth:
     input:
-        patient_file("merged.vtu"),
+        unpack(scan_input),
+        mesh=patient_file("merged.vtu"),
     output:
         mesh=patient_file("smoothed.vtu"),
         report=patient_file("smooth.json"),
     params:
         settings=settings("smooth"),
+        scan=scan_option,
     conda:
         CONDA_ENV
     threads: 1
@@ -66,5 +68,5 @@ rule smooth:
     log:
         "logs/{patient}/smooth.log",
     shell:
-        "dicer smooth {input:q} -o {output.mesh:q} --report {output.report:q}"
+        "dicer smooth {input.mesh:q} -o {output.mesh:q} --report {output.report:q} {params.scan}"
         " --settings {params.settings:q} > {log:q} 2>&1"

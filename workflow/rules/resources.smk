@@ -65,7 +65,7 @@ def _estimate(stage, wildcards, attempt):
         stage = f"export_{wildcards.ext}"
     voxels, coarse = _scan_size(wildcards.patient)
     return estimate(stage, voxels=voxels, voxels_ds=coarse, elements=_elements(wildcards.patient),
-                    attempt=attempt)
+                    attempt=attempt, scan=wildcards.patient not in LABEL_PATIENTS)
 
 
 def mem_mb(stage):

@@ -390,7 +390,7 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
     from dicer.mesh.smooth import smooth_mesh
 
     image = thresholds = None
-    if image_path is not None and config["smooth"].get("surface_from_image", True):
+    if image_path is not None and config["smooth"].get("surface_from_image", False):
         from dicer.io.images import read_image
 
         thresholds = _read_thresholds(thresholds_path, config, image_path)
@@ -821,7 +821,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--report", metavar="JSON", help="also write node class counts, back-offs and quality")
     p.add_argument("--image", metavar="IMAGE",
                    help="the scan the labels were segmented from: boundary nodes move onto its threshold "
-                        "iso-surfaces (smooth.surface_from_image)")
+                        "iso-surfaces when smooth.surface_from_image is true (off by default)")
     p.add_argument("--thresholds", metavar="JSON",
                    help="with --image: segmentation.json of 'dicer segment --info' (its thresholds); "
                         "default: the config's manual segment.thresholds")

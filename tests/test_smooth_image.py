@@ -15,6 +15,9 @@ from dicer.io.meshes import read_mesh, write_mesh
 from dicer.mesh.boundary import boundary_graph
 from dicer.mesh.metrics import element_volumes, scaled_jacobian
 from dicer.mesh.smooth import smooth_mesh
+
+ON = {"surface_from_image": True}
+"""The scan is used only when asked for (off by default)."""
 from dicer.mesh.voxel import voxel_mesh
 
 R = 16.3
@@ -51,7 +54,7 @@ def phantom(request):
     labels, _ = fix_connectivity((image >= 500).astype(np.uint8))
     mesh = voxel_mesh(labels)
     labels_only, _ = smooth_mesh(mesh, {})
-    scan, report = smooth_mesh(mesh, {}, image=Volume(image, (1.0,) * dim), thresholds=[500.0])
+    scan, report = smooth_mesh(mesh, ON, image=Volume(image, (1.0,) * dim), thresholds=[500.0])
     return dim, image, mesh, labels_only, scan, report
 
 
@@ -83,7 +86,7 @@ def test_labels_only_unchanged(phantom):
 
 def test_deterministic(phantom):
     dim, image, mesh, _, scan, _ = phantom
-    again, _ = smooth_mesh(mesh, {}, image=Volume(image, (1.0,) * dim), thresholds=[500.0])
+    again, _ = smooth_mesh(mesh, ON, image=Volume(image, (1.0,) * dim), thresholds=[500.0])
     assert again.points.tobytes() == scan.points.tobytes()
 
 
@@ -92,11 +95,11 @@ def test_bad_image_or_thresholds():
     labels, _ = fix_connectivity((image >= 500).astype(np.uint8))
     mesh = voxel_mesh(labels)
     with pytest.raises(DicerError, match="not strictly increasing"):
-        smooth_mesh(mesh, {}, image=Volume(image, (1.0, 1.0)), thresholds=[500.0, 100.0])
+        smooth_mesh(mesh, ON, image=Volume(image, (1.0, 1.0)), thresholds=[500.0, 100.0])
     with pytest.raises(DicerError, match="span"):
-        smooth_mesh(mesh, {}, image=Volume(image[:30], (1.0, 1.0)), thresholds=[500.0])
+        smooth_mesh(mesh, ON, image=Volume(image[:30], (1.0, 1.0)), thresholds=[500.0])
     with pytest.raises(DicerError, match="2D image for a 3D mesh"):
-        smooth_mesh(voxel_mesh(np.ones((4, 4, 4), np.uint8)), {}, image=Volume(image, (1.0, 1.0)),
+        smooth_mesh(voxel_mesh(np.ones((4, 4, 4), np.uint8)), ON, image=Volume(image, (1.0, 1.0)),
                     thresholds=[500.0])
     with pytest.raises(DicerError, match="image_sigma"):
         smooth_mesh(mesh, {"image_sigma": -1})
@@ -108,7 +111,8 @@ def test_cli_smooth_with_image(tmp_path, capsys):
     write_mesh(voxel_mesh(labels), tmp_path / "mesh.vtu")
     write_image(Volume(image, (1.0, 1.0)), tmp_path / "scan.nii.gz")
     (tmp_path / "segmentation.json").write_text(json.dumps({"thresholds": [500.0]}))
-    args = ["smooth", str(tmp_path / "mesh.vtu"), "--image", str(tmp_path / "scan.nii.gz")]
+    args = ["smooth", str(tmp_path / "mesh.vtu"), "--image", str(tmp_path / "scan.nii.gz"),
+            "--set", "smooth.surface_from_image=true"]
     assert main(args + ["-o", str(tmp_path / "a.vtu"), "--thresholds", str(tmp_path / "segmentation.json"),
                         "--report", str(tmp_path / "a.json"), "-q"]) == 0
     assert "surface_from_image" in json.loads((tmp_path / "a.json").read_text())

@@ -71,7 +71,7 @@ DEFAULTS = {
     "backoff_factor": 0.5,
     "max_backoff_rounds": 8,
     "tolerance": 1e-4,
-    "surface_from_image": True,
+    "surface_from_image": False,
     "image_sigma": 0.5,
 }
 _CLASS_LETTERS = ("A", "B", "C", "D", "E", "F")

@@ -80,7 +80,7 @@ COEFFICIENTS = {
     "smooth": (79, 401.6, 0.9, 22.8),
     "export_inp": (62, 658.6, 0.8, 46.2),
     "export_vtu": (62, 516.1, 0.6, 22.5),
-    "quality": (156, 853.9, 0.7, 16.7),
+    "quality": (244, 532.1, 1.7, 38.4),
 }
 #: elements per coarse voxel assumed before the mesh exists (a patient's group job is sized
 #: before any of its stages ran): measured 0.30 (head phantoms, head CT) to 0.52 (long

@@ -472,9 +472,11 @@ _PICTURE_CAPTIONS = {
 def _quality_figures(mesh, report: dict, sj, names: dict, histogram: Path | None, model_picture: Path | None,
                      node_classes: Path | None) -> list[Path]:
     """Write the quality pictures asked for; returns their paths (in the report's order)."""
+    written = []
+    if not (histogram or model_picture or node_classes):
+        return written  # matplotlib is not even imported
     from dicer.io.pictures import save_jacobian_histogram, save_model_picture, save_node_class_chart
 
-    written = []
     if histogram:
         written.append(save_jacobian_histogram(sj, mesh.material, names, histogram, report["poor_threshold"]))
     if model_picture:

@@ -19,6 +19,7 @@ include: "workflow/rules/resources.smk"
 include: "workflow/rules/segment.smk"
 include: "workflow/rules/mesh.smk"
 include: "workflow/rules/export.smk"
+include: "workflow/rules/report.smk"
 
 
 rule all:

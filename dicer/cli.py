@@ -85,9 +85,11 @@ def _check_output(path: str, suffixes: tuple[str, ...], what: str) -> Path:
 
 #: argparse destinations holding output files, with the option that sets them
 OUTPUT_OPTIONS = {"output": "-o", "overlay": "--overlay", "plot": "--plot", "info": "--info", "report": "--report",
-                  "html": "--html", "materials_out": "--materials", "csv": "--csv"}
+                  "html": "--html", "materials_out": "--materials", "csv": "--csv", "histogram": "--histogram",
+                  "model_picture": "--model-picture", "node_classes": "--node-classes", "tsv": "--tsv"}
 #: argparse destinations holding input files or folders
-INPUT_OPTIONS = ("image", "labels", "mesh", "config", "picture", "stage_report", "materials", "thresholds")
+INPUT_OPTIONS = ("image", "labels", "mesh", "config", "picture", "stage_report", "materials", "thresholds",
+                 "original", "reports")
 
 
 def _same(a: Path, b: Path) -> bool:
@@ -455,19 +457,25 @@ def do_surface(mesh_path: str, outdir: Path, config: dict, only: list[str] | Non
 
 
 def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None = None, html: str | None = None,
-               pictures: list[str] = (), stage_reports: list[str] = (), csv: Path | None = None):
+               pictures: list[str] = (), stage_reports: list[str] = (), csv: Path | None = None,
+               original_path: str | None = None, histogram: Path | None = None, model_picture: Path | None = None,
+               node_classes: Path | None = None):
+    from dicer.config import material_names
     from dicer.io.atomic import write_bytes_atomic
     from dicer.io.meshes import read_mesh
+    from dicer.mesh.metrics import scaled_jacobian
     from dicer.quality import quality_report, render_html
 
     with _Stage("quality"):
         mesh = read_mesh(mesh_path)
-        labels = None
-        if labels_path:
+        labels = original = None
+        if labels_path or original_path:
             from dicer.io.images import read_labels
 
-            labels = read_labels(labels_path)
-        report = quality_report(mesh, config, labels=labels)
+            labels = read_labels(labels_path) if labels_path else None
+            original = read_labels(original_path) if original_path else None
+        sj = scaled_jacobian(mesh.points, mesh.cells)
+        report = quality_report(mesh, config, labels=labels, original=original, sj=sj)
         stages = {}
         for path in stage_reports:
             try:
@@ -476,19 +484,98 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
                 raise DicerError(f"{path}: cannot read the stage report ({exc}); rerun that stage") from None
         if stages:
             report["stages"] = stages
+        figures = _quality_figures(mesh, report, sj, material_names(config), histogram, model_picture, node_classes)
         text = json.dumps(report, indent=2, sort_keys=True) + "\n"
         if html:
-            page_dir = Path(html).resolve().parent
-            links = [os.path.relpath(Path(p).resolve(), page_dir) for p in pictures]
-            write_bytes_atomic(html, render_html(report, links))
+            shown = []
+            for path in list(pictures) + figures:
+                try:
+                    shown.append((_PICTURE_CAPTIONS.get(Path(path).name, Path(path).name), Path(path).read_bytes()))
+                except OSError as exc:
+                    raise DicerError(f"{path}: cannot read the picture ({exc.strerror}); give an existing PNG "
+                                     "with --picture") from None
+            write_bytes_atomic(html, render_html(report, shown))
         if csv:
             from dicer.io.metrics_csv import write_metrics_csv
 
             write_metrics_csv(mesh, csv)
         write_bytes_atomic(out, text)
-        log.info("quality: wrote %s (min scaled Jacobian %.3f, %d inverted)", out,
-                 report["scaled_jacobian"]["min"], report["inverted_elements"])
+        log.info("quality: wrote %s (min scaled Jacobian %.3f, %d inverted, %d part(s))", out,
+                 report["scaled_jacobian"]["min"], report["inverted_elements"], report["parts"]["model"]["parts"])
     return report
+
+
+_PICTURE_CAPTIONS = {
+    "segmentation.png": "Segmentation: the labels over the scan, three orthogonal slices",
+    "thresholds.png": "Threshold criterion per material",
+    "jacobian.png": "Scaled Jacobian per material",
+    "model.png": "The model: exterior coloured by material, and cut open",
+    "node_classes.png": "Boundary node classes",
+}
+
+
+def _quality_figures(mesh, report: dict, sj, names: dict, histogram: Path | None, model_picture: Path | None,
+                     node_classes: Path | None) -> list[Path]:
+    """Write the quality pictures asked for; returns their paths (in the report's order)."""
+    written = []
+    if not (histogram or model_picture or node_classes):
+        return written  # matplotlib is not even imported
+    from dicer.io.pictures import save_jacobian_histogram, save_model_picture, save_node_class_chart
+
+    if histogram:
+        written.append(save_jacobian_histogram(sj, mesh.material, names, histogram, report["poor_threshold"]))
+    if model_picture:
+        written.append(save_model_picture(mesh, names, model_picture))
+    if node_classes:
+        if "node_classes" not in report:
+            raise DicerError(f"{node_classes}: the mesh has no node classes (point data node_class); give the "
+                             "smoothed mesh (dicer smooth writes them) or leave out --node-classes")
+        written.append(save_node_class_chart(report["node_classes"], node_classes))
+    return written
+
+
+def _read_benchmark(path: Path) -> dict:
+    """A Snakemake benchmark file's first line as a dict (s, max_rss, ...)."""
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DicerError(f"{path}: cannot read the benchmark file ({exc}); rerun that stage") from None
+    if len(lines) < 2 or "s" not in lines[0].split("\t"):
+        raise DicerError(f"{path}: not a Snakemake benchmark file (a header with s and max_rss, then a line); "
+                         "rerun that stage or delete the file")
+    return dict(zip(lines[0].split("\t"), lines[1].split("\t")))
+
+
+def do_cohort(reports: list[str], out: Path, tsv: Path | None = None, benchmarks: str | None = None):
+    from dicer.cohort import cohort_rows, cohort_tsv, render_cohort_html
+    from dicer.io.atomic import write_bytes_atomic
+
+    with _Stage("cohort"):
+        quality, bench = {}, {}
+        for path in reports:
+            patient = Path(path).resolve().parent.name
+            if patient in quality:
+                raise DicerError(f"{path}: a second report of patient {patient!r} (patients are named by the "
+                                 "report's folder); give one quality.json per patient folder")
+            try:
+                quality[patient] = json.loads(Path(path).read_text())
+            except FileNotFoundError:
+                raise DicerError(f"{path}: quality report not found; run dicer quality first") from None
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise DicerError(f"{path}: cannot read the quality report ({exc}); run dicer quality again") from None
+            if not isinstance(quality[patient], dict) or "elements" not in quality[patient]:
+                raise DicerError(f"{path}: not a dicer quality report (no element count); give quality.json "
+                                 "files written by dicer quality")
+            folder = Path(benchmarks) / patient if benchmarks else None
+            if folder is not None and folder.is_dir():
+                bench[patient] = {f.name[:-4]: _read_benchmark(f) for f in sorted(folder.glob("*.tsv"))}
+        columns, rows = cohort_rows(quality, bench)
+        poor = next((r.get("poor_threshold") for r in quality.values()), None)
+        write_bytes_atomic(out, render_cohort_html(columns, rows, poor))
+        if tsv:
+            write_bytes_atomic(tsv, cohort_tsv(columns, rows))
+        log.info("cohort: wrote %s (%d patient(s))", out, len(rows))
+    return columns, rows
 
 
 # --- commands -------------------------------------------------------------------------
@@ -546,9 +633,19 @@ def cmd_export(args):
 
 def cmd_quality(args):
     csv = _check_output(args.csv, (".csv",), "the metrics table") if args.csv else None
+    pngs = {k: _check_output(getattr(args, k), (".png",), f"the {what}") if getattr(args, k) else None
+            for k, what in (("histogram", "scaled-Jacobian histogram"), ("model_picture", "model picture"),
+                            ("node_classes", "node-class chart"))}
+    html = _check_output(args.html, (".html", ".htm"), "the HTML report") if args.html else None
     do_quality(args.mesh, _check_output(args.output, (".json",), "the quality report"), _config(args),
-               labels_path=args.labels, html=args.html, pictures=args.picture or [],
-               stage_reports=args.stage_report or [], csv=csv)
+               labels_path=args.labels, html=html, pictures=args.picture or [],
+               stage_reports=args.stage_report or [], csv=csv, original_path=args.original, **pngs)
+
+
+def cmd_cohort(args):
+    tsv = _check_output(args.tsv, (".tsv",), "the cohort table") if args.tsv else None
+    do_cohort(args.reports, _check_output(args.output, (".html", ".htm"), "the cohort overview"), tsv,
+              args.benchmarks)
 
 
 def cmd_surface(args):
@@ -571,7 +668,8 @@ def cmd_phantom(args):
 
 RUN_OUTPUTS = ("labels.nii.gz", "materials.json", "segmentation.png", "segmentation.json", "thresholds.png", "labels_ds.nii.gz",
                "labels_fixed.nii.gz", "fix.json", "mesh.vtu", "merged.vtu", "merge.json", "smoothed.vtu",
-               "smooth.json", "model.inp", "model.vtu", "quality.json", "report.html")
+               "smooth.json", "model.inp", "model.vtu", "quality.json", "report.html", "jacobian.png", "model.png",
+               "node_classes.png")
 
 
 def _cropped_voxels(voxels: int, spacing, crop: dict | None) -> int:
@@ -691,7 +789,9 @@ def cmd_run(args):
         pictures = [str(path(n)) for n in ("segmentation.png", "thresholds.png") if path(n).exists()]
         do_quality(str(path("smoothed.vtu")), path("quality.json"), config,
                    labels_path=str(path("labels_fixed.nii.gz")), html=str(path("report.html")), pictures=pictures,
-                   stage_reports=[str(path(n)) for n in ("fix.json", "merge.json", "smooth.json")])
+                   stage_reports=[str(path(n)) for n in ("fix.json", "merge.json", "smooth.json")],
+                   original_path=str(path("labels.nii.gz")), histogram=path("jacobian.png"),
+                   model_picture=path("model.png"), node_classes=path("node_classes.png"))
     except BaseException as exc:
         kept = _keep_failed(staging, failed)
         if isinstance(exc, DicerError):
@@ -851,11 +951,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--csv", metavar="CSV",
                    help="also write every element's metrics, one line per element in automesh's metrics "
                         "columns (edge ratio, scaled Jacobian, skew, volume)")
-    p.add_argument("--picture", action="append", metavar="PNG", help="a picture to show in the HTML report (repeatable)")
+    p.add_argument("--original", metavar="LABELS",
+                   help="the segmentation before downsampling (full resolution): adds each material's volume change "
+                        "against it")
+    p.add_argument("--histogram", metavar="PNG", help="also draw the scaled-Jacobian histogram per material")
+    p.add_argument("--model-picture", metavar="PNG",
+                   help="also draw the model: exterior coloured by material, and cut open")
+    p.add_argument("--node-classes", metavar="PNG", help="also draw the boundary node-class counts (smoothed mesh)")
+    p.add_argument("--picture", action="append", metavar="PNG",
+                   help="a further picture to embed in the HTML report, e.g. segmentation.png (repeatable)")
     p.add_argument("--stage-report", action="append", metavar="JSON",
                    help="a stage report (fix.json, merge.json, smooth.json) to include (repeatable)")
     _add_materials_option(p)
     _add_config_options(p)
+
+    p = command("cohort", cmd_cohort, "cohort overview: one table row per patient from its quality.json and benchmarks")
+    p.add_argument("reports", metavar="QUALITY_JSON", nargs="+",
+                   help="quality reports, one per patient; the patient is the report's folder name")
+    p.add_argument("-o", "--output", required=True, metavar="HTML", help="cohort overview (.html)")
+    p.add_argument("--tsv", metavar="TSV", help="also write the table as tab-separated values")
+    p.add_argument("--benchmarks", metavar="FOLDER",
+                   help="Snakemake benchmark folder: FOLDER/<patient>/<stage>.tsv give seconds and peak memory")
+    p.add_argument("-q", "--quiet", action="store_true", help="log warnings and errors only")
 
     p = command("phantom", cmd_phantom, "write a synthetic CT phantom (HU, with noise) for demos and tests")
     p.add_argument("name", metavar="NAME", help="phantom name: head, long_bone, shell, sphere, block")

@@ -6,6 +6,7 @@ imports it.
 
 from __future__ import annotations
 
+import base64
 import html
 import json
 
@@ -57,16 +58,76 @@ def _material_counts(mesh: Mesh, sj: np.ndarray, vol: np.ndarray) -> dict[str, n
             "volume": np.bincount(material, weights=vol, minlength=size)[label], "min_scaled_jacobian": lowest[label]}
 
 
-def quality_report(mesh: Mesh, config: dict, labels=None) -> dict:
+def element_neighbours(mesh: Mesh) -> np.ndarray:
+    """(M, F) index of the element across each face (2D: edge), -1 for none (any conforming mesh)."""
+    from dicer.export import _neighbours_by_sort
+
+    return _neighbours_by_sort(np.asarray(mesh.cells, np.int64), mesh.dim, mesh.n_points)
+
+
+def _component_sizes(m: int, a: np.ndarray, b: np.ndarray, keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Connected components of the graph on ``m`` elements with edges ``a``-``b``:
+    (component of each element (M,), element count of each component)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    if keep is not None:
+        a, b = a[keep], b[keep]
+    graph = coo_matrix((np.ones(a.size, np.int8), (a, b)), shape=(m, m)).tocsr()
+    _, comp = connected_components(graph, directed=False)
+    return comp, np.bincount(comp)
+
+
+def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None) -> dict:
+    """Connected parts of the model and of each material, through shared faces (2D: edges).
+
+    Elements that share only an edge or a node do not hold together in a solve, so parts are
+    face-connected, as ``fix`` counts them on the voxels. Returns ``{"model": {...},
+    "materials": {label: {...}}}``, each with ``parts`` (count), ``largest`` and ``smallest``
+    (elements of the largest and smallest part); the model's also ``floating_elements``: the
+    elements outside its largest part (any is a part a static solve cannot hold).
+    """
+    m = mesh.n_cells
+    nb = element_neighbours(mesh) if neighbours is None else neighbours
+    a = np.repeat(np.arange(m, dtype=np.int64), nb.shape[1])
+    b = nb.ravel()
+    edge = b > a  # each shared face once
+    a, b = a[edge], b[edge]
+    material = np.asarray(mesh.material, np.int64)
+    out = {"model": {"parts": 0, "largest": 0, "smallest": 0, "floating_elements": 0}, "materials": {}}
+    if m == 0:
+        return out
+    _, sizes = _component_sizes(m, a, b)
+    out["model"] = {"parts": int(sizes.size), "largest": int(sizes.max()), "smallest": int(sizes.min()),
+                    "floating_elements": int(m - sizes.max())}
+    comp, sizes = _component_sizes(m, a, b, material[a] == material[b])
+    # material of each component: that of any of its elements
+    comp_material = np.zeros(sizes.size, np.int64)
+    comp_material[comp] = material
+    order = np.argsort(comp_material, kind="stable")
+    cm, sz = comp_material[order], sizes[order]
+    start = np.flatnonzero(np.r_[True, cm[1:] != cm[:-1]])
+    count = np.diff(np.r_[start, cm.size])
+    largest, smallest = np.maximum.reduceat(sz, start), np.minimum.reduceat(sz, start)
+    out["materials"] = {int(k): {"parts": int(n), "largest": int(hi), "smallest": int(lo)}
+                        for k, n, hi, lo in zip(cm[start], count, largest, smallest)}
+    return out
+
+
+def quality_report(mesh: Mesh, config: dict, labels=None, original=None, sj: np.ndarray | None = None) -> dict:
     """Quality figures of ``mesh`` as a JSON-ready dict.
 
     mesh : the mesh to assess.
     config : dicer configuration (material names, ``quality.poor_scaled_jacobian``).
     labels : optional label Volume the mesh came from; adds voxel counts and the
         volume of the mesh against the voxel volume per material.
+    original : optional label Volume of the segmentation before downsampling (the full-resolution
+        labels); adds its voxel volume per material and the mesh's volume change against it, which
+        holds what downsampling changed too.
+    sj : optional (M,) scaled Jacobian of the elements, when the caller has it already.
     """
     names = material_names(config)
-    sj = scaled_jacobian(mesh.points, mesh.cells)
+    sj = scaled_jacobian(mesh.points, mesh.cells) if sj is None else sj
     vol = element_volumes(mesh.points, mesh.cells)
     er = edge_ratio(mesh.points, mesh.cells)
     poor = float(config["quality"]["poor_scaled_jacobian"])
@@ -77,6 +138,9 @@ def quality_report(mesh: Mesh, config: dict, labels=None) -> dict:
     if labels is not None:
         in_volume = np.bincount(np.asarray(labels.array).ravel(), minlength=int(per["label"].max()) + 1)
         voxel_volume = float(np.prod(labels.spacing))
+    if original is not None:
+        orig_count = np.bincount(np.asarray(original.array).ravel(), minlength=int(per["label"].max()) + 1)
+        orig_voxel_volume = float(np.prod(original.spacing))
     for i, label in enumerate(per["label"].tolist()):
         entry = {
             "label": label,
@@ -91,6 +155,12 @@ def quality_report(mesh: Mesh, config: dict, labels=None) -> dict:
             entry[f"voxel_volume_{unit}"] = _r(voxels * voxel_volume)
             if voxels:
                 entry["volume_change_percent"] = _r(100.0 * (per["volume"][i] / (voxels * voxel_volume) - 1.0))
+        if original is not None:
+            voxels = int(orig_count[label]) if label < orig_count.size else 0
+            entry[f"original_volume_{unit}"] = _r(voxels * orig_voxel_volume)
+            if voxels:
+                entry["original_volume_change_percent"] = _r(
+                    100.0 * (per["volume"][i] / (voxels * orig_voxel_volume) - 1.0))
         materials[names.get(label, f"material_{label}")] = entry
 
     report = {
@@ -107,6 +177,9 @@ def quality_report(mesh: Mesh, config: dict, labels=None) -> dict:
         "poor_elements": int(np.count_nonzero(sj < poor)),
         "poor_threshold": poor,
     }
+    parts = floating_parts(mesh)
+    report["parts"] = {"model": parts["model"],
+                       "materials": {names.get(k, f"material_{k}"): v for k, v in parts["materials"].items()}}
     if "node_class" in mesh.point_data:
         cls = np.asarray(mesh.point_data["node_class"]).astype(np.int64)
         counts = np.bincount(cls, minlength=len(_NODE_CLASSES) + 1)
@@ -116,36 +189,97 @@ def quality_report(mesh: Mesh, config: dict, labels=None) -> dict:
     return report
 
 
-def render_html(report: dict, pictures: list[str] = ()) -> str:
-    """An HTML page of the report: tables, and ``pictures`` (paths relative to the page) shown inline."""
+def _data_uri(png: bytes) -> str:
+    return "data:image/png;base64," + base64.b64encode(png).decode("ascii")
 
-    def table(rows: list[tuple[str, object]]) -> str:
-        body = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>" for k, v in rows)
-        return f"<table>{body}</table>"
 
+def _table(rows: list[tuple[str, object]]) -> str:
+    body = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>" for k, v in rows)
+    return f"<table>{body}</table>"
+
+
+def _grid(header: list[str], rows: list[list[object]], classes: list[str] | None = None) -> str:
+    """A table with a header row; ``classes``: a CSS class per row ('' for none)."""
+    head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
+    body = "".join(
+        f"<tr{f' class={c!r}' if c else ''}>" + "".join(f"<td>{html.escape(str(v))}</td>" for v in row) + "</tr>"
+        for row, c in zip(rows, classes or [""] * len(rows)))
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _fmt(value, spec: str = "") -> str:
+    if value is None:
+        return "–"
+    return format(value, spec) if spec else str(value)
+
+
+STYLE = ("body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;margin-bottom:1.5em}"
+         "th,td{border:1px solid #bbb;padding:3px 8px;text-align:left}td{font-variant-numeric:tabular-nums}"
+         "tr.warn td{background:#fde0dd}img{max-width:100%}figure{margin:0 0 1.5em 0}"
+         "figcaption{font-size:90%;color:#444}")
+
+
+def parts_html(report: dict) -> str:
+    """The floating-parts table: the model's face-connected parts and each material's."""
+    parts = report.get("parts")
+    if not parts:
+        return ""
+    model = parts["model"]
+    rows = [["whole model", model["parts"], model["largest"], model["smallest"], model["floating_elements"]]]
+    rows += [[name, e["parts"], e["largest"], e["smallest"], "–"] for name, e in parts["materials"].items()]
+    classes = ["warn" if model["parts"] > 1 else ""] + [""] * len(parts["materials"])
+    verdict = ("one part: nothing floats" if model["parts"] == 1 else
+               f"{model['parts']} parts: {model['floating_elements']} element(s) float free of the largest part "
+               "(a static solve needs each part held)")
+    return ("<h2>Floating parts</h2><p>Parts connected through shared faces; " + html.escape(verdict) + ".</p>"
+            + _grid(["", "parts", "largest part (elements)", "smallest part (elements)", "floating elements"],
+                    rows, classes))
+
+
+def volume_html(report: dict) -> str:
+    """Per material: the mesh's volume against the meshed labels and against the original segmentation."""
+    unit = "mm^3" if report["dimension"] == 3 else "mm^2"
+    rows = []
+    for name, e in report["materials"].items():
+        rows.append([name, _fmt(e.get(f"volume_{unit}")), _fmt(e.get(f"voxel_volume_{unit}")),
+                     _fmt(e.get("volume_change_percent"), "+.2f"), _fmt(e.get(f"original_volume_{unit}")),
+                     _fmt(e.get("original_volume_change_percent"), "+.2f")])
+    return ("<h2>Volume</h2><p>The mesh's volume per material against the voxels it was made from (after "
+            "downsampling and the connectivity fixes) and against the original segmentation (full resolution), "
+            "which also holds what downsampling changed.</p>"
+            + _grid(["material", f"mesh ({unit})", f"meshed labels ({unit})", "change (%)",
+                     f"original segmentation ({unit})", "change against the original (%)"], rows))
+
+
+def render_html(report: dict, pictures: list[tuple[str, bytes]] = ()) -> str:
+    """A self-contained HTML page of the report: tables, and ``pictures`` (caption, PNG bytes)
+    embedded as data URIs, so the page shows them wherever it is opened (a browser, inside
+    ``snakemake --report``, sent by mail)."""
     top = [(k, report[k]) for k in ("dimension", "element_type", "nodes", "elements", "inverted_elements",
                                       "poor_elements", "poor_threshold")]
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>dicer mesh quality</title>",
-        "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;margin-bottom:1.5em}"
-        "th,td{border:1px solid #bbb;padding:3px 8px;text-align:left}</style></head><body>",
+        f"<style>{STYLE}</style></head><body>",
         f"<h1>Mesh quality</h1><p>dicer {html.escape(report['dicer_version'])}</p>",
-        table(top),
+        _table(top),
+        parts_html(report),
+        volume_html(report),
     ]
-    for picture in pictures:
-        src = html.escape(picture, quote=True)
-        parts.append(f"<p><a href='{src}'><img src='{src}' alt='{src}' style='max-width:100%'></a></p>")
+    for caption, png in pictures:
+        text = html.escape(caption, quote=True)
+        parts.append(f"<figure><img src='{_data_uri(png)}' alt='{text}'><figcaption>{html.escape(caption)}"
+                     "</figcaption></figure>")
     parts.append("<h2>Materials</h2>")
     for name, entry in report["materials"].items():
-        parts.append(f"<h3>{html.escape(name)}</h3>" + table(list(entry.items())))
+        parts.append(f"<h3>{html.escape(name)}</h3>" + _table(list(entry.items())))
     for key in sorted(k for k in report if k.startswith(("scaled_jacobian", "edge_ratio", "element_volume"))):
-        parts.append(f"<h2>{html.escape(key)}</h2>" + table(list(report[key].items())))
+        parts.append(f"<h2>{html.escape(key)}</h2>" + _table(list(report[key].items())))
     if "node_classes" in report:
-        parts.append("<h2>Boundary node classes</h2>" + table(list(report["node_classes"].items())))
+        parts.append("<h2>Boundary node classes</h2>" + _table(list(report["node_classes"].items())))
     for stage, entry in report.get("stages", {}).items():
         # scalars as they are, small nested values as compact JSON
         rows = [(k, v if not isinstance(v, (dict, list)) else json.dumps(v, sort_keys=True)[:300])
                 for k, v in entry.items()]
-        parts.append(f"<h2>Stage: {html.escape(stage)}</h2>" + table(rows))
+        parts.append(f"<h2>Stage: {html.escape(stage)}</h2>" + _table(rows))
     parts.append("</body></html>\n")
     return "".join(parts)

@@ -80,7 +80,7 @@ COEFFICIENTS = {
     "smooth": (79, 401.6, 0.9, 22.8),
     "export_inp": (62, 658.6, 0.8, 46.2),
     "export_vtu": (62, 516.1, 0.6, 22.5),
-    "quality": (156, 853.9, 0.7, 16.7),
+    "quality": (244, 532.1, 1.7, 38.4),
 }
 #: smooth with the scan (smooth.surface_from_image): the image reader's libraries at import
 #: and the scan (float32, its smoothed crop) on top of the mesh, per million scan voxels;

@@ -43,10 +43,14 @@ def test_html_shows_stage_reports_and_pictures():
     mesh = voxel_mesh(np.ones((2, 2, 2), np.uint8))
     report = quality_report(mesh, load_config())
     report["stages"] = {"fix": {"changed_voxels": 7, "type_a": {"bone": 3}}, "merge": {"elements_after": 1}}
-    page = render_html(report, ["segmentation.png"])
+    png = b"\x89PNG\r\n\x1a\n-a-picture"
+    page = render_html(report, [("Segmentation", png)])
     assert "<h2>Stage: fix</h2>" in page and "<h2>Stage: merge</h2>" in page
     assert "<td>7</td>" in page and "{&quot;bone&quot;: 3}" in page
-    assert "<img src='segmentation.png'" in page
+    # embedded, so the page shows it wherever it is opened (inside snakemake --report too)
+    import base64
+
+    assert f"<img src='data:image/png;base64,{base64.b64encode(png).decode()}' alt='Segmentation'>" in page
 
 
 def test_counts_of_hundreds_of_materials():

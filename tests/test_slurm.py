@@ -124,11 +124,14 @@ def test_cohort_on_slurm_with_a_bad_scan_then_the_rerun(slurm, tmp_path):
     sheet = workdir / "config" / "patients.tsv"
     sheet.write_text(sheet.read_text().replace("data/broken.nii.gz", "data/head.nii.gz"))
     second = _run(workdir)
-    # only the fixed patient's stages ran (Snakemake's job table at the start of the run)
+    # only the fixed patient's stages ran (Snakemake's job table at the start of the run), then
+    # the cohort table, which waited for every patient (a local rule: no SLURM job)
     assert _planned_jobs(second) == {"segment": 1, "downsample": 1, "fix": 1, "mesh": 1, "merge": 1, "smooth": 1, "export": 1,
-                       "quality": 1, "all": 1}
+                       "quality": 1, "cohort": 1, "all": 1}
     assert second.returncode == 0, (second.stdout + second.stderr)[-3000:]
     assert json.loads((workdir / "results" / "bad" / "quality.json").read_text())["elements"] > 50
     assert len(_submitted(second)) == 1
+    rows = (workdir / "results" / "cohort.tsv").read_text().splitlines()[1:]
+    assert sorted(r.split("\t")[0] for r in rows) == ["bad", "bone", "head"]
     assert {p: (workdir / "results" / p / "model.inp").stat().st_mtime_ns for p in ("head", "bone")} == mtimes
     print(f"SLURM test: first run {first_seconds:.0f} s, rerun {time.monotonic() - start - first_seconds:.0f} s")

@@ -25,8 +25,10 @@ except DicerError as exc:
 
 RESULTS = CONFIG["workflow"]["results"]
 PHANTOM_DIR = "resources/phantoms"
-# the environment every rule runs in (used with --software-deployment-method conda)
+# the environment every rule runs in (used with --software-deployment-method conda); its
+# post-deploy script installs dicer from this checkout, found through DICER_SOURCE
 CONDA_ENV = "../../environment.yml"
+os.environ.update(DICER_SOURCE=str(Path(workflow.basedir).resolve()))
 
 
 def patient_file(name):
@@ -197,7 +199,18 @@ def all_outputs():
     for patient in PATIENTS:
         names = [f"model.{ext}" for ext in CONFIG["workflow"]["exports"]] + ["quality.json", "report.html"]
         outputs += [os.path.join(RESULTS, patient, name) for name in names]
+    if PATIENTS:
+        outputs.append(os.path.join(RESULTS, "cohort.html"))
     return outputs
+
+
+def patient_stages(patient):
+    """The stages a patient's model goes through, as named in benchmarks/<patient>/<stage>.tsv."""
+    first = ["labels"] if patient in LABEL_PATIENTS else ["segment"]
+    if patient not in LABEL_PATIENTS or downsample_applies(patient_config(patient)):
+        first.append("downsample")
+    exports = [f"export_{ext}" for ext in CONFIG["workflow"]["exports"]]
+    return first + ["fix", "mesh", "merge", "smooth"] + exports + ["quality"]
 
 
 wildcard_constraints:

@@ -30,6 +30,7 @@ rule quality:
     input:
         mesh=patient_file("smoothed.vtu"),
         labels=patient_file("labels_fixed.nii.gz"),
+        original=patient_file("labels.nii.gz"),
         pictures=pictures,
         materials=materials_input,
         reports=[patient_file(f"{stage}.json") for stage in ("fix", "merge", "smooth")],
@@ -38,8 +39,30 @@ rule quality:
         html=report(
             patient_file("report.html"),
             caption="../report/quality.rst",
-            category="Mesh quality",
-            labels={"patient": "{patient}"},
+            category="Patients",
+            subcategory="{patient}",
+            labels={"patient": "{patient}", "figure": "quality report"},
+        ),
+        histogram=report(
+            patient_file("jacobian.png"),
+            caption="../report/jacobian.rst",
+            category="Patients",
+            subcategory="{patient}",
+            labels={"patient": "{patient}", "figure": "scaled Jacobian"},
+        ),
+        model=report(
+            patient_file("model.png"),
+            caption="../report/model.rst",
+            category="Patients",
+            subcategory="{patient}",
+            labels={"patient": "{patient}", "figure": "model"},
+        ),
+        node_classes=report(
+            patient_file("node_classes.png"),
+            caption="../report/node_classes.rst",
+            category="Patients",
+            subcategory="{patient}",
+            labels={"patient": "{patient}", "figure": "node classes"},
         ),
     params:
         settings=settings("quality"),
@@ -56,6 +79,8 @@ rule quality:
     log:
         "logs/{patient}/quality.log",
     shell:
-        "dicer quality {input.mesh:q} --labels {input.labels:q} -o {output.json:q} --html {output.html:q}"
-        " {params.pictures} {params.materials} --stage-report {input.reports[0]:q} --stage-report {input.reports[1]:q}"
+        "dicer quality {input.mesh:q} --labels {input.labels:q} --original {input.original:q} -o {output.json:q}"
+        " --html {output.html:q} --histogram {output.histogram:q} --model-picture {output.model:q}"
+        " --node-classes {output.node_classes:q} {params.pictures} {params.materials}"
+        " --stage-report {input.reports[0]:q} --stage-report {input.reports[1]:q}"
         " --stage-report {input.reports[2]:q} --settings {params.settings:q} > {log:q} 2>&1"

@@ -26,7 +26,13 @@ rule segment:
         patient_image,
     output:
         labels=patient_file("labels.nii.gz"),
-        overlay=patient_file("segmentation.png"),
+        overlay=report(
+            patient_file("segmentation.png"),
+            caption="../report/segmentation.rst",
+            category="Patients",
+            subcategory="{patient}",
+            labels={"patient": "{patient}", "figure": "segmentation"},
+        ),
         info=patient_file("segmentation.json"),
     params:
         settings=settings("segment"),

@@ -60,8 +60,10 @@ def stage_commands(image: Path, out: Path, sets: list[str], dicer: str = "dicer"
         ("smooth", [dicer, "smooth", o("merged.vtu"), "-o", o("smoothed.vtu"), "--report", o("smooth.json")]),
         ("export_inp", [dicer, "export", o("smoothed.vtu"), "-o", o("model.inp")]),
         ("export_vtu", [dicer, "export", o("smoothed.vtu"), "-o", o("model.vtu")]),
-        ("quality", [dicer, "quality", o("smoothed.vtu"), "--labels", o("labels_fixed.nii.gz"), "-o", o("quality.json"),
-                     "--html", o("report.html"), "--picture", o("segmentation.png"),
+        ("quality", [dicer, "quality", o("smoothed.vtu"), "--labels", o("labels_fixed.nii.gz"),
+                     "--original", o("labels.nii.gz"), "-o", o("quality.json"), "--html", o("report.html"),
+                     "--histogram", o("jacobian.png"), "--model-picture", o("model.png"),
+                     "--node-classes", o("node_classes.png"), "--picture", o("segmentation.png"),
                      "--stage-report", o("fix.json"), "--stage-report", o("merge.json"),
                      "--stage-report", o("smooth.json")]),
     ]

@@ -1,0 +1,119 @@
+"""Cohort overview: one row per patient from its quality report and its stages' benchmarks.
+
+Pure functions on already-read data (``dicer cohort`` reads the files): the quality reports
+(``quality.json``) and Snakemake's ``benchmark:`` lines (wall seconds ``s`` and peak resident
+memory ``max_rss`` in MB per stage).
+"""
+
+from __future__ import annotations
+
+import html
+
+from dicer.quality import STYLE
+
+#: stages in pipeline order (others follow alphabetically)
+STAGE_ORDER = ("phantom", "segment", "labels", "downsample", "fix", "mesh", "merge", "smooth", "export_inp",
+               "export_vtu", "export_out", "export_neu", "export_k", "export_msh", "export_exo", "export_e",
+               "export_feb", "quality")
+
+
+def _stages(benchmarks: dict[str, dict[str, dict]]) -> list[str]:
+    seen = {stage for stages in benchmarks.values() for stage in stages}
+    return [s for s in STAGE_ORDER if s in seen] + sorted(seen - set(STAGE_ORDER))
+
+
+def _materials(reports: dict[str, dict]) -> list[str]:
+    names: list[str] = []
+    for report in reports.values():
+        names += [n for n in report.get("materials", {}) if n not in names]
+    return names
+
+
+def _number(value) -> float | None:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):  # Snakemake writes NA for a stage too short to sample
+        return None
+    return out if out == out else None
+
+
+def cohort_rows(reports: dict[str, dict], benchmarks: dict[str, dict[str, dict]] | None = None) -> tuple[list[str], list[list]]:
+    """The cohort table: (column names, one row per patient in the order of ``reports``).
+
+    reports : patient -> quality report (``dicer quality``'s JSON).
+    benchmarks : patient -> stage -> a benchmark line as a dict (keys ``s``, ``max_rss``).
+    Columns: patient, elements, nodes, min_scaled_jacobian, p1_scaled_jacobian, inverted, poor,
+    parts (face-connected parts of the model), floating_elements, per material
+    ``volume_change_percent:<name>`` (against the meshed labels) and
+    ``original_volume_change_percent:<name>`` (against the full-resolution segmentation), per
+    stage ``seconds:<stage>`` and ``peak_mb:<stage>``. A missing value is None.
+    """
+    benchmarks = benchmarks or {}
+    materials = _materials(reports)
+    stages = _stages(benchmarks)
+    columns = ["patient", "elements", "nodes", "min_scaled_jacobian", "p1_scaled_jacobian", "inverted", "poor",
+               "parts", "floating_elements"]
+    columns += [f"volume_change_percent:{m}" for m in materials]
+    columns += [f"original_volume_change_percent:{m}" for m in materials]
+    columns += [f"{kind}:{s}" for s in stages for kind in ("seconds", "peak_mb")]
+    rows = []
+    for patient, r in reports.items():
+        sj = r.get("scaled_jacobian", {})
+        parts = r.get("parts", {}).get("model", {})
+        row = [patient, r.get("elements"), r.get("nodes"), sj.get("min"), sj.get("p1"), r.get("inverted_elements"),
+               r.get("poor_elements"), parts.get("parts"), parts.get("floating_elements")]
+        mats = r.get("materials", {})
+        row += [mats.get(m, {}).get("volume_change_percent") for m in materials]
+        row += [mats.get(m, {}).get("original_volume_change_percent") for m in materials]
+        bench = benchmarks.get(patient, {})
+        for s in stages:
+            row += [_number(bench.get(s, {}).get("s")), _number(bench.get(s, {}).get("max_rss"))]
+        rows.append(row)
+    return columns, rows
+
+
+def _cell(value, spec: str = "") -> str:
+    return "–" if value is None else (format(value, spec) if spec else str(value))
+
+
+def cohort_tsv(columns: list[str], rows: list[list]) -> str:
+    """The table as tab-separated text (empty cells for missing values)."""
+    lines = ["\t".join(columns)]
+    lines += ["\t".join("" if v is None else str(v) for v in row) for row in rows]
+    return "\n".join(lines) + "\n"
+
+
+def render_cohort_html(columns: list[str], rows: list[list], poor_threshold: float | None = None) -> str:
+    """The cohort overview as one self-contained HTML table; a patient with an inverted element or a
+    floating part is highlighted."""
+    at = {c: i for i, c in enumerate(columns)}
+    materials = [c.split(":", 1)[1] for c in columns if c.startswith("volume_change_percent:")]
+    stages = [c.split(":", 1)[1] for c in columns if c.startswith("seconds:")]
+    head1 = ("<tr><th rowspan='2'>patient</th><th rowspan='2'>elements</th><th rowspan='2'>nodes</th>"
+             "<th colspan='2'>scaled Jacobian</th><th rowspan='2'>inverted</th><th rowspan='2'>poor"
+             + (f" (&lt; {poor_threshold:g})" if poor_threshold is not None else "") + "</th>"
+             "<th rowspan='2'>parts</th><th rowspan='2'>floating elements</th>"
+             + (f"<th colspan='{len(materials)}'>volume change, % (against meshed labels / original)</th>"
+                if materials else "")
+             + (f"<th colspan='{len(stages)}'>seconds / peak MB per stage</th>" if stages else "") + "</tr>")
+    head2 = ("<tr><th>min</th><th>p1</th>" + "".join(f"<th>{html.escape(m)}</th>" for m in materials)
+             + "".join(f"<th>{html.escape(s)}</th>" for s in stages) + "</tr>")
+    body = []
+    for row in rows:
+        warn = bool(row[at["inverted"]]) or (row[at["parts"]] or 1) > 1
+        cells = [html.escape(str(row[at["patient"]])), _cell(row[at["elements"]]), _cell(row[at["nodes"]]),
+                 _cell(row[at["min_scaled_jacobian"]], ".3f"), _cell(row[at["p1_scaled_jacobian"]], ".3f"),
+                 _cell(row[at["inverted"]]), _cell(row[at["poor"]]), _cell(row[at["parts"]]),
+                 _cell(row[at["floating_elements"]])]
+        cells += [f"{_cell(row[at[f'volume_change_percent:{m}']], '+.1f')} / "
+                  f"{_cell(row[at[f'original_volume_change_percent:{m}']], '+.1f')}" for m in materials]
+        cells += [f"{_cell(row[at[f'seconds:{s}']], '.1f')} / {_cell(row[at[f'peak_mb:{s}']], '.0f')}"
+                  for s in stages]
+        body.append(f"<tr{' class=warn' if warn else ''}>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
+    return ("<!DOCTYPE html><html><head><meta charset='utf-8'><title>dicer cohort</title>"
+            f"<style>{STYLE}</style></head><body><h1>Cohort overview</h1>"
+            f"<p>{len(rows)} patient(s). Parts: the model's face-connected parts (more than one: a part "
+            "floats). Volume change: the mesh against the voxels it was made from, and against the "
+            "original full-resolution segmentation. Seconds and peak memory: Snakemake's benchmark of "
+            "each stage (– where none was recorded).</p>"
+            f"<table>{head1}{head2}{''.join(body)}</table></body></html>\n")

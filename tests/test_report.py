@@ -1,0 +1,178 @@
+"""The report: floating parts, volume against the original segmentation, the pictures, the cohort table."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from matplotlib.image import imread
+
+from dicer.cohort import cohort_rows, cohort_tsv, render_cohort_html
+from dicer.config import load_config
+from dicer.image import Volume
+from dicer.io.pictures import (material_colour, save_jacobian_histogram, save_model_picture,
+                               save_node_class_chart, visible_faces)
+from dicer.mesh.voxel import voxel_mesh
+from dicer.quality import element_neighbours, floating_parts, quality_report, render_html
+
+
+def _islands():
+    """A 4x4x4 soft-tissue block holding a 2x2x1 bone plate, a 1-voxel bone island beside it
+    (touching only along an edge), and a free 2x1x1 soft-tissue island far off."""
+    labels = np.zeros((10, 6, 6), np.uint8)
+    labels[:4, :4, :4] = 1
+    labels[1:3, 1:3, 3] = 2           # bone plate on the block's top, inside it
+    labels[4, 4, 2] = 2               # shares only an edge with the block: floats
+    labels[8:10, 0, 0] = 1            # a free pair of elements
+    return labels
+
+
+def test_floating_parts_count_face_connected_parts():
+    mesh = voxel_mesh(_islands())
+    parts = floating_parts(mesh)
+    assert parts["model"] == {"parts": 3, "largest": 64, "smallest": 1, "floating_elements": 3}
+    assert parts["materials"][1] == {"parts": 2, "largest": 60, "smallest": 2}
+    assert parts["materials"][2] == {"parts": 2, "largest": 4, "smallest": 1}
+    report = quality_report(mesh, load_config())
+    assert report["parts"]["model"]["parts"] == 3
+    assert report["parts"]["materials"]["bone"]["parts"] == 2
+    page = render_html(report)
+    assert "<h2>Floating parts</h2>" in page and "3 parts: 3 element(s) float" in page
+
+
+def test_one_part_is_reported_as_nothing_floating():
+    labels = np.ones((3, 3, 3), np.uint8)
+    labels[1, 1, 1] = 2  # enclosed: one part of the model, one of each material
+    parts = floating_parts(voxel_mesh(labels))
+    assert parts["model"] == {"parts": 1, "largest": 27, "smallest": 27, "floating_elements": 0}
+    assert parts["materials"] == {1: {"parts": 1, "largest": 26, "smallest": 26},
+                                  2: {"parts": 1, "largest": 1, "smallest": 1}}
+
+
+def test_volume_against_the_original_segmentation():
+    # the original at 1 mm; the meshed labels at 2 mm with a grown bone (as downsampling grows thin bone)
+    original = np.zeros((8, 8, 8), np.uint8)
+    original[:, :, :4] = 1
+    original[:, :, 4] = 2               # one voxel-layer of bone: 64 mm^3
+    coarse = np.zeros((4, 4, 4), np.uint8)
+    coarse[:, :, :2] = 1
+    coarse[:, :, 2] = 2                 # a 2 mm layer: 128 mm^3
+    mesh = voxel_mesh(coarse, spacing=(2.0, 2.0, 2.0))
+    report = quality_report(mesh, load_config(), labels=Volume(coarse, (2.0, 2.0, 2.0)),
+                            original=Volume(original, (1.0, 1.0, 1.0)))
+    bone, soft = report["materials"]["bone"], report["materials"]["soft_tissue"]
+    assert bone["volume_change_percent"] == pytest.approx(0.0)
+    assert bone["original_volume_mm^3"] == pytest.approx(64.0)
+    assert bone["original_volume_change_percent"] == pytest.approx(100.0)
+    assert soft["original_volume_change_percent"] == pytest.approx(0.0)
+    page = render_html(report)
+    assert "<td>+100.00</td>" in page and "original segmentation" in page
+
+
+def test_visible_faces_of_a_cube_and_its_cut():
+    mesh = voxel_mesh(np.ones((2, 2, 2), np.uint8))
+    nb = element_neighbours(mesh)
+    towards = np.array([1.0, 1.0, 1.0]) / np.sqrt(3.0)
+    keep = np.ones(8, bool)
+    e_idx, quads, lambert = visible_faces(mesh.points, mesh.cells, nb, keep, towards)
+    assert quads.shape == (12, 4)  # three sides of 4 faces each face the eye from (1, 1, 1)
+    assert np.all(lambert > 0)
+    centre = mesh.points[quads].mean(axis=1)
+    assert np.all(np.diff(centre @ towards) >= -1e-12)  # far to near
+    # cut away x > 1: the x = 2 side is gone, the cut face x = 1 (4 faces) shows, and 2 + 2 on y and z
+    keep = mesh.points[mesh.cells].mean(axis=1)[:, 0] < 1.0
+    _, quads, _ = visible_faces(mesh.points, mesh.cells, nb, keep, towards)
+    assert quads.shape == (8, 4)
+    assert np.count_nonzero(np.all(np.isclose(mesh.points[quads][:, :, 0], 1.0), axis=1)) == 4
+
+
+def test_pictures_are_reproducible_and_show_the_materials(tmp_path):
+    labels = _islands()
+    mesh = voxel_mesh(labels)
+    mesh.points += np.random.default_rng(1).normal(0, 0.05, mesh.points.shape)
+    names = {1: "soft_tissue", 2: "bone"}
+    from dicer.mesh.metrics import scaled_jacobian
+
+    sj = scaled_jacobian(mesh.points, mesh.cells)
+    for run in ("a", "b"):
+        save_model_picture(mesh, names, tmp_path / f"model_{run}.png")
+        save_jacobian_histogram(sj, mesh.material, names, tmp_path / f"sj_{run}.png", poor=0.2)
+        save_node_class_chart({"interior": 5, "A": 3, "B": 2, "C": 0, "D": 7, "E": 1, "F": 1}, tmp_path / f"nc_{run}.png")
+    for stem in ("model", "sj", "nc"):
+        assert (tmp_path / f"{stem}_a.png").read_bytes() == (tmp_path / f"{stem}_b.png").read_bytes(), stem
+        assert b"tEXt" not in (tmp_path / f"{stem}_a.png").read_bytes()  # no date or software tag
+    picture = imread(tmp_path / "model_a.png")[:, :, :3]
+    assert picture.shape == (500, 1000, 3)  # 10 x 5 inches at 100 dpi
+    from matplotlib.colors import to_rgb
+
+    # both materials' colours appear (shaded: the hue's ratio holds); background white dominates
+    for label in (1, 2):
+        rgb = np.array(to_rgb(material_colour(label)))
+        ratio = picture / np.maximum(picture.max(axis=2, keepdims=True), 1e-6)
+        near = np.all(np.abs(ratio - rgb / rgb.max()) < 0.06, axis=2) & (picture.max(axis=2) > 0.2)
+        assert np.count_nonzero(near) > 200, label
+
+
+def test_model_picture_of_a_2d_mesh(tmp_path):
+    labels = np.zeros((6, 5), np.uint8)
+    labels[1:5, 1:4] = 1
+    labels[2:4, 2] = 2
+    path = save_model_picture(voxel_mesh(labels), {1: "a", 2: "b"}, tmp_path / "m.png")
+    assert imread(path).shape[:2] == (500, 500)
+
+
+def _report(elements, inverted=0, parts=1, bone=(1.5, 23.0)):
+    return {"elements": elements, "nodes": elements + 7, "scaled_jacobian": {"min": 0.31, "p1": 0.52},
+            "inverted_elements": inverted, "poor_elements": 2, "poor_threshold": 0.2,
+            "parts": {"model": {"parts": parts, "floating_elements": 4 * (parts - 1)}},
+            "materials": {"soft_tissue": {"volume_change_percent": -0.5, "original_volume_change_percent": 2.0},
+                          "bone": {"volume_change_percent": bone[0], "original_volume_change_percent": bone[1]}}}
+
+
+def test_cohort_table_rows_and_columns():
+    reports = {"p1": _report(100), "p2": _report(200, inverted=1, parts=2)}
+    bench = {"p1": {"quality": {"s": "1.25", "max_rss": "300.5"}, "mesh": {"s": "0.5", "max_rss": "NA"}},
+             "p2": {"mesh": {"s": "0.7", "max_rss": "120"}}}
+    columns, rows = cohort_rows(reports, bench)
+    at = {c: i for i, c in enumerate(columns)}
+    assert columns[:9] == ["patient", "elements", "nodes", "min_scaled_jacobian", "p1_scaled_jacobian", "inverted",
+                           "poor", "parts", "floating_elements"]
+    # stages in pipeline order, materials in report order
+    assert [c for c in columns if c.startswith("seconds:")] == ["seconds:mesh", "seconds:quality"]
+    assert rows[0][at["original_volume_change_percent:bone"]] == 23.0
+    assert rows[0][at["peak_mb:quality"]] == 300.5 and rows[0][at["peak_mb:mesh"]] is None
+    assert rows[1][at["seconds:quality"]] is None and rows[1][at["floating_elements"]] == 4
+    tsv = cohort_tsv(columns, rows).splitlines()
+    assert len(tsv) == 3 and tsv[1].split("\t")[:3] == ["p1", "100", "107"]
+    page = render_cohort_html(columns, rows, 0.2)
+    assert page.count("<tr class=warn>") == 1  # p2: inverted and floating
+    assert "<td>+1.5 / +23.0</td>" in page and "<td>1.2 / 300</td>" in page and "<td>0.5 / –</td>" in page
+
+
+def _dicer(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "dicer", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd, timeout=300)
+
+
+def test_cohort_command_and_its_errors(tmp_path):
+    for patient, n in (("a", 10), ("b", 20)):
+        (tmp_path / "results" / patient).mkdir(parents=True)
+        (tmp_path / "results" / patient / "quality.json").write_text(json.dumps(_report(n)))
+    (tmp_path / "benchmarks" / "a").mkdir(parents=True)
+    (tmp_path / "benchmarks" / "a" / "fix.tsv").write_text("s\th:m:s\tmax_rss\n2.5\t0:00:02\t150.1\n")
+    proc = _dicer("cohort", tmp_path / "results/a/quality.json", tmp_path / "results/b/quality.json",
+                  "-o", tmp_path / "cohort.html", "--tsv", tmp_path / "cohort.tsv", "--benchmarks", tmp_path / "benchmarks")
+    assert proc.returncode == 0, proc.stderr
+    lines = (tmp_path / "cohort.tsv").read_text().splitlines()
+    assert lines[0].endswith("seconds:fix\tpeak_mb:fix")
+    assert lines[1].split("\t")[0] == "a" and lines[1].endswith("2.5\t150.1")
+    assert lines[2].split("\t")[0] == "b" and lines[2].endswith("\t\t")
+    (tmp_path / "results" / "b" / "quality.json").write_text("{not json")
+    proc = _dicer("cohort", tmp_path / "results/b/quality.json", "-o", tmp_path / "c2.html")
+    assert proc.returncode == 2 and proc.stderr.startswith("error: ") and len(proc.stderr.splitlines()) == 1
+    assert "cannot read the quality report" in proc.stderr and not (tmp_path / "c2.html").exists()
+    (tmp_path / "benchmarks" / "a" / "fix.tsv").write_text("garbage\n")
+    proc = _dicer("cohort", tmp_path / "results/a/quality.json", "-o", tmp_path / "c3.html",
+                  "--benchmarks", tmp_path / "benchmarks")
+    assert proc.returncode == 2 and "not a Snakemake benchmark file" in proc.stderr

@@ -422,7 +422,13 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
             from dicer.io.images import read_labels
 
             labels = read_labels(labels_path)
-        report = quality_report(mesh, config, labels=labels)
+        # every element metric once: the report's, and the CSV's with skew
+        from dicer.mesh.metrics import element_metrics
+        from dicer.quality import REPORT_METRICS
+
+        names = REPORT_METRICS + (("skew",) if csv else ())
+        metrics = element_metrics(mesh.points, mesh.cells, names)
+        report = quality_report(mesh, config, labels=labels, metrics=metrics)
         stages = {}
         for path in stage_reports:
             try:
@@ -439,7 +445,7 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
         if csv:
             from dicer.io.metrics_csv import write_metrics_csv
 
-            write_metrics_csv(mesh, csv)
+            write_metrics_csv(mesh, csv, metrics)
         write_bytes_atomic(out, text)
         log.info("quality: wrote %s (min scaled Jacobian %.3f, %d inverted)", out,
                  report["scaled_jacobian"]["min"], report["inverted_elements"])

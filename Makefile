@@ -7,7 +7,7 @@ BIN     = $(VENV)/bin
 CORES  ?= 2
 SUDO    = $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: setup system demo test test-all bench clean
+.PHONY: setup system demo test test-all bench bench-stages clean
 
 # System packages: the CalculiX solver (tests run it) and venv support.
 system:
@@ -34,7 +34,15 @@ test: setup
 test-all: setup
 	$(BIN)/python -m pytest -q -m ''
 
+# whole processes, dicer's commands beside automesh's, at 64^3, 128^3 and 256^3;
+# make bench BENCH_ARGS='--sizes 64,128,256,512' adds 512^3 (long; about 24 GB)
+BENCH_ARGS ?=
 bench: setup
+	$(BIN)/pip install -q -e '.[test,bench]'
+	$(BIN)/python -m dicer.bench --processes $(BENCH_ARGS)
+
+# the stages' library functions, each in its own process, beside PyVista, meshio and automesh
+bench-stages: setup
 	$(BIN)/pip install -q -e '.[test,bench]'
 	$(BIN)/python -m dicer.bench
 

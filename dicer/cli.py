@@ -474,8 +474,14 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
 
             labels = read_labels(labels_path) if labels_path else None
             original = read_labels(original_path) if original_path else None
-        sj = scaled_jacobian(mesh.points, mesh.cells)
-        report = quality_report(mesh, config, labels=labels, original=original, sj=sj)
+        # every element metric once: the report's, the figures' and the CSV's with skew
+        from dicer.mesh.metrics import element_metrics
+        from dicer.quality import REPORT_METRICS
+
+        names = REPORT_METRICS + (("skew",) if csv else ())
+        metrics = element_metrics(mesh.points, mesh.cells, names)
+        sj = metrics["scaled_jacobian"]
+        report = quality_report(mesh, config, labels=labels, original=original, metrics=metrics)
         stages = {}
         for path in stage_reports:
             try:
@@ -498,7 +504,7 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
         if csv:
             from dicer.io.metrics_csv import write_metrics_csv
 
-            write_metrics_csv(mesh, csv)
+            write_metrics_csv(mesh, csv, metrics)
         write_bytes_atomic(out, text)
         log.info("quality: wrote %s (min scaled Jacobian %.3f, %d inverted, %d part(s))", out,
                  report["scaled_jacobian"]["min"], report["inverted_elements"], report["parts"]["model"]["parts"])

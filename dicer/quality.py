@@ -14,11 +14,13 @@ import numpy as np
 
 from dicer import __version__
 from dicer.config import material_names
-from dicer.mesh.metrics import edge_ratio, element_volumes, scaled_jacobian
+from dicer.mesh.metrics import element_metrics
 from dicer.mesh.model import Mesh
 
 _PERCENTILES = (1, 5, 25, 50, 75, 95, 99)
 _NODE_CLASSES = "ABCDEF"
+REPORT_METRICS = ("scaled_jacobian", "edge_ratio", "volume")
+"""The element metrics :func:`quality_report` uses."""
 
 
 def _r(x: float) -> float:
@@ -44,18 +46,31 @@ def _material_counts(mesh: Mesh, sj: np.ndarray, vol: np.ndarray) -> dict[str, n
     label = np.flatnonzero(elements)
     lowest = np.full(size, np.inf)
     np.minimum.at(lowest, material, sj)
-    # nodes: the distinct (node, material) pairs, as one sorted int64 key per element corner
+    nodes = _material_nodes(mesh.cells, material, label, size, mesh.n_points)
+    return {"label": label, "elements": elements[label], "nodes": nodes,
+            "volume": np.bincount(material, weights=vol, minlength=size)[label], "min_scaled_jacobian": lowest[label]}
+
+
+def _material_nodes(cells: np.ndarray, material: np.ndarray, label: np.ndarray, size: int, n_points: int
+                    ) -> np.ndarray:
+    """(K,) the number of distinct nodes of each material ``label`` holds: the distinct
+    (node, material) pairs, one flag per pair in an (n_points, K) table when that is no
+    larger than the element corners as int64 keys (one pass over the corners), else by
+    sorting those keys."""
+    k = label.size
     rank = np.zeros(size, np.int64)
-    rank[label] = np.arange(label.size)
-    key = mesh.cells * np.int64(label.size)
+    rank[label] = np.arange(k)
+    if n_points * k <= cells.size * 8:
+        seen = np.zeros((n_points, k), bool)
+        seen[cells, rank[material][:, None]] = True
+        return np.count_nonzero(seen, axis=0)
+    key = cells * np.int64(k)
     key += rank[material][:, None]
     key = key.ravel()
     key.sort(kind="stable")  # element corners come in runs of increasing nodes
     first = np.ones(key.size, bool)
     np.not_equal(key[1:], key[:-1], out=first[1:])
-    nodes = np.bincount(key[first] % label.size, minlength=label.size)
-    return {"label": label, "elements": elements[label], "nodes": nodes,
-            "volume": np.bincount(material, weights=vol, minlength=size)[label], "min_scaled_jacobian": lowest[label]}
+    return np.bincount(key[first] % k, minlength=k)
 
 
 def element_neighbours(mesh: Mesh) -> np.ndarray:
@@ -114,7 +129,7 @@ def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None) -> dict:
     return out
 
 
-def quality_report(mesh: Mesh, config: dict, labels=None, original=None, sj: np.ndarray | None = None) -> dict:
+def quality_report(mesh: Mesh, config: dict, labels=None, original=None, metrics: dict | None = None) -> dict:
     """Quality figures of ``mesh`` as a JSON-ready dict.
 
     mesh : the mesh to assess.
@@ -124,12 +139,13 @@ def quality_report(mesh: Mesh, config: dict, labels=None, original=None, sj: np.
     original : optional label Volume of the segmentation before downsampling (the full-resolution
         labels); adds its voxel volume per material and the mesh's volume change against it, which
         holds what downsampling changed too.
-    sj : optional (M,) scaled Jacobian of the elements, when the caller has it already.
+    metrics : the elements' metrics already computed (:func:`dicer.mesh.metrics.element_metrics`
+        with at least ``REPORT_METRICS``); computed here when not given.
     """
     names = material_names(config)
-    sj = scaled_jacobian(mesh.points, mesh.cells) if sj is None else sj
-    vol = element_volumes(mesh.points, mesh.cells)
-    er = edge_ratio(mesh.points, mesh.cells)
+    if metrics is None:
+        metrics = element_metrics(mesh.points, mesh.cells, REPORT_METRICS)
+    sj, vol, er = metrics["scaled_jacobian"], metrics["volume"], metrics["edge_ratio"]
     poor = float(config["quality"]["poor_scaled_jacobian"])
     unit = "mm^3" if mesh.dim == 3 else "mm^2"
 

@@ -218,3 +218,23 @@ def test_a_damaged_size_word_is_refused_before_reading(tmp_path):
     path.write_bytes(bytes(data))
     with pytest.raises(DicerError, match="m.vtu: .*more than the file holds"):
         read_mesh(path)
+
+
+@pytest.mark.parametrize("cut", [-1, -20, -200, 0.9, 0.5])
+def test_mapped_read_back_agrees_and_refuses_damage(tmp_path, mesh, cut):
+    """The read-back check reads the file mapped (arrays are views, no copy): the same
+    arrays as the reading into memory, and the same refusal of a file cut short."""
+    from dicer.io.meshes import _read_mapped_vtu, _read_raw_vtu
+
+    path = tmp_path / "m.vtu"
+    write_mesh(_with_extra_data(mesh), path)
+    copied, mapped = _read_raw_vtu(path, "m.vtu"), _read_mapped_vtu(path, "m.vtu")
+    assert copied[0] == mapped[0]
+    for a, b in zip(copied[1:3], mapped[1:3]):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+    for a, b in zip(copied[3:5], mapped[3:5]):
+        assert list(a) == list(b) and all(a[k].tobytes() == b[k].tobytes() for k in a)  # NaN too
+    data = path.read_bytes()
+    path.write_bytes(data[:cut] if isinstance(cut, int) else data[:int(len(data) * cut)])
+    with pytest.raises(DicerError, match=r"m\.vtu: cannot read mesh .*is the file complete\?"):
+        _read_mapped_vtu(path, "m.vtu")

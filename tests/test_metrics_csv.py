@@ -81,3 +81,22 @@ def test_cli_quality_csv(tmp_path, capsys, mesh):
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and err.startswith("error: ") and "c.txt" in err and ".csv" in err
     assert not (tmp_path / "c.json").exists() and not (tmp_path / "c.txt").exists()
+
+
+def test_parse_in_blocks_of_lines(monkeypatch):
+    """A file longer than a block parses to the same values, and an error in a later
+    block names its line in the whole file."""
+    import dicer.io.metrics_csv as mc
+
+    rng = np.random.default_rng(1)
+    values = np.abs(rng.normal(1, 0.5, (50, 4)))
+    data = HEADER + b"".join(_lines(values))
+    whole = parse_metrics_csv(data)
+    monkeypatch.setattr(mc, "_CHUNK", 100)  # about two lines per block
+    assert parse_metrics_csv(data).tobytes() == whole.tobytes()
+    lines = data.split(b"\n")
+    lines[40] = lines[40].replace(b"e", b"x", 1)
+    with pytest.raises(DicerError, match="line 41 holds"):
+        parse_metrics_csv(b"\n".join(lines))
+    monkeypatch.setattr(mc, "_CHUNK", 10)  # blocks shorter than one line
+    assert parse_metrics_csv(data).tobytes() == whole.tobytes()

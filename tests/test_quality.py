@@ -76,3 +76,21 @@ def test_counts_of_hundreds_of_materials():
         assert entry["volume_mm^3"] == pytest.approx(vol[sel].sum(), rel=1e-5)
         assert entry["min_scaled_jacobian"] == pytest.approx(sj[sel].min(), rel=1e-5)
     assert sum(e["nodes"] for e in report["materials"].values()) > mesh.n_points  # shared nodes count twice
+
+
+@pytest.mark.parametrize("materials", [2, 90])
+def test_nodes_per_material_by_flags_and_by_sorting(materials):
+    """Few materials count their nodes in a table of flags, many by sorting keys: both
+    give the distinct nodes of each material's elements."""
+    from dicer.quality import _material_nodes
+
+    rng = np.random.default_rng(materials)
+    labels = rng.integers(0, materials + 1, (9, 8, 7)).astype(np.uint8)
+    mesh = voxel_mesh(labels)
+    material = mesh.material.astype(np.int64)
+    present = np.unique(material)
+    expect = [np.unique(mesh.cells[material == k]).size for k in present]
+    got = _material_nodes(mesh.cells, material, present, int(material.max()) + 1, mesh.n_points)
+    assert got.tolist() == expect
+    # 2 materials take the flags, 90 the sort (a table of 90 flags per node outgrows the keys)
+    assert (mesh.n_points * present.size <= mesh.cells.size * 8) == (materials == 2)

@@ -8,13 +8,17 @@ file write per array and reading one ``np.fromfile`` per array, so both run at d
 speed; meshio's VTU writer and reader (base64 or zlib) took 5-20 s each on a 6.4 M
 element mesh (see docs/benchmark.md). meshio reads these files too, and checks the
 small ones after writing (MESHIO_CHECK_CELLS). Other VTU files (older dicer files,
-ParaView's) are read with meshio.
+ParaView's) are read with meshio. The read-back check maps the file and compares its
+arrays in place, and a reader maps rather than copies the arrays it only checks
+(offsets, cell types) or drops (the quality data): fresh memory for a second copy of a
+mesh costs more than the comparison.
 """
 
 from __future__ import annotations
 
 import contextlib
 import io
+import mmap
 import os
 import shutil
 from dataclasses import replace
@@ -240,7 +244,9 @@ def write_mesh(mesh: Mesh, path: str | os.PathLike, allow_inverted: bool = False
         _write_vtu(mesh, tmp)
         # the file must hold exactly the mesh that passed check_mesh above (so the
         # element metrics need not be computed a second time)
-        readers = [_read_raw_vtu] + ([_read_meshio] if mesh.n_cells <= MESHIO_CHECK_CELLS else [])
+        # dicer's reader maps the file and compares its arrays in place: the read-back
+        # allocates no second copy of the mesh
+        readers = [_read_mapped_vtu] + ([_read_meshio] if mesh.n_cells <= MESHIO_CHECK_CELLS else [])
         for reader in readers:
             back = _assemble(str(path), *(reader(tmp, str(path)) or _unreadable(str(path))))
             if not _same_mesh(mesh, back):
@@ -262,10 +268,22 @@ def _damaged(name: str, what: str) -> DicerError:
     return DicerError(f"{name}: cannot read mesh ({what}); is the file complete?")
 
 
-def _read_raw_vtu(path: Path, name: str):
+_CHECKED = {("Cells", "offsets"), ("Cells", "types")} | {("CellData", k) for k in QUALITY_DATA}
+"""Arrays a reader only checks or drops (the quality data describe the nodes as written):
+compared in the mapped file, never copied into memory."""
+
+
+def _read_mapped_vtu(path: Path, name: str):
+    """:func:`_read_raw_vtu` with every array a read-only view of the file mapped into memory
+    (no copy; the arrays may be unaligned), for checks that only compare them."""
+    return _read_raw_vtu(path, name, mapped=True)
+
+
+def _read_raw_vtu(path: Path, name: str, mapped: bool = False):
     """The parts of a dicer VTU with raw appended data, or None for any other file.
 
     Returns (cell_type, points, cells, point_data, cell_data, field_data) as _assemble takes them.
+    ``mapped``: the arrays are views of the file mapped read-only (see _read_mapped_vtu).
     """
     file_size = path.stat().st_size
     with open(path, "rb") as f:
@@ -273,6 +291,20 @@ def _read_raw_vtu(path: Path, name: str):
         at = head.find(_APPENDED)
         if at < 0 or _ROOT not in head[:at]:
             return None
+        maps: list[np.ndarray] = []
+
+        def fetch(start: int, dtype: np.dtype, count: int, view: bool) -> np.ndarray:
+            """Up to ``count`` items of ``dtype`` at byte ``start`` of the file (fewer at its end):
+            read into memory, or with ``view`` a view of the file mapped read-only."""
+            if not view:
+                f.seek(start)
+                return np.fromfile(f, dtype, count)
+            if not maps:
+                maps.append(np.frombuffer(mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ), np.uint8))
+            whole = maps[0]
+            stop = min(start + count * dtype.itemsize, whole.size) if start >= 0 else 0
+            stop -= (stop - start) % dtype.itemsize if stop > start else 0
+            return whole[start:stop].view(dtype) if stop > start else np.empty(0, dtype)
         try:
             root = ET.fromstring(head[:at] + b"</VTKFile>")
         except ET.ParseError as exc:
@@ -291,7 +323,7 @@ def _read_raw_vtu(path: Path, name: str):
         except (TypeError, ValueError, KeyError, AttributeError) as exc:
             raise _damaged(name, f"XML header: {type(exc).__name__}: {exc}") from None
 
-        def read(da: ET.Element, rows: int | None) -> np.ndarray:
+        def read(da: ET.Element, rows: int | None, view: bool) -> np.ndarray:
             label = f"array {da.get('Name')!r}"
             if da.get("format") != "appended" or da.get("type") not in _NUMPY_TYPES:
                 raise _damaged(name, f"{label} has format {da.get('format')!r} and type {da.get('type')!r}; "
@@ -302,8 +334,7 @@ def _read_raw_vtu(path: Path, name: str):
                 offset = int(da.get("offset"))
             except (TypeError, ValueError) as exc:
                 raise _damaged(name, f"{label}: bad NumberOfComponents or offset ({exc})") from None
-            f.seek(data_start + offset)
-            size = np.fromfile(f, "<u8", 1)
+            size = fetch(data_start + offset, np.dtype("<u8"), 1, view)
             if size.size != 1:
                 raise _damaged(name, f"{label} is missing: the file is cut short")
             count, rest = divmod(int(size[0]), dtype.itemsize)
@@ -313,7 +344,7 @@ def _read_raw_vtu(path: Path, name: str):
                                      "short or damaged")
             if rest or (rows is not None and count != rows * ncomp) or offset < 0:
                 raise _damaged(name, f"{label} has {int(size[0])} bytes, which does not match the header")
-            a = np.fromfile(f, dtype, count)
+            a = fetch(data_start + offset + 8, dtype, count, view)
             if a.size != count:
                 raise _damaged(name, f"{label} is cut short")
             ends.append(offset + 8 + a.nbytes)
@@ -321,7 +352,8 @@ def _read_raw_vtu(path: Path, name: str):
 
         def section(tag: str, rows: int | None) -> dict[str, np.ndarray]:
             node = piece.find(tag)
-            return {} if node is None else {da.get("Name"): read(da, rows) for da in node.iterfind("DataArray")}
+            return {} if node is None else {da.get("Name"): read(da, rows, mapped or (tag, da.get("Name")) in _CHECKED)
+                                            for da in node.iterfind("DataArray")}
 
         ends: list[int] = []
         points = section("Points", n_points)

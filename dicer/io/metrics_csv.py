@@ -24,7 +24,7 @@ import numpy as np
 from dicer.errors import DicerError
 from dicer.export.textfmt import Float, Sci, compact_rows
 from dicer.io.atomic import atomic_path
-from dicer.mesh.metrics import edge_ratio, element_volumes, scaled_jacobian, skew
+from dicer.mesh import metrics as _metrics
 from dicer.mesh.model import Mesh
 
 HEADER = b"maximum edge ratio,minimum scaled jacobian,maximum skew,element volume\n"
@@ -34,10 +34,18 @@ _FMT = Sci(7, b"e")  # d.dddddde+XX: 7 significant digits
 _DIGITS = 7
 
 
-def element_metrics(mesh: Mesh) -> np.ndarray:
-    """(M, 4) float64: the CSV's columns for every element, in mesh order."""
-    return np.column_stack([edge_ratio(mesh.points, mesh.cells), scaled_jacobian(mesh.points, mesh.cells),
-                            skew(mesh.points, mesh.cells), element_volumes(mesh.points, mesh.cells)])
+COLUMNS = ("edge_ratio", "scaled_jacobian", "skew", "volume")
+"""The CSV's columns as :func:`dicer.mesh.metrics.element_metrics` names them."""
+
+
+def element_metrics(mesh: Mesh, metrics: dict | None = None) -> np.ndarray:
+    """(M, 4) float64: the CSV's columns for every element, in mesh order; ``metrics``
+    holds those already computed (by :func:`dicer.mesh.metrics.element_metrics`)."""
+    have = metrics or {}
+    missing = [k for k in COLUMNS if k not in have]
+    if missing:
+        have = {**have, **_metrics.element_metrics(mesh.points, mesh.cells, missing)}
+    return np.column_stack([have[k] for k in COLUMNS])
 
 
 def _lines(values: np.ndarray):
@@ -45,18 +53,39 @@ def _lines(values: np.ndarray):
     return compact_rows(fields, values.shape[0])
 
 
+_CHUNK = 1 << 20
+"""Bytes of whole lines parsed at a time: the parse's temporaries (a dozen bytes of index
+per character) stay a few MB and are reused, instead of several GB for a large mesh."""
+
+
 def parse_metrics_csv(data: bytes, name: str = "metrics CSV") -> np.ndarray:
-    """(M, 4) float64 from the bytes of a file :func:`write_metrics_csv` wrote (vectorised).
+    """(M, 4) float64 from the bytes of a file :func:`write_metrics_csv` wrote (vectorised,
+    in blocks of whole lines of about ``_CHUNK`` bytes).
 
     Every field must be ``[-]d.dddddde[+-]XX``; anything else is a DicerError naming the line.
     """
     if not data.startswith(HEADER):
         raise DicerError(f"{name}: the first line is not the metrics header {HEADER.decode().strip()!r}")
-    body = np.frombuffer(data, np.uint8)[len(HEADER):]
-    if body.size == 0:
+    start, end = len(HEADER), len(data)
+    if start == end:
         return np.empty((0, 4))
-    if body[-1] != 10:
+    if data[-1] != 10:
         raise DicerError(f"{name}: the last line is cut short")
+    parts, line = [], 0
+    while start < end:
+        stop = data.rfind(b"\n", start, min(start + _CHUNK, end)) + 1
+        if stop <= start:  # one line longer than a block
+            stop = data.find(b"\n", start) + 1
+        part = _parse_lines(np.frombuffer(data, np.uint8, stop - start, start), name, line)
+        parts.append(part)
+        line += part.shape[0]
+        start = stop
+    return np.concatenate(parts)
+
+
+def _parse_lines(body: np.ndarray, name: str, first: int) -> np.ndarray:
+    """(m, 4) float64 from whole lines ``body`` (bytes ending in a newline), the first of
+    them line ``first`` of the values (0-based, after the header)."""
     sep = np.flatnonzero((body == 44) | (body == 10))
     if sep.size % 4 or np.any(body[sep[3::4]] != 10) or np.any(body[sep[np.arange(sep.size) % 4 != 3]] != 44):
         raise DicerError(f"{name}: a line does not hold 4 comma-separated values")
@@ -74,7 +103,7 @@ def parse_metrics_csv(data: bytes, name: str = "metrics CSV") -> np.ndarray:
     ok &= (chars[:, 1] == 46) & (chars[:, _DIGITS + 1] == 101) & np.isin(chars[:, _DIGITS + 2], (43, 45))
     if not ok.all():
         bad = int(np.flatnonzero(~ok)[0])
-        raise DicerError(f"{name}: line {bad // 4 + 2} holds a value that is not [-]d.dddddde[+-]XX")
+        raise DicerError(f"{name}: line {first + bad // 4 + 2} holds a value that is not [-]d.dddddde[+-]XX")
     mantissa = digits[:, :_DIGITS] @ (10 ** np.arange(_DIGITS - 1, -1, -1, dtype=np.int64))
     exponent = (digits[:, _DIGITS] * 10 + digits[:, _DIGITS + 1]) * np.where(chars[:, _DIGITS + 2] == 45, -1, 1)
     k = exponent - (_DIGITS - 1)
@@ -93,13 +122,14 @@ def read_metrics_csv(path: str | os.PathLike) -> np.ndarray:
     return parse_metrics_csv(data, str(path))
 
 
-def write_metrics_csv(mesh: Mesh, path: str | os.PathLike) -> np.ndarray:
+def write_metrics_csv(mesh: Mesh, path: str | os.PathLike, metrics: dict | None = None) -> np.ndarray:
     """Write the per-element metrics of ``mesh`` to ``path`` atomically; returns them (M, 4).
+    ``metrics``: those already computed, by name (:data:`COLUMNS`), reused.
 
     The file is read back and every value compared with what was meant (within half a
     unit of the 7th significant digit) before it is renamed into place.
     """
-    values = element_metrics(mesh)
+    values = element_metrics(mesh, metrics)
     if not np.all(np.isfinite(values)):
         bad = int(np.flatnonzero(~np.all(np.isfinite(values), axis=1))[0])
         raise DicerError(f"{path}: element {bad + 1} has a zero-length edge (non-finite edge ratio); "
@@ -111,8 +141,13 @@ def write_metrics_csv(mesh: Mesh, path: str | os.PathLike) -> np.ndarray:
                 f.write(chunk)
         back = read_metrics_csv(tmp)
         # a printed value is within half a unit of its 7th digit; the parse adds a rounding or two
-        tol = np.abs(values) * (0.5 * 10.0 ** (1 - _DIGITS) + 1e-15)
-        if back.shape != values.shape or np.any(np.abs(back - values) > tol):
+        same = back.shape == values.shape
+        for i in range(0, values.shape[0] if same else 0, _CHUNK // 16):  # blocks: small temporaries
+            v = values[i:i + _CHUNK // 16]
+            same = not np.any(np.abs(back[i:i + _CHUNK // 16] - v) > np.abs(v) * (0.5 * 10.0 ** (1 - _DIGITS) + 1e-15))
+            if not same:
+                break
+        if not same:
             raise DicerError(f"{path}: read-back check failed: the file does not hold the metrics written; "
                              "check the disk and write again")
     return values

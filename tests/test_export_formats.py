@@ -260,6 +260,28 @@ def test_vtu_quadratic_and_gmsh(tmp_path, mesh):
     assert np.array_equal(np.concatenate(g.cell_data["gmsh:physical"]), mesh.material)
 
 
+def test_gmsh_opens_the_msh_and_lists_the_material_names(tmp_path, mesh):
+    gmsh = pytest.importorskip("gmsh", reason="gmsh is in the test extras: pip install -e '.[test]'")
+    export_mesh(mesh, tmp_path / "m.msh", cfg())
+    gmsh.initialize(["-noenv"])
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.open(str(tmp_path / "m.msh"))
+        groups = gmsh.model.getPhysicalGroups(3)
+        names = {tag: gmsh.model.getPhysicalName(dim, tag) for dim, tag in groups}
+        counts = {}
+        for dim, tag in groups:
+            for entity in gmsh.model.getEntitiesForPhysicalGroup(dim, tag):
+                types, elements, _ = gmsh.model.mesh.getElements(dim, entity)
+                counts[tag] = counts.get(tag, 0) + sum(len(e) for e in elements)
+        _, node_coords, _ = gmsh.model.mesh.getNodes()
+    finally:
+        gmsh.finalize()
+    assert names == {1: "soft_tissue", 2: "bone"}
+    assert counts == {1: int(np.sum(mesh.material == 1)), 2: int(np.sum(mesh.material == 2))}
+    assert node_coords.size == mesh.points.size
+
+
 @pytest.mark.parametrize("name", ["m.inp", "m.out", "m.k", "m.vtu", "m.msh", "m.exo", "m.feb"])
 def test_every_format_reruns_byte_identical(tmp_path, mesh, name):
     a, b = tmp_path / "a", tmp_path / "b"

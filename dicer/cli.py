@@ -337,12 +337,13 @@ class _InputError(DicerError):
     """A stage's error about another input than the mesh (it names that file)."""
 
 
-def _mesh_to_mesh(stage: str, func, mesh_path: str, out: Path, report_path: Path | None):
-    """Read a mesh, apply ``func(mesh) -> (mesh, report)``, write the mesh (checked) and report."""
+def _mesh_to_mesh(stage: str, func, mesh_path: str, out: Path, report_path: Path | None, mesh=None):
+    """Read a mesh (unless the caller has it: ``mesh``, what the file at ``mesh_path`` holds),
+    apply ``func(mesh) -> (mesh, report)``, write the mesh (checked) and report."""
     from dicer.io.meshes import read_mesh, write_mesh
 
     with _Stage(stage):
-        mesh = read_mesh(mesh_path)
+        mesh = read_mesh(mesh_path) if mesh is None else mesh
         try:
             result, report = func(mesh)
         except _InputError as exc:  # names its own file
@@ -356,10 +357,11 @@ def _mesh_to_mesh(stage: str, func, mesh_path: str, out: Path, report_path: Path
     return result, report
 
 
-def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None = None):
+def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None = None, mesh=None):
     from dicer.mesh.merge import merge_mesh
 
-    merged, report = _mesh_to_mesh("merge", lambda m: merge_mesh(m, config["merge"]), mesh_path, out, report_path)
+    merged, report = _mesh_to_mesh("merge", lambda m: merge_mesh(m, config["merge"]), mesh_path, out, report_path,
+                                   mesh)
     log.info("merge: wrote %s (%d -> %d elements, %d -> %d nodes; volume %s)", out,
              report["elements_before"], report["elements_after"], report["nodes_before"],
              report["nodes_after"], json.dumps(_stable(report["volume"]), sort_keys=True))
@@ -388,7 +390,7 @@ def _read_thresholds(path: str | None, config: dict, image_path: str) -> list:
 
 
 def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None = None,
-              image_path: str | None = None, thresholds_path: str | None = None):
+              image_path: str | None = None, thresholds_path: str | None = None, mesh=None):
     from dicer.mesh.smooth import smooth_mesh
 
     image = thresholds = None
@@ -409,7 +411,7 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
                 raise _InputError(text) from None
             raise
 
-    smoothed, report = _mesh_to_mesh("smooth", run, mesh_path, out, report_path)
+    smoothed, report = _mesh_to_mesh("smooth", run, mesh_path, out, report_path, mesh)
     log.info("smooth: wrote %s (%s)", out, json.dumps(_stable(report), sort_keys=True)[:600])
     return smoothed
 
@@ -434,12 +436,12 @@ def do_mesh(labels_path: str, out: Path, config: dict):
     return mesh
 
 
-def do_export(mesh_path: str, out: Path, config: dict):
+def do_export(mesh_path: str, out: Path, config: dict, mesh=None):
     from dicer.export import export_mesh
     from dicer.io.meshes import read_mesh
 
     with _Stage("export"):
-        mesh = read_mesh(mesh_path)
+        mesh = read_mesh(mesh_path) if mesh is None else mesh
         info = export_mesh(mesh, out, config, source=mesh_path)
         log.info("export: wrote %s (%s)", out, json.dumps(info, sort_keys=True))
 
@@ -459,15 +461,14 @@ def do_surface(mesh_path: str, outdir: Path, config: dict, only: list[str] | Non
 def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None = None, html: str | None = None,
                pictures: list[str] = (), stage_reports: list[str] = (), csv: Path | None = None,
                original_path: str | None = None, histogram: Path | None = None, model_picture: Path | None = None,
-               node_classes: Path | None = None):
+               node_classes: Path | None = None, mesh=None):
     from dicer.config import material_names
     from dicer.io.atomic import write_bytes_atomic
     from dicer.io.meshes import read_mesh
-    from dicer.mesh.metrics import scaled_jacobian
     from dicer.quality import quality_report, render_html
 
     with _Stage("quality"):
-        mesh = read_mesh(mesh_path)
+        mesh = read_mesh(mesh_path) if mesh is None else mesh
         labels = original = None
         if labels_path or original_path:
             from dicer.io.images import read_labels
@@ -779,25 +780,27 @@ def cmd_run(args):
             fix_input = path("labels_ds.nii.gz")
         step("fix")
         do_fix(str(fix_input), path("labels_fixed.nii.gz"), config, path("fix.json"))
+        # each stage hands its mesh to the next in memory: the mesh its file was checked to
+        # hold, so the next stage need not read it again
         step("mesh")
-        do_mesh(str(path("labels_fixed.nii.gz")), path("mesh.vtu"), config)
+        mesh = do_mesh(str(path("labels_fixed.nii.gz")), path("mesh.vtu"), config)
         step("merge")
-        do_merge(str(path("mesh.vtu")), path("merged.vtu"), config, path("merge.json"))
+        mesh = do_merge(str(path("mesh.vtu")), path("merged.vtu"), config, path("merge.json"), mesh=mesh)
         step("smooth")
         # a segmented scan lends its grey values: the surface goes onto its iso-surfaces
         scan = (args.image, str(path("segmentation.json"))) if args.labels is None else (None, None)
-        do_smooth(str(path("merged.vtu")), path("smoothed.vtu"), config, path("smooth.json"),
-                  image_path=scan[0], thresholds_path=scan[1])
+        mesh = do_smooth(str(path("merged.vtu")), path("smoothed.vtu"), config, path("smooth.json"),
+                         image_path=scan[0], thresholds_path=scan[1], mesh=mesh)
         step("export")
         for name in ("model.inp", "model.vtu"):
-            do_export(str(path("smoothed.vtu")), path(name), config)
+            do_export(str(path("smoothed.vtu")), path(name), config, mesh=mesh)
         step("quality")
         pictures = [str(path(n)) for n in ("segmentation.png", "thresholds.png") if path(n).exists()]
         do_quality(str(path("smoothed.vtu")), path("quality.json"), config,
                    labels_path=str(path("labels_fixed.nii.gz")), html=str(path("report.html")), pictures=pictures,
                    stage_reports=[str(path(n)) for n in ("fix.json", "merge.json", "smooth.json")],
                    original_path=str(path("labels.nii.gz")), histogram=path("jacobian.png"),
-                   model_picture=path("model.png"), node_classes=path("node_classes.png"))
+                   model_picture=path("model.png"), node_classes=path("node_classes.png"), mesh=mesh)
     except BaseException as exc:
         kept = _keep_failed(staging, failed)
         if isinstance(exc, DicerError):

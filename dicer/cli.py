@@ -477,12 +477,14 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
             original = read_labels(original_path) if original_path else None
         # every element metric once: the report's, the figures' and the CSV's with skew
         from dicer.mesh.metrics import element_metrics
-        from dicer.quality import REPORT_METRICS
+        from dicer.quality import REPORT_METRICS, element_neighbours
 
         names = REPORT_METRICS + (("skew",) if csv else ())
         metrics = element_metrics(mesh.points, mesh.cells, names)
         sj = metrics["scaled_jacobian"]
-        report = quality_report(mesh, config, labels=labels, original=original, metrics=metrics)
+        neighbours = element_neighbours(mesh)  # the report's parts and the model picture's faces
+        report = quality_report(mesh, config, labels=labels, original=original, metrics=metrics,
+                                neighbours=neighbours)
         stages = {}
         for path in stage_reports:
             try:
@@ -491,7 +493,8 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
                 raise DicerError(f"{path}: cannot read the stage report ({exc}); rerun that stage") from None
         if stages:
             report["stages"] = stages
-        figures = _quality_figures(mesh, report, sj, material_names(config), histogram, model_picture, node_classes)
+        figures = _quality_figures(mesh, report, sj, material_names(config), histogram, model_picture, node_classes,
+                                   neighbours)
         text = json.dumps(report, indent=2, sort_keys=True) + "\n"
         if html:
             shown = []
@@ -522,8 +525,9 @@ _PICTURE_CAPTIONS = {
 
 
 def _quality_figures(mesh, report: dict, sj, names: dict, histogram: Path | None, model_picture: Path | None,
-                     node_classes: Path | None) -> list[Path]:
-    """Write the quality pictures asked for; returns their paths (in the report's order)."""
+                     node_classes: Path | None, neighbours=None) -> list[Path]:
+    """Write the quality pictures asked for; returns their paths (in the report's order).
+    neighbours : (M, F) element across each face, for the model picture (computed when None)."""
     written = []
     if not (histogram or model_picture or node_classes):
         return written  # matplotlib is not even imported
@@ -532,7 +536,7 @@ def _quality_figures(mesh, report: dict, sj, names: dict, histogram: Path | None
     if histogram:
         written.append(save_jacobian_histogram(sj, mesh.material, names, histogram, report["poor_threshold"]))
     if model_picture:
-        written.append(save_model_picture(mesh, names, model_picture))
+        written.append(save_model_picture(mesh, names, model_picture, neighbours=neighbours))
     if node_classes:
         if "node_classes" not in report:
             raise DicerError(f"{node_classes}: the mesh has no node classes (point data node_class); give the "

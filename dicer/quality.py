@@ -129,7 +129,8 @@ def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None) -> dict:
     return out
 
 
-def quality_report(mesh: Mesh, config: dict, labels=None, original=None, metrics: dict | None = None) -> dict:
+def quality_report(mesh: Mesh, config: dict, labels=None, original=None, metrics: dict | None = None,
+                   neighbours: np.ndarray | None = None) -> dict:
     """Quality figures of ``mesh`` as a JSON-ready dict.
 
     mesh : the mesh to assess.
@@ -141,6 +142,8 @@ def quality_report(mesh: Mesh, config: dict, labels=None, original=None, metrics
         holds what downsampling changed too.
     metrics : the elements' metrics already computed (:func:`dicer.mesh.metrics.element_metrics`
         with at least ``REPORT_METRICS``); computed here when not given.
+    neighbours : (M, F) element across each face (:func:`element_neighbours`), computed here
+        when not given.
     """
     names = material_names(config)
     if metrics is None:
@@ -193,7 +196,7 @@ def quality_report(mesh: Mesh, config: dict, labels=None, original=None, metrics
         "poor_elements": int(np.count_nonzero(sj < poor)),
         "poor_threshold": poor,
     }
-    parts = floating_parts(mesh)
+    parts = floating_parts(mesh, neighbours)
     report["parts"] = {"model": parts["model"],
                        "materials": {names.get(k, f"material_{k}"): v for k, v in parts["materials"].items()}}
     if "node_class" in mesh.point_data:

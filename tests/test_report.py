@@ -114,6 +114,62 @@ def test_pictures_are_reproducible_and_show_the_materials(tmp_path):
         assert np.count_nonzero(near) > 200, label
 
 
+def _material_pixels(picture: np.ndarray, labels=(1, 2)) -> np.ndarray:
+    """(H, W) label of the material colour each pixel shows (shaded: the hue's ratio), 0 for none."""
+    from matplotlib.colors import to_rgb
+
+    ratio = picture / np.maximum(picture.max(axis=2, keepdims=True), 1e-6)
+    out = np.zeros(picture.shape[:2], np.int64)
+    for label in labels:
+        rgb = np.array(to_rgb(material_colour(label)))
+        out[np.all(np.abs(ratio - rgb / rgb.max()) < 0.06, axis=2) & (picture.max(axis=2) > 0.2)] = label
+    return out
+
+
+def test_model_picture_of_a_two_material_box(tmp_path):
+    # a 4 mm cube, material 1 at x < 2, material 2 at x > 2; the eye at azimuth -60, elevation 20
+    # sees the faces +x (all material 2), -y and +z (half each), in proportion to |n . eye|:
+    # 0.470 * 16, 0.814 * 16 and 0.342 * 16 mm^2
+    labels = np.ones((4, 4, 4), np.uint8)
+    labels[2:] = 2
+    path = save_model_picture(voxel_mesh(labels), {1: "a", 2: "b"}, tmp_path / "box.png", max_edges=0)
+    shown = _material_pixels(imread(path)[:440, :, :3])  # above the legend
+    exterior, cut = shown[:, :500], shown[:, 500:]
+    eye = np.array([0.470, 0.814, 0.342])
+    expected = (eye[1] + eye[2]) / 2 / eye.sum()  # material 1's share of the exterior
+    counts = np.bincount(exterior.ravel(), minlength=3)
+    assert counts[1] / (counts[1] + counts[2]) == pytest.approx(expected, abs=0.02)
+    assert 0.4 < (counts[1] + counts[2]) / exterior.size < 0.75  # the cube fills the panel
+    # x runs to the right on the screen: material 1 left of material 2
+    columns = np.nonzero(exterior)[1]
+    assert columns[exterior[np.nonzero(exterior)] == 1].mean() < columns[exterior[np.nonzero(exterior)] == 2].mean() - 50
+    # the cut keeps the elements with their centre at x <= 2: material 1 only, its cut face showing
+    counts = np.bincount(cut.ravel(), minlength=3)
+    assert counts[2] == 0 and counts[1] > 0.2 * cut.size
+
+
+def test_zbuffer_keeps_the_nearest_quad_and_leaves_no_gap():
+    from dicer.io.pictures import zbuffer
+
+    # two 4 x 4 pixel squares side by side (sharing the edge x = 3.5), a third over their middle, nearer
+    xy = np.array([[[-0.5, -0.5], [3.5, -0.5], [3.5, 3.5], [-0.5, 3.5]],
+                   [[3.5, -0.5], [7.5, -0.5], [7.5, 3.5], [3.5, 3.5]],
+                   [[1.5, -0.5], [5.5, -0.5], [5.5, 3.5], [1.5, 3.5]]])
+    depth = np.array([[2.0] * 4, [2.0] * 4, [1.0] * 4])
+    face = zbuffer(xy, depth, (4, 10))
+    assert face[:, :2].tolist() == [[0, 0]] * 4 and face[:, 2:6].tolist() == [[2] * 4] * 4
+    assert face[:, 6:8].tolist() == [[1, 1]] * 4 and np.all(face[:, 8:] == -1)
+    # behind, the third quad is hidden where the others are
+    face = zbuffer(xy, depth[::-1].copy() + [[0], [2], [0]], (4, 10))
+    assert face[:, :4].tolist() == [[0] * 4] * 4 and face[:, 4:6].tolist() == [[2] * 2] * 4
+    # many tiny quads (a fine grid, 0.25 px each) cover every pixel centre of their region
+    i, j = np.meshgrid(np.arange(40), np.arange(20), indexing="ij")
+    corners = np.array([[0, 0], [1, 0], [1, 1], [0, 1]])
+    tiny = (np.stack([i, j], -1).reshape(-1, 1, 2) + corners) * 0.25 - 0.5
+    face = zbuffer(tiny, np.zeros(tiny.shape[:2]), (5, 10), chunk=64)
+    assert np.all(face >= 0) and np.unique(face).size == 50
+
+
 def test_model_picture_of_a_2d_mesh(tmp_path):
     labels = np.zeros((6, 5), np.uint8)
     labels[1:5, 1:4] = 1

@@ -20,7 +20,7 @@ from dicer.image import Volume
 from dicer.io.atomic import atomic_path
 
 __all__ = ["save_jacobian_histogram", "save_model_picture", "save_node_class_chart", "save_overlay_png",
-           "save_threshold_plot", "slice_centre", "visible_faces"]
+           "save_threshold_plot", "slice_centre", "visible_faces", "zbuffer"]
 
 # background transparent, then one colour per class (cycled)
 _COLOURS = ["#e6550d", "#fdd835", "#31a354", "#3182bd", "#9e4ac0", "#e377c2"]
@@ -273,63 +273,192 @@ def _shaded(labels: np.ndarray, lambert: np.ndarray) -> np.ndarray:
     return np.clip(table[labels] * shade[:, None], 0.0, 1.0)
 
 
-def _draw_faces(ax, xy: np.ndarray, colours: np.ndarray, edges: bool) -> None:
-    from matplotlib.collections import PolyCollection
+def zbuffer(xy: np.ndarray, depth: np.ndarray, shape: tuple[int, int], chunk: int = 1 << 21) -> np.ndarray:
+    """Which quad is nearest the eye at each pixel centre: a z-buffer, in blocks of candidates.
 
-    coll = PolyCollection(xy, facecolors=colours, edgecolors=(0.1, 0.1, 0.1, 0.35) if edges else "face",
-                          linewidths=0.15 if edges else 0.0, antialiaseds=False)
-    ax.add_collection(coll)
+    Each quad is split into the triangles (0, 1, 2) and (0, 2, 3); every pixel centre in a
+    triangle's bounding box is tested (barycentric coordinates, edges inclusive, so quads
+    sharing an edge leave no gap), its depth interpolated, and the nearest kept. A quad
+    smaller than a pixel covers the pixel centres it holds, or none.
+
+    xy : (F, 4, 2) quad corners in pixel units: column c's centre at x = c, row r's at y = r
+        (row 0 at the bottom); depth : (F, 4) distance from the eye (smaller is nearer);
+    shape : (H, W) pixels; chunk : candidate pixels tested at once (bounds the memory).
+    Returns (H, W) int64, the quad seen at each pixel, -1 where none (equal depths: the
+    lower index).
+    """
+    h, w = shape
+    tri = np.array([[0, 1, 2], [0, 2, 3]])
+    txy = np.asarray(xy, np.float64)[:, tri].reshape(-1, 3, 2)  # (T, 3, 2), T = 2F
+    tz = np.asarray(depth, np.float64)[:, tri].reshape(-1, 3)
+    a = txy[:, 0]
+    e1, e2 = txy[:, 1] - a, txy[:, 2] - a
+    den = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    lo = np.ceil(txy.min(axis=1)).astype(np.int64)
+    hi = np.floor(txy.max(axis=1)).astype(np.int64)
+    lo = np.maximum(lo, 0)
+    hi = np.minimum(hi, [w - 1, h - 1])
+    span = np.maximum(hi - lo + 1, 0)
+    count = np.where(np.abs(den) > 1e-12, span[:, 0] * span[:, 1], 0)
+    end = np.cumsum(count)
+    zbuf = np.full(h * w, np.inf)
+    face = np.full(h * w, -1, np.int64)
+    # blocks of whole triangles holding about ``chunk`` candidates each
+    cuts = np.unique(np.concatenate([[0], np.searchsorted(end, np.arange(chunk, int(end[-1]) if end.size else 0,
+                                                                          chunk), side="right"), [count.size]]))
+    for t0, t1 in zip(cuts[:-1].tolist(), cuts[1:].tolist()):
+        n = count[t0:t1]
+        total = int(n.sum())
+        if total == 0:
+            continue
+        t = np.repeat(np.arange(t0, t1), n)
+        local = np.arange(total) - np.repeat(np.cumsum(n) - n, n)
+        col = lo[t, 0] + local % span[t, 0]
+        row = lo[t, 1] + local // span[t, 0]
+        px, py = col - a[t, 0], row - a[t, 1]
+        u = (px * e2[t, 1] - py * e2[t, 0]) / den[t]
+        v = (py * e1[t, 0] - px * e1[t, 1]) / den[t]
+        inside = (u >= -1e-9) & (v >= -1e-9) & (u + v <= 1.0 + 1e-9)
+        t, u, v = t[inside], u[inside], v[inside]
+        z = tz[t, 0] + u * (tz[t, 1] - tz[t, 0]) + v * (tz[t, 2] - tz[t, 0])
+        pix = (row[inside] * w + col[inside])
+        order = np.lexsort((t, z, pix))  # per pixel: nearest first, then the lower quad
+        pix, z, t = pix[order], z[order], t[order]
+        first = np.ones(pix.size, bool)
+        first[1:] = pix[1:] != pix[:-1]
+        pix, z, t = pix[first], z[first], t[first]
+        better = z < zbuf[pix]
+        zbuf[pix[better]] = z[better]
+        face[pix[better]] = t[better] // 2
+    return face.reshape(h, w)
+
+
+def _edge_pixels(face: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One pixel wide outlines of the quads seen, face : (H, W) from :func:`zbuffer`.
+
+    Returns two (H, W) bool masks of covered pixels: ``shared``, where the quad seen changes
+    to the right or above (an edge two drawn quads share), and ``rim``, next to an empty pixel
+    (the outline of the picture and its holes)."""
+    seen = face >= 0
+    shared = np.zeros(face.shape, bool)
+    shared[:, :-1] |= (face[:, :-1] != face[:, 1:]) & seen[:, 1:]
+    shared[:-1, :] |= (face[:-1, :] != face[1:, :]) & seen[1:, :]
+    rim = np.zeros(face.shape, bool)
+    rim[:, 1:] |= ~seen[:, :-1]
+    rim[:, :-1] |= ~seen[:, 1:]
+    rim[1:, :] |= ~seen[:-1, :]
+    rim[:-1, :] |= ~seen[1:, :]
+    return shared & seen, rim & seen
+
+
+def _draw_faces(ax, xy: np.ndarray, depth: np.ndarray, colours: np.ndarray, edges: bool) -> None:
+    """Rasterise the quads into ``ax`` at its size in pixels (the figure laid out already).
+
+    xy : (F, 4, 2) corners in the picture plane (mm); depth : (F, 4) distance from the eye;
+    colours : (F, 3) RGB in 0..1; edges : outline every quad (dark, translucent).
+    """
     lo, hi = xy.reshape(-1, 2).min(axis=0), xy.reshape(-1, 2).max(axis=0)
     pad = 0.03 * float((hi - lo).max() or 1.0)
-    ax.set_xlim(lo[0] - pad, hi[0] + pad)
-    ax.set_ylim(lo[1] - pad, hi[1] + pad)
+    x0, x1, y0, y1 = lo[0] - pad, hi[0] + pad, lo[1] - pad, hi[1] + pad
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
     ax.set_aspect("equal")
     ax.set_axis_off()
+    ax.apply_aspect()
+    box = ax.get_window_extent()
+    w, h = max(int(round(box.width)), 1), max(int(round(box.height)), 1)
+    pixel = (xy - [x0, y0]) / [(x1 - x0) / w, (y1 - y0) / h] - 0.5
+    face = zbuffer(pixel, depth, (h, w))
+    image = np.zeros((h, w, 4))
+    seen = face >= 0
+    image[seen, :3] = colours[face[seen]]
+    image[seen, 3] = 1.0
+    if edges:
+        shared, rim = _edge_pixels(face)  # a shared edge was drawn by both its quads
+        for mask, alpha in ((shared, 1.0 - 0.65 ** 2), (rim & ~shared, 0.35)):
+            image[mask, :3] = (1.0 - alpha) * image[mask, :3] + alpha * 0.1
+    ax.imshow(image, origin="lower", extent=(x0, x1, y0, y1), interpolation="nearest", aspect="equal")
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
 
 
-def save_model_picture(mesh, names: dict, path, max_edges: int = 20000) -> Path:
+def _to_scanner(points: np.ndarray, spacing, origin, direction) -> np.ndarray:
+    """:func:`dicer.mesh.frame.to_scanner` column by column (a (N, 3) @ (3, 3) product is slow
+    in numpy): (N, 3) float64 scanner coordinates of lattice-frame ``points`` (N, 3)."""
+    from dicer.mesh.frame import voxel_centre
+
+    c = voxel_centre(spacing, origin)
+    d = np.asarray(direction, np.float64)
+    rel = [points[:, j] - c[j] for j in range(3)]
+    out = np.empty((points.shape[0], 3))
+    for i in range(3):
+        out[:, i] = d[i, 0] * rel[0] + d[i, 1] * rel[1] + d[i, 2] * rel[2] + c[i]
+    return out
+
+
+def save_model_picture(mesh, names: dict, path, max_edges: int = 20000, neighbours: np.ndarray | None = None) -> Path:
     """Picture of the model: its exterior coloured by material, and the same view cut open.
 
     3D: the boundary quads seen from azimuth -60 deg, elevation 20 deg in scanner coordinates
-    (z up), drawn far to near (painter's algorithm) and shaded by the angle to the eye; the cut
-    removes the elements whose centre lies beyond the mid-plane of x, showing every material on
-    the cut face. 2D: the quads from above. Element edges are drawn while at most ``max_edges``
-    faces are visible (beyond that they would blacken the picture).
+    (z up), rasterised with a z-buffer at the picture's pixel size and shaded by the angle to
+    the eye; the cut removes the elements whose centre lies beyond the mid-plane of x, showing
+    every material on the cut face. 2D: the quads from above. Element edges are drawn while at
+    most ``max_edges`` faces are visible (beyond that they would blacken the picture).
+    neighbours : (M, 6) element across each face (:func:`dicer.quality.element_neighbours`),
+    computed when not given.
     """
     from matplotlib.patches import Patch
 
-    from dicer.mesh.frame import mirrored, to_scanner
+    from dicer.mesh.frame import mirrored
     from dicer.quality import element_neighbours
 
     material = np.asarray(mesh.material, np.int64)
     labels = np.unique(material).tolist()
     legend = [Patch(color=material_colour(k), label=_name(names, k)) for k in labels]
     if mesh.dim == 2 or mesh.n_cells == 0:
-        fig = Figure(figsize=(5.0, 5.0))
+        fig = Figure(figsize=(5.0, 5.0), dpi=_DPI)
         ax = fig.add_subplot()
-        xy = mesh.points[mesh.cells][:, :, :2] if mesh.n_cells else np.zeros((1, 4, 2))
-        _draw_faces(ax, xy, _shaded(material, np.ones(material.size)), mesh.n_cells <= max_edges)
         ax.set_title("model", fontsize=9)
+        xy = mesh.points[mesh.cells][:, :, :2] if mesh.n_cells else np.zeros((1, 4, 2))
+        colours = _shaded(material, np.ones(material.size)) if mesh.n_cells else np.ones((1, 3))
+        panels = [(ax, xy, np.zeros(xy.shape[:2]), colours, mesh.n_cells <= max_edges)]
     else:
         points = mesh.points
         flip = False
         if mesh.direction is not None:
-            points = to_scanner(points, mesh.spacing, mesh.origin, mesh.direction)
+            points = _to_scanner(points, mesh.spacing, mesh.origin, mesh.direction)
             flip = mirrored(mesh.direction)
         towards, right, up = _camera()
-        neighbours = element_neighbours(mesh)
-        centre = points[mesh.cells].mean(axis=1)
-        mid = 0.5 * (points[:, 0].min() + points[:, 0].max())
-        fig = Figure(figsize=(10.0, 5.0))
-        views = [("exterior", np.ones(mesh.n_cells, bool)), (f"cut at x = {mid:.1f} mm", centre[:, 0] <= mid)]
+        if neighbours is None:
+            neighbours = element_neighbours(mesh)
+        x = points[:, 0]
+        cells = mesh.cells
+        centre_x = x[cells[:, 0]].copy()
+        for k in range(1, cells.shape[1]):  # the 8 corners, not the elements
+            centre_x += x[cells[:, k]]
+        centre_x /= cells.shape[1]
+        mid = 0.5 * (x.min() + x.max())
+        fig = Figure(figsize=(10.0, 5.0), dpi=_DPI)
+        panels = []
+        views = [("exterior", np.ones(mesh.n_cells, bool)), (f"cut at x = {mid:.1f} mm", centre_x <= mid)]
         for i, (title, keep) in enumerate(views):
             ax = fig.add_subplot(1, 2, i + 1)
-            e_idx, quads, lambert = visible_faces(points, mesh.cells, neighbours, keep, towards, flip)
+            e_idx, quads, lambert = visible_faces(points, cells, neighbours, keep, towards, flip)
             p = points[quads]
             xy = np.stack([p @ right, p @ up], axis=-1)
-            _draw_faces(ax, xy, _shaded(material[e_idx], lambert), quads.shape[0] <= max_edges)
+            panels.append((ax, xy, -(p @ towards), _shaded(material[e_idx], lambert), quads.shape[0] <= max_edges))
             ax.set_title(title, fontsize=9)
     fig.legend(handles=legend, loc="lower center", ncol=len(legend), fontsize=8, frameon=False)
+    FigureCanvasAgg(fig)
+    for ax, xy, depth, colours, edges in panels:  # the limits first: they set the layout
+        lo, hi = xy.reshape(-1, 2).min(axis=0), xy.reshape(-1, 2).max(axis=0)
+        pad = 0.03 * float((hi - lo).max() or 1.0)
+        ax.set_xlim(lo[0] - pad, hi[0] + pad)
+        ax.set_ylim(lo[1] - pad, hi[1] + pad)
+        ax.set_aspect("equal")
+        ax.set_axis_off()
     fig.tight_layout(rect=(0, 0.06, 1, 1))
+    for ax, xy, depth, colours, edges in panels:
+        _draw_faces(ax, xy, depth, colours, edges)
     _save(fig, path)
     return Path(path)

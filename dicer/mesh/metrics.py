@@ -141,23 +141,7 @@ def hex_volumes_t(columns: list[np.ndarray], cells_t: np.ndarray, chunk: int = _
     out = np.empty(m) if out is None else out
     for start in range(0, m, chunk):
         part = cells_t[:, start : start + chunk]
-        k1, k2, k3, k4, k5, k6 = [], [], [], [], [], []  # 8 c1 .. 8 c6, per component
-        for col in columns:
-            x = col[part]  # corners in VTK order: 000 100 110 010 001 101 111 011 (xi eta zeta)
-            d00, d10, d01, d11 = x[1] - x[0], x[2] - x[3], x[5] - x[4], x[6] - x[7]  # along xi, (eta zeta)
-            s00, s10, s01, s11 = x[1] + x[0], x[2] + x[3], x[5] + x[4], x[6] + x[7]
-            lo, hi = d00 + d01, d10 + d11
-            k1.append(hi + lo)
-            k4.append(hi - lo)
-            k5.append((d01 + d11) - (d00 + d10))
-            t0, t1 = s10 - s00, s11 - s01
-            k2.append(t1 + t0)
-            k6.append(t1 - t0)
-            k3.append((s01 + s11) - (s00 + s10))
-        vol = _triple(k1, k4, k5) + _triple(k4, k2, k6) + _triple(k5, k6, k3)
-        vol /= 3.0
-        vol += _triple(k1, k2, k3)
-        out[start : start + chunk] = vol / 64.0
+        out[start : start + chunk] = _hex_volume([col[part] for col in columns])
     return out
 
 
@@ -250,8 +234,9 @@ def _hex_skew(x: list[np.ndarray]) -> np.ndarray:
 
 
 def _hex_volume(x: list[np.ndarray]) -> np.ndarray:
-    """hex_volumes_t of hexahedra from their corner coordinates, three (8, m) arrays."""
-    k1, k2, k3, k4, k5, k6 = [], [], [], [], [], []
+    """hex_volumes_t of hexahedra from their corner coordinates, three (8, m) arrays (corners in
+    VTK order: 000 100 110 010 001 101 111 011 in (xi, eta, zeta))."""
+    k1, k2, k3, k4, k5, k6 = [], [], [], [], [], []  # 8 c1 .. 8 c6, per component
     for c in x:
         d00, d10, d01, d11 = c[1] - c[0], c[2] - c[3], c[5] - c[4], c[6] - c[7]
         s00, s10, s01, s11 = c[1] + c[0], c[2] + c[3], c[5] + c[4], c[6] + c[7]

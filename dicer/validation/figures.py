@@ -59,6 +59,17 @@ def kirsch_figure(results: dict, path: str | os.PathLike) -> None:
     plt.close(fig)
 
 
+def _finish(plt, fig, ax, path, xlabel: str, ylabel: str, title: str, legend_size: int) -> None:
+    """Label a one-panel figure, write it (same bytes on a rerun) and close it."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend(fontsize=legend_size)
+    fig.tight_layout()
+    fig.savefig(path, **_PNG)
+    plt.close(fig)
+
+
 def rim_figure(results: dict, path: str | os.PathLike) -> None:
     """Hoop stress along the quarter plate's rim against the angle from the load axis."""
     plt = _plt()
@@ -70,13 +81,8 @@ def rim_figure(results: dict, path: str | os.PathLike) -> None:
                                   ("defaults+merge", "CPS4", "C2")):
         r = rows[setting][etype]
         ax.plot(r["rim_theta_deg"], r["rim_hoop"], ".-", color=style, ms=3, lw=0.7, label=f"{etype}, {setting}")
-    ax.set_xlabel("θ (degrees from the load axis)")
-    ax.set_ylabel("hoop stress / σ0 at the rim nodes")
-    ax.set_title("Quarter plate rim, a = 7 voxels")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, **_PNG)
-    plt.close(fig)
+    _finish(plt, fig, ax, path, "θ (degrees from the load axis)", "hoop stress / σ0 at the rim nodes",
+            "Quarter plate rim, a = 7 voxels", 7)
 
 
 def lame_figure(results: dict, path: str | os.PathLike) -> None:
@@ -98,13 +104,8 @@ def lame_figure(results: dict, path: str | os.PathLike) -> None:
     ax.set_xscale("log")
     ax.minorticks_off()
     ax.set_xticks(a, [f"{v:g}" for v in a])
-    ax.set_xlabel("inner radius a (voxels); outer radius 2a")
-    ax.set_ylabel("bore hoop stress / exact")
-    ax.set_title("Lamé cylinder under internal pressure, default smoothing")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, **_PNG)
-    plt.close(fig)
+    _finish(plt, fig, ax, path, "inner radius a (voxels); outer radius 2a", "bore hoop stress / exact",
+            "Lamé cylinder under internal pressure, default smoothing", 8)
 
 
 def kirsch_table(results: dict, part: str) -> str:

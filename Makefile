@@ -9,11 +9,18 @@ SUDO    = $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: setup system demo test test-all bench bench-stages clean
 
-# System packages: the CalculiX solver (tests run it) and venv support.
+# System packages: the CalculiX solver (tests run it) and venv support; Chromium, with which
+# the tests open the Snakemake report as a reader would (optional: without it they check the
+# report's HTML only).
 system:
 	@if ! command -v ccx >/dev/null 2>&1 || ! $(PYTHON) -c 'import ensurepip' >/dev/null 2>&1; then \
 	  echo "installing system packages: calculix-ccx python3-venv"; \
 	  $(SUDO) apt-get update -qq && $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq calculix-ccx python3-venv >/dev/null; \
+	fi
+	@if ! command -v chromium >/dev/null 2>&1; then \
+	  echo "installing system package: chromium (headless, for the report test)"; \
+	  ( $(SUDO) apt-get update -qq && $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium >/dev/null ) \
+	    || echo "chromium could not be installed: the report test checks the HTML only"; \
 	fi
 
 $(BIN)/dicer: pyproject.toml

@@ -83,6 +83,52 @@ def _union(*arrays) -> np.ndarray:
     return _unique(np.concatenate([np.asarray(x).ravel() for x in arrays]))
 
 
+_CHUNK = 1 << 18  # index entries per piece: the pieces' temporaries stay small and are reused
+
+
+def _rows_per_piece(index: np.ndarray) -> int:
+    return max(1, _CHUNK // max(1, int(np.prod(index.shape[1:], dtype=np.int64))))
+
+
+def _take(table: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """``table[index]`` for a 1-D ``table`` and an integer ``index`` of any shape, in pieces of rows.
+
+    numpy first copies a non-intp index (the int32 node ids here) to intp in full: for the
+    cells of a large mesh that is twice their size in fresh memory per gather. Pieces keep
+    that copy small.
+    """
+    if index.dtype == np.intp or index.size <= _CHUNK:
+        return table[index]
+    out = np.empty(index.shape, dtype=table.dtype)
+    step = _rows_per_piece(index)
+    for a in range(0, index.shape[0], step):
+        out[a:a + step] = table[index[a:a + step]]
+    return out
+
+
+def _put(table: np.ndarray, index: np.ndarray, values) -> None:
+    """``table[index] = values`` (a scalar or an array shaped like ``index``) in pieces of rows,
+    in the same order (later entries win), without a full intp copy of ``index``."""
+    if index.dtype == np.intp or index.size <= _CHUNK:
+        table[index] = values
+        return
+    step = _rows_per_piece(index)
+    scalar = np.ndim(values) == 0
+    for a in range(0, index.shape[0], step):
+        table[index[a:a + step]] = values if scalar else values[a:a + step]
+
+
+def _any_at(mask: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """(R,) bool: rows of ``index`` (R, k) holding a node flagged in ``mask``, in pieces of rows."""
+    if index.size <= _CHUNK:
+        return _any(mask[index])
+    out = np.empty(index.shape[0], dtype=bool)
+    step = _rows_per_piece(index)
+    for a in range(0, index.shape[0], step):
+        out[a:a + step] = _any(mask[index[a:a + step]])
+    return out
+
+
 def _check_passes(passes, dim: int) -> tuple[int, int, int]:
     try:
         values = [int(p) for p in passes]
@@ -349,21 +395,36 @@ def _degrees(sub: np.ndarray, nodes_mask: np.ndarray, edges: np.ndarray):
     return local, degree, count
 
 
-def _replace_face_nodes(face, hit, far, block, cols, snapped, snap):
-    """Rows of ``block`` whose ``face`` nodes (in columns ``cols``) are deleted (``hit``) or
-    snapped, with each deleted node replaced by the far end ``far`` of its axis edge and each
-    snapped node by its snap target. Returns (row indices, new rows)."""
+def _replace_face_nodes(face, hit, far, snapped, snap):
+    """Rows of ``face`` (K, c) with nodes deleted (``hit``, (K, c) bool) or snapped, with each
+    deleted node replaced by the far end ``far`` of its axis edge and each snapped node by its
+    snap target. Returns (row indices (R,), new faces (R, c))."""
     any_snapped = bool(snapped.any())
-    rows = np.flatnonzero(_any(hit) | _any(snapped[face]) if any_snapped else _any(hit))
+    rows = np.flatnonzero(_any(hit) | _any_at(snapped, face) if any_snapped else _any(hit))
     nodes = np.take(face, rows, axis=0)
     h = np.take(hit, rows, axis=0)
     nodes[h] = far[nodes[h]]
     if any_snapped:
         h = snapped[nodes]
         nodes[h] = snap[nodes[h]]
-    sub = np.take(block, rows, axis=0)
-    sub[:, cols] = nodes
-    return rows, sub
+    return rows, nodes
+
+
+def _gather_corners(cells: np.ndarray, rows: np.ndarray, first: np.ndarray, second: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Columns ``first`` and ``second`` of ``cells`` (M, c) at ``rows`` (K,): two (K, len) arrays.
+
+    Gathered in pieces of rows: the rows are copied once into a small block that stays in
+    cache, and no (K, c) copy of them is made.
+    """
+    a = np.empty((rows.size, first.size), dtype=cells.dtype)
+    b = np.empty((rows.size, second.size), dtype=cells.dtype)
+    step = _rows_per_piece(cells)
+    for s in range(0, rows.size, step):
+        block = np.take(cells, rows[s:s + step], axis=0)  # np.take: about twice as fast as fancy indexing
+        np.take(block, first, axis=1, out=a[s:s + step], mode="clip")  # valid columns: no buffered copy
+        np.take(block, second, axis=1, out=b[s:s + step], mode="clip")
+    return a, b
 
 
 def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, axis, g, s, dim, granularity,
@@ -392,34 +453,34 @@ def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, ax
     keep = np.ones(m, dtype=bool)
     if lo.size == 0 or up.size == 0:
         return mesh_cells, keep, np.zeros(n, dtype=bool), np.zeros(n, dtype=np.int64), info
-    # np.take: row and column gathers about twice as fast as fancy indexing
-    lc, uc = np.take(mesh_cells, lo, axis=0), np.take(mesh_cells, up, axis=0)
-    l_top, l_bot = np.take(lc, tc, axis=1), np.take(lc, bc, axis=1)
-    u_bot, u_top = np.take(uc, bc, axis=1), np.take(uc, tc, axis=1)
+    # the two layers' corners, split into the faces on the plane and the far faces: only
+    # the face columns change in this step, so these four are all it needs of the rows
+    l_top, l_bot = _gather_corners(mesh_cells, lo, tc, bc)
+    u_bot, u_top = _gather_corners(mesh_cells, up, bc, tc)
 
     # Box 2 steps 5-6: nodes at the top of an axis edge (of a lower element) and the bottom
     # of another (of an upper element) are the candidates for deletion.
     is_top = np.zeros(n, dtype=bool)
-    is_top[l_top] = True
+    _put(is_top, l_top, True)
     is_bot = np.zeros(n, dtype=bool)
-    is_bot[u_bot] = True
+    _put(is_bot, u_bot, True)
     cand = is_top & is_bot
     if not cand.any():
         return mesh_cells, keep, np.zeros(n, dtype=bool), np.zeros(n, dtype=np.int64), info
     # Step 8: the far ends of those edges replace them (one each way, checked consistent).
     down = np.full(n, -1, dtype=mesh_cells.dtype)
-    down[l_top] = l_bot
+    _put(down, l_top, l_bot)
     upn = np.full(n, -1, dtype=mesh_cells.dtype)
-    upn[u_bot] = u_top
+    _put(upn, u_bot, u_top)
     inconsistent = np.zeros(n, dtype=bool)
-    inconsistent[l_top[down[l_top] != l_bot]] = True
-    inconsistent[u_bot[upn[u_bot] != u_top]] = True
+    inconsistent[l_top[_take(down, l_top) != l_bot]] = True
+    inconsistent[u_bot[_take(upn, u_bot) != u_top]] = True
 
     # Replacements that are not straight along the axis (edges of earlier chamfers).
     other = [d for d in range(3) if d != axis]
     near = np.zeros(n, dtype=bool)  # only edges of irregular elements can be bent
-    near[l_top[irregular[lo]]] = True
-    near[u_bot[irregular[up]]] = True
+    near[l_top[np.take(irregular, lo)]] = True
+    near[u_bot[np.take(irregular, up)]] = True
     cidx = np.flatnonzero(cand & near)
     bent = np.zeros(n, dtype=bool)
     for far in (upn, down):
@@ -479,12 +540,12 @@ def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, ax
     cells = mesh_cells  # changed in place: a copy of every element costs more than the rest of a round
 
     def original(rows):
-        """The corners ``rows`` had before this step."""
+        """The corners ``rows`` had before this step (only their face columns changed)."""
         out = cells[rows]
-        for idx, block in ((lo, lc), (up, uc)):
+        for idx, face, cols in ((lo, l_top, tc), (up, u_bot, bc)):
             pos = np.minimum(np.searchsorted(idx, rows), idx.size - 1)
-            inside = idx[pos] == rows
-            out[inside] = block[pos[inside]]
+            inside = np.flatnonzero(idx[pos] == rows)
+            out[inside[:, None], cols] = face[pos[inside]]
         return out
 
     delete = np.zeros(n, dtype=bool)
@@ -501,17 +562,17 @@ def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, ax
         delete, snapped, first_round = now, snapped_now, False
         # Step 10: replace deleted nodes by the far ends of their axis edges. After the first
         # round only the rows at a node whose fate changed are redone.
-        for side, (face, block, idx, far, cols) in enumerate(((l_top, lc, lo, upn, tc), (u_bot, uc, up, down, bc))):
-            rows = slice(None) if dirty is None else np.flatnonzero(_any(dirty[face]))
-            if dirty is not None:
-                cells[idx[rows]] = block[rows]  # undo the previous round there
+        for side, (face, idx, far, cols) in enumerate(((l_top, lo, upn, tc), (u_bot, up, down, bc))):
+            rows = slice(None) if dirty is None else np.flatnonzero(_any_at(dirty, face))
             f = face[rows]
-            h = delete[f]
+            if dirty is not None:
+                cells[idx[rows][:, None], cols] = f  # undo the previous round there
+            h = _take(delete, f)
             flags[side][0, rows] = _any(h)
             flags[side][1, rows] = _all(h)
-            flags[side][2, rows] = _any(h & bent[f])
-            done, sub = _replace_face_nodes(f, h, far, block[rows], cols, snapped, snap)
-            cells[idx[rows][done]] = sub
+            flags[side][2, rows] = _any(h & _take(bent, f))
+            done, nodes = _replace_face_nodes(f, h, far, snapped, snap)
+            cells[idx[rows][done][:, None], cols] = nodes
         (any_l, all_l, bent_l), (any_u, all_u, bent_u) = flags
         # Step 11: stacked pairs whose face went became duplicates; keep the lower one.
         merged = delete[faces[:, 0]]
@@ -540,12 +601,12 @@ def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, ax
         if moved.size:  # elements at moved or joined rim nodes change too
             at = np.zeros(n, dtype=bool)
             at[moved] = True
-            checked = _union(checked, lo[_any(at[l_top])], up[_any(at[u_bot])])
+            checked = _union(checked, lo[_any_at(at, l_top)], up[_any_at(at, u_bot)])
         bad_rows = np.empty(0, dtype=np.int64)
         if checked.size:
             in_s = np.zeros(n, dtype=bool)
             in_s[cells[checked]] = True
-            rows = np.flatnonzero(keep & _any(in_s[cells]))
+            rows = np.flatnonzero(keep & _any_at(in_s, cells))
             sub = cells[rows]
             local, degree, count = _degrees(sub, in_s, edges)
             bad_node = (degree > max_neighbours) | (count > max_elements)
@@ -588,7 +649,7 @@ def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, ax
                 mask[c_all] = True
                 confined = np.ones(n, dtype=bool)  # no corner of theirs other than a face corner on the plane
                 for other_corners in (l_bot, u_top, mesh_cells[r > s]):
-                    confined[other_corners[mask[other_corners]]] = False
+                    confined[other_corners[_take(mask, other_corners)]] = False
                 moved_now = 0
                 for rim, step in ((rim_up, -1), (rim_lo, 1)):
                     c = c_all[rim[c_all] & confined[c_all]]

@@ -201,18 +201,25 @@ def _match_faces(a: np.ndarray, b: np.ndarray, n: int) -> tuple[np.ndarray, np.n
     """
     if a.shape[0] == 0 or b.shape[0] == 0:
         return np.empty(0, np.int64), np.empty(0, np.int64)
-    owner = np.full(n, -1, dtype=np.int64)
-    owner[b[:, 0]] = np.arange(b.shape[0])
-    shared = np.bincount(b[:, 0], minlength=n) > 1
-    j = owner[a[:, 0]]
-    easy = (j >= 0) & ~shared[a[:, 0]]
-    i = np.flatnonzero(easy)
-    j = j[i]
-    same = _all(np.take(a, i, axis=0) == np.take(b, j, axis=0))
+    a0, b0 = a[:, 0].astype(np.intp), b[:, 0].astype(np.intp)
+    owner = np.full(n, -1, dtype=np.int32 if b.shape[0] < 2**31 - 1 else np.int64)
+    rows_b = np.arange(b.shape[0], dtype=owner.dtype)
+    owner[b0] = rows_b
+    # a first node held by several rows of b: its owner is the last of them, not the others
+    shared = np.zeros(n, dtype=bool)
+    shared[b0[np.take(owner, b0) != rows_b]] = True
+    del rows_b
+    j = np.take(owner, a0)
+    on_shared = np.take(shared, a0)
+    i = np.flatnonzero((j >= 0) & ~on_shared)
+    j = j[i].astype(np.intp)
+    same = np.empty(i.size, dtype=bool)
+    for s in range(0, i.size, _CHUNK):  # in pieces: the gathered rows stay in cache
+        same[s:s + _CHUNK] = _all(np.take(a, i[s:s + _CHUNK], axis=0) == np.take(b, j[s:s + _CHUNK], axis=0))
     i, j = i[same], j[same]
-    hard_a = np.flatnonzero(shared[a[:, 0]])
+    hard_a = np.flatnonzero(on_shared)
     if hard_a.size:
-        hard_b = np.flatnonzero(shared[b[:, 0]])
+        hard_b = np.flatnonzero(np.take(shared, b0))
         fa, fb = a[hard_a], b[hard_b]
         both = np.concatenate([fa, fb])
         src = np.r_[np.zeros(len(fa), np.int8), np.ones(len(fb), np.int8)]
@@ -247,18 +254,28 @@ def _merge_regions(faces: np.ndarray, box: np.ndarray, cand_idx: np.ndarray, cma
     on_box = np.full(lattice.shape[0], -1, dtype=np.int32)  # node -> its rectangles' component
     if rows.size:
         whole = rows.size == box.size
-        first = faces[:, 0] if whole else faces[rows, 0]
-        last = faces[:, far] if whole else faces[rows, far]
-        first, last = (np.take(lattice, x, axis=0).astype(np.int32) for x in (first, last))
-        plane = first[:, axis]
-        start = [first[:, d] for d in other]
-        size = [last[:, d] - x for d, x in zip(other, start)]
-        base = [int(x.min()) for x in start]
-        start = [x - b for x, b in zip(start, base)]
-        plane = plane - int(plane.min())
+        first = (faces[:, 0] if whole else faces[rows, 0]).astype(np.intp)
+        last = (faces[:, far] if whole else faces[rows, far]).astype(np.intp)
+        # one lattice column at a time: 1-D gathers of int32, not rows of the (n, 3) int64 array
+        column = [np.ascontiguousarray(lattice[:, d], dtype=np.int32) for d in range(dim)]
+        plane = np.take(column[axis], first)
+        start = [np.take(column[d], first) for d in other]
+        size = [np.take(column[d], last) - x for d, x in zip(other, start)]
+        del first, last, column
+        for x in start:
+            x -= int(x.min())
+        plane -= int(plane.min())
         used = np.bincount(plane) > 0
         pid = (np.cumsum(used, dtype=np.int32) - 1)[plane]
-        grid = np.zeros((int(used.sum()), *[int((x + w).max()) for x, w in zip(start, size)]), dtype=bool)
+        shape = (int(used.sum()), *[int((x + w).max()) for x, w in zip(start, size)])
+        grid = np.zeros(shape, dtype=bool)
+        # each face's lowest unit square as one flat index into the grid
+        cell = pid.astype(np.intp)
+        for d, x in enumerate(start, start=1):
+            cell *= shape[d]
+            cell += x
+        del pid, plane
+        flat = grid.reshape(-1)
         packed = size[0].astype(np.int64) if dim == 2 else size[0] * np.int64(int(size[1].max()) + 1) + size[1]
         kinds = np.flatnonzero(np.bincount(packed))
         for kind in kinds:  # faces of one size at a time (unit squares in a voxel mesh)
@@ -266,11 +283,14 @@ def _merge_regions(faces: np.ndarray, box: np.ndarray, cand_idx: np.ndarray, cma
             sel = slice(None) if kinds.size == 1 else np.flatnonzero(pick)
             one = int(np.argmax(pick))
             for off in np.ndindex(*[int(w[one]) for w in size]):
-                grid[(pid[sel], *[x[sel] + d for x, d in zip(start, off)])] = True
+                shift = int(np.ravel_multi_index((0, *off), shape)) if off else 0
+                flat[cell[sel] + shift if shift else cell[sel]] = True
         structure = np.zeros((3,) * dim, dtype=bool)
         structure[1] = True  # neighbours within a plane only, diagonals included
         labels, n_labels = ndimage.label(grid, structure)
-        on_box[faces if whole else faces[rows]] = (labels[(pid, *start)] - 1)[:, None]
+        found = np.take(labels.reshape(-1), cell)
+        found -= 1
+        _put(on_box, faces if whole else faces[rows], found[:, None])
     vid = on_box[cand_idx].astype(np.int64)
     rest = np.flatnonzero(vid < 0)
     vid[rest] = n_labels + np.arange(rest.size)
@@ -425,6 +445,22 @@ def _gather_corners(cells: np.ndarray, rows: np.ndarray, first: np.ndarray, seco
         np.take(block, first, axis=1, out=a[s:s + step], mode="clip")  # valid columns: no buffered copy
         np.take(block, second, axis=1, out=b[s:s + step], mode="clip")
     return a, b
+
+
+def _compact(cells: np.ndarray, keep: np.ndarray, new_id: np.ndarray) -> np.ndarray:
+    """``new_id[cells[keep]]``, written over the front of ``cells`` (M, c) itself: (K, c), a view.
+
+    Rows only move forward, and each piece is read before anything is written over it, so
+    the step needs no second copy of the elements.
+    """
+    out = 0
+    step = _rows_per_piece(cells)
+    for s in range(0, cells.shape[0], step):
+        # np.compress: a boolean selection several times faster than a[mask]
+        piece = new_id[np.compress(keep[s:s + step], cells[s:s + step], axis=0)]
+        cells[out:out + piece.shape[0]] = piece
+        out += piece.shape[0]
+    return cells[:out]
 
 
 def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, axis, g, s, dim, granularity,
@@ -788,7 +824,7 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
         g = counts[axis] + 1
         if g == 1:
             continue
-        layer = lattice[cells[:, 0], axis].astype(np.int64)
+        layer = _take(np.ascontiguousarray(lattice[:, axis]), cells[:, 0]).astype(np.int64)
         layer = layer - layer.min()
         for s in range(1, g):
             t0 = time.perf_counter()
@@ -803,10 +839,9 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
                 points[:, axis] += shift * mesh.spacing[axis]
             if delete.any():
                 kept_nodes = ~delete
-                new_id = np.cumsum(kept_nodes) - 1
-                new_id = new_id.astype(index)
-                # np.compress: a boolean selection several times faster than a[mask]
-                cells = new_id[np.compress(keep, new_cells, axis=0)]
+                new_id = np.cumsum(kept_nodes, dtype=index)
+                new_id -= 1
+                cells = _compact(new_cells, keep, new_id)
                 material, thick, layer, irregular, size = (np.compress(keep, a, axis=0)
                                                            for a in (material, thick, layer, irregular, size))
                 lattice, points = np.compress(kept_nodes, lattice, axis=0), np.compress(kept_nodes, points, axis=0)

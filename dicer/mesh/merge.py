@@ -938,15 +938,21 @@ def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int 
     size = np.zeros(cells.shape[0], dtype=np.int64)
     if lattice.shape[0] == 0:
         return out, size
-    lat = [np.ascontiguousarray(lattice[:, d]) for d in range(dim)]
-    base = [int(x.min()) for x in lat]
-    extent = [int(x.max()) - b + 1 for x, b in zip(lat, base)]
-    kind = np.int32 if int(np.prod(extent, dtype=np.float64)) < 2**31 - 1 else np.int64  # halves memory traffic
+    bounds = [(int(lattice[:, d].min()), int(lattice[:, d].max())) for d in range(dim)]
+    base = [b for b, _ in bounds]
+    extent = [t - b + 1 for b, t in bounds]
+    small = (int(np.prod(extent, dtype=np.float64)) < 2**31 - 1
+             and all(-2**31 < b and t < 2**31 - 1 for b, t in bounds))
+    kind = np.int32 if small else np.int64  # halves memory traffic
+    # contiguous columns made once, straight in the key's type (no int64 copies first)
+    lat = [lattice[:, d].astype(kind) for d in range(dim)]
     stride = [int(np.prod(extent[d + 1:], dtype=np.int64)) for d in range(dim)]
     key = np.zeros(lattice.shape[0], dtype=kind)
     for d in range(dim):
-        key += (lat[d] - base[d]).astype(kind) * kind(stride[d])
-    lat = [x.astype(kind) for x in lat]
+        part = lat[d] - kind(base[d])
+        part *= kind(stride[d])
+        key += part
+    del part
     # corner -> the axes it is offset along (VTK order): corner = corner 0 + those steps
     steps = [[d for d in range(dim) if off[d]] for off in (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim]]
     for start in range(0, cells.shape[0], chunk):

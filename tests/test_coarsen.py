@@ -12,7 +12,8 @@ from scipy import ndimage
 
 from dicer.connectivity import fix_connectivity
 from dicer.errors import DicerError
-from dicer.mesh.coarsen import COARSE, FINE, INVALID, TEMPLATES, coarsen_mesh
+from dicer.mesh.coarsen import coarsen_mesh
+from dicer.mesh.templates import BLOCK_TEMPLATES, COARSE, FINE, INVALID, TEMPLATES_2D
 from dicer.mesh.merge import merge_mesh
 from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes
 from dicer.mesh.model import LEVEL_DATA
@@ -88,25 +89,40 @@ def check_graded(voxel, graded):
     assert not on_boundary[graded.cells[level > 0]].any()
 
 
+def _jacobians_and_volume(cells, scale=(1.0, 1.0, 1.0)):
+    x = np.asarray(cells, float) * np.asarray(scale)[: np.asarray(cells).shape[-1]]
+    dim = x.shape[-1]
+    pts = np.zeros((x.shape[0] * x.shape[1], 3))
+    pts[:, :dim] = x.reshape(-1, dim)
+    conn = np.arange(pts.shape[0]).reshape(x.shape[0], x.shape[1])
+    return corner_scaled_jacobians(pts, conn).min(), element_volumes(pts, conn).sum()
+
+
 def test_template_tables_cover_every_corner_pattern():
-    for dim, n_corners, cell_volume in ((2, 4, 9.0), (3, 8, 27.0)):
-        pattern, table = TEMPLATES[dim]
-        assert pattern.shape == (1 << n_corners,)
-        assert pattern[0] == COARSE and pattern[-1] == FINE
-        for mask, cells in table.items():
-            x = np.asarray(cells, float)
-            pts = np.zeros((x.shape[0] * x.shape[1], 3))
-            pts[:, :dim] = x.reshape(-1, dim)
-            conn = np.arange(pts.shape[0]).reshape(x.shape[0], x.shape[1])
-            assert corner_scaled_jacobians(pts, conn).min() >= 0.29, (dim, mask)
-            assert element_volumes(pts, conn).sum() == pytest.approx(cell_volume, abs=1e-9)
-    # 2D: every pattern has a template (no cell is ever refined for its pattern alone)
-    assert not np.any(TEMPLATES[2][0] == INVALID)
+    pattern, table = TEMPLATES_2D
+    assert pattern.shape == (16,) and pattern[0] == COARSE and pattern[-1] == FINE
+    assert not np.any(pattern == INVALID)  # 2D: no cell is ever refined for its pattern alone
+    for mask, cells in table.items():
+        sj, volume = _jacobians_and_volume(cells)
+        assert sj >= 0.29, mask
+        assert volume == pytest.approx(9.0, abs=1e-9)
+    # 3D one-axis blocks (2 x 2 cells of 3 x 1 x 1 cells of the step below): every pattern
+    # but two marks on a diagonal has a template, good in every cell shape the steps give
+    # (the step below's cells are 1 x 1 x 1, 3 x 1 x 1 or 3 x 3 x 1)
+    pattern, table = BLOCK_TEMPLATES
+    assert pattern.shape == (16,) and pattern[0] == COARSE and pattern[-1] == FINE
+    assert sorted(np.flatnonzero(pattern == INVALID)) == [5, 10]
+    assert sorted(table) == [m for m in range(16) if m not in (5, 10)]
+    for mask, cells in table.items():
+        for scale in ((1, 1, 1), (1, 3, 1), (1, 1, 3), (1, 3, 3)):
+            sj, volume = _jacobians_and_volume(cells, scale)
+            assert sj >= 0.22, (mask, scale)
+            assert volume == pytest.approx(12.0 * scale[1] * scale[2], abs=1e-9)
 
 
 def _face_quads(cells, axis, value):
-    """The template faces lying on the cube face ``axis = value``, as a set of frozensets of
-    rounded (u, v) points (the two other coordinates, in increasing axis order)."""
+    """The template faces lying on the box face ``axis = value``, as a set of frozensets of
+    rounded points (the two other coordinates, in increasing axis order)."""
     other = [d for d in range(3) if d != axis]
     out = set()
     for hexa in np.asarray(cells, float):
@@ -117,24 +133,25 @@ def _face_quads(cells, axis, value):
     return out
 
 
-def test_3d_templates_put_one_pattern_on_each_kind_of_face():
-    # a face's quads depend only on which of its corners are marked, whatever template and
-    # orientation produced them: so neighbouring cells always match
-    _, table = TEMPLATES[3]
-    corners = np.array([[0, 0, 0], [3, 0, 0], [3, 3, 0], [0, 3, 0], [0, 0, 3], [3, 0, 3], [3, 3, 3], [0, 3, 3]])
+def test_block_templates_put_one_pattern_on_each_kind_of_face():
+    # a block face's quads depend only on which of its two corners along the refined axis
+    # are marked, whatever template and orientation produced them: so neighbours always
+    # match; the ends across the refined axis are always the four cells' faces
+    _, table = BLOCK_TEMPLATES
+    corners = np.array([[0, 0], [2, 0], [2, 2], [0, 2]])
     seen = {}
     for mask, cells in table.items():
         marked = {tuple(c) for i, c in enumerate(corners) if mask >> i & 1}
-        for axis, value in itertools.product(range(3), (0, 3)):
-            other = [d for d in range(3) if d != axis]
-            key = frozenset(tuple(c[other]) for c in corners if c[axis] == value and tuple(c) in marked)
+        for end in (0, 3):
+            assert len(_face_quads(cells, 0, end)) == 4
+        for axis, value in itertools.product((1, 2), (0, 2)):
+            edges = [c for c in corners if c[axis - 1] == value]
+            key = (axis, frozenset(tuple(c) for c in edges if tuple(c) in marked))
             quads = _face_quads(cells, axis, value)
-            area = sum(1 for _ in quads)
-            assert area >= 1
             seen.setdefault(key, quads)
             assert seen[key] == quads, (mask, axis, value)
-    # every placement of marks on a face met: none, one corner (4), an edge (4), an L of
-    # three (4), all four; two on a diagonal split no edge and only occur on coarse cells
+            assert len(quads) == {0: 2, 1: 5, 2: 6}[len(key[1])]
+    # per axis across: no mark, and on either face one of its two corners (2 ways) or both
     assert len(seen) == 14
 
 
@@ -214,10 +231,13 @@ def test_templates_refuse_a_merged_mesh():
         coarsen_mesh(voxel_mesh(labels), levels=1, min_distance=0)
 
 
-def test_merge_stage_refuses_templates_in_3d():
-    voxel = voxel_mesh(ball_labels((24, 24, 24), (10,)))
-    with pytest.raises(DicerError, match="2D"):
-        merge_mesh(voxel, {"method": "templates"})
+def test_merge_stage_grades_3d_meshes():
+    voxel = voxel_mesh(ball_labels((64, 64, 64), (30, 14)))
+    graded, report = merge_mesh(voxel, {"method": "templates"})
+    check_graded(voxel, graded)
+    assert report["element_ratio"] > 1.4  # 1.44: at this size the transitions are most of the ball
+    smoothed, sreport = smooth_mesh(graded, {})
+    assert sreport["inverted_elements"] == 0
 
 
 def test_merge_stage_dispatches_to_templates():
@@ -268,8 +288,7 @@ def test_random_3d_volumes_keep_every_invariant(labels, levels):
 
 
 def test_fine_template_is_the_unit_grid():
-    for dim in (2, 3):
-        pattern, table = TEMPLATES[dim]
+    for dim, (pattern, table) in ((2, TEMPLATES_2D),):
         fine = table[len(pattern) - 1]
         expected = sorted(tuple(map(tuple, np.asarray(c) + (
             np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]])

@@ -28,7 +28,6 @@ interface node are always voxels, and the node classes and smoothing apply uncha
 
 from __future__ import annotations
 
-import itertools
 import logging
 import time
 
@@ -39,149 +38,12 @@ from dicer.errors import DicerError
 from dicer.mesh.merge import _lattice_boxes
 from dicer.mesh.metrics import element_volumes
 from dicer.mesh.model import HEX_CORNERS, LEVEL_DATA, QUAD_CORNERS, Mesh
+from dicer.mesh.templates import (BLOCK_TEMPLATES, COARSE, COMPLETION_2D, COMPLETION_BLOCK, FINE, INVALID,
+                                  SECTION, TEMPLATES_2D)
 
-__all__ = ["coarsen_mesh", "coarsen_labels", "TEMPLATES", "LEVEL_DATA"]
+__all__ = ["coarsen_mesh", "coarsen_labels", "LEVEL_DATA"]
 
 log = logging.getLogger("dicer")
-
-COARSE, EDGE, FACE, FINE, INVALID, CORNER, TWO_FACES = 0, 1, 2, 3, 4, 5, 6
-"""Patterns of a cell's marked corners."""
-
-# canonical templates in thirds of the cell (coordinates 0..3), corners in VTK order
-
-# 2D edge template (split edge y = 0): three quads on the split edge, two nodes at 2/3
-# height, one quad up to the coarse edge
-_Q = [[(0, 0), (1, 0), (1, 2), (0, 3)], [(1, 0), (2, 0), (2, 2), (1, 2)],
-      [(2, 0), (3, 0), (3, 3), (2, 2)], [(1, 2), (2, 2), (3, 3), (0, 3)]]
-
-# 3D edge template (split edge along x at y = z = 0): the 2D edge template on both faces
-# that hold the edge, joined through the inner face (1,2,2) (2,2,2) (3,3,3) (0,3,3)
-_E = [[(0, 0, 0), (1, 0, 0), (1, 2, 0), (0, 3, 0), (0, 0, 3), (1, 0, 2), (1, 2, 2), (0, 3, 3)],
-      [(1, 0, 0), (2, 0, 0), (2, 2, 0), (1, 2, 0), (1, 0, 2), (2, 0, 2), (2, 2, 2), (1, 2, 2)],
-      [(2, 0, 0), (3, 0, 0), (3, 3, 0), (2, 2, 0), (2, 0, 2), (3, 0, 3), (3, 3, 3), (2, 2, 2)],
-      [(1, 2, 0), (2, 2, 0), (3, 3, 0), (0, 3, 0), (1, 2, 2), (2, 2, 2), (3, 3, 3), (0, 3, 3)],
-      [(1, 0, 2), (2, 0, 2), (3, 0, 3), (0, 0, 3), (1, 2, 2), (2, 2, 2), (3, 3, 3), (0, 3, 3)]]
-
-
-def _face_template() -> list:
-    """The 3D face template (refined face z = 0): the 2D edge template in (y, z), each of
-    its three lower quads swept along x through the 2D edge template in (x, height), the
-    top quad swept straight (3 x 4 + 1 = 13 hexahedra)."""
-    # each lower quad of the (y, z) template at the sweep's side s (0, 1) and level
-    # (0: on the refined face, "m": the template's middle nodes, 1: its top edge)
-    quads = [{(0, 0): (0, 0), (1, 0): (1, 0), (0, "m"): (0, 2), (1, "m"): (1, 1), (0, 1): (0, 3), (1, 1): (1, 2)},
-             {(0, 0): (1, 0), (1, 0): (2, 0), (0, "m"): (1, 1), (1, "m"): (2, 1), (0, 1): (1, 2), (1, 1): (2, 2)},
-             {(0, 0): (2, 0), (1, 0): (3, 0), (0, "m"): (2, 1), (1, "m"): (3, 2), (0, 1): (2, 2), (1, 1): (3, 3)}]
-    # the 2D edge template in (x, level)
-    sweep = [[(0, 0), (1, 0), (1, "m"), (0, 1)], [(1, 0), (2, 0), (2, "m"), (1, "m")],
-             [(2, 0), (3, 0), (3, 1), (2, "m")], [(1, "m"), (2, "m"), (3, 1), (0, 1)]]
-    out = [[(x, *quad[(s, level)]) for s in (0, 1) for x, level in cell] for quad in quads for cell in sweep]
-    out.append([(0, 1, 2), (0, 2, 2), (0, 3, 3), (0, 0, 3), (3, 1, 2), (3, 2, 2), (3, 3, 3), (3, 0, 3)])
-    return out
-
-
-# The 3D faces with two split edges at a corner (faces of the two-face template) carry
-# this pattern: nine quads, mirror-symmetric about the diagonal through the refined corner
-# (0, 0), so both cells sharing such a face see the same quads. Its quad count is odd,
-# as a three-face template (27 + 3 x 9 boundary quads) needs. From each node of the split
-# edges a rung runs inward: from the corner diagonally to D, from (1, 0) to R1, from (2, 0)
-# to R2, from (3, 0) along the whole coarse edge to (3, 3); three quads around M fill the
-# middle. The positions maximise the smallest scaled Jacobian of the two-face template.
-_D, _R1, _R2, _M = (7 / 6, 7 / 6), (4 / 3, 13 / 12), (5 / 3, 7 / 6), (5 / 4, 5 / 4)
-_S1, _S2 = _R1[::-1], _R2[::-1]
-_L_RUNGS_U = [((0, 0), (1, 0), _R1, _D), ((1, 0), (2, 0), _R2, _R1), ((2, 0), (3, 0), (3, 3), _R2)]
-_L_RUNGS_T = [((0, 1), (0, 0), _D, _S1), ((0, 2), (0, 1), _S1, _S2), ((0, 3), (0, 2), _S2, (3, 3))]
-_L_MIDDLE = [(_D, _R1, _R2, _M), (_M, _R2, (3, 3), _S2), (_D, _M, _S2, _S1)]
-
-
-def _two_face_template() -> list:
-    """The 3D two-face template (refined faces x = 0 and z = 0): the nine-quad corner
-    pattern in (x, z) swept along y. A quad with an edge on the refined faces becomes the
-    2D edge template in (y, rung): four hexahedra whose middle nodes sit 2/3 along its
-    rungs; a middle quad becomes one hexahedron (6 x 4 + 3 = 27)."""
-    def at(p, y):
-        return (p[0], y, p[1])
-
-    out = []
-    for p0, p1, q1, q0 in _L_RUNGS_U + _L_RUNGS_T:
-        for cell in _Q:
-            out.append([at(tuple(a + (b - a) * t / 3 for a, b in zip(*side)), y)
-                        for side in ((p0, q0), (p1, q1)) for y, t in cell])
-    for quad in _L_MIDDLE:
-        out.append([at(p, y) for y in (0, 3) for p in quad])
-    return out
-
-
-def _oriented(cells: np.ndarray, dim: int) -> np.ndarray:
-    """Template elements (n, corners, dim) with corners reordered where a reflection
-    turned them inside out."""
-    x = np.asarray(cells, float)
-    if dim == 3:
-        a, b, c = x[:, 1] - x[:, 0], x[:, 3] - x[:, 0], x[:, 4] - x[:, 0]
-        flip = np.einsum("ij,ij->i", a, np.cross(b, c)) < 0
-        order = [0, 3, 2, 1, 4, 7, 6, 5]
-    else:
-        a, b = x[:, 1] - x[:, 0], x[:, 3] - x[:, 0]
-        flip = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0] < 0
-        order = [0, 3, 2, 1]
-    out = cells.copy()
-    out[flip] = cells[flip][:, order]
-    return out
-
-
-_L = [[(0, 0), (1, 0), (1, 1), (0, 1)], [(1, 0), (2, 0), (2, 2), (1, 1)], [(0, 1), (1, 1), (2, 2), (0, 2)],
-      [(2, 0), (3, 0), (3, 3), (2, 2)], [(0, 2), (2, 2), (3, 3), (0, 3)]]
-"""2D corner template (split edges y = 0 and x = 0): a unit square in the corner, two quads
-along the split edges meeting on the diagonal, two up to the coarse edges."""
-
-
-def _canonical(dim: int) -> list:
-    """(pattern, marked corners in thirds, elements) of every template of dimension ``dim``."""
-    if dim == 2:
-        return [(EDGE, [(0, 0), (3, 0)], _Q), (CORNER, [(0, 0), (3, 0), (0, 3)], _L)]
-    corners = [tuple(c) for c in itertools.product((0, 3), repeat=3)]
-    return [(EDGE, [(0, 0, 0), (3, 0, 0)], _E),
-            (FACE, [c for c in corners if c[2] == 0], _face_template()),
-            (TWO_FACES, [c for c in corners if c[0] == 0 or c[2] == 0], _two_face_template())]
-
-
-def _template_table(dim: int) -> tuple[np.ndarray, dict[int, np.ndarray]]:
-    """Per corner-mask (bit c: corner c marked): its pattern, and the elements of every
-    template, in thirds of the cell, (n, corners, dim) float64."""
-    corners = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim] * 3
-    n_corners = len(corners)
-    fine = np.array([[c + o for o in corners // 3] for c in itertools.product(range(3), repeat=dim)], float)
-    pattern = np.full(1 << n_corners, INVALID, np.int8)
-    pattern[0] = COARSE
-    pattern[(1 << n_corners) - 1] = FINE
-    table = {(1 << n_corners) - 1: fine}
-    index = {tuple(c): i for i, c in enumerate(corners)}
-    for kind, marks, cells in _canonical(dim):
-        cells = np.asarray(cells, float)
-        for perm in itertools.permutations(range(dim)):
-            for flips in itertools.product((0, 1), repeat=dim):
-                def move(p, perm=perm, flips=flips):
-                    q = np.asarray(p, float)[..., list(perm)]
-                    return np.where(np.array(flips, bool), 3 - q, q)
-                mask = 0
-                for m in marks:
-                    mask |= 1 << index[tuple(int(v) for v in move(m))]
-                if mask not in table:
-                    table[mask] = _oriented(move(cells), dim)
-                    pattern[mask] = kind
-    # a cell with marked corners but no split edge stays coarse: no face of it is split
-    edges = [(a, b) for a in range(n_corners) for b in range(a + 1, n_corners)
-             if np.abs(corners[a] - corners[b]).sum() == 3]
-    for mask in range(1 << n_corners):
-        if pattern[mask] == INVALID and not any(mask >> a & 1 and mask >> b & 1 for a, b in edges):
-            pattern[mask] = COARSE
-    return pattern, table
-
-
-TEMPLATES = {3: _template_table(3), 2: _template_table(2)}
-"""dim -> (pattern per corner mask, elements per mask)."""
-
-
 
 def _pool_any(a: np.ndarray, dim: int, n_out: tuple) -> np.ndarray:
     """For every cell I of the next level: any of a[3I : 3I + 4] (per axis), over the
@@ -197,35 +59,19 @@ def _pool_any(a: np.ndarray, dim: int, n_out: tuple) -> np.ndarray:
     return out
 
 
-def _corner_slices(dim: int, shape: tuple) -> list:
-    """Per corner c (VTK order): the slice of the (n + 1)-point node grid of cells ``shape``
-    that holds corner c of every cell."""
-    corners = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim]
-    return [tuple(slice(o, o + n) for o, n in zip(c, shape)) for c in corners]
+def _close(candidate: np.ndarray, corners: np.ndarray, pattern: np.ndarray, complete: np.ndarray,
+           lead: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Mark the corners of every cell that may not coarsen, then add the fewest marks that
+    bring each cell left in an invalid pattern to a valid one, until none is left.
 
-
-def _completion(pattern: np.ndarray) -> np.ndarray:
-    """Per corner mask: the valid mask that adds the fewest marks to it (ties: the smallest
-    mask), so an invalid cell gains as few marks as it must."""
-    n = pattern.size
-    valid = np.flatnonzero(pattern != INVALID)
-    out = np.arange(n)
-    for mask in np.flatnonzero(pattern == INVALID):
-        supersets = valid[(valid & mask) == mask]
-        added = np.array([bin(int(v)).count("1") for v in supersets])
-        out[mask] = supersets[np.argmin(added)]  # supersets ascend: ties take the smallest
-    return out
-
-
-def _close(candidate: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
-    """Mark the corners of every refined cell, then add the fewest marks that bring each
-    cell left in an invalid pattern to a valid one, until none is left. Returns the node
-    marks and each cell's corner mask."""
-    pattern, _ = TEMPLATES[dim]
-    complete = COMPLETION[dim]
+    candidate : cells, bool. corners : (k, d) offsets of a cell's corners over the last d
+    axes (bit c of a mask: corner c); the first ``lead`` axes carry no corners (one-axis
+    steps: the refined axis). Returns the marks ((n + 1) over the last d axes) and each
+    cell's corner mask.
+    """
     shape = candidate.shape
-    slices = _corner_slices(dim, shape)
-    marked = np.zeros(tuple(n + 1 for n in shape), bool)
+    slices = [(slice(None),) * lead + tuple(slice(o, o + n) for o, n in zip(c, shape[lead:])) for c in corners]
+    marked = np.zeros(shape[:lead] + tuple(n + 1 for n in shape[lead:]), bool)
     for s in slices:
         marked[s] |= ~candidate
     while True:
@@ -240,13 +86,21 @@ def _close(candidate: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
             marked[s] |= (target >> c & 1).astype(bool)
 
 
-COMPLETION = {dim: _completion(TEMPLATES[dim][0]) for dim in (2, 3)}
-"""dim -> per corner mask, the valid mask an invalid cell is completed to."""
+def _coarsenable(labels: np.ndarray, min_distance: int, keep_fine) -> np.ndarray:
+    """(labels.shape) int64: the material of every voxel whose neighbours within
+    ``min_distance`` voxels (inside the image) all hold it, else 0; materials kept fine 0."""
+    size = 2 * min_distance + 1
+    lo = ndimage.minimum_filter(labels, size=size, mode="constant", cval=0)
+    hi = ndimage.maximum_filter(labels, size=size, mode="constant", cval=0)
+    material = np.where(lo == hi, lo, 0).astype(np.int64)
+    if len(keep_fine):
+        material[np.isin(material, np.asarray(keep_fine, np.int64))] = 0
+    return material
 
 
 def _level_one(labels: np.ndarray, dim: int, min_distance: int, keep_fine) -> tuple[np.ndarray, np.ndarray]:
-    """Candidates and materials of the level-1 cells: one material in the cell and within
-    ``min_distance`` voxels of it, inside the image, not a material kept fine."""
+    """Candidates and materials of the level-1 cells (2D): one material in the cell and
+    within ``min_distance`` voxels of it, inside the image, not a material kept fine."""
     n = tuple(-(-s // 3) for s in labels.shape)
     size = 3 + 2 * min_distance
     lo = ndimage.minimum_filter(labels, size=size, mode="constant", cval=0)
@@ -270,7 +124,7 @@ def _level_one(labels: np.ndarray, dim: int, min_distance: int, keep_fine) -> tu
 
 
 def _next_level(marked: np.ndarray, candidate: np.ndarray, material: np.ndarray, dim: int):
-    """Candidates and materials of the next level's cells: 27 (2D: 9) candidate children of
+    """Candidates and materials of the next level's cells (2D): 9 candidate children of
     one material and no marked child corner, boundary included."""
     n = tuple(-(-s // 3) for s in candidate.shape)
     any_marked = _pool_any(marked, dim, n)
@@ -285,52 +139,128 @@ def _next_level(marked: np.ndarray, candidate: np.ndarray, material: np.ndarray,
     return ok, np.where(ok, lo, 0)
 
 
-def coarsen_labels(labels: np.ndarray, levels: int = 1, min_distance: int = 1, keep_fine=()) -> dict:
-    """The graded decomposition of a label volume: which cells of which level are elements.
-
-    labels : (nx, ny, nz) or (nx, ny) integer array, 0 = background.
-    levels : coarsening levels (0: every voxel its own element).
-    min_distance : voxels (>= 1) of one material around a level-1 cell before it may coarsen.
-    keep_fine : material labels kept at voxel size.
-    Returns {"levels": [per level l = 1..: {"mask": corner masks (cells), "state": pattern
-    per cell, "material": (cells) int64, "open": (cells) bool, cells that are elements or
-    refined (no coarser ancestor)}], "voxels": (nx, ny, nz) bool, voxels that are elements}.
-    """
-    dim = labels.ndim
-    pattern, _ = TEMPLATES[dim]
-    per_level = []
+def _steps_2d(labels: np.ndarray, levels: int, min_distance: int, keep_fine) -> list:
+    """The steps of 2D coarsening: one per level, both axes at once."""
+    pattern, _ = TEMPLATES_2D
+    steps = []
     candidate = material = marked = None
     for level in range(1, levels + 1):
         if level == 1:
-            candidate, material = _level_one(labels, dim, min_distance, keep_fine)
+            candidate, material = _level_one(labels, 2, min_distance, keep_fine)
         else:
-            candidate, material = _next_level(marked, candidate, material, dim)
-        marked, mask = _close(candidate, dim)
-        state = np.where(candidate, pattern[mask], FINE)
-        per_level.append({"mask": mask, "state": state, "material": material})
+            candidate, material = _next_level(marked, candidate, material, 2)
+        marked, mask = _close(candidate, QUAD_CORNERS[:, :2], pattern, COMPLETION_2D)
+        steps.append({"level": level, "frame": (0, 1), "prior": np.full(2, 3 ** (level - 1)),
+                      "candidate": candidate, "mask": mask, "state": np.where(candidate, pattern[mask], FINE),
+                      "material": material})
         if not candidate.any():
             break
-    # open cells, top down: every top-level cell, then the children of refined open cells
+    return steps
+
+
+def _axis_step(plain: np.ndarray, material: np.ndarray, axis: int, whole_neighbourhood: bool) -> dict:
+    """One step of 3D coarsening along ``axis``.
+
+    plain, material : (cells of the step below) bool, int64: cells that are one coarse
+        element (voxels at the first step) and their material.
+    A cell of this step is three plain cells of the step below along ``axis`` of one
+    material (and, ``whole_neighbourhood``, with every cell of the step below next to them
+    plain too: only plain cells' faces and edges match this step's). Cells are taken in
+    blocks of 2 x 2 across the axis, which carry the templates. Returns the step's cells'
+    material ``cell_material`` and whether each is one coarse element (``cell_plain``), and
+    per block its corner ``mask`` and pattern ``state``; arrays in the image's axis order.
+    """
+    pattern, _ = BLOCK_TEMPLATES
+    # a cyclic order of the axes: the templates' frame keeps its handedness
+    frame = (axis, (axis + 1) % 3, (axis + 2) % 3)
+    back = np.argsort(frame)
+    p = np.transpose(plain, frame)
+    m = np.transpose(np.where(plain, material, 0), frame)
+    n = -(-p.shape[0] // 3)
+    pad = ((0, 3 * n - p.shape[0]), (0, 0), (0, 0))
+    own = np.pad(p, pad).reshape(n, 3, *p.shape[1:])
+    mat = np.pad(m, pad).reshape(n, 3, *p.shape[1:])
+    lo, hi = mat.min(axis=1), mat.max(axis=1)
+    cell = own.all(axis=1) & (lo == hi) & (lo > 0)
+    if whole_neighbourhood:
+        inner = ndimage.binary_erosion(p, structure=np.ones((3, 3, 3), bool), border_value=0)
+        cell &= np.pad(inner, pad).reshape(n, 3, *p.shape[1:]).all(axis=1)
+    cell_material = np.where(cell, lo, 0)
+    # blocks of 2 x 2 cells across the axis, all four candidates of one material
+    nb, nc = (-(-k // 2) for k in cell.shape[1:])
+    pad2 = ((0, 0), (0, 2 * nb - cell.shape[1]), (0, 2 * nc - cell.shape[2]))
+    quad = np.pad(cell_material, pad2).reshape(n, nb, 2, nc, 2)
+    blo, bhi = quad.min(axis=(2, 4)), quad.max(axis=(2, 4))
+    block = (blo == bhi) & (blo > 0)
+    _, mask = _close(block, SECTION, pattern, COMPLETION_BLOCK, lead=1)
+    state = np.where(block, pattern[mask], FINE)
+    cell_plain = np.repeat(np.repeat(state == COARSE, 2, axis=1), 2, axis=2)[:, : cell.shape[1], : cell.shape[2]]
+    return {"frame": frame, "mask": np.transpose(mask, back), "state": np.transpose(state, back),
+            "cell_plain": np.transpose(cell_plain, back),
+            "cell_material": np.transpose(np.where(cell_plain, cell_material, 0), back),
+            "block_material": np.transpose(np.where(block, blo, 0), back)}
+
+
+def _steps_3d(labels: np.ndarray, levels: int, min_distance: int, keep_fine) -> list:
+    """The steps of 3D coarsening: per level, along x, then y, then z."""
+    steps = []
+    material = _coarsenable(labels, min_distance, keep_fine)
+    plain = material > 0
+    prior = np.ones(3, np.int64)
+    for level in range(1, levels + 1):
+        for axis in range(3):
+            # at the first step the cells below are voxels, whose faces match any cell's
+            step = _axis_step(plain, material, axis, bool(steps))
+            step.update(level=level, prior=prior.copy(), below=plain.shape)
+            steps.append(step)
+            if not step["cell_plain"].any():
+                return steps
+            plain, material = step["cell_plain"], step["cell_material"]
+            prior[axis] *= 3
+    return steps
+
+
+def coarsen_labels(labels: np.ndarray, levels: int = 1, min_distance: int = 1, keep_fine=()) -> dict:
+    """The graded decomposition of a label volume: which cells of which step are elements.
+
+    labels : (nx, ny, nz) or (nx, ny) integer array, 0 = background.
+    levels : coarsening levels (0: every voxel its own element).
+    min_distance : voxels (>= 1) of one material around a cell before it may coarsen.
+    keep_fine : material labels kept at voxel size.
+    Returns {"steps": [per step: "level", "frame" (axes of the template frame, the refined
+    axis first in 3D), "prior" ((dim,) cell size of the step below in voxels), "mask" and
+    "state" (per 2D cell or 3D block), "open" (per cell: an element or refined, no coarser
+    ancestor), ...], "voxels": labels.shape bool, voxels that are elements}.
+    """
+    dim = labels.ndim
+    if dim == 2:
+        steps = _steps_2d(labels, levels, min_distance, keep_fine) if levels else []
+        open_ = None
+        for step in reversed(steps):
+            step["open"] = np.ones(step["state"].shape, bool) if open_ is None else open_
+            below = labels.shape if step["level"] == 1 else steps[step["level"] - 2]["state"].shape
+            open_ = _children(step["open"] & (step["state"] == FINE), below, (0, 1), (3, 3))
+        voxels = (labels != 0) if open_ is None else open_ & (labels != 0)
+        return {"steps": steps, "voxels": voxels}
+    steps = _steps_3d(labels, levels, min_distance, keep_fine) if levels else []
+    # open cells, top down: every top cell, then the cells below refined open cells
     open_ = None
-    for entry in reversed(per_level):
-        shape = entry["state"].shape
-        if open_ is None:
-            entry["open"] = np.ones(shape, bool)
-        else:
-            entry["open"] = _children(open_, shape)
-        open_ = entry["open"] & (entry["state"] == FINE)
-    if open_ is None:
-        voxels = labels != 0
-    else:
-        voxels = _children(open_, labels.shape) & (labels != 0)
-    return {"levels": per_level, "voxels": voxels}
+    for step in reversed(steps):
+        cells = step["cell_plain"].shape
+        step["open"] = np.ones(cells, bool) if open_ is None else open_
+        frame = step["frame"]
+        refined = _children(step["state"] == FINE, cells, frame[1:], (2, 2)) & step["open"]
+        open_ = _children(refined, step["below"], frame[:1], (3,))
+    voxels = (labels != 0) if open_ is None else open_ & (labels != 0)
+    return {"steps": steps, "voxels": voxels}
 
 
-def _children(parent: np.ndarray, shape: tuple) -> np.ndarray:
-    """(shape) bool: cells of the level below whose parent is set in ``parent``."""
+def _children(parent: np.ndarray, shape: tuple, axes, factors) -> np.ndarray:
+    """(shape) bool: the cells below each set cell of ``parent``, ``factors`` per cell along
+    ``axes``, cropped to ``shape``."""
     out = parent
-    for axis in range(parent.ndim):
-        out = np.repeat(out, 3, axis=axis)
+    for axis, k in zip(axes, factors):
+        out = np.repeat(out, k, axis=axis)
     return out[tuple(slice(0, s) for s in shape)]
 
 
@@ -373,27 +303,51 @@ def _voxels_of(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
 def _new_elements(decomposition: dict, dim: int):
     """The coarse and template elements: corners (M, corners, dim) float64 in voxel units,
     materials and levels."""
-    _, table = TEMPLATES[dim]
-    corners = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim]
+    corners = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim].astype(float)
     per = corners.shape[0]
+    _, table = TEMPLATES_2D if dim == 2 else BLOCK_TEMPLATES
     parts, materials, levels = [np.zeros((0, per, dim))], [np.zeros(0, np.int64)], [np.zeros(0, np.int8)]
-    for level, entry in enumerate(decomposition["levels"], start=1):
-        size = 3 ** level
-        state, mask, open_ = entry["state"], entry["mask"], entry["open"]
-        emit = open_ & (state != FINE)
-        if not emit.any():
-            continue
-        # one coarse element for a cell without split edge, else its template
-        kind_mask = np.where(state == COARSE, 0, mask)
-        for m in np.unique(kind_mask[emit]):
-            rows = emit & (kind_mask == m)
-            origin = np.argwhere(rows) * size
-            shape = corners[None] * 3.0 if m == 0 else table[int(m)]  # thirds of the cell
-            cells = origin[:, None, None, :] + shape[None] * (size / 3)
-            parts.append(cells.reshape(-1, per, dim))
-            mat = entry["material"][rows]
-            materials.append(np.repeat(mat, shape.shape[0]))
-            levels.append(np.full(mat.size * shape.shape[0], level, np.int8))
+
+    def emit(cells, material, level):
+        parts.append(cells.reshape(-1, per, dim))
+        materials.append(np.repeat(material, cells.shape[1]))
+        levels.append(np.full(cells.shape[0] * cells.shape[1], level, np.int8))
+
+    for step in decomposition["steps"]:
+        frame, prior = list(step["frame"]), np.asarray(step["prior"], float)
+        cell = prior.copy()
+        cell[frame[0]] *= 3
+        if dim == 2:
+            cell[frame[1]] *= 3
+            unit, material = cell, step["material"]
+            templated = step["open"] & (step["state"] != FINE)
+            kind = np.where(step["state"] == COARSE, -1, step["mask"])
+        else:
+            # a block is 2 x 2 cells across the axis; a coarse block's cells are emitted
+            # one by one (the next step may have taken some of them)
+            unit = cell.copy()
+            unit[frame[1:]] *= 2
+            coarse = step["cell_plain"] & step["open"]
+            if coarse.any():
+                emit(np.argwhere(coarse)[:, None, None, :] * cell + (corners * cell)[None, None],
+                     step["cell_material"][coarse], step["level"])
+            any_open = np.zeros(step["state"].shape, bool)
+            idx = np.argwhere(step["open"])
+            idx[:, frame[1:]] //= 2
+            any_open[tuple(idx.T)] = True
+            templated = any_open & (step["state"] != FINE) & (step["state"] != COARSE)
+            kind = step["mask"]
+            material = step["block_material"]
+        for m in np.unique(kind[templated]):
+            rows = templated & (kind == m)
+            origin = np.argwhere(rows) * unit
+            if m < 0:
+                shape = corners * unit
+            else:
+                local = table[int(m)]  # in cells of the step below, template frame
+                shape = np.empty_like(local)
+                shape[..., frame] = local * prior[frame]
+            emit(origin[:, None, None, :] + shape[None], material[rows], step["level"])
     return np.concatenate(parts), np.concatenate(materials), np.concatenate(levels)
 
 

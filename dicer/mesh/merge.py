@@ -903,11 +903,6 @@ def merge_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, di
     if s["method"] == "templates":
         from dicer.mesh.coarsen import coarsen_mesh
 
-        if mesh.dim == 3:
-            # with the templates built so far every bounded 3D coarse region is refined away
-            # (docs/coarsening.md, Limits): say so instead of returning the voxel mesh
-            raise DicerError("merge.method=templates grades 2D (quad) meshes only: the 3D three-face transition "
-                             "template is not built yet, so no 3D region can coarsen; use merge.method=planes")
         t = s["templates"]
         keep = t["keep_fine"]
         if not isinstance(keep, (list, tuple)) or any(isinstance(k, bool) or not isinstance(k, int) for k in keep):

@@ -441,7 +441,8 @@ def do_export(mesh_path: str, out: Path, config: dict, mesh=None):
     from dicer.io.meshes import read_mesh
 
     with _Stage("export"):
-        mesh = read_mesh(mesh_path) if mesh is None else mesh
+        # the export only reads the mesh: its arrays stay in the page cache, mapped, not copied
+        mesh = read_mesh(mesh_path, mapped=True) if mesh is None else mesh
         info = export_mesh(mesh, out, config, source=mesh_path)
         log.info("export: wrote %s (%s)", out, json.dumps(info, sort_keys=True))
 

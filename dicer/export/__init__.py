@@ -125,8 +125,12 @@ class SolverModel:
 
     def blocks(self) -> list[tuple[int, np.ndarray]]:
         """(label, element indices ascending) per material present."""
-        order = np.argsort(self.material, kind="stable")
         counts = np.bincount(self.material, minlength=max(self.names) + 1)
+        present = np.flatnonzero(counts)
+        if present.size <= 8:
+            # a few materials (the usual case): one comparison pass per label costs less than a sort
+            return [(int(k), np.flatnonzero(self.material == k)) for k in present]
+        order = np.argsort(self.material, kind="stable")
         out, start = [], 0
         for k in range(counts.size):
             if counts[k]:
@@ -147,16 +151,48 @@ def file_sha256(path: str | os.PathLike | None) -> str | None:
         files = sorted(f for f in p.rglob("*") if f.is_file())
     else:
         return None
+    block = bytearray(1 << 24)  # one buffer, refilled: no fresh memory per block
+    view = memoryview(block)
     for f in files:
         if p.is_dir():
             h.update(str(f.relative_to(p)).encode() + b"\0")
-        with open(f, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 22), b""):
-                h.update(block)
+        with open(f, "rb", buffering=0) as fh:
+            while n := fh.readinto(block):
+                h.update(view[:n])
     return h.hexdigest()
 
 
-def provenance(source: str | os.PathLike | None, config: dict, element_type: str, order: int) -> list[str]:
+def _sha256_in_background(path: str | os.PathLike | None):
+    """Start :func:`file_sha256` of ``path`` on a thread; returns a function that waits for the digest.
+
+    hashlib and file reads release the GIL, so the digest of a mesh of GBs is computed
+    on the second core while the model is built.
+    """
+    import threading
+
+    out: list = []
+    worker = threading.Thread(target=lambda: out.append(_catch(file_sha256, path)), daemon=True)
+    worker.start()
+
+    def result() -> str | None:
+        worker.join()
+        value = out[0]
+        if isinstance(value, BaseException):
+            raise value
+        return value
+    return result
+
+
+def _catch(fn, *args):
+    """``fn(*args)``, or the exception it raised (to re-raise on the caller's thread)."""
+    try:
+        return fn(*args)
+    except BaseException as exc:  # noqa: BLE001 -- handed back to the caller, which raises it
+        return exc
+
+
+def provenance(source: str | os.PathLike | None, config: dict, element_type: str, order: int,
+               digest: str | None = None) -> list[str]:
     """Heading lines: dicer version, the checksum of the mesh the deck is made from, the
     hash of the settings export reads; no name, path or date.
 
@@ -166,7 +202,7 @@ def provenance(source: str | os.PathLike | None, config: dict, element_type: str
     """
     # the input is named by its content only: a file or folder name can hold a patient's
     # name (DICOM folders often do), and no identifier may reach a deck
-    digest = file_sha256(source) or "n/a"
+    digest = (digest if digest is not None else file_sha256(source)) or "n/a"
     return [
         f"dicer {__version__} {element_type} model (order {order})",
         f"mesh sha256 {digest}",
@@ -428,6 +464,7 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
     clash = name_clash([m["name"] for m in materials], kinds)
     if clash:
         raise DicerError(f"{path}: {clash}")
+    digest = _sha256_in_background(source)
     names = {i + 1: m["name"] for i, m in enumerate(materials)}
     props = {i + 1: {"youngs_modulus": 1000.0, "poissons_ratio": 0.3, "density": 1.0e-9, **m}
              for i, m in enumerate(materials)}
@@ -446,8 +483,7 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
     model = SolverModel(
         points=points, cells=cells, material=mesh.material.astype(np.int32), names=names, props=props,
         element_type=etype, dim=mesh.dim, order=order, thickness=float(ex.get("thickness", 1.0)),
-        digits=int(ex.get("digits", 9)), heading=provenance(source, config, etype, order),
-        use_heading=bool(ex.get("heading", True)),
+        digits=int(ex.get("digits", 9)), use_heading=bool(ex.get("heading", True)),
     )
     if "planes" in kinds:
         g2 = 2 * np.asarray(mesh.grid_shape, np.int64)
@@ -461,6 +497,7 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
                     model.node_sets["XYZ"[axis] + side] = ids
     if kinds & {"materials", "interfaces", "exterior"}:
         _surface_sets(model, kinds, nb_mat)
+    model.heading = provenance(source, config, etype, order, digest())  # the digest was computed meanwhile
     if mesh.direction is not None:
         _to_scanner_frame(model, mesh)
     return model

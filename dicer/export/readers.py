@@ -545,8 +545,9 @@ def _numbers(lines: list[str], count: int, keyword: str, a: int) -> list[float]:
     return values
 
 
-def _records(arr: np.ndarray, a: int, b: int, kinds: str, what: str, entries_first_line: int = 0):
-    """Parse the fixed-width block arr[a:b] whose records hold fields ``kinds`` (``i``/``f``)."""
+def _records(arr: np.ndarray, a: int, b: int, kinds: str, what: str, entries_first_line: int = 0, sink=None):
+    """Parse the fixed-width block arr[a:b] whose records hold fields ``kinds`` (``i``/``f``)
+    (``sink``: handed the values chunk by chunk, see :func:`parse_records`)."""
     buf = arr[a:b]
     if buf.size == 0:
         raise FormatError(a, f"{what} without data lines")
@@ -561,7 +562,7 @@ def _records(arr: np.ndarray, a: int, b: int, kinds: str, what: str, entries_fir
                                  f"({layout.kinds.count('f')} real), expected {len(kinds)} ({kinds.count('f')} real)")
         if entries_first_line and first.split(b"\n")[0].count(b",") != entries_first_line:
             raise FormatError(0, f"{what} lines continue after other than {entries_first_line} entries")
-        return parse_records(buf, layout)
+        return parse_records(buf, layout, sink=sink)
     except FormatError as exc:
         raise FormatError(a + exc.offset, f"{what}: {exc.message}") from None
 
@@ -614,10 +615,74 @@ def _block_end(data, arr: np.ndarray, a: int, stride: int = 0) -> int:
     return arr.size if at < 0 else at + 1
 
 
-def _parse_abaqus(data, arr: np.ndarray) -> dict:
+class _Expected:
+    """Compares the node and element blocks of a deck with the model written, chunk by chunk
+    as they are parsed (the check holds no second copy of the mesh).
+
+    Each ``nodes`` / ``elements`` call takes one chunk of parsed records (``start``: the
+    index of its first record in the block) and raises FormatError (offset into the
+    chunk's rows) at the first record that differs.
+    """
+
+    def __init__(self, model):
+        self.model = model
+        self.tolerance = _tolerance(model, model.digits)
+        self.blocks = {model.names[k]: elements for k, elements in model.blocks()}
+
+    def nodes(self, length: int):
+        points, dim, tol = self.model.points, self.model.dim, self.tolerance
+
+        def sink(start: int, ints: np.ndarray, reals: np.ndarray) -> None:
+            r = ints.shape[0]
+            if start + r > points.shape[0]:
+                raise FormatError((points.shape[0] - start) * length, f"the deck has more than the model's "
+                                                                     f"{points.shape[0]} nodes")
+            ids = ints[:, 0] - np.arange(start + 1, start + 1 + r, dtype=ints.dtype)
+            if ids.any():
+                raise FormatError(int(np.flatnonzero(ids)[0]) * length, "node numbers do not run 1, 2, ... in order")
+            err = np.abs(reals[:, :dim] - points[start : start + r, :dim])
+            worst = err.max(axis=1)
+            if not worst.max() <= tol:  # NaN fails too
+                bad = int(np.flatnonzero(~(worst <= tol))[0])
+                raise FormatError(bad * length, f"node coordinates differ by {float(worst.max()):.3g} mm")
+        return sink
+
+    def elements(self, name: str, length: int):
+        """The sink of block ``name``: element numbers, then connectivity, as the model's block."""
+        elements, cells = self.blocks.get(name), self.model.cells
+        if elements is None:
+            return None
+
+        def sink(start: int, ints: np.ndarray, reals: np.ndarray) -> None:
+            r = ints.shape[0]
+            e = elements[start : start + r]
+            if e.size != r:
+                raise FormatError(e.size * length, f"ELSET={name} holds more than its {elements.size} elements")
+            if not np.array_equal(ints[:, 0], e + 1):
+                raise FormatError(int(np.flatnonzero(ints[:, 0] != e + 1)[0]) * length,
+                                  f"material set {name} does not hold its {elements.size} elements")
+            want = cells[e]
+            want += 1
+            same = ints[:, 1:] == want
+            if not same.all():
+                bad = int(np.flatnonzero(~same.all(axis=1))[0])
+                raise FormatError(bad * length, f"connectivity of element {int(e[bad]) + 1} differs")
+        return sink
+
+
+def _parse_abaqus(data, arr: np.ndarray, model=None) -> dict:
     """The deck ``data`` (bytes or mmap; ``arr``: the same as uint8) as :func:`read_abaqus`
-    returns it; FormatError on a flaw."""
+    returns it; FormatError on a flaw.
+
+    model : compare the nodes and elements with this SolverModel while they are parsed
+        (FormatError at the first record that differs) and return no arrays of them:
+        ``points`` and ``cells`` are then None and each block's element indices are the
+        model's (equal to those read).
+    """
     from dicer.export import ELEMENT_TYPES
+
+    expected = _Expected(model) if model is not None else None
+    n_nodes = 0
 
     size = arr.size
     if arr[-1] != 10:
@@ -626,7 +691,7 @@ def _parse_abaqus(data, arr: np.ndarray) -> dict:
         raise FormatError(0, "a deck starts with a keyword line (*HEADING or *NODE)")
     out = {"heading": [], "points": None, "element_type": None, "blocks": [], "node_sets": {},
            "element_sets": {}, "surfaces": {}, "materials": {}, "sections": {}}
-    conn, material, nxt = [], None, 0
+    conn, material, nxt, nodes_seen = [], None, 0, False
     while nxt < size:
         s = nxt  # a keyword line
         e = data.find(b"\n", s)
@@ -646,18 +711,26 @@ def _parse_abaqus(data, arr: np.ndarray) -> dict:
         if stride:
             _release(data, a, b)  # the scan for the block's end touched one byte per record
         if key == "HEADING":
-            if out["heading"] or out["points"] is not None:
+            if out["heading"] or nodes_seen:
                 raise FormatError(s, "*HEADING after the start of the model or twice")
             out["heading"] = _small_lines(arr, a, b, key) or [""]
         elif key == "NODE":
-            if out["points"] is not None:
+            if nodes_seen:
                 raise FormatError(s, "a second *NODE block (dicer writes one)")
+            nodes_seen = True
+            if expected is not None:
+                n_nodes = _records(arr, a, b, "ifff", "a *NODE line", sink=expected.nodes(stride))
+                _release(data, a, b)
+                if n_nodes != model.n_points:
+                    raise FormatError(b, f"the deck has {n_nodes} nodes, the model {model.n_points}")
+                continue
             ints, reals = _records(arr, a, b, "ifff", "a *NODE line")
             _release(data, a, b)
             if not np.array_equal(ints[:, 0], np.arange(1, ints.shape[0] + 1)):
                 bad = int(np.flatnonzero(ints[:, 0] != np.arange(1, ints.shape[0] + 1))[0])
                 raise FormatError(a + bad * (b - a) // ints.shape[0], "node numbers do not run 1, 2, ... in order")
             out["points"] = reals
+            n_nodes = reals.shape[0]
         elif key == "ELEMENT":
             etype = _need(params, "TYPE", key, s).upper()
             name = _need(params, "ELSET", key, s)
@@ -665,12 +738,24 @@ def _parse_abaqus(data, arr: np.ndarray) -> dict:
                 raise FormatError(s, f"unknown element type {etype}")
             if out["element_type"] not in (None, etype):
                 raise FormatError(s, f"element type {etype} after {out['element_type']} (dicer writes one type)")
-            if out["points"] is None:
+            if not nodes_seen:
                 raise FormatError(s, "*ELEMENT before *NODE")
             if any(name == n for n, _ in out["blocks"]):
                 raise FormatError(s, f"a second element block for ELSET={name}")
             out["element_type"] = etype
             k = NODES_PER_ELEMENT[ELEMENT_TYPES[etype]]
+            sink = expected.elements(name, stride) if expected is not None else None
+            if expected is not None and (sink is None or k != model.cells.shape[1]):
+                raise FormatError(s, f"ELSET={name} of {etype} elements, which the model does not hold")
+            if sink is not None:
+                count = _records(arr, a, b, "i" * (k + 1), f"a *ELEMENT line of ELSET={name}",
+                                 _PER_LINE if k + 1 > _PER_LINE else 0, sink=sink)
+                _release(data, a, b)
+                if count != expected.blocks[name].size:
+                    raise FormatError(b, f"material set {name} does not hold its {expected.blocks[name].size} "
+                                         "elements")
+                out["blocks"].append((name, expected.blocks[name]))
+                continue
             ints, _ = _records(arr, a, b, "i" * (k + 1), f"a *ELEMENT line of ELSET={name}",
                                _PER_LINE if k + 1 > _PER_LINE else 0)
             _release(data, a, b)
@@ -709,7 +794,7 @@ def _parse_abaqus(data, arr: np.ndarray) -> dict:
                                      _numbers(lines, 1, key, a) if lines else [])
         else:
             raise FormatError(s, f"unexpected keyword *{key} (dicer's decks hold no such card)")
-    if out["points"] is None or not out["blocks"]:
+    if not nodes_seen or not out["blocks"]:
         raise FormatError(size, "no *NODE or no *ELEMENT block (truncated?)")
     # a deck cut at a line end is whole up to there: its last cards tell (every block has a
     # section, every section a material with its constants)
@@ -719,8 +804,14 @@ def _parse_abaqus(data, arr: np.ndarray) -> dict:
             raise FormatError(size, f"ELSET={name} has no *SOLID SECTION (truncated?)")
         if set(out["materials"].get(section[0], {})) != {"elastic", "density"}:
             raise FormatError(size, f"material {section[0]} of ELSET={name} lacks *ELASTIC or *DENSITY (truncated?)")
-    n_nodes = out["points"].shape[0]
     n_cells = sum(ids.size for _, ids in out["blocks"])
+    for kind, limit in (("node_sets", n_nodes), ("element_sets", n_cells)):
+        for name, ids in out[kind].items():
+            if ids[0] < 0 or ids[-1] >= limit:
+                raise FormatError(size, f"set {name} refers to {kind.split('_')[0]}s that do not exist")
+    if expected is not None:  # every record was compared with the model's as it was parsed
+        out["cells"] = None
+        return out
     seen = np.zeros(n_cells, bool)
     cells = np.empty((n_cells, conn[0][1].shape[1]), conn[0][1].dtype)
     for (name, ids), (a, c) in zip(out["blocks"], conn):
@@ -733,16 +824,13 @@ def _parse_abaqus(data, arr: np.ndarray) -> dict:
         seen[ids] = True
         cells[ids] = c
     cells -= 1
-    for kind, limit in (("node_sets", n_nodes), ("element_sets", n_cells)):
-        for name, ids in out[kind].items():
-            if ids[0] < 0 or ids[-1] >= limit:
-                raise FormatError(size, f"set {name} refers to {kind.split('_')[0]}s that do not exist")
     out["cells"] = cells
     return out
 
 
-def _read_abaqus(path: str | Path) -> dict:
-    """:func:`read_abaqus` with messages that start at the line (the caller names the file)."""
+def _read_abaqus(path: str | Path, model=None) -> dict:
+    """:func:`read_abaqus` with messages that start at the line (the caller names the file);
+    ``model``: nodes and elements compared with it as they are parsed (see _parse_abaqus)."""
     try:
         data = _map_file(Path(path))
     except OSError as exc:
@@ -751,7 +839,7 @@ def _read_abaqus(path: str | Path) -> dict:
         raise DicerError(exc.message) from None
     arr = np.frombuffer(data, np.uint8)
     try:
-        return _parse_abaqus(data, arr)
+        return _parse_abaqus(data, arr, model)
     except FormatError as exc:
         message = f"{_where(arr, exc.offset)}: {exc.message}"
     del arr, data  # the error below must not keep the file mapped through its traceback
@@ -779,7 +867,7 @@ def check_abaqus(path: str | Path, model) -> None:
     exterior surface, materials and sections."""
     from dicer.export.abaqus import _num
 
-    got = _read_abaqus(path)
+    got = _read_abaqus(path, model)  # nodes and elements compared with the model's record by record
     if got["element_type"] != model.element_type:
         raise DicerError(f"element type {got['element_type']} read back, expected {model.element_type}")
     want_heading = [model.heading[0]] if model.use_heading else []
@@ -789,12 +877,6 @@ def check_abaqus(path: str | Path, model) -> None:
     names = [name for name, _ in got["blocks"]]
     if names != [model.names[k] for k, _ in blocks]:
         raise DicerError(f"element blocks {names} read back, expected {[model.names[k] for k, _ in blocks]}")
-    material = np.zeros(got["cells"].shape[0], np.int32)
-    for (name, ids), (k, elements) in zip(got["blocks"], blocks):
-        if not np.array_equal(ids, elements):
-            raise DicerError(f"material set {name} does not hold its {elements.size} elements")
-        material[ids] = k
-    compare(model, got["points"], got["cells"], material, "the deck")
     _same_sets("node set", got["node_sets"], model.node_sets)
     faces = model.exterior if model.exterior is not None else np.zeros((0, 2), np.int64)
     present = np.unique(faces[:, 1]).tolist()

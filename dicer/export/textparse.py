@@ -239,30 +239,42 @@ def _values(layout: Layout, d: np.ndarray, u: np.ndarray, ints: np.ndarray, real
         nf += run.count
 
 
-def parse_records(buf: np.ndarray, layout: Layout, chunk: int = CHUNK_ROWS) -> tuple[np.ndarray, np.ndarray]:
+def parse_records(buf: np.ndarray, layout: Layout, chunk: int = CHUNK_ROWS, sink=None):
     """Check and convert ``buf`` ((n * layout.length,) uint8, n whole records).
 
     Returns ints (n, number of integer fields), int32 if every integer field is at most 9
     columns wide, else int64, and reals (n, number of real fields) float64. Raises
     FormatError at the first byte that does not fit, or when ``buf`` does not hold whole
     records (offset of the incomplete last record).
+
+    sink : ``sink(start, ints, reals)`` takes the values of records ``start, start + 1, ...``
+        chunk by chunk ((r, ·) arrays, reused: valid during the call only), and
+        parse_records returns the record count n: a caller that compares the values with
+        what it expects holds no array of the whole block. A FormatError the sink raises
+        (offset into its chunk's rows) is moved to the offset in ``buf``.
     """
     n, rest = divmod(buf.size, layout.length)
     rows = buf[: n * layout.length].reshape(n, layout.length)
     wide = any(run.kind == "i" and run.width > 9 for run in layout.runs)
-    ints = np.empty((n, layout.kinds.count("i")), np.int64 if wide else np.int32)  # 9 digits fit int32
-    reals = np.empty((n, layout.kinds.count("f")), np.float64)
+    size = n if sink is None else min(n, chunk)
+    ints = np.empty((size, layout.kinds.count("i")), np.int64 if wide else np.int32)  # 9 digits fit int32
+    reals = np.empty((size, layout.kinds.count("f")), np.float64)
     for start in range(0, n, chunk):
         u = rows[start : start + chunk]
         try:
             d, _ = _check(u, layout)
+            if sink is None:
+                _values(layout, d, u, ints[start : start + chunk], reals[start : start + chunk])
+            else:
+                r = u.shape[0]
+                _values(layout, d, u, ints[:r], reals[:r])
+                sink(start, ints[:r], reals[:r])
         except FormatError as exc:
             raise FormatError(start * layout.length + exc.offset, exc.message) from None
-        _values(layout, d, u, ints[start : start + chunk], reals[start : start + chunk])
     if rest:
         raise FormatError(n * layout.length, f"a record of {rest} bytes where {layout.length} belong "
                                              "(a line cut short or run on)")
-    return ints, reals
+    return (ints, reals) if sink is None else n
 
 
 def record_length(buf: np.ndarray | bytes, continued: bool = False) -> int:

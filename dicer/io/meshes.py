@@ -438,17 +438,20 @@ def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data)
     return mesh
 
 
-def read_mesh(path: str | os.PathLike, source: str | None = None) -> Mesh:
+def read_mesh(path: str | os.PathLike, source: str | None = None, mapped: bool = False) -> Mesh:
     """Read a dicer VTU (or any meshio format holding one hex or quad block with dicer's data).
 
     dicer's own VTU files (raw appended data) are read with numpy at disk speed; any
-    other file with meshio.
+    other file with meshio. ``mapped``: a dicer VTU's arrays are read-only views of the
+    file mapped into memory (pages from the page cache, no copy), for callers that only
+    read the mesh (``dicer export``); arrays of another dtype than a Mesh holds are still
+    converted.
     """
     path = Path(path)
     name = source or str(path)
     if not path.exists():
         raise DicerError(f"{name}: mesh file not found; check the path")
-    parts = _read_raw_vtu(path, name) if path.suffix.lower() == ".vtu" and path.is_file() else None
+    parts = _read_raw_vtu(path, name, mapped) if path.suffix.lower() == ".vtu" and path.is_file() else None
     mesh = _assemble(name, *(parts or _read_meshio(path, name)))
     # the quality arrays describe the nodes as they were written: a stage that moves them
     # would carry stale values on, so every writer computes them afresh

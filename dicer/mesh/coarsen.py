@@ -38,7 +38,8 @@ from scipy import ndimage
 from dicer.errors import DicerError
 from dicer.mesh.merge import _lattice_boxes
 from dicer.mesh.metrics import element_volumes
-from dicer.mesh.model import HEX_CORNERS, LEVEL_DATA, QUAD_CORNERS, Mesh
+from dicer.mesh.model import LEVEL_DATA, Mesh
+from dicer.mesh.topology import HEX_CORNERS, HEX_REVERSED, QUAD_CORNERS, QUAD_REVERSED
 
 __all__ = ["coarsen_mesh", "coarsen_labels", "TEMPLATES", "LEVEL_DATA"]
 
@@ -119,11 +120,11 @@ def _oriented(cells: np.ndarray, dim: int) -> np.ndarray:
     if dim == 3:
         a, b, c = x[:, 1] - x[:, 0], x[:, 3] - x[:, 0], x[:, 4] - x[:, 0]
         flip = np.einsum("ij,ij->i", a, np.cross(b, c)) < 0
-        order = [0, 3, 2, 1, 4, 7, 6, 5]
+        order = HEX_REVERSED
     else:
         a, b = x[:, 1] - x[:, 0], x[:, 3] - x[:, 0]
         flip = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0] < 0
-        order = [0, 3, 2, 1]
+        order = QUAD_REVERSED
     out = cells.copy()
     out[flip] = cells[flip][:, order]
     return out

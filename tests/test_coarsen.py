@@ -18,10 +18,8 @@ from dicer.mesh.merge import merge_mesh
 from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes
 from dicer.mesh.model import LEVEL_DATA
 from dicer.mesh.smooth import smooth_mesh
+from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
 from dicer.mesh.voxel import voxel_mesh
-
-HEX_FACES = np.array([[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]])
-QUAD_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
 
 
 def faces_of(mesh):

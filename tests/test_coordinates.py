@@ -114,7 +114,7 @@ def test_nodes_at_the_itk_physical_point_of_each_voxel_corner(tmp_path, case, ex
 @pytest.mark.parametrize("case", CASES)
 @pytest.mark.parametrize("order", [1, 2])
 def test_quadratic_elements_and_face_sets_follow_the_corners(case, order):
-    from dicer.export import HEX20_FACES, HEX_FACES
+    from dicer.mesh.topology import HEX20_FACES, HEX_FACES
 
     corner = np.subtract(ORIGIN, np.divide(SPACING, 2))
     mesh = voxel_mesh(labels_array(), SPACING, corner, CASES[case].ravel())

@@ -12,7 +12,8 @@ from dicer.config import load_config
 from dicer.errors import DicerError
 from dicer.export import export_mesh, prepare_model
 from dicer.export.readers import read_lsdyna, read_patran
-from dicer.mesh.quadratic import HEX_EDGES, QUAD_EDGES, quadratic_mesh
+from dicer.mesh.quadratic import quadratic_mesh
+from dicer.mesh.topology import HEX_EDGES, QUAD_EDGES
 from dicer.mesh.voxel import voxel_mesh
 
 # PATRAN's 20-node hexahedron, from its element library: corners, then the mid-edge

@@ -11,15 +11,13 @@ from hypothesis.extra.numpy import arrays
 from dicer.errors import DicerError
 from dicer.mesh.merge import merge_planes, thick_elements
 from dicer.mesh.metrics import element_volumes, scaled_jacobian
+from dicer.mesh.topology import HEX_EDGES, HEX_FACES, QUAD_EDGES
 from dicer.mesh.voxel import voxel_mesh
 
 try:
     from dicer.connectivity import fix_connectivity
 except ImportError:  # pragma: no cover - the connectivity stage ships with the package
     fix_connectivity = None
-
-HEX_FACES = np.array([[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]])
-QUAD_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
 
 
 def fixed(labels):
@@ -96,8 +94,7 @@ def assert_sound(mesh):
 
 
 def neighbour_counts(mesh):
-    edges = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4],
-                      [0, 4], [1, 5], [2, 6], [3, 7]]) if mesh.dim == 3 else QUAD_EDGES
+    edges = HEX_EDGES if mesh.dim == 3 else QUAD_EDGES
     e = np.unique(np.sort(mesh.cells[:, edges].reshape(-1, 2), axis=1), axis=0)
     return np.bincount(e.ravel(), minlength=mesh.n_points)
 

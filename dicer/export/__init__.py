@@ -25,8 +25,10 @@ from dicer.config import SET_KINDS, config_hash, name_clash, stage_settings
 from dicer.errors import DicerError
 from dicer.image import MAX_LABEL
 from dicer.io.atomic import atomic_path
-from dicer.mesh.frame import HEX20_MIRROR, HEX_FACE_MIRROR, HEX_MIRROR, mirrored, to_scanner
+from dicer.mesh.frame import mirrored, to_scanner
 from dicer.mesh.model import Mesh
+from dicer.mesh.topology import (HEX20_FACES, HEX20_MIRROR, HEX_CORNERS, HEX_FACE_MIRROR, HEX_FACE_PLANES, HEX_FACES,
+                                 HEX_MIRROR, QUAD8_SIDES, QUAD_CORNERS, QUAD_EDGES, QUAD_SIDE_PLANES)
 
 FORMATS = {
     ".inp": "abaqus",
@@ -52,14 +54,6 @@ ELEMENT_TYPES = {
     "CPS8": (2, 2), "CPS8R": (2, 2), "CPE8": (2, 2), "CPE8R": (2, 2),
 }
 DEFAULT_TYPES = {(3, 1): "C3D8", (3, 2): "C3D20", (2, 1): "CPS4", (2, 2): "CPS8"}
-
-# Faces (3D) or edges (2D) of an element, corner indices in the Abaqus face order S1..S6 / S1..S4.
-HEX_FACES = np.array([[0, 1, 2, 3], [4, 7, 6, 5], [0, 4, 5, 1], [1, 5, 6, 2], [2, 6, 7, 3], [3, 7, 4, 0]])
-QUAD_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
-# The same with the face's mid-edge nodes (20-node hex, 8-node quad; VTK/Abaqus node order).
-HEX20_FACES = np.column_stack([HEX_FACES, [[8, 9, 10, 11], [15, 14, 13, 12], [16, 12, 17, 8], [17, 13, 18, 9],
-                                           [18, 14, 19, 10], [19, 15, 16, 11]]])
-QUAD8_EDGES = np.column_stack([QUAD_EDGES, [4, 5, 6, 7]])
 
 
 
@@ -242,18 +236,7 @@ def resolve_element_type(mesh: Mesh, config: dict, path: Path) -> tuple[str, int
     return etype, order
 
 
-# (axis, side) of each face S1..S6 (3D) / edge S1..S4 (2D) of an element, in lattice terms
-HEX_FACE_AXES = [(2, 0), (2, 1), (1, 0), (0, 1), (1, 1), (0, 0)]
-QUAD_EDGE_AXES = [(1, 0), (0, 1), (1, 1), (0, 0)]
-
-
 _CHUNK = 1 << 18  # elements per pass: temporaries stay small and are reused
-
-
-def _box_offsets(dim: int) -> np.ndarray:
-    if dim == 3:
-        return np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]])
-    return np.array([[0, 0], [1, 0], [1, 1], [0, 1]])
 
 
 def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
@@ -269,7 +252,7 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
     if m == 0 or int(material.max()) > 65535:
         return None
     kind = np.uint8 if int(material.max()) < 256 else np.uint16
-    offsets = _box_offsets(dim)
+    offsets = HEX_CORNERS if dim == 3 else QUAD_CORNERS[:, :2]
     far = 6 if dim == 3 else 2
     shape = np.asarray(mesh.grid_shape, np.int64)[:dim]
     lattice = mesh.lattice[:, :dim]
@@ -301,7 +284,7 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
             covered += b.size * int(np.prod(e))
     if np.count_nonzero(grid) != covered:  # overlapping boxes
         return None
-    axes = HEX_FACE_AXES if dim == 3 else QUAD_EDGE_AXES
+    axes = HEX_FACE_PLANES if dim == 3 else QUAD_SIDE_PLANES
     nb = np.empty((m, len(axes)), kind)
     for start in range(0, m, _CHUNK):
         c = cells[start : start + _CHUNK]
@@ -388,7 +371,7 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> No
     """
     dim = model.dim
     if model.order == 2:
-        table = HEX20_FACES if dim == 3 else QUAD8_EDGES
+        table = HEX20_FACES if dim == 3 else QUAD8_SIDES
     else:
         table = HEX_FACES if dim == 3 else QUAD_EDGES
     n = model.n_points

@@ -32,10 +32,9 @@ import numpy as np
 
 from dicer import __version__
 from dicer.errors import DicerError
+from dicer.mesh.topology import HEX20_EXODUS
 
 EXODUS_TYPES = {(3, 1): "HEX8", (3, 2): "HEX20", (2, 1): "QUAD4", (2, 2): "QUAD8"}
-EXODUS_HEX20 = np.r_[0:8, 8:12, 16:20, 12:16]
-"""Position in dicer's (VTK/Abaqus) 20-node order of each Exodus HEX20 node."""
 HEX_SIDE = np.array([5, 6, 1, 2, 3, 4])
 """Exodus side number of the Abaqus faces S1..S6 of a hexahedron."""
 QUAD_SIDE = np.array([1, 2, 3, 4])
@@ -47,7 +46,7 @@ _LIMIT = 2**32 - 4  # bytes of one variable in CDF-2
 def node_order(dim: int, order: int) -> np.ndarray:
     """Position in dicer's node order of each node of the Exodus element (an index array)."""
     if (dim, order) == (3, 2):
-        return EXODUS_HEX20
+        return HEX20_EXODUS
     return np.arange({(3, 1): 8, (2, 1): 4, (2, 2): 8}[(dim, order)])
 
 

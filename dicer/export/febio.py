@@ -33,17 +33,13 @@ from pathlib import Path
 import numpy as np
 
 from dicer.errors import DicerError
-from dicer.export import HEX20_FACES, HEX_FACES
 from dicer.export.textfmt import Float, Int, Sci, compact_rows, int_lines, int_width
+from dicer.mesh.topology import HEX20_FACES, HEX_FACES
 
 SPEC_VERSION = "4.0"
 FEBIO_TYPES = {1: "hex8", 2: "hex20"}
 FACET_TYPES = {1: "quad4", 2: "quad8"}
 MATERIAL_TYPES = ("isotropic elastic", "neo-Hookean")
-# Outward facets of the faces S1..S6: dicer's face tables run the other way round, so the
-# corners are reversed (keeping the first) and the mid-edge nodes follow their edges.
-OUT_HEX_FACES = HEX_FACES[:, [0, 3, 2, 1]]
-OUT_HEX20_FACES = HEX20_FACES[:, [0, 3, 2, 1, 7, 6, 5, 4]]
 CHUNK = 1 << 16
 PER_LINE = 16  # node numbers per line of a node set
 
@@ -60,7 +56,7 @@ def _comment(text: str) -> str:
 def facets(model, faces: np.ndarray) -> np.ndarray:
     """(F, 4) or (F, 8) 0-based node indices of the outward facets of ``faces``
     ((F, 2) rows of element index and Abaqus face number 1..6)."""
-    table = OUT_HEX20_FACES if model.order == 2 else OUT_HEX_FACES
+    table = HEX20_FACES if model.order == 2 else HEX_FACES  # wound outward, as FEBio wants them
     return model.cells[faces[:, 0][:, None], table[faces[:, 1] - 1]]
 
 

@@ -32,10 +32,9 @@ from pathlib import Path
 import numpy as np
 
 from dicer.export.textfmt import Float, Int, Sci, int_lines, write_rows
+from dicer.mesh.topology import HEX20_EXODUS
 
 E16 = Sci(9, b"E", fortran=True, width=16)
-PATRAN_HEX20 = np.r_[0:8, 8:12, 16:20, 12:16]
-"""Position in dicer's (VTK/Abaqus) 20-node order of each PATRAN 20-node hex node."""
 SHAPES = {(3, 1): (8, 8), (3, 2): (8, 20), (2, 1): (4, 4), (2, 2): (4, 8)}  # -> (IV shape code, nodes)
 CHUNK = 1 << 16
 
@@ -75,7 +74,7 @@ def _components(f, model) -> None:
 def patran_order(model) -> np.ndarray:
     """The model's cells in PATRAN node order."""
     if model.dim == 3 and model.order == 2:
-        return model.cells[:, PATRAN_HEX20]
+        return model.cells[:, HEX20_EXODUS]  # PATRAN's 20-node order is Exodus's
     return model.cells
 
 

@@ -28,8 +28,8 @@ from dicer.export.textparse import (
     parse_records,
     record_length,
 )
+from dicer.mesh.topology import HEX20_EXODUS, MESHIO_TYPES
 
-MESHIO_TYPES = {(3, 1): "hexahedron", (3, 2): "hexahedron20", (2, 1): "quad", (2, 2): "quad8"}
 
 # element types CalculiX reads that meshio's Abaqus reader lacks (same node order as their cousins)
 _EXTRA_ABAQUS_TYPES = {"CPE4": "quad", "CPE4R": "quad", "CPS8": "quad8", "CPS8R": "quad8",
@@ -285,7 +285,6 @@ def _patran_component(lines: _Lines, row: int) -> tuple[int, int, str, np.ndarra
 
 def _read_patran(path: str | Path) -> dict:
     """:func:`read_patran` with messages that start at the line."""
-    from dicer.export.patran import PATRAN_HEX20
 
     lines = _Lines(path)
     h = _patran_headers(lines, np.array([0]), 25, "title header")[0]
@@ -334,7 +333,7 @@ def _read_patran(path: str | Path) -> dict:
     dim, order = PATRAN_SHAPES[shape][nn]
     if dim == 3 and order == 2:
         back = np.empty_like(cells)
-        back[:, PATRAN_HEX20] = cells
+        back[:, HEX20_EXODUS] = cells
         cells = back
     if cells.min() < 1 or cells.max() > n_nodes:
         raise DicerError("elements refer to nodes that do not exist")

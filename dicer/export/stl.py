@@ -28,10 +28,7 @@ from dicer.io.atomic import atomic_path
 from dicer.mesh.frame import mirrored, to_scanner
 from dicer.mesh.metrics import element_volumes
 from dicer.mesh.model import Mesh
-
-# faces of a hexahedron (VTK corner order), corners ordered so the normal points outward
-OUTWARD_FACES = np.array([[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]])
-"""The Abaqus faces S1..S6 (dicer.export.HEX_FACES), each reversed to run outward."""
+from dicer.mesh.topology import HEX_FACES
 
 _RECORD = np.dtype([("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
 assert _RECORD.itemsize == 50
@@ -46,7 +43,7 @@ def material_triangles(mesh: Mesh, label: int, nb_mat: np.ndarray) -> np.ndarray
     own = mesh.material == label
     faces = own[:, None] & (nb_mat != label)
     e_idx, f_idx = np.nonzero(faces)
-    quads = mesh.cells[e_idx[:, None], OUTWARD_FACES[f_idx]]  # (F, 4)
+    quads = mesh.cells[e_idx[:, None], HEX_FACES[f_idx]]  # (F, 4)
     tris = np.empty((quads.shape[0], 2, 3), np.int64)
     tris[:, 0] = quads[:, [0, 1, 2]]
     tris[:, 1] = quads[:, [0, 2, 3]]

@@ -23,8 +23,7 @@ import numpy as np
 from dicer.io.meshes import _field_data_xml, names_xml, splice_field_data, to_meshio
 from dicer.mesh.metrics import quality_arrays
 from dicer.mesh.model import Mesh
-
-MESHIO_TYPES = {(3, 1): "hexahedron", (3, 2): "hexahedron20", (2, 1): "quad", (2, 2): "quad8"}
+from dicer.mesh.topology import MESHIO_TYPES
 
 
 def _corner_quality(model) -> dict[str, np.ndarray]:

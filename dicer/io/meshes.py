@@ -31,9 +31,10 @@ import numpy as np
 
 from dicer.errors import DicerError
 from dicer.io.atomic import atomic_path
-from dicer.mesh.frame import HEX_MIRROR, check_direction, mirrored, to_lattice
+from dicer.mesh.frame import check_direction, mirrored, to_lattice
 from dicer.mesh.metrics import QUALITY_DATA, quality_arrays, scaled_jacobian
 from dicer.mesh.model import Mesh
+from dicer.mesh.topology import HEX_MIRROR
 
 _FIELDS = ("spacing", "origin", "grid_shape", "direction", "scanner_coordinates")
 

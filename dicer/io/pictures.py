@@ -18,6 +18,7 @@ from matplotlib.figure import Figure
 from dicer.errors import DicerError
 from dicer.image import Volume
 from dicer.io.atomic import atomic_path
+from dicer.mesh.topology import HEX_FACES
 
 __all__ = ["save_jacobian_histogram", "save_model_picture", "save_node_class_chart", "save_overlay_png",
            "save_threshold_plot", "slice_centre", "visible_faces", "zbuffer"]
@@ -243,11 +244,9 @@ def visible_faces(points: np.ndarray, cells: np.ndarray, neighbours: np.ndarray,
     Returns (element (F,), quad node indices (F, 4) running outward, lambert factor (F,) for a
     light from over the viewer's right shoulder), sorted by depth, farthest first (the painter's order).
     """
-    from dicer.export.stl import OUTWARD_FACES
-
     across = np.where(neighbours >= 0, keep[np.maximum(neighbours, 0)], False)
     e_idx, f_idx = np.nonzero(keep[:, None] & ~across)
-    quads = cells[e_idx[:, None], OUTWARD_FACES[f_idx]]
+    quads = cells[e_idx[:, None], HEX_FACES[f_idx]]
     p = points[quads]  # (F, 4, 3)
     normal = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
     if flip:

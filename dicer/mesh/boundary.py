@@ -45,17 +45,14 @@ import scipy.sparse as sp
 
 from dicer.errors import DicerError
 from dicer.mesh.model import LEVEL_DATA, Mesh
+from dicer.mesh.topology import HEX_EDGES, QUAD_EDGES
 
 __all__ = ["NODE_CLASSES", "BoundaryGraph", "boundary_graph", "classify_nodes", "with_node_classes",
-           "HEX_EDGES", "QUAD_EDGES", "node_cell_counts", "class_counts", "bounding_planes", "plane_bits",
+           "node_cell_counts", "class_counts", "bounding_planes", "plane_bits",
            "plane_axes", "mirror_weights", "mirror_share"]
 
 NODE_CLASSES = ("interior", "A", "B", "C", "D", "E", "F", "X")
 """Names of the ``node_class`` codes 0..7."""
-
-HEX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4],
-                      [0, 4], [1, 5], [2, 6], [3, 7]])
-QUAD_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
 
 _PACKED_KINDS = 20  # materials the packed per-edge histogram holds (3 bits each in an int64); more are sorted
 _KEY_MAX = 2**63 - 1  # largest sort key (edge, material) packed in one int64

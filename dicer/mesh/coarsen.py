@@ -37,9 +37,10 @@ from scipy import ndimage
 from dicer.errors import DicerError
 from dicer.mesh.merge import _lattice_boxes
 from dicer.mesh.metrics import element_volumes
-from dicer.mesh.model import HEX_CORNERS, LEVEL_DATA, QUAD_CORNERS, Mesh
+from dicer.mesh.model import LEVEL_DATA, Mesh
 from dicer.mesh.templates import (BLOCK_TEMPLATES, COARSE, COMPLETION_2D, COMPLETION_BLOCK, FINE, INVALID,
                                   SECTION, TEMPLATES_2D)
+from dicer.mesh.topology import HEX_CORNERS, QUAD_CORNERS
 
 __all__ = ["coarsen_mesh", "coarsen_labels", "LEVEL_DATA"]
 

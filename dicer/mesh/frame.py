@@ -27,17 +27,6 @@ import numpy as np
 
 from dicer.errors import DicerError
 
-HEX_MIRROR = np.array([4, 5, 6, 7, 0, 1, 2, 3])
-"""Corner order of a mirrored 8-node hexahedron (VTK/Abaqus): bottom and top face swap,
-so a reflected element has a positive Jacobian again."""
-
-HEX20_MIRROR = np.r_[HEX_MIRROR, [12, 13, 14, 15, 8, 9, 10, 11, 16, 17, 18, 19]]
-"""The same for the 20-node hexahedron: the mid-edge nodes of the two faces swap too."""
-
-HEX_FACE_MIRROR = np.array([0, 2, 1, 3, 4, 5, 6])
-"""Face number S1..S6 of a hexahedron -> its number after HEX_MIRROR (index 0 unused):
-S1 and S2 (bottom and top) swap, the side faces keep their numbers."""
-
 
 def check_direction(direction, dim: int, source: str | None = None) -> np.ndarray | None:
     """The direction cosines as a (3, 3) float64 matrix, or None for the identity or a 2D mesh.

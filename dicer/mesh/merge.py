@@ -40,24 +40,12 @@ from scipy.sparse.csgraph import connected_components
 
 from dicer.errors import DicerError
 from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes
-from dicer.mesh.model import HEX_CORNERS, QUAD_CORNERS, Mesh
+from dicer.mesh.model import Mesh
+from dicer.mesh.topology import (HEX_AXIS_CORNERS, HEX_CORNERS, HEX_EDGES, HEX_FACES, QUAD_AXIS_CORNERS,
+                                 QUAD_CORNERS, QUAD_EDGES)
 
 __all__ = ["merge_planes", "merge_mesh", "merge_settings", "thick_elements", "DEFAULTS"]
 
-# For each axis: (bottom corners, top corners) of the element, paired so that bottom[i]
-# and top[i] are the two ends of one edge parallel to the axis (VTK corner order).
-_HEX_AXIS_CORNERS = {
-    0: (np.array([0, 3, 4, 7]), np.array([1, 2, 5, 6])),
-    1: (np.array([0, 1, 4, 5]), np.array([3, 2, 7, 6])),
-    2: (np.array([0, 1, 2, 3]), np.array([4, 5, 6, 7])),
-}
-_QUAD_AXIS_CORNERS = {
-    0: (np.array([0, 3]), np.array([1, 2])),
-    1: (np.array([0, 1]), np.array([3, 2])),
-}
-_HEX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4],
-                       [0, 4], [1, 5], [2, 6], [3, 7]])
-_QUAD_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
 _AXIS_NAMES = "xyz"
 log = logging.getLogger("dicer")  # the command line's logger: progress of long merges
 
@@ -306,7 +294,7 @@ def _merge_regions(faces: np.ndarray, box: np.ndarray, cand_idx: np.ndarray, cma
 def _face_edge_positions(dim: int, axis: int) -> np.ndarray:
     """Pairs of positions in the (bottom or top) corner list of ``axis`` that form the face's edges."""
     corners = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)
-    pos = (_HEX_AXIS_CORNERS if dim == 3 else _QUAD_AXIS_CORNERS)[axis][0]
+    pos = (HEX_AXIS_CORNERS if dim == 3 else QUAD_AXIS_CORNERS)[axis][0]
     off = corners[pos]
     return np.array([(i, j) for i in range(len(pos)) for j in range(i + 1, len(pos))
                      if np.abs(off[i] - off[j]).sum() == 1])
@@ -363,12 +351,9 @@ def _clashes(l_top, u_bot, li, ui, irr_l, irr_u, cand, lattice, dim, axis) -> np
     return _unique(np.concatenate(found))
 
 
-_HEX_FACES = np.array([[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]])
-
-
 def _crowded_faces(sub: np.ndarray, n: int, dim: int) -> np.ndarray:
     """Rows of ``sub`` with a face (2D: edge) that three or more rows share."""
-    faces = sub[:, _HEX_FACES] if dim == 3 else sub[:, _QUAD_EDGES]
+    faces = sub[:, HEX_FACES] if dim == 3 else sub[:, QUAD_EDGES]
     k = faces.shape[1]
     f = np.sort(faces.reshape(-1, faces.shape[2]), axis=1).astype(np.int64)
     n64 = np.int64(n)
@@ -475,8 +460,8 @@ def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, ax
     """
     lattice_a = lattice[:, axis]
     n = int(lattice_a.shape[0])
-    bc, tc = (_HEX_AXIS_CORNERS if dim == 3 else _QUAD_AXIS_CORNERS)[axis]
-    edges = _HEX_EDGES if dim == 3 else _QUAD_EDGES
+    bc, tc = (HEX_AXIS_CORNERS if dim == 3 else QUAD_AXIS_CORNERS)[axis]
+    edges = HEX_EDGES if dim == 3 else QUAD_EDGES
     max_neighbours, max_elements = (6, 8) if dim == 3 else (4, 4)
     m = mesh_cells.shape[0]
     r = layer % g

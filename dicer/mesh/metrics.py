@@ -10,11 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-# For each hex corner (VTK order), the three corners its edges run to, right-handed.
-_HEX_EDGE_ENDS = np.array(
-    [[1, 3, 4], [2, 0, 5], [3, 1, 6], [0, 2, 7], [7, 5, 0], [4, 6, 1], [5, 7, 2], [6, 4, 3]]
-)
-_QUAD_EDGE_ENDS = np.array([[1, 3], [2, 0], [3, 1], [0, 2]])
+from dicer.mesh.topology import (HEX_AXIS_CORNERS, HEX_CORNER_NEIGHBOURS, HEX_EDGES, QUAD_AXIS_CORNERS,
+                                 QUAD_CORNER_NEIGHBOURS, QUAD_EDGES)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -29,24 +26,21 @@ def corner_scaled_jacobians(points: np.ndarray, cells: np.ndarray) -> np.ndarray
     x = points[cells]  # (M, n, 3)
     if cells.shape[1] == 8:
         origin = x[:, :, None, :]  # (M, 8, 1, 3)
-        ends = x[:, _HEX_EDGE_ENDS, :]  # (M, 8, 3, 3)
+        ends = x[:, HEX_CORNER_NEIGHBOURS, :]  # (M, 8, 3, 3)
         e = _unit(ends - origin)
         a, b, c = e[:, :, 0], e[:, :, 1], e[:, :, 2]
         return np.einsum("mij,mij->mi", a, np.cross(b, c))
-    e = _unit(x[:, _QUAD_EDGE_ENDS, :2] - x[:, :, None, :2])
+    e = _unit(x[:, QUAD_CORNER_NEIGHBOURS, :2] - x[:, :, None, :2])
     return e[:, :, 0, 0] * e[:, :, 1, 1] - e[:, :, 0, 1] * e[:, :, 1, 0]
 
 
-_HEX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]])
-
-
 def _corner_edge_table() -> list[list[tuple[int, int]]]:
-    """For each hex corner, its three edge vectors as (index into _HEX_EDGES, sign)."""
+    """For each hex corner, its three edge vectors as (index into HEX_EDGES, sign)."""
     lookup = {}
-    for e, (i, j) in enumerate(_HEX_EDGES):
+    for e, (i, j) in enumerate(HEX_EDGES):
         lookup[(int(i), int(j))] = (e, 1)
         lookup[(int(j), int(i))] = (e, -1)
-    return [[lookup[(c, int(t))] for t in _HEX_EDGE_ENDS[c]] for c in range(8)]
+    return [[lookup[(c, int(t))] for t in HEX_CORNER_NEIGHBOURS[c]] for c in range(8)]
 
 
 _CORNER_EDGES = _corner_edge_table()
@@ -59,7 +53,7 @@ def _hex_min_scaled_jacobian(x: list[np.ndarray]) -> np.ndarray:
     the 12 edges is normalised once and shared by its two corners; the triple products
     are written out per component. Same values as corner_scaled_jacobians.
     """
-    e = [x[d][_HEX_EDGES[:, 1]] - x[d][_HEX_EDGES[:, 0]] for d in range(3)]  # 3 x (12, m)
+    e = [x[d][HEX_EDGES[:, 1]] - x[d][HEX_EDGES[:, 0]] for d in range(3)]  # 3 x (12, m)
     length = np.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = np.where(length > 0, 1.0 / length, 0.0)
@@ -145,16 +139,13 @@ def hex_volumes_t(columns: list[np.ndarray], cells_t: np.ndarray, chunk: int = _
     return out
 
 
-_QUAD_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
-
-
 def edge_ratio(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np.ndarray:
     """Longest over shortest edge length per element, (M,) float64 (1 for a cube; inf for
     an element with a zero-length edge).
 
     Blocks of ``chunk`` elements: the (block, 12) edge lengths stay small whatever the mesh size.
     """
-    pairs = _HEX_EDGES if cells.shape[1] == 8 else _QUAD_EDGES
+    pairs = HEX_EDGES if cells.shape[1] == 8 else QUAD_EDGES
     columns = _columns(points)
     out = np.empty(cells.shape[0])
     for start in range(0, cells.shape[0], chunk):
@@ -177,11 +168,8 @@ def skew(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np.ndarr
     parametric direction (of a quad, of its two); an axis of zero length gives 0, as in
     verdict.
     """
-    if cells.shape[1] == 8:
-        # corners in VTK order 000 100 110 010 001 101 111 011: + ends and - ends of each axis
-        axes = [([1, 2, 5, 6], [0, 3, 4, 7]), ([3, 2, 7, 6], [0, 1, 4, 5]), ([4, 5, 6, 7], [0, 1, 2, 3])]
-    else:
-        axes = [([1, 2], [0, 3]), ([2, 3], [1, 0])]
+    # + ends and - ends of each axis
+    axes = _HEX_SKEW_AXES if cells.shape[1] == 8 else _QUAD_SKEW_AXES
     columns = _columns(points)
     out = np.empty(cells.shape[0])
     for start in range(0, cells.shape[0], chunk):
@@ -207,13 +195,15 @@ def _hex_edge_ratio(x: list[np.ndarray]) -> np.ndarray:
     """edge_ratio of hexahedra from their corner coordinates, three (8, m) arrays."""
     sq = None
     for c in x:
-        d = c[_HEX_EDGES[:, 1]] - c[_HEX_EDGES[:, 0]]
+        d = c[HEX_EDGES[:, 1]] - c[HEX_EDGES[:, 0]]
         sq = d * d if sq is None else sq + d * d
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.sqrt(sq.max(axis=0) / sq.min(axis=0))
 
 
-_HEX_SKEW_AXES = [([1, 2, 5, 6], [0, 3, 4, 7]), ([3, 2, 7, 6], [0, 1, 4, 5]), ([4, 5, 6, 7], [0, 1, 2, 3])]
+# (+ ends, - ends) of each principal axis
+_HEX_SKEW_AXES = [(high, low) for low, high in HEX_AXIS_CORNERS.values()]
+_QUAD_SKEW_AXES = [(high, low) for low, high in QUAD_AXIS_CORNERS.values()]
 
 
 def _hex_skew(x: list[np.ndarray]) -> np.ndarray:

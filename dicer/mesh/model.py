@@ -13,19 +13,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-HEX_CORNERS = np.array(
-    [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], dtype=np.int64
-)
-"""Lattice offsets of the 8 corners of a hexahedron in VTK (and Abaqus C3D8) order."""
+from dicer.mesh.topology import HEX_CORNERS, MESHIO_TYPES, QUAD_CORNERS  # noqa: F401  (corners re-exported)
 
 LEVEL_DATA = "coarsening_level"
 """Cell data of graded meshes ('dicer merge' with merge.method=templates): 0 for an element
 of one voxel, l for an element of a level-l cell (3**l voxels a side), a coarse cell or part
 of a transition template. Every node of an element with level > 0 is an interior node: such
 elements lie inside one material, away from every boundary and interface."""
-
-QUAD_CORNERS = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=np.int64)
-"""Lattice offsets of the 4 corners of a quad in VTK (and Abaqus CPS4) order."""
 
 
 @dataclass
@@ -78,7 +72,7 @@ class Mesh:
     @property
     def cell_type(self) -> str:
         """meshio's name of the element type."""
-        return "hexahedron" if self.dim == 3 else "quad"
+        return MESHIO_TYPES[(self.dim, 1)]
 
     def copy(self) -> "Mesh":
         return Mesh(

@@ -20,16 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from dicer.mesh.model import Mesh
-
-HEX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4],
-                      [0, 4], [1, 5], [2, 6], [3, 7]])
-"""End corners of the 12 edges of a hexahedron, in the order of nodes 8..19 of a 20-node hexahedron."""
-
-QUAD_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
-"""End corners of the 4 edges of a quad, in the order of nodes 4..7 of an 8-node quad."""
-
-HEX_EDGE_AXES = np.array([0, 1, 0, 1, 0, 1, 0, 1, 2, 2, 2, 2])
-QUAD_EDGE_AXES = np.array([0, 1, 0, 1])
+from dicer.mesh.topology import HEX_EDGE_AXES, HEX_EDGES, HEX_FACE_EDGES, QUAD_EDGE_AXES, QUAD_EDGES, QUAD_SIDE_EDGES
 
 
 def _edges_by_lattice(mesh: Mesh, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -87,11 +78,6 @@ def mesh_edges(cells: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray
     unique, index = np.unique(keys.ravel(), return_inverse=True)
     edges = np.column_stack([unique // n_points, unique % n_points])
     return edges, index.reshape(keys.shape)
-
-
-# edge slots (HEX_EDGES / QUAD_EDGES rows) around each face S1..S6 (edge S1..S4) in Abaqus order
-HEX_FACE_EDGES = np.array([[0, 1, 2, 3], [7, 6, 5, 4], [8, 4, 9, 0], [9, 5, 10, 1], [10, 6, 11, 2], [11, 7, 8, 3]])
-QUAD_SIDE_EDGES = np.array([[0], [1], [2], [3]])
 
 
 def curved_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_faces: np.ndarray) -> np.ndarray:

@@ -52,10 +52,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from dicer.errors import DicerError
-from dicer.mesh.boundary import (HEX_EDGES, NODE_CLASSES, QUAD_EDGES, boundary_graph, bounding_planes, class_counts,
+from dicer.mesh.boundary import (NODE_CLASSES, boundary_graph, bounding_planes, class_counts,
                                  mirror_share, mirror_weights, plane_axes)
 from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes, hex_scaled_jacobian_t, hex_volumes_t, scaled_jacobian
-from dicer.mesh.model import HEX_CORNERS, LEVEL_DATA, QUAD_CORNERS, Mesh
+from dicer.mesh.model import LEVEL_DATA, Mesh
+from dicer.mesh.topology import HEX_CORNERS, HEX_EDGES, QUAD_CORNERS, QUAD_EDGES
 
 __all__ = ["DEFAULTS", "smooth_mesh", "smoothing_settings"]
 

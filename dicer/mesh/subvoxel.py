@@ -44,12 +44,12 @@ from scipy import ndimage, special
 from dicer.errors import DicerError
 from dicer.image import Volume
 from dicer.mesh.model import Mesh
+from dicer.mesh.topology import HEX_CORNER_NEIGHBOURS, QUAD_CORNER_NEIGHBOURS
 
 __all__ = ["ImageSurface", "NodeSides", "check_thresholds_for_mesh", "project"]
 
-# for each corner (VTK order), the corners its edges run to, right-handed (dicer.mesh.metrics)
-_EDGE_ENDS = {8: np.array([[1, 3, 4], [2, 0, 5], [3, 1, 6], [0, 2, 7], [7, 5, 0], [4, 6, 1], [5, 7, 2], [6, 4, 3]]),
-              4: np.array([[1, 3], [2, 0], [3, 1], [0, 2]])}
+# corners per element -> for each corner, the corners its edges run to, right-handed
+_EDGE_ENDS = {8: HEX_CORNER_NEIGHBOURS, 4: QUAD_CORNER_NEIGHBOURS}
 _LIFT_MARGIN = 0.02
 _LIFT_ITERATIONS = 4
 

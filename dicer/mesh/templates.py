@@ -19,7 +19,7 @@ import itertools
 
 import numpy as np
 
-from dicer.mesh.model import QUAD_CORNERS
+from dicer.mesh.topology import HEX_REVERSED, QUAD_CORNERS, QUAD_REVERSED
 
 COARSE, EDGE, FACE, FINE, INVALID, CORNER, THREE = 0, 1, 2, 3, 4, 5, 6
 """Patterns of a cell's marked corners."""
@@ -50,11 +50,11 @@ def oriented(cells: np.ndarray) -> np.ndarray:
     if x.shape[-1] == 3:
         a, b, c = x[:, 1] - x[:, 0], x[:, 3] - x[:, 0], x[:, 4] - x[:, 0]
         flip = np.einsum("ij,ij->i", a, np.cross(b, c)) < 0
-        order = [0, 3, 2, 1, 4, 7, 6, 5]
+        order = HEX_REVERSED
     else:
         a, b = x[:, 1] - x[:, 0], x[:, 3] - x[:, 0]
         flip = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0] < 0
-        order = [0, 3, 2, 1]
+        order = QUAD_REVERSED
     out = x.copy()
     out[flip] = x[flip][:, order]
     return out

@@ -8,7 +8,8 @@ import numpy as np
 
 from dicer.errors import DicerError
 from dicer.mesh.frame import check_direction
-from dicer.mesh.model import HEX_CORNERS, QUAD_CORNERS, Mesh
+from dicer.mesh.model import Mesh
+from dicer.mesh.topology import HEX_CORNERS, QUAD_CORNERS
 
 _BLOCK = 1 << 16
 """Grid points per slab of x planes: a slab's temporaries stay in cache."""

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from dicer.errors import DicerError
+from dicer.mesh.topology import HEX20_FACES, HEX_FACES, QUAD8_SIDES, QUAD_EDGES
 
 E_MODULUS, POISSON = 1000.0, 0.3  # MPa, -; stress ratios do not depend on them
 
@@ -86,12 +87,10 @@ class Deck:
 
     def face_nodes(self, corners_only: bool = False) -> np.ndarray:
         """(F, k) node indices of the exterior faces (corners first, then mid-edge nodes)."""
-        from dicer.export import HEX20_FACES, HEX_FACES, QUAD8_EDGES, QUAD_EDGES
-
         if self.dim == 3:
             table = HEX20_FACES if self.order == 2 and not corners_only else HEX_FACES
         else:
-            table = QUAD8_EDGES if self.order == 2 and not corners_only else QUAD_EDGES
+            table = QUAD8_SIDES if self.order == 2 and not corners_only else QUAD_EDGES
         return self.cells[self.face_elements[:, None], table[self.face_numbers - 1]]
 
     def _in_plane(self, axis: int, value: float) -> np.ndarray:

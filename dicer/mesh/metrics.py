@@ -174,20 +174,7 @@ def skew(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np.ndarr
     out = np.empty(cells.shape[0])
     for start in range(0, cells.shape[0], chunk):
         part = cells[start : start + chunk].T
-        x = [col[part] for col in columns]  # 3 x (corners, block)
-        u = []
-        for plus, minus in axes:
-            v = [c[plus].sum(axis=0) - c[minus].sum(axis=0) for c in x]
-            length = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-            with np.errstate(divide="ignore", invalid="ignore"):
-                inv = np.where(length > 0, 1.0 / length, 0.0)
-            u.append([c * inv for c in v])
-        worst = np.zeros(part.shape[1])
-        for a in range(len(u)):
-            for b in range(a + 1, len(u)):
-                cos = np.abs(u[a][0] * u[b][0] + u[a][1] * u[b][1] + u[a][2] * u[b][2])
-                np.maximum(worst, cos, out=worst)
-        out[start : start + chunk] = worst
+        out[start : start + chunk] = _skew_of([col[part] for col in columns], axes)
     return out
 
 
@@ -208,8 +195,14 @@ _QUAD_SKEW_AXES = [(high, low) for low, high in QUAD_AXIS_CORNERS.values()]
 
 def _hex_skew(x: list[np.ndarray]) -> np.ndarray:
     """skew of hexahedra from their corner coordinates, three (8, m) arrays."""
+    return _skew_of(x, _HEX_SKEW_AXES)
+
+
+def _skew_of(x: list[np.ndarray], axes) -> np.ndarray:
+    """skew from corner coordinates, three (corners, m) arrays, and the (+ ends, - ends)
+    of each principal axis."""
     u = []
-    for plus, minus in _HEX_SKEW_AXES:
+    for plus, minus in axes:
         v = [c[plus].sum(axis=0) - c[minus].sum(axis=0) for c in x]
         length = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
         with np.errstate(divide="ignore", invalid="ignore"):

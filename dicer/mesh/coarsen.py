@@ -2,28 +2,26 @@
 
 A voxel mesh keeps one element per voxel everywhere. Here the elements stay one voxel
 wherever a material boundary or interface is near and grow by a factor of three per
-level away from it (3 x 3 x 3 voxels at level 1, 9 x 9 x 9 at level 2, ...), joined by
-conforming transition templates: no hanging node, every interior face shared by exactly
-two elements, every node on an integer voxel corner. ``docs/coarsening.md`` gives the
-construction and the quality bound of each template.
+level away from it, joined by conforming transition templates: no hanging node, every
+interior face shared by exactly two elements. ``docs/coarsening.md`` gives the
+construction and the quality bound of each template (``dicer.mesh.templates``).
 
-Cells of level l are cubes of 3**l voxels aligned with the image's first voxel. Corners
-of the level-l cell grid are *marked* when a cell that must stay refined holds them.
-An edge of a cell is *split* (into three) when both its ends are marked; a face's
-pattern follows from its split edges, so two cells sharing a face agree on it. A cell
-that may coarsen takes, by its marked corners:
+2D: cells of level l are squares of 3**l voxels. Corners of the level-l cell grid are
+*marked* when a cell that must stay refined holds them; an edge is *split* (into three)
+when both its ends are marked, so two cells sharing an edge agree on it. A cell that may
+coarsen takes the template of its marked corners (one element, the edge or the corner
+template, or its 9 cells of the level below); marks are added until every cell has one
+(node marking to valid patterns, as in Schneiders' method).
 
-* no split edge: one element (a coarse cell);
-* one split edge: the edge template (5 hexahedra; 2D: 4 quads);
-* the four edges of one face split: the face template (13 hexahedra; 3D only);
-* every corner marked: refinement into its 27 (2D: 9) cells of the level below;
-* anything else: every corner is marked too, and the marking repeats until no cell is
-  left in another pattern (node marking to valid patterns, as in Schneiders' method).
+3D: a level is three steps, along x, then y, then z. A cell of a step is three plain
+cells (one coarse element each; voxels at the first step) of the step before along the
+step's axis, of one material, with every cell of the step before around it plain too.
+Cells are grouped in blocks of 2 x 2 across the axis, marked at the block corners, and
+each block takes the template of its marks.
 
-A cell may coarsen at level 1 when its voxels and every voxel within ``min_distance``
-of it (inside the image) hold one material; at level l > 1 when none of the level-(l-1)
-corners in it, its boundary included, is marked. So elements touching a boundary or
-interface node are always voxels, and the node classes and smoothing apply unchanged.
+A voxel may coarsen when every voxel within ``min_distance`` of it (inside the image)
+holds its material, so elements touching a boundary or interface node are always voxels
+and the node classes and smoothing apply unchanged.
 """
 
 from __future__ import annotations

@@ -17,8 +17,9 @@ from dicer.mesh.topology import HEX_CORNERS, MESHIO_TYPES, QUAD_CORNERS  # noqa:
 
 LEVEL_DATA = "coarsening_level"
 """Cell data of graded meshes ('dicer merge' with merge.method=templates): 0 for an element
-of one voxel, l for an element of a level-l cell (3**l voxels a side), a coarse cell or part
-of a transition template. Every node of an element with level > 0 is an interior node: such
+of one voxel, l for an element made at level l (a coarse cell or part of a transition
+template: 2D cells of 3**l voxels a side; 3D cells grow by three along one axis per step,
+3**l voxels a side once the level's three steps are done). Every node of an element with level > 0 is an interior node: such
 elements lie inside one material, away from every boundary and interface."""
 
 

@@ -4,13 +4,14 @@ of marked corners, in the cell's own coordinates (``docs/coarsening.md`` draws t
 2D cells are refined by three along both axes at once (``TEMPLATES_2D``): a cell is a
 square of side 3 (in cells of the level below) with its four corners marked or not.
 
-3D cells are refined by three along one axis at a time (``AXIS_TEMPLATES``): a cell is a
-box of 3 x 1 x 1 cells of the level below, (s, u, v) with s along the axis being refined.
-Its faces across s are never subdivided, so its pattern is the set of marked corners of
-its (u, v) cross-section: a marked corner is an edge along s split in three. Every face
-along s has one of three patterns, fixed by the marks of its two edges along s: one quad
-(neither marked), three quads (both), the 2D edge template (one) -- so two cells sharing a
-face agree on it whatever templates they hold.
+3D cells are refined by three along one axis at a time: a cell is a box of 3 x 1 x 1
+cells of the step below, (s, u, v) with s along the axis being refined, and its faces
+across s are never subdivided. Templates sit on blocks of 2 x 2 such cells across the
+axis (``BLOCK_TEMPLATES``), by the marked corners of the block's (u, v) cross-section (a
+marked corner is an edge along s split in three). A block face along s shows, by the marks
+of its two corners: one quad per cell (neither), three per cell (both), or the 2D edge
+template beside the marked corner and one quad (one) -- so two blocks sharing a face
+agree on it whatever templates they hold.
 """
 
 from __future__ import annotations
@@ -109,7 +110,7 @@ TEMPLATES_2D = _table_2d()
 # ---- 3D: one axis at a time -----------------------------------------------------------
 
 SECTION = np.array([[0, 0], [1, 0], [1, 1], [0, 1]])
-"""The (u, v) corners of a one-axis cell's cross-section, bit c of a mask for corner c."""
+"""Corner offsets of a cell's cross-section on its grid of corners (block corners: BLOCK / 2)."""
 
 # one marked corner (0, 0): the 3D edge template squeezed to one cell across
 _AXIS_EDGE = [[(s, u / 3, v / 3) for s, u, v in hexa] for hexa in _E]

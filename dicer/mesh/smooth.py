@@ -472,8 +472,13 @@ class _InteriorGraph(_Interior):
         sub = cells[near]
         a = sub[:, local[:, 0]].ravel()
         b = sub[:, local[:, 1]].ravel()
-        pairs = np.unique(np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1), axis=0)
-        a, b = np.concatenate([pairs[:, 0], pairs[:, 1]]), np.concatenate([pairs[:, 1], pairs[:, 0]])
+        # each edge once: one int64 key per (low, high) node pair sorts like the pairs do,
+        # and a 1-D unique is far cheaper than a unique of rows
+        key = np.minimum(a, b).astype(np.int64) * n + np.maximum(a, b)
+        key.sort()
+        key = key[np.r_[True, key[1:] != key[:-1]]]
+        lo, hi = np.divmod(key, n)
+        a, b = np.concatenate([lo, hi]), np.concatenate([hi, lo])
         pos = np.full(n, -1, np.int64)
         pos[band_nodes] = np.arange(m)
         bpos = np.full(n, -1, np.int64)

@@ -15,7 +15,7 @@ template, or its 9 cells of the level below); marks are added until every cell h
 
 3D: a level is three steps, along x, then y, then z. A cell of a step is three plain
 cells (one coarse element each; voxels at the first step) of the step before along the
-step's axis, of one material, with every cell of the step before around it plain too.
+step's axis, of one material.
 Cells are grouped in blocks of 2 x 2 across the axis, marked at the block corners, and
 each block takes the template of its marks.
 
@@ -157,15 +157,16 @@ def _steps_2d(labels: np.ndarray, levels: int, min_distance: int, keep_fine) -> 
     return steps
 
 
-def _axis_step(plain: np.ndarray, material: np.ndarray, axis: int, whole_neighbourhood: bool) -> dict:
+def _axis_step(plain: np.ndarray, material: np.ndarray, axis: int) -> dict:
     """One step of 3D coarsening along ``axis``.
 
     plain, material : (cells of the step below) bool, int64: cells that are one coarse
         element (voxels at the first step) and their material.
     A cell of this step is three plain cells of the step below along ``axis`` of one
-    material (and, ``whole_neighbourhood``, with every cell of the step below next to them
-    plain too: only plain cells' faces and edges match this step's). Cells are taken in
-    blocks of 2 x 2 across the axis, which carry the templates. Returns the step's cells'
+    material. Nothing is asked of its neighbours: a plain cell's block had no marked
+    corner, so every block next to it shows it whole faces and edges (the marks are
+    shared), and its own faces across its axis are never split. Cells are taken in blocks
+    of 2 x 2 across the axis, which carry the templates. Returns the step's cells'
     material ``cell_material`` and whether each is one coarse element (``cell_plain``), and
     per block its corner ``mask`` and pattern ``state``; arrays in the image's axis order.
     """
@@ -181,9 +182,6 @@ def _axis_step(plain: np.ndarray, material: np.ndarray, axis: int, whole_neighbo
     mat = np.pad(m, pad).reshape(n, 3, *p.shape[1:])
     lo, hi = mat.min(axis=1), mat.max(axis=1)
     cell = own.all(axis=1) & (lo == hi) & (lo > 0)
-    if whole_neighbourhood:
-        inner = ndimage.binary_erosion(p, structure=np.ones((3, 3, 3), bool), border_value=0)
-        cell &= np.pad(inner, pad).reshape(n, 3, *p.shape[1:]).all(axis=1)
     cell_material = np.where(cell, lo, 0)
     # blocks of 2 x 2 cells across the axis, all four candidates of one material
     nb, nc = (-(-k // 2) for k in cell.shape[1:])
@@ -208,8 +206,7 @@ def _steps_3d(labels: np.ndarray, levels: int, min_distance: int, keep_fine) -> 
     prior = np.ones(3, np.int64)
     for level in range(1, levels + 1):
         for axis in range(3):
-            # at the first step the cells below are voxels, whose faces match any cell's
-            step = _axis_step(plain, material, axis, bool(steps))
+            step = _axis_step(plain, material, axis)
             step.update(level=level, prior=prior.copy(), below=plain.shape)
             steps.append(step)
             if not step["cell_plain"].any():

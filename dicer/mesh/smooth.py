@@ -502,6 +502,22 @@ def _graded(mesh: Mesh) -> bool:
     return level is not None and bool(np.any(np.asarray(level) > 0))
 
 
+def _template_nodes(mesh: Mesh, x0: np.ndarray) -> np.ndarray:
+    """(N,) bool: the nodes of transition template elements (graded elements that are not
+    boxes). The interior solve holds them where the templates put them: their quality on
+    the lattice (0.23 and up) is the bound the templates give, and relaxing a node next to
+    the band can take a template below the floor."""
+    out = np.zeros(mesh.n_points, bool)
+    if LEVEL_DATA not in mesh.cell_data:
+        return out
+    graded = np.flatnonzero(np.asarray(mesh.cell_data[LEVEL_DATA]) > 0)
+    for start in range(0, graded.size, _ROWS):
+        rows = mesh.cells[graded[start : start + _ROWS]]
+        box = corner_scaled_jacobians(x0, rows).min(axis=1) > 1.0 - 1e-9
+        out[rows[~box].ravel()] = True
+    return out
+
+
 # --- the stage -----------------------------------------------------------------------------
 
 
@@ -638,6 +654,7 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None, image=None, thre
     if s["interior"]:
         band_nodes, touched = _band(mesh.cells, slots, g.boundary, g.boundary_cells, s["interior_band"])
         if graded:
+            band_nodes = band_nodes[~_template_nodes(mesh, x0)[band_nodes]]
             interior = _InteriorGraph(mesh.cells, band_nodes, g.boundary, bnodes, planes)
         else:
             interior = _Interior(mesh.cells, slots, band_nodes, g.boundary, bnodes, planes)

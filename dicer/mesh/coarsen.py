@@ -86,12 +86,12 @@ def _close(candidate: np.ndarray, corners: np.ndarray, pattern: np.ndarray, comp
 
 
 def _coarsenable(labels: np.ndarray, min_distance: int, keep_fine) -> np.ndarray:
-    """(labels.shape) int64: the material of every voxel whose neighbours within
+    """(labels.shape, labels.dtype): the material of every voxel whose neighbours within
     ``min_distance`` voxels (inside the image) all hold it, else 0; materials kept fine 0."""
     size = 2 * min_distance + 1
     lo = ndimage.minimum_filter(labels, size=size, mode="constant", cval=0)
     hi = ndimage.maximum_filter(labels, size=size, mode="constant", cval=0)
-    material = np.where(lo == hi, lo, 0).astype(np.int64)
+    material = np.where(lo == hi, lo, 0)
     if len(keep_fine):
         material[np.isin(material, np.asarray(keep_fine, np.int64))] = 0
     return material
@@ -291,7 +291,8 @@ def _voxels_of(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
         raise DicerError("element lattice indices lie outside the image grid; remesh from the labels with 'dicer mesh'")
     if int(mesh.material.min()) <= 0:
         raise DicerError("the mesh has material labels <= 0; materials are numbered 1..K")
-    labels = np.zeros(shape, np.int64)
+    # the smallest integer type: the filters of _coarsenable run on it
+    labels = np.zeros(shape, np.min_scalar_type(int(mesh.material.max())))
     labels[tuple(first.T)] = mesh.material
     return labels, first
 
@@ -376,10 +377,10 @@ def coarsen_mesh(mesh: Mesh, levels: int = 1, min_distance: int = 1, keep_fine=(
     return out, report
 
 
-_KEY = float(1 << 20)
-"""Template nodes between voxel corners are matched on a grid of 2**-20 voxel (they are
-rationals with small denominators; the same node computed from two templates agrees to
-far better than that)."""
+_THIRDS = 3
+"""Every template node lies on the grid of thirds of a voxel (template coordinates are
+thirds of cells of at least one voxel), so corners are matched as whole numbers of
+thirds."""
 
 
 def _assemble(mesh: Mesh, keep: np.ndarray, corner_points: np.ndarray, material: np.ndarray,
@@ -394,15 +395,15 @@ def _assemble(mesh: Mesh, keep: np.ndarray, corner_points: np.ndarray, material:
     key, stride = _lattice_keys(mesh.lattice, shape)
     order = None if np.all(key[1:] > key[:-1]) else np.argsort(key, kind="stable")
     sorted_key = key if order is None else key[order]
-    flat = corner_points.reshape(-1, dim)
-    whole = np.all(flat == np.round(flat), axis=1)
+    flat = np.rint(corner_points.reshape(-1, dim) * _THIRDS).astype(np.int64)
+    whole = np.all(flat % _THIRDS == 0, axis=1)
     ids = np.empty(flat.shape[0], np.int64)
-    wanted = np.round(flat[whole]).astype(np.int64) @ stride
+    wanted = (flat[whole] // _THIRDS) @ stride
     pos = np.searchsorted(sorted_key, wanted)
     if np.any(pos >= sorted_key.size) or np.any(sorted_key[np.minimum(pos, sorted_key.size - 1)] != wanted):
         raise DicerError("a coarse element's corner has no node in the voxel mesh; the mesh is not a full voxel mesh")
     ids[whole] = pos if order is None else order[pos]
-    off, inverse = np.unique(np.round(flat[~whole] * _KEY).astype(np.int64), axis=0, return_inverse=True)
+    off, inverse = np.unique(flat[~whole], axis=0, return_inverse=True)
     ids[~whole] = mesh.n_points + inverse.ravel()
     cells = np.concatenate([np.compress(keep, mesh.cells, axis=0), ids.reshape(n_new, per)])
     # nodes still used, in the voxel mesh's order, then the new ones
@@ -419,7 +420,7 @@ def _assemble(mesh: Mesh, keep: np.ndarray, corner_points: np.ndarray, material:
     lattice[:n_old] = np.compress(used[: mesh.n_points], mesh.lattice, axis=0)
     lattice[n_old:, dim:] = 0
     position = np.zeros((n_off, 3))
-    position[:, :dim] = off / _KEY
+    position[:, :dim] = off / _THIRDS
     points[n_old:] = mesh.origin + position * mesh.spacing
     if dim == 2:
         points[n_old:, 2] = mesh.origin[2]

@@ -1,8 +1,9 @@
-"""A label atlas of 130 materials end to end through the ``dicer`` command (in-process).
+"""A label atlas of 100+ materials end to end through the ``dicer`` command (in-process).
 
 Voronoi regions inside a ball (as the parcels of a brain atlas) -> fix -> mesh -> merge
--> smooth -> export (.inp) -> quality, with one named material per label in the config;
-and the same labels with a config that does not name them, stopped before the fix.
+(plane merging: 130 labels; graded coarsening: 104 larger parcels) -> smooth -> export
+(.inp) -> quality, with one named material per label in the config; and the same labels
+with a config that does not name them, stopped before the fix.
 """
 
 from __future__ import annotations
@@ -51,13 +52,19 @@ def _names(kinds: int) -> list[str]:
     return [f"{('Left', 'Right')[i % 2]}_Gyrus_{i // 2 + 1}" for i in range(kinds)]
 
 
-@pytest.fixture(scope="module")
-def chain(tmp_path_factory):
-    """The files and reports of the whole chain on the atlas."""
-    folder = tmp_path_factory.mktemp("atlas")
-    write_labels(Volume(atlas_labels(), (1.0, 1.0, 1.0)), folder / "atlas.nii.gz")
-    materials = [{"name": n, "youngs_modulus": 1.0 + i, "poissons_ratio": 0.45} for i, n in enumerate(_names(KINDS))]
-    (folder / "atlas.yaml").write_text(yaml.safe_dump({"materials": materials}))
+CHAINS = {"planes": (N, KINDS), "templates": (64, 104)}
+"""merge.method -> (image side, labels) of the atlas it is tried on."""
+
+
+@pytest.fixture(scope="module", params=sorted(CHAINS))
+def chain(request, tmp_path_factory):
+    """The files and reports of the whole chain on the atlas, per merge method."""
+    method = request.param
+    n, kinds = CHAINS[method]
+    folder = tmp_path_factory.mktemp(f"atlas-{method}")
+    write_labels(Volume(atlas_labels(n, kinds), (1.0, 1.0, 1.0)), folder / "atlas.nii.gz")
+    materials = [{"name": n, "youngs_modulus": 1.0 + i, "poissons_ratio": 0.45} for i, n in enumerate(_names(kinds))]
+    (folder / "atlas.yaml").write_text(yaml.safe_dump({"materials": materials, "merge": {"method": method}}))
     steps = [
         ["fix", "atlas.nii.gz", "-o", "fixed.nii.gz"],
         ["mesh", "fixed.nii.gz", "-o", "mesh.vtu"],
@@ -69,23 +76,30 @@ def chain(tmp_path_factory):
     for command, *rest in steps:
         argv = [command] + [str(folder / a) if "." in a else a for a in rest]
         assert main([*argv, "--config", str(folder / "atlas.yaml"), "-q"]) == 0, command
-    return folder
+    return folder, method, kinds
 
 
-def test_every_stage_takes_a_hundred_and_thirty_materials(chain):
+def test_every_stage_takes_a_hundred_and_more_materials(chain):
     from dicer.io.images import read_labels
     from dicer.io.meshes import read_mesh
 
+    chain, method, kinds = chain
     fixed = read_labels(chain / "fixed.nii.gz").array
     present = np.unique(fixed[fixed > 0])
-    assert present.size == KINDS
+    assert present.size == kinds
     merged, mesh = read_mesh(chain / "merged.vtu"), read_mesh(chain / "mesh.vtu")
     assert mesh.n_cells == np.count_nonzero(fixed) and merged.n_cells <= mesh.n_cells
     assert np.array_equal(np.unique(merged.material), present)
-    # (a merge region crossing a material interface keeps its plane; here every plane of
-    # the ball crosses one, so merging refuses them for that reason)
-    steps = json.loads((chain / "merge.json").read_text())["steps"]
-    assert [s["axis"] for s in steps] == ["x", "y", "z"] and all(s["blocked_material"] > 0 for s in steps)
+    report = json.loads((chain / "merge.json").read_text())
+    if method == "planes":
+        # (a merge region crossing a material interface keeps its plane; here every plane
+        # of the ball crosses one, so merging refuses them for that reason)
+        steps = report["steps"]
+        assert [s["axis"] for s in steps] == ["x", "y", "z"] and all(s["blocked_material"] > 0 for s in steps)
+    else:
+        # parcels some 12 voxels across: coarse cells and templates inside the larger ones
+        assert report["method"] == "templates" and sum(report["elements_by_level"]["1"].values()) > 500
+        assert merged.n_cells < mesh.n_cells
 
     # smoothing: no inverted element, the quality floor kept, every node classified
     smooth = json.loads((chain / "smooth.json").read_text())
@@ -98,16 +112,16 @@ def test_every_stage_takes_a_hundred_and_thirty_materials(chain):
     # the deck: an element set, a material and a section per material, an interface node
     # set per pair of touching materials, each under its configured name
     text = (chain / "model.inp").read_text()
-    names = _names(KINDS)
+    names = _names(kinds)
     elsets = re.findall(r"^\*ELEMENT, TYPE=C3D8, ELSET=(\w+)$", text, re.M)
     assert elsets == [names[k - 1] for k in present]
     assert re.findall(r"^\*MATERIAL, NAME=(\w+)$", text, re.M) == elsets
-    assert len(re.findall(r"^\*SOLID SECTION, ELSET=(\w+), MATERIAL=\1$", text, re.M)) == KINDS
+    assert len(re.findall(r"^\*SOLID SECTION, ELSET=(\w+), MATERIAL=\1$", text, re.M)) == kinds
     nsets = set(re.findall(r"^\*NSET, NSET=(\w+)$", text, re.M))
     pairs = touching_pairs(fixed)
     assert len(pairs) > 500
     assert {f"{names[a - 1]}_{names[b - 1]}" for a, b in pairs} <= nsets
-    assert len(nsets) == len(pairs) + KINDS + 1  # + <name>_BOUNDARY, EXTERIOR (no node on a bounding plane)
+    assert len(nsets) == len(pairs) + kinds + 1  # + <name>_BOUNDARY, EXTERIOR (no node on a bounding plane)
 
     # quality: every material with its voxels, the volume of each kept within a few per cent
     quality = json.loads((chain / "quality.json").read_text())

@@ -288,7 +288,7 @@ def test_random_2d_volumes_keep_every_invariant(labels, levels, distance):
     assert report["inverted_elements"] == 0
 
 
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(labels=label_volumes(3), levels=st.integers(1, 2))
 def test_random_3d_volumes_keep_every_invariant(labels, levels):
     if not labels.any():
@@ -296,6 +296,8 @@ def test_random_3d_volumes_keep_every_invariant(labels, levels):
     voxel = voxel_mesh(labels)
     graded, _ = coarsen_mesh(voxel, levels=levels)
     check_graded(voxel, graded)
+    smoothed, report = smooth_mesh(graded, {})  # never raises: the templates keep their floor
+    assert report["inverted_elements"] == 0 and report["min_scaled_jacobian"] >= 0.2
 
 
 def _overlapping_balls(n, seed):
@@ -320,6 +322,8 @@ def test_3d_volumes_large_enough_for_every_step(seed):
     graded, report = coarsen_mesh(voxel, levels=2)
     check_graded(voxel, graded)
     assert report["elements_after"] < 0.9 * report["elements_before"]
+    _, smoothed = smooth_mesh(graded, {})
+    assert smoothed["inverted_elements"] == 0 and smoothed["min_scaled_jacobian"] >= 0.2
 
 
 def test_fine_template_is_the_unit_grid():

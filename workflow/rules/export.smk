@@ -3,7 +3,7 @@
 
 rule export:
     input:
-        mesh=patient_file("smoothed.vtu"),
+        mesh=rules.smooth.output.mesh,
         materials=materials_input,
     output:
         patient_file("model.{ext}"),
@@ -28,12 +28,12 @@ rule export:
 
 rule quality:
     input:
-        mesh=patient_file("smoothed.vtu"),
-        labels=patient_file("labels_fixed.nii.gz"),
+        mesh=rules.smooth.output.mesh,
+        labels=rules.fix.output.labels,
         original=patient_file("labels.nii.gz"),
         pictures=pictures,
         materials=materials_input,
-        reports=[patient_file(f"{stage}.json") for stage in ("fix", "merge", "smooth")],
+        reports=[rules.fix.output.report, rules.merge.output.report, rules.smooth.output.report],
     output:
         json=patient_file("quality.json"),
         html=report(

@@ -3,7 +3,7 @@
 
 rule mesh:
     input:
-        labels=patient_file("labels_fixed.nii.gz"),
+        labels=rules.fix.output.labels,
         materials=materials_input,
     output:
         patient_file("mesh.vtu"),
@@ -26,7 +26,7 @@ rule mesh:
 
 rule merge:
     input:
-        patient_file("mesh.vtu"),
+        rules.mesh.output[0],
     output:
         mesh=patient_file("merged.vtu"),
         report=patient_file("merge.json"),
@@ -50,7 +50,7 @@ rule merge:
 rule smooth:
     input:
         unpack(scan_input),
-        mesh=patient_file("merged.vtu"),
+        mesh=rules.merge.output.mesh,
     output:
         mesh=patient_file("smoothed.vtu"),
         report=patient_file("smooth.json"),

@@ -9,7 +9,7 @@ localrules:
 
 rule cohort:
     input:
-        reports=[patient_file("quality.json").format(patient=p) for p in PATIENTS],
+        reports=expand(rules.quality.output.json, patient=PATIENTS),
         benchmarks=[benchmark_file(stage).format(patient=p) for p in PATIENTS for stage in patient_stages(p)],
     output:
         html=report(

@@ -225,7 +225,9 @@ def test_strict_check_finds_changed_numbers_the_reader_accepts(tmp_path, mesh):
 
 
 def test_corrupted_write_fails_the_export_and_leaves_no_file(tmp_path, mesh, monkeypatch):
-    from dicer.export import abaqus
+    import dataclasses
+
+    from dicer.export import abaqus, registry
 
     write = abaqus.write_abaqus
     keep = {"bytes": None}
@@ -235,7 +237,7 @@ def test_corrupted_write_fails_the_export_and_leaves_no_file(tmp_path, mesh, mon
         data = Path(path).read_bytes()
         Path(path).write_bytes(data[: keep["bytes"]])  # as if the disk had kept less
 
-    monkeypatch.setattr(abaqus, "write_abaqus", corrupting)
+    monkeypatch.setitem(registry.BY_SUFFIX, ".inp", dataclasses.replace(abaqus.FORMAT, write=corrupting))
     export_mesh(mesh, tmp_path / "full.inp", _config(2), verify=False)
     size = (tmp_path / "full.inp").stat().st_size
     (tmp_path / "full.inp").unlink()

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dicer.export.format import Format
 from dicer.export.textfmt import Float, Int, Sci, aligned_width, int_lines, int_width, write_rows
 
 PER_LINE = 16  # CalculiX and Abaqus: at most 16 entries on a data line
@@ -102,3 +103,17 @@ def write_abaqus(model, path: str | Path) -> None:
             w(f"*SOLID SECTION, ELSET={name}, MATERIAL={name}\n".encode())
             if model.dim == 2:
                 w(f"{_num(model.thickness)}\n".encode())
+
+
+def check_deck(path: str | Path, model, verify: str = "strict") -> None:
+    """Read the deck back and compare it with ``model``: with dicer's strict reader, or with
+    meshio's when ``verify`` is ``meshio`` (``export.verify``)."""
+    from dicer.export import readers
+
+    if verify == "meshio":
+        readers.check_abaqus_meshio(path, model)
+    else:
+        readers.check_abaqus(path, model)
+
+
+FORMAT = Format("abaqus", (".inp",), write_abaqus, check_deck, check_options={"verify": ("verify", "strict")})

@@ -32,6 +32,7 @@ import numpy as np
 
 from dicer import __version__
 from dicer.errors import DicerError
+from dicer.export.format import Format
 from dicer.mesh.topology import HEX20_EXODUS
 
 EXODUS_TYPES = {(3, 1): "HEX8", (3, 2): "HEX20", (2, 1): "QUAD4", (2, 2): "QUAD8"}
@@ -266,3 +267,8 @@ def check_exodus(path: str | Path, model) -> None:
         rows = np.column_stack([position[faces[:, 0]], sides[faces[:, 1] - 1]])
         if not np.array_equal(got["side_sets"][name], rows):
             raise DicerError(f"side set {name} differs")
+
+
+FORMAT = Format("exodus", (".e", ".exo"), write_exodus, check_exodus,
+                requires=("netCDF4", "Exodus files need the netCDF4 package (pip install netCDF4); "
+                                     "or choose another format"))

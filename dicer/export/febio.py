@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from dicer.errors import DicerError
+from dicer.export.format import Format
 from dicer.export.textfmt import Float, Int, Sci, compact_rows, int_lines, int_width
 from dicer.mesh.topology import HEX20_FACES, HEX_FACES
 
@@ -330,3 +331,10 @@ def check_febio(path: str | Path, model, material_type: str = "isotropic elastic
         ftype, conn = got["surfaces"][name]
         if ftype != FACET_TYPES[model.order] or not np.array_equal(conn, facets(model, faces)):
             raise DicerError(f"surface {name} differs")
+
+
+FORMAT = Format("febio", (".feb",), write_febio, check_febio, dims=(3,),
+                limits="FEBio has no plane (2D) elements; export this {dim}D mesh to .inp (CPS4/CPE4) or another "
+                       "format, or mesh a 3D volume for .feb",
+                write_options={"material_type": ("febio_material", "isotropic elastic")},
+                check_options={"material_type": ("febio_material", "isotropic elastic")})

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dicer.export.format import Format
 from dicer.export.textfmt import Float, Int, Sci, write_rows
 
 E16 = Sci(9, b"e", width=16)
@@ -79,3 +80,15 @@ def write_lsdyna(model, path: str | Path) -> None:
             if ids.size > full:
                 w("".join(f"{v:10d}" for v in ids[full:] + 1).encode() + b"\n")
         w(b"*END\n")
+
+
+def check_lsdyna(path: str | Path, model) -> None:
+    """Read the file back with dicer's strict LS-DYNA reader and compare it with ``model``."""
+    from dicer.export import readers
+
+    readers.check_lsdyna(path, model)
+
+
+FORMAT = Format("lsdyna", (".k", ".key", ".dyn"), write_lsdyna, check_lsdyna, dims=(3,), orders=(1,),
+                limits="LS-DYNA export writes 8-node hexahedra only (3D meshes, export.order 1); "
+                       "set export.order 1 or choose another format")

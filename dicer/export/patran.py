@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dicer.export.format import Format
 from dicer.export.textfmt import Float, Int, Sci, int_lines, write_rows
 from dicer.mesh.topology import HEX20_EXODUS
 
@@ -114,3 +115,13 @@ def write_patran(model, path: str | Path) -> None:
             write_rows(f, fields, c.shape[0])
         _components(f, model)
         f.write(header(99, 0, 0, 1))
+
+
+def check_patran(path: str | Path, model) -> None:
+    """Read the file back with dicer's strict PATRAN reader and compare it with ``model``."""
+    from dicer.export import readers
+
+    readers.check_patran(path, model)
+
+
+FORMAT = Format("patran", (".out", ".neu"), write_patran, check_patran)

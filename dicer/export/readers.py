@@ -581,7 +581,7 @@ def _int_list(arr: np.ndarray, a: int, b: int, what: str) -> np.ndarray:
 
 def _stride(arr: np.ndarray, a: int, key: str, params: dict) -> int:
     """Bytes per record of a large fixed-width block (nodes, elements, sets), 0 for other blocks."""
-    from dicer.export import ELEMENT_TYPES
+    from dicer.export.model import ELEMENT_TYPES
 
     head = arr[a : a + 4096]
     if key == "NODE":
@@ -678,7 +678,7 @@ def _parse_abaqus(data, arr: np.ndarray, model=None) -> dict:
         ``points`` and ``cells`` are then None and each block's element indices are the
         model's (equal to those read).
     """
-    from dicer.export import ELEMENT_TYPES
+    from dicer.export.model import ELEMENT_TYPES
 
     expected = _Expected(model) if model is not None else None
     n_nodes = 0

@@ -74,7 +74,7 @@ class Deck:
 
     @classmethod
     def read(cls, path: str | os.PathLike) -> "Deck":
-        from dicer.export import ELEMENT_TYPES
+        from dicer.export.model import ELEMENT_TYPES
         from dicer.export.readers import read_abaqus
 
         d = read_abaqus(path)

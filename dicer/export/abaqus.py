@@ -25,10 +25,9 @@ from pathlib import Path
 import numpy as np
 
 from dicer.export.format import Format
-from dicer.export.textfmt import Float, Int, Sci, aligned_width, int_lines, int_width, write_rows
+from dicer.export.textfmt import Float, Int, Sci, aligned_width, int_lines, int_width, row_ids, write_chunks
 
 PER_LINE = 16  # CalculiX and Abaqus: at most 16 entries on a data line
-CHUNK = 1 << 16
 
 
 def _num(v: float) -> str:
@@ -38,28 +37,27 @@ def _num(v: float) -> str:
 
 def node_block(stream, points: np.ndarray, width: int, digits: int, lead_nl: bool = True) -> None:
     """Rows ``\\n<id>, x, y, z`` for ids 1..N (each row starts with the newline that ends the previous line)."""
-    n = points.shape[0]
     fmt = Sci(digits)
-    for start in range(0, n, CHUNK):
-        p = points[start : start + CHUNK]
-        ids = np.arange(start + 1, start + 1 + p.shape[0], dtype=np.int64)
-        fields = [Int(ids, width, b"\n" if lead_nl else b"")] + [Float(p[:, j], fmt, b",") for j in range(3)]
-        write_rows(stream, fields, p.shape[0])
+
+    def fields(start, stop):
+        p = points[start:stop]
+        lead = b"\n" if lead_nl else b""
+        return [Int(row_ids(start, stop), width, lead)] + [Float(p[:, j], fmt, b",") for j in range(3)]
+
+    write_chunks(stream, points.shape[0], fields)
 
 
 def element_block(stream, cells: np.ndarray, elements: np.ndarray, width: int, width_cont: int) -> None:
     """Rows ``\\n<element id>, n1, ..., nk`` (1-based), continued after 16 entries with ``,\\n``."""
-    k = cells.shape[1]
-    for start in range(0, elements.size, CHUNK):
-        e = elements[start : start + CHUNK]
+
+    def fields(start, stop):
+        e = elements[start:stop]
         c = cells[e] + 1
-        fields = [Int(e + 1, width, b"\n")]
-        for j in range(k):
-            if j + 1 == PER_LINE:  # the 16th entry ends the first line
-                fields.append(Int(c[:, j], width_cont, b",\n"))
-            else:
-                fields.append(Int(c[:, j], width, b","))
-        write_rows(stream, fields, e.size)
+        # the 16th entry ends the first line
+        return [Int(e + 1, width, b"\n")] + [Int(c[:, j], width_cont, b",\n") if j + 1 == PER_LINE
+                                             else Int(c[:, j], width, b",") for j in range(c.shape[1])]
+
+    write_chunks(stream, elements.size, fields)
 
 
 def write_abaqus(model, path: str | Path) -> None:

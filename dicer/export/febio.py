@@ -34,14 +34,13 @@ import numpy as np
 
 from dicer.errors import DicerError
 from dicer.export.format import Format
-from dicer.export.textfmt import Float, Int, Sci, compact_rows, int_lines, int_width
+from dicer.export.textfmt import Float, Int, Sci, int_lines, int_width, write_chunks
 from dicer.mesh.topology import HEX20_FACES, HEX_FACES
 
 SPEC_VERSION = "4.0"
 FEBIO_TYPES = {1: "hex8", 2: "hex20"}
 FACET_TYPES = {1: "quad4", 2: "quad8"}
 MATERIAL_TYPES = ("isotropic elastic", "neo-Hookean")
-CHUNK = 1 << 16
 PER_LINE = 16  # node numbers per line of a node set
 
 
@@ -65,16 +64,16 @@ def _rows(stream, tag: bytes, ids: np.ndarray, values: np.ndarray, width: int, f
     """Lines ``<tag id="ID">v1,v2,...</tag>`` for every row of ``values`` (ints, or floats with ``fmt``)."""
     indent = b"\t\t\t<" + tag + b' id="'
     close = b"</" + tag + b">\n"
-    for start in range(0, ids.size, CHUNK):
-        i = ids[start : start + CHUNK]
-        v = values[start : start + CHUNK]
-        fields = [indent, Int(i, width), b'">']
+
+    def fields(a, b):
+        v = values[a:b]
+        row = [indent, Int(ids[a:b], width), b'">']
         for j in range(v.shape[1]):
             lead = b"," if j else b""
-            fields.append(Float(v[:, j], fmt, lead) if fmt else Int(v[:, j], width, lead))
-        fields.append(close)
-        for chunk in compact_rows(fields, i.size):
-            stream.write(chunk)
+            row.append(Float(v[:, j], fmt, lead) if fmt else Int(v[:, j], width, lead))
+        return row + [close]
+
+    write_chunks(stream, ids.size, fields, compact=True)
 
 
 def write_febio(model, path: str | Path, material_type: str = "isotropic elastic") -> None:

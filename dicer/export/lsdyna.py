@@ -22,13 +22,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 
 from dicer.export.format import Format
-from dicer.export.textfmt import Float, Int, Sci, write_rows
+from dicer.export.textfmt import Float, Int, Sci, int_lines, row_ids, write_chunks
 
 E16 = Sci(9, b"e", width=16)
-CHUNK = 1 << 16
 ELFORM = {"C3D8": 2, "C3D8R": 1, "C3D8I": -2}
 
 
@@ -53,11 +51,8 @@ def write_lsdyna(model, path: str | Path) -> None:
         for line in model.heading[1:]:
             w(b"$ " + line.encode() + b"\n")
         w(b"*NODE\n$#   nid               x               y               z\n")
-        for start in range(0, model.n_points, CHUNK):
-            p = model.points[start : start + CHUNK]
-            ids = np.arange(start + 1, start + 1 + p.shape[0])
-            fields = [Int(ids, 8)] + [Float(p[:, j], E16) for j in range(3)] + [b"\n"]
-            write_rows(f, fields, p.shape[0])
+        write_chunks(f, model.n_points, lambda a, b: [Int(row_ids(a, b), 8)]
+                     + [Float(model.points[a:b, j], E16) for j in range(3)] + [b"\n"])
         for k in model.labels():
             pr = model.props[k]
             w(f"*PART\n{model.names[k]}\n$#     pid     secid       mid\n{k:10d}{k:10d}{k:10d}\n".encode())
@@ -65,20 +60,11 @@ def write_lsdyna(model, path: str | Path) -> None:
             w(f"*MAT_ELASTIC\n$#     mid        ro         e        pr\n{k:10d}{_e10(pr['density'])}"
               f"{_e10(pr['youngs_modulus'])}{_e10(pr['poissons_ratio'])}\n".encode())
         w(b"*ELEMENT_SOLID\n$#   eid     pid      n1      n2      n3      n4      n5      n6      n7      n8\n")
-        for start in range(0, model.n_cells, CHUNK):
-            c = model.cells[start : start + CHUNK] + 1
-            e = np.arange(start + 1, start + 1 + c.shape[0])
-            fields = [Int(e, 8), Int(model.material[start : start + CHUNK], 8)]
-            fields += [Int(c[:, j], 8) for j in range(8)] + [b"\n"]
-            write_rows(f, fields, c.shape[0])
+        write_chunks(f, model.n_cells, lambda a, b: [Int(row_ids(a, b), 8), Int(model.material[a:b], 8)]
+                     + [Int(model.cells[a:b, j] + 1, 8) for j in range(8)] + [b"\n"])
         for sid, (name, ids) in enumerate(model.node_sets.items(), start=1):
             w(f"*SET_NODE_LIST_TITLE\n{name}\n$#     sid\n{sid:10d}\n".encode())
-            full = ids.size // 8 * 8
-            if full:
-                block = (ids[:full] + 1).reshape(-1, 8)
-                write_rows(f, [Int(block[:, j], 10) for j in range(8)] + [b"\n"], block.shape[0])
-            if ids.size > full:
-                w("".join(f"{v:10d}" for v in ids[full:] + 1).encode() + b"\n")
+            w(int_lines(ids + 1, 8, 10, sep=b""))  # 8 x I10
         w(b"*END\n")
 
 

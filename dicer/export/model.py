@@ -20,7 +20,8 @@ from dicer.image import MAX_LABEL
 from dicer.mesh.faces import neighbour_materials
 from dicer.mesh.frame import mirrored, to_scanner
 from dicer.mesh.model import Mesh
-from dicer.mesh.topology import HEX20_FACES, HEX20_MIRROR, HEX_FACE_MIRROR, HEX_FACES, HEX_MIRROR, QUAD8_SIDES, QUAD_EDGES
+from dicer.mesh.topology import (HEX20_FACES, HEX20_MIRROR, HEX_FACE_MIRROR, HEX_FACES, HEX_MIRROR, QUAD8_SIDES,
+                                 QUAD_EDGES)
 
 # element type -> (dimension, order); the node order of every type is VTK's (= Abaqus's)
 ELEMENT_TYPES = {

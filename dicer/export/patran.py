@@ -32,12 +32,11 @@ from pathlib import Path
 import numpy as np
 
 from dicer.export.format import Format
-from dicer.export.textfmt import Float, Int, Sci, int_lines, write_rows
+from dicer.export.textfmt import Float, Int, Sci, int_lines, row_ids, write_chunks
 from dicer.mesh.topology import HEX20_EXODUS
 
 E16 = Sci(9, b"E", fortran=True, width=16)
 SHAPES = {(3, 1): (8, 8), (3, 2): (8, 20), (2, 1): (4, 4), (2, 2): (4, 8)}  # -> (IV shape code, nodes)
-CHUNK = 1 << 16
 
 
 def header(it: int, ident: int, iv: int, kc: int, *n: int) -> bytes:
@@ -93,26 +92,20 @@ def write_patran(model, path: str | Path) -> None:
         f.write(header(25, 0, 0, 1) + title.encode() + b"\n")
         f.write(header(26, 0, 0, 1, model.n_points, model.n_cells, len(labels), len(labels), 0))
         f.write(b" " * 32 + b"\n")
-        for start in range(0, model.n_points, CHUNK):
-            p = model.points[start : start + CHUNK]
-            ids = np.arange(start + 1, start + 1 + p.shape[0])
-            fields = [b" 1", Int(ids, 8), b"       0       2" + zeros5 + b"\n"]
-            fields += [Float(p[:, j], E16) for j in range(3)]
-            fields += [b"\n1G       6       0       0  000000\n"]
-            write_rows(f, fields, p.shape[0])
+        node_head, node_tail = b"       0       2" + zeros5 + b"\n", b"\n1G       6       0       0  000000\n"
+        write_chunks(f, model.n_points, lambda a, b: [b" 1", Int(row_ids(a, b), 8), node_head]
+                     + [Float(model.points[a:b, j], E16) for j in range(3)] + [node_tail])
         head_tail = f"{1 + node_cards:8d}".encode() + zeros5 + b"\n" + f"{nn:8d}{0:8d}".encode()
         angles = b" 0.000000000E+00" * 3
-        for start in range(0, model.n_cells, CHUNK):
-            c = cells[start : start + CHUNK] + 1
-            e = np.arange(start + 1, start + 1 + c.shape[0])
-            mat = model.material[start : start + CHUNK]
-            fields = [b" 2", Int(e, 8), f"{iv:8d}".encode() + head_tail, Int(mat, 8), f"{0:8d}".encode() + angles]
-            for j in range(nn):
-                if j % 10 == 0:
-                    fields.append(b"\n")
-                fields.append(Int(c[:, j], 8))
-            fields.append(b"\n")
-            write_rows(f, fields, c.shape[0])
+
+        def element_fields(a, b):
+            fields = [b" 2", Int(row_ids(a, b), 8), f"{iv:8d}".encode() + head_tail, Int(model.material[a:b], 8),
+                      f"{0:8d}".encode() + angles]
+            for j in range(nn):  # ten node numbers a card
+                fields += [b"\n"] * (j % 10 == 0) + [Int(cells[a:b, j] + 1, 8)]
+            return fields + [b"\n"]
+
+        write_chunks(f, model.n_cells, element_fields)
         _components(f, model)
         f.write(header(99, 0, 0, 1))
 

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-
 from dicer.export.format import Format
 from dicer.export.textfmt import Float, Int, Sci, int_lines, row_ids, write_chunks
 

@@ -760,41 +760,55 @@ def _parse_abaqus(data, arr: np.ndarray, model=None) -> dict:
             _release(data, a, b)
             out["blocks"].append((name, ints[:, 0] - 1))
             conn.append((a, ints[:, 1:]))
-        elif key in ("NSET", "ELSET"):
-            name = _need(params, key, key, s)
-            sets = out["node_sets" if key == "NSET" else "element_sets"]
-            if name in sets or len(params) != 1:
-                raise FormatError(s, f"*{key}, {key}={name} twice or with other parameters")
-            sets[name] = _int_list(arr, a, b, f"*{key}, {key}={name}") - 1
-        elif key == "SURFACE":
-            name = _need(params, "NAME", key, s)
-            if params.get("TYPE", "").upper() != "ELEMENT" or name in out["surfaces"]:
-                raise FormatError(s, f"*SURFACE, NAME={name} twice or not TYPE=ELEMENT")
-            rows = [tuple(p.strip() for p in t.split(",")) for t in _small_lines(arr, a, b, key)]
-            if not rows or any(len(r) != 2 for r in rows):
-                raise FormatError(a, f"*SURFACE, NAME={name} data lines are not 'element set, face'")
-            out["surfaces"][name] = rows
-        elif key == "MATERIAL":
-            material = _need(params, "NAME", key, s)
-            if material in out["materials"]:
-                raise FormatError(s, f"*MATERIAL, NAME={material} twice")
-            out["materials"][material] = {}
-        elif key in ("ELASTIC", "DENSITY"):
-            if material is None or key.lower() in out["materials"][material] or params:
-                raise FormatError(s, f"*{key} outside a *MATERIAL, twice in one, or with parameters")
-            out["materials"][material][key.lower()] = tuple(
-                _numbers(_small_lines(arr, a, b, key), 2 if key == "ELASTIC" else 1, key, a))
-        elif key == "SOLID SECTION":
-            name = _need(params, "ELSET", key, s)
-            lines = _small_lines(arr, a, b, key)
-            if name in out["sections"] or len(lines) > 1:
-                raise FormatError(s, f"*SOLID SECTION, ELSET={name} twice or with more than one data line")
-            out["sections"][name] = (_need(params, "MATERIAL", key, s),
-                                     _numbers(lines, 1, key, a) if lines else [])
         else:
-            raise FormatError(s, f"unexpected keyword *{key} (dicer's decks hold no such card)")
+            material = _card(key, params, arr, a, b, s, out, material)
     if not nodes_seen or not out["blocks"]:
         raise FormatError(size, "no *NODE or no *ELEMENT block (truncated?)")
+    return _finish_abaqus(out, size, n_nodes, conn, expected is not None)
+
+
+def _card(key: str, params: dict, arr: np.ndarray, a: int, b: int, s: int, out: dict, material: str | None):
+    """Read a set, surface, material or section card (keyword line at ``s``, data ``a:b``) into ``out``;
+    returns the name of the material being described."""
+    if key in ("NSET", "ELSET"):
+        name = _need(params, key, key, s)
+        sets = out["node_sets" if key == "NSET" else "element_sets"]
+        if name in sets or len(params) != 1:
+            raise FormatError(s, f"*{key}, {key}={name} twice or with other parameters")
+        sets[name] = _int_list(arr, a, b, f"*{key}, {key}={name}") - 1
+    elif key == "SURFACE":
+        name = _need(params, "NAME", key, s)
+        if params.get("TYPE", "").upper() != "ELEMENT" or name in out["surfaces"]:
+            raise FormatError(s, f"*SURFACE, NAME={name} twice or not TYPE=ELEMENT")
+        rows = [tuple(p.strip() for p in t.split(",")) for t in _small_lines(arr, a, b, key)]
+        if not rows or any(len(r) != 2 for r in rows):
+            raise FormatError(a, f"*SURFACE, NAME={name} data lines are not 'element set, face'")
+        out["surfaces"][name] = rows
+    elif key == "MATERIAL":
+        material = _need(params, "NAME", key, s)
+        if material in out["materials"]:
+            raise FormatError(s, f"*MATERIAL, NAME={material} twice")
+        out["materials"][material] = {}
+    elif key in ("ELASTIC", "DENSITY"):
+        if material is None or key.lower() in out["materials"][material] or params:
+            raise FormatError(s, f"*{key} outside a *MATERIAL, twice in one, or with parameters")
+        out["materials"][material][key.lower()] = tuple(
+            _numbers(_small_lines(arr, a, b, key), 2 if key == "ELASTIC" else 1, key, a))
+    elif key == "SOLID SECTION":
+        name = _need(params, "ELSET", key, s)
+        lines = _small_lines(arr, a, b, key)
+        if name in out["sections"] or len(lines) > 1:
+            raise FormatError(s, f"*SOLID SECTION, ELSET={name} twice or with more than one data line")
+        out["sections"][name] = (_need(params, "MATERIAL", key, s),
+                                 _numbers(lines, 1, key, a) if lines else [])
+    else:
+        raise FormatError(s, f"unexpected keyword *{key} (dicer's decks hold no such card)")
+    return material
+
+
+def _finish_abaqus(out: dict, size: int, n_nodes: int, conn: list, compared: bool) -> dict:
+    """Check that the deck read into ``out`` is whole and its sets and numbers valid; add ``cells``
+    (None when ``compared``: the records were compared with the model as they were parsed)."""
     # a deck cut at a line end is whole up to there: its last cards tell (every block has a
     # section, every section a material with its constants)
     for name, _ in out["blocks"]:
@@ -808,7 +822,7 @@ def _parse_abaqus(data, arr: np.ndarray, model=None) -> dict:
         for name, ids in out[kind].items():
             if ids[0] < 0 or ids[-1] >= limit:
                 raise FormatError(size, f"set {name} refers to {kind.split('_')[0]}s that do not exist")
-    if expected is not None:  # every record was compared with the model's as it was parsed
+    if compared:  # every record was compared with the model's as it was parsed
         out["cells"] = None
         return out
     seen = np.zeros(n_cells, bool)

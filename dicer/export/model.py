@@ -19,7 +19,7 @@ from dicer.export.provenance import provenance, sha256_in_background
 from dicer.image import MAX_LABEL
 from dicer.mesh.faces import neighbour_materials
 from dicer.mesh.frame import mirrored, to_scanner
-from dicer.mesh.model import Mesh
+from dicer.mesh.model import Mesh, Sized
 from dicer.mesh.topology import (HEX20_FACES, HEX20_MIRROR, HEX_FACE_MIRROR, HEX_FACES, HEX_MIRROR, QUAD8_SIDES,
                                  QUAD_EDGES)
 
@@ -34,7 +34,7 @@ DEFAULT_TYPES = {(3, 1): "C3D8", (3, 2): "C3D20", (2, 1): "CPS4", (2, 2): "CPS8"
 
 
 @dataclass
-class SolverModel:
+class SolverModel(Sized):
     """A mesh ready for a solver file: everything a writer needs, nothing format-specific.
 
     points : (N, 3) node coordinates; node i is written as number i + 1.
@@ -69,14 +69,6 @@ class SolverModel:
     use_heading: bool = True
     cell_data: dict[str, np.ndarray] = field(default_factory=dict)
     mesh: Mesh | None = field(default=None, repr=False)
-
-    @property
-    def n_points(self) -> int:
-        return int(self.points.shape[0])
-
-    @property
-    def n_cells(self) -> int:
-        return int(self.cells.shape[0])
 
     def face_sets(self) -> dict[str, np.ndarray]:
         """Element-face set name -> (F, 2) rows (element index, face number): EXTERIOR, then

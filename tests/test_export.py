@@ -268,12 +268,12 @@ def test_bad_format_labels_and_folder(tmp_path, mesh, config):
 
 
 def test_failed_read_back_leaves_no_file(tmp_path, mesh, config, monkeypatch):
-    from dicer.export import readers
+    from dicer.export import abaqus
 
     def broken(path, model):
         raise DicerError("node count changed")
 
-    monkeypatch.setattr(readers, "check_abaqus", broken)
+    monkeypatch.setattr(abaqus, "check_abaqus", broken)
     with pytest.raises(DicerError, match="read-back check failed"):
         export_mesh(mesh, tmp_path / "m.inp", config)
     assert _no_files(tmp_path)

@@ -16,13 +16,9 @@ from hypothesis import strategies as st
 from dicer.config import load_config
 from dicer.errors import DicerError
 from dicer.export import export_mesh, prepare_model
-from dicer.export.readers import (
-    _meshio_abaqus_types,
-    check_abaqus,
-    read_abaqus,
-    read_lsdyna,
-    read_patran,
-)
+from dicer.export.abaqus import _meshio_abaqus_types, check_abaqus, read_abaqus
+from dicer.export.lsdyna import read_lsdyna
+from dicer.export.patran import read_patran
 from dicer.export.textparse import FormatError, layout_of, parse_records
 from dicer.mesh.voxel import voxel_mesh
 
@@ -316,7 +312,7 @@ def test_patran_names_the_materials_in_packet_21(tmp_path):
 
     from dicer.config import load_config
     from dicer.export import export_mesh
-    from dicer.export.readers import read_patran
+    from dicer.export.patran import read_patran
     from dicer.mesh.voxel import voxel_mesh
 
     labels = np.zeros((4, 3, 3), np.uint8)

@@ -46,12 +46,12 @@ test-all: setup
 BENCH_ARGS ?=
 bench: setup
 	$(BIN)/pip install -q -e '.[test,bench]'
-	$(BIN)/python -m dicer.bench --processes $(BENCH_ARGS)
+	$(BIN)/python -m bench --processes $(BENCH_ARGS)
 
 # the stages' library functions, each in its own process, beside PyVista, meshio and automesh
 bench-stages: setup
 	$(BIN)/pip install -q -e '.[test,bench]'
-	$(BIN)/python -m dicer.bench
+	$(BIN)/python -m bench
 
 clean:
 	rm -rf results logs benchmarks .snakemake

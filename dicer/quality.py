@@ -75,9 +75,9 @@ def _material_nodes(cells: np.ndarray, material: np.ndarray, label: np.ndarray, 
 
 def element_neighbours(mesh: Mesh) -> np.ndarray:
     """(M, F) index of the element across each face (2D: edge), -1 for none (any conforming mesh)."""
-    from dicer.export import _neighbours_by_sort
+    from dicer.mesh.faces import face_neighbours
 
-    return _neighbours_by_sort(np.asarray(mesh.cells, np.int64), mesh.dim, mesh.n_points)
+    return face_neighbours(np.asarray(mesh.cells, np.int64), mesh.dim, mesh.n_points)
 
 
 def _component_sizes(m: int, a: np.ndarray, b: np.ndarray, keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -2,7 +2,7 @@
 
 import sys
 
-from dicer.bench import PROCESS_JOBS, process_tables, run_process
+from bench import PROCESS_JOBS, process_tables, run_process
 
 
 def test_run_process_reports_time_memory_and_failure():
@@ -29,7 +29,7 @@ def test_tables_give_ratios_to_automesh_and_scaling():
 def test_every_dicer_job_is_a_dicer_command():
     from pathlib import Path
 
-    from dicer.bench import _job_command
+    from bench import _job_command
 
     for job in PROCESS_JOBS:
         cmd = _job_command(job, Path("/w"))

@@ -268,12 +268,12 @@ def test_bad_format_labels_and_folder(tmp_path, mesh, config):
 
 
 def test_failed_read_back_leaves_no_file(tmp_path, mesh, config, monkeypatch):
-    from dicer.export import readers
+    from dicer.export import abaqus
 
     def broken(path, model):
         raise DicerError("node count changed")
 
-    monkeypatch.setattr(readers, "check_abaqus", broken)
+    monkeypatch.setattr(abaqus, "check_abaqus", broken)
     with pytest.raises(DicerError, match="read-back check failed"):
         export_mesh(mesh, tmp_path / "m.inp", config)
     assert _no_files(tmp_path)
@@ -426,3 +426,31 @@ def test_a_dicom_folder_name_never_reaches_the_deck(tmp_path, mesh, config):
     for suffix in (".inp", ".k", ".out", ".feb", ".exo"):
         export_mesh(mesh, tmp_path / f"model{suffix}", config, source=series)
         assert b"DOE" not in (tmp_path / f"model{suffix}").read_bytes()
+
+
+# --- the format registry ----------------------------------------------------------------------
+
+
+def test_registry_has_one_format_a_suffix():
+    from dicer.export.registry import BY_SUFFIX, FORMATS, format_of
+
+    suffixes = [s for f in FORMATS for s in f.suffixes]
+    assert len(suffixes) == len(set(suffixes)) == len(BY_SUFFIX)
+    assert EXPORT_SUFFIXES == (".inp", ".vtu", ".out", ".neu", ".k", ".key", ".dyn", ".msh", ".e", ".exo", ".feb")
+    assert all(s == s.lower() and s.startswith(".") for s in suffixes)
+    assert format_of("A/MODEL.INP").name == "abaqus" and format_of("model.stl") is None
+    for f in FORMATS:
+        assert set(f.dims) <= {2, 3} and set(f.orders) <= {1, 2}
+        assert (f.dims == (2, 3) and f.orders == (1, 2)) or f.limits  # a limit is explained
+
+
+def test_write_vtu_takes_the_siblings_call_and_the_older_one(tmp_path, mesh, config):
+    from dicer.export.model import scanner_mesh
+    from dicer.export.vtu import write_vtu
+
+    export_mesh(mesh, tmp_path / "a.vtu", config)
+    model = prepare_model(mesh, config)
+    write_vtu(model, tmp_path / "b.vtu")
+    write_vtu(model, scanner_mesh(mesh, model), tmp_path / "c.vtu")
+    want = (tmp_path / "a.vtu").read_bytes()
+    assert (tmp_path / "b.vtu").read_bytes() == want == (tmp_path / "c.vtu").read_bytes()

@@ -143,12 +143,14 @@ def test_exodus_two_dimensional(tmp_path, mesh2d, order):
 
 
 def test_exodus_read_back_and_missing_netcdf4(tmp_path, mesh, monkeypatch):
-    from dicer.export import exodus
+    import dataclasses
+
+    from dicer.export import exodus, registry
 
     def broken(path, model):
         raise DicerError("side set EXTERIOR differs")
 
-    monkeypatch.setattr(exodus, "check_exodus", broken)
+    monkeypatch.setitem(registry.BY_SUFFIX, ".exo", dataclasses.replace(exodus.FORMAT, check=broken))
     with pytest.raises(DicerError, match="read-back check failed: side set EXTERIOR differs"):
         export_mesh(mesh, tmp_path / "m.exo", cfg())
     monkeypatch.undo()

@@ -11,7 +11,8 @@ import pytest
 from dicer.config import load_config
 from dicer.errors import DicerError
 from dicer.export import export_mesh, prepare_model
-from dicer.export.readers import read_lsdyna, read_patran
+from dicer.export.lsdyna import read_lsdyna
+from dicer.export.patran import read_patran
 from dicer.mesh.quadratic import quadratic_mesh
 from dicer.mesh.topology import HEX_EDGES, QUAD_EDGES
 from dicer.mesh.voxel import voxel_mesh

@@ -16,13 +16,9 @@ from hypothesis import strategies as st
 from dicer.config import load_config
 from dicer.errors import DicerError
 from dicer.export import export_mesh, prepare_model
-from dicer.export.readers import (
-    _meshio_abaqus_types,
-    check_abaqus,
-    read_abaqus,
-    read_lsdyna,
-    read_patran,
-)
+from dicer.export.abaqus import _meshio_abaqus_types, check_abaqus, read_abaqus
+from dicer.export.lsdyna import read_lsdyna
+from dicer.export.patran import read_patran
 from dicer.export.textparse import FormatError, layout_of, parse_records
 from dicer.mesh.voxel import voxel_mesh
 
@@ -225,7 +221,9 @@ def test_strict_check_finds_changed_numbers_the_reader_accepts(tmp_path, mesh):
 
 
 def test_corrupted_write_fails_the_export_and_leaves_no_file(tmp_path, mesh, monkeypatch):
-    from dicer.export import abaqus
+    import dataclasses
+
+    from dicer.export import abaqus, registry
 
     write = abaqus.write_abaqus
     keep = {"bytes": None}
@@ -235,7 +233,7 @@ def test_corrupted_write_fails_the_export_and_leaves_no_file(tmp_path, mesh, mon
         data = Path(path).read_bytes()
         Path(path).write_bytes(data[: keep["bytes"]])  # as if the disk had kept less
 
-    monkeypatch.setattr(abaqus, "write_abaqus", corrupting)
+    monkeypatch.setitem(registry.BY_SUFFIX, ".inp", dataclasses.replace(abaqus.FORMAT, write=corrupting))
     export_mesh(mesh, tmp_path / "full.inp", _config(2), verify=False)
     size = (tmp_path / "full.inp").stat().st_size
     (tmp_path / "full.inp").unlink()
@@ -314,7 +312,7 @@ def test_patran_names_the_materials_in_packet_21(tmp_path):
 
     from dicer.config import load_config
     from dicer.export import export_mesh
-    from dicer.export.readers import read_patran
+    from dicer.export.patran import read_patran
     from dicer.mesh.voxel import voxel_mesh
 
     labels = np.zeros((4, 3, 3), np.uint8)

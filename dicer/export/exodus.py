@@ -32,6 +32,7 @@ import numpy as np
 
 from dicer import __version__
 from dicer.errors import DicerError
+from dicer.export.format import Format
 from dicer.mesh.topology import HEX20_EXODUS
 
 EXODUS_TYPES = {(3, 1): "HEX8", (3, 2): "HEX20", (2, 1): "QUAD4", (2, 2): "QUAD8"}
@@ -67,6 +68,15 @@ def _names(var, names: list[str]) -> None:
         raw = np.frombuffer(name.encode("ascii"), "S1")
         data[i, : raw.size] = raw
     var[:] = data
+
+
+def _id_table(nc, kind: str, count: str, ids, names: list[str]) -> None:
+    """The status, ID property and names of the blocks or sets of ``kind`` (``eb``, ``ns``, ``ss``)."""
+    nc.createVariable(f"{kind}_status", "i4", (count,))[:] = 1
+    prop = nc.createVariable(f"{kind}_prop1", "i4", (count,))
+    prop.setncattr("name", "ID")
+    prop[:] = ids
+    _names(nc.createVariable(f"{kind}_names", "S1", (count, "len_name")), names)
 
 
 def write_exodus(model, path: str | Path) -> None:
@@ -122,11 +132,7 @@ def _write(model, path: str | Path) -> None:
         _names(nc.createVariable("coor_names", "S1", ("num_dim", "len_name")), ["X", "Y", "Z"][:dim])
         for j, axis in enumerate("xyz"[:dim]):
             nc.createVariable(f"coord{axis}", "f8", ("num_nodes",))[:] = model.points[:, j]
-        nc.createVariable("eb_status", "i4", ("num_el_blk",))[:] = 1
-        prop = nc.createVariable("eb_prop1", "i4", ("num_el_blk",))
-        prop.setncattr("name", "ID")
-        prop[:] = [k for k, _ in blocks]
-        _names(nc.createVariable("eb_names", "S1", ("num_el_blk", "len_name")), [model.names[k] for k, _ in blocks])
+        _id_table(nc, "eb", "num_el_blk", [k for k, _ in blocks], [model.names[k] for k, _ in blocks])
         etype = EXODUS_TYPES[(dim, model.order)]
         for i, (k, elements) in enumerate(blocks, start=1):
             nc.createDimension(f"num_el_in_blk{i}", elements.size)
@@ -136,25 +142,18 @@ def _write(model, path: str | Path) -> None:
             var[:] = (model.cells[elements][:, perm] + 1).astype(np.int32)
         nc.createVariable("elem_num_map", "i4", ("num_elem",))[:] = (block_order + 1).astype(np.int32)
         if node_sets:
-            nc.createVariable("ns_status", "i4", ("num_node_sets",))[:] = 1
-            prop = nc.createVariable("ns_prop1", "i4", ("num_node_sets",))
-            prop.setncattr("name", "ID")
-            prop[:] = np.arange(1, len(node_sets) + 1)
-            _names(nc.createVariable("ns_names", "S1", ("num_node_sets", "len_name")), list(node_sets))
+            _id_table(nc, "ns", "num_node_sets", np.arange(1, len(node_sets) + 1), list(node_sets))
             for i, ids in enumerate(node_sets.values(), start=1):
                 nc.createDimension(f"num_nod_ns{i}", ids.size)
                 nc.createVariable(f"node_ns{i}", "i4", (f"num_nod_ns{i}",))[:] = (ids + 1).astype(np.int32)
         if side_sets:
             sides = side_numbers(dim)
-            nc.createVariable("ss_status", "i4", ("num_side_sets",))[:] = 1
-            prop = nc.createVariable("ss_prop1", "i4", ("num_side_sets",))
-            prop.setncattr("name", "ID")
-            prop[:] = np.arange(1, len(side_sets) + 1)
-            _names(nc.createVariable("ss_names", "S1", ("num_side_sets", "len_name")), list(side_sets))
+            _id_table(nc, "ss", "num_side_sets", np.arange(1, len(side_sets) + 1), list(side_sets))
             for i, faces in enumerate(side_sets.values(), start=1):
                 nc.createDimension(f"num_side_ss{i}", faces.shape[0])
-                nc.createVariable(f"elem_ss{i}", "i4", (f"num_side_ss{i}",))[:] = position[faces[:, 0]].astype(np.int32)
-                nc.createVariable(f"side_ss{i}", "i4", (f"num_side_ss{i}",))[:] = sides[faces[:, 1] - 1].astype(np.int32)
+                count = (f"num_side_ss{i}",)
+                nc.createVariable(f"elem_ss{i}", "i4", count)[:] = position[faces[:, 0]].astype(np.int32)
+                nc.createVariable(f"side_ss{i}", "i4", count)[:] = sides[faces[:, 1] - 1].astype(np.int32)
         if info:
             _names(nc.createVariable("info_records", "S1", ("num_info", "len_line")), [s[:80] for s in info])
 
@@ -266,3 +265,8 @@ def check_exodus(path: str | Path, model) -> None:
         rows = np.column_stack([position[faces[:, 0]], sides[faces[:, 1] - 1]])
         if not np.array_equal(got["side_sets"][name], rows):
             raise DicerError(f"side set {name} differs")
+
+
+FORMAT = Format("exodus", (".e", ".exo"), write_exodus, check_exodus,
+                requires=("netCDF4", "Exodus files need the netCDF4 package (pip install netCDF4); "
+                                     "or choose another format"))

@@ -33,14 +33,14 @@ from pathlib import Path
 import numpy as np
 
 from dicer.errors import DicerError
-from dicer.export.textfmt import Float, Int, Sci, compact_rows, int_lines, int_width
+from dicer.export.format import Format
+from dicer.export.textfmt import Float, Int, Sci, int_lines, int_width, write_chunks
 from dicer.mesh.topology import HEX20_FACES, HEX_FACES
 
 SPEC_VERSION = "4.0"
 FEBIO_TYPES = {1: "hex8", 2: "hex20"}
 FACET_TYPES = {1: "quad4", 2: "quad8"}
 MATERIAL_TYPES = ("isotropic elastic", "neo-Hookean")
-CHUNK = 1 << 16
 PER_LINE = 16  # node numbers per line of a node set
 
 
@@ -64,16 +64,16 @@ def _rows(stream, tag: bytes, ids: np.ndarray, values: np.ndarray, width: int, f
     """Lines ``<tag id="ID">v1,v2,...</tag>`` for every row of ``values`` (ints, or floats with ``fmt``)."""
     indent = b"\t\t\t<" + tag + b' id="'
     close = b"</" + tag + b">\n"
-    for start in range(0, ids.size, CHUNK):
-        i = ids[start : start + CHUNK]
-        v = values[start : start + CHUNK]
-        fields = [indent, Int(i, width), b'">']
+
+    def fields(a, b):
+        v = values[a:b]
+        row = [indent, Int(ids[a:b], width), b'">']
         for j in range(v.shape[1]):
             lead = b"," if j else b""
-            fields.append(Float(v[:, j], fmt, lead) if fmt else Int(v[:, j], width, lead))
-        fields.append(close)
-        for chunk in compact_rows(fields, i.size):
-            stream.write(chunk)
+            row.append(Float(v[:, j], fmt, lead) if fmt else Int(v[:, j], width, lead))
+        return row + [close]
+
+    write_chunks(stream, ids.size, fields, compact=True)
 
 
 def write_febio(model, path: str | Path, material_type: str = "isotropic elastic") -> None:
@@ -172,10 +172,8 @@ def read_febio(path: str | Path) -> dict:
     import xml.etree.ElementTree as ET
 
     out = {"materials": [], "blocks": [], "node_sets": {}, "surfaces": {}, "domains": []}
-    node_ids: list[str] = []
-    node_text: list[str] = []
-    cur_ids: list[str] = []
-    cur_text: list[str] = []
+    # ids and texts of the nodes, and of the elements or facets of the current block
+    got = {"node_ids": [], "node_text": [], "ids": [], "text": []}
     stack: list[str] = []
     parents: list = []
     sections = []
@@ -191,80 +189,20 @@ def read_febio(path: str | Path) -> dict:
                 elif len(stack) == 2:
                     sections.append(el.tag)
                 elif len(stack) == 3 and stack[1] == "Mesh":
-                    cur_ids, cur_text = [], []
+                    got["ids"], got["text"] = [], []
                 continue
             path_ = "/".join(stack)
             stack.pop()
             parents.pop()
-            if path_ == "febio_spec/Module":
-                out["module"] = el.get("type")
-            elif path_ == "febio_spec/Material/material":
-                mat = {"id": el.get("id"), "name": el.get("name"), "type": el.get("type")}
-                for key in ("E", "v", "density"):
-                    child = el.find(key)
-                    try:
-                        mat[key] = float(child.text)
-                    except (AttributeError, TypeError, ValueError):
-                        raise DicerError(f"material {mat['name']}: no number in <{key}>") from None
-                out["materials"].append(mat)
-                el.clear()
-            elif path_ == "febio_spec/Mesh/Nodes/node":
-                node_ids.append(el.get("id"))
-                node_text.append(el.text or "")
-                parents[-1].remove(el)  # the only child left: keeps memory flat on large files
-            elif path_ in ("febio_spec/Mesh/Elements/elem",) or (
-                    len(stack) == 3 and stack[1] == "Mesh" and stack[2] == "Surface"):
-                cur_ids.append(el.get("id"))
-                cur_text.append(el.text or "")
-                if stack[2] == "Surface":
-                    cur_type = el.tag
-                    if cur_type not in FACET_TYPES.values():
-                        raise DicerError(f"facet <{cur_type}> in a surface")
-                    out.setdefault("_facet_types", set()).add(cur_type)
-                parents[-1].remove(el)
-            elif path_ == "febio_spec/Mesh/Nodes":
-                ids = _ids(node_ids, "node")
-                if not np.array_equal(ids, np.arange(1, ids.size + 1)):
-                    raise DicerError("node ids must run 1..N in order")
-                out["points"] = _numbers(node_text, 3, np.float64, "node")
-                node_ids, node_text = [], []
-                el.clear()
-            elif path_ == "febio_spec/Mesh/Elements":
-                etype = el.get("type")
-                if etype not in FEBIO_TYPES.values():
-                    raise DicerError(f"element type {etype!r}, expected hex8 or hex20")
-                k = 8 if etype == "hex8" else 20
-                conn = _numbers(cur_text, k, np.int64, f"element of {el.get('name')}")
-                out["blocks"].append((etype, el.get("name"), _ids(cur_ids, "element"), conn - 1))
-                el.clear()
-            elif path_ == "febio_spec/Mesh/NodeSet":
-                name = el.get("name")
-                text = (el.text or "").strip()
-                ids = _parse(text, np.int64, f"node set {name}") if text else np.zeros(0, np.int64)
-                if text and ids.size != text.count(",") + 1:
-                    raise DicerError(f"node set {name}: not a number among the values")
-                if name in out["node_sets"]:
-                    raise DicerError(f"node set {name} appears twice")
-                out["node_sets"][name] = ids - 1
-                el.clear()
-            elif path_ == "febio_spec/Mesh/Surface":
-                name = el.get("name")
-                types = out.pop("_facet_types", set())
-                if len(types) > 1:
-                    raise DicerError(f"surface {name} mixes facet types {sorted(types)}")
-                ftype = types.pop() if types else "quad4"
-                ids = _ids(cur_ids, "facet")
-                if not np.array_equal(ids, np.arange(1, ids.size + 1)):
-                    raise DicerError(f"surface {name}: facet ids must run 1..F in order")
-                conn = _numbers(cur_text, 4 if ftype == "quad4" else 8, np.int64, f"facet of {name}")
-                out["surfaces"][name] = (ftype, conn - 1)
-                el.clear()
-            elif path_ == "febio_spec/MeshDomains/SolidDomain":
-                out["domains"].append((el.get("name"), el.get("mat")))
-            elif len(stack) == 2 and stack[1] == "Mesh" and el.tag not in ("Nodes", "Elements", "NodeSet", "Surface"):
-                raise DicerError(f"unexpected <{el.tag}> in <Mesh>")
+            _end_element(path_, el, stack, parents, out, got)
     except ET.ParseError as exc:
         raise DicerError(f"not well-formed XML ({exc})") from None
+    _complete(out, sections)
+    return out
+
+
+def _complete(out: dict, sections: list[str]) -> None:
+    """Raise DicerError unless the file read into ``out`` has every section and valid node references."""
     if out.get("version") != SPEC_VERSION:
         raise DicerError(f"febio_spec version {out.get('version')!r}, expected {SPEC_VERSION!r}")
     for need in ("Module", "Material", "Mesh", "MeshDomains"):
@@ -276,7 +214,76 @@ def read_febio(path: str | Path) -> dict:
     for etype, name, _, conn in out["blocks"]:
         if conn.size and (conn.min() < 0 or conn.max() >= n):
             raise DicerError(f"elements of {name} refer to nodes that do not exist")
-    return out
+
+
+def _end_element(path_: str, el, stack: list[str], parents: list, out: dict, got: dict) -> None:
+    """Take in the XML element ``el`` at its end tag (``path_`` its path, ``stack`` its parents' tags)."""
+    if path_ == "febio_spec/Module":
+        out["module"] = el.get("type")
+    elif path_ == "febio_spec/Material/material":
+        mat = {"id": el.get("id"), "name": el.get("name"), "type": el.get("type")}
+        for key in ("E", "v", "density"):
+            child = el.find(key)
+            try:
+                mat[key] = float(child.text)
+            except (AttributeError, TypeError, ValueError):
+                raise DicerError(f"material {mat['name']}: no number in <{key}>") from None
+        out["materials"].append(mat)
+        el.clear()
+    elif path_ == "febio_spec/Mesh/Nodes/node":
+        got["node_ids"].append(el.get("id"))
+        got["node_text"].append(el.text or "")
+        parents[-1].remove(el)  # the only child left: keeps memory flat on large files
+    elif path_ in ("febio_spec/Mesh/Elements/elem",) or (
+            len(stack) == 3 and stack[1] == "Mesh" and stack[2] == "Surface"):
+        got["ids"].append(el.get("id"))
+        got["text"].append(el.text or "")
+        if stack[2] == "Surface":
+            if el.tag not in FACET_TYPES.values():
+                raise DicerError(f"facet <{el.tag}> in a surface")
+            out.setdefault("_facet_types", set()).add(el.tag)
+        parents[-1].remove(el)
+    elif path_ == "febio_spec/Mesh/Nodes":
+        ids = _ids(got["node_ids"], "node")
+        if not np.array_equal(ids, np.arange(1, ids.size + 1)):
+            raise DicerError("node ids must run 1..N in order")
+        out["points"] = _numbers(got["node_text"], 3, np.float64, "node")
+        got["node_ids"], got["node_text"] = [], []
+        el.clear()
+    elif path_ == "febio_spec/Mesh/Elements":
+        etype = el.get("type")
+        if etype not in FEBIO_TYPES.values():
+            raise DicerError(f"element type {etype!r}, expected hex8 or hex20")
+        k = 8 if etype == "hex8" else 20
+        conn = _numbers(got["text"], k, np.int64, f"element of {el.get('name')}")
+        out["blocks"].append((etype, el.get("name"), _ids(got["ids"], "element"), conn - 1))
+        el.clear()
+    elif path_ == "febio_spec/Mesh/NodeSet":
+        name = el.get("name")
+        text = (el.text or "").strip()
+        ids = _parse(text, np.int64, f"node set {name}") if text else np.zeros(0, np.int64)
+        if text and ids.size != text.count(",") + 1:
+            raise DicerError(f"node set {name}: not a number among the values")
+        if name in out["node_sets"]:
+            raise DicerError(f"node set {name} appears twice")
+        out["node_sets"][name] = ids - 1
+        el.clear()
+    elif path_ == "febio_spec/Mesh/Surface":
+        name = el.get("name")
+        types = out.pop("_facet_types", set())
+        if len(types) > 1:
+            raise DicerError(f"surface {name} mixes facet types {sorted(types)}")
+        ftype = types.pop() if types else "quad4"
+        ids = _ids(got["ids"], "facet")
+        if not np.array_equal(ids, np.arange(1, ids.size + 1)):
+            raise DicerError(f"surface {name}: facet ids must run 1..F in order")
+        conn = _numbers(got["text"], 4 if ftype == "quad4" else 8, np.int64, f"facet of {name}")
+        out["surfaces"][name] = (ftype, conn - 1)
+        el.clear()
+    elif path_ == "febio_spec/MeshDomains/SolidDomain":
+        out["domains"].append((el.get("name"), el.get("mat")))
+    elif len(stack) == 2 and stack[1] == "Mesh" and el.tag not in ("Nodes", "Elements", "NodeSet", "Surface"):
+        raise DicerError(f"unexpected <{el.tag}> in <Mesh>")
 
 
 def check_febio(path: str | Path, model, material_type: str = "isotropic elastic") -> None:
@@ -330,3 +337,10 @@ def check_febio(path: str | Path, model, material_type: str = "isotropic elastic
         ftype, conn = got["surfaces"][name]
         if ftype != FACET_TYPES[model.order] or not np.array_equal(conn, facets(model, faces)):
             raise DicerError(f"surface {name} differs")
+
+
+FORMAT = Format("febio", (".feb",), write_febio, check_febio, dims=(3,),
+                limits="FEBio has no plane (2D) elements; export this {dim}D mesh to .inp (CPS4/CPE4) or another "
+                       "format, or mesh a 3D volume for .feb",
+                write_options={"material_type": ("febio_material", "isotropic elastic")},
+                check_options={"material_type": ("febio_material", "isotropic elastic")})

@@ -38,7 +38,7 @@ def material_triangles(mesh: Mesh, label: int, nb_mat: np.ndarray) -> np.ndarray
     """(T, 3) int64 node indices of the outward triangles of material ``label``'s surface.
 
     nb_mat : (M, 6) material across each face (0 for none), from
-    :func:`dicer.export.neighbour_materials`. Triangles come face by face in element order.
+    :func:`dicer.mesh.faces.neighbour_materials`. Triangles come face by face in element order.
     """
     own = mesh.material == label
     faces = own[:, None] & (nb_mat != label)
@@ -140,7 +140,7 @@ def write_surfaces(mesh: Mesh, folder: str | os.PathLike, names: list[str], only
     checked before any file is renamed into place; on any problem DicerError and no file.
     Returns per material: file, triangles, enclosed and element volume (mm^3).
     """
-    from dicer.export import neighbour_materials
+    from dicer.mesh.faces import neighbour_materials
 
     folder = Path(folder)
     if mesh.dim != 3:

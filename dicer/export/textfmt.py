@@ -303,6 +303,35 @@ def write_rows(stream: BinaryIO, fields: list[Field], n: int, chunk: int = CHUNK
     return total
 
 
+def write_chunks(stream: BinaryIO, n: int, fields_of, compact: bool = False, chunk: int = CHUNK_ROWS) -> None:
+    """Write ``n`` rows, a chunk at a time, whose fields ``fields_of(start, stop)`` gives.
+
+    Parameters
+    ----------
+    stream : binary file
+    n : int
+        Rows to write.
+    fields_of : callable
+        ``fields_of(start, stop)`` -> the fields of rows ``start .. stop - 1`` (arrays of
+        ``stop - start`` values): temporaries such as 1-based ids stay one chunk large.
+    compact : bool
+        Drop the blank padding of number fields (:func:`compact_rows`).
+    """
+    for start in range(0, n, chunk):
+        stop = min(n, start + chunk)
+        fields = fields_of(start, stop)
+        if compact:
+            for part in compact_rows(fields, stop - start, chunk):
+                stream.write(part)
+        else:
+            write_rows(stream, fields, stop - start, chunk)
+
+
+def row_ids(start: int, stop: int) -> np.ndarray:
+    """The 1-based numbers of rows ``start .. stop - 1``."""
+    return np.arange(start + 1, stop + 1, dtype=np.int64)
+
+
 def int_lines(values: np.ndarray, per_line: int, width: int, sep: bytes = b",") -> bytes:
     """``values`` as newline-terminated lines of up to ``per_line`` right-aligned integers joined by ``sep``.
 

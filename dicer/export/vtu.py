@@ -1,4 +1,4 @@
-"""VTU export for ParaView (cell data ``material``, ``scaled_jacobian`` and ``edge_ratio``) and Gmsh through meshio.
+"""VTU export for ParaView (cell data ``material``, ``scaled_jacobian`` and ``edge_ratio``) through meshio.
 
 Order 1 is written with meshio (zlib level 1) plus dicer's grid field data, so the
 file is also a valid dicer mesh (``lattice`` point data, grid field data) that every
@@ -20,6 +20,8 @@ import meshio
 import meshio.vtu._vtu  # noqa: F401  (its zlib is swapped while writing, see _fast_vtu_compression)
 import numpy as np
 
+from dicer.export.format import Format
+from dicer.export.model import scanner_mesh
 from dicer.io.meshes import _field_data_xml, names_xml, splice_field_data, to_meshio
 from dicer.mesh.metrics import quality_arrays
 from dicer.mesh.model import Mesh
@@ -62,31 +64,25 @@ def _write_vtu(mesh: Mesh, path: Path) -> None:
         raw.unlink(missing_ok=True)
 
 
-def write_vtu(model, mesh: Mesh, path: str | Path) -> None:
-    """Write ``model`` (made from ``mesh``) as VTU with material and quality cell data."""
+def write_vtu(model, path: str | Path, mesh: Mesh | None = None) -> None:
+    """Write the SolverModel ``model`` as VTU with material and quality cell data.
+
+    mesh : the linear mesh as exported (order 1); default the model's own mesh, in the
+        model's frame. The older call ``write_vtu(model, mesh, path)`` works too.
+    """
+    if isinstance(path, Mesh):  # write_vtu(model, mesh, path)
+        mesh, path = path, mesh
     if model.order == 1:
+        if mesh is None:
+            if model.mesh is None:
+                raise ValueError("a linear model is written to VTU with its mesh; pass mesh=")
+            mesh = scanner_mesh(model.mesh, model)
         out = mesh.copy()
         out.names = model.name_list()  # the config's names, whatever the mesh carried
         out.cell_data = quality_arrays(mesh.points, mesh.cells) | out.cell_data
         _write_vtu(out, Path(path))
         return
-    write_meshio(model, path, "vtu")
-
-
-def write_meshio(model, path: str | Path, file_format: str) -> None:
-    """Write ``model`` with meshio (``vtu`` or ``gmsh``): material as cell data."""
-    ctype = MESHIO_TYPES[(model.dim, model.order)]
-    points = model.points if model.dim == 3 else model.points[:, :2]
-    if file_format == "gmsh":
-        tag = model.material.astype(np.int32)
-        # $PhysicalNames: each material's name for its physical tag (its label), of the
-        # elements' dimension, so Gmsh lists the parts by name
-        names = {model.names[k]: np.array([k, model.dim]) for k in model.labels()}
-        m = meshio.Mesh(points, [(ctype, model.cells)],
-                        cell_data={"gmsh:physical": [tag], "gmsh:geometrical": [tag]}, field_data=names)
-        meshio.write(path, m, file_format="gmsh22", binary=False)
-        return
-    m = meshio.Mesh(model.points, [(ctype, model.cells)],
+    m = meshio.Mesh(model.points, [(MESHIO_TYPES[(model.dim, model.order)], model.cells)],
                     cell_data={"material": [model.material],
                                **{k: [v] for k, v in _corner_quality(model).items()}})
     raw = Path(path).with_name(Path(path).name + ".raw.vtu")
@@ -96,3 +92,13 @@ def write_meshio(model, path: str | Path, file_format: str) -> None:
         splice_field_data(raw, Path(path), block)
     finally:
         raw.unlink(missing_ok=True)
+
+
+def check_vtu(path: str | Path, model) -> None:
+    """Read the file back with meshio and compare it with ``model`` (materials, quality data, names)."""
+    from dicer.export.readers import check_meshio
+
+    check_meshio(path, model, "vtu")
+
+
+FORMAT = Format("vtu", (".vtu",), write_vtu, check_vtu)

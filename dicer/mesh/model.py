@@ -23,8 +23,23 @@ template: 2D cells of 3**l voxels a side; 3D cells grow by three along one axis 
 elements lie inside one material, away from every boundary and interface."""
 
 
+class Sized:
+    """``n_points`` and ``n_cells`` of a class with ``points`` and ``cells`` arrays."""
+
+    points: np.ndarray
+    cells: np.ndarray
+
+    @property
+    def n_points(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def n_cells(self) -> int:
+        return int(self.cells.shape[0])
+
+
 @dataclass
-class Mesh:
+class Mesh(Sized):
     """A linear all-hexahedral (3D) or all-quad (2D) mesh.
 
     points : (N, 3) float64, node coordinates in mm (z = 0 in 2D).
@@ -61,14 +76,6 @@ class Mesh:
     def dim(self) -> int:
         """2 for a quad mesh, 3 for a hexahedral mesh."""
         return 3 if self.cells.shape[1] == 8 else 2
-
-    @property
-    def n_points(self) -> int:
-        return int(self.points.shape[0])
-
-    @property
-    def n_cells(self) -> int:
-        return int(self.cells.shape[0])
 
     @property
     def cell_type(self) -> str:

@@ -74,8 +74,8 @@ class Deck:
 
     @classmethod
     def read(cls, path: str | os.PathLike) -> "Deck":
-        from dicer.export import ELEMENT_TYPES
-        from dicer.export.readers import read_abaqus
+        from dicer.export.model import ELEMENT_TYPES
+        from dicer.export.abaqus import read_abaqus
 
         d = read_abaqus(path)
         dim, order = ELEMENT_TYPES[d["element_type"]]

@@ -1,9 +1,9 @@
-"""Benchmark: seconds and peak memory of dicer beside peer tools, same run.
+"""Benchmark: seconds and peak memory of dicer beside peer tools, same run (run from the repository's top).
 
-    python -m dicer.bench --processes     # what users run: whole processes, 64^3 -> 256^3
-    python -m dicer.bench --processes --sizes 64,128,256,512 --repeat 2
-    python -m dicer.bench                 # library functions, 256^3 two-material ball, every case
-    python -m dicer.bench --size 128 --cases mesh,pyvista_threshold
+    python -m bench --processes     # what users run: whole processes, 64^3 -> 256^3
+    python -m bench --processes --sizes 64,128,256,512 --repeat 2
+    python -m bench                 # library functions, 256^3 two-material ball, every case
+    python -m bench --size 128 --cases mesh,pyvista_threshold
 
 ``--processes`` times each command a user runs (``dicer mesh``, ``merge``, ``smooth``,
 ``export``, ``quality``, ``run``), every one a fresh process with all its checks (read-back
@@ -31,6 +31,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+"""The repository's top folder, from which ``python -m bench`` runs."""
 
 
 def shell_labels(n: int):
@@ -157,14 +160,28 @@ def _case_automesh_smooth():
 def _export_case(suffix: str, what: str):
     def case():
         def run(mesh, tmp):
-            from dicer.export import benchmark_export
-
             info = benchmark_export(mesh, tmp, suffix=suffix, config=_config())
             return {"bytes": info["bytes"]}
 
         return _mesh, run, what
 
     return case
+
+
+def benchmark_export(mesh, folder, suffix: str = ".inp", config: dict | None = None) -> dict:
+    """Seconds and bytes of one export of ``mesh`` into ``folder`` (no read-back); the file is deleted.
+
+    config : dicer's default configuration if None.
+    """
+    from dicer.config import load_config
+    from dicer.export import export_mesh
+
+    path = Path(folder) / f"bench_model{suffix}"
+    t0 = time.perf_counter()
+    info = export_mesh(mesh, path, config or load_config(), source=None, verify=False)
+    seconds = time.perf_counter() - t0
+    path.unlink(missing_ok=True)
+    return {"seconds": seconds, "bytes": info["bytes"], "elements": info["elements"], "nodes": info["nodes"]}
 
 
 def _case_meshio_abaqus():
@@ -378,7 +395,7 @@ def _run_case(name: str, n: int) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m dicer.bench", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.splitlines()[0])
     parser.add_argument("--size", type=int, default=256, help="n of the n^3 workload (default 256)")
     parser.add_argument("--cases", default=",".join(CASES), help="comma-separated cases (default: all)")
     parser.add_argument("--json", metavar="FILE", help="also write the results as JSON")
@@ -406,8 +423,8 @@ def main(argv=None) -> int:
     rows = []
     print(f"workload: two-material ball, {args.size}^3 voxels", flush=True)
     for name in names:
-        proc = subprocess.run([sys.executable, "-m", "dicer.bench", "--case", name, "--size", str(args.size)],
-                              capture_output=True, text=True, env=os.environ)
+        proc = subprocess.run([sys.executable, "-m", "bench", "--case", name, "--size", str(args.size)],
+                              capture_output=True, text=True, env=os.environ, cwd=ROOT)
         if proc.returncode != 0:
             tail = (proc.stderr.strip().splitlines() or ["failed"])[-1]
             rows.append({"case": name, "what": tail[:90], "seconds": None, "peak_rss_mb": None})
@@ -445,7 +462,3 @@ def _main_processes(args) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps({"sizes": sizes, "load_average": load, "results": rows}, indent=2) + "\n")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,0 +1,50 @@
+"""The record by which an export format registers itself (see :mod:`dicer.export.registry`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+
+@dataclass(frozen=True)
+class Format:
+    """One export format: its file suffixes, its writer and its strict read-back check.
+
+    Parameters
+    ----------
+    name : str
+        Short name, reported in the export summary (``abaqus``, ``vtu``, ...).
+    suffixes : tuple of str
+        Lower-case file extensions with their dot; the first is the usual one.
+    write : callable
+        ``write(model, path, **options)``: writes the SolverModel ``model`` at ``path``;
+        raises ValueError for a number no field of the format holds.
+    check : callable
+        ``check(path, model, **options)``: reads the file back and raises DicerError on
+        the first difference from ``model``.
+    dims, orders : tuple of int
+        Mesh dimensions (2, 3) and element orders (1, 2) the format holds.
+    limits : str
+        What the format cannot hold and what to do instead, for the error message;
+        ``{dim}`` and ``{order}`` are filled in.
+    write_options, check_options : dict
+        Keyword of ``write`` / ``check`` -> (``export`` setting, default).
+    requires : tuple of str
+        A module the writer needs and the hint given when it is missing, or empty.
+    """
+
+    name: str
+    suffixes: tuple[str, ...]
+    write: Callable
+    check: Callable
+    dims: tuple[int, ...] = (2, 3)
+    orders: tuple[int, ...] = (1, 2)
+    limits: str = ""
+    write_options: dict[str, tuple[str, object]] = field(default_factory=dict)
+    check_options: dict[str, tuple[str, object]] = field(default_factory=dict)
+    requires: tuple[str, ...] = ()
+
+    def options(self, which: str, export: dict) -> dict:
+        """Keyword arguments of ``write`` (which = ``"write"``) or ``check`` from the ``export`` settings."""
+        table = self.write_options if which == "write" else self.check_options
+        return {kw: export.get(key, default) for kw, (key, default) in table.items()}

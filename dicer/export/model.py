@@ -1,0 +1,303 @@
+"""The solver model: a mesh made ready for any writer (numbering, element type and order,
+material blocks, node sets, exterior and interface faces, provenance).
+
+:func:`prepare_model` checks the mesh against the configuration and builds one
+:class:`SolverModel`; every format writes from it. Surface sets come from the face
+neighbours of :mod:`dicer.mesh.faces`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dicer.config import SET_KINDS, name_clash
+from dicer.errors import DicerError
+from dicer.export.provenance import provenance, sha256_in_background
+from dicer.image import MAX_LABEL
+from dicer.mesh.faces import neighbour_materials
+from dicer.mesh.frame import mirrored, to_scanner
+from dicer.mesh.model import Mesh, Sized
+from dicer.mesh.topology import (HEX20_FACES, HEX20_MIRROR, HEX_FACE_MIRROR, HEX_FACES, HEX_MIRROR, QUAD8_SIDES,
+                                 QUAD_EDGES)
+
+# element type -> (dimension, order); the node order of every type is VTK's (= Abaqus's)
+ELEMENT_TYPES = {
+    "C3D8": (3, 1), "C3D8R": (3, 1), "C3D8I": (3, 1),
+    "C3D20": (3, 2), "C3D20R": (3, 2),
+    "CPS4": (2, 1), "CPS4R": (2, 1), "CPE4": (2, 1), "CPE4R": (2, 1),
+    "CPS8": (2, 2), "CPS8R": (2, 2), "CPE8": (2, 2), "CPE8R": (2, 2),
+}
+DEFAULT_TYPES = {(3, 1): "C3D8", (3, 2): "C3D20", (2, 1): "CPS4", (2, 2): "CPS8"}
+
+
+@dataclass
+class SolverModel(Sized):
+    """A mesh ready for a solver file: everything a writer needs, nothing format-specific.
+
+    points : (N, 3) node coordinates; node i is written as number i + 1.
+    cells : (M, n) node indices in VTK/Abaqus order (8 or 20 per hex, 4 or 8 per quad).
+    material : (M,) labels 1..K; element j is written as number j + 1.
+    names : label -> class name; props : label -> material dict from the config.
+    element_type : Abaqus name (C3D8, C3D20, CPS4, ...); dim, order : 2|3, 1|2.
+    node_sets : set name -> sorted 0-based node indices (bounding planes, material
+        boundaries, interfaces). exterior : (F, 2) int64 rows (element index, face
+        number 1..6 / 1..4) of the element faces on the exterior surface.
+    interfaces : interface name ``<a>_<b>`` -> (F, 2) int64 rows (element index, face
+        number) of the faces of material a with material b behind them (a < b), grouped
+        by face number, elements ascending; for formats with face sets (Exodus, FEBio).
+    heading : provenance lines (no date, no path).
+    mesh : the linear mesh the model was made from (the VTU writer keeps its lattice data).
+    """
+
+    points: np.ndarray
+    cells: np.ndarray
+    material: np.ndarray
+    names: dict[int, str]
+    props: dict[int, dict]
+    element_type: str
+    dim: int
+    order: int
+    thickness: float
+    digits: int
+    node_sets: dict[str, np.ndarray] = field(default_factory=dict)
+    exterior: np.ndarray | None = None
+    interfaces: dict[str, np.ndarray] = field(default_factory=dict)
+    heading: list[str] = field(default_factory=list)
+    use_heading: bool = True
+    cell_data: dict[str, np.ndarray] = field(default_factory=dict)
+    mesh: Mesh | None = field(default=None, repr=False)
+
+    def face_sets(self) -> dict[str, np.ndarray]:
+        """Element-face set name -> (F, 2) rows (element index, face number): EXTERIOR, then
+        the interfaces (Exodus side sets, FEBio surfaces)."""
+        out = {}
+        if self.exterior is not None and self.exterior.size:
+            out["EXTERIOR"] = self.exterior
+        out.update(self.interfaces)
+        return out
+
+    def name_list(self) -> list[str]:
+        """Material names by label, 1..K (entry i names label i + 1)."""
+        return [self.names[k] for k in range(1, max(self.names) + 1)]
+
+    def labels(self) -> list[int]:
+        """Material labels present, ascending."""
+        return [int(k) for k in np.unique(self.material)]
+
+    def blocks(self) -> list[tuple[int, np.ndarray]]:
+        """(label, element indices ascending) per material present."""
+        counts = np.bincount(self.material, minlength=max(self.names) + 1)
+        present = np.flatnonzero(counts)
+        if present.size <= 8:
+            # a few materials (the usual case): one comparison pass per label costs less than a sort
+            return [(int(k), np.flatnonzero(self.material == k)) for k in present]
+        order = np.argsort(self.material, kind="stable")
+        out, start = [], 0
+        for k in range(counts.size):
+            if counts[k]:
+                out.append((k, order[start : start + counts[k]]))
+                start += counts[k]
+        return out
+
+
+def resolve_element_type(mesh: Mesh, config: dict, path: Path) -> tuple[str, int]:
+    """The element type and order from ``config['export']``, checked against the mesh's dimension."""
+    ex = config.get("export", {})
+    order = int(ex.get("order", 1))
+    etype = ex.get("element_type")
+    if order not in (1, 2):
+        raise DicerError(f"{path}: export.order must be 1 or 2, got {order}")
+    if etype is None:
+        return DEFAULT_TYPES[(mesh.dim, order)], order
+    etype = str(etype).upper()
+    if etype not in ELEMENT_TYPES:
+        raise DicerError(f"{path}: unknown element type {etype!r}; choose one of {', '.join(ELEMENT_TYPES)}")
+    dim, etype_order = ELEMENT_TYPES[etype]
+    if dim != mesh.dim:
+        kinds = [t for t, (d, o) in ELEMENT_TYPES.items() if d == mesh.dim and o == order]
+        raise DicerError(f"{path}: element type {etype} is for {dim}D meshes but the mesh is {mesh.dim}D; "
+                         f"use one of {', '.join(kinds)}")
+    if etype_order != order:
+        kinds = [t for t, (d, o) in ELEMENT_TYPES.items() if d == mesh.dim and o == order]
+        raise DicerError(f"{path}: export.order is {order} but element type {etype} has order {etype_order}; "
+                         f"use one of {', '.join(kinds)} or set export.order={etype_order}")
+    return etype, order
+
+
+
+_CHUNK = 1 << 18  # elements per pass: temporaries stay small and are reused
+
+
+def _face_nodes(cells: np.ndarray, table: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Elements (F,) and their nodes (F, c) of the faces marked in the (M, faces) bool array ``faces``."""
+    e_idx, f_idx = np.nonzero(faces)
+    return e_idx, cells[e_idx[:, None], table[f_idx]]
+
+
+def _grouped_nodes(code: np.ndarray, nodes: np.ndarray, n_points: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Distinct codes (ascending) and, for each, the sorted distinct nodes paired with it.
+
+    code : (F,) int64, one code per row of ``nodes``; nodes : (F, c) node indices.
+    """
+    key = np.unique((code[:, None] * n_points + nodes).ravel())  # int64: codes < 2**32, nodes < 2**31
+    if not key.size:
+        return key, []
+    group, node = np.divmod(key, n_points)
+    cut = np.flatnonzero(group[1:] != group[:-1]) + 1
+    return group[np.r_[0, cut]], np.split(node, cut)
+
+
+def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> None:
+    """Exterior faces and surface, material boundary and interface node sets from neighbour materials.
+
+    Sets come in the order EXTERIOR, <a>_BOUNDARY by label, <a>_<b> by label a then b
+    (a < b); only sets with nodes are kept. Nodes are collected as (set, node) pairs
+    from the faces concerned, so the work follows the surface, not the number of
+    materials or pairs of them.
+    """
+    dim = model.dim
+    if model.order == 2:
+        table = HEX20_FACES if dim == 3 else QUAD8_SIDES
+    else:
+        table = HEX_FACES if dim == 3 else QUAD_EDGES
+    n = model.n_points
+    if n >= 2**31:
+        raise DicerError("node sets of models with 2**31 nodes or more are not supported; leave materials, "
+                         "interfaces and exterior out of export.sets")
+    exterior = np.zeros(n, bool)
+    ext_e, ext_f = [], []
+    bound_code, bound_nodes, pair_code, pair_nodes, pair_face = [], [], [], [], []
+    for start in range(0, model.n_cells, _CHUNK):
+        mat = model.material[start : start + _CHUNK].astype(np.int64)
+        nbm = nb_mat[start : start + _CHUNK]
+        cells = model.cells[start : start + _CHUNK]
+        if "exterior" in kinds:
+            f_idx, e_idx = np.nonzero((nbm == 0).T)  # grouped by face number
+            ext_e.append(e_idx + start)
+            ext_f.append(f_idx)
+            exterior[cells[e_idx[:, None], table[f_idx]]] = True
+        if "materials" in kinds:  # faces of a material with another (or none) behind them
+            e_idx, nodes = _face_nodes(cells, table, nbm != mat[:, None])
+            bound_code.append(mat[e_idx])
+            bound_nodes.append(nodes)
+        if "interfaces" in kinds:  # faces of material a with material b > a behind them
+            later = nbm > mat[:, None]
+            e_idx, nodes = _face_nodes(cells, table, later)
+            pair_code.append(mat[e_idx] << 16 | nbm[later].astype(np.int64))  # labels <= MAX_LABEL < 2**16
+            pair_nodes.append(nodes)
+            pair_face.append(np.column_stack(np.nonzero(later)) + [start, 1])  # (element, face number)
+    if "exterior" in kinds:
+        e, f = np.concatenate(ext_e), np.concatenate(ext_f)
+        order = np.lexsort((e, f))  # grouped by face number, elements ascending
+        model.exterior = np.column_stack([e[order], f[order] + 1]).astype(np.int64)
+        if exterior.any():
+            model.node_sets["EXTERIOR"] = np.flatnonzero(exterior)
+    width = table.shape[1]
+    if "materials" in kinds:
+        codes, groups = _grouped_nodes(np.concatenate(bound_code), np.concatenate(bound_nodes).reshape(-1, width), n)
+        for k, ids in zip(codes.tolist(), groups):
+            model.node_sets[f"{model.names[k]}_BOUNDARY"] = ids
+    if "interfaces" in kinds:
+        code = np.concatenate(pair_code)
+        codes, groups = _grouped_nodes(code, np.concatenate(pair_nodes).reshape(-1, width), n)
+        for c, ids in zip(codes.tolist(), groups):
+            model.node_sets[f"{model.names[c >> 16]}_{model.names[c & 0xFFFF]}"] = ids
+        # the same faces as (element, face number) rows per pair: by face number, elements ascending
+        faces = np.concatenate(pair_face).astype(np.int64).reshape(-1, 2)
+        order = np.lexsort((faces[:, 0], faces[:, 1], code))
+        code, faces = code[order], faces[order]
+        cut = np.flatnonzero(code[1:] != code[:-1]) + 1
+        for c, rows in zip(code[np.r_[0, cut]].tolist() if code.size else [], np.split(faces, cut)):
+            model.interfaces[f"{model.names[c >> 16]}_{model.names[c & 0xFFFF]}"] = rows
+
+
+def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "model") -> SolverModel:
+    """Validate ``mesh`` against ``config`` and build the SolverModel the writers share."""
+    path = Path(path)
+    etype, order = resolve_element_type(mesh, config, path)
+    materials = config["materials"]
+    k = len(materials)
+    if mesh.n_cells == 0:
+        raise DicerError(f"{path}: the mesh has no elements; nothing to export")
+    lo, hi = int(mesh.material.min()), int(mesh.material.max())
+    if lo < 1 or hi > k:
+        raise DicerError(f"{path}: element material labels run {lo}..{hi} but the config names {k} material(s) "
+                         f"(labels 1..{k}); add materials to the config")
+    if hi > MAX_LABEL:
+        raise DicerError(f"{path}: material label {hi} is above {MAX_LABEL}, the largest a label volume holds; "
+                         "renumber the materials")
+    if not np.all(np.isfinite(mesh.points)):
+        raise DicerError(f"{path}: the mesh has non-finite node coordinates; re-run the stage that made it")
+    ex = config.get("export", {})
+    kinds = set(ex.get("sets", SET_KINDS))
+    clash = name_clash([m["name"] for m in materials], kinds)
+    if clash:
+        raise DicerError(f"{path}: {clash}")
+    digest = sha256_in_background(source)
+    names = {i + 1: m["name"] for i, m in enumerate(materials)}
+    props = {i + 1: {"youngs_modulus": 1000.0, "poissons_ratio": 0.3, "density": 1.0e-9, **m}
+             for i, m in enumerate(materials)}
+    cells = np.asarray(mesh.cells, dtype=np.int64)
+    lattice2 = None  # twice the lattice index (order 2: mid-edge nodes at half-integers)
+    points = mesh.points
+    nb_mat = None
+    if kinds & {"materials", "interfaces", "exterior"} or (order == 2 and ex.get("midside_nodes") == "curved"):
+        nb_mat = neighbour_materials(mesh)
+    if order == 2:
+        from dicer.mesh.quadratic import quadratic_mesh
+
+        curved = ex.get("midside_nodes") == "curved"
+        boundary = (nb_mat != mesh.material[:, None].astype(nb_mat.dtype)) if curved else None
+        points, cells, lattice2 = quadratic_mesh(mesh, boundary)
+    model = SolverModel(
+        points=points, cells=cells, material=mesh.material.astype(np.int32), names=names, props=props,
+        element_type=etype, dim=mesh.dim, order=order, thickness=float(ex.get("thickness", 1.0)),
+        digits=int(ex.get("digits", 9)), use_heading=bool(ex.get("heading", True)), mesh=mesh,
+    )
+    if "planes" in kinds:
+        g2 = 2 * np.asarray(mesh.grid_shape, np.int64)
+        for axis in range(mesh.dim):
+            for side, target in (("0", 0), ("1", g2[axis])):
+                if lattice2 is None:
+                    ids = np.flatnonzero(mesh.lattice[:, axis] == target // 2)
+                else:
+                    ids = np.flatnonzero(lattice2[:, axis] == target)
+                if ids.size:
+                    model.node_sets["XYZ"[axis] + side] = ids
+    if kinds & {"materials", "interfaces", "exterior"}:
+        _surface_sets(model, kinds, nb_mat)
+    model.heading = provenance(source, config, etype, order, digest())  # the digest was computed meanwhile
+    if mesh.direction is not None:
+        _to_scanner_frame(model, mesh)
+    return model
+
+
+def _to_scanner_frame(model: SolverModel, mesh: Mesh) -> None:
+    """Move the model from the lattice frame into scanner coordinates (docs/coordinates.md).
+
+    Node sets and element numbers stay as they are; with a reflection in the direction
+    cosines the corners go in their mirrored order (else every element would be inverted)
+    and the bottom and top face numbers of the face sets swap with them.
+    """
+    model.points = to_scanner(model.points, mesh.spacing, mesh.origin, mesh.direction)
+    if mirrored(mesh.direction):
+        model.cells = model.cells[:, HEX_MIRROR if model.order == 1 else HEX20_MIRROR]
+        for rows in [model.exterior, *model.interfaces.values()]:
+            if rows is not None and rows.size:
+                rows[:, 1] = HEX_FACE_MIRROR[rows[:, 1]]
+                rows[:] = rows[np.lexsort((rows[:, 0], rows[:, 1]))]  # grouped by face number again
+
+
+def scanner_mesh(mesh: Mesh, model: SolverModel) -> Mesh:
+    """The linear ``mesh`` as exported: ``model``'s points and cells, marked as scanner coordinates
+    (so that reading the file back gives the lattice frame again); ``mesh`` itself if it has no direction."""
+    if mesh.direction is None:
+        return mesh
+    out = mesh.copy()
+    out.points, out.cells, out.scanner = model.points, model.cells, True
+    return out
+
+

@@ -1,0 +1,94 @@
+"""Provenance of exported files: the SHA-256 of the source mesh and the hash of the settings.
+
+A deck's heading names its content only (no path, no date), so reruns are byte-identical
+and no identifier held in a file or folder name reaches a deck.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+from dicer import __version__
+from dicer.config import config_hash, stage_settings
+
+
+def file_sha256(path: str | os.PathLike | None) -> str | None:
+    """SHA-256 of a file, or of a folder's files in sorted order (DICOM series); None if absent."""
+    if path is None:
+        return None
+    p = Path(path)
+    h = hashlib.sha256()
+    if p.is_file():
+        files = [p]
+    elif p.is_dir():
+        files = sorted(f for f in p.rglob("*") if f.is_file())
+    else:
+        return None
+    block = bytearray(1 << 24)  # one buffer, refilled: no fresh memory per block
+    view = memoryview(block)
+    for f in files:
+        if p.is_dir():
+            h.update(str(f.relative_to(p)).encode() + b"\0")
+        with open(f, "rb", buffering=0) as fh:
+            while n := fh.readinto(block):
+                h.update(view[:n])
+    return h.hexdigest()
+
+
+def sha256_in_background(path: str | os.PathLike | None):
+    """Start :func:`file_sha256` of ``path`` on a thread; returns a function that waits for the digest.
+
+    hashlib and file reads release the GIL, so the digest of a mesh of GBs is computed
+    on the second core while the model is built.
+    """
+    import threading
+
+    out: list = []
+    worker = threading.Thread(target=lambda: out.append(_catch(file_sha256, path)), daemon=True)
+    worker.start()
+
+    def result() -> str | None:
+        worker.join()
+        value = out[0]
+        if isinstance(value, BaseException):
+            raise value
+        return value
+    return result
+
+
+def _catch(fn, *args):
+    """``fn(*args)``, or the exception it raised (to re-raise on the caller's thread)."""
+    try:
+        return fn(*args)
+    except BaseException as exc:  # noqa: BLE001 -- handed back to the caller, which raises it
+        return exc
+
+
+def provenance(source: str | os.PathLike | None, config: dict, element_type: str, order: int,
+               digest: str | None = None) -> list[str]:
+    """Heading lines: dicer version, the checksum of the mesh the deck is made from, the
+    hash of the settings export reads; no name, path or date.
+
+    The same for ``dicer run``, ``dicer export`` and the workflow: each exports the same
+    smoothed mesh file with the same ``materials`` and ``export`` sections (what happened
+    upstream is in that mesh), so the heading is the same byte for byte.
+    """
+    # the input is named by its content only: a file or folder name can hold a patient's
+    # name (DICOM folders often do), and no identifier may reach a deck
+    digest = (digest if digest is not None else file_sha256(source)) or "n/a"
+    return [
+        f"dicer {__version__} {element_type} model (order {order})",
+        f"mesh sha256 {digest}",
+        f"config sha256/16 {settings_hash(config)}",
+    ]
+
+
+def settings_hash(config: dict) -> str:
+    """Hash of the ``materials`` and ``export`` settings that shape the file (all but ``export.verify``:
+    how a file is checked does not change it)."""
+    settings = stage_settings(config, "export")
+    settings.get("export", {}).pop("verify", None)
+    return config_hash(settings)
+

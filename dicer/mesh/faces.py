@@ -1,0 +1,120 @@
+"""Face neighbours of hexahedral and quadrilateral meshes: which element (or material) lies
+across each face.
+
+Two ways: a material grid over the lattice when every element is an axis-aligned box of
+it (voxel and plane-merged meshes), else a sort of face keys (any conforming mesh).
+Faces are numbered as in :mod:`dicer.mesh.topology` (S1..S6, 2D: edges S1..S4).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dicer.mesh.model import Mesh
+from dicer.mesh.topology import HEX_CORNERS, HEX_FACE_PLANES, HEX_FACES, QUAD_CORNERS, QUAD_EDGES, QUAD_SIDE_PLANES
+
+_CHUNK = 1 << 18  # elements per pass: temporaries stay small and are reused
+
+
+def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
+    """(M, F) material of the element across each face, 0 for none, from a voxel -> material grid
+    (uint8, or uint16 for labels above 255).
+
+    Valid when every element is an axis-aligned box of the lattice (voxel meshes and
+    plane-merged meshes; smoothing moves points, not lattice indices); None otherwise.
+    """
+    dim = mesh.dim
+    cells, material = mesh.cells, mesh.material
+    m = cells.shape[0]
+    if m == 0 or int(material.max()) > 65535:
+        return None
+    kind = np.uint8 if int(material.max()) < 256 else np.uint16
+    offsets = HEX_CORNERS if dim == 3 else QUAD_CORNERS[:, :2]
+    far = 6 if dim == 3 else 2
+    shape = np.asarray(mesh.grid_shape, np.int64)[:dim]
+    lattice = mesh.lattice[:, :dim]
+    strides = np.array([int(np.prod(shape[i + 1 :])) for i in range(dim)], np.int64)
+    nstrides = np.array([int(np.prod(shape[i + 1 :] + 1)) for i in range(dim)], np.int64)
+    node_lin = lattice @ nstrides
+    grid = np.zeros(int(np.prod(shape)), kind)
+    covered = 0
+    for start in range(0, m, _CHUNK):
+        c = cells[start : start + _CHUNK]
+        lo = lattice[c[:, 0]]
+        ext = lattice[c[:, far]] - lo
+        if ext.min() < 1 or lo.min() < 0 or np.any(lo + ext > shape) or ext.max() >= 64:
+            return None
+        lo_lin = node_lin[c[:, 0]]
+        for k in range(1, offsets.shape[0]):  # every corner where the box puts it
+            want = lo_lin + (offsets[k] * ext) @ nstrides
+            if not np.array_equal(node_lin[c[:, k]], want):
+                return None
+        base = lo @ strides
+        code = ext @ (64 ** np.arange(dim))
+        mat = material[start : start + _CHUNK].astype(kind)
+        for cc in np.unique(code):  # a few distinct box sizes (1 x 1 x 1 before plane merging)
+            sel = code == cc
+            e = [(int(cc) // 64**i) % 64 for i in range(dim)]
+            b, v = base[sel], mat[sel]
+            for off in np.ndindex(*e):
+                grid[b + int(np.dot(off, strides))] = v
+            covered += b.size * int(np.prod(e))
+    if np.count_nonzero(grid) != covered:  # overlapping boxes
+        return None
+    axes = HEX_FACE_PLANES if dim == 3 else QUAD_SIDE_PLANES
+    nb = np.empty((m, len(axes)), kind)
+    for start in range(0, m, _CHUNK):
+        c = cells[start : start + _CHUNK]
+        lo = lattice[c[:, 0]]
+        ext = lattice[c[:, far]] - lo
+        base = lo @ strides
+        for f, (axis, side) in enumerate(axes):
+            if side == 0:
+                inside = lo[:, axis] > 0
+                idx = base - strides[axis]
+            else:
+                inside = lo[:, axis] + ext[:, axis] < shape[axis]
+                idx = base + ext[:, axis] * strides[axis]
+            np.putmask(idx, ~inside, 0)
+            got = grid[idx]
+            got[~inside] = 0
+            nb[start : start + _CHUNK, f] = got
+    return nb
+
+
+def face_neighbours(cells: np.ndarray, dim: int, n_points: int) -> np.ndarray:
+    """(M, F) element across each face, -1 for none, from a sort of face keys (any conforming mesh).
+
+    A quad face is keyed by its smallest node and the node diagonally opposite it, an
+    edge by its two nodes."""
+    table = HEX_FACES if dim == 3 else QUAD_EDGES
+    m, nf = cells.shape[0], table.shape[0]
+    keys = np.empty((m, nf), np.int64)
+    for f, face in enumerate(table):
+        c = cells[:, face]
+        if dim == 3:
+            pos = np.argmin(c, axis=1)
+            lo = np.take_along_axis(c, pos[:, None], 1)[:, 0]
+            hi = np.take_along_axis(c, ((pos + 2) % 4)[:, None], 1)[:, 0]
+        else:
+            lo, hi = np.minimum(c[:, 0], c[:, 1]), np.maximum(c[:, 0], c[:, 1])
+        keys[:, f] = lo * n_points + hi
+    flat = keys.ravel()
+    order = np.argsort(flat, kind="stable")
+    sk = flat[order]
+    first = np.flatnonzero(sk[1:] == sk[:-1])
+    nb = np.full(m * nf, -1, np.int64)
+    a, b = order[first], order[first + 1]
+    nb[a] = b // nf
+    nb[b] = a // nf
+    return nb.reshape(m, nf)
+
+
+def neighbour_materials(mesh: Mesh) -> np.ndarray:
+    """(M, F) material label of the element across each face S1..S6 (2D: edge S1..S4), 0 for none."""
+    nb = _neighbour_materials_by_lattice(mesh)
+    if nb is None:
+        idx = face_neighbours(np.asarray(mesh.cells, np.int64), mesh.dim, mesh.n_points)
+        nb = np.where(idx >= 0, mesh.material[np.maximum(idx, 0)], 0)
+    return nb
+

@@ -301,45 +301,45 @@ def _face_edge_positions(dim: int, axis: int) -> np.ndarray:
                      if np.abs(off[i] - off[j]).sum() == 1])
 
 
-def _clashes(l_top, u_bot, li, ui, irr_l, irr_u, cand, lattice, dim, axis) -> np.ndarray:
+def _clashes(plane: _Plane, irregular: np.ndarray, lattice: np.ndarray, dim: int) -> np.ndarray:
     """Candidate nodes where a lower and an upper element that are not a stacked pair, one
     of them irregular, meet on the same side of their shared edge (2D: node): deleting
-    the edge would stretch both over the same ground."""
-    n = cand.shape[0]
-    near = np.zeros(n, dtype=bool)
+    the edge would stretch both over the same ground.
+
+    Parameters
+    ----------
+    plane : _Plane
+        The step's merge nodes and stacked pairs.
+    irregular : (M,) bool ndarray
+        Elements that are not lattice boxes.
+    lattice : (N, 3) int64 ndarray
+        Lattice index of every node.
+    dim : int
+        2 or 3.
+
+    Returns
+    -------
+    (K,) int64 ndarray
+        The nodes, ascending.
+    """
+    l_top, u_bot = plane.l_top, plane.u_bot
+    irr_l, irr_u = irregular[plane.lo], irregular[plane.up]
+    near = np.zeros(plane.n, dtype=bool)
     near[l_top[irr_l]] = True
     near[u_bot[irr_u]] = True
-    near &= cand
+    near &= plane.cand
     if not near.any():
         return np.empty(0, dtype=np.int64)
-    other = [d for d in range(dim) if d != axis]
-    pairs = _face_edge_positions(dim, axis) if dim == 3 else np.array([[0, 0], [1, 1]])
-    n64 = np.int64(n)
-
-    def edges(face):
-        rows = np.flatnonzero(_any(near[face]))
-        e = face[rows][:, pairs]  # (K, E, 2)
-        ok = _all(near[e].reshape(-1, 2)).reshape(e.shape[:2])
-        row = np.broadcast_to(rows[:, None], ok.shape)[ok]
-        e = np.sort(e[ok], axis=1).astype(np.int64)
-        return e[:, 0] * n64 + e[:, 1], row, e
-
-    def side(face_rows, face, e):
-        centre = lattice[face[face_rows]][:, :, other].mean(axis=1)
-        p = lattice[e[:, 0]][:, other].astype(np.float64)
-        if dim == 2:
-            return centre[:, 0] - p[:, 0]
-        d = lattice[e[:, 1]][:, other] - p
-        return d[:, 0] * (centre[:, 1] - p[:, 1]) - d[:, 1] * (centre[:, 0] - p[:, 0])
-
-    lk, lrow, le = edges(l_top)
-    uk, urow, _ = edges(u_bot)
+    other = [d for d in range(dim) if d != plane.axis]
+    pairs = _face_edge_positions(dim, plane.axis) if dim == 3 else np.array([[0, 0], [1, 1]])
+    lk, lrow, le = _plane_edges(l_top, near, pairs)
+    uk, urow, _ = _plane_edges(u_bot, near, pairs)
     order = np.argsort(uk, kind="stable")
     uk, urow = uk[order], urow[order]
     first = np.searchsorted(uk, lk, side="left")
     last = np.searchsorted(uk, lk, side="right")
     partner = np.full(l_top.shape[0], -1, dtype=np.int64)
-    partner[li] = ui
+    partner[plane.li] = plane.ui
     found = []
     for extra in range(2):  # an edge of the plane borders at most two upper faces
         j = first + extra
@@ -347,9 +347,37 @@ def _clashes(l_top, u_bot, li, ui, irr_l, irr_u, cand, lattice, dim, axis) -> np
         lr, ur = lrow[ok], urow[j[ok]]
         maybe = (partner[lr] != ur) & (irr_l[lr] | irr_u[ur])
         ok, lr, ur = ok[maybe], lr[maybe], ur[maybe]
-        same = side(lr, l_top, le[ok]) * side(ur, u_bot, le[ok]) > 0
+        same = _side_of_edges(lattice, l_top[lr], le[ok], other) * _side_of_edges(lattice, u_bot[ur], le[ok], other) > 0
         found.append(le[ok][same].ravel())
     return _unique(np.concatenate(found))
+
+
+def _plane_edges(face: np.ndarray, near: np.ndarray, pairs: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The edges (2D: nodes) of the faces ``face`` (K, c/2) whose two ends are ``near`` ((N,) bool).
+
+    ``pairs`` (E, 2) are the positions in a face of its edges' ends. Returns, per edge
+    found, its key (lower end * N + upper end, int64), the row of ``face`` it belongs to
+    (int64) and its ends ((., 2) int64, ascending).
+    """
+    n64 = np.int64(near.shape[0])
+    rows = np.flatnonzero(_any(near[face]))
+    e = face[rows][:, pairs]  # (K, E, 2)
+    ok = _all(near[e].reshape(-1, 2)).reshape(e.shape[:2])
+    row = np.broadcast_to(rows[:, None], ok.shape)[ok]
+    e = np.sort(e[ok], axis=1).astype(np.int64)
+    return e[:, 0] * n64 + e[:, 1], row, e
+
+
+def _side_of_edges(lattice: np.ndarray, face: np.ndarray, e: np.ndarray, other: list[int]) -> np.ndarray:
+    """(E,) float64 whose sign tells on which side of each edge ``e`` (E, 2) (2D: node) the
+    centre of its face ``face`` (E, c/2) lies, within the plane's axes ``other``."""
+    centre = lattice[face][:, :, other].mean(axis=1)
+    p = lattice[e[:, 0]][:, other].astype(np.float64)
+    if len(other) == 1:
+        return centre[:, 0] - p[:, 0]
+    d = lattice[e[:, 1]][:, other] - p
+    return d[:, 0] * (centre[:, 1] - p[:, 1]) - d[:, 1] * (centre[:, 0] - p[:, 0])
 
 
 def _crowded_faces(sub: np.ndarray, n: int, dim: int) -> np.ndarray:
@@ -526,9 +554,9 @@ class _Work:
 
 @dataclass
 class _Plane:
-    """What a merge step finds before its first trial: the merge pairs (Box 2 steps 4-8),
-    the stacked pairs and the merge regions. The step merges element layer ``s`` of every
-    group of layers along ``axis`` into the layers below it.
+    """What a merge step finds before its first trial: the nodes to delete and the nodes
+    that replace them (Box 2 steps 4-8), the stacked pairs and the merge regions. The step
+    merges element layer ``s`` of every group of layers along ``axis`` into the layers below.
 
     Attributes
     ----------
@@ -650,6 +678,46 @@ class _Trial:
     first_round: bool = True
 
 
+def _merge_axis(work: _Work, settings: _Settings, axis: int, g: int, step_mm: float) -> list[dict]:
+    """Box 2 step 1 along one axis: join every group of ``g`` element layers into one, the
+    first two layers of the group first, then the result with the next layer, and so on.
+
+    Parameters
+    ----------
+    work : _Work
+        The mesh, updated step by step.
+    settings : _Settings
+        The merge's options.
+    axis, g : int
+        Merge axis (0, 1, 2) and group size in element layers (2 or more).
+    step_mm : float
+        Voxel size along ``axis``, mm.
+
+    Returns
+    -------
+    list of dict
+        The report of every step: element and node counts before and after, the step's
+        figures and its time in seconds.
+    """
+    layer = _take(np.ascontiguousarray(work.lattice[:, axis]), work.cells[:, 0]).astype(np.int64)
+    work.layer = layer - layer.min()
+    steps = []
+    for s in range(1, g):
+        t0 = time.perf_counter()
+        n_before, m_before = work.lattice.shape[0], work.cells.shape[0]
+        keep, delete, shift, info = _merge_step(work, settings, axis, g, s)
+        _apply_step(work, keep, delete, shift, axis, step_mm)
+        steps.append({
+            "axis": _AXIS_NAMES[axis], "pass": s, "elements_before": m_before,
+            "elements_after": int(work.cells.shape[0]), "nodes_before": n_before,
+            "nodes_after": int(work.lattice.shape[0]), **info,
+            "seconds": round(time.perf_counter() - t0, 3)})
+        log.info("merge: %s pass %d: %d -> %d elements, %d of %d regions merged (%.1f s)",
+                 _AXIS_NAMES[axis], s, m_before, work.cells.shape[0], info["regions_merged"], info["regions"],
+                 time.perf_counter() - t0)
+    return steps
+
+
 def _merge_step(work: _Work, settings: _Settings, axis: int, g: int, s: int
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Merge element layer ``s`` of every group of ``g`` layers along ``axis`` into the layers below it.
@@ -684,19 +752,21 @@ def _merge_step(work: _Work, settings: _Settings, axis: int, g: int, s: int
     _find_merge_pairs(plane, work, settings)
     info["regions"] = int(plane.region_of.sum())
     blocked = _refuse_unmergeable(plane, work, settings.dim, info)
-    trial = _Trial(blocked, blocked.copy(), keep, np.zeros(n, dtype=bool), np.zeros(n, dtype=bool),
-                   [np.zeros((3, face.shape[0]), dtype=bool) for face in (plane.l_top, plane.u_bot)],
-                   np.zeros(n, dtype=np.int64), np.full(n, -1, dtype=np.int64), np.zeros(n, dtype=bool))
+    trial = _Trial(blocked=blocked, base_blocked=blocked.copy(), keep=keep,
+                   delete=np.zeros(n, dtype=bool), snapped=np.zeros(n, dtype=bool),
+                   flags=[np.zeros((3, face.shape[0]), dtype=bool) for face in (plane.l_top, plane.u_bot)],
+                   shift=np.zeros(n, dtype=np.int64), snap=np.full(n, -1, dtype=np.int64),
+                   tried=np.zeros(n, dtype=bool))
     while True:
         info["retry_rounds"] += 1
-        _build_trial(plane, trial, work.cells)
+        _build_trial(plane, trial, work.cells)  # steps 10-11
         _find_changed_elements(plane, trial, work.irregular, info)
-        bad_rows = _check_trial(plane, trial, work, settings, info)
+        bad_rows = _check_trial(plane, trial, work, settings, info)  # step 12
         if bad_rows.size and settings.rim_moves and _move_rim_nodes(plane, trial, work, bad_rows):
             continue  # try the repaired elements
-        if bad_rows.size == 0:
+        if bad_rows.size == 0:  # step 13 (applied by the caller)
             break
-        _drop_offending_regions(plane, trial, work, bad_rows)
+        _drop_offending_regions(plane, trial, work, bad_rows)  # step 14, then try again
     return _finish_step(plane, trial, work, info)
 
 
@@ -814,8 +884,7 @@ def _refuse_unmergeable(plane: _Plane, work: _Work, dim: int, info: dict) -> np.
     # An irregular element (a chamfer of an earlier step) sharing an edge of the plane with
     # an element of the other side that is not its stacked partner: deleting the edge would
     # stretch both over the same ground, so its region keeps the plane.
-    clash = _clashes(plane.l_top, plane.u_bot, plane.li, plane.ui, work.irregular[plane.lo],
-                     work.irregular[plane.up], plane.cand, work.lattice, dim, plane.axis)
+    clash = _clashes(plane, work.irregular, work.lattice, dim)
     by_clash = np.zeros(n_comp, dtype=bool)
     by_clash[comp[cmap[clash]]] = True
     info["blocked_overlap"] = int((by_clash & ~blocked).sum())
@@ -1181,24 +1250,8 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
     work = _Work(cells, mesh.material, thick_elements(mesh, min_thickness), ~box0, size, None, mesh.lattice,
                  mesh.points, dict(mesh.point_data), dict(mesh.cell_data))
     for axis in axes:
-        g = counts[axis] + 1
-        if g == 1:
-            continue
-        layer = _take(np.ascontiguousarray(work.lattice[:, axis]), work.cells[:, 0]).astype(np.int64)
-        work.layer = layer - layer.min()
-        for s in range(1, g):
-            t0 = time.perf_counter()
-            n_before, m_before = work.lattice.shape[0], work.cells.shape[0]
-            keep, delete, shift, info = _merge_step(work, settings, axis, g, s)
-            _apply_step(work, keep, delete, shift, axis, mesh.spacing[axis])
-            report["steps"].append({
-                "axis": _AXIS_NAMES[axis], "pass": s, "elements_before": m_before,
-                "elements_after": int(work.cells.shape[0]), "nodes_before": n_before,
-                "nodes_after": int(work.lattice.shape[0]), **info,
-                "seconds": round(time.perf_counter() - t0, 3)})
-            log.info("merge: %s pass %d: %d -> %d elements, %d of %d regions merged (%.1f s)",
-                     _AXIS_NAMES[axis], s, m_before, work.cells.shape[0], info["regions_merged"], info["regions"],
-                     time.perf_counter() - t0)
+        if counts[axis]:
+            report["steps"] += _merge_axis(work, settings, axis, counts[axis] + 1, mesh.spacing[axis])
     out = Mesh(work.points, work.cells.astype(np.int64), work.material, work.lattice, mesh.spacing.copy(),
                mesh.origin.copy(), mesh.grid_shape.copy(), work.point_data, work.cell_data, list(mesh.names))
     report["elements_after"] = out.n_cells

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
@@ -300,45 +301,45 @@ def _face_edge_positions(dim: int, axis: int) -> np.ndarray:
                      if np.abs(off[i] - off[j]).sum() == 1])
 
 
-def _clashes(l_top, u_bot, li, ui, irr_l, irr_u, cand, lattice, dim, axis) -> np.ndarray:
+def _clashes(plane: _Plane, irregular: np.ndarray, lattice: np.ndarray, dim: int) -> np.ndarray:
     """Candidate nodes where a lower and an upper element that are not a stacked pair, one
     of them irregular, meet on the same side of their shared edge (2D: node): deleting
-    the edge would stretch both over the same ground."""
-    n = cand.shape[0]
-    near = np.zeros(n, dtype=bool)
+    the edge would stretch both over the same ground.
+
+    Parameters
+    ----------
+    plane : _Plane
+        The step's merge nodes and stacked pairs.
+    irregular : (M,) bool ndarray
+        Elements that are not lattice boxes.
+    lattice : (N, 3) int64 ndarray
+        Lattice index of every node.
+    dim : int
+        2 or 3.
+
+    Returns
+    -------
+    (K,) int64 ndarray
+        The nodes, ascending.
+    """
+    l_top, u_bot = plane.l_top, plane.u_bot
+    irr_l, irr_u = irregular[plane.lo], irregular[plane.up]
+    near = np.zeros(plane.n, dtype=bool)
     near[l_top[irr_l]] = True
     near[u_bot[irr_u]] = True
-    near &= cand
+    near &= plane.cand
     if not near.any():
         return np.empty(0, dtype=np.int64)
-    other = [d for d in range(dim) if d != axis]
-    pairs = _face_edge_positions(dim, axis) if dim == 3 else np.array([[0, 0], [1, 1]])
-    n64 = np.int64(n)
-
-    def edges(face):
-        rows = np.flatnonzero(_any(near[face]))
-        e = face[rows][:, pairs]  # (K, E, 2)
-        ok = _all(near[e].reshape(-1, 2)).reshape(e.shape[:2])
-        row = np.broadcast_to(rows[:, None], ok.shape)[ok]
-        e = np.sort(e[ok], axis=1).astype(np.int64)
-        return e[:, 0] * n64 + e[:, 1], row, e
-
-    def side(face_rows, face, e):
-        centre = lattice[face[face_rows]][:, :, other].mean(axis=1)
-        p = lattice[e[:, 0]][:, other].astype(np.float64)
-        if dim == 2:
-            return centre[:, 0] - p[:, 0]
-        d = lattice[e[:, 1]][:, other] - p
-        return d[:, 0] * (centre[:, 1] - p[:, 1]) - d[:, 1] * (centre[:, 0] - p[:, 0])
-
-    lk, lrow, le = edges(l_top)
-    uk, urow, _ = edges(u_bot)
+    other = [d for d in range(dim) if d != plane.axis]
+    pairs = _face_edge_positions(dim, plane.axis) if dim == 3 else np.array([[0, 0], [1, 1]])
+    lk, lrow, le = _plane_edges(l_top, near, pairs)
+    uk, urow, _ = _plane_edges(u_bot, near, pairs)
     order = np.argsort(uk, kind="stable")
     uk, urow = uk[order], urow[order]
     first = np.searchsorted(uk, lk, side="left")
     last = np.searchsorted(uk, lk, side="right")
     partner = np.full(l_top.shape[0], -1, dtype=np.int64)
-    partner[li] = ui
+    partner[plane.li] = plane.ui
     found = []
     for extra in range(2):  # an edge of the plane borders at most two upper faces
         j = first + extra
@@ -346,9 +347,37 @@ def _clashes(l_top, u_bot, li, ui, irr_l, irr_u, cand, lattice, dim, axis) -> np
         lr, ur = lrow[ok], urow[j[ok]]
         maybe = (partner[lr] != ur) & (irr_l[lr] | irr_u[ur])
         ok, lr, ur = ok[maybe], lr[maybe], ur[maybe]
-        same = side(lr, l_top, le[ok]) * side(ur, u_bot, le[ok]) > 0
+        same = _side_of_edges(lattice, l_top[lr], le[ok], other) * _side_of_edges(lattice, u_bot[ur], le[ok], other) > 0
         found.append(le[ok][same].ravel())
     return _unique(np.concatenate(found))
+
+
+def _plane_edges(face: np.ndarray, near: np.ndarray, pairs: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The edges (2D: nodes) of the faces ``face`` (K, c/2) whose two ends are ``near`` ((N,) bool).
+
+    ``pairs`` (E, 2) are the positions in a face of its edges' ends. Returns, per edge
+    found, its key (lower end * N + upper end, int64), the row of ``face`` it belongs to
+    (int64) and its ends ((., 2) int64, ascending).
+    """
+    n64 = np.int64(near.shape[0])
+    rows = np.flatnonzero(_any(near[face]))
+    e = face[rows][:, pairs]  # (K, E, 2)
+    ok = _all(near[e].reshape(-1, 2)).reshape(e.shape[:2])
+    row = np.broadcast_to(rows[:, None], ok.shape)[ok]
+    e = np.sort(e[ok], axis=1).astype(np.int64)
+    return e[:, 0] * n64 + e[:, 1], row, e
+
+
+def _side_of_edges(lattice: np.ndarray, face: np.ndarray, e: np.ndarray, other: list[int]) -> np.ndarray:
+    """(E,) float64 whose sign tells on which side of each edge ``e`` (E, 2) (2D: node) the
+    centre of its face ``face`` (E, c/2) lies, within the plane's axes ``other``."""
+    centre = lattice[face][:, :, other].mean(axis=1)
+    p = lattice[e[:, 0]][:, other].astype(np.float64)
+    if len(other) == 1:
+        return centre[:, 0] - p[:, 0]
+    d = lattice[e[:, 1]][:, other] - p
+    return d[:, 0] * (centre[:, 1] - p[:, 1]) - d[:, 1] * (centre[:, 0] - p[:, 0])
 
 
 def _crowded_faces(sub: np.ndarray, n: int, dim: int) -> np.ndarray:
@@ -448,299 +477,736 @@ def _compact(cells: np.ndarray, keep: np.ndarray, new_id: np.ndarray) -> np.ndar
     return cells[:out]
 
 
-def _merge_step(mesh_cells, material, thick, irregular, size, layer, lattice, axis, g, s, dim, granularity,
-                min_corner, rim_moves=True, spacing=(1.0, 1.0, 1.0)):
-    """Merge element layer ``s`` of every group of ``g`` layers into the layers below it.
+_STEP_FIGURES = ("merged_pairs", "chamfered_elements", "regions", "regions_merged", "blocked_material",
+                 "blocked_thin", "blocked_overlap", "blocked_connectivity", "rim_nodes_refused", "retry_rounds",
+                 "overconnected_nodes", "inverted_elements", "crowded_faces", "shared_corners")
+"""The figures of every step's report (a step that merges also counts rim nodes moved and joined)."""
 
-    ``irregular`` flags the elements that are not lattice boxes (chamfers of earlier
-    steps) and ``size`` holds the boxes' volumes in lattice units; both are updated in
-    place, and so is ``mesh_cells``. Returns (cells, keep, delete, shift, info): the new
-    cells (rows of removed elements still present), the rows kept, the nodes deleted,
-    each node's move along the axis in lattice units (-1, 0, 1) and the step's figures.
+
+@dataclass(frozen=True)
+class _Settings:
+    """The checked options of one merge (see ``merge_planes``).
+
+    Attributes
+    ----------
+    dim : int
+        2 (quads) or 3 (hexahedra).
+    granularity : str
+        "region" or "plane": what a failed check refuses.
+    min_scaled_jacobian : float
+        Lowest corner scaled Jacobian a changed element may have, in [-1, 1).
+    rim_moves : bool
+        Repair failing elements through their rim nodes before refusing their regions.
+    spacing : (3,) float64 ndarray
+        Voxel size, mm.
     """
-    lattice_a = lattice[:, axis]
-    n = int(lattice_a.shape[0])
+
+    dim: int
+    granularity: str
+    min_scaled_jacobian: float
+    rim_moves: bool
+    spacing: np.ndarray
+
+    @property
+    def min_corner(self) -> float:
+        """The Jacobian floor as tested: 0 still refuses inverted corners only."""
+        msj = self.min_scaled_jacobian
+        return msj if msj > 0 else msj - 1e-9
+
+
+@dataclass
+class _Work:
+    """The mesh being merged, carried from step to step (``_apply_step`` updates it).
+
+    Attributes
+    ----------
+    cells : (M, c) int32 ndarray (int64 from 2**31 - 1 nodes on)
+        Node ids of every element, c = 8 (2D: 4), VTK order.
+    material : (M,) int32 ndarray
+        Material label of every element.
+    thick : (M,) bool ndarray
+        Elements in a part of their material thick enough to merge (``thick_elements``).
+    irregular : (M,) bool ndarray
+        Elements that are not lattice boxes (chamfers of earlier steps).
+    size : (M,) int64 ndarray
+        Volume of every lattice box in lattice units (0 for other elements).
+    layer : (M,) int64 ndarray or None
+        Element layer along the axis being merged, counted from 0.
+    lattice : (N, 3) int64 ndarray
+        Lattice index of every node.
+    points : (N, 3) float64 ndarray
+        Node coordinates, mm.
+    point_data, cell_data : dict of str to ndarray
+        Arrays of N and of M rows; they follow the nodes and elements kept.
+    """
+
+    cells: np.ndarray
+    material: np.ndarray
+    thick: np.ndarray
+    irregular: np.ndarray
+    size: np.ndarray
+    layer: np.ndarray | None
+    lattice: np.ndarray
+    points: np.ndarray
+    point_data: dict
+    cell_data: dict
+
+
+@dataclass
+class _Plane:
+    """What a merge step finds before its first trial: the nodes to delete and the nodes
+    that replace them (Box 2 steps 4-8), the stacked pairs and the merge regions. The step
+    merges element layer ``s`` of every group of layers along ``axis`` into the layers below.
+
+    Attributes
+    ----------
+    axis, s, n : int
+        Merge axis (0, 1, 2), the layer merged within its group, number of nodes N.
+    in_group : (M,) int64 ndarray
+        Layer of every element within its group.
+    lo, up : (L,), (U,) int64 ndarray
+        Rows of the elements below and above the merge planes, ascending.
+    top_cols, bottom_cols : (c/2,) int ndarray
+        Corner positions of an element's top and bottom face along the axis.
+    l_top, l_bot : (L, c/2) ndarray of node ids
+        Top (on the plane) and bottom faces of the lower elements.
+    u_bot, u_top : (U, c/2) ndarray of node ids
+        Bottom (on the plane) and top faces of the upper elements.
+    cand : (N,) bool ndarray
+        Candidates for deletion: top of one axis edge and bottom of another (steps 5-6).
+    rim_lo, rim_up : (N,) bool ndarray
+        Rim nodes: on a lower element's top face only (may move up), on an upper
+        element's bottom face only (may move down).
+    down, upn : (N,) ndarray of node ids
+        Far end of every node's axis edge downwards and upwards, -1 for none (step 8).
+    inconsistent : (N,) bool ndarray
+        Nodes with two different far ends one way.
+    bent : (N,) bool ndarray
+        Candidates whose axis edge is not straight along the axis (edges of chamfers).
+    unit : (3,) int64 ndarray
+        One lattice step along the axis.
+    li, ui : (P,) int64 ndarray
+        Rows of ``lo`` and ``up`` that form the stacked pairs.
+    faces : (P, c/2) ndarray of node ids
+        The shared face of every stacked pair.
+    cand_idx : (C,) int64 ndarray
+        The candidate nodes, ascending.
+    cmap : (N,) int64 ndarray
+        Candidate number of every node, -1 for others.
+    comp : (C,) int64 ndarray
+        Merge region of every candidate.
+    region_of : (R,) bool ndarray
+        Regions holding a stacked pair (the others hold rim nodes only).
+    """
+
+    axis: int
+    s: int
+    n: int
+    in_group: np.ndarray
+    lo: np.ndarray
+    up: np.ndarray
+    top_cols: np.ndarray
+    bottom_cols: np.ndarray
+    l_top: np.ndarray
+    l_bot: np.ndarray
+    u_bot: np.ndarray
+    u_top: np.ndarray
+    cand: np.ndarray
+    rim_lo: np.ndarray
+    rim_up: np.ndarray
+    down: np.ndarray
+    upn: np.ndarray
+    inconsistent: np.ndarray
+    bent: np.ndarray
+    unit: np.ndarray
+    li: np.ndarray | None = None
+    ui: np.ndarray | None = None
+    faces: np.ndarray | None = None
+    cand_idx: np.ndarray | None = None
+    cmap: np.ndarray | None = None
+    comp: np.ndarray | None = None
+    region_of: np.ndarray | None = None
+
+
+@dataclass
+class _Trial:
+    """The state of a merge step's trials (Box 2 steps 10-14), changed round by round.
+
+    Attributes
+    ----------
+    blocked : (R,) bool ndarray
+        Merge regions that keep their plane.
+    base_blocked : (R,) bool ndarray
+        Those refused before any trial (materials, thin parts, overlaps).
+    keep : (M,) bool ndarray
+        Elements of the trial: the upper element of a merged stacked pair is not.
+    delete, snapped : (N,) bool ndarray
+        Nodes the trial deletes; rim nodes it joins to another node.
+    flags : list of two (3, L) and (3, U) bool ndarrays
+        Per side (lower, upper): whether any, all, or a bent one of an element's face
+        corners went.
+    shift : (N,) int64 ndarray
+        Move of every rim node along the axis, lattice units (-1, 0, 1).
+    snap : (N,) int64 ndarray
+        The node every rim node joins, -1 for none.
+    tried : (N,) bool ndarray
+        Rim nodes moved once (and maybe put back): never again.
+    node_at, dims : ndarray or None
+        The node at every lattice corner, a dense grid of shape ``dims`` (see
+        ``_corner_keys``), built on first use.
+    merged : (P,) bool ndarray
+        Stacked pairs merged in the trial.
+    checked : (E,) int64 ndarray
+        Elements the trial changed other than by a clean stacked merge, ascending.
+    first_round : bool
+        No trial built yet.
+    """
+
+    blocked: np.ndarray
+    base_blocked: np.ndarray
+    keep: np.ndarray
+    delete: np.ndarray
+    snapped: np.ndarray
+    flags: list
+    shift: np.ndarray
+    snap: np.ndarray
+    tried: np.ndarray
+    node_at: np.ndarray | None = None
+    dims: np.ndarray | None = None
+    merged: np.ndarray | None = None
+    checked: np.ndarray | None = None
+    first_round: bool = True
+
+
+def _merge_axis(work: _Work, settings: _Settings, axis: int, g: int, step_mm: float) -> list[dict]:
+    """Box 2 step 1 along one axis: join every group of ``g`` element layers into one, the
+    first two layers of the group first, then the result with the next layer, and so on.
+
+    Parameters
+    ----------
+    work : _Work
+        The mesh, updated step by step.
+    settings : _Settings
+        The merge's options.
+    axis, g : int
+        Merge axis (0, 1, 2) and group size in element layers (2 or more).
+    step_mm : float
+        Voxel size along ``axis``, mm.
+
+    Returns
+    -------
+    list of dict
+        The report of every step: element and node counts before and after, the step's
+        figures and its time in seconds.
+    """
+    layer = _take(np.ascontiguousarray(work.lattice[:, axis]), work.cells[:, 0]).astype(np.int64)
+    work.layer = layer - layer.min()
+    steps = []
+    for s in range(1, g):
+        t0 = time.perf_counter()
+        n_before, m_before = work.lattice.shape[0], work.cells.shape[0]
+        keep, delete, shift, info = _merge_step(work, settings, axis, g, s)
+        _apply_step(work, keep, delete, shift, axis, step_mm)
+        steps.append({
+            "axis": _AXIS_NAMES[axis], "pass": s, "elements_before": m_before,
+            "elements_after": int(work.cells.shape[0]), "nodes_before": n_before,
+            "nodes_after": int(work.lattice.shape[0]), **info,
+            "seconds": round(time.perf_counter() - t0, 3)})
+        log.info("merge: %s pass %d: %d -> %d elements, %d of %d regions merged (%.1f s)",
+                 _AXIS_NAMES[axis], s, m_before, work.cells.shape[0], info["regions_merged"], info["regions"],
+                 time.perf_counter() - t0)
+    return steps
+
+
+def _merge_step(work: _Work, settings: _Settings, axis: int, g: int, s: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """Merge element layer ``s`` of every group of ``g`` layers along ``axis`` into the layers below it.
+
+    Parameters
+    ----------
+    work : _Work
+        The mesh. ``work.cells`` is changed in place (rows of removed elements stay),
+        and so are ``work.irregular`` and ``work.size``.
+    settings : _Settings
+        The merge's options.
+    axis, g, s : int
+        Merge axis (0, 1, 2), group size in element layers, the layer merged (1 .. g-1).
+
+    Returns
+    -------
+    keep : (M,) bool ndarray
+        Rows of ``work.cells`` kept.
+    delete : (N,) bool ndarray
+        Nodes deleted.
+    shift : (N,) int64 ndarray
+        Move of every node along the axis, lattice units (-1, 0, 1).
+    info : dict
+        The step's figures for the report.
+    """
+    n = int(work.lattice.shape[0])
+    info = dict.fromkeys(_STEP_FIGURES, 0)
+    keep = np.ones(work.cells.shape[0], dtype=bool)
+    plane = _find_merge_nodes(work, settings.dim, axis, g, s)
+    if plane is None:
+        return keep, np.zeros(n, dtype=bool), np.zeros(n, dtype=np.int64), info
+    _find_merge_pairs(plane, work, settings)
+    info["regions"] = int(plane.region_of.sum())
+    blocked = _refuse_unmergeable(plane, work, settings.dim, info)
+    trial = _Trial(blocked=blocked, base_blocked=blocked.copy(), keep=keep,
+                   delete=np.zeros(n, dtype=bool), snapped=np.zeros(n, dtype=bool),
+                   flags=[np.zeros((3, face.shape[0]), dtype=bool) for face in (plane.l_top, plane.u_bot)],
+                   shift=np.zeros(n, dtype=np.int64), snap=np.full(n, -1, dtype=np.int64),
+                   tried=np.zeros(n, dtype=bool))
+    while True:
+        info["retry_rounds"] += 1
+        _build_trial(plane, trial, work.cells)  # steps 10-11
+        _find_changed_elements(plane, trial, work.irregular, info)
+        bad_rows = _check_trial(plane, trial, work, settings, info)  # step 12
+        if bad_rows.size and settings.rim_moves and _move_rim_nodes(plane, trial, work, bad_rows):
+            continue  # try the repaired elements
+        if bad_rows.size == 0:  # step 13 (applied by the caller)
+            break
+        _drop_offending_regions(plane, trial, work, bad_rows)  # step 14, then try again
+    return _finish_step(plane, trial, work, info)
+
+
+def _find_merge_nodes(work: _Work, dim: int, axis: int, g: int, s: int) -> _Plane | None:
+    """Box 2 steps 4-8: the elements either side of the merge planes, the nodes to delete
+    (top of one axis edge, bottom of another) and the far ends of their edges.
+
+    Parameters
+    ----------
+    work : _Work
+        The mesh, ``work.layer`` set for ``axis``.
+    dim, axis, g, s : int
+        Dimension, merge axis, group size in layers, the layer merged.
+
+    Returns
+    -------
+    _Plane or None
+        Without the pair and region fields; None when the step has nothing to merge.
+    """
+    lattice, cells = work.lattice, work.cells
+    n = int(lattice.shape[0])
     bc, tc = (HEX_AXIS_CORNERS if dim == 3 else QUAD_AXIS_CORNERS)[axis]
-    edges = HEX_EDGES if dim == 3 else QUAD_EDGES
-    max_neighbours, max_elements = (6, 8) if dim == 3 else (4, 4)
-    m = mesh_cells.shape[0]
-    r = layer % g
-    lo = np.flatnonzero(r < s)
-    up = np.flatnonzero(r == s)
-    info = {"merged_pairs": 0, "chamfered_elements": 0, "regions": 0, "regions_merged": 0,
-            "blocked_material": 0, "blocked_thin": 0, "blocked_overlap": 0, "blocked_connectivity": 0,
-            "rim_nodes_refused": 0, "retry_rounds": 0,
-            "overconnected_nodes": 0, "inverted_elements": 0, "crowded_faces": 0, "shared_corners": 0}
-    keep = np.ones(m, dtype=bool)
+    in_group = work.layer % g
+    lo = np.flatnonzero(in_group < s)
+    up = np.flatnonzero(in_group == s)
     if lo.size == 0 or up.size == 0:
-        return mesh_cells, keep, np.zeros(n, dtype=bool), np.zeros(n, dtype=np.int64), info
+        return None
     # the two layers' corners, split into the faces on the plane and the far faces: only
     # the face columns change in this step, so these four are all it needs of the rows
-    l_top, l_bot = _gather_corners(mesh_cells, lo, tc, bc)
-    u_bot, u_top = _gather_corners(mesh_cells, up, bc, tc)
-
-    # Box 2 steps 5-6: nodes at the top of an axis edge (of a lower element) and the bottom
-    # of another (of an upper element) are the candidates for deletion.
+    l_top, l_bot = _gather_corners(cells, lo, tc, bc)
+    u_bot, u_top = _gather_corners(cells, up, bc, tc)
+    # Steps 5-6: nodes at the top of an axis edge (of a lower element) and the bottom of
+    # another (of an upper element) are the candidates for deletion.
     is_top = np.zeros(n, dtype=bool)
     _put(is_top, l_top, True)
     is_bot = np.zeros(n, dtype=bool)
     _put(is_bot, u_bot, True)
     cand = is_top & is_bot
     if not cand.any():
-        return mesh_cells, keep, np.zeros(n, dtype=bool), np.zeros(n, dtype=np.int64), info
+        return None
     # Step 8: the far ends of those edges replace them (one each way, checked consistent).
-    down = np.full(n, -1, dtype=mesh_cells.dtype)
+    down = np.full(n, -1, dtype=cells.dtype)
     _put(down, l_top, l_bot)
-    upn = np.full(n, -1, dtype=mesh_cells.dtype)
+    upn = np.full(n, -1, dtype=cells.dtype)
     _put(upn, u_bot, u_top)
     inconsistent = np.zeros(n, dtype=bool)
     inconsistent[l_top[_take(down, l_top) != l_bot]] = True
     inconsistent[u_bot[_take(upn, u_bot) != u_top]] = True
-
     # Replacements that are not straight along the axis (edges of earlier chamfers).
     other = [d for d in range(3) if d != axis]
     near = np.zeros(n, dtype=bool)  # only edges of irregular elements can be bent
-    near[l_top[np.take(irregular, lo)]] = True
-    near[u_bot[np.take(irregular, up)]] = True
+    near[l_top[np.take(work.irregular, lo)]] = True
+    near[u_bot[np.take(work.irregular, up)]] = True
     cidx = np.flatnonzero(cand & near)
     bent = np.zeros(n, dtype=bool)
     for far in (upn, down):
         bent[cidx] |= np.any(lattice[far[cidx]][:, other] != lattice[cidx][:, other], axis=1)
+    unit = np.zeros(3, dtype=np.int64)
+    unit[axis] = 1
+    return _Plane(axis, s, n, in_group, lo, up, tc, bc, l_top, l_bot, u_bot, u_top, cand,
+                  rim_lo=is_top & ~is_bot, rim_up=is_bot & ~is_top, down=down, upn=upn,
+                  inconsistent=inconsistent, bent=bent, unit=unit)
 
-    # Stacked pairs: a lower element whose top face is an upper element's bottom face.
-    li, ui = _match_faces(l_top, u_bot, n)
-    faces = np.take(l_top, li, axis=0)
-    mergeable = (material[lo[li]] == material[up[ui]])
-    thin = ~(thick[lo[li]] & thick[up[ui]])
 
-    # Merge regions: candidates linked through the faces of stacked pairs.
-    cand_idx = np.flatnonzero(cand)
-    cmap = np.full(n, -1, dtype=np.int64)
+def _find_merge_pairs(plane: _Plane, work: _Work, settings: _Settings) -> None:
+    """The stacked pairs (a lower element whose top face is an upper element's bottom face)
+    and the merge regions: the candidates linked through the pairs' faces, or (granularity
+    "plane") all candidates of a plane. Fills in the pair and region fields of ``plane``.
+    """
+    li, ui = _match_faces(plane.l_top, plane.u_bot, plane.n)
+    faces = np.take(plane.l_top, li, axis=0)
+    cand_idx = np.flatnonzero(plane.cand)
+    cmap = np.full(plane.n, -1, dtype=np.int64)
     cmap[cand_idx] = np.arange(cand_idx.size)
-    if granularity == "plane":
+    if settings.granularity == "plane":
+        lattice_a = work.lattice[:, plane.axis]
         planes = _unique(lattice_a[cand_idx])
         comp = np.searchsorted(planes, lattice_a[cand_idx])
         n_comp = planes.size
     else:
-        far_corner = list(tc).index(6 if dim == 3 else 2)
-        n_comp, comp = _merge_regions(faces, ~(irregular[lo[li]] | irregular[up[ui]]), cand_idx, cmap,
-                                      lattice, axis, far_corner, dim)
-    region_of = np.zeros(n_comp, dtype=bool)  # components holding a stacked pair
+        far_corner = list(plane.top_cols).index(6 if settings.dim == 3 else 2)
+        box = ~(work.irregular[plane.lo[li]] | work.irregular[plane.up[ui]])
+        n_comp, comp = _merge_regions(faces, box, cand_idx, cmap, work.lattice, plane.axis, far_corner,
+                                      settings.dim)
+    region_of = np.zeros(n_comp, dtype=bool)
     region_of[comp[cmap[faces[:, 0]]]] = True
-    info["regions"] = int(region_of.sum())
+    plane.li, plane.ui, plane.faces = li, ui, faces
+    plane.cand_idx, plane.cmap, plane.comp, plane.region_of = cand_idx, cmap, comp, region_of
+
+
+def _refuse_unmergeable(plane: _Plane, work: _Work, dim: int, info: dict) -> np.ndarray:
+    """The merge regions that keep their plane whatever the trial, counted in ``info``.
+
+    A region is refused when it holds a stacked pair of two materials or in a thin part
+    (``work.thick``), a candidate whose far ends disagree, or an edge where an earlier
+    chamfer meets an element of the other side that is not its stacked partner.
+
+    Returns
+    -------
+    (R,) bool ndarray
+        The regions refused.
+    """
+    comp, cmap, faces = plane.comp, plane.cmap, plane.faces
+    lower, upper = plane.lo[plane.li], plane.up[plane.ui]
+    mergeable = work.material[lower] == work.material[upper]
+    thin = ~(work.thick[lower] & work.thick[upper])
+    n_comp = plane.region_of.size
     blocked = np.zeros(n_comp, dtype=bool)
     by_material = np.zeros(n_comp, dtype=bool)
     by_material[comp[cmap[faces[~mergeable]].ravel()]] = True
     by_thin = np.zeros(n_comp, dtype=bool)
     by_thin[comp[cmap[faces[mergeable & thin]].ravel()]] = True
     blocked |= by_material | by_thin
-    blocked[comp[cmap[np.flatnonzero(inconsistent & cand)]]] = True
+    blocked[comp[cmap[np.flatnonzero(plane.inconsistent & plane.cand)]]] = True
     # An irregular element (a chamfer of an earlier step) sharing an edge of the plane with
     # an element of the other side that is not its stacked partner: deleting the edge would
     # stretch both over the same ground, so its region keeps the plane.
-    clash = _clashes(l_top, u_bot, li, ui, irregular[lo], irregular[up], cand, lattice, dim, axis)
+    clash = _clashes(plane, work.irregular, work.lattice, dim)
     by_clash = np.zeros(n_comp, dtype=bool)
     by_clash[comp[cmap[clash]]] = True
     info["blocked_overlap"] = int((by_clash & ~blocked).sum())
     blocked |= by_clash
     info["blocked_material"] = int(by_material.sum())
     info["blocked_thin"] = int((by_thin & ~by_material).sum())
-    base_blocked = blocked.copy()
+    return blocked
 
-    # Rim nodes: on the plane but on one side only. When an element around one fails a
-    # check, the rim node moves one lattice step across the plane (or joins the node
-    # already at that corner): the element then fills the empty voxel beside it.
-    rim_up = is_bot & ~is_top  # bottom corners of upper elements only: may move down
-    rim_lo = is_top & ~is_bot  # top corners of lower elements only: may move up
-    shift = np.zeros(n, dtype=np.int64)
-    snap = np.full(n, -1, dtype=np.int64)  # rim node -> the node already at its target corner
-    tried = np.zeros(n, dtype=bool)  # rim nodes moved once (and maybe put back): never again
-    node_at = None
-    unit = np.zeros(3, dtype=np.int64)
-    unit[axis] = 1
-    cells = mesh_cells  # changed in place: a copy of every element costs more than the rest of a round
 
-    def original(rows):
-        """The corners ``rows`` had before this step (only their face columns changed)."""
-        out = cells[rows]
-        for idx, face, cols in ((lo, l_top, tc), (up, u_bot, bc)):
-            pos = np.minimum(np.searchsorted(idx, rows), idx.size - 1)
-            inside = np.flatnonzero(idx[pos] == rows)
-            out[inside[:, None], cols] = face[pos[inside]]
-        return out
+def _build_trial(plane: _Plane, trial: _Trial, cells: np.ndarray) -> None:
+    """Box 2 steps 10-11: the trial connectivity, written into ``cells`` (M, c) in place.
 
-    delete = np.zeros(n, dtype=bool)
-    snapped = np.zeros(n, dtype=bool)
-    # per side (lower, upper): whether any, all, or a bent one of the face corners went
-    flags = [np.zeros((3, face.shape[0]), dtype=bool) for face in (l_top, u_bot)]
-    first_round = True
-    while True:
-        info["retry_rounds"] += 1
-        now = np.zeros(n, dtype=bool)
-        now[cand_idx] = ~blocked[comp]
-        snapped_now = snap >= 0
-        dirty = None if first_round else (now != delete) | (snapped_now != snapped)
-        delete, snapped, first_round = now, snapped_now, False
-        # Step 10: replace deleted nodes by the far ends of their axis edges. After the first
-        # round only the rows at a node whose fate changed are redone.
-        for side, (face, idx, far, cols) in enumerate(((l_top, lo, upn, tc), (u_bot, up, down, bc))):
-            rows = slice(None) if dirty is None else np.flatnonzero(_any_at(dirty, face))
-            f = face[rows]
-            if dirty is not None:
-                cells[idx[rows][:, None], cols] = f  # undo the previous round there
-            h = _take(delete, f)
-            flags[side][0, rows] = _any(h)
-            flags[side][1, rows] = _all(h)
-            flags[side][2, rows] = _any(h & _take(bent, f))
-            done, nodes = _replace_face_nodes(f, h, far, snapped, snap)
-            cells[idx[rows][done][:, None], cols] = nodes
-        (any_l, all_l, bent_l), (any_u, all_u, bent_u) = flags
-        # Step 11: stacked pairs whose face went became duplicates; keep the lower one.
-        merged = delete[faces[:, 0]]
-        keep[:] = True
-        keep[up[ui[merged]]] = False
-        # Step 12 (widened): check every element that changed other than by a clean stacked
-        # merge, and the nodes around it: at most 6 (2D: 4) neighbours, at most 8 (4)
-        # elements, no face of three elements, no node the same corner of two elements, no
-        # corner below the Jacobian floor.
-        part_l = any_l & ~all_l
-        part_u = any_u & ~all_u
-        chamfer = np.concatenate([lo[part_l], up[part_u]])
-        info["chamfered_elements"] = int(chamfer.size)
-        # changed elements that were already irregular: a merged old chamfer gains edges too
-        reshaped = np.concatenate([lo[(any_l & irregular[lo]) | bent_l],
-                                   up[(any_u & irregular[up]) | bent_u]])
-        # elements stretched whole without a partner (a filled notch): their new face need
-        # not match the faces beyond it
-        paired_l = np.zeros(lo.size, dtype=bool)
-        paired_l[li[merged]] = True
-        paired_u = np.zeros(up.size, dtype=bool)
-        paired_u[ui[merged]] = True
-        filled = np.concatenate([lo[all_l & ~paired_l], up[all_u & ~paired_u]])
-        checked = _union(chamfer, reshaped, filled)
-        moved = np.flatnonzero((shift != 0) | (snap >= 0))
-        if moved.size:  # elements at moved or joined rim nodes change too
-            at = np.zeros(n, dtype=bool)
-            at[moved] = True
-            checked = _union(checked, lo[_any_at(at, l_top)], up[_any_at(at, u_bot)])
-        bad_rows = np.empty(0, dtype=np.int64)
-        if checked.size:
-            in_s = np.zeros(n, dtype=bool)
-            in_s[cells[checked]] = True
-            rows = np.flatnonzero(keep & _any_at(in_s, cells))
-            sub = cells[rows]
-            local, degree, count = _degrees(sub, in_s, edges)
-            bad_node = (degree > max_neighbours) | (count > max_elements)
-            crowded = _crowded_faces(sub, n, dim)  # faces of three or more elements
-            info["crowded_faces"] += int(crowded.size)
-            if crowded.size:
-                bad_rows = rows[crowded]
-            info["overconnected_nodes"] += int(np.count_nonzero(bad_node))
-            if bad_node.any():
-                bad_rows = _union(bad_rows, rows[_any(bad_node[local])])
-            corners = (lattice[cells[checked]] + shift[cells[checked]][:, :, None] * unit) * spacing
-            jac = corner_scaled_jacobians(corners.reshape(-1, 3), np.arange(corners.shape[0] * corners.shape[1]
-                                                                           ).reshape(checked.size, -1))
-            flat = checked[(jac < min_corner).any(axis=1)]
-            info["inverted_elements"] += int(flat.size)
-            bad_rows = _union(bad_rows, flat)
-            if bad_rows.size == 0:
-                # A node is corner c of at most one element (the one in its c-th octant):
-                # smoothing's corner table relies on it. Two chamfers of different axes can
-                # pass every test above yet split one empty voxel, both holding the node at
-                # its corner as the same corner. Tested last, on a trial that passes the
-                # rest, so that steps the other tests settle merge exactly as before.
-                pos = np.minimum(np.searchsorted(checked, rows), checked.size - 1)
-                shared = _shared_corners(local, degree.size, checked[pos] == rows)
-                info["shared_corners"] += int(shared.size)
-                bad_rows = rows[shared]
-            if bad_rows.size and rim_moves:
-                if node_at is None:  # node at every lattice corner (a dense grid, built on first use)
-                    dims = np.array([int(lattice[:, d].max()) + 3 for d in range(3)], dtype=np.int64)
+    Every node of a region not blocked is replaced by the far end of its axis edge (a
+    joined rim node by the node it joins); a stacked pair whose face went becomes a
+    duplicate and only its lower element is kept. After the first round only the rows
+    at a node whose fate changed are redone. Updates ``trial.delete``, ``snapped``,
+    ``flags``, ``merged`` and ``keep``.
+    """
+    now = np.zeros(plane.n, dtype=bool)
+    now[plane.cand_idx] = ~trial.blocked[plane.comp]
+    snapped_now = trial.snap >= 0
+    dirty = None if trial.first_round else (now != trial.delete) | (snapped_now != trial.snapped)
+    trial.delete, trial.snapped, trial.first_round = now, snapped_now, False
+    sides = ((plane.l_top, plane.lo, plane.upn, plane.top_cols), (plane.u_bot, plane.up, plane.down, plane.bottom_cols))
+    for flags, (face, idx, far, cols) in zip(trial.flags, sides):
+        rows = slice(None) if dirty is None else np.flatnonzero(_any_at(dirty, face))
+        f = face[rows]
+        if dirty is not None:
+            cells[idx[rows][:, None], cols] = f  # undo the previous round there
+        h = _take(now, f)
+        flags[0, rows] = _any(h)
+        flags[1, rows] = _all(h)
+        flags[2, rows] = _any(h & _take(plane.bent, f))
+        done, nodes = _replace_face_nodes(f, h, far, snapped_now, trial.snap)
+        cells[idx[rows][done][:, None], cols] = nodes
+    trial.merged = now[plane.faces[:, 0]]
+    trial.keep[:] = True
+    trial.keep[plane.up[plane.ui[trial.merged]]] = False
 
-                    def key_of(lat, dims=dims):
-                        return ((lat[:, 0] + 1) * dims[1] + lat[:, 1] + 1) * dims[2] + lat[:, 2] + 1
 
-                    node_at = np.full(int(np.prod(dims)), -1, dtype=np.int32 if n < 2**31 - 1 else np.int64)
-                    node_at[key_of(lattice)] = np.arange(n, dtype=node_at.dtype)
-                # rim nodes used only as face corners of the merged layers may move
-                c_all = _unique(original(bad_rows))
-                c_all = c_all[(rim_up[c_all] | rim_lo[c_all]) & ~tried[c_all]]
-                mask = np.zeros(n, dtype=bool)
-                mask[c_all] = True
-                confined = np.ones(n, dtype=bool)  # no corner of theirs other than a face corner on the plane
-                for other_corners in (l_bot, u_top, mesh_cells[r > s]):
-                    confined[other_corners[_take(mask, other_corners)]] = False
-                moved_now = 0
-                for rim, step in ((rim_up, -1), (rim_lo, 1)):
-                    c = c_all[rim[c_all] & confined[c_all]]
-                    if not c.size:
-                        continue
-                    target = key_of(lattice[c] + step * unit)
-                    order = np.argsort(target, kind="stable")
-                    target, c = target[order], c[order]
-                    first = np.ones(target.size, dtype=bool)
-                    first[1:] = target[1:] != target[:-1]
-                    target, c = target[first], c[first]
-                    occupant = node_at[target]
-                    free = occupant < 0
-                    usable = free | ~delete[np.maximum(occupant, 0)]
-                    c, target, occupant, free = c[usable], target[usable], occupant[usable], free[usable]
-                    tried[c] = True
-                    shift[c[free]] = step  # move to the empty corner
-                    node_at[target[free]] = c[free]
-                    snap[c[~free]] = occupant[~free]  # or join the node already there
-                    node_at[key_of(lattice[c])] = -1
-                    moved_now += c.size
-                if moved_now:
-                    continue
-        if bad_rows.size == 0:
-            break
-        # Step 14: refuse what made them, and try again. A candidate on no stacked face
-        # (a rim node: it only makes chamfers) is refused on its own first; the merge
-        # region of a bad element is refused only when it has no such node left.
-        rows_rep = np.repeat(np.arange(bad_rows.size), mesh_cells.shape[1])
-        corners = original(bad_rows).ravel()
-        sel = delete[corners]
-        rows_rep, ccomp = rows_rep[sel], comp[cmap[corners[sel]]]
-        rim = ~region_of[ccomp]
-        has_rim = np.zeros(bad_rows.size, dtype=bool)
-        has_rim[rows_rep[rim]] = True
-        newly = _unique(ccomp[rim | ~has_rim[rows_rep]])
-        newly = newly[~blocked[newly]]
-        # moved rim nodes of the bad elements go back to their place
-        back = _unique(original(bad_rows))
-        back = back[(shift[back] != 0) | (snap[back] >= 0)]
-        if newly.size == 0 and back.size == 0:  # cannot happen for a consistent mesh
-            blocked[:] = True
-            back = np.flatnonzero((shift != 0) | (snap >= 0))
-        else:
-            blocked[newly] = True
-        if back.size:
-            moved_back = back[shift[back] != 0]
-            node_at[key_of(lattice[moved_back] + shift[moved_back][:, None] * unit)] = -1
-            node_at[key_of(lattice[back])] = back
-            shift[back] = 0
-            snap[back] = -1
-    refused = blocked & ~base_blocked
+def _find_changed_elements(plane: _Plane, trial: _Trial, irregular: np.ndarray, info: dict) -> None:
+    """The elements the trial changed other than by a clean stacked merge, into ``trial.checked``.
+
+    They are the chamfers (some face corners went, counted in ``info``), changed elements
+    that were already irregular or have a bent edge, elements stretched whole without a
+    partner (a filled notch) and the elements at moved or joined rim nodes.
+    """
+    (any_l, all_l, bent_l), (any_u, all_u, bent_u) = trial.flags
+    lo, up = plane.lo, plane.up
+    chamfer = np.concatenate([lo[any_l & ~all_l], up[any_u & ~all_u]])
+    info["chamfered_elements"] = int(chamfer.size)
+    # changed elements that were already irregular: a merged old chamfer gains edges too
+    reshaped = np.concatenate([lo[(any_l & irregular[lo]) | bent_l], up[(any_u & irregular[up]) | bent_u]])
+    # elements stretched whole without a partner: their new face need not match the faces beyond it
+    paired_l = np.zeros(lo.size, dtype=bool)
+    paired_l[plane.li[trial.merged]] = True
+    paired_u = np.zeros(up.size, dtype=bool)
+    paired_u[plane.ui[trial.merged]] = True
+    filled = np.concatenate([lo[all_l & ~paired_l], up[all_u & ~paired_u]])
+    checked = _union(chamfer, reshaped, filled)
+    moved = np.flatnonzero((trial.shift != 0) | (trial.snap >= 0))
+    if moved.size:  # elements at moved or joined rim nodes change too
+        at = np.zeros(plane.n, dtype=bool)
+        at[moved] = True
+        checked = _union(checked, lo[_any_at(at, plane.l_top)], up[_any_at(at, plane.u_bot)])
+    trial.checked = checked
+
+
+def _check_trial(plane: _Plane, trial: _Trial, work: _Work, settings: _Settings, info: dict) -> np.ndarray:
+    """Box 2 step 12 (widened): the elements of the trial at fault, counted in ``info``.
+
+    Around the changed elements (``trial.checked``): no node with more than 6 (2D: 4)
+    neighbours or in more than 8 (4) elements, no face of three elements, no corner
+    scaled Jacobian below the floor; on a trial that passes these, no node the same
+    corner of two elements.
+
+    Returns
+    -------
+    (B,) int64 ndarray
+        Rows of ``work.cells`` at fault, ascending; empty when the trial passes.
+    """
+    checked, cells, n, dim = trial.checked, work.cells, plane.n, settings.dim
+    bad_rows = np.empty(0, dtype=np.int64)
+    if checked.size == 0:
+        return bad_rows
+    max_neighbours, max_elements = (6, 8) if dim == 3 else (4, 4)
+    in_s = np.zeros(n, dtype=bool)
+    in_s[cells[checked]] = True
+    rows = np.flatnonzero(trial.keep & _any_at(in_s, cells))
+    sub = cells[rows]
+    local, degree, count = _degrees(sub, in_s, HEX_EDGES if dim == 3 else QUAD_EDGES)
+    bad_node = (degree > max_neighbours) | (count > max_elements)
+    crowded = _crowded_faces(sub, n, dim)  # faces of three or more elements
+    info["crowded_faces"] += int(crowded.size)
+    if crowded.size:
+        bad_rows = rows[crowded]
+    info["overconnected_nodes"] += int(np.count_nonzero(bad_node))
+    if bad_node.any():
+        bad_rows = _union(bad_rows, rows[_any(bad_node[local])])
+    corners = (work.lattice[cells[checked]] + trial.shift[cells[checked]][:, :, None] * plane.unit) * settings.spacing
+    jac = corner_scaled_jacobians(corners.reshape(-1, 3),
+                                  np.arange(corners.shape[0] * corners.shape[1]).reshape(checked.size, -1))
+    flat = checked[(jac < settings.min_corner).any(axis=1)]
+    info["inverted_elements"] += int(flat.size)
+    bad_rows = _union(bad_rows, flat)
+    if bad_rows.size == 0:
+        # A node is corner c of at most one element (the one in its c-th octant):
+        # smoothing's corner table relies on it. Two chamfers of different axes can
+        # pass every test above yet split one empty voxel, both holding the node at
+        # its corner as the same corner. Tested last, on a trial that passes the
+        # rest, so that steps the other tests settle merge exactly as before.
+        pos = np.minimum(np.searchsorted(checked, rows), checked.size - 1)
+        shared = _shared_corners(local, degree.size, checked[pos] == rows)
+        info["shared_corners"] += int(shared.size)
+        bad_rows = rows[shared]
+    return bad_rows
+
+
+def _corner_keys(lat: np.ndarray, dims: np.ndarray) -> np.ndarray:
+    """(K,) int64: flat indices of lattice positions ``lat`` (K, 3) in a grid of shape ``dims``
+    (3,) that has one spare layer before the lattice's first position along each axis."""
+    return ((lat[:, 0] + 1) * dims[1] + lat[:, 1] + 1) * dims[2] + lat[:, 2] + 1
+
+
+def _original_corners(plane: _Plane, cells: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(K, c): the corners the elements ``rows`` (K,) had before this step's trials (only
+    their face columns change)."""
+    out = cells[rows]
+    for idx, face, cols in ((plane.lo, plane.l_top, plane.top_cols), (plane.up, plane.u_bot, plane.bottom_cols)):
+        pos = np.minimum(np.searchsorted(idx, rows), idx.size - 1)
+        inside = np.flatnonzero(idx[pos] == rows)
+        out[inside[:, None], cols] = face[pos[inside]]
+    return out
+
+
+def _move_rim_nodes(plane: _Plane, trial: _Trial, work: _Work, bad_rows: np.ndarray) -> int:
+    """Repair the elements ``bad_rows`` through their rim nodes, before refusing them.
+
+    Each rim node of theirs used only as a face corner of the merged layers, and not
+    moved before, moves one lattice step across the plane to an empty corner, or joins
+    the node already at that corner (one that stays): the element then fills the empty
+    voxel beside it. Updates ``trial.shift``, ``snap``, ``tried`` and ``node_at``.
+
+    Returns
+    -------
+    int
+        The number of rim nodes moved or joined.
+    """
+    lattice, n = work.lattice, plane.n
+    if trial.node_at is None:  # node at every lattice corner (a dense grid, built on first use)
+        trial.dims = np.array([int(lattice[:, d].max()) + 3 for d in range(3)], dtype=np.int64)
+        trial.node_at = np.full(int(np.prod(trial.dims)), -1, dtype=np.int32 if n < 2**31 - 1 else np.int64)
+        trial.node_at[_corner_keys(lattice, trial.dims)] = np.arange(n, dtype=trial.node_at.dtype)
+    node_at, dims = trial.node_at, trial.dims
+    c_all = _unique(_original_corners(plane, work.cells, bad_rows))
+    c_all = c_all[(plane.rim_up[c_all] | plane.rim_lo[c_all]) & ~trial.tried[c_all]]
+    mask = np.zeros(n, dtype=bool)
+    mask[c_all] = True
+    confined = np.ones(n, dtype=bool)  # no corner of theirs other than a face corner on the plane
+    for other_corners in (plane.l_bot, plane.u_top, work.cells[plane.in_group > plane.s]):
+        confined[other_corners[_take(mask, other_corners)]] = False
+    moved = 0
+    for rim, step in ((plane.rim_up, -1), (plane.rim_lo, 1)):
+        c = c_all[rim[c_all] & confined[c_all]]
+        if not c.size:
+            continue
+        target = _corner_keys(lattice[c] + step * plane.unit, dims)
+        order = np.argsort(target, kind="stable")
+        target, c = target[order], c[order]
+        first = np.ones(target.size, dtype=bool)
+        first[1:] = target[1:] != target[:-1]
+        target, c = target[first], c[first]
+        occupant = node_at[target]
+        free = occupant < 0
+        usable = free | ~trial.delete[np.maximum(occupant, 0)]
+        c, target, occupant, free = c[usable], target[usable], occupant[usable], free[usable]
+        trial.tried[c] = True
+        trial.shift[c[free]] = step  # move to the empty corner
+        node_at[target[free]] = c[free]
+        trial.snap[c[~free]] = occupant[~free]  # or join the node already there
+        node_at[_corner_keys(lattice[c], dims)] = -1
+        moved += c.size
+    return moved
+
+
+def _drop_offending_regions(plane: _Plane, trial: _Trial, work: _Work, bad_rows: np.ndarray) -> None:
+    """Box 2 step 14 (per merge region): refuse what made the elements ``bad_rows`` fail.
+
+    A deleted node of theirs on no stacked face (a rim node: it only makes chamfers) is
+    refused on its own first; the merge region of a bad element is refused only when it
+    has no such node left. Their moved and joined rim nodes go back to their places.
+    Updates ``trial.blocked``, ``shift``, ``snap`` and ``node_at``.
+    """
+    shift, snap, blocked = trial.shift, trial.snap, trial.blocked
+    before = _original_corners(plane, work.cells, bad_rows)
+    rows_rep = np.repeat(np.arange(bad_rows.size), work.cells.shape[1])
+    corners = before.ravel()
+    sel = trial.delete[corners]
+    rows_rep, ccomp = rows_rep[sel], plane.comp[plane.cmap[corners[sel]]]
+    rim = ~plane.region_of[ccomp]
+    has_rim = np.zeros(bad_rows.size, dtype=bool)
+    has_rim[rows_rep[rim]] = True
+    newly = _unique(ccomp[rim | ~has_rim[rows_rep]])
+    newly = newly[~blocked[newly]]
+    back = _unique(before)
+    back = back[(shift[back] != 0) | (snap[back] >= 0)]
+    if newly.size == 0 and back.size == 0:  # cannot happen for a consistent mesh
+        blocked[:] = True
+        back = np.flatnonzero((shift != 0) | (snap >= 0))
+    else:
+        blocked[newly] = True
+    if back.size:
+        moved_back = back[shift[back] != 0]
+        lattice = work.lattice
+        trial.node_at[_corner_keys(lattice[moved_back] + shift[moved_back][:, None] * plane.unit, trial.dims)] = -1
+        trial.node_at[_corner_keys(lattice[back], trial.dims)] = back
+        shift[back] = 0
+        snap[back] = -1
+
+
+def _finish_step(plane: _Plane, trial: _Trial, work: _Work, info: dict
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """The outcome of the trial that passed: the step's figures in ``info``, the nodes
+    deleted, and ``work.irregular`` and ``work.size`` of the elements kept updated.
+
+    Returns
+    -------
+    keep, delete, shift, info
+        As ``_merge_step`` returns them.
+    """
+    blocked, keep, shift, snap, region_of = trial.blocked, trial.keep, trial.shift, trial.snap, plane.region_of
+    refused = blocked & ~trial.base_blocked
     info["blocked_connectivity"] = int((refused & region_of).sum())
     info["rim_nodes_refused"] = int((refused & ~region_of).sum())
     info["regions_merged"] = int((~blocked & region_of).sum())
     info["merged_pairs"] = int(np.count_nonzero(~keep))
-    delete = np.zeros(n, dtype=bool)
-    delete[cand_idx] = ~blocked[comp]
+    delete = np.zeros(plane.n, dtype=bool)
+    delete[plane.cand_idx] = ~blocked[plane.comp]
     info["rim_nodes_moved"] = int(np.count_nonzero(shift))
     info["rim_nodes_joined"] = int(np.count_nonzero(snap >= 0))
     if (snap >= 0).any():
         delete |= snap >= 0
-        if delete[cells[keep]].any():  # a joined rim node outside the merged layers
+        if delete[work.cells[keep]].any():  # a joined rim node outside the merged layers
             raise DicerError("internal error in plane merging (a joined rim node is still in use); "
                              "rerun with merge.rim_moves=false and report the input")
-    irregular[checked] = True
-    merged_up = up[ui[merged]]
-    irregular[lo[li[merged]]] |= irregular[merged_up]
-    size[lo[li[merged]]] += size[merged_up]
-    return cells, keep, delete, shift, info
+    irregular, size = work.irregular, work.size
+    irregular[trial.checked] = True
+    merged_lo, merged_up = plane.lo[plane.li[trial.merged]], plane.up[plane.ui[trial.merged]]
+    irregular[merged_lo] |= irregular[merged_up]
+    size[merged_lo] += size[merged_up]
+    return keep, delete, shift, info
+
+
+def _check_settings(mesh: Mesh, passes, min_thickness, granularity, min_scaled_jacobian, rim_moves, axes
+                    ) -> tuple[tuple[int, int, int], _Settings]:
+    """The options of ``merge_planes`` checked: merges per axis (3 ints) and the settings.
+
+    Raises ``DicerError`` naming the first bad option, or a mesh that cannot be merged.
+    """
+    if granularity not in ("region", "plane"):
+        raise DicerError(f"merge.granularity={granularity!r}: use 'region' or 'plane'")
+    if not np.isfinite(min_thickness) or min_thickness < 0:
+        raise DicerError(f"merge.min_thickness={min_thickness!r}: give a number of voxels >= 0")
+    counts = _check_passes(passes, mesh.dim)
+    if not isinstance(rim_moves, (bool, np.bool_)):
+        raise DicerError(f"merge.rim_moves={rim_moves!r}: give true or false")
+    if sorted(axes) != [0, 1, 2]:
+        raise DicerError(f"merge.axes={axes!r}: give a permutation of 0, 1, 2")
+    if mesh.n_cells == 0:
+        raise DicerError("the mesh has no elements; nothing to merge")
+    if int(mesh.material.min()) < 0:
+        raise DicerError("the mesh has negative material labels; materials are numbered 1..K")
+    msj = float(min_scaled_jacobian)
+    if not -1.0 <= msj < 1.0:
+        raise DicerError(f"merge.min_scaled_jacobian={min_scaled_jacobian!r}: give a value in [-1, 1)")
+    return counts, _Settings(mesh.dim, granularity, msj, bool(rim_moves), np.asarray(mesh.spacing, dtype=np.float64))
+
+
+def _apply_step(work: _Work, keep: np.ndarray, delete: np.ndarray, shift: np.ndarray, axis: int,
+                step_mm: float) -> None:
+    """Box 2 step 13: the trial that passed becomes the mesh.
+
+    Parameters
+    ----------
+    work : _Work
+        The mesh after ``_merge_step``; its arrays are replaced (the input mesh's arrays
+        are never written).
+    keep : (M,) bool ndarray
+        Elements kept.
+    delete : (N,) bool ndarray
+        Nodes deleted; the others are renumbered in order.
+    shift : (N,) int64 ndarray
+        Move of every node along ``axis``, lattice units.
+    axis : int
+        Merge axis.
+    step_mm : float
+        Voxel size along ``axis``, mm.
+    """
+    if shift.any():
+        work.lattice = work.lattice.copy()
+        work.lattice[:, axis] += shift
+        work.points = work.points.copy()
+        work.points[:, axis] += shift * step_mm
+    if delete.any():
+        kept_nodes = ~delete
+        new_id = np.cumsum(kept_nodes, dtype=work.cells.dtype)
+        new_id -= 1
+        work.cells = _compact(work.cells, keep, new_id)
+        work.material, work.thick, work.layer, work.irregular, work.size = (
+            np.compress(keep, a, axis=0) for a in (work.material, work.thick, work.layer, work.irregular, work.size))
+        work.lattice = np.compress(kept_nodes, work.lattice, axis=0)
+        work.points = np.compress(kept_nodes, work.points, axis=0)
+        work.point_data = {k: np.compress(kept_nodes, v, axis=0) for k, v in work.point_data.items()}
+        work.cell_data = {k: np.compress(keep, v, axis=0) for k, v in work.cell_data.items()}
+
+
+def _volume_report(before: dict[int, float], after: dict[int, float]) -> dict[str, dict]:
+    """Volume of every material before and after, mm^3 (2D: mm^2), and its change in percent."""
+    return {str(k): {"before": before[k], "after": after.get(k, 0.0),
+                     "change_percent": round(100.0 * (after.get(k, 0.0) - before[k]) / before[k], 4)
+                     if before[k] else 0.0}
+            for k in sorted(before)}
 
 
 def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
@@ -770,88 +1236,28 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
     integer lattice indices; a moved rim node gets the index of the lattice corner it
     moved to; merged elements span two or more lattice units along the merge axis.
     """
-    if granularity not in ("region", "plane"):
-        raise DicerError(f"merge.granularity={granularity!r}: use 'region' or 'plane'")
-    if not np.isfinite(min_thickness) or min_thickness < 0:
-        raise DicerError(f"merge.min_thickness={min_thickness!r}: give a number of voxels >= 0")
-    dim = mesh.dim
-    counts = _check_passes(passes, dim)
-    if not isinstance(rim_moves, (bool, np.bool_)):
-        raise DicerError(f"merge.rim_moves={rim_moves!r}: give true or false")
-    if sorted(axes) != [0, 1, 2]:
-        raise DicerError(f"merge.axes={axes!r}: give a permutation of 0, 1, 2")
-    if mesh.n_cells == 0:
-        raise DicerError("the mesh has no elements; nothing to merge")
-    if int(mesh.material.min()) < 0:
-        raise DicerError("the mesh has negative material labels; materials are numbered 1..K")
-    msj = float(min_scaled_jacobian)
-    if not -1.0 <= msj < 1.0:
-        raise DicerError(f"merge.min_scaled_jacobian={min_scaled_jacobian!r}: give a value in [-1, 1)")
-    min_corner = msj if msj > 0 else msj - 1e-9  # 0 still refuses inverted corners only
+    counts, settings = _check_settings(mesh, passes, min_thickness, granularity, min_scaled_jacobian, rim_moves,
+                                       axes)
     t_start = time.perf_counter()
     index = np.int32 if mesh.n_points < 2**31 - 1 else np.int64  # halves memory traffic
     cells = mesh.cells.astype(index)
-    box0, size = _lattice_boxes(cells, mesh.lattice, dim)
+    box0, size = _lattice_boxes(cells, mesh.lattice, settings.dim)
     on_lattice = _on_lattice(mesh)
     vol_before = _material_volumes(mesh, box0, on_lattice, size)
     report = {"passes": list(counts), "granularity": granularity, "min_thickness": float(min_thickness),
-              "min_scaled_jacobian": msj, "rim_moves": bool(rim_moves),
+              "min_scaled_jacobian": settings.min_scaled_jacobian, "rim_moves": settings.rim_moves,
               "elements_before": mesh.n_cells, "nodes_before": mesh.n_points, "steps": []}
-
-    material = mesh.material
-    lattice = mesh.lattice
-    points = mesh.points
-    point_data = dict(mesh.point_data)
-    cell_data = dict(mesh.cell_data)
-    thick = thick_elements(mesh, min_thickness)
-    irregular = ~box0
+    work = _Work(cells, mesh.material, thick_elements(mesh, min_thickness), ~box0, size, None, mesh.lattice,
+                 mesh.points, dict(mesh.point_data), dict(mesh.cell_data))
     for axis in axes:
-        g = counts[axis] + 1
-        if g == 1:
-            continue
-        layer = _take(np.ascontiguousarray(lattice[:, axis]), cells[:, 0]).astype(np.int64)
-        layer = layer - layer.min()
-        for s in range(1, g):
-            t0 = time.perf_counter()
-            n_before, m_before = lattice.shape[0], cells.shape[0]
-            new_cells, keep, delete, shift, info = _merge_step(
-                cells, material, thick, irregular, size, layer, lattice, axis, g, s, dim, granularity, min_corner,
-                rim_moves, np.asarray(mesh.spacing, dtype=np.float64))
-            if shift.any():
-                lattice = lattice.copy()
-                lattice[:, axis] += shift
-                points = points.copy()
-                points[:, axis] += shift * mesh.spacing[axis]
-            if delete.any():
-                kept_nodes = ~delete
-                new_id = np.cumsum(kept_nodes, dtype=index)
-                new_id -= 1
-                cells = _compact(new_cells, keep, new_id)
-                material, thick, layer, irregular, size = (np.compress(keep, a, axis=0)
-                                                           for a in (material, thick, layer, irregular, size))
-                lattice, points = np.compress(kept_nodes, lattice, axis=0), np.compress(kept_nodes, points, axis=0)
-                point_data = {k: np.compress(kept_nodes, v, axis=0) for k, v in point_data.items()}
-                cell_data = {k: np.compress(keep, v, axis=0) for k, v in cell_data.items()}
-            report["steps"].append({
-                "axis": _AXIS_NAMES[axis], "pass": s, "elements_before": m_before,
-                "elements_after": int(cells.shape[0]), "nodes_before": n_before,
-                "nodes_after": int(lattice.shape[0]), **info,
-                "seconds": round(time.perf_counter() - t0, 3)})
-            log.info("merge: %s pass %d: %d -> %d elements, %d of %d regions merged (%.1f s)",
-                     _AXIS_NAMES[axis], s, m_before, cells.shape[0], info["regions_merged"], info["regions"],
-                     time.perf_counter() - t0)
-
-    out = Mesh(points, cells.astype(np.int64), material, lattice, mesh.spacing.copy(), mesh.origin.copy(),
-               mesh.grid_shape.copy(), point_data, cell_data, list(mesh.names))
-    vol_after = _material_volumes(out, ~irregular, on_lattice, size)
+        if counts[axis]:
+            report["steps"] += _merge_axis(work, settings, axis, counts[axis] + 1, mesh.spacing[axis])
+    out = Mesh(work.points, work.cells.astype(np.int64), work.material, work.lattice, mesh.spacing.copy(),
+               mesh.origin.copy(), mesh.grid_shape.copy(), work.point_data, work.cell_data, list(mesh.names))
     report["elements_after"] = out.n_cells
     report["nodes_after"] = out.n_points
     report["element_ratio"] = round(mesh.n_cells / max(out.n_cells, 1), 4)
-    report["volume"] = {
-        str(k): {"before": vol_before[k], "after": vol_after.get(k, 0.0),
-                 "change_percent": round(100.0 * (vol_after.get(k, 0.0) - vol_before[k]) / vol_before[k], 4)
-                 if vol_before[k] else 0.0}
-        for k in sorted(vol_before)}
+    report["volume"] = _volume_report(vol_before, _material_volumes(out, ~work.irregular, on_lattice, work.size))
     report["seconds"] = round(time.perf_counter() - t_start, 3)
     return out, report
 

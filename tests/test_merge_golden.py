@@ -1,0 +1,193 @@
+"""Plane merging gives byte-identical meshes and reports on fixed volumes.
+
+Each case merges a fixed label volume with fixed settings and compares SHA-256 digests of
+the merged mesh's arrays (points, cells, material, lattice, spacing, origin, grid shape,
+point and cell data) and of its report (without the timings) with values recorded from
+the code. A change of any digest means the merge itself changed; a change of the input
+digest means the volume changed (the connectivity stage or a phantom), not the merge.
+
+Run this file as a script to print the current values, e.g. to record them again after
+a deliberate change of the merge rules.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from dicer.connectivity import fix_connectivity
+from dicer.mesh.merge import merge_planes
+from dicer.mesh.voxel import voxel_mesh
+from dicer.phantoms import phantom_labels
+
+
+def _ball(n: int = 24) -> np.ndarray:
+    """Two materials: a ball of material 1 around a core of material 2."""
+    x = np.indices((n, n, n)) - (n - 1) / 2
+    r = np.sqrt((x ** 2).sum(axis=0))
+    labels = np.zeros((n, n, n), np.uint8)
+    labels[r < 0.45 * n] = 1
+    labels[r < 0.25 * n] = 2
+    return labels
+
+
+def _smooth_noise(seed: int, shape=(22, 20, 18), sigma: float = 2.5) -> np.ndarray:
+    """Background and two materials from smoothed noise of a fixed seed, made well connected."""
+    f = ndimage.gaussian_filter(np.random.default_rng(seed).standard_normal(shape), sigma)
+    labels = np.digitize(f, np.quantile(f, [0.35, 0.75])).astype(np.uint8)
+    return fix_connectivity(labels)[0]
+
+
+def _layered(seed: int) -> np.ndarray:
+    """Three noise slices repeated 2, 1 and 3 times and stacked along axis ``seed % 3``:
+    chamfers of two axes meet often in such volumes."""
+    a = np.random.default_rng(seed).integers(0, 3, size=(14, 12, 3)).astype(np.uint8)
+    return fix_connectivity(np.moveaxis(a.repeat([2, 1, 3], axis=2), 2, seed % 3))[0]
+
+
+def _noise_2d(seed: int, shape=(40, 36), sigma: float = 0.0) -> np.ndarray:
+    """2D background and two materials (smoothed when ``sigma`` > 0), made well connected."""
+    f = np.random.default_rng(seed).standard_normal(shape)
+    if sigma:
+        f = ndimage.gaussian_filter(f, sigma)
+    labels = np.digitize(f, np.quantile(f, [1 / 3, 2 / 3])).astype(np.uint8)
+    return fix_connectivity(labels)[0]
+
+
+# small volumes of tests/test_merge.py in which chamfers of two axes meet (shared corners)
+_TWO_AXES_3D = np.array([[0, 0, 0, 0, 1], [1, 1, 1, 1, 1], [0, 2, 2, 0, 2], [0, 1, 2, 1, 2]], np.uint8)[:, :, None]
+_JOINED_2D = np.array([[1, 0, 0, 0, 0, 0, 0, 0], [0, 0, 0, 0, 0, 1, 1, 1], [0, 0, 0, 1, 2, 2, 0, 1],
+                       [0, 0, 0, 0, 2, 2, 2, 2], [0, 0, 0, 2, 2, 0, 0, 0]], np.uint8)
+_JOINED_3D = np.array([[[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 1, 0]],
+                       [[0, 0, 0, 0], [1, 1, 0, 0], [1, 1, 1, 0], [0, 0, 1, 0]],
+                       [[0, 0, 0, 0], [2, 2, 0, 0], [1, 1, 1, 0], [0, 0, 0, 0]],
+                       [[0, 0, 0, 0], [1, 0, 0, 0], [1, 1, 1, 0], [0, 0, 1, 0]],
+                       [[0, 0, 0, 0], [1, 0, 0, 0], [0, 0, 0, 0], [0, 0, 1, 0]],
+                       [[0, 0, 0, 0], [1, 0, 0, 0], [0, 0, 1, 1], [0, 0, 1, 1]],
+                       [[0, 0, 0, 1], [1, 0, 0, 1], [0, 0, 1, 1], [0, 0, 0, 2]]], np.uint8)
+
+_VOLUMES = {
+    "ball": _ball,
+    "noise5": lambda: _smooth_noise(5),
+    "noise1": lambda: _smooth_noise(1),
+    "layered1": lambda: _layered(1),
+    "noise2d": lambda: _noise_2d(2),
+    "smooth2d": lambda: _noise_2d(3, sigma=1.5),
+    "two_axes": lambda: _TWO_AXES_3D,
+    "joined2d": lambda: _JOINED_2D,
+    "joined3d": lambda: _JOINED_3D,
+    "long_bone": lambda: phantom_labels("long_bone", 40).array,
+}
+
+# name: (volume, options of merge_planes; "data": the mesh gets point and cell data,
+# non-unit spacing and an origin)
+CASES = {
+    "ball": ("ball", {"passes": (1, 1, 1)}),
+    "ball_data": ("ball", {"passes": (1, 2, 1), "data": True}),
+    "ball_plane": ("ball", {"passes": (2, 1, 1), "granularity": "plane"}),
+    "ball_thin": ("ball", {"passes": (1, 1, 2), "min_thickness": 6.0}),
+    "noise5": ("noise5", {"passes": (1, 1, 1)}),
+    "noise5_3": ("noise5", {"passes": (2, 2, 2), "axes": (2, 0, 1)}),
+    "noise1_fixed_rims": ("noise1", {"passes": (1, 2, 1), "rim_moves": False}),
+    "noise1_thin_flat": ("noise1", {"passes": (2, 1, 1), "min_thickness": 2.5, "min_scaled_jacobian": 0.0}),
+    "layered1": ("layered1", {"passes": (2, 2, 2)}),
+    "layered1_no_jacobian": ("layered1", {"passes": (1, 1, 1), "min_scaled_jacobian": -1.0}),
+    "noise2d": ("noise2d", {"passes": (2, 2)}),
+    "smooth2d_plane": ("smooth2d", {"passes": (1, 3), "granularity": "plane", "axes": (1, 0, 2)}),
+    "smooth2d_fixed_rims": ("smooth2d", {"passes": (2, 1), "rim_moves": False}),
+    "two_axes": ("two_axes", {"passes": (1, 1, 1)}),
+    "two_axes_fixed_rims": ("two_axes", {"passes": (1, 1, 1), "rim_moves": False}),
+    "joined2d": ("joined2d", {"passes": (1, 2)}),
+    "joined3d": ("joined3d", {"passes": (1, 1, 1)}),
+    "long_bone": ("long_bone", {"passes": (2, 2, 2)}),
+    "long_bone_thin": ("long_bone", {"passes": (1, 1, 1), "min_thickness": 4.0}),
+}
+
+# name: (input labels, merged mesh, report) SHA-256, first 16 hex digits
+GOLDEN = {
+    "ball": ('6b31d01e77909ca2', '4f6ef75e300d34b6', 'f8d6b89fb81f2b58'),
+    "ball_data": ('6b31d01e77909ca2', '66a752cd5abbe55e', 'cdfff2c442ff9b48'),
+    "ball_plane": ('6b31d01e77909ca2', '41222d9531427070', '86e5d0b3c6be2196'),
+    "ball_thin": ('6b31d01e77909ca2', 'd640d10fad944d46', '74fc1348debbbb73'),
+    "noise5": ('acb28eb5de7a8aac', '0123041944314c1d', '54e6a07f2cd433b7'),
+    "noise5_3": ('acb28eb5de7a8aac', '11cbe265d6f0bd2f', '83497119614e9f67'),
+    "noise1_fixed_rims": ('3395c052c03865be', '3ca95be20acb7fa9', '70368f7bd86b8675'),
+    "noise1_thin_flat": ('3395c052c03865be', '484fbc7e0848802f', '519ec10992e04bbd'),
+    "layered1": ('988d5ea2d3db0904', '8433667322410bff', '5556cc1571a8ed17'),
+    "layered1_no_jacobian": ('988d5ea2d3db0904', '8433667322410bff', '771f54506db261ed'),
+    "noise2d": ('8aa86809aae50249', '365f4d8ab14d0947', '724152f52666dca3'),
+    "smooth2d_plane": ('5ce974127b2b7537', '31a3dc9ff6187218', '531b59c1e37bee8a'),
+    "smooth2d_fixed_rims": ('5ce974127b2b7537', 'f541293b5f5dd746', 'd55eb19479a2e0f0'),
+    "two_axes": ('df2bbe076e2bd00f', '949d99d524409e85', '69e786ce1a4fc28f'),
+    "two_axes_fixed_rims": ('df2bbe076e2bd00f', '949d99d524409e85', '988bcaf700e7c167'),
+    "joined2d": ('ffa969a58e20da9e', 'e51b046027dc79b7', 'a5100371824bd37f'),
+    "joined3d": ('6df6d6e13da202c4', '07581cd2e8ad3791', '56b98f8b17e9b9a4'),
+    "long_bone": ('8068aa6bb3daa3df', 'd6f097e1604cb5a7', '0513c2059084d736'),
+    "long_bone_thin": ('8068aa6bb3daa3df', 'e76f4b467beb03bb', 'ef4c72ab4508fe89'),
+}
+
+
+def _digest(parts) -> str:
+    h = hashlib.sha256()
+    for name, a in parts:
+        a = np.ascontiguousarray(a)
+        h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()[:16]
+
+
+def _mesh_digest(mesh) -> str:
+    parts = [("points", mesh.points), ("cells", mesh.cells), ("material", mesh.material),
+             ("lattice", mesh.lattice), ("spacing", mesh.spacing), ("origin", mesh.origin),
+             ("grid_shape", mesh.grid_shape)]
+    parts += [(f"point_data.{k}", mesh.point_data[k]) for k in sorted(mesh.point_data)]
+    parts += [(f"cell_data.{k}", mesh.cell_data[k]) for k in sorted(mesh.cell_data)]
+    return _digest(parts)
+
+
+def _without_seconds(value):
+    if isinstance(value, dict):
+        return {k: _without_seconds(v) for k, v in value.items() if k != "seconds"}
+    if isinstance(value, list):
+        return [_without_seconds(v) for v in value]
+    return value
+
+
+def _report_digest(report: dict) -> str:
+    text = json.dumps(_without_seconds(report), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _run(name: str) -> tuple[str, str, str]:
+    volume, options = CASES[name]
+    options = dict(options)
+    labels = _VOLUMES[volume]()
+    if options.pop("data", False):
+        mesh = voxel_mesh(labels, spacing=(0.5, 0.7, 1.2), origin=(-3.0, 2.0, 10.5))
+        rng = np.random.default_rng(7)
+        mesh.point_data["temperature"] = rng.standard_normal(mesh.n_points)
+        mesh.point_data["index"] = np.arange(mesh.n_points, dtype=np.int64)
+        mesh.cell_data["density"] = rng.standard_normal((mesh.n_cells, 2)).astype(np.float32)
+        mesh.cell_data["voxel"] = np.arange(mesh.n_cells, dtype=np.int32)
+    else:
+        mesh = voxel_mesh(labels)
+    out, report = merge_planes(mesh, **options)
+    return _digest([("labels", labels)]), _mesh_digest(out), _report_digest(report)
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_merge_is_byte_identical_to_the_recorded_output(name):
+    labels, mesh, report = _run(name)
+    expected = GOLDEN[name]
+    assert labels == expected[0], "the input volume changed (connectivity stage or phantom), not the merge"
+    assert mesh == expected[1], "the merged mesh changed"
+    assert report == expected[2], "the merge report changed"
+
+
+if __name__ == "__main__":  # print the table of recorded values
+    for case in CASES:
+        print(f'    "{case}": {_run(case)!r},')

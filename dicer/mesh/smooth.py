@@ -619,7 +619,7 @@ class _Smoothing:
     """What the steps of ``smooth_mesh`` share: the set-up, then the state of the guard loop.
 
     B boundary nodes (``bnodes``), M band nodes (``band_nodes``); positions in mm, float64.
-    ``k``, ``backed`` and the fields after ``pull`` change as the guard backs off.
+    ``k`` and the fields from ``backed`` on change as the solves and the guard run.
     """
 
     mesh: Mesh
@@ -632,7 +632,7 @@ class _Smoothing:
     degree: np.ndarray  # (B,) float64, R_n
     k: np.ndarray  # (B,) float64, the coefficient of each boundary node
     fixed: np.ndarray  # (B, 3) bool, coordinates held (bounding planes, 2D z)
-    share: np.ndarray | None  # (B,) the nodes' shares of the mirrored model (None: no mirror planes)
+    weight: np.ndarray | None  # (B,) the nodes' shares of the mirrored model, the CG weights (None: no mirrors)
     xb0: np.ndarray  # (B, 3) boundary positions before smoothing
     band_nodes: np.ndarray  # (M,) int64, interior nodes solved
     touched: np.ndarray  # sorted elements holding a boundary or band node: those the guard checks
@@ -785,7 +785,7 @@ def _set_up(mesh: Mesh, s: dict, surface, t0: float, t_img: float) -> _Smoothing
     on_plane = bounding_planes(mesh, x0[bnodes])
     fixed = _held_coordinates(mesh, s, on_plane)
     planes = g.planes if s["bounding_planes"] == "mirror" and g.planes.any() else None
-    share = None if planes is None else mirror_share(planes[bnodes])
+    weight = None if planes is None else mirror_share(planes[bnodes])
 
     t1 = time.perf_counter()
     band_nodes, touched, interior = _interior_band(mesh, s, g, slots, graded, x0, bnodes, planes)
@@ -800,7 +800,7 @@ def _set_up(mesh: Mesh, s: dict, surface, t0: float, t_img: float) -> _Smoothing
         sides = NodeSides(mesh, bnodes, g.boundary_cells, x0, on_plane, fixed, surface.thresholds)
         pull = _Pull(surface, sides, (k > 0).astype(float), np.zeros(bnodes.size, bool))
         timings["image"] = time.perf_counter() - t2 + t_img
-    return _Smoothing(mesh, s, x0, g, graded, bnodes, adj, degree, k, fixed, share, x0[bnodes], band_nodes,
+    return _Smoothing(mesh, s, x0, g, graded, bnodes, adj, degree, k, fixed, weight, x0[bnodes], band_nodes,
                       touched, interior, x0[band_nodes], checked, pull, timings, np.zeros(bnodes.size, bool))
 
 
@@ -816,7 +816,7 @@ def _boundary_solve(st: _Smoothing) -> np.ndarray:
         The boundary nodes' positions from the labels, mm.
     """
     tol = st.s["tolerance"]
-    system = _BoundarySystem(st.adj, st.degree, st.k, st.fixed, st.share)
+    system = _BoundarySystem(st.adj, st.degree, st.k, st.fixed, st.weight)
     d1, it = system.step(st.xb0, tol)
     st.it_b += it
     if not st.s["shrink_compensation"]:

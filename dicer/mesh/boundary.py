@@ -280,34 +280,26 @@ def _edge_counts_sorted(lo: np.ndarray, hi: np.ndarray, rank: np.ndarray, n: int
     return first.astype(lo.dtype), second.astype(hi.dtype), total, top
 
 
-def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarray | None = None,
-                   mirror: bool = False) -> BoundaryGraph:
-    """Boundary nodes, boundary edges, their counts and the node classes of ``mesh``.
+def _node_counts(mesh: Mesh, pts: np.ndarray, slots: np.ndarray | None, rank: np.ndarray, n_kinds: int,
+                 mirror: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The boundary nodes by their element counts (the first test of the module notes).
 
-    ``points`` (default ``mesh.points``) is the geometry used to tell B from D (and
-    corner from flat in 2D); pass the unsmoothed positions. ``slots`` (optional, same
-    result) is the (corners, N) table of the element in which each node is corner c (-1:
-    none) of a mesh in which a node is corner c of at most one element (lattice-aligned
-    elements, as made by 'dicer mesh'); with it no pass over all elements is needed.
-    ``mirror``: the bounding planes are mirrors (see the module docstring); ``degree``
-    and the classes are then those of the mirrored model, ``planes`` says which nodes
-    lie on which plane.
+    Returns
+    -------
+    boundary : (N,) bool
+        Nodes not shared by a full unit block of one material (nor inside a coarse cell).
+    maybe : (N,) bool
+        Plane nodes with a full block of one material, whose edges decide (see below).
+    planes : (N,) uint8
+        ``plane_bits`` with ``mirror``, else 0.
     """
-    _check(mesh)
-    n = mesh.n_points
-    cells = mesh.cells
-    per = cells.shape[1]
-    full = 8 if per == 8 else 4
-    edge_slots = 4 if per == 8 else 2
-    local = HEX_EDGES if per == 8 else QUAD_EDGES
-    pts = mesh.points if points is None else points
-
-    kinds, rank, _ = _kinds(mesh.material)
+    n, cells = mesh.n_points, mesh.cells
+    full = 8 if cells.shape[1] == 8 else 4
     if slots is None:
         cnt = np.bincount(cells.ravel(), minlength=n)
-        uniform = _uniform(cells, rank, n, kinds.size)
+        uniform = _uniform(cells, rank, n, n_kinds)
     else:
-        cnt, uniform = _slot_counts(slots, rank, kinds.size)
+        cnt, uniform = _slot_counts(slots, rank, n_kinds)
     planes = plane_bits(mesh, pts) if mirror else np.zeros(n, np.uint8)
     if planes.any():
         # a node on k mirror planes holds 2^k copies of each of its elements
@@ -324,29 +316,55 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
     # (a chamfer of a merged mesh meeting the plane at an angle leaves a gap in its fan):
     # its edges are examined too, and it is a boundary node if one is a boundary edge
     maybe = (planes != 0) & (cnt > 0) & ~boundary
-    del cnt, uniform
+    return boundary, maybe, planes
 
-    # the elements holding a boundary node, and their edges between two boundary nodes, with
-    # nodes numbered among the boundary nodes (p: that number, -1 for other nodes)
-    pre = np.flatnonzero(boundary | maybe)
+
+def _edges_of(sub: np.ndarray, ranks: np.ndarray, local: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(first, second, material rank) of the element edges of ``sub`` (elements' nodes in some
+    numbering, -1: a node left out) between two numbered nodes, first <= second."""
+    a, b = sub[:, local[:, 0]], sub[:, local[:, 1]]
+    keep = (a >= 0) & (b >= 0)
+    return np.minimum(a, b)[keep], np.maximum(a, b)[keep], np.broadcast_to(ranks[:, None], a.shape)[keep]
+
+
+def _element_edges(cells: np.ndarray, n: int, pre: np.ndarray, slots: np.ndarray | None, rank: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The edges between two of the nodes ``pre`` of the elements holding one of them.
+
+    Parameters
+    ----------
+    cells : (C, 8) or (C, 4) int
+    n : int
+        Number of nodes.
+    pre : (P,) int64, sorted
+        The candidate boundary nodes.
+    slots : (corners, N) int32 or None
+        The corner table (see ``boundary_graph``).
+    rank : (C,) int
+        Material rank of each element.
+
+    Returns
+    -------
+    lo, hi : (L,) int32 (int64 for 2^31 nodes or more)
+        Both ends of every such edge of every element, numbered among ``pre``, lo <= hi.
+    mat : (L,) int
+        The material rank of the element.
+    cand : sorted int64
+        The elements holding a node of ``pre``.
+    """
+    per = cells.shape[1]
+    local = HEX_EDGES if per == 8 else QUAD_EDGES
     idx = np.int32 if n < 2**31 else np.int64
     p = np.full(n, -1, idx)
     p[pre] = np.arange(pre.size, dtype=idx)
     parts = []  # per block of elements: (first, second, material rank) of its edges
-
-    def edges_of(sub, ranks):
-        a, b = sub[:, local[:, 0]], sub[:, local[:, 1]]
-        keep = (a >= 0) & (b >= 0)
-        return (np.minimum(a, b)[keep], np.maximum(a, b)[keep],
-                np.broadcast_to(ranks[:, None], a.shape)[keep])
-
     if slots is None:
         has = np.empty(cells.shape[0], bool)
         for start in range(0, cells.shape[0], _ROWS):
             sub = p[cells[start : start + _ROWS]]
             on = (sub >= 0).any(axis=1)
             has[start : start + _ROWS] = on
-            parts.append(edges_of(sub[on], rank[start : start + _ROWS][on]))
+            parts.append(_edges_of(sub[on], rank[start : start + _ROWS][on], local))
         cand = np.flatnonzero(has)
     else:
         has = np.zeros(cells.shape[0], bool)
@@ -356,15 +374,40 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
         cand = np.flatnonzero(has)
         for start in range(0, cand.size, _ROWS):
             part = cand[start : start + _ROWS]
-            parts.append(edges_of(p[cells[part]], rank[part]))
+            parts.append(_edges_of(p[cells[part]], rank[part], local))
     del p, has
     if not parts:
-        parts.append(edges_of(np.zeros((0, per), idx), np.zeros(0, rank.dtype)))
+        parts.append(_edges_of(np.zeros((0, per), idx), np.zeros(0, rank.dtype), local))
     lo, hi, mat = (np.concatenate(column) for column in zip(*parts))
-    del parts
-    count_edges = _edge_counts_packed if kinds.size <= _PACKED_KINDS else _edge_counts_sorted
-    e_lo, e_hi, total, top = count_edges(lo, hi, mat, pre.size, kinds.size)
-    del lo, hi, mat
+    return lo, hi, mat, cand
+
+
+@dataclass
+class _Edges:
+    """The boundary edges, with their ends numbered among the candidate nodes ``pre``.
+
+    nodes : (E, 2) int64, node pairs (first < second).
+    a, b : (E,) int, the first and second node's number among ``pre`` (later: among the boundary nodes).
+    biggest : (E,) int64, the most element slots of one kind (empty slots one kind) around the edge.
+    w_ab, w_ba : (E,) float64 or None, copies of b next to a and of a next to b (mirror planes only).
+    """
+
+    nodes: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    biggest: np.ndarray
+    w_ab: np.ndarray | None = None
+    w_ba: np.ndarray | None = None
+
+
+def _boundary_edges(lo: np.ndarray, hi: np.ndarray, mat: np.ndarray, pre: np.ndarray, planes: np.ndarray,
+                    n_kinds: int, edge_slots: int) -> _Edges:
+    """The boundary edges among the element edges ``lo``, ``hi`` (with material ranks ``mat``,
+    see ``_element_edges``): those without ``edge_slots`` elements of one material (4; 2D: 2),
+    counted in the mirrored model when ``planes`` (N,) uint8 has bits set."""
+    idx = np.int32 if planes.size < 2**31 else np.int64
+    count_edges = _edge_counts_packed if n_kinds <= _PACKED_KINDS else _edge_counts_sorted
+    e_lo, e_hi, total, top = count_edges(lo, hi, mat, pre.size, n_kinds)
     if planes.any():
         # an edge lying in k mirror planes has 2^k copies of each of its element slots
         shift = _POPCOUNT[planes[pre[e_lo]] & planes[pre[e_hi]]]
@@ -372,20 +415,35 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
     is_b = top < edge_slots
     biggest = np.maximum(top, edge_slots - total)  # empty slots are one more kind
     ea, eb = e_lo[is_b], e_hi[is_b].astype(idx)
-    biggest = biggest[is_b]
-    del e_lo, e_hi, total, top, is_b
-    edges = np.stack([pre[ea], pre[eb]], axis=1)
-
+    edges = _Edges(np.stack([pre[ea], pre[eb]], axis=1), ea, eb, biggest[is_b])
     if planes.any():
         # the copies of each neighbour in the mirrored model (w_ab: copies of b next to a)
-        w_ab = mirror_weights(planes[edges[:, 0]], planes[edges[:, 1]])
-        w_ba = mirror_weights(planes[edges[:, 1]], planes[edges[:, 0]])
-        deg = (np.bincount(ea, weights=w_ab, minlength=pre.size)
-               + np.bincount(eb, weights=w_ba, minlength=pre.size)).astype(np.int64)
+        edges.w_ab = mirror_weights(planes[edges.nodes[:, 0]], planes[edges.nodes[:, 1]])
+        edges.w_ba = mirror_weights(planes[edges.nodes[:, 1]], planes[edges.nodes[:, 0]])
+    return edges
+
+
+def _degrees(edges: _Edges, pre: np.ndarray, boundary: np.ndarray, maybe: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Boundary edges per node (R), and the boundary nodes made exactly the nodes on boundary edges.
+
+    ``boundary`` (N,) bool is updated in place, and ``edges.a``, ``edges.b`` renumbered among
+    the boundary nodes.
+
+    Returns
+    -------
+    degree : (N,) int64
+        R of every node (mirror copies counted).
+    deg : (B,) int64
+        R of the boundary nodes, in increasing node order.
+    """
+    ea, eb = edges.a, edges.b
+    if edges.w_ab is not None:
+        deg = (np.bincount(ea, weights=edges.w_ab, minlength=pre.size)
+               + np.bincount(eb, weights=edges.w_ba, minlength=pre.size)).astype(np.int64)
     else:
-        w_ab = w_ba = None
         deg = np.bincount(ea, minlength=pre.size) + np.bincount(eb, minlength=pre.size)
-    degree = np.zeros(n, np.int64)
+    degree = np.zeros(boundary.size, np.int64)
     degree[pre] = deg
     # boundary nodes are exactly the nodes on boundary edges (a node of a single-material
     # unit block with empty slots has them); keep the two definitions in step
@@ -395,36 +453,44 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
     if not on_edge.all():
         boundary[pre[~on_edge]] = False
         renumber = np.cumsum(on_edge, dtype=np.int64) - 1
-        ea, eb = renumber[ea], renumber[eb]
+        edges.a, edges.b = renumber[ea], renumber[eb]
         deg = deg[on_edge]
-    bn = np.flatnonzero(boundary)
+    return degree, deg
 
-    # unit vectors along the boundary edges, summed per node
-    d = pts[edges[:, 1]] - pts[edges[:, 0]]
+
+def _flat_nodes(pts: np.ndarray, edges: _Edges, bn: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    """(B,) bool: the unit vectors along a boundary node's boundary edges (mirror copies
+    included) nearly cancel (|sum| < 0.5); ``bn`` (B,) the boundary nodes, ``pts`` (N, 3) mm."""
+    ea, eb = edges.a, edges.b
+    d = pts[edges.nodes[:, 1]] - pts[edges.nodes[:, 0]]
     length = np.sqrt(np.einsum("ij,ij->i", d, d))
     if np.any(length <= 0):
         raise DicerError("the mesh has boundary edges of zero length; it is degenerate")
     u = d / length[:, None]
     usum = np.zeros((bn.size, 3))
     for c in range(3):
-        if w_ab is None:
+        if edges.w_ab is None:
             usum[:, c] = np.bincount(ea, weights=u[:, c], minlength=bn.size) - np.bincount(
                 eb, weights=u[:, c], minlength=bn.size)
         else:
-            usum[:, c] = np.bincount(ea, weights=w_ab * u[:, c], minlength=bn.size) - np.bincount(
-                eb, weights=w_ba * u[:, c], minlength=bn.size)
+            usum[:, c] = np.bincount(ea, weights=edges.w_ab * u[:, c], minlength=bn.size) - np.bincount(
+                eb, weights=edges.w_ba * u[:, c], minlength=bn.size)
     if planes.any():
         # the reflected copies cancel the components normal to the node's planes
         usum[plane_axes(planes[bn])] = 0.0
-    flat = np.einsum("ij,ij->i", usum, usum) < 0.25
+    return np.einsum("ij,ij->i", usum, usum) < 0.25
 
-    # classes of the boundary nodes
-    cb = np.full(bn.size, 7, np.int8)
+
+def _node_classes(per: int, deg: np.ndarray, flat: np.ndarray, edges: _Edges) -> np.ndarray:
+    """(B,) int8: the class codes of the boundary nodes (see NODE_CLASSES) from their
+    boundary-edge counts ``deg``, ``flat`` (``_flat_nodes``) and the edges' splits; ``per``:
+    nodes per element (8: hexahedra, 4: quads)."""
+    cb = np.full(deg.size, 7, np.int8)
     if per == 8:
-        split = np.zeros(bn.size, bool)  # some boundary edge split two/two
-        two = biggest <= 2
-        split[ea[two]] = True
-        split[eb[two]] = True
+        split = np.zeros(deg.size, bool)  # some boundary edge split two/two
+        two = edges.biggest <= 2
+        split[edges.a[two]] = True
+        split[edges.b[two]] = True
         cb[deg == 3] = 1
         cb[(deg == 4) & ~flat] = 2
         cb[deg == 5] = 3
@@ -434,11 +500,51 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
     else:
         cb[(deg == 2) & ~flat] = 2
         cb[(deg == 2) & flat] = 4
+    return cb
+
+
+def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarray | None = None,
+                   mirror: bool = False) -> BoundaryGraph:
+    """Boundary nodes, boundary edges, their counts and the node classes of ``mesh``.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Hexahedra or quads.
+    points : (N, 3) float64, optional
+        The geometry (mm) used to tell B from D (and corner from flat in 2D); default
+        ``mesh.points``. Pass the unsmoothed positions.
+    slots : (corners, N) int32, optional
+        The element in which each node is corner c (-1: none), for a mesh in which a node is
+        corner c of at most one element (lattice-aligned elements, as made by 'dicer mesh');
+        with it no pass over all elements is needed. Same result.
+    mirror : bool
+        The bounding planes are mirrors (see the module notes): ``degree`` and the classes
+        are those of the mirrored model, ``planes`` says which nodes lie on which plane.
+
+    Returns
+    -------
+    BoundaryGraph
+    """
+    _check(mesh)
+    n, cells = mesh.n_points, mesh.cells
+    per = cells.shape[1]
+    pts = mesh.points if points is None else points
+    kinds, rank, _ = _kinds(mesh.material)
+    boundary, maybe, planes = _node_counts(mesh, pts, slots, rank, kinds.size, mirror)
+    # the elements holding a candidate node, and their edges between two candidates
+    pre = np.flatnonzero(boundary | maybe)
+    lo, hi, mat, cand = _element_edges(cells, n, pre, slots, rank)
+    edges = _boundary_edges(lo, hi, mat, pre, planes, kinds.size, 4 if per == 8 else 2)
+    del lo, hi, mat
+    degree, deg = _degrees(edges, pre, boundary, maybe)
+    bn = np.flatnonzero(boundary)
+    flat = _flat_nodes(pts, edges, bn, planes)
     cls = np.zeros(n, np.int8)
-    cls[bn] = cb
+    cls[bn] = _node_classes(per, deg, flat, edges)
     if maybe.any():  # elements held only by plane nodes that turned out interior are not boundary cells
         cand = cand[boundary[cells[cand]].any(axis=1)]
-    return BoundaryGraph(boundary, edges, degree, cls, cand, planes)
+    return BoundaryGraph(boundary, edges.nodes, degree, cls, cand, planes)
 
 
 def classify_nodes(mesh: Mesh) -> np.ndarray:

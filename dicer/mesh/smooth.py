@@ -47,12 +47,13 @@ whatever the number of threads.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 
 from dicer.errors import DicerError
-from dicer.mesh.boundary import (NODE_CLASSES, boundary_graph, bounding_planes, class_counts,
+from dicer.mesh.boundary import (NODE_CLASSES, BoundaryGraph, boundary_graph, bounding_planes, class_counts,
                                  mirror_share, mirror_weights, plane_axes)
 from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes, hex_scaled_jacobian_t, hex_volumes_t, scaled_jacobian
 from dicer.mesh.model import LEVEL_DATA, Mesh
@@ -583,214 +584,421 @@ def _check_input(mesh: Mesh) -> None:
         raise DicerError("the mesh has non-finite node coordinates; remesh from the labels")
 
 
-def smooth_mesh(mesh: Mesh, config_section: dict | None = None, image=None, thresholds=None,
-                image_source: str = "image") -> tuple[Mesh, dict]:
-    """Smooth ``mesh`` (boundary solve per node class, interior Laplace, quality guard).
+@dataclass
+class _Pull:
+    """The pull of the boundary nodes onto the scan's iso-surfaces (``dicer.mesh.subvoxel``).
 
-    ``config_section`` is the ``smooth:`` config section (missing keys take DEFAULTS).
-    ``image`` (a ``dicer.image.Volume``, the scan the labels were segmented from) and
-    ``thresholds`` (the lower bound of each material 1..K in its units, as segmentation
-    chose them) move the boundary nodes onto the scan's iso-surfaces after the boundary
-    solve (``dicer.mesh.subvoxel``; ``smooth.surface_from_image``); without them the result
-    is the labels' alone. Returns the smoothed mesh (same topology, with point data
-    ``node_class``) and a report dict. Raises DicerError on bad settings, an empty mesh, a
-    mesh without lattice data, an image or thresholds that do not fit the mesh, or a mesh
-    the guard cannot bring above ``min_scaled_jacobian``.
+    Attributes
+    ----------
+    surface : ImageSurface
+    sides : NodeSides
+        The materials on either side of each boundary node.
+    share : (B,) float64
+        The share of its move onto the iso-surface a node makes (1, halved by the guard, 0).
+    backed : (B,) bool
+        Nodes whose pull the guard reduced.
+    rounds : int
+        Guard rounds that reduced the pull.
+    target : (B, 3) float64 or None
+        Positions on the iso-surfaces (mm) for the current boundary solve.
+    info : dict or None
+        ``project``'s report for the current boundary solve.
     """
-    s = smoothing_settings(config_section)
-    _check_input(mesh)
-    surface = None
-    if image is not None and s["surface_from_image"]:
-        from dicer.mesh.subvoxel import ImageSurface, check_thresholds_for_mesh
 
-        if thresholds is None:
-            raise DicerError(f"{image_source}: the thresholds segmentation chose are needed with the image")
-        t_img = time.perf_counter()
-        surface = ImageSurface(image, check_thresholds_for_mesh(thresholds, mesh, image_source), mesh,
-                               s["image_sigma"], image_source)
-        t_img = time.perf_counter() - t_img
+    surface: object
+    sides: object
+    share: np.ndarray
+    backed: np.ndarray
+    rounds: int = 0
+    target: np.ndarray | None = None
+    info: dict | None = None
+
+
+@dataclass
+class _Smoothing:
+    """What the steps of ``smooth_mesh`` share: the set-up, then the state of the guard loop.
+
+    B boundary nodes (``bnodes``), M band nodes (``band_nodes``); positions in mm, float64.
+    ``k`` and the fields from ``backed`` on change as the solves and the guard run.
+    """
+
+    mesh: Mesh
+    s: dict  # smoothing_settings
+    x0: np.ndarray  # (N, 3) positions before smoothing
+    g: BoundaryGraph
+    graded: bool
+    bnodes: np.ndarray  # (B,) int64, the boundary nodes in increasing order
+    adj: sp.csr_matrix  # (B, B) boundary graph, mirror copies as weights
+    degree: np.ndarray  # (B,) float64, R_n
+    k: np.ndarray  # (B,) float64, the coefficient of each boundary node
+    fixed: np.ndarray  # (B, 3) bool, coordinates held (bounding planes, 2D z)
+    weight: np.ndarray | None  # (B,) the nodes' shares of the mirrored model, the CG weights (None: no mirrors)
+    xb0: np.ndarray  # (B, 3) boundary positions before smoothing
+    band_nodes: np.ndarray  # (M,) int64, interior nodes solved
+    touched: np.ndarray  # sorted elements holding a boundary or band node: those the guard checks
+    interior: _Interior | None
+    x_band0: np.ndarray  # (M, 3) band positions before smoothing
+    checked: _Elements
+    pull: _Pull | None
+    timings: dict
+    backed: np.ndarray  # (B,) bool, nodes whose coefficient the guard reduced
+    bpos: np.ndarray | None = None  # (N,) a node's number among the boundary nodes (-1: none)
+    rounds: int = 0  # back-off rounds of the coefficients
+    x: np.ndarray | None = None  # (N, 3) current positions
+    xb: np.ndarray | None = None  # (B, 3) current boundary positions
+    x_band: np.ndarray | None = None  # (M, 3) current band positions
+    sj: np.ndarray | None = None  # scaled Jacobian of the checked elements
+    bad: np.ndarray | None = None  # the checked elements that fail the guard
+    it_b: int = 0  # conjugate-gradient iterations, boundary and interior
+    it_i: int = 0
+    t_solve: float = 0.0
+    t_guard: float = 0.0
+
+    def boundary_position(self) -> np.ndarray:
+        """(N,) int64: a node's number among the boundary nodes (-1: none), made once."""
+        if self.bpos is None:
+            self.bpos = np.full(self.mesh.n_points, -1, np.int64)
+            self.bpos[self.bnodes] = np.arange(self.bnodes.size)
+        return self.bpos
+
+
+# --- set-up: the scan's surfaces, node classes, coefficients, the interior band ----------------
+
+
+def _image_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str) -> tuple[object | None, float]:
+    """The scan's iso-surfaces for ``surface_from_image``.
+
+    Returns
+    -------
+    surface : ImageSurface or None
+        None without an image or with the setting off.
+    seconds : float
+        Time taken.
+    """
+    if image is None or not s["surface_from_image"]:
+        return None, 0.0
+    from dicer.mesh.subvoxel import ImageSurface, check_thresholds_for_mesh
+
+    if thresholds is None:
+        raise DicerError(f"{image_source}: the thresholds segmentation chose are needed with the image")
+    t = time.perf_counter()
+    surface = ImageSurface(image, check_thresholds_for_mesh(thresholds, mesh, image_source), mesh,
+                           s["image_sigma"], image_source)
+    return surface, time.perf_counter() - t
+
+
+def _classify(mesh: Mesh, s: dict, x0: np.ndarray, graded: bool
+              ) -> tuple[BoundaryGraph, np.ndarray | None, float, float]:
+    """Classify the nodes: the boundary graph and node classes (``boundary_graph``).
+
+    The corner table of a lattice mesh, which the interior solve needs, serves the
+    classification too (no pass over all elements there).
+
+    Returns
+    -------
+    g : BoundaryGraph
+        Of the mirrored model with ``bounding_planes: mirror``.
+    slots : (corners, N) int32 or None
+        The corner table (``_corner_slots``); None for a graded mesh or without the interior solve.
+    t_slots, t_classify : float
+        Seconds taken by the corner table and by the classification.
+    """
     t0 = time.perf_counter()
-    timings = {}
-    x0 = np.asarray(mesh.points, float)
     slots = slots_error = None
-    graded = _graded(mesh)
     if s["interior"] and not graded:
-        # the corner table serves the classification too (no pass over all elements there)
         try:
             slots = _corner_slots(mesh.cells, mesh.n_points)
         except DicerError as err:  # raised after the classification's own checks
             slots_error = err
     t_slots = time.perf_counter() - t0
-    mode = s["bounding_planes"]
-    g = boundary_graph(mesh, x0, slots, mirror=mode == "mirror")
+    g = boundary_graph(mesh, x0, slots, mirror=s["bounding_planes"] == "mirror")
     if slots_error is not None:
         raise slots_error
-    timings["classify"] = time.perf_counter() - t0 - t_slots
+    return g, slots, t_slots, time.perf_counter() - t0 - t_slots
 
-    bnodes = np.flatnonzero(g.boundary)
-    adj = g.adjacency(bnodes)
-    degree = g.degree[bnodes].astype(float)
-    cls = g.node_class[bnodes]
+
+def _coefficients(s: dict, node_class: np.ndarray) -> np.ndarray:
+    """(B,) float64: the coefficient k_n of each node's class (``node_class`` codes, (B,) int8);
+    irregular nodes (X) take the most cautious (smallest) one."""
     coef_by_code = np.zeros(len(NODE_CLASSES))
     for code, name in enumerate(NODE_CLASSES):
         if name in s["coefficients"]:
             coef_by_code[code] = s["coefficients"][name]
-    coef_by_code[7] = min(s["coefficients"].values())  # irregular nodes: the most cautious value
-    k = coef_by_code[cls]
-    on_plane = bounding_planes(mesh, x0[bnodes])
+    coef_by_code[7] = min(s["coefficients"].values())
+    return coef_by_code[node_class]
+
+
+def _held_coordinates(mesh: Mesh, s: dict, on_plane: np.ndarray) -> np.ndarray:
+    """(B, 3) bool: the coordinates the boundary solve holds, from ``bounding_planes`` and
+    ``on_plane`` ((B, 3) bool, ``bounding_planes``); z is held in 2D."""
+    mode = s["bounding_planes"]
     if mode == "fixed":
         fixed = np.repeat(on_plane.any(axis=1, keepdims=True), 3, axis=1)
     elif mode == "free" and not s["keep_bounding_planes"]:
-        fixed = np.zeros((bnodes.size, 3), bool)
+        fixed = np.zeros((on_plane.shape[0], 3), bool)
     else:  # mirror (symmetry keeps plane nodes in their planes) or free in the plane
         fixed = on_plane.copy()
     if mesh.dim == 2:
         fixed[:, 2] = True
-    planes = g.planes if mode == "mirror" and g.planes.any() else None
-    share = None if planes is None else mirror_share(planes[bnodes])
-    xb0 = x0[bnodes]
+    return fixed
+
+
+def _interior_band(mesh: Mesh, s: dict, g: BoundaryGraph, slots: np.ndarray | None, graded: bool,
+                   x0: np.ndarray, bnodes: np.ndarray, planes: np.ndarray | None
+                   ) -> tuple[np.ndarray, np.ndarray, _Interior | None]:
+    """The interior solve's band and system, and the elements the guard checks.
+
+    Returns
+    -------
+    band_nodes : (M,) int64
+        Interior nodes within ``interior_band`` layers (graded meshes: not template nodes).
+    touched : sorted int64
+        The elements holding a boundary or band node.
+    interior : _Interior, _InteriorGraph or None
+        None with ``interior: false``.
+    """
+    if not s["interior"]:
+        return np.zeros(0, np.int64), g.boundary_cells, None
+    band_nodes, touched = _band(mesh.cells, slots, g.boundary, g.boundary_cells, s["interior_band"])
+    if graded:
+        band_nodes = band_nodes[~_template_nodes(mesh, x0)[band_nodes]]
+        interior = _InteriorGraph(mesh.cells, band_nodes, g.boundary, bnodes, planes)
+    else:
+        interior = _Interior(mesh.cells, slots, band_nodes, g.boundary, bnodes, planes)
+    return band_nodes, touched, interior
+
+
+def _set_up(mesh: Mesh, s: dict, surface, t0: float, t_img: float) -> _Smoothing:
+    """Classify the nodes and assemble what both solves and the guard need.
+
+    ``surface``: the scan's iso-surfaces or None; ``t0``: the stage's start;
+    ``t_img``: seconds taken by the surfaces (both for the timings).
+    """
+    x0 = np.asarray(mesh.points, float)
+    graded = _graded(mesh)
+    g, slots, t_slots, t_classify = _classify(mesh, s, x0, graded)
+    timings = {"classify": t_classify}
+    bnodes = np.flatnonzero(g.boundary)
+    adj = g.adjacency(bnodes)
+    degree = g.degree[bnodes].astype(float)
+    k = _coefficients(s, g.node_class[bnodes])
+    on_plane = bounding_planes(mesh, x0[bnodes])
+    fixed = _held_coordinates(mesh, s, on_plane)
+    planes = g.planes if s["bounding_planes"] == "mirror" and g.planes.any() else None
+    weight = None if planes is None else mirror_share(planes[bnodes])
 
     t1 = time.perf_counter()
-    if s["interior"]:
-        band_nodes, touched = _band(mesh.cells, slots, g.boundary, g.boundary_cells, s["interior_band"])
-        if graded:
-            band_nodes = band_nodes[~_template_nodes(mesh, x0)[band_nodes]]
-            interior = _InteriorGraph(mesh.cells, band_nodes, g.boundary, bnodes, planes)
-        else:
-            interior = _Interior(mesh.cells, slots, band_nodes, g.boundary, bnodes, planes)
-        del slots
-    else:
-        band_nodes = np.zeros(0, np.int64)
-        touched = g.boundary_cells
-        interior = None
+    band_nodes, touched, interior = _interior_band(mesh, s, g, slots, graded, x0, bnodes, planes)
+    del slots
     checked = _Elements(mesh.cells, touched, mesh.n_points)
     timings["assemble"] = time.perf_counter() - t1 + t_slots
+    pull = None
     if surface is not None:
-        from dicer.mesh.subvoxel import NodeSides, project
+        from dicer.mesh.subvoxel import NodeSides
 
         t2 = time.perf_counter()
         sides = NodeSides(mesh, bnodes, g.boundary_cells, x0, on_plane, fixed, surface.thresholds)
-        pull = (k > 0).astype(float)  # the share of its move onto the iso-surface a node makes
-        backed_pull = np.zeros(bnodes.size, bool)
-        pull_rounds = 0
+        pull = _Pull(surface, sides, (k > 0).astype(float), np.zeros(bnodes.size, bool))
         timings["image"] = time.perf_counter() - t2 + t_img
-    del on_plane
+    return _Smoothing(mesh, s, x0, g, graded, bnodes, adj, degree, k, fixed, weight, x0[bnodes], band_nodes,
+                      touched, interior, x0[band_nodes], checked, pull, timings, np.zeros(bnodes.size, bool))
 
-    floor = float(s["min_scaled_jacobian"])
-    backed = np.zeros(bnodes.size, bool)
-    bpos = None  # a node's number among the boundary nodes, made for the first back-off
-    rounds = 0
-    x = None
-    x_band0 = x0[band_nodes]
-    t_solve = t_guard = 0.0
-    it_b = it_i = 0
+
+# --- the solves and the quality guard ---------------------------------------------------------
+
+
+def _boundary_solve(st: _Smoothing) -> np.ndarray:
+    """The boundary solve (Box 3) for the current coefficients, twiced with ``shrink_compensation``.
+
+    Returns
+    -------
+    xb : (B, 3) float64
+        The boundary nodes' positions from the labels, mm.
+    """
+    tol = st.s["tolerance"]
+    system = _BoundarySystem(st.adj, st.degree, st.k, st.fixed, st.weight)
+    d1, it = system.step(st.xb0, tol)
+    st.it_b += it
+    if not st.s["shrink_compensation"]:
+        return st.xb0 + d1
+    # twicing: x = (2S - S^2) x0 = x0 - (S(d1) - d1) with d1 = S(x0) - x0; the
+    # low-frequency part of the displacement (the shrinkage) is taken back
+    d2, it = system.step(d1, tol)
+    st.it_b += it
+    return st.xb0 - d2
+
+
+def _pull_onto_image(st: _Smoothing, xb_labels: np.ndarray) -> None:
+    """Targets on the scan's iso-surfaces (``dicer.mesh.subvoxel.project``) for the boundary
+    positions ``xb_labels`` (B, 3) mm; the guard backs this move off first."""
+    from dicer.mesh.subvoxel import project
+
+    st.pull.target, st.pull.info = project(st.pull.surface, st.pull.sides, st.adj, st.degree, st.x0, st.bnodes,
+                                           xb_labels, float(st.s["min_scaled_jacobian"]))
+
+
+def _interior_solve(st: _Smoothing, xb_labels: np.ndarray) -> None:
+    """Place the boundary nodes (the labels' positions ``xb_labels`` (B, 3) mm moved by their
+    share of the pull) and solve the interior band for them (paper 2.6): sets ``x``, ``xb``
+    and ``x_band``."""
+    xb = xb_labels
+    if st.pull is not None:
+        xb = xb_labels + st.pull.share[:, None] * (st.pull.target - xb_labels)
+    if st.x is None:
+        st.x = st.x0.copy()
+    st.x[st.bnodes] = st.xb = xb
+    if st.interior is not None and st.band_nodes.size:
+        u, it = st.interior.solve(xb - st.xb0, st.s["tolerance"])
+        st.it_i += it
+        st.x_band = st.x_band0 + u
+        st.x[st.band_nodes] = st.x_band
+
+
+def _check_quality(st: _Smoothing) -> None:
+    """The guard's test: sets ``sj`` and ``bad``, the checked elements below ``min_scaled_jacobian``
+    (or <= 0) except those already below it before smoothing that did not get worse."""
+    floor = float(st.s["min_scaled_jacobian"])
+    sj = st.checked.scaled_jacobian(st.x)
+    bad = (sj < floor) | (sj <= 0)
+    if bad.any():
+        # their value before smoothing is needed only here
+        which = np.flatnonzero(bad)
+        before = st.checked.scaled_jacobian(st.x0, which)
+        after = sj[which]
+        bad[which] = ~((before < floor) & (after >= before - 1e-12) & (before > 0))
+    st.sj, st.bad = sj, bad
+
+
+def _back_off_pull(st: _Smoothing) -> bool:
+    """Halve (then drop) the pull of the boundary nodes at the failing corners; the labels'
+    solution stays as it is. Returns False when no such node is pulled any more."""
+    floor = float(st.s["min_scaled_jacobian"])
+    bpos = st.boundary_position()
+    failing = st.mesh.cells[st.touched[st.bad]]
+    corner = corner_scaled_jacobians(st.x, failing)
+    pulled = bpos[failing[(corner < floor) | (corner <= 0)]]
+    pulled = np.unique(pulled[pulled >= 0])
+    share = st.pull.share
+    pulled = pulled[share[pulled] > 0]
+    if pulled.size == 0:
+        return False
+    share[pulled] *= 0.5
+    share[pulled[share[pulled] < 0.1]] = 0.0
+    st.pull.backed[pulled] = True
+    st.pull.rounds += 1
+    return True
+
+
+def _nodes_to_back_off(st: _Smoothing) -> np.ndarray:
+    """(S,) int64 boundary-node numbers: the failing elements' boundary nodes that still move
+    (k > 0, or pulled), widened to their neighbours (at most 4 times) when none does."""
+    cells = st.mesh.cells
+    bpos = st.boundary_position()
+    nodes = np.unique(cells[st.touched[st.bad]].ravel())
+    for _ in range(4):
+        sel = bpos[nodes]
+        sel = sel[(sel >= 0)]
+        sel = sel[(st.k[sel] > 0) | (st.pull.share[sel] > 0)] if st.pull is not None else sel[st.k[sel] > 0]
+        if sel.size:
+            break
+        mark = np.zeros(st.mesh.n_points, bool)
+        mark[nodes] = True
+        nodes = np.unique(cells[_touching(cells, mark)].ravel())
+    return sel
+
+
+def _back_off(st: _Smoothing) -> None:
+    """One back-off round: the failing elements' nodes lose their pull and their coefficient is
+    multiplied by ``backoff_factor`` (0 in the last rounds, and below 0.02)."""
+    s, k = st.s, st.k
+    last = st.rounds >= max(1, s["max_backoff_rounds"] - 2)
+    sel = _nodes_to_back_off(st)
+    if sel.size == 0:
+        st.rounds = s["max_backoff_rounds"]  # nothing left to back off: report on the next pass
+        return
+    if st.pull is not None:
+        st.pull.share[sel] = 0.0  # then the labels' smoothing backs off as without an image
+    k[sel] = 0.0 if last else k[sel] * s["backoff_factor"]
+    k[sel[k[sel] < 0.02]] = 0.0
+    st.backed[sel] = True
+
+
+def _guard_failure(st: _Smoothing) -> DicerError:
+    """The error naming the worst failing element, when the back-off rounds are used up."""
+    mesh, sj, bad = st.mesh, st.sj, st.bad
+    worst = int(np.argmin(np.where(bad, sj, np.inf)))
+    e = int(st.touched[worst])
+    centre = st.x[mesh.cells[e]].mean(axis=0)
+    return DicerError(
+        f"smoothing cannot keep element {e + 1} (material {int(mesh.material[e])}, centre "
+        f"{', '.join(f'{c:.2f}' for c in centre[: mesh.dim])} mm) at a scaled Jacobian of at least "
+        f"{float(st.s['min_scaled_jacobian']):g} (it reaches {sj[worst]:.3f}, {int(bad.sum())} element(s) fail); "
+        "lower smooth.coefficient or smooth.min_scaled_jacobian")
+
+
+def _solve_with_guard(st: _Smoothing) -> None:
+    """Both solves under the quality guard, with back-off rounds until no checked element fails.
+
+    A round first backs off the pull onto the image (up to ``_PULL_ROUNDS`` times for one
+    boundary solve), then the coefficients (``_back_off``) and solves again.
+
+    Raises
+    ------
+    DicerError
+        When elements still fail after ``max_backoff_rounds`` rounds.
+    """
     while True:
         ts = time.perf_counter()
-        system = _BoundarySystem(adj, degree, k, fixed, share)
-        d1, itb = system.step(xb0, s["tolerance"])
-        it_b += itb
-        if s["shrink_compensation"]:
-            # twicing: x = (2S - S^2) x0 = x0 - (S(d1) - d1) with d1 = S(x0) - x0; the
-            # low-frequency part of the displacement (the shrinkage) is taken back
-            d2, itb = system.step(d1, s["tolerance"])
-            it_b += itb
-            xb = xb0 - d2
-        else:
-            xb = xb0 + d1
-        del system
-        xb_labels = xb
-        if surface is not None:
-            # onto the scan's iso-surfaces (the guard backs this move off first, below)
-            yb, image_info = project(surface, sides, adj, degree, x0, bnodes, xb, floor)
-        pull_round = 0
-        while True:
-            if surface is not None:
-                xb = xb_labels + pull[:, None] * (yb - xb_labels)
-            if x is None:
-                x = x0.copy()
-            x[bnodes] = xb
-            if interior is not None and band_nodes.size:
-                u, iti = interior.solve(xb - xb0, s["tolerance"])
-                it_i += iti
-                x_band = x_band0 + u
-                x[band_nodes] = x_band
+        xb_labels = _boundary_solve(st)
+        if st.pull is not None:
+            _pull_onto_image(st, xb_labels)
+        for pull_round in range(_PULL_ROUNDS + 1):
+            _interior_solve(st, xb_labels)
             tg = time.perf_counter()
-            t_solve += tg - ts
-            sj = checked.scaled_jacobian(x)
-            bad = (sj < floor) | (sj <= 0)
-            if bad.any():
-                # elements that were already below the floor before smoothing only fail if they
-                # got worse (their value before is needed only here)
-                which = np.flatnonzero(bad)
-                before = checked.scaled_jacobian(x0, which)
-                after = sj[which]
-                bad[which] = ~((before < floor) & (after >= before - 1e-12) & (before > 0))
-            t_guard += time.perf_counter() - tg
+            st.t_solve += tg - ts
+            _check_quality(st)
             ts = time.perf_counter()
-            if surface is None or not bad.any() or pull_round >= _PULL_ROUNDS:
+            st.t_guard += ts - tg
+            if st.pull is None or not st.bad.any() or pull_round >= _PULL_ROUNDS or not _back_off_pull(st):
                 break
-            # the pull of the nodes at the failing corners gives way (halved, then dropped);
-            # the labels' solution stays as it is
-            if bpos is None:
-                bpos = np.full(mesh.n_points, -1, np.int64)
-                bpos[bnodes] = np.arange(bnodes.size)
-            failing = mesh.cells[touched[bad]]
-            corner = corner_scaled_jacobians(x, failing)
-            pulled = bpos[failing[(corner < floor) | (corner <= 0)]]
-            pulled = np.unique(pulled[pulled >= 0])
-            pulled = pulled[pull[pulled] > 0]
-            if pulled.size == 0:
-                break
-            pull[pulled] *= 0.5
-            pull[pulled[pull[pulled] < 0.1]] = 0.0
-            backed_pull[pulled] = True
-            pull_round += 1
-            pull_rounds += 1
-        if not bad.any():
-            break
-        if rounds >= s["max_backoff_rounds"]:
-            worst = int(np.argmin(np.where(bad, sj, np.inf)))
-            e = int(touched[worst])
-            centre = x[mesh.cells[e]].mean(axis=0)
-            raise DicerError(
-                f"smoothing cannot keep element {e + 1} (material {int(mesh.material[e])}, centre "
-                f"{', '.join(f'{c:.2f}' for c in centre[: mesh.dim])} mm) at a scaled Jacobian of at least "
-                f"{floor:g} (it reaches {sj[worst]:.3f}, {int(bad.sum())} element(s) fail); "
-                "lower smooth.coefficient or smooth.min_scaled_jacobian")
-        rounds += 1
-        last = rounds >= max(1, s["max_backoff_rounds"] - 2)
-        if bpos is None:
-            bpos = np.full(mesh.n_points, -1, np.int64)
-            bpos[bnodes] = np.arange(bnodes.size)
-        nodes = np.unique(mesh.cells[touched[bad]].ravel())
-        for _ in range(4):
-            sel = bpos[nodes]
-            sel = sel[(sel >= 0)]
-            sel = sel[(k[sel] > 0) | (pull[sel] > 0)] if surface is not None else sel[k[sel] > 0]
-            if sel.size:
-                break
-            mark = np.zeros(mesh.n_points, bool)
-            mark[nodes] = True
-            nodes = np.unique(mesh.cells[_touching(mesh.cells, mark)].ravel())
-        if sel.size == 0:
-            rounds = s["max_backoff_rounds"]  # nothing left to back off: report on the next pass
-            continue
-        if surface is not None:
-            pull[sel] = 0.0  # then the labels' smoothing backs off as without an image
-        k[sel] = 0.0 if last else k[sel] * s["backoff_factor"]
-        k[sel[k[sel] < 0.02]] = 0.0
-        backed[sel] = True
+        if not st.bad.any():
+            return
+        if st.rounds >= st.s["max_backoff_rounds"]:
+            raise _guard_failure(st)
+        st.rounds += 1
+        _back_off(st)
 
-    # the smoothed mesh shares the input's topology arrays (cells, material, lattice)
+
+# --- the result and the report ------------------------------------------------------------------
+
+
+def _smoothed_mesh(st: _Smoothing) -> Mesh:
+    """The smoothed mesh: the input's topology arrays (cells, material, lattice) shared, point
+    data ``node_class`` added."""
+    mesh = st.mesh
     point_data = dict(mesh.point_data)
-    point_data["node_class"] = g.node_class
-    out = Mesh(x, mesh.cells, mesh.material, mesh.lattice, mesh.spacing.copy(), mesh.origin.copy(),
-               mesh.grid_shape.copy(), point_data, dict(mesh.cell_data), list(mesh.names))
-    # the volume a mesh (and each material) encloses depends on its boundary nodes only:
-    # measure it on the elements holding a boundary node, with only those nodes moved
+    point_data["node_class"] = st.g.node_class
+    return Mesh(st.x, mesh.cells, mesh.material, mesh.lattice, mesh.spacing.copy(), mesh.origin.copy(),
+                mesh.grid_shape.copy(), point_data, dict(mesh.cell_data), list(mesh.names))
+
+
+def _volume_change(st: _Smoothing) -> tuple[np.ndarray, np.ndarray]:
+    """The volume change of the elements holding a boundary node, and each material's volume.
+
+    The volume a mesh (and each material) encloses depends on its boundary nodes only: it is
+    measured on those elements with only the boundary nodes moved.
+
+    Returns
+    -------
+    dv : (len(boundary_cells),) float64
+        Change of each element's volume, mm^3 (2D: area, mm^2).
+    base : (max material + 1,) float64
+        Each material's volume before smoothing, mm^3 (mm^2).
+    """
+    mesh, g, checked, x0 = st.mesh, st.g, st.checked, st.x0
     bc = g.boundary_cells
     if checked.hex:
-        local = checked.local[:, np.searchsorted(touched, bc)]  # bc is a subset of touched
+        local = checked.local[:, np.searchsorted(st.touched, bc)]  # bc is a subset of touched
         before = checked.columns(x0)
         on_boundary = g.boundary[checked.nodes]
         after = [np.where(on_boundary, c1, c0) for c1, c0 in zip(checked.last, before)]
@@ -798,41 +1006,94 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None, image=None, thre
         del local, before, after
     else:
         xb_only = x0.copy()
-        xb_only[bnodes] = x[bnodes]
+        xb_only[st.bnodes] = st.x[st.bnodes]
         dv = element_volumes(xb_only, mesh.cells[bc]) - element_volumes(x0, mesh.cells[bc])
         del xb_only
-    base = np.bincount(mesh.material, weights=element_volumes(x0, mesh.cells) if graded else _lattice_volumes(mesh))
-    change = np.bincount(mesh.material[bc], weights=dv, minlength=base.size)
+    base = np.bincount(mesh.material, weights=element_volumes(x0, mesh.cells) if st.graded else _lattice_volumes(mesh))
+    return dv, base
+
+
+def _pull_report(st: _Smoothing) -> dict:
+    """The ``surface_from_image`` part of the report (empty without the pull)."""
+    if st.pull is None:
+        return {}
+    p = st.pull
+    return {"surface_from_image": {**p.info, "image_sigma": st.s["image_sigma"], "pull_backoff_rounds": p.rounds,
+                                   "pull_backed_off_nodes": int(p.backed.sum()),
+                                   "nodes_on_the_image_surface": int(np.count_nonzero(p.share == 1.0))}}
+
+
+def _report(st: _Smoothing, t0: float) -> dict:
+    """The stage's report (see docs/smoothing.md); ``t0``: the stage's start, for the timings."""
+    mesh, g, s, sj = st.mesh, st.g, st.s, st.sj
+    dv, base = _volume_change(st)
+    change = np.bincount(mesh.material[g.boundary_cells], weights=dv, minlength=base.size)
     volume_change = {str(kind): float(change[kind] / base[kind]) for kind in np.flatnonzero(base)}
-    bdisp = np.linalg.norm(xb - xb0, axis=1)
-    idisp = np.linalg.norm(x_band - x_band0, axis=1) if band_nodes.size else np.zeros(0)
+    bdisp = np.linalg.norm(st.xb - st.xb0, axis=1)
+    idisp = np.linalg.norm(st.x_band - st.x_band0, axis=1) if st.band_nodes.size else np.zeros(0)
     max_disp = max(float(bdisp.max()) if bdisp.size else 0.0, float(idisp.max()) if idisp.size else 0.0)
-    report = {
+    return {
         "nodes": mesh.n_points,
         "elements": mesh.n_cells,
-        "boundary_nodes": int(bnodes.size),
+        "boundary_nodes": int(st.bnodes.size),
         "boundary_edges": int(g.edges.shape[0]),
         "node_classes": class_counts(g.node_class),
         "coefficients": dict(s["coefficients"]),
-        "interior_nodes_solved": int(band_nodes.size),
+        "interior_nodes_solved": int(st.band_nodes.size),
         "interior_band": s["interior_band"],
-        "bounding_planes": mode,
-        "boundary_iterations": int(it_b),
-        "interior_iterations": int(it_i),
-        "backoff_rounds": rounds,
-        "backed_off_nodes": int(backed.sum()),
+        "bounding_planes": s["bounding_planes"],
+        "boundary_iterations": int(st.it_b),
+        "interior_iterations": int(st.it_i),
+        "backoff_rounds": st.rounds,
+        "backed_off_nodes": int(st.backed.sum()),
         "min_scaled_jacobian": float(sj.min()) if sj.size else 1.0,
-        "checked_elements": int(touched.size),
+        "checked_elements": int(st.touched.size),
         "inverted_elements": int(np.count_nonzero(sj <= 0)),
         "volume_change": float(dv.sum() / base.sum()),
         "volume_change_by_material": volume_change,
         "max_displacement_mm": max_disp,
         "mean_boundary_displacement_mm": float(bdisp.mean()) if bdisp.size else 0.0,
-        **({"surface_from_image": {**image_info, "image_sigma": s["image_sigma"], "pull_backoff_rounds": pull_rounds,
-                                   "pull_backed_off_nodes": int(backed_pull.sum()),
-                                   "nodes_on_the_image_surface": int(np.count_nonzero(pull == 1.0))}}
-           if surface is not None else {}),
-        "seconds": {**{k_: round(v, 3) for k_, v in timings.items()}, "solve": round(t_solve, 3),
-                    "guard": round(t_guard, 3), "total": round(time.perf_counter() - t0, 3)},
+        **_pull_report(st),
+        "seconds": {**{k_: round(v, 3) for k_, v in st.timings.items()}, "solve": round(st.t_solve, 3),
+                    "guard": round(st.t_guard, 3), "total": round(time.perf_counter() - t0, 3)},
     }
-    return out, report
+
+
+def smooth_mesh(mesh: Mesh, config_section: dict | None = None, image=None, thresholds=None,
+                image_source: str = "image") -> tuple[Mesh, dict]:
+    """Smooth ``mesh``: node classes, boundary solve, pull onto the image, interior solve, guard.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        A mesh made by 'dicer mesh' (voxel, plane-merged or graded), with ``lattice`` point data.
+    config_section : dict, optional
+        The ``smooth:`` config section (missing keys take DEFAULTS).
+    image : dicer.image.Volume, optional
+        The scan the labels were segmented from; with ``surface_from_image`` the boundary nodes
+        move onto its iso-surfaces after the boundary solve (``dicer.mesh.subvoxel``).
+    thresholds : sequence of float, optional
+        The lower bound of each material 1..K in the image's units, as segmentation chose them.
+    image_source : str
+        The image's name in messages.
+
+    Returns
+    -------
+    mesh : Mesh
+        Same topology, smoothed positions (mm), point data ``node_class`` (N,) int8.
+    report : dict
+        Counts, iterations, back-off, quality, volume change, displacements, seconds.
+
+    Raises
+    ------
+    DicerError
+        Bad settings, an empty mesh, a mesh without lattice data, an image or thresholds that
+        do not fit the mesh, or a mesh the guard cannot bring above ``min_scaled_jacobian``.
+    """
+    s = smoothing_settings(config_section)
+    _check_input(mesh)
+    surface, t_img = _image_surface(mesh, s, image, thresholds, image_source)
+    t0 = time.perf_counter()
+    st = _set_up(mesh, s, surface, t0, t_img)
+    _solve_with_guard(st)
+    return _smoothed_mesh(st), _report(st, t0)

@@ -8,6 +8,8 @@ holds ``v < t_1`` (and NaN).
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from skimage.filters import threshold_multiotsu, threshold_otsu
 
@@ -316,6 +318,86 @@ def _plateau_centre(values: np.ndarray) -> int:
     return first + (run - 1) // 2
 
 
+def _candidate_bins(ranges: list[tuple[float, float]], bins: int, whole: bool
+                    ) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:
+    """The candidate thresholds of each class and the bin edges they make.
+
+    Returns
+    -------
+    cands : list of K 1D float64 arrays
+        Each class's candidates (``candidate_edges``), image units.
+    cand_idx : list of K 1D int arrays
+        Each candidate's place in ``edges``: a threshold at ``edges[j]`` starts bin j + 1.
+    edges : 1D float64 array
+        All candidates, sorted and distinct (the bin edges).
+    """
+    cands = candidate_edges(ranges, bins, whole)
+    edges, inverse = np.unique(np.concatenate(cands), return_inverse=True)
+    offsets = np.cumsum([0] + [len(c) for c in cands])
+    cand_idx = [inverse[offsets[i]:offsets[i + 1]] for i in range(len(cands))]
+    return cands, cand_idx, edges
+
+
+def _bin_starts(cand_idx: list[np.ndarray], choice: list[int], nbins: int) -> list[int]:
+    """The first bin of classes 0..K for the chosen candidates, and ``nbins`` at the end."""
+    return [0] + [int(cand_idx[i][choice[i]]) + 1 for i in range(len(cand_idx))] + [nbins]
+
+
+def _coordinate_search(blocks: _Blocks, cand_idx: list[np.ndarray], nbins: int, max_sweeps: int
+                       ) -> tuple[list[int], int]:
+    """Maximise J one threshold at a time from the middle of each range (see
+    ``shape_connectivity_thresholds``).
+
+    Returns
+    -------
+    choice : list of K int
+        The chosen candidate of each class (index into its candidates).
+    sweeps : int
+        Sweeps made (the last one moved nothing, unless ``max_sweeps`` ran out).
+    """
+    k = len(cand_idx)
+    choice = [len(c) // 2 for c in cand_idx]
+    sweeps = 0
+    for sweeps in range(1, max_sweeps + 1):
+        moved = False
+        for c in range(k):
+            s = _bin_starts(cand_idx, choice, nbins)
+            j = cand_idx[c] + 1  # candidate bin starts of class c + 1 (label c + 1)
+            j = np.clip(j, s[c], s[c + 2])  # stay between the neighbouring thresholds
+            values = blocks.solidity(s[c], j) + blocks.solidity(j, s[c + 2])
+            best = _plateau_centre(values)
+            if best != choice[c]:
+                choice[c] = best
+                moved = True
+        if not moved:
+            break
+    return choice, sweeps
+
+
+def _criterion_curves(blocks: _Blocks, cands: list[np.ndarray], cand_idx: list[np.ndarray], choice: list[int],
+                      names: list[str], nbins: int) -> tuple[float, dict]:
+    """J at the chosen thresholds, and J along each class's candidates with the others there.
+
+    Returns
+    -------
+    total : float
+        J at the result (at most K + 1).
+    curves : dict
+        Per class name: ``{"thresholds": [...], "values": [...]}`` (rounded to 4 and 6 digits).
+    """
+    k = len(names)
+    s = _bin_starts(cand_idx, choice, nbins)
+    total = float(sum(blocks.solidity(s[c], s[c + 1]) for c in range(k + 1)))
+    curves = {}
+    for c in range(k):
+        j = np.clip(cand_idx[c] + 1, s[c], s[c + 2])
+        rest = total - float(blocks.solidity(s[c], s[c + 1]) + blocks.solidity(s[c + 1], s[c + 2]))
+        values = blocks.solidity(s[c], j) + blocks.solidity(j, s[c + 2]) + rest
+        curves[names[c]] = {"thresholds": [round(float(x), 4) for x in cands[c]],
+                            "values": [round(float(x), 6) for x in values]}
+    return total, curves
+
+
 def shape_connectivity_thresholds(array: np.ndarray, ranges, names: list[str], source: str,
                                   bins: int = 128, max_sweeps: int = 20) -> tuple[list[float], dict]:
     """Class thresholds by Lie's shape-connectivity criterion on face-neighbour co-occurrences.
@@ -367,54 +449,20 @@ def shape_connectivity_thresholds(array: np.ndarray, ranges, names: list[str], s
         J along that class's candidates with the other thresholds at their final
         values; ``criterion_max`` (J at the result); ``sweeps``; ``bins``; ``seconds``.
     """
-    import time
-
     t0 = time.perf_counter()
     k = len(names)
     lo, hi = value_range(array)
     checked = check_ranges(ranges, k, names, lo, hi, source)
     whole = whole_valued(array)
-    cands = candidate_edges(checked, int(bins), whole)
-    edges, inverse = np.unique(np.concatenate(cands), return_inverse=True)
-    # position of each range's candidates in ``edges``; threshold at edges[j] starts bin j + 1
-    offsets = np.cumsum([0] + [len(c) for c in cands])
-    cand_idx = [inverse[offsets[i]:offsets[i + 1]] for i in range(k)]
+    cands, cand_idx, edges = _candidate_bins(checked, int(bins), whole)
     nbins = edges.size + 1
     binned = bin_image(array, edges, whole)
     t_bin = time.perf_counter()
     blocks = _Blocks(cooccurrence(binned, nbins))
     del binned
     t_cooc = time.perf_counter()
-
-    choice = [len(c) // 2 for c in cand_idx]  # index into each class's candidates
-
-    def starts():
-        return [0] + [int(cand_idx[i][choice[i]]) + 1 for i in range(k)] + [nbins]
-
-    sweeps = 0
-    for sweeps in range(1, max_sweeps + 1):
-        moved = False
-        for c in range(k):
-            s = starts()
-            j = cand_idx[c] + 1  # candidate bin starts of class c + 1 (label c + 1)
-            j = np.clip(j, s[c], s[c + 2])  # stay between the neighbouring thresholds
-            values = blocks.solidity(s[c], j) + blocks.solidity(j, s[c + 2])
-            best = _plateau_centre(values)
-            if best != choice[c]:
-                choice[c] = best
-                moved = True
-        if not moved:
-            break
-
-    s = starts()
-    total = float(sum(blocks.solidity(s[c], s[c + 1]) for c in range(k + 1)))
-    curves = {}
-    for c in range(k):
-        j = np.clip(cand_idx[c] + 1, s[c], s[c + 2])
-        rest = total - float(blocks.solidity(s[c], s[c + 1]) + blocks.solidity(s[c + 1], s[c + 2]))
-        values = blocks.solidity(s[c], j) + blocks.solidity(j, s[c + 2]) + rest
-        curves[names[c]] = {"thresholds": [round(float(x), 4) for x in cands[c]],
-                            "values": [round(float(x), 6) for x in values]}
+    choice, sweeps = _coordinate_search(blocks, cand_idx, nbins, max_sweeps)
+    total, curves = _criterion_curves(blocks, cands, cand_idx, choice, names, nbins)
     thresholds = [float(cands[c][choice[c]]) for c in range(k)]
     search = {
         "ranges": [[a, b] for a, b in checked],

@@ -1,0 +1,307 @@
+"""Golden outputs of smoothing, boundary classification and shape-connectivity thresholds.
+
+Every case hashes (SHA-256) the output arrays and the report (timings left out) and
+compares them with the values recorded from the code as it stood before these functions
+were reorganised: a refactoring must keep them byte for byte. The input meshes are hashed
+too, so a change in meshing, merging or coarsening shows as such and not as a smoothing
+change. To record new values after an intended change of results:
+``python tests/test_smooth_golden.py`` prints the table.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from dicer.connectivity import fix_connectivity
+from dicer.errors import DicerError
+from dicer.image import Volume
+from dicer.mesh.boundary import boundary_graph
+from dicer.mesh.coarsen import coarsen_mesh
+from dicer.mesh.merge import merge_mesh
+from dicer.mesh.smooth import _corner_slots, smooth_mesh
+from dicer.mesh.voxel import voxel_mesh
+from dicer.segment.thresholds import shape_connectivity_thresholds
+
+
+def sha(*parts) -> str:
+    """SHA-256 (first 16 hex digits) of arrays (dtype, shape and bytes) and JSON-able values."""
+    h = hashlib.sha256()
+    for p in parts:
+        if isinstance(p, np.ndarray):
+            a = np.ascontiguousarray(p)
+            h.update(f"{a.dtype.str}{a.shape}".encode())
+            h.update(a.tobytes())
+        else:
+            h.update(json.dumps(p, sort_keys=True).encode())
+    return h.hexdigest()[:16]
+
+
+def without_seconds(report: dict) -> dict:
+    return {k: without_seconds(v) if isinstance(v, dict) else v for k, v in report.items() if k != "seconds"}
+
+
+# --- inputs -------------------------------------------------------------------------------
+
+
+def shells(n, dim, layers, centre=None):
+    """n^dim labels of shells (r_in, r_out, material) about ``centre`` (default: the image centre)."""
+    c = np.full(dim, n / 2) if centre is None else np.asarray(centre, float)
+    g = [np.arange(n) + 0.5 - c[a] for a in range(dim)]
+    r = np.sqrt(sum(x**2 for x in np.meshgrid(*g, indexing="ij")))
+    lab = np.zeros((n,) * dim, np.uint8)
+    for lo, hi, mat in layers:
+        lab[(r >= lo) & (r < hi)] = mat
+    return fix_connectivity(lab)[0]
+
+
+BALL = [(0, 5.7, 2), (5.7, 10.3, 1)]
+OFF = (12.31, 11.77, 12.13)  # off the lattice
+
+
+def ct_image(n, dim, radius, centre, supersample=4, blur=0.6, noise=30.0, seed=0):
+    """A CT-like ball (0 / 1000 HU): partial volume, blur and noise (as in test_smooth_image)."""
+    g = (np.arange(n * supersample) + 0.5) / supersample
+    grids = np.meshgrid(*([g] * dim), indexing="ij", sparse=True)
+    inside = sum((grid - c) ** 2 for grid, c in zip(grids, centre[:dim])) < radius**2
+    frac = inside.reshape(sum(((n, supersample) for _ in range(dim)), ())).mean(axis=tuple(range(1, 2 * dim, 2)))
+    image = ndimage.gaussian_filter(1000.0 * frac, blur)
+    image += np.random.default_rng(seed).normal(0.0, noise, image.shape)
+    return image.astype(np.float32)
+
+
+_MESHES = {}
+
+
+def mesh_of(name):
+    """The input meshes, made once."""
+    if name in _MESHES:
+        return _MESHES[name]
+    if name == "ball":
+        m = voxel_mesh(shells(24, 3, BALL, OFF))
+    elif name == "big":  # more elements than one block of the blocked passes (65536)
+        m = voxel_mesh(shells(56, 3, [(0, 12.1, 2), (12.1, 26.2, 1)], (28.3, 27.8, 28.1)))
+    elif name == "cut":  # the ball beyond two mid planes: nodes on bounding planes
+        m = voxel_mesh(shells(28, 3, [(5.2, 8.1, 2), (8.1, 12.3, 1)])[14:, 14:, :])
+    elif name == "disc":
+        m = voxel_mesh(shells(40, 2, [(7.3, 11.2, 1), (11.2, 15.6, 2)], (20.3, 19.6)))
+    elif name == "quarter_disc":
+        m = voxel_mesh(shells(40, 2, [(7.3, 11.2, 1), (11.2, 15.6, 2)])[20:, 20:])
+    elif name == "merged":
+        m = merge_mesh(mesh_of("ball"), {})[0]
+    elif name == "graded":
+        m = coarsen_mesh(voxel_mesh(shells(30, 3, [(0, 6.2, 2), (6.2, 13.1, 1)], (15.2, 14.9, 15.1))), levels=1)[0]
+    elif name == "graded_2d":
+        m = coarsen_mesh(voxel_mesh(shells(60, 2, [(0, 12.2, 2), (12.2, 27.1, 1)], (30.2, 29.7))), levels=2)[0]
+    elif name == "stripes":  # 24 materials: the sorted edge count of boundary_graph
+        lab = np.zeros((26, 10, 8), np.uint8)
+        lab[1:25, 1:9, 1:7] = np.arange(1, 25, dtype=np.uint8)[:, None, None]
+        m = voxel_mesh(lab)
+    elif name in ("ct3", "ct2"):
+        dim = 3 if name == "ct3" else 2
+        image = ct_image(28, dim, 9.3, np.array([14.31, 13.77, 14.13]))
+        m = voxel_mesh(fix_connectivity((image >= 500).astype(np.uint8))[0])
+        _MESHES[name + "_image"] = Volume(image, (1.0,) * dim)
+    else:
+        raise KeyError(name)
+    _MESHES[name] = m
+    return m
+
+
+def mesh_hash(m) -> str:
+    return sha(np.asarray(m.points), np.asarray(m.cells), np.asarray(m.material), np.asarray(m.lattice),
+               *(np.asarray(m.cell_data[k]) for k in sorted(m.cell_data)))
+
+
+# --- cases --------------------------------------------------------------------------------
+
+SMOOTH_CASES = {
+    "ball": ("ball", {}),
+    "ball_no_twicing": ("ball", {"shrink_compensation": False}),
+    "ball_band_all": ("ball", {"interior_band": 0}),
+    "ball_no_interior": ("ball", {"interior": False}),
+    "ball_backoff": ("ball", {"coefficient": 0.97, "min_scaled_jacobian": 0.55}),
+    "ball_fails": ("ball", {"coefficient": 0.97, "min_scaled_jacobian": 0.9, "max_backoff_rounds": 0}),
+    "big": ("big", {}),
+    "big_backoff": ("big", {"interior_band": 1, "coefficient": 0.95}),
+    "cut_mirror": ("cut", {}),
+    "cut_fixed": ("cut", {"bounding_planes": "fixed"}),
+    "cut_free": ("cut", {"bounding_planes": "free"}),
+    "cut_free_loose": ("cut", {"bounding_planes": "free", "keep_bounding_planes": False}),
+    "disc": ("disc", {}),
+    "disc_backoff": ("disc", {"coefficient": 0.95, "min_scaled_jacobian": 0.5}),
+    "quarter_disc_mirror": ("quarter_disc", {}),
+    "quarter_disc_free": ("quarter_disc", {"bounding_planes": "free", "keep_bounding_planes": False}),
+    "merged": ("merged", {}),
+    "graded": ("graded", {}),
+    "graded_2d": ("graded_2d", {}),
+    "stripes": ("stripes", {"coefficient": 0.5}),
+    "ct3_image": ("ct3", {"surface_from_image": True}),
+    "ct3_image_pull_backoff": ("ct3", {"surface_from_image": True, "min_scaled_jacobian": 0.6, "coefficient": 0.9}),
+    "ct2_image": ("ct2", {"surface_from_image": True, "image_sigma": 0.0}),
+    "ct3_image_off": ("ct3", {}),
+}
+
+GRAPH_CASES = {
+    "ball": ("ball", False, False),
+    "ball_slots": ("ball", False, True),
+    "big": ("big", False, False),
+    "big_slots": ("big", False, True),
+    "cut": ("cut", False, False),
+    "cut_mirror": ("cut", True, False),
+    "cut_mirror_slots": ("cut", True, True),
+    "disc": ("disc", False, False),
+    "quarter_disc_mirror": ("quarter_disc", True, True),
+    "merged": ("merged", False, False),
+    "graded": ("graded", False, False),
+    "graded_2d_mirror": ("graded_2d", True, False),
+    "stripes": ("stripes", False, False),
+    "stripes_slots": ("stripes", False, True),
+}
+
+
+def smooth_digest(name):
+    mesh_name, settings = SMOOTH_CASES[name]
+    m = mesh_of(mesh_name)
+    kwargs = {}
+    if settings.get("surface_from_image") or mesh_name.startswith("ct"):
+        kwargs = {"image": _MESHES[mesh_name + "_image"], "thresholds": [500.0]}
+    try:
+        out, report = smooth_mesh(m, settings, **kwargs)
+    except DicerError as err:
+        return f"error {sha(str(err))}"
+    assert out.cells is m.cells
+    pull = report.get("surface_from_image", {}).get("pull_backoff_rounds", "-")
+    # points, node classes, report; back-off rounds of the coefficients and of the pull onto the image
+    return (f"{sha(np.asarray(out.points))} {sha(np.asarray(out.point_data['node_class']))} "
+            f"{sha(without_seconds(report))} {report['backoff_rounds']} {pull}")
+
+
+def graph_digest(name):
+    mesh_name, mirror, with_slots = GRAPH_CASES[name]
+    m = mesh_of(mesh_name)
+    slots = _corner_slots(m.cells, m.n_points) if with_slots else None
+    g = boundary_graph(m, np.asarray(m.points, float), slots, mirror=mirror)
+    adj = g.adjacency()
+    return sha(g.boundary, g.edges, g.degree, g.node_class, g.boundary_cells,
+               np.zeros(0) if g.planes is None else g.planes, adj.indptr, adj.indices, adj.data)
+
+
+def thresholds_digest(name):
+    rng = np.random.default_rng(3)
+    if name == "two_classes_3d":
+        n = 24
+        g = np.indices((n, n, n), dtype=np.float32) - (n - 1) / 2
+        r = np.sqrt((g**2).sum(0))
+        truth = (r <= 0.4 * n).astype(np.uint8) + ((r >= 0.25 * n) & (r <= 0.32 * n))
+        image = np.choose(truth, [-1000.0, 40.0, 1200.0]).astype(np.float32)
+        image += rng.normal(0, 150, image.shape).astype(np.float32)
+        args = ([[-700, -100], [300, 700]], ["soft", "bone"], "h")
+        kw = {"bins": 40}
+    elif name == "one_class_2d_int":
+        image = np.zeros((50, 40), np.int16)
+        image[10:40, 8:30] = 100
+        image += rng.integers(-20, 21, image.shape).astype(np.int16)
+        args = ([[10, 90]], ["solid"], "x")
+        kw = {"bins": 80}
+    else:
+        raise KeyError(name)
+    t, search = shape_connectivity_thresholds(image, *args, **kw)
+    return sha(t, without_seconds(search))
+
+
+GOLDEN_MESHES = {
+    "ball": "8fd9d950b79efe9f",
+    "big": "77b2e70b7ffcc9ed",
+    "cut": "e67e92e81c1763b0",
+    "disc": "957d96c5d9a45595",
+    "quarter_disc": "c851a6f5cab05668",
+    "merged": "f9df40c7913e5919",
+    "graded": "3538996e99c2d2b7",
+    "graded_2d": "511a3e76e5494413",
+    "stripes": "f5329d263d39ad35",
+    "ct3": "358ce31d63eb41d8",
+    "ct2": "4ba3fae3e2465595",
+}
+
+GOLDEN_SMOOTH = {
+    "ball": "ba013ac9a35f2ac0 1f5beaadf21a4d22 f215aed5abb1a541 0 -",
+    "ball_no_twicing": "0ebb937afd4c5cd1 1f5beaadf21a4d22 f82f2b0bec2345ce 1 -",
+    "ball_band_all": "ba013ac9a35f2ac0 1f5beaadf21a4d22 5dcd3ed9a0cca004 0 -",
+    "ball_no_interior": "1bd270f1fa946a2a 1f5beaadf21a4d22 ee2f2dd7876cfa05 0 -",
+    "ball_backoff": "300219d9806a2e75 1f5beaadf21a4d22 53fe173b2f22aa42 1 -",
+    "ball_fails": "error 4a57fe7468bf1ccd",
+    "big": "a3f77058c45fb173 dfcb085dfe5c9e11 bf306b6d11e9f0db 0 -",
+    "big_backoff": "7b5253bcd8c31ebe dfcb085dfe5c9e11 d36d58aabaf34446 8 -",
+    "cut_mirror": "f8a79d81a8fdc2e3 56e6b73b7f51e9c6 4e5571237ad78499 0 -",
+    "cut_fixed": "89c7c42e1e8f3d15 cdda0fbc3db934c1 eabbbe0a5e70df4f 0 -",
+    "cut_free": "e64d65794fc658ea cdda0fbc3db934c1 6fbe53f3bd1058a2 0 -",
+    "cut_free_loose": "9d4fb47a1f8f1f10 cdda0fbc3db934c1 3461443dc13d2ee1 0 -",
+    "disc": "6847b138b3368875 643e5e7302c863fb 35f786ebba6721aa 1 -",
+    "disc_backoff": "f6c6e3a4b72b0995 643e5e7302c863fb e27322067158518b 1 -",
+    "quarter_disc_mirror": "0ff6464d518a41fd 38bd4ad4a81d2134 de91fc3dce2ef699 1 -",
+    "quarter_disc_free": "aed86cb0aea72009 decf66e1f33d044e 24f776de02a722ae 1 -",
+    "merged": "a530d6398fe70d62 67b2f02161168701 4b19a571f1a81e60 0 -",
+    "graded": "124454a70e2f60a8 156f82b159a44490 9c5c73c74f5f112a 0 -",
+    "graded_2d": "87f381c418360458 8bfaf44b8d705e50 d2b4e01333818d5e 1 -",
+    "stripes": "cfe39d74484ce0d9 efe7c648830f56d4 0b63c4462ba68759 0 -",
+    "ct3_image": "41117c15eefeb097 93a92adc8d68ce10 dbdae1631308fef3 0 2",
+    "ct3_image_pull_backoff": "2ba2540c06e2ae2e 93a92adc8d68ce10 514eab9617e0318a 2 10",
+    "ct2_image": "215315215ef72de5 77d80cb3dfef2a0c 86ca2cb74cb94235 0 3",
+    "ct3_image_off": "5a5c7c82f3759ea5 93a92adc8d68ce10 c7cb80870a7f9182 0 -",
+}
+
+GOLDEN_GRAPH = {
+    "ball": "65841e788d56c2e9",
+    "ball_slots": "65841e788d56c2e9",
+    "big": "f07fb9cae78f25e1",
+    "big_slots": "f07fb9cae78f25e1",
+    "cut": "9c43a14a6648d019",
+    "cut_mirror": "57f012809d45b79e",
+    "cut_mirror_slots": "57f012809d45b79e",
+    "disc": "24591140dc74127f",
+    "quarter_disc_mirror": "0905e550b678df48",
+    "merged": "e1903be9ca217825",
+    "graded": "d136e2040fe735fb",
+    "graded_2d_mirror": "3abea61a96562f32",
+    "stripes": "a7538c24434a370c",
+    "stripes_slots": "a7538c24434a370c",
+}
+
+GOLDEN_THRESHOLDS = {
+    "two_classes_3d": "a2b3d60b2a4873e3",
+    "one_class_2d_int": "c74589329ce580f0",
+}
+
+
+@pytest.mark.parametrize("name", sorted(GOLDEN_MESHES))
+def test_inputs_are_the_recorded_meshes(name):
+    assert mesh_hash(mesh_of(name)) == GOLDEN_MESHES[name], "the input mesh changed (meshing, merge or coarsening)"
+
+
+@pytest.mark.parametrize("name", sorted(SMOOTH_CASES))
+def test_smoothing_is_byte_identical(name):
+    assert smooth_digest(name) == GOLDEN_SMOOTH[name]
+
+
+@pytest.mark.parametrize("name", sorted(GRAPH_CASES))
+def test_boundary_graph_is_byte_identical(name):
+    assert graph_digest(name) == GOLDEN_GRAPH[name]
+
+
+@pytest.mark.parametrize("name", ["two_classes_3d", "one_class_2d_int"])
+def test_shape_connectivity_thresholds_are_byte_identical(name):
+    assert thresholds_digest(name) == GOLDEN_THRESHOLDS[name]
+
+
+if __name__ == "__main__":  # print the tables of recorded values
+    import pprint
+
+    pprint.pprint({n: mesh_hash(mesh_of(n)) for n in GOLDEN_MESHES}, sort_dicts=False)
+    pprint.pprint({n: smooth_digest(n) for n in SMOOTH_CASES}, sort_dicts=False, width=140)
+    pprint.pprint({n: graph_digest(n) for n in GRAPH_CASES}, sort_dicts=False)
+    pprint.pprint({n: thresholds_digest(n) for n in ("two_classes_3d", "one_class_2d_int")}, sort_dicts=False)

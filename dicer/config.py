@@ -76,6 +76,22 @@ def _fill(value, node: dict):
     return value
 
 
+def section_defaults(section: str) -> dict:
+    """The defaults of one config section, from the schema (its only source).
+
+    Parameters
+    ----------
+    section : str
+        A top-level key of the config, e.g. ``"smooth"``.
+
+    Returns
+    -------
+    dict
+        Every key of the section that has a default, at that default (a fresh copy).
+    """
+    return _defaults(_schema()["properties"][section])
+
+
 def default_config() -> dict:
     """Every key at its schema default."""
     return _fill({}, schema())

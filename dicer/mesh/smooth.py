@@ -52,6 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from dicer.config import section_defaults
 from dicer.errors import DicerError
 from dicer.mesh.boundary import (NODE_CLASSES, BoundaryGraph, boundary_graph, bounding_planes, class_counts,
                                  mirror_share, mirror_weights, plane_axes)
@@ -61,21 +62,8 @@ from dicer.mesh.topology import HEX_CORNERS, HEX_EDGES, QUAD_CORNERS, QUAD_EDGES
 
 __all__ = ["DEFAULTS", "smooth_mesh", "smoothing_settings"]
 
-DEFAULTS = {
-    "coefficient": None,
-    "coefficients": {"A": 0.85, "B": 0.85, "C": 0.9, "D": 0.95, "E": 0.9, "F": 0.9},
-    "bounding_planes": "mirror",
-    "keep_bounding_planes": True,
-    "interior": True,
-    "shrink_compensation": True,
-    "interior_band": 3,
-    "min_scaled_jacobian": 0.2,
-    "backoff_factor": 0.5,
-    "max_backoff_rounds": 8,
-    "tolerance": 1e-4,
-    "surface_from_image": False,
-    "image_sigma": 0.5,
-}
+DEFAULTS = section_defaults("smooth")
+"""The ``smooth:`` section's defaults, as the config schema gives them."""
 _CLASS_LETTERS = ("A", "B", "C", "D", "E", "F")
 _PULL_ROUNDS = 5  # guard rounds per solve that back off the pull onto the image's surface
 _PLANE_MODES = ("mirror", "fixed", "free")

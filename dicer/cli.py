@@ -21,6 +21,7 @@ from pathlib import Path
 
 from dicer import __version__
 from dicer.errors import DicerError
+from dicer.io.atomic import all_or_nothing
 
 log = logging.getLogger("dicer")
 
@@ -464,7 +465,7 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
                original_path: str | None = None, histogram: Path | None = None, model_picture: Path | None = None,
                node_classes: Path | None = None, mesh=None):
     from dicer.config import material_names
-    from dicer.io.atomic import write_bytes_atomic
+    from dicer.io.atomic import pending, write_bytes_atomic
     from dicer.io.meshes import read_mesh
     from dicer.quality import quality_report, render_html
 
@@ -490,7 +491,7 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
         for path in stage_reports:
             try:
                 stages[Path(path).name.split(".")[0]] = json.loads(Path(path).read_text())
-            except (OSError, json.JSONDecodeError) as exc:
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
                 raise DicerError(f"{path}: cannot read the stage report ({exc}); rerun that stage") from None
         if stages:
             report["stages"] = stages
@@ -501,7 +502,7 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
             shown = []
             for path in list(pictures) + figures:
                 try:
-                    shown.append((_PICTURE_CAPTIONS.get(Path(path).name, Path(path).name), Path(path).read_bytes()))
+                    shown.append((_PICTURE_CAPTIONS.get(Path(path).name, Path(path).name), pending(path).read_bytes()))
                 except OSError as exc:
                     raise DicerError(f"{path}: cannot read the picture ({exc.strerror}); give an existing PNG "
                                      "with --picture") from None
@@ -822,6 +823,8 @@ def _keep_failed(staging: Path, failed: Path) -> bool:
     """Move a failed run's staging folder to ``failed`` (replacing an older one); False if
     it held no file."""
     with contextlib.suppress(OSError):
+        for tmp in staging.glob(".*.*.*.tmp*"):  # a write the failure cut short
+            tmp.unlink()
         if not any(staging.iterdir()):
             staging.rmdir()
             return False
@@ -1009,7 +1012,10 @@ def main(argv: list[str] | None = None) -> int:
         else None
     try:
         _check_paths(args)
-        args.func(args)
+        # a command's several outputs replace the old files together, or none does
+        # ('run' publishes its folder itself: its stages read each other's files)
+        with contextlib.nullcontext() if args.command == "run" else all_or_nothing():
+            args.func(args)
     except Terminated:
         print("error: terminated (SIGTERM, e.g. a cluster time limit); no output of the unfinished step was kept",
               file=sys.stderr)

@@ -31,7 +31,7 @@ import SimpleITK as sitk
 
 from dicer.errors import DicerError
 from dicer.image import MAX_LABEL, Volume
-from dicer.io.atomic import atomic_path
+from dicer.io.atomic import atomic_path, captured_stderr, disk_full
 
 log = logging.getLogger(__name__)
 
@@ -886,14 +886,18 @@ def _write(image: sitk.Image, path: Path, compress: bool) -> None:
         writer.SetFileName(str(tmp))
         writer.SetUseCompression(compress)
         try:
-            with _quiet_itk():
+            # the NIfTI and MetaImage writers print a short write straight to stderr
+            with _quiet_itk(), captured_stderr() as printed:
                 writer.Execute(image)
                 # ITK only warns when a write comes up short (a full disk): read the file
                 # back and compare it with what was to be written
                 back = sitk.ReadImage(str(tmp))
         except RuntimeError as exc:
-            raise DicerError(f"{path}: cannot write the image ({_itk_message(exc)}); check the disk space "
-                             "and the output folder") from None
+            if disk_full(tmp.parent) or "wrote only" in "".join(printed) or "No space" in str(exc):
+                raise DicerError(f"{path}: the disk is full (the image could not be written completely); free "
+                                 "space or write elsewhere, nothing was written") from None
+            raise DicerError(f"{path}: cannot write the image ({_itk_message(exc).replace(str(tmp), str(path))}); "
+                             "check the disk space and the output folder") from None
         # NIfTI keeps spacing and origin in single precision
         same = (back.GetSize() == image.GetSize()
                 and np.allclose(back.GetSpacing(), image.GetSpacing(), rtol=1e-6, atol=0)

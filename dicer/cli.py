@@ -477,6 +477,14 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
 
             labels = read_labels(labels_path) if labels_path else None
             original = read_labels(original_path) if original_path else None
+            if labels is not None:
+                # voxel counts of another grid would compare the mesh with another volume
+                shape = tuple(labels.array.shape) + (1,) * (3 - labels.array.ndim)
+                grid = tuple(int(n) for n in mesh.grid_shape)
+                if shape != grid:
+                    raise DicerError(f"{labels_path}: the labels have {'x'.join(map(str, shape))} voxels but the mesh "
+                                     f"was made from {'x'.join(map(str, grid))}; give the label volume the mesh was "
+                                     "made from with --labels (the original segmentation goes to --original)")
         # every element metric once: the report's, the figures' and the CSV's with skew
         from dicer.mesh.metrics import element_metrics
         from dicer.quality import REPORT_METRICS, element_neighbours

@@ -502,7 +502,32 @@ def _read_file(path: Path, spacing_arg, dtype=np.float32, keep_direction=False) 
                       dtype=dtype, keep_direction=keep_direction)
 
 
+def _check_npy_size(path: Path) -> None:
+    """Compare the .npy header's shape x item size with the bytes the file holds, before
+    numpy allocates what the header promises (a damaged header can ask for terabytes)."""
+    try:
+        with open(path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            read = {(1, 0): np.lib.format.read_array_header_1_0,
+                    (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+            if read is None:
+                return  # a newer format: numpy's own reader judges it
+            shape, _, dtype = read(f)
+            start = f.tell()
+    except (ValueError, OSError, EOFError, SyntaxError) as exc:
+        raise DicerError(f"{path}: cannot read the .npy array ({exc}); save it again with numpy.save") from None
+    if dtype.hasobject:
+        return  # refused below (not a numeric array)
+    need = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    have = path.stat().st_size - start
+    if have != need:
+        raise DicerError(f"{path}: the .npy header promises {'x'.join(map(str, shape))} elements of "
+                         f"{dtype.itemsize} byte(s) = {need:,} bytes but the file holds {have:,}; the file is "
+                         "truncated or damaged: save it again with numpy.save")
+
+
 def _read_npy(path: Path, spacing_arg, dtype) -> Volume:
+    _check_npy_size(path)
     try:
         array = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:

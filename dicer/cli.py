@@ -753,7 +753,7 @@ def cmd_run(args):
                          "not both and not neither")
     config = _config(args)
     outdir = Path(args.output)
-    if outdir.exists() and not outdir.is_dir():
+    if (outdir.exists() or outdir.is_symlink()) and not outdir.is_dir():
         raise DicerError(f"{outdir}: exists and is not a folder; give an output folder with -o")
     if not args.skip_memory_check:
         _check_memory(args.labels if args.image is None else args.image, config)
@@ -823,7 +823,12 @@ def cmd_run(args):
             message = str(exc).replace(str(staging), str(failed)) if kept else str(exc)
             raise DicerError(f"{message} (dicer run stopped at the {stage} stage{where})") from None
         raise
-    _publish(staging, outdir)
+    try:
+        _publish(staging, outdir)
+    except OSError as exc:
+        kept = _keep_failed(staging, failed)
+        raise DicerError(f"{outdir}: cannot move the results into the folder ({exc.strerror}); "
+                         + (f"they are in {failed}" if kept else "check the output folder")) from None
     log.info("run: finished in %.1f s; model in %s", time.perf_counter() - t0, outdir / "model.inp")
 
 
@@ -875,8 +880,15 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("-q", "--quiet", action="store_true", help="log warnings and errors only")
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage errors in the command's one error line too (exit status 2, as argparse's)."""
+
+    def error(self, message):
+        self.exit(2, f"error: {self.prog}: {message}; see '{self.prog} --help'\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="dicer",
         description="All-hexahedral finite-element models from CT/MR scans (DICER method).",
         epilog="Each stage reads one file and writes one; 'dicer run' chains them. See README.md.",
@@ -1019,7 +1031,11 @@ def main(argv: list[str] | None = None) -> int:
     previous = signal.signal(signal.SIGTERM, _terminate) if threading.current_thread() is threading.main_thread() \
         else None
     try:
-        _check_paths(args)
+        try:
+            _check_paths(args)
+        except OSError as exc:  # a path the system refuses to look at (too long, a loop of links)
+            raise DicerError(f"{exc.filename}: cannot use this path ({exc.strerror}); give a shorter or "
+                             "another path") from None
         # a command's several outputs replace the old files together, or none does
         # ('run' publishes its folder itself: its stages read each other's files)
         with contextlib.nullcontext() if args.command == "run" else all_or_nothing():

@@ -11,10 +11,9 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
-import signal
+import secrets
 import sys
 import tempfile
-import threading
 from pathlib import Path
 
 from dicer.errors import DicerError
@@ -130,15 +129,19 @@ def all_or_nothing():
         _pending, _made = None, []
 
 
-def _hold_signals():
-    if threading.current_thread() is not threading.main_thread():
-        return None
-    return signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM, signal.SIGINT})
-
-
-def _release_signals(held) -> None:
-    if held is not None:
-        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+def _new_temporary(path: Path, parent: Path, names: list) -> Path:
+    """Create an empty temporary file for ``path`` in ``parent``; its name goes into
+    ``names`` before the file exists, so a SIGTERM arriving at any moment (its handler runs
+    between any two steps) finds it to delete."""
+    for _ in range(100):
+        tmp = parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp{_suffixes(path)}"
+        names.append(tmp)
+        try:
+            os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+            return tmp
+        except FileExistsError:
+            names.pop()
+    raise FileExistsError(errno.EEXIST, "no free temporary file name", str(parent))
 
 
 @contextlib.contextmanager
@@ -152,24 +155,17 @@ def atomic_path(path: str | os.PathLike):
     """
     path = Path(path)
     parent = path.parent if str(path.parent) else Path(".")
-    made = []
-    # SIGTERM/SIGINT wait while the temporary file is made and named here, so that the
-    # cleanup below always knows it (they arrive as soon as the mask is restored)
-    held = _hold_signals()
+    made: list[Path] = []
+    names: list[Path] = []  # the temporary file, named before it is made
     try:
-        made = _missing_folders(parent)
-        parent.mkdir(parents=True, exist_ok=True)
-        remove_stale_temporaries(path)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=f".tmp{_suffixes(path)}",
-                                   dir=parent)
-        os.close(fd)
-    except OSError as exc:
-        _remove_folders(made)
-        _release_signals(held)
-        raise DicerError(f"{path}: cannot write to folder {parent} ({exc.strerror}); choose a writable output path") from None
-    tmp = Path(tmp)
-    try:
-        _release_signals(held)
+        try:
+            made.extend(_missing_folders(parent))
+            parent.mkdir(parents=True, exist_ok=True)
+            remove_stale_temporaries(path)
+            tmp = _new_temporary(path, parent, names)
+        except OSError as exc:
+            raise DicerError(f"{path}: cannot write to folder {parent} ({exc.strerror}); choose a writable "
+                             "output path") from None
         try:
             yield tmp
             os.chmod(tmp, 0o644)
@@ -186,8 +182,9 @@ def atomic_path(path: str | os.PathLike):
             raise DicerError(f"{path}: cannot write the file there ({exc.strerror}); give the path of a file "
                              "that can be replaced") from None
     except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
+        for tmp in names:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
         _remove_folders(made)
         raise
 

@@ -401,7 +401,7 @@ for label, command, out_name, extra in WRITERS:
         case("1-full-disk", f"{label}: disk full, a good earlier file to keep",
              _bind(_full_disk, command, out_name, extra, good_file=True), "disk", needs="mount")
 for label, command, out_name, extra in WRITERS:
-    if command in ("mesh", "merge", "smooth", "export", "surface") or label in ("quality --html", "quality --csv"):
+    if command in ("mesh", "merge", "smooth", "export", "surface") or label == "quality --csv":
         case("1-full-disk", f"{label}: disk nearly full (8 KiB free)",
              _bind(_full_disk, command, out_name, extra, free=8192, good_file=True), "disk", needs="mount")
 case("1-full-disk", "run: disk nearly full (64 KiB free)", _bind(_full_disk, "run", "out", [], free=65536),
@@ -1089,6 +1089,7 @@ def run_case(case: Case, base: Path, workdir: Path, timeout: float = 300.0) -> O
         t0 = time.monotonic()
         with open(t.parent / f"{t.name}.err", "w+") as err, open(t.parent / f"{t.name}.out", "w+") as out:
             proc = subprocess.Popen(cmd, cwd=t, env=env, stdout=out, stderr=err)
+            sent = False
             if case.signal_at:
                 pattern, signum = case.signal_at
                 deadline = time.monotonic() + timeout
@@ -1096,6 +1097,7 @@ def run_case(case: Case, base: Path, workdir: Path, timeout: float = 300.0) -> O
                     time.sleep(0.002)
                 if proc.returncode is None:
                     proc.send_signal(signum)
+                    sent = True
             if proc.returncode is None:
                 usage = _wait(proc, timeout)
             else:
@@ -1109,6 +1111,9 @@ def run_case(case: Case, base: Path, workdir: Path, timeout: float = 300.0) -> O
         result = Outcome(case, "pass", [], proc.returncode, stderr, seconds,
                          (usage.ru_maxrss / 1024) if usage else 0.0)
         judge(case, result, before, after, stdout, t)
+        if case.signal_at and not sent:
+            result.reasons.insert(0, "not exercised: the process ended before the signal")
+            result.status = "fail"
         return result
     finally:
         ctx.close()
@@ -1209,7 +1214,15 @@ def run_all(cases: list[Case], jobs: int = 2, verbose: bool = False, workdir: Pa
             main(["mesh", str(base / "big_ones.npy"), "-o", str(base / "big_mesh.vtu"), "-q"])
         results = []
         with ThreadPoolExecutor(jobs) as pool:
-            for outcome in pool.map(lambda c: run_case(c, base, workdir), cases):
+            def one(c):
+                outcome = run_case(c, base, workdir)
+                for _ in range(2):  # a signal case whose process outran the signal runs again
+                    if not (outcome.reasons and outcome.reasons[0].startswith("not exercised")):
+                        break
+                    outcome = run_case(c, base, workdir)
+                return outcome
+
+            for outcome in pool.map(one, cases):
                 results.append(outcome)
                 if verbose or outcome.status == "fail":
                     last = outcome.stderr.strip().splitlines()[-1:] or [""]

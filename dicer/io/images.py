@@ -929,6 +929,9 @@ def _write(image: sitk.Image, path: Path, compress: bool) -> None:
                 and np.allclose(back.GetOrigin(), image.GetOrigin(), rtol=1e-6, atol=1e-6)
                 and _same_values(sitk.GetArrayViewFromImage(back), sitk.GetArrayViewFromImage(image)))
         if not same:
+            if disk_full(tmp.parent) or "wrote only" in "".join(printed):
+                raise DicerError(f"{path}: the disk is full (the image could not be written completely); free "
+                                 "space or write elsewhere, nothing was written")
             raise DicerError(f"{path}: the written file does not hold the image (a full disk?); check the disk "
                              "space and write again, nothing was written")
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from dicer import __version__
 from dicer.errors import DicerError
-from dicer.io.atomic import all_or_nothing
+from dicer.io.atomic import all_or_nothing, check_stop, stop_requested
 
 log = logging.getLogger("dicer")
 
@@ -777,6 +777,7 @@ def cmd_run(args):
 
     def step(name: str) -> None:
         nonlocal stage
+        check_stop()
         stage = name
 
     try:
@@ -824,6 +825,11 @@ def cmd_run(args):
             raise DicerError(f"{message} (dicer run stopped at the {stage} stage{where})") from None
         raise
     try:
+        try:
+            check_stop()
+        except BaseException:
+            _keep_failed(staging, failed)
+            raise
         _publish(staging, outdir)
     except OSError as exc:
         kept = _keep_failed(staging, failed)
@@ -1040,6 +1046,7 @@ def main(argv: list[str] | None = None) -> int:
         # ('run' publishes its folder itself: its stages read each other's files)
         with contextlib.nullcontext() if args.command == "run" else all_or_nothing():
             args.func(args)
+        check_stop()
     except Terminated:
         print("error: terminated (SIGTERM, e.g. a cluster time limit); no output of the unfinished step was kept",
               file=sys.stderr)
@@ -1054,6 +1061,7 @@ def main(argv: list[str] | None = None) -> int:
         print("error: out of memory; downsample the labels (downsample.factor) or use a larger machine", file=sys.stderr)
         return 2
     finally:
+        stop_requested.clear()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
     return 0
@@ -1064,6 +1072,9 @@ class Terminated(BaseException):
 
 
 def _terminate(signum, frame):
+    from dicer.io import atomic
+
+    atomic.stop_requested.append(Terminated)  # raised again before any rename if this one is lost
     raise Terminated()
 
 

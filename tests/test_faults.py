@@ -211,3 +211,17 @@ def test_all_or_nothing_removes_the_folders_it_made(tmp_path):
         write_bytes_atomic(tmp_path / "new" / "a.json", "{}")
         assert not (tmp_path / "new" / "a.json").exists()  # renamed at the end of the block
     assert (tmp_path / "new" / "a.json").read_text() == "{}"
+
+
+def test_a_sigterm_whose_exception_was_lost_still_stops_before_any_rename(tmp_path, capsys):
+    """CPython can drop the exception a signal handler raises inside C code (a module being
+    compiled on import); the handler's note makes the next rename raise it again."""
+    from dicer.cli import Terminated, main
+    from dicer.io import atomic
+
+    labels = tmp_path / "labels.npy"
+    np.save(labels, np.ones((6, 6, 6), np.uint8))
+    atomic.stop_requested.append(Terminated)  # as _terminate leaves it when its raise is lost
+    assert main(["mesh", str(labels), "-o", str(tmp_path / "m.vtu"), "-q"]) == 143
+    assert "terminated (SIGTERM" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy"] and atomic.stop_requested == []

@@ -65,6 +65,18 @@ def _os_error(path: Path, exc: OSError) -> DicerError:
                       "and the disk, nothing was written")
 
 
+#: the exception of a stop signal (SIGTERM) once its handler ran: CPython can lose the
+#: exception a signal handler raises inside some C code (while it compiles a module being
+#: imported, for one), so it is raised again before any file replaces its target
+stop_requested: list[type[BaseException]] = []
+
+
+def check_stop() -> None:
+    """Raise the stop signal's exception if one arrived (see stop_requested)."""
+    if stop_requested:
+        raise stop_requested[0]()
+
+
 #: the writes of the open all_or_nothing() block: (temporary file, target), renamed at its end
 _pending: list[tuple[Path, Path]] | None = None
 #: folders made for those writes, removed again when the block fails
@@ -111,6 +123,7 @@ def all_or_nothing():
     _pending, _made = [], []
     try:
         yield
+        check_stop()
         items, _pending = _pending, None
         for tmp, path in items:
             try:
@@ -176,6 +189,7 @@ def atomic_path(path: str | os.PathLike):
             _pending.append((tmp, path))
             _made.extend(made)
             return
+        check_stop()
         try:
             os.replace(tmp, path)
         except OSError as exc:  # e.g. a folder of that name: say so instead of a traceback

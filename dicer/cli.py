@@ -1034,8 +1034,9 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.WARNING if getattr(args, "quiet", False) else logging.INFO,
         format="%(name)s %(message)s", stream=sys.stderr,
     )
-    previous = signal.signal(signal.SIGTERM, _terminate) if threading.current_thread() is threading.main_thread() \
-        else None
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
+    previous_int = signal.signal(signal.SIGINT, _interrupt) if main_thread else None
     try:
         try:
             _check_paths(args)
@@ -1064,11 +1065,20 @@ def main(argv: list[str] | None = None) -> int:
         stop_requested.clear()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if previous_int is not None:
+            signal.signal(signal.SIGINT, previous_int)
     return 0
 
 
 class Terminated(BaseException):
     """SIGTERM arrived: unwinds like KeyboardInterrupt, so every temporary file is removed."""
+
+
+def _interrupt(signum, frame):
+    from dicer.io import atomic
+
+    atomic.stop_requested.append(KeyboardInterrupt)  # as for SIGTERM: raised again if this one is lost
+    raise KeyboardInterrupt()
 
 
 def _terminate(signum, frame):

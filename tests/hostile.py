@@ -1081,9 +1081,7 @@ def run_case(case: Case, base: Path, workdir: Path, timeout: float = 300.0) -> O
         if case.mode == "snakemake":
             cmd = [PYTHON, "-m", "snakemake", *argv]
         else:
-            cmd = [PYTHON, "-m", "dicer", *argv] + ([] if case.name.startswith("phantom: --size") else []) + ["-q"]
-            if argv and argv[0] == "cohort":
-                pass
+            cmd = [PYTHON, "-m", "dicer", *argv, "-q"]
         env = dict(os.environ, PYTHONPATH=str(ROOT))
         env["PATH"] = os.path.dirname(PYTHON) + os.pathsep + env.get("PATH", "")
         t0 = time.monotonic()
@@ -1098,10 +1096,7 @@ def run_case(case: Case, base: Path, workdir: Path, timeout: float = 300.0) -> O
                 if proc.returncode is None:
                     proc.send_signal(signum)
                     sent = True
-            if proc.returncode is None:
-                usage = _wait(proc, timeout)
-            else:
-                usage = resource_usage = None  # noqa: F841
+            usage = _wait(proc, timeout) if proc.returncode is None else None
             err.seek(0)
             stderr = err.read()
             out.seek(0)

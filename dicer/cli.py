@@ -21,6 +21,7 @@ from pathlib import Path
 
 from dicer import __version__
 from dicer.errors import DicerError
+from dicer.io.atomic import all_or_nothing, check_stop, stop_requested
 
 log = logging.getLogger("dicer")
 
@@ -464,7 +465,7 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
                original_path: str | None = None, histogram: Path | None = None, model_picture: Path | None = None,
                node_classes: Path | None = None, mesh=None):
     from dicer.config import material_names
-    from dicer.io.atomic import write_bytes_atomic
+    from dicer.io.atomic import pending, write_bytes_atomic
     from dicer.io.meshes import read_mesh
     from dicer.quality import quality_report, render_html
 
@@ -476,6 +477,14 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
 
             labels = read_labels(labels_path) if labels_path else None
             original = read_labels(original_path) if original_path else None
+            if labels is not None:
+                # voxel counts of another grid would compare the mesh with another volume
+                shape = tuple(labels.array.shape) + (1,) * (3 - labels.array.ndim)
+                grid = tuple(int(n) for n in mesh.grid_shape)
+                if shape != grid:
+                    raise DicerError(f"{labels_path}: the labels have {'x'.join(map(str, shape))} voxels but the mesh "
+                                     f"was made from {'x'.join(map(str, grid))}; give the label volume the mesh was "
+                                     "made from with --labels (the original segmentation goes to --original)")
         # every element metric once: the report's, the figures' and the CSV's with skew
         from dicer.mesh.metrics import element_metrics
         from dicer.quality import REPORT_METRICS, element_neighbours
@@ -490,7 +499,7 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
         for path in stage_reports:
             try:
                 stages[Path(path).name.split(".")[0]] = json.loads(Path(path).read_text())
-            except (OSError, json.JSONDecodeError) as exc:
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
                 raise DicerError(f"{path}: cannot read the stage report ({exc}); rerun that stage") from None
         if stages:
             report["stages"] = stages
@@ -501,7 +510,7 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
             shown = []
             for path in list(pictures) + figures:
                 try:
-                    shown.append((_PICTURE_CAPTIONS.get(Path(path).name, Path(path).name), Path(path).read_bytes()))
+                    shown.append((_PICTURE_CAPTIONS.get(Path(path).name, Path(path).name), pending(path).read_bytes()))
                 except OSError as exc:
                     raise DicerError(f"{path}: cannot read the picture ({exc.strerror}); give an existing PNG "
                                      "with --picture") from None
@@ -744,7 +753,7 @@ def cmd_run(args):
                          "not both and not neither")
     config = _config(args)
     outdir = Path(args.output)
-    if outdir.exists() and not outdir.is_dir():
+    if (outdir.exists() or outdir.is_symlink()) and not outdir.is_dir():
         raise DicerError(f"{outdir}: exists and is not a folder; give an output folder with -o")
     if not args.skip_memory_check:
         _check_memory(args.labels if args.image is None else args.image, config)
@@ -768,6 +777,7 @@ def cmd_run(args):
 
     def step(name: str) -> None:
         nonlocal stage
+        check_stop()
         stage = name
 
     try:
@@ -814,7 +824,17 @@ def cmd_run(args):
             message = str(exc).replace(str(staging), str(failed)) if kept else str(exc)
             raise DicerError(f"{message} (dicer run stopped at the {stage} stage{where})") from None
         raise
-    _publish(staging, outdir)
+    try:
+        try:
+            check_stop()
+        except BaseException:
+            _keep_failed(staging, failed)
+            raise
+        _publish(staging, outdir)
+    except OSError as exc:
+        kept = _keep_failed(staging, failed)
+        raise DicerError(f"{outdir}: cannot move the results into the folder ({exc.strerror}); "
+                         + (f"they are in {failed}" if kept else "check the output folder")) from None
     log.info("run: finished in %.1f s; model in %s", time.perf_counter() - t0, outdir / "model.inp")
 
 
@@ -822,6 +842,8 @@ def _keep_failed(staging: Path, failed: Path) -> bool:
     """Move a failed run's staging folder to ``failed`` (replacing an older one); False if
     it held no file."""
     with contextlib.suppress(OSError):
+        for tmp in staging.glob(".*.*.*.tmp*"):  # a write the failure cut short
+            tmp.unlink()
         if not any(staging.iterdir()):
             staging.rmdir()
             return False
@@ -864,8 +886,15 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("-q", "--quiet", action="store_true", help="log warnings and errors only")
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage errors in the command's one error line too (exit status 2, as argparse's)."""
+
+    def error(self, message):
+        self.exit(2, f"error: {self.prog}: {message}; see '{self.prog} --help'\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="dicer",
         description="All-hexahedral finite-element models from CT/MR scans (DICER method).",
         epilog="Each stage reads one file and writes one; 'dicer run' chains them. See README.md.",
@@ -1005,11 +1034,20 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.WARNING if getattr(args, "quiet", False) else logging.INFO,
         format="%(name)s %(message)s", stream=sys.stderr,
     )
-    previous = signal.signal(signal.SIGTERM, _terminate) if threading.current_thread() is threading.main_thread() \
-        else None
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
+    previous_int = signal.signal(signal.SIGINT, _interrupt) if main_thread else None
     try:
-        _check_paths(args)
-        args.func(args)
+        try:
+            _check_paths(args)
+        except OSError as exc:  # a path the system refuses to look at (too long, a loop of links)
+            raise DicerError(f"{exc.filename}: cannot use this path ({exc.strerror}); give a shorter or "
+                             "another path") from None
+        # a command's several outputs replace the old files together, or none does
+        # ('run' publishes its folder itself: its stages read each other's files)
+        with contextlib.nullcontext() if args.command == "run" else all_or_nothing():
+            args.func(args)
+        check_stop()
     except Terminated:
         print("error: terminated (SIGTERM, e.g. a cluster time limit); no output of the unfinished step was kept",
               file=sys.stderr)
@@ -1024,8 +1062,11 @@ def main(argv: list[str] | None = None) -> int:
         print("error: out of memory; downsample the labels (downsample.factor) or use a larger machine", file=sys.stderr)
         return 2
     finally:
+        stop_requested.clear()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if previous_int is not None:
+            signal.signal(signal.SIGINT, previous_int)
     return 0
 
 
@@ -1033,7 +1074,17 @@ class Terminated(BaseException):
     """SIGTERM arrived: unwinds like KeyboardInterrupt, so every temporary file is removed."""
 
 
+def _interrupt(signum, frame):
+    from dicer.io import atomic
+
+    atomic.stop_requested.append(KeyboardInterrupt)  # as for SIGTERM: raised again if this one is lost
+    raise KeyboardInterrupt()
+
+
 def _terminate(signum, frame):
+    from dicer.io import atomic
+
+    atomic.stop_requested.append(Terminated)  # raised again before any rename if this one is lost
     raise Terminated()
 
 

@@ -10,6 +10,7 @@ import copy
 import functools
 import hashlib
 import json
+import math
 import re
 from collections import Counter
 from importlib import resources
@@ -235,8 +236,24 @@ def _explain(err: jsonschema.ValidationError) -> str:
     return err.message
 
 
+def _numbers(value, where: str = ""):
+    """(key path, float) of every float in a config (NaN and infinities included)."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            yield from _numbers(v, f"{where}.{k}" if where else str(k))
+    elif isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            yield from _numbers(v, f"{where}[{i}]")
+    elif isinstance(value, float):
+        yield where, value
+
+
 def validate(config: dict, source: str = "config") -> dict:
     """Validate ``config`` against the schema; raise DicerError naming the first bad key."""
+    for where, value in _numbers(config):
+        if not math.isfinite(value):
+            raise DicerError(f"{source}: key '{where}': {value} is not a finite number; give a finite number "
+                             "(see the allowed range in config/config.yaml)")
     validator = jsonschema.Draft202012Validator(schema())
     errors = sorted(validator.iter_errors(config), key=lambda e: (len(list(e.absolute_path)), e.message))
     if errors:

@@ -23,7 +23,7 @@ import numpy as np
 
 from dicer.errors import DicerError
 from dicer.image import Volume, regridded_origin
-from dicer.segment import label_counts, morphology_options
+from dicer.segment import check_radii, label_counts, morphology_options
 from dicer.segment.morphology import clean_labels
 
 __all__ = ["downsample", "reduction_factor", "vote"]
@@ -187,8 +187,19 @@ def downsample(labels: Volume, config: dict, source: str = "") -> tuple[Volume, 
         info.update(shape_after=list(array.shape), spacing_after=list(labels.spacing),
                     voxels_before=before, voxels_after=before)
         return labels, info
+    after = [-(-n // f) for n, f in zip(array.shape, factor)]
+    if min(after) < 2:
+        axis = int(np.argmin(after))
+        what = "downsample.voxel_size" if config.get("downsample", {}).get("voxel_size") is not None \
+            else "downsample.factor"
+        raise DicerError(f"{source}: {what} gives a factor {'x'.join(map(str, factor))} that leaves "
+                         f"{'x'.join(map(str, after))} voxels of the {'x'.join(map(str, array.shape))} label "
+                         f"volume; dicer needs at least 2 voxels per axis: use a factor of at most "
+                         f"{max(array.shape[axis] // 2, 1)} along axis {'xyz'[axis]}")
     ds = config.get("downsample", {})
     options = morphology_options(config, source)
+    if ds.get("morphology", True):
+        check_radii(options, after, source)
     coarse = vote(array, factor, k, float(ds.get("min_fraction", 0.25)), options["priority"])
     if ds.get("morphology", True):
         cleaned, _ = clean_labels(coarse, **options)

@@ -69,7 +69,15 @@ def _check_size(name: str, size) -> int:
     n = DEFAULT_SIZE[name] if size is None else int(size)
     if n < _MIN_SIZE[name]:
         raise DicerError(f"phantom {name!r}: size {n} is too small; use at least {_MIN_SIZE[name]} voxels")
+    if n > MAX_SIZE:
+        # checked before any array is made: the phantom's float arrays need about 16 bytes a voxel
+        raise DicerError(f"phantom {name!r}: size {n} is too large (up to {n ** 3 * 16 / 2 ** 30:,.0f} GB of "
+                         f"memory); use at most {MAX_SIZE} voxels")
     return n
+
+
+MAX_SIZE = 1024
+"""Largest phantom size (voxels along the longest axis): about 16 GB of arrays at 1024."""
 
 
 # --- exact label builders ----------------------------------------------------------------

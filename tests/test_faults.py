@@ -144,3 +144,84 @@ def test_a_failed_run_names_its_stage_and_the_kept_files(tmp_path, capsys):
     assert len(err) == 1 and err[0].startswith("error: ") and str(tmp_path / "new.failed") in err[0]
     assert "stopped at the smooth stage" in err[0] and ".partial" not in err[0]
     assert not out.exists()
+
+
+def test_full_disk_image_write_is_one_line_naming_the_target(small_disk, capfd):
+    """The NIfTI writer prints its short write straight to stderr and fails in the read-back:
+    the error says the disk is full and names the target, not the temporary file."""
+    from dicer.io.images import write_image
+
+    rng = np.random.default_rng(5)
+    out = small_disk / "ct.nii"
+    with pytest.raises(DicerError) as info:
+        write_image(Volume(rng.normal(size=(48, 48, 48)).astype(np.float32), (1.0, 1.0, 1.0)), out)
+    assert str(info.value).startswith(f"{out}: the disk is full") and ".tmp" not in str(info.value)
+    assert capfd.readouterr().err == ""  # nothing of ITK's own
+    assert list(small_disk.iterdir()) == []
+
+
+def test_a_command_keeps_all_its_old_outputs_when_a_later_one_fails(small_disk, tmp_path):
+    """quality writes the report after the HTML: a full disk at the second write leaves
+    neither new (the first was held back until both were written)."""
+    from dicer.cli import main
+
+    labels = tmp_path / "labels.npy"
+    np.save(labels, np.ones((6, 6, 6), np.uint8))
+    mesh = tmp_path / "m.vtu"
+    assert main(["mesh", str(labels), "-o", str(mesh), "-q"]) == 0
+    html, report = tmp_path / "q.html", small_disk / "q.json"
+    html.write_text("old")
+    try:  # fill the disk to the last block
+        with open(small_disk / "filler", "wb", buffering=0) as f:
+            while True:
+                f.write(b"x" * 4096)
+    except OSError:
+        pass
+    assert main(["quality", str(mesh), "-o", str(report), "--html", str(html), "-q"]) == 2
+    assert html.read_text() == "old" and not report.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["disk", "labels.npy", "m.vtu", "q.html"]
+
+
+def test_a_signal_right_after_the_temporary_file_is_made_leaves_none(tmp_path, monkeypatch):
+    import dicer.io.atomic as atomic
+
+    real = os.close
+
+    def interrupted(fd):
+        real(fd)
+        raise KeyboardInterrupt  # as a SIGTERM handler raises between two steps
+
+    monkeypatch.setattr(atomic.os, "close", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        with atomic_path(tmp_path / "a.txt") as tmp:
+            tmp.write_text("never")
+    monkeypatch.undo()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_all_or_nothing_removes_the_folders_it_made(tmp_path):
+    from dicer.io.atomic import all_or_nothing, write_bytes_atomic
+
+    with pytest.raises(DicerError):
+        with all_or_nothing():
+            write_bytes_atomic(tmp_path / "new" / "deeper" / "a.json", "{}")
+            raise DicerError("a later step failed")
+    assert list(tmp_path.iterdir()) == []
+    with all_or_nothing():
+        write_bytes_atomic(tmp_path / "new" / "a.json", "{}")
+        assert not (tmp_path / "new" / "a.json").exists()  # renamed at the end of the block
+    assert (tmp_path / "new" / "a.json").read_text() == "{}"
+
+
+def test_a_sigterm_whose_exception_was_lost_still_stops_before_any_rename(tmp_path, capsys):
+    """CPython can drop the exception a signal handler raises inside C code (a module being
+    compiled on import); the handler's note makes the next rename raise it again."""
+    from dicer.cli import Terminated, main
+    from dicer.io import atomic
+
+    labels = tmp_path / "labels.npy"
+    np.save(labels, np.ones((6, 6, 6), np.uint8))
+    atomic.stop_requested.append(Terminated)  # as _terminate leaves it when its raise is lost
+    assert main(["mesh", str(labels), "-o", str(tmp_path / "m.vtu"), "-q"]) == 143
+    assert "terminated (SIGTERM" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy"] and atomic.stop_requested == []

@@ -120,6 +120,42 @@ def _with(values, index, value):
 
 OUT = "labels.nii.gz"
 
+
+def _vtu_edit(src, dst, edit):
+    from hostile import vtu_edit
+
+    return vtu_edit(src, dst, edit)
+
+
+def _connectivity(value):
+    def edit(name, array):
+        if name == "connectivity":
+            array[0] = value
+            return array
+        return None
+    return edit
+
+
+def _nan_point(name, array):
+    if name == "Points":
+        array[4] = np.nan
+        return array
+    return None
+
+
+def _negative_lattice(name, array):
+    if name == "lattice":
+        array[:3] = -5
+        return array
+    return None
+
+
+def _huge_npy(path):
+    header = "{'descr': '<f4', 'fortran_order': False, 'shape': (10000, 10000, 10000), }"
+    header = header + " " * (117 - len(header)) + "\n"
+    path.write_bytes(b"\x93NUMPY\x01\x00" + struct.pack("<H", len(header)) + header.encode() + bytes(4096))
+    return path
+
 # name -> (build(tmp_path, base) -> argv, text the error line must contain)
 CASES = {
     # 1. DICOM series
@@ -200,6 +236,59 @@ CASES = {
     "run: output folder is the input folder": (
         lambda t, b: ["run", write_dicom_series(t / "series", [0, 2, 4]), "-o", t / "series"],
         "series: the output (-o) is the input itself"),
+    # 4. found by the hostile re-run (tests/hostile.py)
+    **{f"{command}: VTU with {label}": (
+        (lambda command, out, edit: lambda t, b: [command, _vtu_edit(b / "mesh.vtu", t / "bad.vtu", edit), "-o",
+                                                  t / out])(command, out, edit), expected)
+       for command, out in (("merge", "g.vtu"), ("export", "model.inp"), ("quality", "q.json"))
+       for label, edit, expected in (
+           ("connectivity past the nodes", _connectivity(10 ** 6), "bad.vtu: 1 element corner(s) refer to nodes"),
+           ("negative connectivity", _connectivity(-3), "bad.vtu: 1 element corner(s) refer to nodes"),
+           ("a NaN coordinate", _nan_point, "bad.vtu: 1 node(s) have NaN or infinite coordinates"),
+           ("a negative lattice index", _negative_lattice, "bad.vtu: 1 node(s) have a negative lattice index"))},
+    "downsample: voxel_size=.inf": (
+        lambda t, b: ["downsample", _copy(b, t, "labels.nii.gz"), "-o", t / "d.nii.gz",
+                      "--set", "downsample.voxel_size=.inf"],
+        "key 'downsample.voxel_size': inf is not a finite number"),
+    "segment: a manual threshold 1e999": (
+        lambda t, b: ["segment", _copy(b, t, "head.nii.gz"), "-o", t / OUT, "--set", "segment.method=manual",
+                      "--set", "segment.thresholds=[-100,1e999]"],
+        "key 'segment.thresholds[1]': inf is not a finite number"),
+    "downsample: factor larger than the image": (
+        lambda t, b: ["downsample", _copy(b, t, "labels.nii.gz"), "-o", t / "d.nii.gz",
+                      "--set", "downsample.factor=50"],
+        "leaves 1x1x1 voxels of the "),
+    "segment: opening_radius=1000": (
+        lambda t, b: ["segment", _copy(b, t, "head.nii.gz"), "-o", t / OUT, "--set", "segment.opening_radius=1000"],
+        "segment.opening_radius=1000 voxels is wider than the image"),
+    "quality: a stage report that is not UTF-8": (
+        lambda t, b: ["quality", _copy(b, t, "mesh.vtu"), "-o", t / "q.json", "--stage-report",
+                      (t / "fix.json").write_bytes(b"\xff{") and t / "fix.json"],
+        "fix.json: cannot read the stage report"),
+    "quality: --labels of another grid": (
+        lambda t, b: ["quality", _copy(b, t, "mesh.vtu"), "-o", t / "q.json", "--labels",
+                      (np.save(t / "l.npy", np.ones((5, 5, 5), np.uint8)), t / "l.npy")[1]],
+        "l.npy: the labels have 5x5x5 voxels but the mesh was made from "),
+    "schema: quality.poor_scaled_jacobian=7": (
+        lambda t, b: ["mesh", _copy(b, t, "labels.nii.gz"), "-o", t / "m.vtu", "--set",
+                      "quality.poor_scaled_jacobian=7"],
+        "key 'quality.poor_scaled_jacobian'"),
+    "mesh: a .npy header promising 10^12 voxels": (
+        lambda t, b: ["mesh", _huge_npy(t / "huge.npy"), "-o", t / "m.vtu"],
+        "huge.npy: the .npy header promises 10000x10000x10000 elements of 4 byte(s)"),
+    "phantom: --size 100000": (
+        lambda t, b: ["phantom", "sphere", "-o", t / "p.nii.gz", "--size", "100000"],
+        "size 100000 is too large"),
+    "run: the output folder is a dangling symlink": (
+        lambda t, b: ((t / "out").symlink_to(t / "gone"), ["run", _copy(b, t, "head.nii.gz"), "-o", t / "out"])[1],
+        "out: exists and is not a folder"),
+    "mesh: an output name too long for the file system": (
+        lambda t, b: ["mesh", _copy(b, t, "labels.nii.gz"), "-o", t / ("x" * 300 + ".vtu")],
+        "cannot use this path (File name too long)"),
+    "segment --info that cannot be written keeps no labels": (
+        lambda t, b: ["segment", _copy(b, t, "head.nii.gz"), "-o", t / OUT, "--info",
+                      (t / "afile").write_text("x") and t / "afile" / "info.json"],
+        "info.json: cannot write to folder"),
     "quality: one file for two outputs": (
         lambda t, b: ["quality", _copy(b, t, "mesh.vtu"), "-o", t / "q.json", "--html", t / "q.json"],
         "q.json: given as the output of both -o and --html"),
@@ -258,3 +347,13 @@ def test_allow_irregular_slices_through_the_command(tmp_path, caplog):
     labels = read_labels(out)
     assert labels.array.shape == (40, 36, 7) and labels.spacing[2] == pytest.approx(2.0)
     assert "resampled its 6 slices to 7 uniform slices of 2 mm" in caplog.text
+
+
+def test_a_usage_error_is_one_error_line(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    proc = subprocess.run([sys.executable, "-m", "dicer", "export", "m.vtu", "-o", "m.inp", "--order", "3"],
+                          capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert proc.returncode == 2
+    assert proc.stderr.splitlines() == ["error: dicer export: argument --order: invalid choice: 3 (choose from 1, 2); "
+                                        "see 'dicer export --help'"]
+    assert list(tmp_path.iterdir()) == []

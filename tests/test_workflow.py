@@ -348,3 +348,14 @@ def test_pictures_are_the_same_on_a_rerun(cohort, tmp_path):
     _snakemake(cohort, "--forcerun", "quality", "--allowed-rules", "quality", "cohort")
     for name, data in before.items():
         assert (folder / name).read_bytes() == data, name
+
+
+def test_bad_override_stops_the_run_naming_the_sheet_line_without_traceback(tmp_path):
+    workdir = _cohort(tmp_path)
+    sheet = workdir / "config" / "patients.tsv"
+    sheet.write_text(sheet.read_text().replace("downsample.factor=2", "fix.colour=1"))
+    proc = _snakemake(workdir, "-n", check=False)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode != 0
+    assert "patients.tsv, line 3: patient bone: config: unknown key 'fix.colour'" in out
+    assert "Traceback" not in out and "InputFunctionException" not in out

@@ -11,6 +11,8 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import secrets
+import sys
 import tempfile
 from pathlib import Path
 
@@ -63,41 +65,173 @@ def _os_error(path: Path, exc: OSError) -> DicerError:
                       "and the disk, nothing was written")
 
 
+#: the exception of a stop signal (SIGTERM) once its handler ran: CPython can lose the
+#: exception a signal handler raises inside some C code (while it compiles a module being
+#: imported, for one), so it is raised again before any file replaces its target
+stop_requested: list[type[BaseException]] = []
+
+
+def check_stop() -> None:
+    """Raise the stop signal's exception if one arrived (see stop_requested)."""
+    if stop_requested:
+        raise stop_requested[0]()
+
+
+#: the writes of the open all_or_nothing() block: (temporary file, target), renamed at its end
+_pending: list[tuple[Path, Path]] | None = None
+#: folders made for those writes, removed again when the block fails
+_made: list[Path] = []
+
+
+def _missing_folders(parent: Path) -> list[Path]:
+    """``parent`` and its ancestors that do not exist yet, innermost first."""
+    out = []
+    for folder in [parent, *parent.parents]:
+        if folder.exists() or folder.is_symlink():
+            break
+        out.append(folder)
+    return out
+
+
+def _remove_folders(folders) -> None:
+    for folder in folders:  # innermost first; only when empty
+        with contextlib.suppress(OSError):
+            folder.rmdir()
+
+
+def pending(path: str | os.PathLike) -> Path:
+    """Where the content written to ``path`` is now: its temporary file while an
+    all_or_nothing() block holds it back, else ``path`` itself."""
+    path = Path(path)
+    for tmp, target in _pending or ():
+        if target == path:
+            return tmp
+    return path
+
+
+@contextlib.contextmanager
+def all_or_nothing():
+    """Writes inside this block (through atomic_path) replace their targets only when the
+    whole block succeeds: a command that writes several files (a labels volume and its
+    info, a mesh and its report) leaves all of them as they were when any write or any
+    later step fails. Each file is still written, read back and flushed to disk as it comes;
+    only the renames wait for the end. Nested blocks join the outer one."""
+    global _pending, _made
+    if _pending is not None:
+        yield
+        return
+    _pending, _made = [], []
+    try:
+        yield
+        check_stop()
+        items, _pending = _pending, None
+        for tmp, path in items:
+            try:
+                os.replace(tmp, path)
+            except OSError as exc:
+                _pending = [(t, p) for t, p in items if t.exists()]
+                raise DicerError(f"{path}: cannot write the file there ({exc.strerror}); give the path of a file "
+                                 "that can be replaced") from None
+    except BaseException:
+        for tmp, _ in _pending or ():
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+        _remove_folders(_made)
+        raise
+    finally:
+        _pending, _made = None, []
+
+
+def _new_temporary(path: Path, parent: Path, names: list) -> Path:
+    """Create an empty temporary file for ``path`` in ``parent``; its name goes into
+    ``names`` before the file exists, so a SIGTERM arriving at any moment (its handler runs
+    between any two steps) finds it to delete."""
+    for _ in range(100):
+        tmp = parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp{_suffixes(path)}"
+        names.append(tmp)
+        try:
+            os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+            return tmp
+        except FileExistsError:
+            names.pop()
+    raise FileExistsError(errno.EEXIST, "no free temporary file name", str(parent))
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike):
     """Yield a temporary path beside ``path``; on success flush it to disk and rename it to
-    ``path``, else delete it.
+    ``path`` (inside all_or_nothing(): at the end of that block), else delete it.
 
-    Missing parent folders are created; a folder that cannot be written, a full disk and any
-    other OS error while writing raise DicerError (the target is left as it was).
+    Missing parent folders are created (and removed again when the write fails); a folder
+    that cannot be written, a full disk and any other OS error while writing raise
+    DicerError (the target is left as it was).
     """
     path = Path(path)
     parent = path.parent if str(path.parent) else Path(".")
+    made: list[Path] = []
+    names: list[Path] = []  # the temporary file, named before it is made
     try:
-        parent.mkdir(parents=True, exist_ok=True)
-        remove_stale_temporaries(path)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=f".tmp{_suffixes(path)}",
-                                   dir=parent)
-        os.close(fd)
-    except OSError as exc:
-        raise DicerError(f"{path}: cannot write to folder {parent} ({exc.strerror}); choose a writable output path") from None
-    tmp = Path(tmp)
-    try:
+        try:
+            made.extend(_missing_folders(parent))
+            parent.mkdir(parents=True, exist_ok=True)
+            remove_stale_temporaries(path)
+            tmp = _new_temporary(path, parent, names)
+        except OSError as exc:
+            raise DicerError(f"{path}: cannot write to folder {parent} ({exc.strerror}); choose a writable "
+                             "output path") from None
         try:
             yield tmp
             os.chmod(tmp, 0o644)
             _fsync(tmp)
         except OSError as exc:
             raise _os_error(path, exc) from None
+        if _pending is not None:
+            _pending.append((tmp, path))
+            _made.extend(made)
+            return
+        check_stop()
         try:
             os.replace(tmp, path)
         except OSError as exc:  # e.g. a folder of that name: say so instead of a traceback
             raise DicerError(f"{path}: cannot write the file there ({exc.strerror}); give the path of a file "
                              "that can be replaced") from None
     except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
+        for tmp in names:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+        _remove_folders(made)
         raise
+
+
+def disk_full(folder: str | os.PathLike) -> bool:
+    """Whether the file system holding ``folder`` has no block left for an ordinary user."""
+    try:
+        return os.statvfs(folder).f_bavail == 0
+    except OSError:
+        return False
+
+
+@contextlib.contextmanager
+def captured_stderr():
+    """Collect what C libraries (ITK, its NIfTI and MetaImage writers) print straight to the
+    process's standard error while the block runs; yields a list that holds the text
+    afterwards. dicer reports problems in its own one line."""
+    out: list[str] = []
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no real stderr (embedded): nothing to capture
+        yield out
+        return
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield out
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            out.append(sink.read().decode(errors="replace"))
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes | str) -> None:

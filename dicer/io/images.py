@@ -31,7 +31,7 @@ import SimpleITK as sitk
 
 from dicer.errors import DicerError
 from dicer.image import MAX_LABEL, Volume
-from dicer.io.atomic import atomic_path
+from dicer.io.atomic import atomic_path, captured_stderr, disk_full
 
 log = logging.getLogger(__name__)
 
@@ -502,7 +502,32 @@ def _read_file(path: Path, spacing_arg, dtype=np.float32, keep_direction=False) 
                       dtype=dtype, keep_direction=keep_direction)
 
 
+def _check_npy_size(path: Path) -> None:
+    """Compare the .npy header's shape x item size with the bytes the file holds, before
+    numpy allocates what the header promises (a damaged header can ask for terabytes)."""
+    try:
+        with open(path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            read = {(1, 0): np.lib.format.read_array_header_1_0,
+                    (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+            if read is None:
+                return  # a newer format: numpy's own reader judges it
+            shape, _, dtype = read(f)
+            start = f.tell()
+    except (ValueError, OSError, EOFError, SyntaxError) as exc:
+        raise DicerError(f"{path}: cannot read the .npy array ({exc}); save it again with numpy.save") from None
+    if dtype.hasobject:
+        return  # refused below (not a numeric array)
+    need = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    have = path.stat().st_size - start
+    if have != need:
+        raise DicerError(f"{path}: the .npy header promises {'x'.join(map(str, shape))} elements of "
+                         f"{dtype.itemsize} byte(s) = {need:,} bytes but the file holds {have:,}; the file is "
+                         "truncated or damaged: save it again with numpy.save")
+
+
 def _read_npy(path: Path, spacing_arg, dtype) -> Volume:
+    _check_npy_size(path)
     try:
         array = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
@@ -886,20 +911,27 @@ def _write(image: sitk.Image, path: Path, compress: bool) -> None:
         writer.SetFileName(str(tmp))
         writer.SetUseCompression(compress)
         try:
-            with _quiet_itk():
+            # the NIfTI and MetaImage writers print a short write straight to stderr
+            with _quiet_itk(), captured_stderr() as printed:
                 writer.Execute(image)
                 # ITK only warns when a write comes up short (a full disk): read the file
                 # back and compare it with what was to be written
                 back = sitk.ReadImage(str(tmp))
         except RuntimeError as exc:
-            raise DicerError(f"{path}: cannot write the image ({_itk_message(exc)}); check the disk space "
-                             "and the output folder") from None
+            if disk_full(tmp.parent) or "wrote only" in "".join(printed) or "No space" in str(exc):
+                raise DicerError(f"{path}: the disk is full (the image could not be written completely); free "
+                                 "space or write elsewhere, nothing was written") from None
+            raise DicerError(f"{path}: cannot write the image ({_itk_message(exc).replace(str(tmp), str(path))}); "
+                             "check the disk space and the output folder") from None
         # NIfTI keeps spacing and origin in single precision
         same = (back.GetSize() == image.GetSize()
                 and np.allclose(back.GetSpacing(), image.GetSpacing(), rtol=1e-6, atol=0)
                 and np.allclose(back.GetOrigin(), image.GetOrigin(), rtol=1e-6, atol=1e-6)
                 and _same_values(sitk.GetArrayViewFromImage(back), sitk.GetArrayViewFromImage(image)))
         if not same:
+            if disk_full(tmp.parent) or "wrote only" in "".join(printed):
+                raise DicerError(f"{path}: the disk is full (the image could not be written completely); free "
+                                 "space or write elsewhere, nothing was written")
             raise DicerError(f"{path}: the written file does not hold the image (a full disk?); check the disk "
                              "space and write again, nothing was written")
 

@@ -395,6 +395,25 @@ def _read_meshio(path: Path, name: str):
     return types.pop(), m.points, cells, dict(m.point_data), cell_data, m.field_data
 
 
+def _check_arrays(name, points, cells, material, lattice) -> None:
+    """Refuse a mesh file whose arrays no stage can work on (a damaged or hand-edited file):
+    the stages would index past the nodes, carry NaN into every output, or misplace nodes."""
+    fix = "the file is damaged or was edited: write it again with the dicer stage that made it"
+    if cells.size and (cells.min() < 0 or cells.max() >= len(points)):
+        bad = int(np.count_nonzero((cells < 0) | (cells >= len(points))))
+        raise DicerError(f"{name}: {bad} element corner(s) refer to nodes that do not exist (valid node "
+                         f"numbers 0..{len(points) - 1}); {fix}")
+    finite = np.isfinite(points)
+    if not finite.all():
+        raise DicerError(f"{name}: {int(np.count_nonzero(~finite.all(axis=1)))} node(s) have NaN or infinite "
+                         f"coordinates; {fix}")
+    if material.shape != (len(cells),):
+        raise DicerError(f"{name}: the material data hold {material.size} values for {len(cells)} elements; {fix}")
+    if lattice.size and lattice.min() < 0:
+        raise DicerError(f"{name}: {int(np.count_nonzero((lattice < 0).any(axis=1)))} node(s) have a negative "
+                         f"lattice index; {fix}")
+
+
 def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data) -> Mesh:
     """A Mesh from the arrays of a file, with dicer's checks of its data."""
     cells = np.asarray(cells).astype(np.int64, copy=False)
@@ -409,6 +428,7 @@ def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data)
     points = np.asarray(points).astype(np.float64, copy=False)
     if points.shape[1] == 2:
         points = np.column_stack([points, np.zeros(len(points))])
+    _check_arrays(name, points, cells, material, lattice)
     fd = field_data
     spacing = np.asarray(fd.get("spacing", np.ones(3)), float).ravel()
     origin = np.asarray(fd.get("origin", np.zeros(3)), float).ravel()

@@ -67,6 +67,17 @@ def class_priority(config: dict, source: str = "") -> list[int]:
     return out
 
 
+def check_radii(options: dict, shape, source: str = "") -> None:
+    """Refuse an opening or closing radius wider than the image: its ball alone would need
+    (2r + 1)^3 voxels of memory (radius 1000: 8 GB) for a result the image cannot show."""
+    top = max(max(shape) // 2, 1)
+    for key in ("opening_radius", "closing_radius"):
+        r = options[key]
+        if r > top:
+            raise DicerError(f"{source}: segment.{key}={r} voxels is wider than the image "
+                             f"({'x'.join(map(str, shape))} voxels); give a radius of 0..{top} voxels")
+
+
 def morphology_options(config: dict, source: str = "") -> dict:
     """Keyword arguments of :func:`clean_labels` from the ``segment`` section.
 
@@ -195,6 +206,7 @@ def segment(image: Volume, config: dict, source: str = "") -> tuple[Volume, dict
     info["thresholded"] = {name: v["voxels"] for name, v in label_counts(raw, names).items()}
 
     options = morphology_options(config, source)
+    check_radii(options, raw.shape, source)
     labels, minfo = clean_labels(raw, **options)
     if not labels.any():
         raise DicerError(f"{source}: the morphology removed every voxel (segment.opening_radius="

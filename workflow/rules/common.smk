@@ -128,6 +128,22 @@ def patient_config(patient):
         raise WorkflowError(f"patient {patient}: {exc}")
 
 
+def _check_overrides():
+    """Every patient's overrides, validated as the sheet is read: a bad one stops the run
+    naming its line of the sheet (found later, inside a rule's input function, it came with
+    Snakemake's traceback)."""
+    sheet = CONFIG["workflow"]["patients"]
+    lines = {row["patient"]: number for number, row in enumerate(_read_patients(sheet), start=2)}
+    for patient in PATIENTS:
+        try:
+            patient_config(patient)
+        except (WorkflowError, DicerError) as exc:
+            raise WorkflowError(f"{sheet}, line {lines[patient]}: {exc}")
+
+
+_check_overrides()
+
+
 def settings(stage):
     """params: the config sections `stage` reads, as JSON; a change re-runs only that stage and later ones."""
     return lambda wildcards: json.dumps(stage_settings(patient_config(wildcards.patient), stage), sort_keys=True)

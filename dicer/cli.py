@@ -907,6 +907,14 @@ def build_parser() -> argparse.ArgumentParser:
         p.set_defaults(func=func)
         return p
 
+    _add_image_commands(command)
+    _add_mesh_commands(command)
+    _add_report_commands(command)
+    return parser
+
+
+def _add_image_commands(command) -> None:
+    """run, segment, labels, downsample, fix: the commands that read images and label volumes."""
     p = command("run", cmd_run, "the whole chain: image -> labels -> mesh -> model.inp, model.vtu, quality.json")
     p.add_argument("image", metavar="IMAGE", nargs="?", help="image file or DICOM/TIFF/PNG folder")
     p.add_argument("--labels", metavar="LABELS",
@@ -946,6 +954,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_materials_option(p)
     _add_config_options(p)
 
+
+def _add_mesh_commands(command) -> None:
+    """mesh, merge, smooth, export, surface: the commands that make and write meshes."""
     p = command("mesh", cmd_mesh, "one hexahedron (2D: quad) per non-background voxel")
     p.add_argument("labels", metavar="LABELS", help="label volume: " + ", ".join(LABEL_SUFFIXES) + " (.npy: spacing 1)")
     p.add_argument("-o", "--output", required=True, metavar="MESH", help="mesh (.vtu)")
@@ -986,6 +997,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_materials_option(p)
     _add_config_options(p)
 
+
+def _add_report_commands(command) -> None:
+    """quality, cohort, phantom: reports and test images."""
     p = command("quality", cmd_quality, "element quality report (JSON, optional HTML)")
     p.add_argument("mesh", metavar="MESH", help="mesh (.vtu)")
     p.add_argument("-o", "--output", required=True, metavar="JSON", help="quality report (.json)")
@@ -1024,7 +1038,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", type=float, default=None, help="Gaussian noise sigma in HU (phantom default if omitted)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the noise (default 0)")
     p.add_argument("-q", "--quiet", action="store_true", help="log warnings and errors only")
-    return parser
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -282,7 +282,7 @@ def do_downsample(labels_path: str, out: Path, config: dict):
 
 def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None = None):
     from dicer.config import material_names
-    from dicer.connectivity import fix_connectivity, remove_islands
+    from dicer.connectivity import fix_stage
     from dicer.image import Volume
     from dicer.io.images import read_labels
     from dicer.labels import write_mapped_labels
@@ -291,26 +291,12 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
         labels = read_labels(labels_path)
         _check_labels(labels, labels_path, config)
         settings = config["fix"]
-        # floating parts go first (the fixes need not work on them) and again after the
-        # fixes (which can cut a thin bridge)
-        array, islands = remove_islands(labels.array, settings["min_component_voxels"])
+        names = {str(k): v for k, v in material_names(config).items()}
         try:
-            fixed, report = fix_connectivity(array, max_iterations=settings["max_iterations"],
-                                             type_c=settings["type_c"],
-                                             max_type_c_rounds=settings["max_type_c_rounds"],
-                                             majority_rounds=settings["majority_rounds"])
+            fixed, report = fix_stage(labels.array, names, **settings)
         except DicerError as exc:
             raise DicerError(f"{labels_path}: {exc}") from None
-        fixed, after = remove_islands(fixed, settings["min_component_voxels"])
-        names_of = {str(k): v for k, v in material_names(config).items()}
-        removed = {}
-        for part in (islands, after):
-            for k, v in part["removed_by_material"].items():
-                removed[names_of.get(k, k)] = removed.get(names_of.get(k, k), 0) + v
-        report["islands"] = {"min_component_voxels": settings["min_component_voxels"], "parts": after["parts"],
-                             "removed_parts": islands["removed_parts"] + after["removed_parts"],
-                             "removed_voxels": islands["removed_voxels"] + after["removed_voxels"],
-                             "removed_by_material": removed}
+        removed = report["islands"]["removed_by_material"]
         if report["islands"]["removed_parts"]:
             log.info("fix: removed %d floating part(s) below %d voxels (%d voxels: %s)",
                      report["islands"]["removed_parts"], settings["min_component_voxels"],
@@ -321,9 +307,6 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
         if not report["converged"]:
             log.warning("fix: stopped at a round cap with %s left; raise fix.max_iterations or "
                         "fix.max_type_c_rounds", report["remaining"])
-        names = {str(k): v for k, v in material_names(config).items()} | {"0": "background"}
-        for kind in ("type_a", "type_b", "type_c"):
-            report[kind] = {names.get(k, k): v for k, v in report[kind].items()}
         # same grid: the input's NIfTI header is kept, so the affine stays exactly the input's
         write_mapped_labels(Volume(fixed, labels.spacing, labels.origin, labels.direction), labels_path, out)
         _write_report(report_path, report)

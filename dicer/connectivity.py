@@ -35,7 +35,7 @@ from scipy.sparse.csgraph import connected_components
 
 from dicer.errors import DicerError
 
-__all__ = ["fix_connectivity", "connectivity_defects", "boundary_edge_counts"]
+__all__ = ["fix_connectivity", "fix_stage", "connectivity_defects", "boundary_edge_counts", "remove_islands"]
 
 
 # --- helpers -----------------------------------------------------------------------------
@@ -669,3 +669,44 @@ def remove_islands(labels: np.ndarray, min_voxels: int) -> tuple[np.ndarray, dic
     report.update(removed_parts=int(small.sum()), removed_voxels=int(drop.sum()),
                   removed_by_material={str(int(k)): int(c) for k, c in zip(kinds, counts)})
     return out, report
+
+
+def fix_stage(labels: np.ndarray, names: dict[str, str], *, min_component_voxels: int, max_iterations: int,
+              type_c: bool, max_type_c_rounds: int, majority_rounds: int) -> tuple[np.ndarray, dict]:
+    """The fix stage: floating parts removed, the connectivity fixes, floating parts again.
+
+    Parameters
+    ----------
+    labels : (nx, ny[, nz]) integer ndarray
+        Label volume, 0 = background.
+    names : dict of str to str
+        Material name per label value (as a string); the report names materials by them.
+    min_component_voxels, max_iterations, type_c, max_type_c_rounds, majority_rounds
+        The ``fix:`` config section (see the schema).
+
+    Returns
+    -------
+    fixed : ndarray
+        The repaired labels, same shape and dtype.
+    report : dict
+        ``fix_connectivity``'s report with voxel changes per named material and an
+        ``islands`` entry (floating parts removed before and after the fixes).
+    """
+    # floating parts go first (the fixes need not work on them) and again after the fixes
+    # (which can cut a thin bridge)
+    array, islands = remove_islands(labels, min_component_voxels)
+    fixed, report = fix_connectivity(array, max_iterations=max_iterations, type_c=type_c,
+                                     max_type_c_rounds=max_type_c_rounds, majority_rounds=majority_rounds)
+    fixed, after = remove_islands(fixed, min_component_voxels)
+    removed: dict[str, int] = {}
+    for part in (islands, after):
+        for k, v in part["removed_by_material"].items():
+            removed[names.get(k, k)] = removed.get(names.get(k, k), 0) + v
+    report["islands"] = {"min_component_voxels": min_component_voxels, "parts": after["parts"],
+                         "removed_parts": islands["removed_parts"] + after["removed_parts"],
+                         "removed_voxels": islands["removed_voxels"] + after["removed_voxels"],
+                         "removed_by_material": removed}
+    named = names | {"0": "background"}
+    for kind in ("type_a", "type_b", "type_c"):
+        report[kind] = {named.get(k, k): v for k, v in report[kind].items()}
+    return fixed, report

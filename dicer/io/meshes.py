@@ -410,8 +410,12 @@ def _check_arrays(name, points, cells, material, lattice) -> None:
     if material.shape != (len(cells),):
         raise DicerError(f"{name}: the material data hold {material.size} values for {len(cells)} elements; {fix}")
     if lattice.size and lattice.min() < 0:
-        raise DicerError(f"{name}: {int(np.count_nonzero((lattice < 0).any(axis=1)))} node(s) have a negative "
-                         f"lattice index; {fix}")
+        # -1 marks a node between lattice points (the transition templates of graded meshes):
+        # (-1, -1, -1), or (-1, -1, 0) in 2D; any other negative index is damage
+        between = (lattice[:, 0] == -1) & (lattice[:, 1] == -1) & ((lattice[:, 2] == -1) | (lattice[:, 2] == 0))
+        bad = (lattice < 0).any(axis=1) & ~between
+        if bad.any():
+            raise DicerError(f"{name}: {int(np.count_nonzero(bad))} node(s) have a negative lattice index; {fix}")
 
 
 def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data) -> Mesh:

@@ -19,7 +19,7 @@ from dicer.export.provenance import provenance, sha256_in_background
 from dicer.image import MAX_LABEL
 from dicer.mesh.faces import neighbour_materials
 from dicer.mesh.frame import mirrored, to_scanner
-from dicer.mesh.model import Mesh, Sized
+from dicer.mesh.model import Mesh, Sized, pieces
 from dicer.mesh.topology import (HEX20_FACES, HEX20_MIRROR, HEX_FACE_MIRROR, HEX_FACES, HEX_MIRROR, QUAD8_SIDES,
                                  QUAD_EDGES)
 
@@ -128,9 +128,6 @@ def resolve_element_type(mesh: Mesh, config: dict, path: Path) -> tuple[str, int
 
 
 
-_CHUNK = 1 << 18  # elements per pass: temporaries stay small and are reused
-
-
 def _face_nodes(cells: np.ndarray, table: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Elements (F,) and their nodes (F, c) of the faces marked in the (M, faces) bool array ``faces``."""
     e_idx, f_idx = np.nonzero(faces)
@@ -170,10 +167,11 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> No
     exterior = np.zeros(n, bool)
     ext_e, ext_f = [], []
     bound_code, bound_nodes, pair_code, pair_nodes, pair_face = [], [], [], [], []
-    for start in range(0, model.n_cells, _CHUNK):
-        mat = model.material[start : start + _CHUNK].astype(np.int64)
-        nbm = nb_mat[start : start + _CHUNK]
-        cells = model.cells[start : start + _CHUNK]
+    for part in pieces(model.n_cells):
+        start = part.start
+        mat = model.material[part].astype(np.int64)
+        nbm = nb_mat[part]
+        cells = model.cells[part]
         if "exterior" in kinds:
             f_idx, e_idx = np.nonzero((nbm == 0).T)  # grouped by face number
             ext_e.append(e_idx + start)

@@ -35,7 +35,7 @@ from scipy import ndimage
 from dicer.errors import DicerError
 from dicer.mesh.merge import _lattice_boxes
 from dicer.mesh.metrics import element_volumes
-from dicer.mesh.model import LEVEL_DATA, Mesh
+from dicer.mesh.model import LEVEL_DATA, Mesh, pieces
 from dicer.mesh.templates import (BLOCK_TEMPLATES, COARSE, COMPLETION_2D, COMPLETION_BLOCK, FINE, INVALID,
                                   SECTION, TEMPLATES_2D)
 from dicer.mesh.topology import HEX_CORNERS, QUAD_CORNERS
@@ -408,8 +408,8 @@ def _assemble(mesh: Mesh, keep: np.ndarray, corner_points: np.ndarray, material:
     cells = np.concatenate([np.compress(keep, mesh.cells, axis=0), ids.reshape(n_new, per)])
     # nodes still used, in the voxel mesh's order, then the new ones
     used = np.zeros(mesh.n_points + off.shape[0], bool)
-    for start in range(0, cells.shape[0], _ROWS):
-        used[cells[start : start + _ROWS]] = True
+    for part in pieces(cells.shape[0], _ROWS):
+        used[cells[part]] = True
     number = np.cumsum(used) - 1
     cells = number[cells]
     n_old = int(used[: mesh.n_points].sum())

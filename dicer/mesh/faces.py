@@ -10,11 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from dicer.mesh.model import Mesh
+from dicer.mesh.model import Mesh, pieces
 from dicer.mesh.topology import HEX_CORNERS, HEX_FACE_PLANES, HEX_FACES, QUAD_CORNERS, QUAD_EDGES, QUAD_SIDE_PLANES
-
-_CHUNK = 1 << 18  # elements per pass: temporaries stay small and are reused
-
 
 def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
     """(M, F) material of the element across each face, 0 for none, from a voxel -> material grid
@@ -38,8 +35,8 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
     node_lin = lattice @ nstrides
     grid = np.zeros(int(np.prod(shape)), kind)
     covered = 0
-    for start in range(0, m, _CHUNK):
-        c = cells[start : start + _CHUNK]
+    for part in pieces(m):
+        c = cells[part]
         lo = lattice[c[:, 0]]
         ext = lattice[c[:, far]] - lo
         if ext.min() < 1 or lo.min() < 0 or np.any(lo + ext > shape) or ext.max() >= 64:
@@ -51,7 +48,7 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
                 return None
         base = lo @ strides
         code = ext @ (64 ** np.arange(dim))
-        mat = material[start : start + _CHUNK].astype(kind)
+        mat = material[part].astype(kind)
         for cc in np.unique(code):  # a few distinct box sizes (1 x 1 x 1 before plane merging)
             sel = code == cc
             e = [(int(cc) // 64**i) % 64 for i in range(dim)]
@@ -63,8 +60,8 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
         return None
     axes = HEX_FACE_PLANES if dim == 3 else QUAD_SIDE_PLANES
     nb = np.empty((m, len(axes)), kind)
-    for start in range(0, m, _CHUNK):
-        c = cells[start : start + _CHUNK]
+    for part in pieces(m):
+        c = cells[part]
         lo = lattice[c[:, 0]]
         ext = lattice[c[:, far]] - lo
         base = lo @ strides
@@ -78,7 +75,7 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
             np.putmask(idx, ~inside, 0)
             got = grid[idx]
             got[~inside] = 0
-            nb[start : start + _CHUNK, f] = got
+            nb[part, f] = got
     return nb
 
 

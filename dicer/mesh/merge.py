@@ -41,7 +41,7 @@ from scipy.sparse.csgraph import connected_components
 
 from dicer.errors import DicerError
 from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes
-from dicer.mesh.model import Mesh
+from dicer.mesh.model import CHUNK, Mesh, pieces
 from dicer.mesh.topology import (HEX_AXIS_CORNERS, HEX_CORNERS, HEX_EDGES, HEX_FACES, QUAD_AXIS_CORNERS,
                                  QUAD_CORNERS, QUAD_EDGES)
 
@@ -72,11 +72,8 @@ def _union(*arrays) -> np.ndarray:
     return _unique(np.concatenate([np.asarray(x).ravel() for x in arrays]))
 
 
-_CHUNK = 1 << 18  # index entries per piece: the pieces' temporaries stay small and are reused
-
-
 def _rows_per_piece(index: np.ndarray) -> int:
-    return max(1, _CHUNK // max(1, int(np.prod(index.shape[1:], dtype=np.int64))))
+    return max(1, CHUNK // max(1, int(np.prod(index.shape[1:], dtype=np.int64))))
 
 
 def _take(table: np.ndarray, index: np.ndarray) -> np.ndarray:
@@ -86,35 +83,35 @@ def _take(table: np.ndarray, index: np.ndarray) -> np.ndarray:
     cells of a large mesh that is twice their size in fresh memory per gather. Pieces keep
     that copy small.
     """
-    if index.dtype == np.intp or index.size <= _CHUNK:
+    if index.dtype == np.intp or index.size <= CHUNK:
         return table[index]
     out = np.empty(index.shape, dtype=table.dtype)
     step = _rows_per_piece(index)
-    for a in range(0, index.shape[0], step):
-        out[a:a + step] = table[index[a:a + step]]
+    for part in pieces(index.shape[0], step):
+        out[part] = table[index[part]]
     return out
 
 
 def _put(table: np.ndarray, index: np.ndarray, values) -> None:
     """``table[index] = values`` (a scalar or an array shaped like ``index``) in pieces of rows,
     in the same order (later entries win), without a full intp copy of ``index``."""
-    if index.dtype == np.intp or index.size <= _CHUNK:
+    if index.dtype == np.intp or index.size <= CHUNK:
         table[index] = values
         return
     step = _rows_per_piece(index)
     scalar = np.ndim(values) == 0
-    for a in range(0, index.shape[0], step):
-        table[index[a:a + step]] = values if scalar else values[a:a + step]
+    for part in pieces(index.shape[0], step):
+        table[index[part]] = values if scalar else values[part]
 
 
 def _any_at(mask: np.ndarray, index: np.ndarray) -> np.ndarray:
     """(R,) bool: rows of ``index`` (R, k) holding a node flagged in ``mask``, in pieces of rows."""
-    if index.size <= _CHUNK:
+    if index.size <= CHUNK:
         return _any(mask[index])
     out = np.empty(index.shape[0], dtype=bool)
     step = _rows_per_piece(index)
-    for a in range(0, index.shape[0], step):
-        out[a:a + step] = _any(mask[index[a:a + step]])
+    for part in pieces(index.shape[0], step):
+        out[part] = _any(mask[index[part]])
     return out
 
 
@@ -203,8 +200,8 @@ def _match_faces(a: np.ndarray, b: np.ndarray, n: int) -> tuple[np.ndarray, np.n
     i = np.flatnonzero((j >= 0) & ~on_shared)
     j = j[i].astype(np.intp)
     same = np.empty(i.size, dtype=bool)
-    for s in range(0, i.size, _CHUNK):  # in pieces: the gathered rows stay in cache
-        same[s:s + _CHUNK] = _all(np.take(a, i[s:s + _CHUNK], axis=0) == np.take(b, j[s:s + _CHUNK], axis=0))
+    for part in pieces(i.size):  # the gathered rows stay in cache
+        same[part] = _all(np.take(a, i[part], axis=0) == np.take(b, j[part], axis=0))
     i, j = i[same], j[same]
     hard_a = np.flatnonzero(on_shared)
     if hard_a.size:
@@ -454,10 +451,10 @@ def _gather_corners(cells: np.ndarray, rows: np.ndarray, first: np.ndarray, seco
     a = np.empty((rows.size, first.size), dtype=cells.dtype)
     b = np.empty((rows.size, second.size), dtype=cells.dtype)
     step = _rows_per_piece(cells)
-    for s in range(0, rows.size, step):
-        block = np.take(cells, rows[s:s + step], axis=0)  # np.take: about twice as fast as fancy indexing
-        np.take(block, first, axis=1, out=a[s:s + step], mode="clip")  # valid columns: no buffered copy
-        np.take(block, second, axis=1, out=b[s:s + step], mode="clip")
+    for part in pieces(rows.size, step):
+        block = np.take(cells, rows[part], axis=0)  # np.take: about twice as fast as fancy indexing
+        np.take(block, first, axis=1, out=a[part], mode="clip")  # valid columns: no buffered copy
+        np.take(block, second, axis=1, out=b[part], mode="clip")
     return a, b
 
 
@@ -469,9 +466,9 @@ def _compact(cells: np.ndarray, keep: np.ndarray, new_id: np.ndarray) -> np.ndar
     """
     out = 0
     step = _rows_per_piece(cells)
-    for s in range(0, cells.shape[0], step):
+    for part in pieces(cells.shape[0], step):
         # np.compress: a boolean selection several times faster than a[mask]
-        piece = new_id[np.compress(keep[s:s + step], cells[s:s + step], axis=0)]
+        piece = new_id[np.compress(keep[part], cells[part], axis=0)]
         cells[out:out + piece.shape[0]] = piece
         out += piece.shape[0]
     return cells[:out]
@@ -1341,8 +1338,8 @@ def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int 
     del part
     # corner -> the axes it is offset along (VTK order): corner = corner 0 + those steps
     steps = [[d for d in range(dim) if off[d]] for off in (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim]]
-    for start in range(0, cells.shape[0], chunk):
-        c = cells[start:start + chunk]
+    for part in pieces(cells.shape[0], chunk):
+        c = cells[part]
         first, last = c[:, 0], c[:, far]
         span = [x[last] - x[first] for x in lat]
         ok = span[0] > 0
@@ -1355,11 +1352,11 @@ def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int 
             for d in steps[corner]:
                 expected += step[d]
             ok &= kc[:, corner] == expected
-        out[start:start + chunk] = ok
+        out[part] = ok
         volume = span[0].astype(np.int64)
         for d in range(1, dim):
             volume *= span[d]
-        size[start:start + chunk] = np.where(ok, volume, 0)
+        size[part] = np.where(ok, volume, 0)
     return out, size
 
 
@@ -1382,10 +1379,10 @@ def _material_volumes(mesh: Mesh, box: np.ndarray, on_lattice: bool, size: np.nd
 def _on_lattice(mesh: Mesh) -> bool:
     """True when every node sits at origin + lattice * spacing."""
     scale = 1e-9 * max(1.0, float(np.abs(mesh.points).max(initial=0.0)))
-    for start in range(0, mesh.points.shape[0], 1 << 18):  # in pieces that stay in cache
-        x = mesh.lattice[start:start + (1 << 18)] * mesh.spacing
+    for part in pieces(mesh.points.shape[0]):  # in pieces that stay in cache
+        x = mesh.lattice[part] * mesh.spacing
         x += mesh.origin
-        x -= mesh.points[start:start + (1 << 18)]
+        x -= mesh.points[part]
         if np.abs(x).max(initial=0.0) > scale:
             return False
     return True

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dicer.mesh.model import pieces
 from dicer.mesh.topology import (HEX_AXIS_CORNERS, HEX_CORNER_NEIGHBOURS, HEX_EDGES, QUAD_AXIS_CORNERS,
                                  QUAD_CORNER_NEIGHBOURS, QUAD_EDGES)
 
@@ -78,14 +79,24 @@ def _columns(points: np.ndarray) -> list[np.ndarray]:
     return [np.ascontiguousarray(points[:, d]) for d in range(3)]
 
 
+def _per_block(func, columns: list[np.ndarray], cells_t: np.ndarray, chunk: int,
+               out: np.ndarray | None) -> np.ndarray:
+    """``func`` of the corner coordinates of the elements ``cells_t`` (c, M), block by block of
+    ``chunk`` elements, into ``out`` (M,) float64 (a new array if None)."""
+    out = np.empty(cells_t.shape[1]) if out is None else out
+    for part in pieces(cells_t.shape[1], chunk):
+        block = cells_t[:, part]
+        out[part] = func([col[block] for col in columns])
+    return out
+
+
 def scaled_jacobian(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np.ndarray:
     """Minimum corner scaled Jacobian per element, (M,) float64 in [-1, 1]."""
     out = np.empty(cells.shape[0])
     if cells.shape[1] == 8:
         return hex_scaled_jacobian_t(_columns(points), cells.T, chunk, out)
-    for start in range(0, cells.shape[0], chunk):
-        part = cells[start : start + chunk]
-        out[start : start + chunk] = corner_scaled_jacobians(points, part).min(axis=1)
+    for part in pieces(cells.shape[0], chunk):
+        out[part] = corner_scaled_jacobians(points, cells[part]).min(axis=1)
     return out
 
 
@@ -93,12 +104,7 @@ def hex_scaled_jacobian_t(columns: list[np.ndarray], cells_t: np.ndarray, chunk:
                           out: np.ndarray | None = None) -> np.ndarray:
     """scaled_jacobian of hexahedra given as ``cells_t`` (8, M) (the transposed cell array,
     any integer type) over the coordinate columns ``columns`` (x, y, z arrays of the nodes)."""
-    m = cells_t.shape[1]
-    out = np.empty(m) if out is None else out
-    for start in range(0, m, chunk):
-        part = cells_t[:, start : start + chunk]
-        out[start : start + chunk] = _hex_min_scaled_jacobian([c[part] for c in columns])
-    return out
+    return _per_block(_hex_min_scaled_jacobian, columns, cells_t, chunk, out)
 
 
 def element_volumes(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
@@ -131,12 +137,7 @@ def hex_volumes_t(columns: list[np.ndarray], cells_t: np.ndarray, chunk: int = _
     (every other product of the expansion integrates to zero or repeats a vector).
     No BLAS: the sums are the same whatever the number of threads.
     """
-    m = cells_t.shape[1]
-    out = np.empty(m) if out is None else out
-    for start in range(0, m, chunk):
-        part = cells_t[:, start : start + chunk]
-        out[start : start + chunk] = _hex_volume([col[part] for col in columns])
-    return out
+    return _per_block(_hex_volume, columns, cells_t, chunk, out)
 
 
 def edge_ratio(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np.ndarray:
@@ -148,15 +149,15 @@ def edge_ratio(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np
     pairs = HEX_EDGES if cells.shape[1] == 8 else QUAD_EDGES
     columns = _columns(points)
     out = np.empty(cells.shape[0])
-    for start in range(0, cells.shape[0], chunk):
-        part = cells[start : start + chunk].T  # (corners, block)
+    for part in pieces(cells.shape[0], chunk):
+        block = cells[part].T  # (corners, block)
         sq = None
         for col in columns:
-            x = col[part]
+            x = col[block]
             d = x[pairs[:, 1]] - x[pairs[:, 0]]  # (edges, block)
             sq = d * d if sq is None else sq + d * d
         with np.errstate(divide="ignore", invalid="ignore"):
-            out[start : start + chunk] = np.sqrt(sq.max(axis=0) / sq.min(axis=0))
+            out[part] = np.sqrt(sq.max(axis=0) / sq.min(axis=0))
     return out
 
 
@@ -171,11 +172,7 @@ def skew(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np.ndarr
     # + ends and - ends of each axis
     axes = _HEX_SKEW_AXES if cells.shape[1] == 8 else _QUAD_SKEW_AXES
     columns = _columns(points)
-    out = np.empty(cells.shape[0])
-    for start in range(0, cells.shape[0], chunk):
-        part = cells[start : start + chunk].T
-        out[start : start + chunk] = _skew_of([col[part] for col in columns], axes)
-    return out
+    return _per_block(lambda x: _skew_of(x, axes), columns, cells.T, chunk, None)
 
 
 def _hex_edge_ratio(x: list[np.ndarray]) -> np.ndarray:
@@ -259,11 +256,11 @@ def element_metrics(points: np.ndarray, cells: np.ndarray, names=METRICS, chunk:
     cells_t = cells.T
     m = cells.shape[0]
     out = {k: np.empty(m) for k in names}
-    for start in range(0, m, chunk):
-        part = cells_t[:, start : start + chunk]
-        x = [c[part] for c in columns]
+    for part in pieces(m, chunk):
+        block = cells_t[:, part]
+        x = [c[block] for c in columns]
         for k in names:
-            out[k][start : start + chunk] = funcs[k](x)
+            out[k][part] = funcs[k](x)
     return out
 
 

@@ -9,6 +9,7 @@ into scanner coordinates (:mod:`dicer.mesh.frame`, docs/coordinates.md).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -21,6 +22,29 @@ of one voxel, l for an element made at level l (a coarse cell or part of a trans
 template: 2D cells of 3**l voxels a side; 3D cells grow by three along one axis per step,
 3**l voxels a side once the level's three steps are done). Every node of an element with level > 0 is an interior node: such
 elements lie inside one material, away from every boundary and interface."""
+
+CHUNK = 1 << 18
+"""Rows (elements, nodes or index entries) per pass of the loops that work in pieces: the
+pieces' temporaries stay small and are reused."""
+
+
+def pieces(n: int, size: int = CHUNK) -> Iterator[slice]:
+    """The slices ``[0:size]``, ``[size:2 size]``, ... that cover ``range(n)``.
+
+    Parameters
+    ----------
+    n : int
+        Number of rows.
+    size : int, optional
+        Rows per piece.
+
+    Yields
+    ------
+    slice
+        One piece of rows; the last may be shorter.
+    """
+    for start in range(0, n, size):
+        yield slice(start, start + size)
 
 
 class Sized:

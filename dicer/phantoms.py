@@ -294,7 +294,7 @@ def phantom_labels(name: str, size: int | None = None) -> Volume:
     name : str
         A key of ``PHANTOMS``.
     size : int, optional
-        Voxels along the longest axis (``DEFAULT_SIZE[name]`` if omitted).
+        As in :func:`make_phantom`.
 
     Returns
     -------

@@ -80,10 +80,25 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
 
 
 def face_neighbours(cells: np.ndarray, dim: int, n_points: int) -> np.ndarray:
-    """(M, F) element across each face, -1 for none, from a sort of face keys (any conforming mesh).
+    """The element across each face, from a sort of face keys (any conforming mesh).
 
     A quad face is keyed by its smallest node and the node diagonally opposite it, an
-    edge by its two nodes."""
+    edge by its two nodes.
+
+    Parameters
+    ----------
+    cells : (M, 8) or (M, 4) int ndarray
+        Hexahedra or quads, VTK corner order.
+    dim : int
+        3 for hexahedra, 2 for quads.
+    n_points : int
+        Number of nodes.
+
+    Returns
+    -------
+    (M, F) int64 ndarray
+        Element index across faces S1..S6 (2D: edges S1..S4), -1 for none.
+    """
     table = HEX_FACES if dim == 3 else QUAD_EDGES
     m, nf = cells.shape[0], table.shape[0]
     keys = np.empty((m, nf), np.int64)
@@ -108,7 +123,17 @@ def face_neighbours(cells: np.ndarray, dim: int, n_points: int) -> np.ndarray:
 
 
 def neighbour_materials(mesh: Mesh) -> np.ndarray:
-    """(M, F) material label of the element across each face S1..S6 (2D: edge S1..S4), 0 for none."""
+    """The material label of the element across each face.
+
+    Parameters
+    ----------
+    mesh : Mesh
+
+    Returns
+    -------
+    (M, F) uint8, uint16 or int ndarray
+        Label across faces S1..S6 (2D: edges S1..S4), 0 for none.
+    """
     nb = _neighbour_materials_by_lattice(mesh)
     if nb is None:
         idx = face_neighbours(np.asarray(mesh.cells, np.int64), mesh.dim, mesh.n_points)

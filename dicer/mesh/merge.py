@@ -130,13 +130,23 @@ def _check_passes(passes, dim: int) -> tuple[int, int, int]:
 
 
 def thick_elements(mesh: Mesh, min_thickness: float) -> np.ndarray:
-    """(M,) bool: elements lying in a part of their material at least ``min_thickness`` voxels thick.
+    """The elements lying in a part of their material at least ``min_thickness`` voxels thick.
 
     A voxel is *thick* when a ball of diameter ``min_thickness`` (in voxels) that lies
     entirely inside its material covers it: the morphological opening of the material
     mask by that ball, computed from two Euclidean distance transforms. The material
     mask is rasterised from the elements' lattice boxes (exact for a voxel mesh). An
     element is thick when the voxel at its lowest lattice corner is.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    min_thickness : float
+        Voxels.
+
+    Returns
+    -------
+    (M,) bool ndarray
     """
     m = mesh.n_cells
     if min_thickness <= 0:
@@ -1211,27 +1221,43 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
                  rim_moves: bool = True, axes=(0, 1, 2)) -> tuple[Mesh, dict]:
     """Merge element layers along each axis (DICER Box 2, multi-material, optionally selective).
 
-    mesh : a voxel mesh (``voxel_mesh``), hexahedral or quad, one or several materials.
-    passes : merges per axis (px, py[, pz]). ``p`` merges join every group of ``p + 1``
+    Nodes keep their coordinates and integer lattice indices; a moved rim node gets the
+    index of the lattice corner it moved to; merged elements span two or more lattice
+    units along the merge axis.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        A voxel mesh (:func:`~dicer.mesh.voxel.voxel_mesh`), hexahedral or quad, one or
+        several materials.
+    passes : sequence of int, optional
+        Merges per axis (px, py[, pz]). ``p`` merges join every group of ``p + 1``
         element layers into one: the first two layers of the group, then the result
         with the next layer, and so on. Groups start at the mesh's first element layer.
-    min_thickness : selective merging. 0 (default) merges wherever it is safe; t > 0
-        refuses every merge region that holds an element lying in a part of its
-        material thinner than ``t`` voxels (see ``thick_elements``).
-    granularity : "region" (default) refuses only the connected merge region that
-        failed a check; "plane" refuses the whole plane, as the paper does.
-    min_scaled_jacobian : lowest corner scaled Jacobian (measured on the lattice) a
-        changed element may have; the default 0.2 matches the smoothing floor. 0 allows
-        flat corners, -1 switches the test off (the paper checks connectivity only).
-    rim_moves : repair an element that fails a check by moving its rim nodes one lattice
-        step across the plane, or joining them to the node already there (the element
-        then fills the empty voxel beside it), before refusing its region.
-    axes : order in which the axes are merged.
+    min_thickness : float, optional
+        Selective merging. 0 merges wherever it is safe; t > 0 refuses every merge region
+        that holds an element lying in a part of its material thinner than ``t`` voxels
+        (see :func:`thick_elements`).
+    granularity : {"region", "plane"}, optional
+        "region" refuses only the connected merge region that failed a check; "plane"
+        refuses the whole plane, as the paper does.
+    min_scaled_jacobian : float, optional
+        Lowest corner scaled Jacobian (measured on the lattice) a changed element may
+        have; 0.2 matches the smoothing floor. 0 allows flat corners, -1 switches the test
+        off (the paper checks connectivity only).
+    rim_moves : bool, optional
+        Repair an element that fails a check by moving its rim nodes one lattice step
+        across the plane, or joining them to the node already there (the element then
+        fills the empty voxel beside it), before refusing its region.
+    axes : sequence of int, optional
+        Order in which the axes are merged.
 
-    Returns the merged mesh and a report with element and node counts per axis and pass
-    and the volume of every material before and after. Nodes keep their coordinates and
-    integer lattice indices; a moved rim node gets the index of the lattice corner it
-    moved to; merged elements span two or more lattice units along the merge axis.
+    Returns
+    -------
+    merged : Mesh
+    report : dict
+        Element and node counts per axis and pass, and the volume of every material
+        before and after.
     """
     counts, settings = _check_settings(mesh, passes, min_thickness, granularity, min_scaled_jacobian, rim_moves,
                                        axes)
@@ -1266,7 +1292,23 @@ DEFAULTS = {"method": "planes", "passes": [1, 1, 1], "min_thickness": 0.0, "gran
 
 
 def merge_settings(section: dict | None) -> dict:
-    """The ``merge:`` config section with defaults filled in; unknown keys are errors."""
+    """The ``merge:`` config section with defaults filled in.
+
+    Parameters
+    ----------
+    section : dict or None
+        The section as read; None for all defaults.
+
+    Returns
+    -------
+    dict
+        Every key of :data:`DEFAULTS`.
+
+    Raises
+    ------
+    DicerError
+        An unknown key, or ``templates`` not a mapping.
+    """
     settings = {k: (dict(v) if isinstance(v, dict) else v) for k, v in DEFAULTS.items()}
     for key, value in (section or {}).items():
         if key not in settings:
@@ -1284,9 +1326,23 @@ def merge_settings(section: dict | None) -> dict:
 
 
 def merge_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, dict]:
-    """The merge stage driven by the ``merge:`` config section (missing keys take DEFAULTS):
-    plane merging (``method: planes``, ``merge_planes``) or graded coarsening by transition
-    templates (``method: templates``, ``dicer.mesh.coarsen.coarsen_mesh``)."""
+    """The merge stage driven by the ``merge:`` config section.
+
+    Plane merging (``method: planes``, :func:`merge_planes`) or graded coarsening by
+    transition templates (``method: templates``, :func:`dicer.mesh.coarsen.coarsen_mesh`).
+
+    Parameters
+    ----------
+    mesh : Mesh
+        A voxel mesh.
+    config_section : dict, optional
+        The ``merge:`` section; missing keys take :data:`DEFAULTS`.
+
+    Returns
+    -------
+    merged : Mesh
+    report : dict
+    """
     s = merge_settings(config_section)
     if s["method"] == "templates":
         from dicer.mesh.coarsen import coarsen_mesh

@@ -23,7 +23,20 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 def corner_scaled_jacobians(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """Scaled Jacobian at every corner: (M, 8) for hexahedra, (M, 4) for quads (float64)."""
+    """Scaled Jacobian at every corner of every element.
+
+    Parameters
+    ----------
+    points : (N, 3) float64 ndarray
+        Node coordinates, mm.
+    cells : (M, 8) or (M, 4) int ndarray
+        Hexahedra or quads, VTK corner order.
+
+    Returns
+    -------
+    (M, 8) or (M, 4) float64 ndarray
+        Values in [-1, 1].
+    """
     x = points[cells]  # (M, n, 3)
     if cells.shape[1] == 8:
         origin = x[:, :, None, :]  # (M, 8, 1, 3)
@@ -91,7 +104,20 @@ def _per_block(func, columns: list[np.ndarray], cells_t: np.ndarray, chunk: int,
 
 
 def scaled_jacobian(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np.ndarray:
-    """Minimum corner scaled Jacobian per element, (M,) float64 in [-1, 1]."""
+    """Minimum corner scaled Jacobian per element.
+
+    Parameters
+    ----------
+    points, cells : ndarray
+        As in :func:`corner_scaled_jacobians`.
+    chunk : int, optional
+        Elements per block: the block's temporaries stay in the cache.
+
+    Returns
+    -------
+    (M,) float64 ndarray
+        Values in [-1, 1].
+    """
     out = np.empty(cells.shape[0])
     if cells.shape[1] == 8:
         return hex_scaled_jacobian_t(_columns(points), cells.T, chunk, out)
@@ -102,13 +128,39 @@ def scaled_jacobian(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) 
 
 def hex_scaled_jacobian_t(columns: list[np.ndarray], cells_t: np.ndarray, chunk: int = _BLOCK,
                           out: np.ndarray | None = None) -> np.ndarray:
-    """scaled_jacobian of hexahedra given as ``cells_t`` (8, M) (the transposed cell array,
-    any integer type) over the coordinate columns ``columns`` (x, y, z arrays of the nodes)."""
+    """:func:`scaled_jacobian` of hexahedra given by the transposed cell array.
+
+    Parameters
+    ----------
+    columns : list of three (N,) float64 ndarrays
+        x, y and z of the nodes.
+    cells_t : (8, M) int ndarray
+        The transposed cell array, any integer type.
+    chunk : int, optional
+        Elements per block.
+    out : (M,) float64 ndarray, optional
+        Written in place and returned.
+
+    Returns
+    -------
+    (M,) float64 ndarray
+    """
     return _per_block(_hex_min_scaled_jacobian, columns, cells_t, chunk, out)
 
 
 def element_volumes(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """Volume (mm^3) of each hexahedron, or area (mm^2) of each quad; (M,) float64, signed."""
+    """Volume of each hexahedron, or area of each quad.
+
+    Parameters
+    ----------
+    points, cells : ndarray
+        As in :func:`corner_scaled_jacobians`.
+
+    Returns
+    -------
+    (M,) float64 ndarray
+        Signed volumes in mm^3 (areas in mm^2).
+    """
     out = np.empty(cells.shape[0])
     if cells.shape[1] == 4:
         x = points[cells][:, :, 0]
@@ -127,8 +179,7 @@ def _triple(a: list[np.ndarray], b: list[np.ndarray], c: list[np.ndarray]) -> np
 
 def hex_volumes_t(columns: list[np.ndarray], cells_t: np.ndarray, chunk: int = _BLOCK,
                   out: np.ndarray | None = None) -> np.ndarray:
-    """Volumes of hexahedra given as ``cells_t`` (8, M) (the transposed cell array) over
-    the coordinate columns ``columns`` (x, y, z arrays of the nodes); (M,) float64, signed.
+    """Volumes of hexahedra given by the transposed cell array.
 
     Closed form of the integral of det(J) over the reference cube (exact for a trilinear
     hexahedron, like 2x2x2 Gauss quadrature): with the trilinear map written as
@@ -136,15 +187,34 @@ def hex_volumes_t(columns: list[np.ndarray], cells_t: np.ndarray, chunk: int = _
     V = 8 [c1.(c2 x c3) + (c1.(c4 x c5) + c4.(c2 x c6) + c5.(c6 x c3)) / 3]
     (every other product of the expansion integrates to zero or repeats a vector).
     No BLAS: the sums are the same whatever the number of threads.
+
+    Parameters
+    ----------
+    columns, cells_t, chunk, out
+        As in :func:`hex_scaled_jacobian_t`.
+
+    Returns
+    -------
+    (M,) float64 ndarray
+        Signed volumes, mm^3.
     """
     return _per_block(_hex_volume, columns, cells_t, chunk, out)
 
 
 def edge_ratio(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np.ndarray:
-    """Longest over shortest edge length per element, (M,) float64 (1 for a cube; inf for
-    an element with a zero-length edge).
+    """Longest over shortest edge length per element.
 
-    Blocks of ``chunk`` elements: the (block, 12) edge lengths stay small whatever the mesh size.
+    Parameters
+    ----------
+    points, cells : ndarray
+        As in :func:`corner_scaled_jacobians`.
+    chunk : int, optional
+        Elements per block: the (block, 12) edge lengths stay small whatever the mesh size.
+
+    Returns
+    -------
+    (M,) float64 ndarray
+        1 for a cube; inf for an element with a zero-length edge.
     """
     pairs = HEX_EDGES if cells.shape[1] == 8 else QUAD_EDGES
     columns = _columns(points)
@@ -162,12 +232,21 @@ def edge_ratio(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np
 
 
 def skew(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np.ndarray:
-    """Skew per element (verdict): the largest |cos| of the angles between the element's
-    principal axes, (M,) float64 in [0, 1] (0 for a box).
+    """Skew per element (verdict): the largest |cos| of the angles between its principal axes.
 
     The principal axes of a hexahedron are the sums of its four edges along each
     parametric direction (of a quad, of its two); an axis of zero length gives 0, as in
     verdict.
+
+    Parameters
+    ----------
+    points, cells, chunk
+        As in :func:`edge_ratio`.
+
+    Returns
+    -------
+    (M,) float64 ndarray
+        Values in [0, 1], 0 for a box.
     """
     # + ends and - ends of each axis
     axes = _HEX_SKEW_AXES if cells.shape[1] == 8 else _QUAD_SKEW_AXES
@@ -239,10 +318,31 @@ METRICS = ("scaled_jacobian", "edge_ratio", "skew", "volume")
 
 def element_metrics(points: np.ndarray, cells: np.ndarray, names=METRICS, chunk: int = _BLOCK
                     ) -> dict[str, np.ndarray]:
-    """The metrics ``names`` (of :data:`METRICS`) of every element, each (M,) float64, in one
-    pass: a block's corner coordinates are gathered once and every metric is computed from
-    them (the same values as :func:`scaled_jacobian`, :func:`edge_ratio`, :func:`skew` and
-    :func:`element_volumes`, bit for bit)."""
+    """Several metrics of every element in one pass.
+
+    A block's corner coordinates are gathered once and every metric is computed from
+    them: the same values as :func:`scaled_jacobian`, :func:`edge_ratio`, :func:`skew`
+    and :func:`element_volumes`, bit for bit.
+
+    Parameters
+    ----------
+    points, cells : ndarray
+        As in :func:`corner_scaled_jacobians`.
+    names : sequence of str, optional
+        Metrics of :data:`METRICS`.
+    chunk : int, optional
+        Elements per block.
+
+    Returns
+    -------
+    dict of str to (M,) float64 ndarray
+        One array per name.
+
+    Raises
+    ------
+    ValueError
+        A name is not in :data:`METRICS`.
+    """
     unknown = set(names) - set(METRICS)
     if unknown:
         raise ValueError(f"unknown metric(s) {sorted(unknown)}; use {', '.join(METRICS)}")
@@ -271,7 +371,18 @@ carried from one stage to the next (a stage that moves nodes changes them)."""
 
 
 def quality_arrays(points: np.ndarray, cells: np.ndarray, sj: np.ndarray | None = None) -> dict[str, np.ndarray]:
-    """The :data:`QUALITY_DATA` arrays of the linear elements ``cells`` (M, 8 | 4): each (M,)
-    float64; ``sj`` reuses a scaled Jacobian already computed."""
+    """The :data:`QUALITY_DATA` cell arrays of linear elements.
+
+    Parameters
+    ----------
+    points, cells : ndarray
+        As in :func:`corner_scaled_jacobians`.
+    sj : (M,) float64 ndarray, optional
+        A scaled Jacobian already computed, reused.
+
+    Returns
+    -------
+    dict of str to (M,) float64 ndarray
+    """
     return {"scaled_jacobian": scaled_jacobian(points, cells) if sj is None else sj,
             "edge_ratio": edge_ratio(points, cells)}

@@ -174,6 +174,7 @@ def parse_set(item: str, source: str = "--set") -> dict:
     Returns
     -------
     dict
+        One key per part of the dotted name.
 
     Raises
     ------
@@ -201,10 +202,12 @@ def read_config_file(path: str | Path) -> dict:
     Parameters
     ----------
     path : str or Path
+        A YAML file.
 
     Returns
     -------
     dict
+        Its sections; empty for an empty file.
 
     Raises
     ------
@@ -471,10 +474,12 @@ def config_hash(config: dict) -> str:
     Parameters
     ----------
     config : dict
+        Any configuration or part of one.
 
     Returns
     -------
     str
+        16 hex digits.
     """
     text = json.dumps(config, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:16]

@@ -52,11 +52,12 @@ def scan_header(path: str | os.PathLike) -> tuple[int, tuple[float, ...] | None]
 
 
 def scan_voxels(path: str | os.PathLike) -> int:
-    """Voxel count of an image or label volume, from its header (see :func:`scan_header`).
+    """Voxel count of an image or label volume, from its header.
 
     Parameters
     ----------
     path : str or os.PathLike
+        As in :func:`scan_header`.
 
     Returns
     -------

@@ -126,10 +126,12 @@ def settings_hash(config: dict) -> str:
     Parameters
     ----------
     config : dict
+        The whole configuration.
 
     Returns
     -------
     str
+        As :func:`dicer.config.config_hash`.
     """
     settings = stage_settings(config, "export")
     settings.get("export", {}).pop("verify", None)

@@ -101,6 +101,7 @@ def write_abaqus(model, path: str | Path) -> None:
     Parameters
     ----------
     model : SolverModel
+        Any dimension and order; 2D sections take ``thickness``.
     path : str or Path
         The ``.inp`` file.
 

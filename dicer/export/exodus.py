@@ -68,6 +68,7 @@ def side_numbers(dim: int) -> np.ndarray:
     Parameters
     ----------
     dim : int
+        2 (quad edges) or 3 (hexahedron faces).
 
     Returns
     -------
@@ -115,6 +116,7 @@ def write_exodus(model, path: str | Path) -> None:
     Parameters
     ----------
     model : SolverModel
+        Hexahedra or quads (order 2: 20-node hexahedra and 8-node quads).
     path : str or Path
         The ``.exo`` file.
     """

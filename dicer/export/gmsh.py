@@ -22,6 +22,7 @@ def write_gmsh(model, path: str | Path) -> None:
     Parameters
     ----------
     model : SolverModel
+        Written through meshio, with the material names as physical names.
     path : str or Path
         The ``.msh`` file.
     """
@@ -46,7 +47,7 @@ def check_gmsh(path: str | Path, model) -> None:
     Raises
     ------
     DicerError
-        A difference.
+        A node, element or material name that differs.
     """
     from dicer.export.readers import check_meshio
 

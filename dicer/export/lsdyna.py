@@ -49,6 +49,7 @@ def write_lsdyna(model, path: str | Path) -> None:
     Parameters
     ----------
     model : SolverModel
+        3D, order 1.
     path : str or Path
         The ``.k`` file.
     """
@@ -192,6 +193,7 @@ def check_lsdyna(path: str | Path, model) -> None:
     path : str or Path
         The keyword file.
     model : SolverModel
+        Linear hexahedra.
 
     Raises
     ------

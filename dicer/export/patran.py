@@ -287,8 +287,8 @@ def check_patran(path: str | Path, model) -> None:
     Parameters
     ----------
     path : str or Path
-        The neutral file.
     model : SolverModel
+        Any dimension and order, as written to the neutral file ``path``.
 
     Raises
     ------

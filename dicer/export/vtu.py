@@ -114,7 +114,7 @@ def check_vtu(path: str | Path, model) -> None:
     Raises
     ------
     DicerError
-        A difference.
+        The first difference (coordinates, cells, cell data or names).
     """
     from dicer.export.readers import check_meshio
 

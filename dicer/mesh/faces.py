@@ -128,6 +128,7 @@ def neighbour_materials(mesh: Mesh) -> np.ndarray:
     Parameters
     ----------
     mesh : Mesh
+        Any conforming mesh; a lattice grid serves when its elements are boxes of it.
 
     Returns
     -------

@@ -206,10 +206,9 @@ def edge_ratio(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np
 
     Parameters
     ----------
-    points, cells : ndarray
-        As in :func:`corner_scaled_jacobians`.
-    chunk : int, optional
-        Elements per block: the (block, 12) edge lengths stay small whatever the mesh size.
+    points, cells, chunk
+        As in :func:`scaled_jacobian`; blocks keep the (block, 12) edge lengths small
+        whatever the mesh size.
 
     Returns
     -------

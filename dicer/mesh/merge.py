@@ -39,6 +39,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from dicer.config import default_config
 from dicer.errors import DicerError
 from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes
 from dicer.mesh.model import CHUNK, Mesh, pieces
@@ -1285,10 +1286,9 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
     return out, report
 
 
-DEFAULTS = {"method": "planes", "passes": [1, 1, 1], "min_thickness": 0.0, "granularity": "region",
-            "min_scaled_jacobian": 0.2, "rim_moves": True,
-            "templates": {"levels": 2, "min_distance": 1, "keep_fine": []}}
-"""The ``merge:`` config section's defaults (see docs/merging.md and docs/coarsening.md)."""
+DEFAULTS = default_config()["merge"]
+"""The ``merge:`` config section's defaults, as the schema gives them (see docs/merging.md and
+docs/coarsening.md)."""
 
 
 def merge_settings(section: dict | None) -> dict:

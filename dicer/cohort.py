@@ -38,15 +38,26 @@ def _number(value) -> float | None:
 
 
 def cohort_rows(reports: dict[str, dict], benchmarks: dict[str, dict[str, dict]] | None = None) -> tuple[list[str], list[list]]:
-    """The cohort table: (column names, one row per patient in the order of ``reports``).
+    """The cohort table: column names, one row per patient in the order of ``reports``.
 
-    reports : patient -> quality report (``dicer quality``'s JSON).
-    benchmarks : patient -> stage -> a benchmark line as a dict (keys ``s``, ``max_rss``).
-    Columns: patient, elements, nodes, min_scaled_jacobian, p1_scaled_jacobian, inverted, poor,
-    parts (face-connected parts of the model), floating_elements, per material
+    Columns: patient, elements, nodes, min_scaled_jacobian, p1_scaled_jacobian, inverted,
+    poor, parts (face-connected parts of the model), floating_elements, per material
     ``volume_change_percent:<name>`` (against the meshed labels) and
-    ``original_volume_change_percent:<name>`` (against the full-resolution segmentation), per
-    stage ``seconds:<stage>`` and ``peak_mb:<stage>``. A missing value is None.
+    ``original_volume_change_percent:<name>`` (against the full-resolution segmentation),
+    per stage ``seconds:<stage>`` and ``peak_mb:<stage>``.
+
+    Parameters
+    ----------
+    reports : dict of str to dict
+        Patient -> quality report (``dicer quality``'s JSON).
+    benchmarks : dict, optional
+        Patient -> stage -> a benchmark line as a dict (keys ``s``, ``max_rss``).
+
+    Returns
+    -------
+    columns : list of str
+    rows : list of list
+        A missing value is None.
     """
     benchmarks = benchmarks or {}
     materials = _materials(reports)
@@ -77,15 +88,38 @@ def _cell(value, spec: str = "") -> str:
 
 
 def cohort_tsv(columns: list[str], rows: list[list]) -> str:
-    """The table as tab-separated text (empty cells for missing values)."""
+    """The table as tab-separated text (empty cells for missing values).
+
+    Parameters
+    ----------
+    columns, rows : list
+        From :func:`cohort_rows`.
+
+    Returns
+    -------
+    str
+    """
     lines = ["\t".join(columns)]
     lines += ["\t".join("" if v is None else str(v) for v in row) for row in rows]
     return "\n".join(lines) + "\n"
 
 
 def render_cohort_html(columns: list[str], rows: list[list], poor_threshold: float | None = None) -> str:
-    """The cohort overview as one self-contained HTML table; a patient with an inverted element or a
-    floating part is highlighted."""
+    """The cohort overview as one self-contained HTML table.
+
+    A patient with an inverted element or a floating part is highlighted.
+
+    Parameters
+    ----------
+    columns, rows : list
+        From :func:`cohort_rows`.
+    poor_threshold : float, optional
+        The scaled Jacobian below which an element counts as poor, shown in the heading.
+
+    Returns
+    -------
+    str
+    """
     at = {c: i for i, c in enumerate(columns)}
     materials = [c.split(":", 1)[1] for c in columns if c.startswith("volume_change_percent:")]
     stages = [c.split(":", 1)[1] for c in columns if c.startswith("seconds:")]

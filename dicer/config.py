@@ -37,7 +37,13 @@ STAGE_SECTIONS = {
 
 
 def schema() -> dict:
-    """The configuration JSON Schema as a dict (a fresh copy: callers may change it)."""
+    """The configuration JSON Schema as a dict.
+
+    Returns
+    -------
+    dict
+        A fresh copy: callers may change it.
+    """
     return copy.deepcopy(_schema())
 
 
@@ -94,12 +100,26 @@ def section_defaults(section: str) -> dict:
 
 
 def default_config() -> dict:
-    """Every key at its schema default."""
+    """Every key at its schema default.
+
+    Returns
+    -------
+    dict
+    """
     return _fill({}, schema())
 
 
 def deep_merge(base: dict, override: dict) -> dict:
-    """A copy of ``base`` with ``override`` merged in (dicts merge, anything else replaces)."""
+    """A copy of ``base`` with ``override`` merged in (dicts merge, anything else replaces).
+
+    Parameters
+    ----------
+    base, override : dict
+
+    Returns
+    -------
+    dict
+    """
     out = copy.deepcopy(base)
     for key, value in override.items():
         if isinstance(value, dict) and isinstance(out.get(key), dict):
@@ -125,6 +145,14 @@ class _Loader(yaml.SafeLoader):
 
 
 class DuplicateKey(Exception):
+    """A key given twice in one mapping of a YAML file.
+
+    Parameters
+    ----------
+    key : str
+    line, first : int
+        The lines of the second and the first occurrence.
+    """
     def __init__(self, key, line, first):
         super().__init__(key)
         self.key, self.line, self.first = key, line, first
@@ -151,7 +179,25 @@ def _yaml(text: str, source: str):
 
 
 def parse_set(item: str, source: str = "--set") -> dict:
-    """``a.b.c=VALUE`` -> ``{"a": {"b": {"c": VALUE}}}``; VALUE is read as YAML (``[1,1,1]``, ``0.8``, ``otsu``)."""
+    """A ``--set`` item as a nested dict: ``a.b.c=VALUE`` -> ``{"a": {"b": {"c": VALUE}}}``.
+
+    Parameters
+    ----------
+    item : str
+        VALUE is read as YAML (``[1,1,1]``, ``0.8``, ``otsu``).
+    source : str, optional
+        Named in error messages.
+
+    Returns
+    -------
+    dict
+        One key per part of the dotted name.
+
+    Raises
+    ------
+    DicerError
+        An item without ``=``, an empty key part, or a value that is not YAML.
+    """
     if "=" not in item:
         raise DicerError(f"{source} {item!r}: expected KEY=VALUE, e.g. smooth.coefficient=0.8")
     key, _, text = item.partition("=")
@@ -168,7 +214,23 @@ def parse_set(item: str, source: str = "--set") -> dict:
 
 
 def read_config_file(path: str | Path) -> dict:
-    """Read a YAML configuration file (no defaults, no validation)."""
+    """Read a YAML configuration file (no defaults, no validation).
+
+    Parameters
+    ----------
+    path : str or Path
+        A YAML file.
+
+    Returns
+    -------
+    dict
+        Its sections; empty for an empty file.
+
+    Raises
+    ------
+    DicerError
+        A missing or unreadable file, bad YAML, a repeated key, or not a mapping.
+    """
     path = Path(path)
     try:
         raw = path.read_bytes()
@@ -249,7 +311,24 @@ def _numbers(value, where: str = ""):
 
 
 def validate(config: dict, source: str = "config") -> dict:
-    """Validate ``config`` against the schema; raise DicerError naming the first bad key."""
+    """Validate a configuration against the schema.
+
+    Parameters
+    ----------
+    config : dict
+    source : str, optional
+        Named in error messages.
+
+    Returns
+    -------
+    dict
+        ``config`` itself.
+
+    Raises
+    ------
+    DicerError
+        Naming the first bad key.
+    """
     for where, value in _numbers(config):
         if not math.isfinite(value):
             raise DicerError(f"{source}: key '{where}': {value} is not a finite number; give a finite number "
@@ -289,8 +368,7 @@ SET_KINDS = ("planes", "materials", "interfaces", "exterior")
 
 
 def name_clash(names: list[str], sets=SET_KINDS) -> str | None:
-    """Why the material ``names`` (label i is names[i - 1]) would give two export sets one
-    name, or None when every name is distinct.
+    """Why material names would give two export sets one name, or None when every name is distinct.
 
     Solvers read names in upper case, so names are compared that way. An export names
     each material's element set and material after it, the faces of the exterior
@@ -299,6 +377,17 @@ def name_clash(names: list[str], sets=SET_KINDS) -> str | None:
     string splits two ways at its underscores, as ``a_b`` + ``c`` and ``a`` + ``b_c``
     do; that is looked up through the names' prefixes, so the work follows the
     number of names and underscores, not the number of pairs.
+
+    Parameters
+    ----------
+    names : list of str
+        Label i is names[i - 1].
+    sets : collection of str, optional
+        The kinds of export sets written (of :data:`SET_KINDS`).
+
+    Returns
+    -------
+    str or None
     """
     label: dict[str, int] = {}
     for i, name in enumerate(names, start=1):
@@ -359,7 +448,27 @@ def _label_keys(user: dict) -> dict:
 
 
 def load_config(path: str | Path | None = None, sets: list[str] | tuple = (), settings: dict | None = None) -> dict:
-    """Defaults <- YAML file <- ``settings`` dict <- ``--set`` items; validated, defaults filled."""
+    """The configuration: defaults <- YAML file <- ``settings`` <- ``--set`` items.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        A YAML configuration file.
+    sets : sequence of str, optional
+        ``--set`` items (:func:`parse_set`).
+    settings : dict, optional
+        Settings merged over the file.
+
+    Returns
+    -------
+    dict
+        Validated, defaults filled in.
+
+    Raises
+    ------
+    DicerError
+        A bad file, item or key.
+    """
     user: dict = {}
     source = "config"
     if path is not None:
@@ -377,16 +486,47 @@ def load_config(path: str | Path | None = None, sets: list[str] | tuple = (), se
 
 
 def stage_settings(config: dict, stage: str) -> dict:
-    """The part of ``config`` that ``stage`` reads (see STAGE_SECTIONS)."""
+    """The part of a configuration a stage reads (see :data:`STAGE_SECTIONS`).
+
+    Parameters
+    ----------
+    config : dict
+    stage : str
+        A command name (``segment``, ``mesh``, ...).
+
+    Returns
+    -------
+    dict
+    """
     return {k: copy.deepcopy(config[k]) for k in STAGE_SECTIONS[stage] if k in config}
 
 
 def config_hash(config: dict) -> str:
-    """Short SHA-256 of the canonical JSON of ``config`` (provenance in exported decks)."""
+    """Short SHA-256 of the canonical JSON of a configuration (provenance in exported decks).
+
+    Parameters
+    ----------
+    config : dict
+        Any configuration or part of one.
+
+    Returns
+    -------
+    str
+        16 hex digits.
+    """
     text = json.dumps(config, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def material_names(config: dict) -> dict[int, str]:
-    """Label value -> class name."""
+    """Class names by label value.
+
+    Parameters
+    ----------
+    config : dict
+
+    Returns
+    -------
+    dict of int to str
+    """
     return {i + 1: m["name"] for i, m in enumerate(config["materials"])}

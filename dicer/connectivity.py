@@ -203,10 +203,20 @@ def _padded(w: np.ndarray) -> np.ndarray:
 
 
 def boundary_edge_counts(labels: np.ndarray) -> np.ndarray:
-    """Boundary edges at every voxel corner of a 3D label volume, (nx+1, ny+1, nz+1) int8.
+    """Boundary edges at every voxel corner of a 3D label volume.
 
-    0 for interior nodes (eight voxels of one material) and for corners of background
-    only; voxels outside the image count as background.
+    Voxels outside the image count as background.
+
+    Parameters
+    ----------
+    labels : (nx, ny, nz) int ndarray
+        0 background.
+
+    Returns
+    -------
+    (nx+1, ny+1, nz+1) int8 ndarray
+        0 for interior nodes (eight voxels of one material) and for corners of background
+        only.
     """
     w = _as_work(np.asarray(labels))
     if w.ndim != 3:
@@ -507,7 +517,7 @@ def _tally(table: dict, new_values: np.ndarray) -> None:
 
 def fix_connectivity(labels: np.ndarray, max_iterations: int = 100, type_c: bool = True,
                      max_type_c_rounds: int = 100, majority_rounds: int = 5) -> tuple[np.ndarray, dict]:
-    """Repair Type A, B and C connectivity in a 2D or 3D label volume (0 = background).
+    """Repair Type A, B and C connectivity in a 2D or 3D label volume.
 
     Type A and B sweeps repeat until nothing changes (at most ``max_iterations``
     sweeps). In 3D, Type C follows in two phases, each round followed by A/B to their
@@ -521,14 +531,33 @@ def fix_connectivity(labels: np.ndarray, max_iterations: int = 100, type_c: bool
        Every change raises a class, so this phase ends, and when it ends no Type A, B
        or C arrangement is left.
 
-    Returns the fixed labels (same dtype and shape) and a report::
+    Parameters
+    ----------
+    labels : (nx, ny[, nz]) int ndarray
+        0 background.
+    max_iterations : int, optional
+        A/B sweeps per round at most.
+    type_c : bool, optional
+        Repair Type C too (3D).
+    max_type_c_rounds : int, optional
+        Rounds of the raising phase at most.
+    majority_rounds : int, optional
+        Rounds of the majority phase at most.
 
-        {"changed_voxels": n, "type_a": {class: voxels set to it}, "type_b": {...},
-         "type_c": {...}, "iterations": [A/B sweeps per round], "majority_rounds": r1,
-         "type_c_rounds": r2, "type_c_sites": [sites before each round kept],
-         "converged": bool (no cap was hit), "remaining": connectivity_defects(result)}
+    Returns
+    -------
+    fixed : ndarray
+        Same dtype and shape as ``labels``.
+    report : dict
+        ``{"changed_voxels": n, "type_a": {class: voxels set to it}, "type_b": {...},
+        "type_c": {...}, "iterations": [A/B sweeps per round], "majority_rounds": r1,
+        "type_c_rounds": r2, "type_c_sites": [sites before each round kept],
+        "converged": bool (no cap was hit), "remaining": connectivity_defects(fixed)}``.
 
-    Raises DicerError for input that is not a 2D/3D non-negative integer volume.
+    Raises
+    ------
+    DicerError
+        Input that is not a 2D/3D non-negative integer volume.
     """
     labels = np.asarray(labels)
     if labels.ndim not in (2, 3):
@@ -619,9 +648,20 @@ def _majority_phase(w, counts, iterations, max_iterations, max_rounds):
 def connectivity_defects(labels: np.ndarray, type_c: bool = True) -> dict:
     """Count the poorly connected arrangements left in a label volume.
 
-    type_a: planar 2x2 blocks (all three orientations) where a class holds exactly one
-    diagonal; type_b: 2x2x2 blocks where a class holds exactly a body diagonal or exactly
-    the six voxels off one; type_c: boundary edges joining two class-A nodes.
+    Parameters
+    ----------
+    labels : (nx, ny[, nz]) int ndarray
+        0 background.
+    type_c : bool, optional
+        Count Type C sites too.
+
+    Returns
+    -------
+    dict
+        ``type_a``: planar 2x2 blocks (all three orientations) where a class holds exactly
+        one diagonal; ``type_b``: 2x2x2 blocks where a class holds exactly a body diagonal
+        or exactly the six voxels off one; ``type_c``: boundary edges joining two class-A
+        nodes.
     """
     w = _as_work(np.asarray(labels))
     planes = [(0, 1)] if w.ndim == 2 else [(1, 2), (0, 2), (0, 1)]
@@ -643,12 +683,22 @@ def _type_c_sites(w: np.ndarray) -> int:
 def remove_islands(labels: np.ndarray, min_voxels: int) -> tuple[np.ndarray, dict]:
     """Set to background every part of the model smaller than ``min_voxels`` voxels.
 
-    labels : (nx, ny[, nz]) integer label volume, 0 = background.
     A part is a connected component of the non-background voxels through shared faces
     (the elements of a mesh hold together only through faces): a part that small floats
     free of the main body, and one floating element makes a static solve singular.
-    Returns the labels (a copy when anything changed) and a report: the parts found, the
-    parts removed and their voxels, per material.
+
+    Parameters
+    ----------
+    labels : (nx, ny[, nz]) int ndarray
+        0 background.
+    min_voxels : int
+
+    Returns
+    -------
+    labels : ndarray
+        A copy when anything changed.
+    report : dict
+        The parts found, the parts removed and their voxels, per material.
     """
     from scipy import ndimage
 

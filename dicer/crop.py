@@ -20,14 +20,26 @@ def _direction(volume: Volume) -> np.ndarray:
 
 
 def crop_box(volume: Volume, crop: dict, source: str) -> tuple[np.ndarray, np.ndarray]:
-    """(start, stop) voxel indices, (ndim,) int64 each, of ``crop`` on ``volume``: the voxels
-    ``start[i] <= index[i] < stop[i]``.
+    """The voxel index box of a crop setting on a volume.
 
     unit voxels: min and max are those indices (max exclusive, like a Python slice), and
     must lie in the image. unit mm: min and max are opposite corners of a box in scanner
     coordinates (LPS, mm, the exported model's frame); the region is the smallest index box
     holding every voxel whose centre lies in the box (exactly those voxels unless the image
     is oblique), clipped to the image.
+
+    Parameters
+    ----------
+    volume : Volume
+    crop : dict
+        The ``image.crop`` setting: ``unit``, ``min``, ``max``.
+    source : str
+        File named in error messages.
+
+    Returns
+    -------
+    start, stop : (ndim,) int64 ndarray
+        The voxels ``start[i] <= index[i] < stop[i]``.
     """
     shape = np.array(volume.array.shape, np.int64)
     n = volume.ndim
@@ -63,8 +75,22 @@ def crop_box(volume: Volume, crop: dict, source: str) -> tuple[np.ndarray, np.nd
 
 
 def crop_volume(volume: Volume, crop: dict | None, source: str) -> tuple[Volume, dict | None]:
-    """``volume`` cut to ``crop`` (the ``image.crop`` setting; None: unchanged) and a summary
-    (start, stop, shape before and after), or None when nothing was cut."""
+    """A volume cut to the ``image.crop`` setting.
+
+    Parameters
+    ----------
+    volume : Volume
+    crop : dict or None
+        The ``image.crop`` setting (:func:`crop_box`); None leaves the volume unchanged.
+    source : str
+        File named in error messages.
+
+    Returns
+    -------
+    cropped : Volume
+    summary : dict or None
+        Start, stop, shape before and after; None when nothing was cut.
+    """
     if crop is None:
         return volume, None
     start, stop = crop_box(volume, crop, source)

@@ -40,6 +40,8 @@ def reduction_factor(spacing, config: dict, source: str = "") -> tuple[int, ...]
         Reads ``downsample.factor`` (int or one per axis) and ``downsample.voxel_size``
         (mm, one value or one per axis; when set it wins: factor =
         ``max(1, round(voxel_size / spacing))`` per axis).
+    source : str, optional
+        File named in error messages.
 
     Returns
     -------

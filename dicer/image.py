@@ -14,16 +14,22 @@ MAX_LABEL = 65535
 class Volume:
     """A 2D or 3D image or label volume.
 
-    array : (nx, ny[, nz]) array indexed [x, y, z]; intensities (float32, HU for CT)
-        or labels (integer, 0 = background, 1..K = material class).
-    spacing : per-axis voxel size in mm, one value per array axis.
-    origin : ITK's origin (centre of voxel (0, 0, 0)) minus half a voxel along each
-        index axis, in mm, one value per array axis: that voxel's corner when the
-        direction is the identity.
-    direction : the file's direction cosines (ITK order, row-major, ndim * ndim values),
-        or None for the identity. Stages work in the index axes; label files keep them
-        (so their affine), and the exports place the model in scanner coordinates with
-        them (docs/coordinates.md).
+    Parameters
+    ----------
+    array : (nx, ny[, nz]) ndarray
+        Indexed [x, y, z]; intensities (float32, HU for CT) or labels (integer,
+        0 = background, 1..K = material class).
+    spacing : tuple of float
+        Per-axis voxel size in mm, one value per array axis.
+    origin : tuple of float, optional
+        ITK's origin (centre of voxel (0, 0, 0)) minus half a voxel along each index axis,
+        in mm, one value per array axis: that voxel's corner when the direction is the
+        identity.
+    direction : tuple of float, optional
+        The file's direction cosines (ITK order, row-major, ndim * ndim values), or None
+        for the identity. Stages work in the index axes; label files keep them (so their
+        affine), and the exports place the model in scanner coordinates with them
+        (docs/coordinates.md).
     """
 
     array: np.ndarray
@@ -41,16 +47,27 @@ class Volume:
 
     @property
     def ndim(self) -> int:
+        """Number of array axes, 2 or 3."""
         return self.array.ndim
 
 
 def regridded_origin(volume: Volume, spacing) -> tuple[float, ...]:
-    """``Volume.origin`` of the same first-voxel corner on a grid of voxel size ``spacing``.
+    """``Volume.origin`` of the same first-voxel corner on a grid of another voxel size.
 
     ``origin`` is ITK's voxel-centre origin minus half a voxel along each index axis, which
     is the corner only while the direction is the identity. With a direction D the corner
     in space is ``itk_origin - D (s / 2)``, so keeping it at a new voxel size s' moves the
     origin by ``(s - s') / 2 - D (s - s') / 2`` (zero along axes D leaves as they are).
+
+    Parameters
+    ----------
+    volume : Volume
+    spacing : sequence of float
+        The new voxel size, mm.
+
+    Returns
+    -------
+    tuple of float
     """
     old = np.asarray(volume.spacing, float)
     half = (old - np.asarray(spacing, float)) / 2

@@ -97,12 +97,21 @@ def resolve_materials(values, config: dict, source: str = "labels") -> tuple[dic
 def map_labels(volume: Volume, config: dict, source: str = "labels") -> tuple[Volume, list[dict], dict]:
     """The volume with its label values replaced by material numbers 1..K (0: background).
 
+    Parameters
+    ----------
+    volume : Volume
+        Integer labels.
+    config : dict
+        A loaded configuration (see :func:`resolve_materials`).
+    source : str, optional
+        The label file's name, for messages.
+
     Returns
     -------
     mapped : Volume
         Same grid, origin and direction as ``volume``; uint8 or uint16 values.
     materials : list of dict
-        The materials section for the mapped volume (see ``resolve_materials``).
+        The materials section for the mapped volume (see :func:`resolve_materials`).
     info : dict
         ``values``: label value -> material name or ``background``, and voxel counts
         per material.
@@ -192,7 +201,7 @@ def _same_placement(volume: Volume, source: Path) -> bool:
 
 
 def write_mapped_labels(volume: Volume, source: str | Path, path: str | Path) -> None:
-    """Write the label volume ``volume``, on the grid of the image or label file ``source``, to ``path``.
+    """Write a label volume on the grid of the image or label file it came from.
 
     A single-file NIfTI-1 input (the usual output of Slicer, ITK-SNAP, FreeSurfer and
     TotalSegmentator) lends its own header, so the written file has exactly the input's
@@ -201,6 +210,15 @@ def write_mapped_labels(volume: Volume, source: str | Path, path: str | Path) ->
     place (about 1e-7 mm per mm). Any other input goes through
     :func:`dicer.io.images.write_labels`, which keeps spacing, origin and direction.
     Used for every label file on its input's grid (labels, segment, fix).
+
+    Parameters
+    ----------
+    volume : Volume
+        The labels to write.
+    source : str or Path
+        The image or label file whose grid they are on.
+    path : str or Path
+        The file written.
     """
     from dicer.io.images import write_labels
 

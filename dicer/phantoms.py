@@ -110,6 +110,13 @@ SPHERE_OFFSET = (0.31, 0.17, 0.23)
 def sphere_labels(n: int = 48, label: int = BONE) -> Volume:
     """Single-material ball of radius 0.3 n centred at n/2 + ``SPHERE_OFFSET`` (voxel units).
 
+    Parameters
+    ----------
+    n : int, optional
+        Voxels per axis.
+    label : int, optional
+        Label of the ball.
+
     Returns
     -------
     Volume
@@ -125,9 +132,13 @@ def block_labels(n: int = 32, margin: int | None = None, label: int = BONE) -> V
 
     Parameters
     ----------
+    n : int, optional
+        Voxels along x.
     margin : int, optional
         Background voxels on every side of the block (default max(1, n // 8); 0 fills
         the volume).
+    label : int, optional
+        Label of the block.
 
     Returns
     -------
@@ -266,6 +277,11 @@ def _long_bone(n: int):
 def long_bone_labels(n: int = 96) -> Volume:
     """True labels of the long-bone phantom: marrow and muscle 1, cortical bone 2.
 
+    Parameters
+    ----------
+    n : int, optional
+        Voxels along z.
+
     Returns
     -------
     Volume
@@ -302,7 +318,7 @@ def phantom_labels(name: str, size: int | None = None) -> Volume:
     name : str
         A key of ``PHANTOMS``.
     size : int, optional
-        Voxels along the longest axis (``DEFAULT_SIZE[name]`` if omitted).
+        As in :func:`make_phantom`.
 
     Returns
     -------

@@ -74,7 +74,17 @@ def _material_nodes(cells: np.ndarray, material: np.ndarray, label: np.ndarray, 
 
 
 def element_neighbours(mesh: Mesh) -> np.ndarray:
-    """(M, F) index of the element across each face (2D: edge), -1 for none (any conforming mesh)."""
+    """The element across each face (2D: edge) of any conforming mesh.
+
+    Parameters
+    ----------
+    mesh : Mesh
+
+    Returns
+    -------
+    (M, F) int64 ndarray
+        Element index, -1 for none.
+    """
     from dicer.mesh.faces import face_neighbours
 
     return face_neighbours(np.asarray(mesh.cells, np.int64), mesh.dim, mesh.n_points)
@@ -97,10 +107,21 @@ def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None) -> dict:
     """Connected parts of the model and of each material, through shared faces (2D: edges).
 
     Elements that share only an edge or a node do not hold together in a solve, so parts are
-    face-connected, as ``fix`` counts them on the voxels. Returns ``{"model": {...},
-    "materials": {label: {...}}}``, each with ``parts`` (count), ``largest`` and ``smallest``
-    (elements of the largest and smallest part); the model's also ``floating_elements``: the
-    elements outside its largest part (any is a part a static solve cannot hold).
+    face-connected, as ``fix`` counts them on the voxels.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    neighbours : (M, F) int64 ndarray, optional
+        From :func:`element_neighbours`; computed here when not given.
+
+    Returns
+    -------
+    dict
+        ``{"model": {...}, "materials": {label: {...}}}``, each with ``parts`` (count),
+        ``largest`` and ``smallest`` (elements of the largest and smallest part); the
+        model's also ``floating_elements``: the elements outside its largest part (any is
+        a part a static solve cannot hold).
     """
     m = mesh.n_cells
     nb = element_neighbours(mesh) if neighbours is None else neighbours
@@ -131,19 +152,30 @@ def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None) -> dict:
 
 def quality_report(mesh: Mesh, config: dict, labels=None, original=None, metrics: dict | None = None,
                    neighbours: np.ndarray | None = None) -> dict:
-    """Quality figures of ``mesh`` as a JSON-ready dict.
+    """Quality figures of a mesh as a JSON-ready dict.
 
-    mesh : the mesh to assess.
-    config : dicer configuration (material names, ``quality.poor_scaled_jacobian``).
-    labels : optional label Volume the mesh came from; adds voxel counts and the
-        volume of the mesh against the voxel volume per material.
-    original : optional label Volume of the segmentation before downsampling (the full-resolution
-        labels); adds its voxel volume per material and the mesh's volume change against it, which
-        holds what downsampling changed too.
-    metrics : the elements' metrics already computed (:func:`dicer.mesh.metrics.element_metrics`
-        with at least ``REPORT_METRICS``); computed here when not given.
-    neighbours : (M, F) element across each face (:func:`element_neighbours`), computed here
-        when not given.
+    Parameters
+    ----------
+    mesh : Mesh
+        The mesh to assess.
+    config : dict
+        dicer configuration (material names, ``quality.poor_scaled_jacobian``).
+    labels : Volume, optional
+        The labels the mesh came from; adds voxel counts and the volume of the mesh
+        against the voxel volume per material.
+    original : Volume, optional
+        The segmentation before downsampling (the full-resolution labels); adds its voxel
+        volume per material and the mesh's volume change against it, which holds what
+        downsampling changed too.
+    metrics : dict, optional
+        The elements' metrics already computed
+        (:func:`dicer.mesh.metrics.element_metrics` with at least ``REPORT_METRICS``).
+    neighbours : (M, F) int64 ndarray, optional
+        The element across each face (:func:`element_neighbours`).
+
+    Returns
+    -------
+    dict
     """
     names = material_names(config)
     if metrics is None:
@@ -239,7 +271,18 @@ STYLE = ("body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;
 
 
 def parts_html(report: dict) -> str:
-    """The floating-parts table: the model's face-connected parts and each material's."""
+    """The floating-parts table: the model's face-connected parts and each material's.
+
+    Parameters
+    ----------
+    report : dict
+        From :func:`quality_report`.
+
+    Returns
+    -------
+    str
+        HTML.
+    """
     parts = report.get("parts")
     if not parts:
         return ""
@@ -256,7 +299,18 @@ def parts_html(report: dict) -> str:
 
 
 def volume_html(report: dict) -> str:
-    """Per material: the mesh's volume against the meshed labels and against the original segmentation."""
+    """Per material, the mesh's volume against the meshed labels and the original segmentation.
+
+    Parameters
+    ----------
+    report
+        As in :func:`parts_html`.
+
+    Returns
+    -------
+    str
+        An HTML table.
+    """
     unit = "mm^3" if report["dimension"] == 3 else "mm^2"
     rows = []
     for name, e in report["materials"].items():
@@ -271,9 +325,22 @@ def volume_html(report: dict) -> str:
 
 
 def render_html(report: dict, pictures: list[tuple[str, bytes]] = ()) -> str:
-    """A self-contained HTML page of the report: tables, and ``pictures`` (caption, PNG bytes)
-    embedded as data URIs, so the page shows them wherever it is opened (a browser, inside
-    ``snakemake --report``, sent by mail)."""
+    """A self-contained HTML page of the report.
+
+    Tables, and pictures embedded as data URIs, so the page shows them wherever it is
+    opened (a browser, inside ``snakemake --report``, sent by mail).
+
+    Parameters
+    ----------
+    report : dict
+        From :func:`quality_report`.
+    pictures : sequence of (str, bytes), optional
+        Caption and PNG bytes of each picture.
+
+    Returns
+    -------
+    str
+    """
     top = [(k, report[k]) for k in ("dimension", "element_type", "nodes", "elements", "inverted_elements",
                                       "poor_elements", "poor_threshold")]
     parts = [

@@ -16,10 +16,21 @@ import numpy as np
 
 
 def scan_header(path: str | os.PathLike) -> tuple[int, tuple[float, ...] | None]:
-    """(voxel count, voxel size in mm or None) of an image or label volume, from its header.
+    """Voxel count and voxel size of an image or label volume, from its header.
 
     NIfTI, NRRD, MetaImage: SimpleITK's header read; ``.npy``: the array header; a folder
-    of slices (DICOM, TIFF, PNG) or an unreadable file: its size in bytes / 2 (2 bytes a voxel).
+    of slices (DICOM, TIFF, PNG) or an unreadable file: its size in bytes / 2 (2 bytes a
+    voxel).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    voxels : int
+    spacing : tuple of float or None
+        mm; None when the header does not say.
     """
     path = Path(path)
     if path.is_dir():
@@ -41,7 +52,17 @@ def scan_header(path: str | os.PathLike) -> tuple[int, tuple[float, ...] | None]
 
 
 def scan_voxels(path: str | os.PathLike) -> int:
-    """Voxel count of an image or label volume, from its header (see scan_header)."""
+    """Voxel count of an image or label volume, from its header.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        As in :func:`scan_header`.
+
+    Returns
+    -------
+    int
+    """
     return scan_header(path)[0]
 
 
@@ -49,7 +70,16 @@ _CELLS = re.compile(rb'NumberOfCells="(\d+)"')
 
 
 def mesh_elements(path: str | os.PathLike) -> int:
-    """Element count of a VTU mesh, from its <Piece> header (the first 4 kB)."""
+    """Element count of a VTU mesh, from its <Piece> header (the first 4 kB).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    int
+    """
     with open(path, "rb") as handle:
         match = _CELLS.search(handle.read(4096))
     if match is None:
@@ -115,16 +145,35 @@ def _stage_key(stage: str) -> str:
 
 def estimate(stage: str, voxels: int, voxels_ds: int | None = None, elements: int | None = None,
              attempt: int = 1, scan: bool = False) -> tuple[int, int]:
-    """(mem_mb, runtime in minutes) to request for one stage, ``attempt`` times the first.
-
-    ``scan``: the smooth stage reads the scan too (a segmented patient: SMOOTH_SCAN added).
+    """Memory and run time to request for one stage, ``attempt`` times the first.
 
     mem_mb = ceil(MEMORY_MARGIN * (BASELINE_FACTOR * base_mb + mb_per_million * size / 1e6)) * attempt
     runtime = ceil(START_UP_MINUTES + TIME_MARGIN * (base_s + s_per_million * size / 1e6) / 60) * attempt
 
     size is the stage's SIZE_OF: the scan's voxel count, the voxel count after downsampling
-    (default: voxels) or the mesh's element count (default, before the mesh exists:
-    ELEMENT_FRACTION * voxels_ds).
+    or the mesh's element count.
+
+    Parameters
+    ----------
+    stage : str
+        A command name.
+    voxels : int
+        Voxels of the scan.
+    voxels_ds : int, optional
+        Voxels after downsampling (default: ``voxels``).
+    elements : int, optional
+        Elements of the mesh (default, before the mesh exists: ELEMENT_FRACTION *
+        ``voxels_ds``).
+    attempt : int, optional
+        The attempt of the job, 1 first.
+    scan : bool, optional
+        The smooth stage reads the scan too (a segmented patient: SMOOTH_SCAN added).
+
+    Returns
+    -------
+    mem_mb : int
+    runtime : int
+        Minutes.
     """
     key = _stage_key(stage)
     voxels_ds = voxels if voxels_ds is None else voxels_ds
@@ -144,9 +193,22 @@ def estimate(stage: str, voxels: int, voxels_ds: int | None = None, elements: in
 
 
 def run_peak_mb(voxels: int, factor=1) -> int:
-    """Fitted peak memory (MB) of the heaviest stage of ``dicer run`` on a scan of ``voxels``
-    voxels downsampled by ``factor`` (int or one per axis), before any mesh exists (elements
-    taken as ELEMENT_FRACTION of the downsampled voxels)."""
+    """Fitted peak memory of the heaviest stage of ``dicer run``, before any mesh exists.
+
+    Elements are taken as ELEMENT_FRACTION of the downsampled voxels.
+
+    Parameters
+    ----------
+    voxels : int
+        Voxels of the scan.
+    factor : int or sequence of int, optional
+        Downsampling factor, one or one per axis.
+
+    Returns
+    -------
+    int
+        MB.
+    """
     factor = np.asarray(factor, dtype=np.int64)
     reduction = int(factor ** 3 if factor.ndim == 0 else np.prod(factor))
     voxels_ds = max(1, voxels // max(1, reduction))
@@ -157,8 +219,14 @@ def run_peak_mb(voxels: int, factor=1) -> int:
 
 
 def machine_memory_mb() -> int | None:
-    """Memory this process may use in MB: the smaller of the machine's physical memory and
-    a cgroup (container, cluster job) limit; None where neither can be read."""
+    """Memory this process may use: the smaller of the machine's physical memory and a
+    cgroup (container, cluster job) limit.
+
+    Returns
+    -------
+    int or None
+        MB; None where neither can be read.
+    """
     limits = []
     try:
         limits.append(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2**20)

@@ -71,23 +71,32 @@ def _write_and_check(fmt: Format, model: SolverModel, tmp: Path, path: Path, ex:
 
 def export_mesh(mesh: Mesh, path: str | os.PathLike, config: dict, source: str | os.PathLike | None = None,
                 verify: bool = True) -> dict:
-    """Write ``mesh`` to ``path`` in the format its extension names; returns a summary dict.
+    """Write a mesh in the format its file extension names.
 
     Parameters
     ----------
     mesh : Mesh
         The mesh to export.
-    path : path
+    path : str or os.PathLike
         The output file; its suffix names the format (:data:`EXPORT_SUFFIXES`).
     config : dict
         The dicer configuration (``materials`` and ``export`` sections).
-    source : path, optional
+    source : str or os.PathLike, optional
         The input the model was made from (its SHA-256 goes into the provenance).
-    verify : bool
+    verify : bool, optional
         Read the file back and check it before renaming it into place (default); an
         Abaqus deck with dicer's strict reader, or meshio's when ``export.verify`` is meshio.
 
-    On any problem: DicerError, and no file at ``path``.
+    Returns
+    -------
+    dict
+        Summary: format, file, nodes, elements, element type, order, bytes, elements per
+        material, nodes per node set, exterior faces, verified.
+
+    Raises
+    ------
+    DicerError
+        On any problem; no file is left at ``path``.
     """
     path = Path(path)
     fmt = _format_for(mesh, path)

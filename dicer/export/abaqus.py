@@ -46,7 +46,21 @@ def _num(v: float) -> str:
 
 
 def node_block(stream, points: np.ndarray, width: int, digits: int, lead_nl: bool = True) -> None:
-    """Rows ``\\n<id>, x, y, z`` for ids 1..N (each row starts with the newline that ends the previous line)."""
+    """Write node rows ``\\n<id>, x, y, z`` for ids 1..N.
+
+    Each row starts with the newline that ends the previous line.
+
+    Parameters
+    ----------
+    stream : binary file
+    points : (N, 3) float64 ndarray
+    width : int
+        Columns of the id field.
+    digits : int
+        Significant digits of the coordinates.
+    lead_nl : bool, optional
+        Start the first row with a newline too.
+    """
     fmt = Sci(digits)
 
     def fields(start, stop):
@@ -58,7 +72,18 @@ def node_block(stream, points: np.ndarray, width: int, digits: int, lead_nl: boo
 
 
 def element_block(stream, cells: np.ndarray, elements: np.ndarray, width: int, width_cont: int) -> None:
-    """Rows ``\\n<element id>, n1, ..., nk`` (1-based), continued after 16 entries with ``,\\n``."""
+    """Write element rows ``\\n<element id>, n1, ..., nk`` (1-based), continued after 16 entries with ``,\\n``.
+
+    Parameters
+    ----------
+    stream : binary file
+    cells : (M, k) int ndarray
+        0-based node indices.
+    elements : (m,) int ndarray
+        The elements written, 0-based.
+    width, width_cont : int
+        Columns of the id fields on the first and on continuation lines.
+    """
 
     def fields(start, stop):
         e = elements[start:stop]
@@ -71,7 +96,20 @@ def element_block(stream, cells: np.ndarray, elements: np.ndarray, width: int, w
 
 
 def write_abaqus(model, path: str | Path) -> None:
-    """Write the SolverModel ``model`` as an Abaqus/CalculiX deck at ``path``."""
+    """Write a SolverModel as an Abaqus/CalculiX deck.
+
+    Parameters
+    ----------
+    model : SolverModel
+        Any dimension and order; 2D sections take ``thickness``.
+    path : str or Path
+        The ``.inp`` file.
+
+    Raises
+    ------
+    ValueError
+        A number no field of the deck holds.
+    """
     digits = 13 if model.digits > 9 else 9
     wid = aligned_width(int_width(max(model.n_points, model.n_cells)), b",")
     wid_cont = aligned_width(int_width(model.n_points), b",\n")
@@ -137,7 +175,20 @@ def _meshio_abaqus_types():
 
 
 def check_abaqus_meshio(path: str | Path, model) -> None:
-    """Re-read an Abaqus deck with meshio and compare it with ``model`` (``export.verify: meshio``)."""
+    """Re-read an Abaqus deck with meshio and compare it with the model (``export.verify: meshio``).
+
+    Parameters
+    ----------
+    path : str or Path
+        The deck.
+    model : SolverModel
+        What it should hold.
+
+    Raises
+    ------
+    DicerError
+        A difference.
+    """
     import meshio
 
     try:
@@ -571,22 +622,49 @@ def _read_abaqus(path: str | Path, model=None) -> dict:
 def read_abaqus(path: str | Path) -> dict:
     """Read an Abaqus/CalculiX deck as dicer writes it, strictly and at array speed.
 
-    Returns points (N, 3) float64 (bit for bit what ``float`` gives for each number),
-    cells (M, k) 0-based in element number order (int32 up to 9-digit numbers, else int64), element_type, blocks
-    [(ELSET name, 0-based element indices)] in file order, node_sets and element_sets
-    {name: 0-based ids}, surfaces {name: [(element set, face)]}, materials {name:
-    {"elastic": (E, nu), "density": (rho,)}}, sections {ELSET: (material, [data])} and
-    heading (the *HEADING lines). Nodes must be numbered 1..N in order and elements 1..M
-    once each; fields must be fixed-width as dicer writes them. Anything else raises
-    DicerError naming the file, the line and the column.
+    Nodes must be numbered 1..N in order and elements 1..M once each; fields must be
+    fixed-width as dicer writes them.
+
+    Parameters
+    ----------
+    path : str or Path
+        A deck written by :func:`write_abaqus`.
+
+    Returns
+    -------
+    dict
+        ``points`` (N, 3) float64 (bit for bit what ``float`` gives for each number),
+        ``cells`` (M, k) 0-based in element number order (int32 up to 9-digit numbers,
+        else int64), ``element_type``, ``blocks`` [(ELSET name, 0-based element indices)]
+        in file order, ``node_sets`` and ``element_sets`` {name: 0-based ids},
+        ``surfaces`` {name: [(element set, face)]}, ``materials`` {name: {"elastic": (E,
+        nu), "density": (rho,)}}, ``sections`` {ELSET: (material, [data])} and
+        ``heading`` (the *HEADING lines).
+
+    Raises
+    ------
+    DicerError
+        Anything else, naming the file, the line and the column.
     """
     return named(_read_abaqus, path)
 
 
 def check_abaqus(path: str | Path, model) -> None:
-    """Re-read an Abaqus deck with dicer's strict reader and compare all of it with ``model``:
-    heading, nodes, elements and their material blocks, node and element sets, the
-    exterior surface, materials and sections."""
+    """Re-read an Abaqus deck with dicer's strict reader and compare all of it with the model.
+
+    Heading, nodes, elements and their material blocks, node and element sets, the
+    exterior surface, materials and sections.
+
+    Parameters
+    ----------
+    path : str or Path
+    model : SolverModel
+
+    Raises
+    ------
+    DicerError
+        The first difference.
+    """
     got = _read_abaqus(path, model)  # nodes and elements compared with the model's record by record
     if got["element_type"] != model.element_type:
         raise DicerError(f"element type {got['element_type']} read back, expected {model.element_type}")
@@ -627,8 +705,20 @@ def _same_sets(kind: str, got: dict[str, np.ndarray], want: dict[str, np.ndarray
 
 
 def check_deck(path: str | Path, model, verify: str = "strict") -> None:
-    """Read the deck back and compare it with ``model``: with dicer's strict reader, or with
-    meshio's when ``verify`` is ``meshio`` (``export.verify``)."""
+    """Read the deck back and compare it with the model.
+
+    Parameters
+    ----------
+    path : str or Path
+    model : SolverModel
+    verify : {"strict", "meshio"}, optional
+        dicer's strict reader, or meshio's (``export.verify``).
+
+    Raises
+    ------
+    DicerError
+        A difference.
+    """
     if verify == "meshio":
         check_abaqus_meshio(path, model)
     else:

@@ -45,19 +45,50 @@ _LIMIT = 2**32 - 4  # bytes of one variable in CDF-2
 
 
 def node_order(dim: int, order: int) -> np.ndarray:
-    """Position in dicer's node order of each node of the Exodus element (an index array)."""
+    """Position in dicer's node order of each node of the Exodus element.
+
+    Parameters
+    ----------
+    dim, order : int
+        2 or 3; 1 or 2.
+
+    Returns
+    -------
+    int ndarray
+        An index array.
+    """
     if (dim, order) == (3, 2):
         return HEX20_EXODUS
     return np.arange({(3, 1): 8, (2, 1): 4, (2, 2): 8}[(dim, order)])
 
 
 def side_numbers(dim: int) -> np.ndarray:
-    """(F,) Exodus side number of Abaqus face (edge) number f at index f - 1."""
+    """Exodus side number of each Abaqus face (edge) number.
+
+    Parameters
+    ----------
+    dim : int
+        2 (quad edges) or 3 (hexahedron faces).
+
+    Returns
+    -------
+    (F,) int ndarray
+        At index f - 1, the side of Abaqus face f.
+    """
     return HEX_SIDE if dim == 3 else QUAD_SIDE
 
 
 def title(model) -> str:
-    """The file title: program, element type and order only (no input name: it may name a patient)."""
+    """The file title: program, element type and order only (no input name: it may name a patient).
+
+    Parameters
+    ----------
+    model : SolverModel
+
+    Returns
+    -------
+    str
+    """
     return f"dicer {__version__} {EXODUS_TYPES[(model.dim, model.order)]} model (order {model.order})"
 
 
@@ -80,7 +111,15 @@ def _id_table(nc, kind: str, count: str, ids, names: list[str]) -> None:
 
 
 def write_exodus(model, path: str | Path) -> None:
-    """Write the SolverModel ``model`` as an Exodus II file at ``path`` (see the module notes)."""
+    """Write a SolverModel as an Exodus II file (see the module notes).
+
+    Parameters
+    ----------
+    model : SolverModel
+        Hexahedra or quads (order 2: 20-node hexahedra and 8-node quads).
+    path : str or Path
+        The ``.exo`` file.
+    """
     try:
         _write(model, path)
     except RuntimeError as exc:  # what the netCDF library reports other than OSError
@@ -166,11 +205,24 @@ def _text(var) -> list[str]:
 def read_exodus(path: str | Path) -> dict:
     """Read an Exodus II file as dicer writes it, with netCDF4 directly.
 
-    Returns dim, title, points (N, 3) float64, element_type, blocks (list of
-    (name, ID, (m, k) 0-based connectivity in the file's node order)), elem_num_map
-    (M,) 1-based, node_sets (name -> 0-based node indices) and side_sets
-    (name -> (F, 2) int rows of 1-based element position and side number).
-    Raises DicerError on anything missing or malformed.
+    Parameters
+    ----------
+    path : str or Path
+        Written by :func:`write_exodus` (netCDF-4, Exodus II).
+
+    Returns
+    -------
+    dict
+        ``dim``, ``title``, ``points`` (N, 3) float64, ``element_type``, ``blocks`` (list
+        of (name, ID, (m, k) 0-based connectivity in the file's node order)),
+        ``elem_num_map`` (M,) 1-based, ``node_sets`` (name -> 0-based node indices) and
+        ``side_sets`` (name -> (F, 2) int rows of 1-based element position and side
+        number).
+
+    Raises
+    ------
+    DicerError
+        Anything missing or malformed.
     """
     import netCDF4
 
@@ -223,9 +275,23 @@ def read_exodus(path: str | Path) -> dict:
 
 
 def check_exodus(path: str | Path, model) -> None:
-    """Re-read an Exodus II file with :func:`read_exodus` and compare it with ``model``:
-    counts, coordinates (exact), blocks (names, IDs, connectivity), element numbers,
-    node sets and side sets."""
+    """Re-read an Exodus II file with :func:`read_exodus` and compare it with the model.
+
+    Counts, coordinates (exact), blocks (names, IDs, connectivity), element numbers,
+    node sets and side sets.
+
+    Parameters
+    ----------
+    path : str or Path
+        The Exodus file.
+    model : SolverModel
+        What it should hold.
+
+    Raises
+    ------
+    DicerError
+        The first difference.
+    """
     got = read_exodus(path)
     if got["dim"] != model.dim:
         raise DicerError(f"num_dim is {got['dim']}, expected {model.dim}")

@@ -54,8 +54,19 @@ def _comment(text: str) -> str:
 
 
 def facets(model, faces: np.ndarray) -> np.ndarray:
-    """(F, 4) or (F, 8) 0-based node indices of the outward facets of ``faces``
-    ((F, 2) rows of element index and Abaqus face number 1..6)."""
+    """Node indices of the outward facets of element faces.
+
+    Parameters
+    ----------
+    model : SolverModel
+    faces : (F, 2) int ndarray
+        Rows of element index and Abaqus face number 1..6.
+
+    Returns
+    -------
+    (F, 4) or (F, 8) int ndarray
+        0-based.
+    """
     table = HEX20_FACES if model.order == 2 else HEX_FACES  # wound outward, as FEBio wants them
     return model.cells[faces[:, 0][:, None], table[faces[:, 1] - 1]]
 
@@ -77,10 +88,16 @@ def _rows(stream, tag: bytes, ids: np.ndarray, values: np.ndarray, width: int, f
 
 
 def write_febio(model, path: str | Path, material_type: str = "isotropic elastic") -> None:
-    """Write the SolverModel ``model`` (3D) as an FEBio 4.0 input file at ``path``.
+    """Write a SolverModel (3D) as an FEBio 4.0 input file.
 
-    material_type : FEBio material of every domain, ``isotropic elastic`` or
-        ``neo-Hookean`` (both take E, v and density from the config's materials).
+    Parameters
+    ----------
+    model : SolverModel
+    path : str or Path
+        The ``.feb`` file.
+    material_type : {"isotropic elastic", "neo-Hookean"}, optional
+        FEBio material of every domain (both take E, v and density from the config's
+        materials).
     """
     if model.dim != 3:
         raise ValueError("FEBio has no plane elements; export 3D meshes to .feb")
@@ -163,11 +180,26 @@ def _ids(values: list[str], what: str) -> np.ndarray:
 def read_febio(path: str | Path) -> dict:
     """Read an FEBio 4.0 file as dicer writes it, strictly, with ElementTree.
 
-    Returns version, module, materials (list of dicts: id, name, type, E, v, density),
-    points (N, 3), blocks (list of (type, name, element ids (m,), (m, k) 0-based
-    connectivity)), node_sets (name -> 0-based node indices), surfaces (name ->
-    (facet type, (F, k) 0-based nodes)) and domains (list of (name, mat)). Node ids
-    must run 1..N in order, facet ids 1..F; anything else out of place raises DicerError.
+    Node ids must run 1..N in order, facet ids 1..F.
+
+    Parameters
+    ----------
+    path : str or Path
+        An XML file, from :func:`write_febio`; FEBio 4.0 only.
+
+    Returns
+    -------
+    dict
+        ``version``, ``module``, ``materials`` (list of dicts: id, name, type, E, v,
+        density), ``points`` (N, 3), ``blocks`` (list of (type, name, element ids (m,),
+        (m, k) 0-based connectivity)), ``node_sets`` (name -> 0-based node indices),
+        ``surfaces`` (name -> (facet type, (F, k) 0-based nodes)) and ``domains`` (list of
+        (name, mat)).
+
+    Raises
+    ------
+    DicerError
+        Anything out of place.
     """
     import xml.etree.ElementTree as ET
 
@@ -287,9 +319,24 @@ def _end_element(path_: str, el, stack: list[str], parents: list, out: dict, got
 
 
 def check_febio(path: str | Path, model, material_type: str = "isotropic elastic") -> None:
-    """Re-read an FEBio file with :func:`read_febio` and compare it with ``model``: the
-    node coordinates equal the printed values exactly, element numbers and connectivity
-    exactly, every material, domain, node set and surface is present and equal."""
+    """Re-read an FEBio file with :func:`read_febio` and compare it with the model.
+
+    The node coordinates equal the printed values exactly, element numbers and
+    connectivity exactly, every material, domain, node set and surface is present and
+    equal.
+
+    Parameters
+    ----------
+    path : str or Path
+    model : SolverModel
+    material_type : str, optional
+        As written (:func:`write_febio`).
+
+    Raises
+    ------
+    DicerError
+        The first difference.
+    """
     from dicer.export.readers import compare
     from dicer.export.textfmt import sci_digits
 

@@ -45,6 +45,17 @@ class Format:
     requires: tuple[str, ...] = ()
 
     def options(self, which: str, export: dict) -> dict:
-        """Keyword arguments of ``write`` (which = ``"write"``) or ``check`` from the ``export`` settings."""
+        """Keyword arguments of ``write`` or ``check`` from the ``export`` settings.
+
+        Parameters
+        ----------
+        which : {"write", "check"}
+        export : dict
+            The ``export`` section.
+
+        Returns
+        -------
+        dict
+        """
         table = self.write_options if which == "write" else self.check_options
         return {kw: export.get(key, default) for kw, (key, default) in table.items()}

@@ -17,7 +17,15 @@ from dicer.mesh.topology import MESHIO_TYPES
 
 
 def write_gmsh(model, path: str | Path) -> None:
-    """Write the SolverModel ``model`` as a Gmsh 2.2 ASCII file at ``path``."""
+    """Write a SolverModel as a Gmsh 2.2 ASCII file.
+
+    Parameters
+    ----------
+    model : SolverModel
+        Written through meshio, with the material names as physical names.
+    path : str or Path
+        The ``.msh`` file.
+    """
     points = model.points if model.dim == 3 else model.points[:, :2]
     tag = model.material.astype(np.int32)
     # $PhysicalNames: each material's name for its physical tag (its label), of the elements' dimension
@@ -28,7 +36,19 @@ def write_gmsh(model, path: str | Path) -> None:
 
 
 def check_gmsh(path: str | Path, model) -> None:
-    """Read the file back with meshio and compare it with ``model`` (materials and their names)."""
+    """Read a Gmsh file back with meshio and compare it with the model (materials and their names).
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.msh`` file.
+    model : SolverModel
+
+    Raises
+    ------
+    DicerError
+        A node, element or material name that differs.
+    """
     from dicer.export.readers import check_meshio
 
     check_meshio(path, model, "gmsh")

@@ -44,7 +44,15 @@ def _e10(v: float) -> str:
 
 
 def write_lsdyna(model, path: str | Path) -> None:
-    """Write the SolverModel ``model`` (8-node hexahedra) as an LS-DYNA keyword file."""
+    """Write a SolverModel (8-node hexahedra) as an LS-DYNA keyword file.
+
+    Parameters
+    ----------
+    model : SolverModel
+        3D, order 1.
+    path : str or Path
+        The ``.k`` file.
+    """
     if model.dim != 3 or model.order != 1:
         raise ValueError("LS-DYNA export writes 8-node hexahedra only (3D meshes, export.order 1)")
     if max(model.n_points, model.n_cells) >= 10**8:
@@ -78,9 +86,22 @@ def write_lsdyna(model, path: str | Path) -> None:
 def read_lsdyna(path: str | Path) -> dict:
     """Read an LS-DYNA keyword file as dicer writes it, strictly (fixed-width cards).
 
-    Returns points, cells (0-based), material (part ids), parts (pid -> title),
-    materials (mid -> (ro, e, pr)), node_sets (title -> 0-based ids) and title; anything
-    out of place raises DicerError naming the file and line.
+    Parameters
+    ----------
+    path : str or Path
+        A keyword file written by :func:`write_lsdyna`.
+
+    Returns
+    -------
+    dict
+        ``points``, ``cells`` (0-based), ``material`` (part ids), ``parts`` (pid ->
+        title), ``materials`` (mid -> (ro, e, pr)), ``node_sets`` (title -> 0-based ids)
+        and ``title``.
+
+    Raises
+    ------
+    DicerError
+        Anything out of place, naming the file and line.
     """
     return named(_read_lsdyna, path)
 
@@ -165,7 +186,20 @@ def _read_lsdyna(path: str | Path) -> dict:
 
 
 def check_lsdyna(path: str | Path, model) -> None:
-    """Re-read an LS-DYNA keyword file with :func:`read_lsdyna` and compare it with ``model``."""
+    """Re-read an LS-DYNA keyword file with :func:`read_lsdyna` and compare it with the model.
+
+    Parameters
+    ----------
+    path : str or Path
+        The keyword file.
+    model : SolverModel
+        Linear hexahedra.
+
+    Raises
+    ------
+    DicerError
+        The first difference.
+    """
     got = _read_lsdyna(path)
     compare(model, got["points"], got["cells"], got["material"], "the keyword file", digits=9)
     for name, ids in model.node_sets.items():

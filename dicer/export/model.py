@@ -19,7 +19,7 @@ from dicer.export.provenance import provenance, sha256_in_background
 from dicer.image import MAX_LABEL
 from dicer.mesh.faces import neighbour_materials
 from dicer.mesh.frame import mirrored, to_scanner
-from dicer.mesh.model import Mesh, Sized
+from dicer.mesh.model import Mesh, Sized, pieces
 from dicer.mesh.topology import (HEX20_FACES, HEX20_MIRROR, HEX_FACE_MIRROR, HEX_FACES, HEX_MIRROR, QUAD8_SIDES,
                                  QUAD_EDGES)
 
@@ -37,19 +37,44 @@ DEFAULT_TYPES = {(3, 1): "C3D8", (3, 2): "C3D20", (2, 1): "CPS4", (2, 2): "CPS8"
 class SolverModel(Sized):
     """A mesh ready for a solver file: everything a writer needs, nothing format-specific.
 
-    points : (N, 3) node coordinates; node i is written as number i + 1.
-    cells : (M, n) node indices in VTK/Abaqus order (8 or 20 per hex, 4 or 8 per quad).
-    material : (M,) labels 1..K; element j is written as number j + 1.
-    names : label -> class name; props : label -> material dict from the config.
-    element_type : Abaqus name (C3D8, C3D20, CPS4, ...); dim, order : 2|3, 1|2.
-    node_sets : set name -> sorted 0-based node indices (bounding planes, material
-        boundaries, interfaces). exterior : (F, 2) int64 rows (element index, face
-        number 1..6 / 1..4) of the element faces on the exterior surface.
-    interfaces : interface name ``<a>_<b>`` -> (F, 2) int64 rows (element index, face
-        number) of the faces of material a with material b behind them (a < b), grouped
-        by face number, elements ascending; for formats with face sets (Exodus, FEBio).
-    heading : provenance lines (no date, no path).
-    mesh : the linear mesh the model was made from (the VTU writer keeps its lattice data).
+    Parameters
+    ----------
+    points : (N, 3) float64 ndarray
+        Node coordinates, mm; node i is written as number i + 1.
+    cells : (M, n) int ndarray
+        Node indices in VTK/Abaqus order (8 or 20 per hex, 4 or 8 per quad).
+    material : (M,) int ndarray
+        Labels 1..K; element j is written as number j + 1.
+    names : dict of int to str
+        Label -> class name.
+    props : dict of int to dict
+        Label -> material dict from the config.
+    element_type : str
+        Abaqus name (C3D8, C3D20, CPS4, ...).
+    dim, order : int
+        2 or 3; 1 or 2.
+    thickness : float
+        Thickness of 2D plane elements, mm.
+    digits : int
+        Significant digits of the coordinates (``export.digits``).
+    node_sets : dict of str to ndarray, optional
+        Set name -> sorted 0-based node indices (bounding planes, material boundaries,
+        interfaces).
+    exterior : (F, 2) int64 ndarray, optional
+        Rows (element index, face number 1..6 / 1..4) of the element faces on the exterior
+        surface.
+    interfaces : dict of str to (F, 2) int64 ndarray, optional
+        Interface name ``<a>_<b>`` -> rows (element index, face number) of the faces of
+        material a with material b behind them (a < b), grouped by face number, elements
+        ascending; for formats with face sets (Exodus, FEBio).
+    heading : list of str, optional
+        Provenance lines (no date, no path).
+    use_heading : bool, optional
+        Write the first heading line as the title (``*HEADING``; ``export.heading``).
+    cell_data : dict of str to ndarray, optional
+        Further per-element arrays (VTU).
+    mesh : Mesh, optional
+        The linear mesh the model was made from (the VTU writer keeps its lattice data).
     """
 
     points: np.ndarray
@@ -104,7 +129,27 @@ class SolverModel(Sized):
 
 
 def resolve_element_type(mesh: Mesh, config: dict, path: Path) -> tuple[str, int]:
-    """The element type and order from ``config['export']``, checked against the mesh's dimension."""
+    """The element type and order from ``config['export']``, checked against the mesh's dimension.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    config : dict
+    path : Path
+        The output file, named in error messages.
+
+    Returns
+    -------
+    element_type : str
+        Abaqus name.
+    order : int
+        1 or 2.
+
+    Raises
+    ------
+    DicerError
+        An unknown type, or one that does not fit the dimension or the order.
+    """
     ex = config.get("export", {})
     order = int(ex.get("order", 1))
     etype = ex.get("element_type")
@@ -126,9 +171,6 @@ def resolve_element_type(mesh: Mesh, config: dict, path: Path) -> tuple[str, int
                          f"use one of {', '.join(kinds)} or set export.order={etype_order}")
     return etype, order
 
-
-
-_CHUNK = 1 << 18  # elements per pass: temporaries stay small and are reused
 
 
 def _face_nodes(cells: np.ndarray, table: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -170,10 +212,11 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> No
     exterior = np.zeros(n, bool)
     ext_e, ext_f = [], []
     bound_code, bound_nodes, pair_code, pair_nodes, pair_face = [], [], [], [], []
-    for start in range(0, model.n_cells, _CHUNK):
-        mat = model.material[start : start + _CHUNK].astype(np.int64)
-        nbm = nb_mat[start : start + _CHUNK]
-        cells = model.cells[start : start + _CHUNK]
+    for part in pieces(model.n_cells):
+        start = part.start
+        mat = model.material[part].astype(np.int64)
+        nbm = nb_mat[part]
+        cells = model.cells[part]
         if "exterior" in kinds:
             f_idx, e_idx = np.nonzero((nbm == 0).T)  # grouped by face number
             ext_e.append(e_idx + start)
@@ -215,7 +258,28 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> No
 
 
 def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "model") -> SolverModel:
-    """Validate ``mesh`` against ``config`` and build the SolverModel the writers share."""
+    """Validate a mesh against the configuration and build the SolverModel the writers share.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    config : dict
+        The ``materials`` and ``export`` sections.
+    source : str or os.PathLike, optional
+        The input the model was made from, for the provenance.
+    path : Path or str, optional
+        The output file, named in error messages.
+
+    Returns
+    -------
+    SolverModel
+
+    Raises
+    ------
+    DicerError
+        No elements, labels that do not match the materials, non-finite coordinates, or
+        clashing set names.
+    """
     path = Path(path)
     etype, order = resolve_element_type(mesh, config, path)
     materials = config["materials"]
@@ -292,8 +356,21 @@ def _to_scanner_frame(model: SolverModel, mesh: Mesh) -> None:
 
 
 def scanner_mesh(mesh: Mesh, model: SolverModel) -> Mesh:
-    """The linear ``mesh`` as exported: ``model``'s points and cells, marked as scanner coordinates
-    (so that reading the file back gives the lattice frame again); ``mesh`` itself if it has no direction."""
+    """The linear mesh as exported: the model's points and cells, marked as scanner coordinates.
+
+    Reading the file back then gives the lattice frame again.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    model : SolverModel
+        Built from ``mesh`` by :func:`prepare_model`.
+
+    Returns
+    -------
+    Mesh
+        ``mesh`` itself if it has no direction.
+    """
     if mesh.direction is None:
         return mesh
     out = mesh.copy()

@@ -43,7 +43,20 @@ SHAPES = {(3, 1): (8, 8), (3, 2): (8, 20), (2, 1): (4, 4), (2, 2): (4, 8)}  # ->
 
 
 def header(it: int, ident: int, iv: int, kc: int, *n: int) -> bytes:
-    """One ``(I2,8I8)`` header card."""
+    """One ``(I2,8I8)`` header card.
+
+    Parameters
+    ----------
+    it, ident, iv, kc : int
+        Packet type, id, additional id and card count.
+    *n : int
+        Up to five further fields (0 for those left out).
+
+    Returns
+    -------
+    bytes
+        The card with its newline.
+    """
     n = tuple(n) + (0,) * (5 - len(n))
     return (f"{it:2d}{ident:8d}{iv:8d}{kc:8d}" + "".join(f"{v:8d}" for v in n) + "\n").encode()
 
@@ -53,8 +66,20 @@ COMPONENT_TYPES = {(3, 1): 12, (3, 2): 112, (2, 1): 8, (2, 2): 108}
 
 
 def component_names(model) -> dict[int, str]:
-    """Label -> packet 21 name of each material present: its name cut to the 12 columns of the
-    card, ended by ``_<label>`` where two cut names would be the same."""
+    """Packet 21 name of each material present.
+
+    Its name cut to the 12 columns of the card, ended by ``_<label>`` where two cut names
+    would be the same.
+
+    Parameters
+    ----------
+    model : SolverModel
+
+    Returns
+    -------
+    dict of int to str
+        Label -> name.
+    """
     cut = {k: model.names[k][:12] for k in model.labels()}
     seen = [v for v in cut.values()]
     return {k: v if seen.count(v) == 1 else f"{model.names[k][:11 - len(str(k))]}_{k}" for k, v in cut.items()}
@@ -75,14 +100,30 @@ def _components(f, model) -> None:
 
 
 def patran_order(model) -> np.ndarray:
-    """The model's cells in PATRAN node order."""
+    """The model's cells in PATRAN node order.
+
+    Parameters
+    ----------
+    model : SolverModel
+
+    Returns
+    -------
+    (M, k) int ndarray
+    """
     if model.dim == 3 and model.order == 2:
         return model.cells[:, HEX20_EXODUS]  # PATRAN's 20-node order is Exodus's
     return model.cells
 
 
 def write_patran(model, path: str | Path) -> None:
-    """Write the SolverModel ``model`` as a PATRAN 2 neutral file."""
+    """Write a SolverModel as a PATRAN 2 neutral file.
+
+    Parameters
+    ----------
+    model : SolverModel
+    path : str or Path
+        The ``.out`` or ``.neu`` file.
+    """
     iv, nn = SHAPES[(model.dim, model.order)]
     if max(model.n_points, model.n_cells) >= 10**8:
         raise ValueError("more than 99999999 nodes or elements do not fit PATRAN's 8-column fields")
@@ -141,9 +182,23 @@ PATRAN_SHAPES = {8: {8: (3, 1), 20: (3, 2)}, 4: {4: (2, 1), 8: (2, 2)}}
 def read_patran(path: str | Path) -> dict:
     """Read a PATRAN 2 neutral file of one element shape (as dicer writes them), strictly.
 
-    Returns points (N, 3), cells (M, k) 0-based in VTK/Abaqus node order, material
-    (M,) property ids, title, dim and order. Nodes and elements must be numbered
-    1..N and 1..M in order; any other layout raises DicerError naming the file and line.
+    Nodes and elements must be numbered 1..N and 1..M in order.
+
+    Parameters
+    ----------
+    path : str or Path
+        From :func:`write_patran`.
+
+    Returns
+    -------
+    dict
+        ``points`` (N, 3), ``cells`` (M, k) 0-based in VTK/Abaqus node order,
+        ``material`` (M,) property ids, ``title``, ``dim`` and ``order``.
+
+    Raises
+    ------
+    DicerError
+        Any other layout, naming the file and line.
     """
     return named(_read_patran, path)
 
@@ -227,7 +282,19 @@ def _read_patran(path: str | Path) -> dict:
 
 
 def check_patran(path: str | Path, model) -> None:
-    """Re-read a PATRAN neutral file with :func:`read_patran` and compare it with ``model``."""
+    """Re-read a PATRAN neutral file with :func:`read_patran` and compare it with the model.
+
+    Parameters
+    ----------
+    path : str or Path
+    model : SolverModel
+        Any dimension and order, as written to the neutral file ``path``.
+
+    Raises
+    ------
+    DicerError
+        The first difference.
+    """
     got = _read_patran(path)
     if (got["dim"], got["order"]) != (model.dim, model.order):
         raise DicerError("element shape or order differs")

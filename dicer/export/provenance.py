@@ -15,7 +15,17 @@ from dicer.config import config_hash, stage_settings
 
 
 def file_sha256(path: str | os.PathLike | None) -> str | None:
-    """SHA-256 of a file, or of a folder's files in sorted order (DICOM series); None if absent."""
+    """SHA-256 of a file, or of a folder's files in sorted order (DICOM series).
+
+    Parameters
+    ----------
+    path : str or os.PathLike or None
+
+    Returns
+    -------
+    str or None
+        Hex digest; None if absent.
+    """
     if path is None:
         return None
     p = Path(path)
@@ -38,10 +48,19 @@ def file_sha256(path: str | os.PathLike | None) -> str | None:
 
 
 def sha256_in_background(path: str | os.PathLike | None):
-    """Start :func:`file_sha256` of ``path`` on a thread; returns a function that waits for the digest.
+    """Start :func:`file_sha256` of a file on a thread.
 
     hashlib and file reads release the GIL, so the digest of a mesh of GBs is computed
     on the second core while the model is built.
+
+    Parameters
+    ----------
+    path : str or os.PathLike or None
+
+    Returns
+    -------
+    callable
+        Waits for the digest and returns it.
     """
     import threading
 
@@ -74,6 +93,20 @@ def provenance(source: str | os.PathLike | None, config: dict, element_type: str
     The same for ``dicer run``, ``dicer export`` and the workflow: each exports the same
     smoothed mesh file with the same ``materials`` and ``export`` sections (what happened
     upstream is in that mesh), so the heading is the same byte for byte.
+
+    Parameters
+    ----------
+    source : str or os.PathLike or None
+        The mesh file.
+    config : dict
+    element_type : str
+    order : int
+    digest : str, optional
+        The SHA-256 of ``source`` when already known.
+
+    Returns
+    -------
+    list of str
     """
     # the input is named by its content only: a file or folder name can hold a patient's
     # name (DICOM folders often do), and no identifier may reach a deck
@@ -86,8 +119,20 @@ def provenance(source: str | os.PathLike | None, config: dict, element_type: str
 
 
 def settings_hash(config: dict) -> str:
-    """Hash of the ``materials`` and ``export`` settings that shape the file (all but ``export.verify``:
-    how a file is checked does not change it)."""
+    """Hash of the ``materials`` and ``export`` settings that shape the file.
+
+    All but ``export.verify``: how a file is checked does not change it.
+
+    Parameters
+    ----------
+    config : dict
+        The whole configuration.
+
+    Returns
+    -------
+    str
+        As :func:`dicer.config.config_hash`.
+    """
     settings = stage_settings(config, "export")
     settings.get("export", {}).pop("verify", None)
     return config_hash(settings)

@@ -32,14 +32,46 @@ def __getattr__(name: str):
 
 
 def tolerance(model, digits: int) -> float:
+    """The largest coordinate difference a read-back may show.
+
+    Parameters
+    ----------
+    model : SolverModel
+    digits : int
+        Significant digits the file holds.
+
+    Returns
+    -------
+    float
+        mm: one unit in the last digit of the largest coordinate.
+    """
     scale = float(np.abs(model.points).max()) if model.n_points else 1.0
     return max(scale, 1e-30) * 10.0 ** (1 - digits)
 
 
 def compare(model, points: np.ndarray, cells: np.ndarray, material: np.ndarray, what: str,
             digits: int | None = None) -> None:
-    """Raise DicerError unless nodes (to ``digits`` significant digits, default the model's),
-    connectivity (0-based, file order = element number order) and materials equal the model's."""
+    """Check what a reader got against the model.
+
+    Parameters
+    ----------
+    model : SolverModel
+    points : (N, 3) float64 ndarray
+        Nodes read; compared to ``digits`` significant digits.
+    cells : (M, n) int ndarray
+        Connectivity read, 0-based, file order = element number order.
+    material : (M,) int ndarray
+        Labels read.
+    what : str
+        The file, named in error messages.
+    digits : int, optional
+        Default: the model's.
+
+    Raises
+    ------
+    DicerError
+        At the first difference.
+    """
     if points.shape[0] != model.n_points:
         raise DicerError(f"{what} has {points.shape[0]} nodes, expected {model.n_points}")
     if cells.shape != model.cells.shape:
@@ -56,7 +88,20 @@ def compare(model, points: np.ndarray, cells: np.ndarray, material: np.ndarray, 
 
 
 def check_meshio(path: str | Path, model, file_format: str) -> None:
-    """Re-read a VTU or Gmsh file with meshio and compare it with ``model`` (cell data ``material``)."""
+    """Re-read a VTU or Gmsh file with meshio and compare it with the model (cell data ``material``).
+
+    Parameters
+    ----------
+    path : str or Path
+    model : SolverModel
+    file_format : str
+        meshio's name of the format.
+
+    Raises
+    ------
+    DicerError
+        A file meshio cannot read, or one that differs from ``model``.
+    """
     import meshio
 
     try:
@@ -92,7 +137,17 @@ def check_meshio(path: str | Path, model, file_format: str) -> None:
 
 
 class Lines:
-    """A text file as byte lines, with vectorised access to fixed columns of many lines."""
+    """A text file as byte lines, with vectorised access to fixed columns of many lines.
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Raises
+    ------
+    DicerError
+        A file that ends in the middle of a line.
+    """
 
     def __init__(self, path: str | Path):
         self.data = Path(path).read_bytes()
@@ -107,10 +162,11 @@ class Lines:
         return int(self.ends.size)
 
     def text(self, i: int) -> str:
+        """Line ``i`` as text."""
         return self.data[self.starts[i] : self.ends[i]].decode("ascii", "replace")
 
     def columns(self, rows: np.ndarray, first: int, width: int) -> np.ndarray:
-        """(n, width) uint8: columns first..first+width-1 (0-based) of the given lines."""
+        """(n, width) uint8: columns first..first+width-1 (0-based) of the lines ``rows``."""
         if rows.size == 0:
             return np.zeros((0, width), np.uint8)
         if rows.max() >= len(self) or np.any(self.lengths[rows] < first + width):
@@ -151,18 +207,22 @@ class Lines:
         raise DicerError(f"{what}: not {kind} in columns {first + 1}-{first + width}")
 
     def ints(self, rows: np.ndarray, first: int, width: int, what: str) -> np.ndarray:
+        """(n,) int64: the integers in columns first..first+width-1 of the lines ``rows``."""
         return self._convert(rows, first, width, np.int64, what, "an integer")
 
     def floats(self, rows: np.ndarray, first: int, width: int, what: str) -> np.ndarray:
+        """(n,) float64: the numbers in columns first..first+width-1 of the lines ``rows``."""
         return self._convert(rows, first, width, np.float64, what, "a number")
 
     def expect(self, rows: np.ndarray, first: int, text: bytes, what: str) -> None:
+        """Raise DicerError unless the lines ``rows`` hold ``text`` from column ``first`` on."""
         got = self.columns(rows, first, len(text))
         if not np.all(got == np.frombuffer(text, np.uint8)):
             bad = int(rows[np.flatnonzero((got != np.frombuffer(text, np.uint8)).any(axis=1))[0]])
             raise DicerError(f"line {bad + 1}: expected {text.decode()!r} for {what}")
 
     def lengths_are(self, rows: np.ndarray, n: int, what: str) -> None:
+        """Raise DicerError unless the lines ``rows`` exist and have ``n`` columns each."""
         if rows.size and rows.max() >= len(self):
             raise DicerError(f"the file ends after {len(self)} lines, before its {what} cards (truncated?)")
         if rows.size and np.any(self.lengths[rows] != n):
@@ -171,7 +231,24 @@ class Lines:
 
 
 def named(reader, path: str | Path) -> dict:
-    """``reader(path)`` with the file's name at the head of its error message."""
+    """Call a reader with the file's name at the head of its error message.
+
+    Parameters
+    ----------
+    reader : callable
+        ``reader(path)`` -> dict.
+    path : str or Path
+
+    Returns
+    -------
+    dict
+        What ``reader`` returns.
+
+    Raises
+    ------
+    DicerError
+        The reader's, with the name and a hint.
+    """
     try:
         return reader(path)
     except DicerError as exc:

@@ -24,5 +24,14 @@ EXPORT_SUFFIXES = tuple(BY_SUFFIX)
 
 
 def format_of(path: str | Path) -> Format | None:
-    """The format a file's suffix names (case-insensitive), or None."""
+    """The format a file's suffix names (case-insensitive).
+
+    Parameters
+    ----------
+    path : str or Path
+
+    Returns
+    -------
+    Format or None
+    """
     return BY_SUFFIX.get(Path(path).suffix.lower())

@@ -35,10 +35,22 @@ assert _RECORD.itemsize == 50
 
 
 def material_triangles(mesh: Mesh, label: int, nb_mat: np.ndarray) -> np.ndarray:
-    """(T, 3) int64 node indices of the outward triangles of material ``label``'s surface.
+    """The outward triangles of one material's surface.
 
-    nb_mat : (M, 6) material across each face (0 for none), from
-    :func:`dicer.mesh.faces.neighbour_materials`. Triangles come face by face in element order.
+    Triangles come face by face in element order.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    label : int
+    nb_mat : (M, 6) int ndarray
+        Material across each face (0 for none), from
+        :func:`dicer.mesh.faces.neighbour_materials`.
+
+    Returns
+    -------
+    (T, 3) int64 ndarray
+        Node indices.
     """
     own = mesh.material == label
     faces = own[:, None] & (nb_mat != label)
@@ -51,17 +63,38 @@ def material_triangles(mesh: Mesh, label: int, nb_mat: np.ndarray) -> np.ndarray
 
 
 def enclosed_volume(points: np.ndarray, tris: np.ndarray) -> float:
-    """Volume (mm^3) a closed, outward triangle surface encloses (divergence theorem).
+    """Volume a closed, outward triangle surface encloses (divergence theorem).
 
-    Summed about the centre of the points, so that far-off scanner coordinates lose no digits."""
+    Summed about the centre of the points, so that far-off scanner coordinates lose no digits.
+
+    Parameters
+    ----------
+    points : (N, 3) float ndarray
+    tris : (T, 3) int ndarray
+
+    Returns
+    -------
+    float
+        mm^3.
+    """
     centre = points.mean(axis=0) if len(points) else np.zeros(3)
     a, b, c = (points[tris[:, k]] - centre for k in range(3))
     return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
 
 
 def open_edges(tris: np.ndarray) -> int:
-    """How many directed edges of ``tris`` (T, 3) break a closed, consistently oriented
-    surface: edges used twice in one direction, or with no partner running the other way."""
+    """How many directed edges break a closed, consistently oriented surface.
+
+    Edges used twice in one direction, or with no partner running the other way.
+
+    Parameters
+    ----------
+    tris : (T, 3) int ndarray
+
+    Returns
+    -------
+    int
+    """
     if tris.size == 0:
         return 0
     a = tris.ravel()
@@ -82,7 +115,17 @@ def _header(name: str) -> bytes:
 
 
 def write_stl(path: Path, points: np.ndarray, tris: np.ndarray, name: str) -> None:
-    """Write the triangles ``tris`` (T, 3) over ``points`` (N, 3) as binary STL to ``path``."""
+    """Write triangles as a binary STL file.
+
+    Parameters
+    ----------
+    path : Path
+    points : (N, 3) float64 ndarray
+    tris : (T, 3) int ndarray
+        Node indices.
+    name : str
+        Goes into the header.
+    """
     corners = points[tris]  # (T, 3, 3) float64
     normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     length = np.linalg.norm(normal, axis=1, keepdims=True)
@@ -98,7 +141,17 @@ def write_stl(path: Path, points: np.ndarray, tris: np.ndarray, name: str) -> No
 
 
 def read_stl(path: str | os.PathLike) -> tuple[bytes, np.ndarray]:
-    """The header and the (T, 3, 3) float32 triangle corners of a binary STL file."""
+    """The header and the triangle corners of a binary STL file.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    header : bytes
+    corners : (T, 3, 3) float32 ndarray
+    """
     data = Path(path).read_bytes()
     if len(data) < 84:
         raise DicerError(f"{path}: not a binary STL file (shorter than its 84-byte header)")
@@ -110,8 +163,18 @@ def read_stl(path: str | os.PathLike) -> tuple[bytes, np.ndarray]:
 
 
 def weld(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (V, 3) and triangles (T, 3) from triangle corners (T, 3, 3), corners equal
-    bit for bit made one vertex (as STL readers weld them)."""
+    """Vertices and triangles from triangle corners, corners equal bit for bit made one vertex
+    (as STL readers weld them).
+
+    Parameters
+    ----------
+    corners : (T, 3, 3) ndarray
+
+    Returns
+    -------
+    vertices : (V, 3) ndarray
+    triangles : (T, 3) int ndarray
+    """
     flat = np.ascontiguousarray(corners.reshape(-1, 3))
     rows = flat.view(np.dtype((np.void, flat.dtype.itemsize * 3))).ravel()
     _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
@@ -119,8 +182,23 @@ def weld(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def check_stl(path: Path, name: str, triangles: int, volume: float) -> None:
-    """Raise DicerError unless the STL at ``path`` holds a closed, outward surface of
-    ``triangles`` triangles enclosing ``volume`` mm^3 (float32 precision)."""
+    """Check that an STL file holds a closed, outward surface of the expected size.
+
+    Parameters
+    ----------
+    path : Path
+    name : str
+        The material, named in error messages.
+    triangles : int
+        Triangles expected.
+    volume : float
+        Enclosed volume expected, mm^3 (to float32 precision).
+
+    Raises
+    ------
+    DicerError
+        Anything else.
+    """
     header, corners = read_stl(path)
     if header != _header(name) or corners.shape[0] != triangles:
         raise DicerError(f"{corners.shape[0]} triangles read back, {triangles} written")
@@ -136,9 +214,27 @@ def check_stl(path: Path, name: str, triangles: int, volume: float) -> None:
 def write_surfaces(mesh: Mesh, folder: str | os.PathLike, names: list[str], only: list[str] | None = None) -> dict:
     """Write ``<folder>/<name>.stl`` for each material (or those named in ``only``).
 
-    names : material names by label (names[0] is label 1's). Every surface is made and
-    checked before any file is renamed into place; on any problem DicerError and no file.
-    Returns per material: file, triangles, enclosed and element volume (mm^3).
+    Every surface is made and checked before any file is renamed into place.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        3D.
+    folder : str or os.PathLike
+    names : list of str
+        Material names by label (names[0] is label 1's).
+    only : list of str, optional
+        The materials wanted; default all present.
+
+    Returns
+    -------
+    dict
+        Per material: file, triangles, enclosed and element volume (mm^3).
+
+    Raises
+    ------
+    DicerError
+        On any problem; no file is written.
     """
     from dicer.mesh.faces import neighbour_materials
 

@@ -50,12 +50,32 @@ _POW10F = 10.0 ** np.arange(0, 309)  # exact up to 1e22, correctly rounded beyon
 
 
 def int_width(max_value: int) -> int:
-    """Digits needed to print the non-negative integer ``max_value``."""
+    """Digits needed to print a non-negative integer.
+
+    Parameters
+    ----------
+    max_value : int
+
+    Returns
+    -------
+    int
+    """
     return len(str(int(max(max_value, 0))))
 
 
 def aligned_width(digits: int, lead: bytes = b"") -> int:
-    """The smallest field width >= ``digits`` for which ``lead`` + field fills whole 32-bit words."""
+    """The smallest field width >= ``digits`` for which ``lead`` + field fills whole 32-bit words.
+
+    Parameters
+    ----------
+    digits : int
+    lead : bytes, optional
+        What precedes the field.
+
+    Returns
+    -------
+    int
+    """
     w = max(digits, 1)
     while (len(lead) + w) % 4:
         w += 1
@@ -88,7 +108,22 @@ def _int_words(v: np.ndarray, groups: int, zero_pad: bool) -> np.ndarray:
 
 
 def int_digits(values: np.ndarray, width: int, zero_pad: bool = False, lead: bytes = b"") -> np.ndarray:
-    """(n, len(lead) + width) uint8: ``lead`` then the non-negative integers right-aligned in ``width``."""
+    """Non-negative integers right-aligned in a field, as bytes.
+
+    Parameters
+    ----------
+    values : (n,) int ndarray
+    width : int
+        Columns of the field.
+    zero_pad : bool, optional
+        Leading zeros instead of blanks.
+    lead : bytes, optional
+        Put before every field.
+
+    Returns
+    -------
+    (n, len(lead) + width) uint8 ndarray
+    """
     v = np.asarray(values).ravel()
     if v.size and (int(v.min()) < 0 or int(v.max()) >= 10**width):
         raise ValueError(f"integers out of range for a field of {width} digits")
@@ -114,9 +149,16 @@ def int_digits(values: np.ndarray, width: int, zero_pad: bool = False, lead: byt
 class Sci:
     """Scientific notation with ``digits`` significant digits: ``[-]d.ddde[+-]XX``.
 
-    fortran: Fortran's E-edit form ``[-]0.dddE[+-]XX`` (mantissa in [0.1, 1)).
-    exp_char: the exponent letter. width: right-align in this many columns (at
-    least the printed length, which has one column for the sign, blank for plus).
+    Parameters
+    ----------
+    digits : int, optional
+    exp_char : bytes, optional
+        The exponent letter.
+    fortran : bool, optional
+        Fortran's E-edit form ``[-]0.dddE[+-]XX`` (mantissa in [0.1, 1)).
+    width : int, optional
+        Right-align in this many columns (at least the printed length, which has one
+        column for the sign, blank for plus).
     """
 
     digits: int = 9
@@ -127,10 +169,12 @@ class Sci:
     @property
     def body(self) -> int:
         # sign, lead digit ('0' in Fortran form), '.', digits after the point, e, sign, 2 exponent digits
+        """Printed length of a number, sign column included."""
         return 3 + (self.digits - (0 if self.fortran else 1)) + 4
 
     @property
     def length(self) -> int:
+        """Columns of the field: ``body``, or ``width`` when larger."""
         return max(self.body, self.width or 0)
 
 
@@ -170,10 +214,26 @@ def _mantissa(x: np.ndarray, p: int, fortran: bool):
 
 
 def sci_digits(values: np.ndarray, fmt: Sci, lead: bytes = b"") -> np.ndarray:
-    """(n, len(lead) + fmt.length) uint8: ``lead`` then the floats in scientific notation.
+    """Floats in scientific notation, as bytes.
 
-    Magnitudes below 1e-99 print as zero; non-finite values or magnitudes of
-    1e99 and above raise ValueError (no two-digit exponent holds them).
+    Magnitudes below 1e-99 print as zero.
+
+    Parameters
+    ----------
+    values : (n,) float ndarray
+    fmt : Sci
+    lead : bytes, optional
+        Put before every field.
+
+    Returns
+    -------
+    (n, len(lead) + fmt.length) uint8 ndarray
+
+    Raises
+    ------
+    ValueError
+        Non-finite values or magnitudes of 1e99 and above (no two-digit exponent holds
+        them).
     """
     x = np.asarray(values, dtype=np.float64).ravel()
     n = x.shape[0]
@@ -220,7 +280,18 @@ def sci_digits(values: np.ndarray, fmt: Sci, lead: bytes = b"") -> np.ndarray:
 
 @dataclass(frozen=True)
 class Int:
-    """A right-aligned integer field of ``width`` columns after ``lead`` (``zero_pad``: leading zeros)."""
+    """A right-aligned integer field.
+
+    Parameters
+    ----------
+    values : (n,) int ndarray
+    width : int
+        Columns.
+    lead : bytes, optional
+        Put before the field.
+    zero_pad : bool, optional
+        Leading zeros instead of blanks.
+    """
 
     values: np.ndarray
     width: int
@@ -229,15 +300,25 @@ class Int:
 
     @property
     def length(self) -> int:
+        """Bytes of the field with its lead."""
         return len(self.lead) + self.width
 
     def render(self, start: int, stop: int) -> np.ndarray:
+        """(stop - start, length) uint8: rows ``start .. stop - 1`` of the field."""
         return int_digits(self.values[start:stop], self.width, self.zero_pad, self.lead)
 
 
 @dataclass(frozen=True)
 class Float:
-    """A float field printed with :class:`Sci` format ``fmt`` after ``lead``."""
+    """A float field printed in scientific notation.
+
+    Parameters
+    ----------
+    values, fmt
+        The numbers and their notation, as in :func:`sci_digits`.
+    lead : bytes, optional
+        Put before the field.
+    """
 
     values: np.ndarray
     fmt: Sci
@@ -245,9 +326,11 @@ class Float:
 
     @property
     def length(self) -> int:
+        """Bytes of the field with its lead."""
         return len(self.lead) + self.fmt.length
 
     def render(self, start: int, stop: int) -> np.ndarray:
+        """(stop - start, length) uint8: rows ``start .. stop - 1`` of the field."""
         return sci_digits(self.values[start:stop], self.fmt, self.lead)
 
 
@@ -255,15 +338,36 @@ Field = bytes | Int | Float
 
 
 def line_length(fields: list[Field]) -> int:
-    """Bytes per row of ``fields``."""
+    """Bytes per row of some fields.
+
+    Parameters
+    ----------
+    fields : list of bytes, Int or Float
+
+    Returns
+    -------
+    int
+    """
     return sum(len(f) if isinstance(f, bytes) else f.length for f in fields)
 
 
 def format_rows(fields: list[Field], n: int, chunk: int = CHUNK_ROWS) -> Iterator[np.ndarray]:
-    """Yield (rows, line_length) uint8 buffers holding ``n`` rows of ``fields``.
+    """Rows of fields as byte buffers, a chunk at a time.
 
     Array fields hold ``n`` values; literals repeat on every row. Rows carry no
     implicit newline: put ``b"\\n"`` in a field's lead or a literal.
+
+    Parameters
+    ----------
+    fields : list of bytes, Int or Float
+    n : int
+        Rows.
+    chunk : int, optional
+        Rows per buffer.
+
+    Yields
+    ------
+    (rows, line_length) uint8 ndarray
     """
     lengths = [len(f) if isinstance(f, bytes) else f.length for f in fields]
     length = sum(lengths)
@@ -295,7 +399,22 @@ def format_rows(fields: list[Field], n: int, chunk: int = CHUNK_ROWS) -> Iterato
 
 
 def write_rows(stream: BinaryIO, fields: list[Field], n: int, chunk: int = CHUNK_ROWS) -> int:
-    """Write ``n`` rows of ``fields`` to the binary ``stream``; returns the bytes written."""
+    """Write rows of fields to a binary stream.
+
+    Parameters
+    ----------
+    stream : binary file
+    fields : list of bytes, Int or Float
+    n : int
+        Rows.
+    chunk : int, optional
+        Rows per buffer.
+
+    Returns
+    -------
+    int
+        Bytes written.
+    """
     total = 0
     for buf in format_rows(fields, n, chunk):
         stream.write(memoryview(buf).cast("B"))
@@ -314,8 +433,10 @@ def write_chunks(stream: BinaryIO, n: int, fields_of, compact: bool = False, chu
     fields_of : callable
         ``fields_of(start, stop)`` -> the fields of rows ``start .. stop - 1`` (arrays of
         ``stop - start`` values): temporaries such as 1-based ids stay one chunk large.
-    compact : bool
+    compact : bool, optional
         Drop the blank padding of number fields (:func:`compact_rows`).
+    chunk : int, optional
+        Rows per chunk.
     """
     for start in range(0, n, chunk):
         stop = min(n, start + chunk)
@@ -328,15 +449,37 @@ def write_chunks(stream: BinaryIO, n: int, fields_of, compact: bool = False, chu
 
 
 def row_ids(start: int, stop: int) -> np.ndarray:
-    """The 1-based numbers of rows ``start .. stop - 1``."""
+    """The 1-based numbers of rows ``start .. stop - 1``.
+
+    Parameters
+    ----------
+    start, stop : int
+
+    Returns
+    -------
+    (stop - start,) int64 ndarray
+    """
     return np.arange(start + 1, stop + 1, dtype=np.int64)
 
 
 def int_lines(values: np.ndarray, per_line: int, width: int, sep: bytes = b",") -> bytes:
-    """``values`` as newline-terminated lines of up to ``per_line`` right-aligned integers joined by ``sep``.
+    """Integers as newline-terminated lines of up to ``per_line`` right-aligned fields.
 
     For set lists (node and element sets): full lines are formatted in bulk, the
     last, shorter line separately.
+
+    Parameters
+    ----------
+    values : (n,) int ndarray
+    per_line : int
+    width : int
+        Columns per field.
+    sep : bytes, optional
+        Between fields.
+
+    Returns
+    -------
+    bytes
     """
     v = np.asarray(values, dtype=np.int64).ravel()
     full = v.size // per_line
@@ -359,7 +502,17 @@ def compact_rows(fields: list[Field], n: int, chunk: int = CHUNK_ROWS) -> Iterat
     The rows are formatted at fixed widths, then the blank padding inside the number
     fields (not their leads, not literals) is dropped with one boolean mask per chunk:
     for formats such as XML, where ``id="     7"`` would be legal but odd. Floats lose
-    the blank that stands for a plus sign. Yields one bytes object per chunk.
+    the blank that stands for a plus sign.
+
+    Parameters
+    ----------
+    fields, n, chunk
+        As in :func:`format_rows`.
+
+    Yields
+    ------
+    bytes
+        One chunk of rows.
     """
     lengths = [len(f) if isinstance(f, bytes) else f.length for f in fields]
     number = np.zeros(sum(lengths), bool)

@@ -45,8 +45,14 @@ _EXPECTED = {_C_SEP: "{sep}", _C_INT: "a digit or a blank", _C_DIGIT: "a digit",
 
 
 class FormatError(Exception):
-    """A record that does not fit its layout; ``offset``: bytes into the parsed buffer of the
-    first bad character."""
+    """A record that does not fit its layout.
+
+    Parameters
+    ----------
+    offset : int
+        Bytes into the parsed buffer of the first bad character.
+    message : str
+    """
 
     def __init__(self, offset: int, message: str):
         super().__init__(message)
@@ -58,10 +64,21 @@ class FormatError(Exception):
 class Run:
     """``count`` fields of one shape, ``stride`` bytes apart from column ``start`` on.
 
-    kind : ``"i"`` or ``"f"``; width : columns per field. digits : offsets (from the field's
-    first column) of the integer's or mantissa's digit columns, most significant first.
-    Reals only: exp, the two exponent digit offsets; sign, esign, the offsets of the
-    mantissa's and exponent's signs; after, the digits after the point.
+    Parameters
+    ----------
+    kind : {"i", "f"}
+    start, stride, count : int
+    width : int
+        Columns per field.
+    digits : tuple of int
+        Offsets (from the field's first column) of the integer's or mantissa's digit
+        columns, most significant first.
+    exp : tuple of int, optional
+        Reals only: the two exponent digit offsets.
+    sign, esign : int, optional
+        Reals only: the offsets of the mantissa's and exponent's signs.
+    after : int, optional
+        Reals only: the digits after the point.
     """
 
     kind: str
@@ -76,6 +93,7 @@ class Run:
     after: int = 0
 
     def shape(self) -> tuple:
+        """What two runs must share to be one run: all but place and count."""
         return (self.kind, self.width, self.digits, self.exp, self.sign, self.esign, self.after)
 
 
@@ -83,13 +101,23 @@ class Run:
 class Layout:
     """The fixed layout of one kind of record.
 
-    length : bytes per record (newlines included). kinds : ``"i"`` or ``"f"`` per field.
-    template, ormask : (length,) uint8; a record is valid where ``canon(u) | ormask ==
-    template`` (``canon`` maps digits to ``'0'``), and in its sign columns.
-    klass : (length,) column class (messages). pairs : (length - 1,) bool, True where
-    columns j and j + 1 lie in one integer field (right alignment).
-    signs, esigns : columns of mantissa and exponent signs.
-    runs : the fields as :class:`Run` s of equally spaced fields of one shape, in order.
+    Parameters
+    ----------
+    length : int
+        Bytes per record (newlines included).
+    kinds : str
+        ``"i"`` or ``"f"`` per field.
+    template, ormask : (length,) uint8 ndarray
+        A record is valid where ``canon(u) | ormask == template`` (``canon`` maps digits
+        to ``'0'``), and in its sign columns.
+    klass : (length,) ndarray
+        Column class (messages).
+    pairs : (length - 1,) bool ndarray
+        True where columns j and j + 1 lie in one integer field (right alignment).
+    signs, esigns : ndarray
+        Columns of mantissa and exponent signs.
+    runs : tuple of Run
+        The fields as runs of equally spaced fields of one shape, in order.
     """
 
     length: int
@@ -118,9 +146,21 @@ def _runs(fields: list[Run]) -> tuple:
 
 
 def layout_of(record: bytes, terminated: bool = True) -> Layout:
-    """The layout of ``record``: fields separated by ``,`` or a newline (``,\\n`` continues a
-    record on the next line), each a blank-padded integer or a blank-padded real
-    ``[ -]d.ddd[eE][+-]XX``; ``terminated``: the record ends with a newline."""
+    """The layout of a record.
+
+    Fields are separated by ``,`` or a newline (``,\\n`` continues a record on the next
+    line), each a blank-padded integer or a blank-padded real ``[ -]d.ddd[eE][+-]XX``.
+
+    Parameters
+    ----------
+    record : bytes
+    terminated : bool, optional
+        The record ends with a newline.
+
+    Returns
+    -------
+    Layout
+    """
     n = len(record)
     template = np.frombuffer(record, np.uint8).copy()
     ormask = np.zeros(n, np.uint8)
@@ -240,18 +280,35 @@ def _values(layout: Layout, d: np.ndarray, u: np.ndarray, ints: np.ndarray, real
 
 
 def parse_records(buf: np.ndarray, layout: Layout, chunk: int = CHUNK_ROWS, sink=None):
-    """Check and convert ``buf`` ((n * layout.length,) uint8, n whole records).
+    """Check and convert whole records of one layout.
 
-    Returns ints (n, number of integer fields), int32 if every integer field is at most 9
-    columns wide, else int64, and reals (n, number of real fields) float64. Raises
-    FormatError at the first byte that does not fit, or when ``buf`` does not hold whole
-    records (offset of the incomplete last record).
+    Parameters
+    ----------
+    buf : (n * layout.length,) uint8 ndarray
+        n whole records.
+    layout : Layout
+    chunk : int, optional
+        Records per pass.
+    sink : callable, optional
+        ``sink(start, ints, reals)`` takes the values of records ``start, start + 1, ...``
+        chunk by chunk ((r, ·) arrays, reused: valid during the call only): a caller that
+        compares the values with what it expects holds no array of the whole block. A
+        FormatError the sink raises (offset into its chunk's rows) is moved to the offset
+        in ``buf``.
 
-    sink : ``sink(start, ints, reals)`` takes the values of records ``start, start + 1, ...``
-        chunk by chunk ((r, ·) arrays, reused: valid during the call only), and
-        parse_records returns the record count n: a caller that compares the values with
-        what it expects holds no array of the whole block. A FormatError the sink raises
-        (offset into its chunk's rows) is moved to the offset in ``buf``.
+    Returns
+    -------
+    ints : (n, number of integer fields) ndarray
+        int32 if every integer field is at most 9 columns wide, else int64.
+    reals : (n, number of real fields) float64 ndarray
+    n : int
+        Instead of both when ``sink`` is given: the record count.
+
+    Raises
+    ------
+    FormatError
+        At the first byte that does not fit, or when ``buf`` does not hold whole records
+        (offset of the incomplete last record).
     """
     n, rest = divmod(buf.size, layout.length)
     rows = buf[: n * layout.length].reshape(n, layout.length)
@@ -278,8 +335,19 @@ def parse_records(buf: np.ndarray, layout: Layout, chunk: int = CHUNK_ROWS, sink
 
 
 def record_length(buf: np.ndarray | bytes, continued: bool = False) -> int:
-    """Bytes up to and including the first newline of ``buf`` (``continued``: the first newline
-    not preceded by a comma); 0 if there is none."""
+    """Bytes up to and including the first newline of a buffer.
+
+    Parameters
+    ----------
+    buf : uint8 ndarray or bytes
+    continued : bool, optional
+        Look for the first newline not preceded by a comma.
+
+    Returns
+    -------
+    int
+        0 if there is none.
+    """
     data = bytes(buf[:4096])
     at = 0
     while True:
@@ -292,9 +360,25 @@ def record_length(buf: np.ndarray | bytes, continued: bool = False) -> int:
 
 
 def parse_int_list(buf: np.ndarray, per_line: int) -> np.ndarray:
-    """The integers of a set list: lines of ``per_line`` right-aligned fields of one width joined by
-    ``,`` (the last line may be shorter), every line ending in a newline. Returns (n,) int32
-    (int64 for fields wider than 9 columns)."""
+    """The integers of a set list.
+
+    Lines of ``per_line`` right-aligned fields of one width joined by ``,`` (the last line
+    may be shorter), every line ending in a newline.
+
+    Parameters
+    ----------
+    buf : uint8 ndarray
+    per_line : int
+
+    Returns
+    -------
+    (n,) int32 ndarray
+        int64 for fields wider than 9 columns.
+
+    Raises
+    ------
+    FormatError
+    """
     first = bytes(buf[:4096])
     cut = re.search(rb"[,\n]", first)
     if cut is None:
@@ -323,10 +407,26 @@ def parse_int_list(buf: np.ndarray, per_line: int) -> np.ndarray:
 
 
 def parse_column(cols: np.ndarray) -> np.ndarray:
-    """(n,) values of a fixed-width column: ``cols`` (n, width) uint8 (rows may be strided, columns
-    contiguous), all right-aligned non-negative integers (int64) or all blank-padded reals
-    ``[ -]d.ddd[eE][+-]XX`` of one shape (float64). FormatError (offset ``row * width + column``)
-    at the first field that does not fit the first one's shape."""
+    """The values of a fixed-width column.
+
+    All right-aligned non-negative integers, or all blank-padded reals
+    ``[ -]d.ddd[eE][+-]XX`` of one shape.
+
+    Parameters
+    ----------
+    cols : (n, width) uint8 ndarray
+        Rows may be strided, columns contiguous.
+
+    Returns
+    -------
+    (n,) int64 or float64 ndarray
+
+    Raises
+    ------
+    FormatError
+        At the first field that does not fit the first one's shape (offset
+        ``row * width + column``).
+    """
     n, width = cols.shape
     if n == 0:
         return np.zeros(0)

@@ -65,10 +65,18 @@ def _write_vtu(mesh: Mesh, path: Path) -> None:
 
 
 def write_vtu(model, path: str | Path, mesh: Mesh | None = None) -> None:
-    """Write the SolverModel ``model`` as VTU with material and quality cell data.
+    """Write a SolverModel as VTU with material and quality cell data.
 
-    mesh : the linear mesh as exported (order 1); default the model's own mesh, in the
-        model's frame. The older call ``write_vtu(model, mesh, path)`` works too.
+    The older call ``write_vtu(model, mesh, path)`` works too.
+
+    Parameters
+    ----------
+    model : SolverModel
+    path : str or Path
+        The ``.vtu`` file.
+    mesh : Mesh, optional
+        The linear mesh as exported (order 1); default the model's own mesh, in the
+        model's frame.
     """
     if isinstance(path, Mesh):  # write_vtu(model, mesh, path)
         mesh, path = path, mesh
@@ -95,7 +103,19 @@ def write_vtu(model, path: str | Path, mesh: Mesh | None = None) -> None:
 
 
 def check_vtu(path: str | Path, model) -> None:
-    """Read the file back with meshio and compare it with ``model`` (materials, quality data, names)."""
+    """Read a VTU file back with meshio and compare it with the model (materials, quality data, names).
+
+    Parameters
+    ----------
+    path : str or Path
+    model : SolverModel
+        With its material names.
+
+    Raises
+    ------
+    DicerError
+        The first difference (coordinates, cells, cell data or names).
+    """
     from dicer.export.readers import check_meshio
 
     check_meshio(path, model, "vtu")

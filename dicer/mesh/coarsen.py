@@ -35,7 +35,7 @@ from scipy import ndimage
 from dicer.errors import DicerError
 from dicer.mesh.merge import _lattice_boxes
 from dicer.mesh.metrics import element_volumes
-from dicer.mesh.model import LEVEL_DATA, Mesh
+from dicer.mesh.model import LEVEL_DATA, Mesh, pieces
 from dicer.mesh.templates import (BLOCK_TEMPLATES, COARSE, COMPLETION_2D, COMPLETION_BLOCK, FINE, INVALID,
                                   SECTION, TEMPLATES_2D)
 from dicer.mesh.topology import HEX_CORNERS, QUAD_CORNERS
@@ -219,14 +219,25 @@ def _steps_3d(labels: np.ndarray, levels: int, min_distance: int, keep_fine) -> 
 def coarsen_labels(labels: np.ndarray, levels: int = 1, min_distance: int = 1, keep_fine=()) -> dict:
     """The graded decomposition of a label volume: which cells of which step are elements.
 
-    labels : (nx, ny, nz) or (nx, ny) integer array, 0 = background.
-    levels : coarsening levels (0: every voxel its own element).
-    min_distance : voxels (>= 1) of one material around a cell before it may coarsen.
-    keep_fine : material labels kept at voxel size.
-    Returns {"steps": [per step: "level", "frame" (axes of the template frame, the refined
-    axis first in 3D), "prior" ((dim,) cell size of the step below in voxels), "mask" and
-    "state" (per 2D cell or 3D block), "open" (per cell: an element or refined, no coarser
-    ancestor), ...], "voxels": labels.shape bool, voxels that are elements}.
+    Parameters
+    ----------
+    labels : (nx, ny, nz) or (nx, ny) int ndarray
+        0 background.
+    levels : int, optional
+        Coarsening levels (0: every voxel its own element).
+    min_distance : int, optional
+        Voxels (>= 1) of one material around a cell before it may coarsen.
+    keep_fine : sequence of int, optional
+        Material labels kept at voxel size.
+
+    Returns
+    -------
+    dict
+        ``"steps"``: per step, ``"level"``, ``"frame"`` (axes of the template frame, the
+        refined axis first in 3D), ``"prior"`` ((dim,) cell size of the step below in
+        voxels), ``"mask"`` and ``"state"`` (per 2D cell or 3D block), ``"open"`` (per
+        cell: an element or refined, no coarser ancestor), ...; ``"voxels"``: bool array
+        of ``labels.shape``, the voxels that are elements.
     """
     dim = labels.ndim
     if dim == 2:
@@ -349,17 +360,29 @@ def _new_elements(decomposition: dict, dim: int):
 
 
 def coarsen_mesh(mesh: Mesh, levels: int = 1, min_distance: int = 1, keep_fine=()) -> tuple[Mesh, dict]:
-    """A graded mesh of the voxel mesh ``mesh`` (see the module notes).
+    """A graded mesh of a voxel mesh (see the module notes).
 
-    mesh : voxel mesh from ``voxel_mesh`` (hexahedra or quads).
-    levels : coarsening levels; elements grow to 3**levels voxels at most (0: unchanged).
-    min_distance : voxels (>= 1) of one material around a cell before it coarsens.
-    keep_fine : material labels kept at voxel size.
-    Returns the graded mesh and a report (elements before and after, per material and
-    level; volumes). The graded mesh keeps the voxel mesh's remaining voxels and nodes (in
-    their order), adds the coarse and template elements after them and any template node
-    between voxel corners after the nodes (lattice -1); cell data ``coarsening_level``.
-    Each material's volume and boundary faces are those of the voxel mesh.
+    The graded mesh keeps the voxel mesh's remaining voxels and nodes (in their order),
+    adds the coarse and template elements after them and any template node between voxel
+    corners after the nodes (lattice -1); cell data ``coarsening_level``. Each material's
+    volume and boundary faces are those of the voxel mesh.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        A voxel mesh from :func:`~dicer.mesh.voxel.voxel_mesh` (hexahedra or quads).
+    levels : int, optional
+        Coarsening levels; elements grow to 3**levels voxels at most (0: unchanged).
+    min_distance : int, optional
+        Voxels (>= 1) of one material around a cell before it coarsens.
+    keep_fine : sequence of int, optional
+        Material labels kept at voxel size.
+
+    Returns
+    -------
+    graded : Mesh
+    report : dict
+        Elements before and after, per material and level; volumes.
     """
     if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or levels < 0:
         raise DicerError(f"merge.templates.levels={levels!r}: give a whole number >= 0")
@@ -408,8 +431,8 @@ def _assemble(mesh: Mesh, keep: np.ndarray, corner_points: np.ndarray, material:
     cells = np.concatenate([np.compress(keep, mesh.cells, axis=0), ids.reshape(n_new, per)])
     # nodes still used, in the voxel mesh's order, then the new ones
     used = np.zeros(mesh.n_points + off.shape[0], bool)
-    for start in range(0, cells.shape[0], _ROWS):
-        used[cells[start : start + _ROWS]] = True
+    for part in pieces(cells.shape[0], _ROWS):
+        used[cells[part]] = True
     number = np.cumsum(used) - 1
     cells = number[cells]
     n_old = int(used[: mesh.n_points].sum())

@@ -10,11 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from dicer.mesh.model import Mesh
+from dicer.mesh.model import Mesh, pieces
 from dicer.mesh.topology import HEX_CORNERS, HEX_FACE_PLANES, HEX_FACES, QUAD_CORNERS, QUAD_EDGES, QUAD_SIDE_PLANES
-
-_CHUNK = 1 << 18  # elements per pass: temporaries stay small and are reused
-
 
 def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
     """(M, F) material of the element across each face, 0 for none, from a voxel -> material grid
@@ -38,8 +35,8 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
     node_lin = lattice @ nstrides
     grid = np.zeros(int(np.prod(shape)), kind)
     covered = 0
-    for start in range(0, m, _CHUNK):
-        c = cells[start : start + _CHUNK]
+    for part in pieces(m):
+        c = cells[part]
         lo = lattice[c[:, 0]]
         ext = lattice[c[:, far]] - lo
         if ext.min() < 1 or lo.min() < 0 or np.any(lo + ext > shape) or ext.max() >= 64:
@@ -51,7 +48,7 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
                 return None
         base = lo @ strides
         code = ext @ (64 ** np.arange(dim))
-        mat = material[start : start + _CHUNK].astype(kind)
+        mat = material[part].astype(kind)
         for cc in np.unique(code):  # a few distinct box sizes (1 x 1 x 1 before plane merging)
             sel = code == cc
             e = [(int(cc) // 64**i) % 64 for i in range(dim)]
@@ -63,8 +60,8 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
         return None
     axes = HEX_FACE_PLANES if dim == 3 else QUAD_SIDE_PLANES
     nb = np.empty((m, len(axes)), kind)
-    for start in range(0, m, _CHUNK):
-        c = cells[start : start + _CHUNK]
+    for part in pieces(m):
+        c = cells[part]
         lo = lattice[c[:, 0]]
         ext = lattice[c[:, far]] - lo
         base = lo @ strides
@@ -78,15 +75,30 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
             np.putmask(idx, ~inside, 0)
             got = grid[idx]
             got[~inside] = 0
-            nb[start : start + _CHUNK, f] = got
+            nb[part, f] = got
     return nb
 
 
 def face_neighbours(cells: np.ndarray, dim: int, n_points: int) -> np.ndarray:
-    """(M, F) element across each face, -1 for none, from a sort of face keys (any conforming mesh).
+    """The element across each face, from a sort of face keys (any conforming mesh).
 
     A quad face is keyed by its smallest node and the node diagonally opposite it, an
-    edge by its two nodes."""
+    edge by its two nodes.
+
+    Parameters
+    ----------
+    cells : (M, 8) or (M, 4) int ndarray
+        Hexahedra or quads, VTK corner order.
+    dim : int
+        3 for hexahedra, 2 for quads.
+    n_points : int
+        Number of nodes.
+
+    Returns
+    -------
+    (M, F) int64 ndarray
+        Element index across faces S1..S6 (2D: edges S1..S4), -1 for none.
+    """
     table = HEX_FACES if dim == 3 else QUAD_EDGES
     m, nf = cells.shape[0], table.shape[0]
     keys = np.empty((m, nf), np.int64)
@@ -111,7 +123,18 @@ def face_neighbours(cells: np.ndarray, dim: int, n_points: int) -> np.ndarray:
 
 
 def neighbour_materials(mesh: Mesh) -> np.ndarray:
-    """(M, F) material label of the element across each face S1..S6 (2D: edge S1..S4), 0 for none."""
+    """The material label of the element across each face.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Any conforming mesh; a lattice grid serves when its elements are boxes of it.
+
+    Returns
+    -------
+    (M, F) uint8, uint16 or int ndarray
+        Label across faces S1..S6 (2D: edges S1..S4), 0 for none.
+    """
     nb = _neighbour_materials_by_lattice(mesh)
     if nb is None:
         idx = face_neighbours(np.asarray(mesh.cells, np.int64), mesh.dim, mesh.n_points)

@@ -29,12 +29,27 @@ from dicer.errors import DicerError
 
 
 def check_direction(direction, dim: int, source: str | None = None) -> np.ndarray | None:
-    """The direction cosines as a (3, 3) float64 matrix, or None for the identity or a 2D mesh.
+    """The direction cosines as a (3, 3) matrix, or None for the identity or a 2D mesh.
 
-    direction : None or ``dim * dim`` values, row-major (ITK's ``GetDirection``); column j
-        is the scanner direction of index axis j.
-    Raises DicerError for a matrix that is not orthonormal (a scanner frame reached by a
-    rigid motion is what keeps element shapes and the quality figures the same).
+    Parameters
+    ----------
+    direction : sequence of float or None
+        ``dim * dim`` values, row-major (ITK's ``GetDirection``); column j is the scanner
+        direction of index axis j.
+    dim : int
+        2 or 3.
+    source : str, optional
+        What the values came from, for the error message.
+
+    Returns
+    -------
+    (3, 3) float64 ndarray or None
+
+    Raises
+    ------
+    DicerError
+        The matrix is not orthonormal (a scanner frame reached by a rigid motion is what
+        keeps element shapes and the quality figures the same).
     """
     if direction is None or dim != 3:
         return None  # a 2D image has no 3D placement dicer could honour
@@ -53,12 +68,38 @@ def check_direction(direction, dim: int, source: str | None = None) -> np.ndarra
 
 
 def voxel_centre(spacing, origin) -> np.ndarray:
-    """(3,) float64: centre of voxel (0, 0, 0) in mm, the fixed point of the motion."""
+    """Centre of voxel (0, 0, 0), the fixed point of the motion.
+
+    Parameters
+    ----------
+    spacing, origin : sequence of float
+        Voxel size and image origin, mm.
+
+    Returns
+    -------
+    (3,) float64 ndarray
+        mm.
+    """
     return np.asarray(origin, np.float64) + np.asarray(spacing, np.float64) / 2
 
 
 def to_scanner(points: np.ndarray, spacing, origin, direction: np.ndarray) -> np.ndarray:
-    """(N, 3) float64 scanner coordinates (mm, LPS) of lattice-frame ``points`` (N, 3)."""
+    """Scanner coordinates of lattice-frame points.
+
+    Parameters
+    ----------
+    points : (N, 3) float64 ndarray
+        Lattice-frame coordinates, mm.
+    spacing, origin : sequence of float
+        Voxel size and image origin, mm.
+    direction : (3, 3) float64 ndarray
+        Direction cosines (:func:`check_direction`).
+
+    Returns
+    -------
+    (N, 3) float64 ndarray
+        mm, LPS.
+    """
     c = voxel_centre(spacing, origin)
     out = np.subtract(points, c)
     out = out @ np.asarray(direction, np.float64).T
@@ -67,7 +108,19 @@ def to_scanner(points: np.ndarray, spacing, origin, direction: np.ndarray) -> np
 
 
 def to_lattice(points: np.ndarray, spacing, origin, direction: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`to_scanner`."""
+    """Lattice-frame coordinates of scanner points: the inverse of :func:`to_scanner`.
+
+    Parameters
+    ----------
+    points : (N, 3) float64 ndarray
+        Scanner coordinates, mm, LPS.
+    spacing, origin, direction
+        As in :func:`to_scanner`.
+
+    Returns
+    -------
+    (N, 3) float64 ndarray
+    """
     c = voxel_centre(spacing, origin)
     out = np.subtract(points, c)
     # the inverse, not the transpose: a header's cosines are orthonormal only to float32 precision
@@ -77,15 +130,37 @@ def to_lattice(points: np.ndarray, spacing, origin, direction: np.ndarray) -> np
 
 
 def mirrored(direction: np.ndarray | None) -> bool:
-    """Whether the direction holds a reflection (a left-handed affine, det < 0)."""
+    """Whether the direction holds a reflection (a left-handed affine, det < 0).
+
+    Parameters
+    ----------
+    direction : (3, 3) float64 ndarray or None
+
+    Returns
+    -------
+    bool
+    """
     return direction is not None and bool(np.linalg.det(direction) < 0)
 
 
 def image_affine(spacing, origin, direction=None) -> np.ndarray:
-    """(4, 4) float64 affine from continuous voxel index (centre of voxel (0, 0, 0) at 0) to
-    scanner coordinates (mm, LPS), as ITK's ``TransformContinuousIndexToPhysicalPoint``.
+    """The affine from continuous voxel index to scanner coordinates, as ITK's
+    ``TransformContinuousIndexToPhysicalPoint``.
 
-    The NIfTI (RAS) affine of the same image is ``diag(-1, -1, 1, 1) @ image_affine(...)``.
+    The centre of voxel (0, 0, 0) is index 0. The NIfTI (RAS) affine of the same image is
+    ``diag(-1, -1, 1, 1) @ image_affine(...)``.
+
+    Parameters
+    ----------
+    spacing, origin : sequence of float
+        Voxel size and image origin, mm.
+    direction : sequence of 9 float or (3, 3) ndarray, optional
+        Direction cosines; None for the identity.
+
+    Returns
+    -------
+    (4, 4) float64 ndarray
+        To mm, LPS.
     """
     d = np.eye(3) if direction is None else np.asarray(direction, np.float64).reshape(3, 3)
     a = np.eye(4)

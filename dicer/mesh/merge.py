@@ -42,7 +42,7 @@ from scipy.sparse.csgraph import connected_components
 from dicer.config import section_defaults
 from dicer.errors import DicerError
 from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes
-from dicer.mesh.model import Mesh
+from dicer.mesh.model import CHUNK, Mesh, pieces
 from dicer.mesh.topology import (HEX_AXIS_CORNERS, HEX_CORNERS, HEX_EDGES, HEX_FACES, QUAD_AXIS_CORNERS,
                                  QUAD_CORNERS, QUAD_EDGES)
 
@@ -73,11 +73,8 @@ def _union(*arrays) -> np.ndarray:
     return _unique(np.concatenate([np.asarray(x).ravel() for x in arrays]))
 
 
-_CHUNK = 1 << 18  # index entries per piece: the pieces' temporaries stay small and are reused
-
-
 def _rows_per_piece(index: np.ndarray) -> int:
-    return max(1, _CHUNK // max(1, int(np.prod(index.shape[1:], dtype=np.int64))))
+    return max(1, CHUNK // max(1, int(np.prod(index.shape[1:], dtype=np.int64))))
 
 
 def _take(table: np.ndarray, index: np.ndarray) -> np.ndarray:
@@ -87,35 +84,35 @@ def _take(table: np.ndarray, index: np.ndarray) -> np.ndarray:
     cells of a large mesh that is twice their size in fresh memory per gather. Pieces keep
     that copy small.
     """
-    if index.dtype == np.intp or index.size <= _CHUNK:
+    if index.dtype == np.intp or index.size <= CHUNK:
         return table[index]
     out = np.empty(index.shape, dtype=table.dtype)
     step = _rows_per_piece(index)
-    for a in range(0, index.shape[0], step):
-        out[a:a + step] = table[index[a:a + step]]
+    for part in pieces(index.shape[0], step):
+        out[part] = table[index[part]]
     return out
 
 
 def _put(table: np.ndarray, index: np.ndarray, values) -> None:
     """``table[index] = values`` (a scalar or an array shaped like ``index``) in pieces of rows,
     in the same order (later entries win), without a full intp copy of ``index``."""
-    if index.dtype == np.intp or index.size <= _CHUNK:
+    if index.dtype == np.intp or index.size <= CHUNK:
         table[index] = values
         return
     step = _rows_per_piece(index)
     scalar = np.ndim(values) == 0
-    for a in range(0, index.shape[0], step):
-        table[index[a:a + step]] = values if scalar else values[a:a + step]
+    for part in pieces(index.shape[0], step):
+        table[index[part]] = values if scalar else values[part]
 
 
 def _any_at(mask: np.ndarray, index: np.ndarray) -> np.ndarray:
     """(R,) bool: rows of ``index`` (R, k) holding a node flagged in ``mask``, in pieces of rows."""
-    if index.size <= _CHUNK:
+    if index.size <= CHUNK:
         return _any(mask[index])
     out = np.empty(index.shape[0], dtype=bool)
     step = _rows_per_piece(index)
-    for a in range(0, index.shape[0], step):
-        out[a:a + step] = _any(mask[index[a:a + step]])
+    for part in pieces(index.shape[0], step):
+        out[part] = _any(mask[index[part]])
     return out
 
 
@@ -134,13 +131,23 @@ def _check_passes(passes, dim: int) -> tuple[int, int, int]:
 
 
 def thick_elements(mesh: Mesh, min_thickness: float) -> np.ndarray:
-    """(M,) bool: elements lying in a part of their material at least ``min_thickness`` voxels thick.
+    """The elements lying in a part of their material at least ``min_thickness`` voxels thick.
 
     A voxel is *thick* when a ball of diameter ``min_thickness`` (in voxels) that lies
     entirely inside its material covers it: the morphological opening of the material
     mask by that ball, computed from two Euclidean distance transforms. The material
     mask is rasterised from the elements' lattice boxes (exact for a voxel mesh). An
     element is thick when the voxel at its lowest lattice corner is.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    min_thickness : float
+        Voxels.
+
+    Returns
+    -------
+    (M,) bool ndarray
     """
     m = mesh.n_cells
     if min_thickness <= 0:
@@ -204,8 +211,8 @@ def _match_faces(a: np.ndarray, b: np.ndarray, n: int) -> tuple[np.ndarray, np.n
     i = np.flatnonzero((j >= 0) & ~on_shared)
     j = j[i].astype(np.intp)
     same = np.empty(i.size, dtype=bool)
-    for s in range(0, i.size, _CHUNK):  # in pieces: the gathered rows stay in cache
-        same[s:s + _CHUNK] = _all(np.take(a, i[s:s + _CHUNK], axis=0) == np.take(b, j[s:s + _CHUNK], axis=0))
+    for part in pieces(i.size):  # the gathered rows stay in cache
+        same[part] = _all(np.take(a, i[part], axis=0) == np.take(b, j[part], axis=0))
     i, j = i[same], j[same]
     hard_a = np.flatnonzero(on_shared)
     if hard_a.size:
@@ -455,10 +462,10 @@ def _gather_corners(cells: np.ndarray, rows: np.ndarray, first: np.ndarray, seco
     a = np.empty((rows.size, first.size), dtype=cells.dtype)
     b = np.empty((rows.size, second.size), dtype=cells.dtype)
     step = _rows_per_piece(cells)
-    for s in range(0, rows.size, step):
-        block = np.take(cells, rows[s:s + step], axis=0)  # np.take: about twice as fast as fancy indexing
-        np.take(block, first, axis=1, out=a[s:s + step], mode="clip")  # valid columns: no buffered copy
-        np.take(block, second, axis=1, out=b[s:s + step], mode="clip")
+    for part in pieces(rows.size, step):
+        block = np.take(cells, rows[part], axis=0)  # np.take: about twice as fast as fancy indexing
+        np.take(block, first, axis=1, out=a[part], mode="clip")  # valid columns: no buffered copy
+        np.take(block, second, axis=1, out=b[part], mode="clip")
     return a, b
 
 
@@ -470,9 +477,9 @@ def _compact(cells: np.ndarray, keep: np.ndarray, new_id: np.ndarray) -> np.ndar
     """
     out = 0
     step = _rows_per_piece(cells)
-    for s in range(0, cells.shape[0], step):
+    for part in pieces(cells.shape[0], step):
         # np.compress: a boolean selection several times faster than a[mask]
-        piece = new_id[np.compress(keep[s:s + step], cells[s:s + step], axis=0)]
+        piece = new_id[np.compress(keep[part], cells[part], axis=0)]
         cells[out:out + piece.shape[0]] = piece
         out += piece.shape[0]
     return cells[:out]
@@ -1215,27 +1222,43 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
                  rim_moves: bool = True, axes=(0, 1, 2)) -> tuple[Mesh, dict]:
     """Merge element layers along each axis (DICER Box 2, multi-material, optionally selective).
 
-    mesh : a voxel mesh (``voxel_mesh``), hexahedral or quad, one or several materials.
-    passes : merges per axis (px, py[, pz]). ``p`` merges join every group of ``p + 1``
+    Nodes keep their coordinates and integer lattice indices; a moved rim node gets the
+    index of the lattice corner it moved to; merged elements span two or more lattice
+    units along the merge axis.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        A voxel mesh (:func:`~dicer.mesh.voxel.voxel_mesh`), hexahedral or quad, one or
+        several materials.
+    passes : sequence of int, optional
+        Merges per axis (px, py[, pz]). ``p`` merges join every group of ``p + 1``
         element layers into one: the first two layers of the group, then the result
         with the next layer, and so on. Groups start at the mesh's first element layer.
-    min_thickness : selective merging. 0 (default) merges wherever it is safe; t > 0
-        refuses every merge region that holds an element lying in a part of its
-        material thinner than ``t`` voxels (see ``thick_elements``).
-    granularity : "region" (default) refuses only the connected merge region that
-        failed a check; "plane" refuses the whole plane, as the paper does.
-    min_scaled_jacobian : lowest corner scaled Jacobian (measured on the lattice) a
-        changed element may have; the default 0.2 matches the smoothing floor. 0 allows
-        flat corners, -1 switches the test off (the paper checks connectivity only).
-    rim_moves : repair an element that fails a check by moving its rim nodes one lattice
-        step across the plane, or joining them to the node already there (the element
-        then fills the empty voxel beside it), before refusing its region.
-    axes : order in which the axes are merged.
+    min_thickness : float, optional
+        Selective merging. 0 merges wherever it is safe; t > 0 refuses every merge region
+        that holds an element lying in a part of its material thinner than ``t`` voxels
+        (see :func:`thick_elements`).
+    granularity : {"region", "plane"}, optional
+        "region" refuses only the connected merge region that failed a check; "plane"
+        refuses the whole plane, as the paper does.
+    min_scaled_jacobian : float, optional
+        Lowest corner scaled Jacobian (measured on the lattice) a changed element may
+        have; 0.2 matches the smoothing floor. 0 allows flat corners, -1 switches the test
+        off (the paper checks connectivity only).
+    rim_moves : bool, optional
+        Repair an element that fails a check by moving its rim nodes one lattice step
+        across the plane, or joining them to the node already there (the element then
+        fills the empty voxel beside it), before refusing its region.
+    axes : sequence of int, optional
+        Order in which the axes are merged.
 
-    Returns the merged mesh and a report with element and node counts per axis and pass
-    and the volume of every material before and after. Nodes keep their coordinates and
-    integer lattice indices; a moved rim node gets the index of the lattice corner it
-    moved to; merged elements span two or more lattice units along the merge axis.
+    Returns
+    -------
+    merged : Mesh
+    report : dict
+        Element and node counts per axis and pass, and the volume of every material
+        before and after.
     """
     counts, settings = _check_settings(mesh, passes, min_thickness, granularity, min_scaled_jacobian, rim_moves,
                                        axes)
@@ -1269,7 +1292,23 @@ docs/merging.md and docs/coarsening.md)."""
 
 
 def merge_settings(section: dict | None) -> dict:
-    """The ``merge:`` config section with defaults filled in; unknown keys are errors."""
+    """The ``merge:`` config section with defaults filled in.
+
+    Parameters
+    ----------
+    section : dict or None
+        The section as read; None for all defaults.
+
+    Returns
+    -------
+    dict
+        Every key of :data:`DEFAULTS`.
+
+    Raises
+    ------
+    DicerError
+        An unknown key, or ``templates`` not a mapping.
+    """
     settings = {k: (dict(v) if isinstance(v, dict) else v) for k, v in DEFAULTS.items()}
     for key, value in (section or {}).items():
         if key not in settings:
@@ -1287,9 +1326,23 @@ def merge_settings(section: dict | None) -> dict:
 
 
 def merge_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, dict]:
-    """The merge stage driven by the ``merge:`` config section (missing keys take DEFAULTS):
-    plane merging (``method: planes``, ``merge_planes``) or graded coarsening by transition
-    templates (``method: templates``, ``dicer.mesh.coarsen.coarsen_mesh``)."""
+    """The merge stage driven by the ``merge:`` config section.
+
+    Plane merging (``method: planes``, :func:`merge_planes`) or graded coarsening by
+    transition templates (``method: templates``, :func:`dicer.mesh.coarsen.coarsen_mesh`).
+
+    Parameters
+    ----------
+    mesh : Mesh
+        A voxel mesh.
+    config_section : dict, optional
+        The ``merge:`` section; missing keys take :data:`DEFAULTS`.
+
+    Returns
+    -------
+    merged : Mesh
+    report : dict
+    """
     s = merge_settings(config_section)
     if s["method"] == "templates":
         from dicer.mesh.coarsen import coarsen_mesh
@@ -1341,8 +1394,8 @@ def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int 
     del part
     # corner -> the axes it is offset along (VTK order): corner = corner 0 + those steps
     steps = [[d for d in range(dim) if off[d]] for off in (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim]]
-    for start in range(0, cells.shape[0], chunk):
-        c = cells[start:start + chunk]
+    for part in pieces(cells.shape[0], chunk):
+        c = cells[part]
         first, last = c[:, 0], c[:, far]
         span = [x[last] - x[first] for x in lat]
         ok = span[0] > 0
@@ -1355,11 +1408,11 @@ def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int 
             for d in steps[corner]:
                 expected += step[d]
             ok &= kc[:, corner] == expected
-        out[start:start + chunk] = ok
+        out[part] = ok
         volume = span[0].astype(np.int64)
         for d in range(1, dim):
             volume *= span[d]
-        size[start:start + chunk] = np.where(ok, volume, 0)
+        size[part] = np.where(ok, volume, 0)
     return out, size
 
 
@@ -1382,10 +1435,10 @@ def _material_volumes(mesh: Mesh, box: np.ndarray, on_lattice: bool, size: np.nd
 def _on_lattice(mesh: Mesh) -> bool:
     """True when every node sits at origin + lattice * spacing."""
     scale = 1e-9 * max(1.0, float(np.abs(mesh.points).max(initial=0.0)))
-    for start in range(0, mesh.points.shape[0], 1 << 18):  # in pieces that stay in cache
-        x = mesh.lattice[start:start + (1 << 18)] * mesh.spacing
+    for part in pieces(mesh.points.shape[0]):  # in pieces that stay in cache
+        x = mesh.lattice[part] * mesh.spacing
         x += mesh.origin
-        x -= mesh.points[start:start + (1 << 18)]
+        x -= mesh.points[part]
         if np.abs(x).max(initial=0.0) > scale:
             return False
     return True

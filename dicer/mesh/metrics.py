@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dicer.mesh.model import pieces
 from dicer.mesh.topology import (HEX_AXIS_CORNERS, HEX_CORNER_NEIGHBOURS, HEX_EDGES, QUAD_AXIS_CORNERS,
                                  QUAD_CORNER_NEIGHBOURS, QUAD_EDGES)
 
@@ -22,7 +23,20 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 def corner_scaled_jacobians(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """Scaled Jacobian at every corner: (M, 8) for hexahedra, (M, 4) for quads (float64)."""
+    """Scaled Jacobian at every corner of every element.
+
+    Parameters
+    ----------
+    points : (N, 3) float64 ndarray
+        Node coordinates, mm.
+    cells : (M, 8) or (M, 4) int ndarray
+        Hexahedra or quads, VTK corner order.
+
+    Returns
+    -------
+    (M, 8) or (M, 4) float64 ndarray
+        Values in [-1, 1].
+    """
     x = points[cells]  # (M, n, 3)
     if cells.shape[1] == 8:
         origin = x[:, :, None, :]  # (M, 8, 1, 3)
@@ -78,31 +92,75 @@ def _columns(points: np.ndarray) -> list[np.ndarray]:
     return [np.ascontiguousarray(points[:, d]) for d in range(3)]
 
 
+def _per_block(func, columns: list[np.ndarray], cells_t: np.ndarray, chunk: int,
+               out: np.ndarray | None) -> np.ndarray:
+    """``func`` of the corner coordinates of the elements ``cells_t`` (c, M), block by block of
+    ``chunk`` elements, into ``out`` (M,) float64 (a new array if None)."""
+    out = np.empty(cells_t.shape[1]) if out is None else out
+    for part in pieces(cells_t.shape[1], chunk):
+        block = cells_t[:, part]
+        out[part] = func([col[block] for col in columns])
+    return out
+
+
 def scaled_jacobian(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np.ndarray:
-    """Minimum corner scaled Jacobian per element, (M,) float64 in [-1, 1]."""
+    """Minimum corner scaled Jacobian per element.
+
+    Parameters
+    ----------
+    points, cells : ndarray
+        As in :func:`corner_scaled_jacobians`.
+    chunk : int, optional
+        Elements per block: the block's temporaries stay in the cache.
+
+    Returns
+    -------
+    (M,) float64 ndarray
+        Values in [-1, 1].
+    """
     out = np.empty(cells.shape[0])
     if cells.shape[1] == 8:
         return hex_scaled_jacobian_t(_columns(points), cells.T, chunk, out)
-    for start in range(0, cells.shape[0], chunk):
-        part = cells[start : start + chunk]
-        out[start : start + chunk] = corner_scaled_jacobians(points, part).min(axis=1)
+    for part in pieces(cells.shape[0], chunk):
+        out[part] = corner_scaled_jacobians(points, cells[part]).min(axis=1)
     return out
 
 
 def hex_scaled_jacobian_t(columns: list[np.ndarray], cells_t: np.ndarray, chunk: int = _BLOCK,
                           out: np.ndarray | None = None) -> np.ndarray:
-    """scaled_jacobian of hexahedra given as ``cells_t`` (8, M) (the transposed cell array,
-    any integer type) over the coordinate columns ``columns`` (x, y, z arrays of the nodes)."""
-    m = cells_t.shape[1]
-    out = np.empty(m) if out is None else out
-    for start in range(0, m, chunk):
-        part = cells_t[:, start : start + chunk]
-        out[start : start + chunk] = _hex_min_scaled_jacobian([c[part] for c in columns])
-    return out
+    """:func:`scaled_jacobian` of hexahedra given by the transposed cell array.
+
+    Parameters
+    ----------
+    columns : list of three (N,) float64 ndarrays
+        x, y and z of the nodes.
+    cells_t : (8, M) int ndarray
+        The transposed cell array, any integer type.
+    chunk : int, optional
+        Elements per block.
+    out : (M,) float64 ndarray, optional
+        Written in place and returned.
+
+    Returns
+    -------
+    (M,) float64 ndarray
+    """
+    return _per_block(_hex_min_scaled_jacobian, columns, cells_t, chunk, out)
 
 
 def element_volumes(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """Volume (mm^3) of each hexahedron, or area (mm^2) of each quad; (M,) float64, signed."""
+    """Volume of each hexahedron, or area of each quad.
+
+    Parameters
+    ----------
+    points, cells : ndarray
+        As in :func:`corner_scaled_jacobians`.
+
+    Returns
+    -------
+    (M,) float64 ndarray
+        Signed volumes in mm^3 (areas in mm^2).
+    """
     out = np.empty(cells.shape[0])
     if cells.shape[1] == 4:
         x = points[cells][:, :, 0]
@@ -121,8 +179,7 @@ def _triple(a: list[np.ndarray], b: list[np.ndarray], c: list[np.ndarray]) -> np
 
 def hex_volumes_t(columns: list[np.ndarray], cells_t: np.ndarray, chunk: int = _BLOCK,
                   out: np.ndarray | None = None) -> np.ndarray:
-    """Volumes of hexahedra given as ``cells_t`` (8, M) (the transposed cell array) over
-    the coordinate columns ``columns`` (x, y, z arrays of the nodes); (M,) float64, signed.
+    """Volumes of hexahedra given by the transposed cell array.
 
     Closed form of the integral of det(J) over the reference cube (exact for a trilinear
     hexahedron, like 2x2x2 Gauss quadrature): with the trilinear map written as
@@ -130,52 +187,70 @@ def hex_volumes_t(columns: list[np.ndarray], cells_t: np.ndarray, chunk: int = _
     V = 8 [c1.(c2 x c3) + (c1.(c4 x c5) + c4.(c2 x c6) + c5.(c6 x c3)) / 3]
     (every other product of the expansion integrates to zero or repeats a vector).
     No BLAS: the sums are the same whatever the number of threads.
+
+    Parameters
+    ----------
+    columns, cells_t, chunk, out
+        As in :func:`hex_scaled_jacobian_t`.
+
+    Returns
+    -------
+    (M,) float64 ndarray
+        Signed volumes, mm^3.
     """
-    m = cells_t.shape[1]
-    out = np.empty(m) if out is None else out
-    for start in range(0, m, chunk):
-        part = cells_t[:, start : start + chunk]
-        out[start : start + chunk] = _hex_volume([col[part] for col in columns])
-    return out
+    return _per_block(_hex_volume, columns, cells_t, chunk, out)
 
 
 def edge_ratio(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np.ndarray:
-    """Longest over shortest edge length per element, (M,) float64 (1 for a cube; inf for
-    an element with a zero-length edge).
+    """Longest over shortest edge length per element.
 
-    Blocks of ``chunk`` elements: the (block, 12) edge lengths stay small whatever the mesh size.
+    Parameters
+    ----------
+    points, cells, chunk
+        As in :func:`scaled_jacobian`; blocks keep the (block, 12) edge lengths small
+        whatever the mesh size.
+
+    Returns
+    -------
+    (M,) float64 ndarray
+        1 for a cube; inf for an element with a zero-length edge.
     """
     pairs = HEX_EDGES if cells.shape[1] == 8 else QUAD_EDGES
     columns = _columns(points)
     out = np.empty(cells.shape[0])
-    for start in range(0, cells.shape[0], chunk):
-        part = cells[start : start + chunk].T  # (corners, block)
+    for part in pieces(cells.shape[0], chunk):
+        block = cells[part].T  # (corners, block)
         sq = None
         for col in columns:
-            x = col[part]
+            x = col[block]
             d = x[pairs[:, 1]] - x[pairs[:, 0]]  # (edges, block)
             sq = d * d if sq is None else sq + d * d
         with np.errstate(divide="ignore", invalid="ignore"):
-            out[start : start + chunk] = np.sqrt(sq.max(axis=0) / sq.min(axis=0))
+            out[part] = np.sqrt(sq.max(axis=0) / sq.min(axis=0))
     return out
 
 
 def skew(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np.ndarray:
-    """Skew per element (verdict): the largest |cos| of the angles between the element's
-    principal axes, (M,) float64 in [0, 1] (0 for a box).
+    """Skew per element (verdict): the largest |cos| of the angles between its principal axes.
 
     The principal axes of a hexahedron are the sums of its four edges along each
     parametric direction (of a quad, of its two); an axis of zero length gives 0, as in
     verdict.
+
+    Parameters
+    ----------
+    points, cells, chunk
+        As in :func:`edge_ratio`.
+
+    Returns
+    -------
+    (M,) float64 ndarray
+        Values in [0, 1], 0 for a box.
     """
     # + ends and - ends of each axis
     axes = _HEX_SKEW_AXES if cells.shape[1] == 8 else _QUAD_SKEW_AXES
     columns = _columns(points)
-    out = np.empty(cells.shape[0])
-    for start in range(0, cells.shape[0], chunk):
-        part = cells[start : start + chunk].T
-        out[start : start + chunk] = _skew_of([col[part] for col in columns], axes)
-    return out
+    return _per_block(lambda x: _skew_of(x, axes), columns, cells.T, chunk, None)
 
 
 def _hex_edge_ratio(x: list[np.ndarray]) -> np.ndarray:
@@ -242,10 +317,31 @@ METRICS = ("scaled_jacobian", "edge_ratio", "skew", "volume")
 
 def element_metrics(points: np.ndarray, cells: np.ndarray, names=METRICS, chunk: int = _BLOCK
                     ) -> dict[str, np.ndarray]:
-    """The metrics ``names`` (of :data:`METRICS`) of every element, each (M,) float64, in one
-    pass: a block's corner coordinates are gathered once and every metric is computed from
-    them (the same values as :func:`scaled_jacobian`, :func:`edge_ratio`, :func:`skew` and
-    :func:`element_volumes`, bit for bit)."""
+    """Several metrics of every element in one pass.
+
+    A block's corner coordinates are gathered once and every metric is computed from
+    them: the same values as :func:`scaled_jacobian`, :func:`edge_ratio`, :func:`skew`
+    and :func:`element_volumes`, bit for bit.
+
+    Parameters
+    ----------
+    points, cells : ndarray
+        As in :func:`corner_scaled_jacobians`.
+    names : sequence of str, optional
+        Metrics of :data:`METRICS`.
+    chunk : int, optional
+        Elements per block.
+
+    Returns
+    -------
+    dict of str to (M,) float64 ndarray
+        One array per name.
+
+    Raises
+    ------
+    ValueError
+        A name is not in :data:`METRICS`.
+    """
     unknown = set(names) - set(METRICS)
     if unknown:
         raise ValueError(f"unknown metric(s) {sorted(unknown)}; use {', '.join(METRICS)}")
@@ -259,11 +355,11 @@ def element_metrics(points: np.ndarray, cells: np.ndarray, names=METRICS, chunk:
     cells_t = cells.T
     m = cells.shape[0]
     out = {k: np.empty(m) for k in names}
-    for start in range(0, m, chunk):
-        part = cells_t[:, start : start + chunk]
-        x = [c[part] for c in columns]
+    for part in pieces(m, chunk):
+        block = cells_t[:, part]
+        x = [c[block] for c in columns]
         for k in names:
-            out[k][start : start + chunk] = funcs[k](x)
+            out[k][part] = funcs[k](x)
     return out
 
 
@@ -274,7 +370,18 @@ carried from one stage to the next (a stage that moves nodes changes them)."""
 
 
 def quality_arrays(points: np.ndarray, cells: np.ndarray, sj: np.ndarray | None = None) -> dict[str, np.ndarray]:
-    """The :data:`QUALITY_DATA` arrays of the linear elements ``cells`` (M, 8 | 4): each (M,)
-    float64; ``sj`` reuses a scaled Jacobian already computed."""
+    """The :data:`QUALITY_DATA` cell arrays of linear elements.
+
+    Parameters
+    ----------
+    points, cells : ndarray
+        As in :func:`corner_scaled_jacobians`.
+    sj : (M,) float64 ndarray, optional
+        A scaled Jacobian already computed, reused.
+
+    Returns
+    -------
+    dict of str to (M,) float64 ndarray
+    """
     return {"scaled_jacobian": scaled_jacobian(points, cells) if sj is None else sj,
             "edge_ratio": edge_ratio(points, cells)}

@@ -9,6 +9,7 @@ into scanner coordinates (:mod:`dicer.mesh.frame`, docs/coordinates.md).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -22,6 +23,29 @@ template: 2D cells of 3**l voxels a side; 3D cells grow by three along one axis 
 3**l voxels a side once the level's three steps are done). Every node of an element with level > 0 is an interior node: such
 elements lie inside one material, away from every boundary and interface."""
 
+CHUNK = 1 << 18
+"""Rows (elements, nodes or index entries) per pass of the loops that work in pieces: the
+pieces' temporaries stay small and are reused."""
+
+
+def pieces(n: int, size: int = CHUNK) -> Iterator[slice]:
+    """The slices ``[0:size]``, ``[size:2 size]``, ... that cover ``range(n)``.
+
+    Parameters
+    ----------
+    n : int
+        Number of rows.
+    size : int, optional
+        Rows per piece.
+
+    Yields
+    ------
+    slice
+        One piece of rows; the last may be shorter.
+    """
+    for start in range(0, n, size):
+        yield slice(start, start + size)
+
 
 class Sized:
     """``n_points`` and ``n_cells`` of a class with ``points`` and ``cells`` arrays."""
@@ -31,10 +55,12 @@ class Sized:
 
     @property
     def n_points(self) -> int:
+        """Number of nodes."""
         return int(self.points.shape[0])
 
     @property
     def n_cells(self) -> int:
+        """Number of elements."""
         return int(self.cells.shape[0])
 
 
@@ -42,21 +68,33 @@ class Sized:
 class Mesh(Sized):
     """A linear all-hexahedral (3D) or all-quad (2D) mesh.
 
-    points : (N, 3) float64, node coordinates in mm (z = 0 in 2D).
-    cells : (M, 8) int64 hexahedra or (M, 4) int64 quads, VTK corner order, 0-based.
-    material : (M,) int32, class label 1..K of each element.
-    lattice : (N, 3) int64, integer voxel-corner index of each node (k = 0 in 2D).
-    spacing, origin : (3,) float64, voxel size and position of lattice (0, 0, 0) in mm.
-    grid_shape : (3,) int64, voxels per axis of the source image (1 for z in 2D);
-        its bounding planes are lattice 0 and grid_shape along each axis.
-    point_data, cell_data : further per-node / per-element arrays carried through.
-    names : material names by label (names[0] is label 1's), written to VTU files as one
+    Parameters
+    ----------
+    points : (N, 3) float64 ndarray
+        Node coordinates, mm (z = 0 in 2D).
+    cells : (M, 8) or (M, 4) int64 ndarray
+        Hexahedra or quads, VTK corner order, 0-based.
+    material : (M,) int32 ndarray
+        Class label 1..K of each element.
+    lattice : (N, 3) int64 ndarray
+        Integer voxel-corner index of each node (k = 0 in 2D).
+    spacing, origin : (3,) float64 ndarray
+        Voxel size and position of lattice (0, 0, 0), mm.
+    grid_shape : (3,) int64 ndarray
+        Voxels per axis of the source image (1 for z in 2D); its bounding planes are
+        lattice 0 and grid_shape along each axis.
+    point_data, cell_data : dict of str to ndarray, optional
+        Further per-node / per-element arrays carried through.
+    names : list of str, optional
+        Material names by label (names[0] is label 1's), written to VTU files as one
         field data array per material so ParaView shows them; empty when unknown.
-    direction : (3, 3) float64 direction cosines of the source image (column j: scanner
-        direction of index axis j), or None (identity, 2D, or mesh.coordinates: index).
-        ``points`` stay in the lattice frame; the exports apply it.
-    scanner : True when ``points`` and ``cells`` are already in the scanner frame (an
-        exported model.vtu): reading such a file turns it back into the lattice frame.
+    direction : (3, 3) float64 ndarray, optional
+        Direction cosines of the source image (column j: scanner direction of index
+        axis j), or None (identity, 2D, or mesh.coordinates: index). ``points`` stay in
+        the lattice frame; the exports apply it.
+    scanner : bool, optional
+        True when ``points`` and ``cells`` are already in the scanner frame (an exported
+        model.vtu): reading such a file turns it back into the lattice frame.
     """
 
     points: np.ndarray
@@ -83,6 +121,7 @@ class Mesh(Sized):
         return MESHIO_TYPES[(self.dim, 1)]
 
     def copy(self) -> "Mesh":
+        """A deep copy: every array and list copied."""
         return Mesh(
             self.points.copy(), self.cells.copy(), self.material.copy(), self.lattice.copy(),
             self.spacing.copy(), self.origin.copy(), self.grid_shape.copy(),

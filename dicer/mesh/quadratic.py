@@ -68,8 +68,17 @@ def _edges_by_lattice(mesh: Mesh, cells: np.ndarray) -> tuple[np.ndarray, np.nda
 def mesh_edges(cells: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
     """Unique edges of a linear hex/quad mesh.
 
-    Returns (edges, index): edges (E, 2) int64 end nodes (smaller first, rows ascending);
-    index (M, 12) or (M, 4) int64: the edge of each element edge slot.
+    Parameters
+    ----------
+    cells : (M, 8) or (M, 4) int ndarray
+    n_points : int
+
+    Returns
+    -------
+    edges : (E, 2) int64 ndarray
+        End nodes, smaller first, rows ascending.
+    index : (M, 12) or (M, 4) int64 ndarray
+        The edge of each element edge slot.
     """
     table = HEX_EDGES if cells.shape[1] == 8 else QUAD_EDGES
     a = cells[:, table[:, 0]]
@@ -83,12 +92,24 @@ def mesh_edges(cells: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray
 def curved_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_faces: np.ndarray) -> np.ndarray:
     """Mid-edge node positions with boundary edges bent onto the curve of the boundary.
 
-    A boundary edge a-b (on a face in ``boundary_faces``, (M, F) bool) whose lattice line
-    continues on the boundary at both ends, a'-a-b-b', gets the cubic (Catmull-Rom)
-    point (9 (x_a + x_b) - (x_a' + x_b')) / 16; with one continuation, the parabola
-    through the three nodes, e.g. (6 x_a + 3 x_b - x_a') / 8; every other edge keeps
-    its midpoint.
-    On a straight line of nodes both are the midpoint, so flat faces and cut planes stay flat.
+    A boundary edge a-b whose lattice line continues on the boundary at both ends,
+    a'-a-b-b', gets the cubic (Catmull-Rom) point (9 (x_a + x_b) - (x_a' + x_b')) / 16;
+    with one continuation, the parabola through the three nodes, e.g.
+    (6 x_a + 3 x_b - x_a') / 8; every other edge keeps its midpoint. On a straight line of
+    nodes both are the midpoint, so flat faces and cut planes stay flat.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    edges, index : ndarray
+        From :func:`mesh_edges`.
+    boundary_faces : (M, F) bool ndarray
+        The element faces on a boundary.
+
+    Returns
+    -------
+    (E, 3) float64 ndarray
+        mm.
     """
     x = mesh.points
     mid = 0.5 * (x[edges[:, 0]] + x[edges[:, 1]])
@@ -139,14 +160,23 @@ def curved_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_
 def quadratic_mesh(mesh: Mesh, boundary_faces: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points, 20-node (8-node) cells and doubled lattice indices of the quadratic mesh.
 
-    boundary_faces : optional (M, F) bool, the element faces (2D: edges) on a boundary
-        (exterior or material interface), in Abaqus face order; their edges get
-        :func:`curved_midpoints` placement. None: every mid-edge node at its edge's midpoint.
+    Parameters
+    ----------
+    mesh : Mesh
+    boundary_faces : (M, F) bool ndarray, optional
+        The element faces (2D: edges) on a boundary (exterior or material interface), in
+        Abaqus face order; their edges get :func:`curved_midpoints` placement. None: every
+        mid-edge node at its edge's midpoint.
+
     Returns
-    points : (N + E, 3): the corner nodes, then one mid-edge node per edge.
-    cells : (M, 20) or (M, 8) int64, VTK/Abaqus node order.
-    lattice2 : (N + E, 3) int64, twice the lattice index (a mid-edge node: the sum of its
-        ends' indices), so bounding-plane tests stay exact.
+    -------
+    points : (N + E, 3) float64 ndarray
+        The corner nodes, then one mid-edge node per edge.
+    cells : (M, 20) or (M, 8) int64 ndarray
+        VTK/Abaqus node order.
+    lattice2 : (N + E, 3) int64 ndarray
+        Twice the lattice index (a mid-edge node: the sum of its ends' indices), so
+        bounding-plane tests stay exact.
     """
     cells = np.asarray(mesh.cells, dtype=np.int64)
     n = mesh.n_points

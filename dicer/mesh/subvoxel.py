@@ -60,12 +60,26 @@ _CURVATURE_AVERAGING = 4
 
 
 def check_thresholds_for_mesh(thresholds, mesh: Mesh, source: str = "the thresholds") -> np.ndarray:
-    """The thresholds as a (K,) float64 array, checked against the mesh's materials.
+    """The thresholds as an array, checked against the mesh's materials.
 
-    ``thresholds``: the lower bound of each material 1..K in image units (HU for CT),
-    strictly increasing, as ``dicer segment`` chooses them (``segmentation.json``).
-    Raises DicerError when they are not finite numbers, not increasing, or fewer than the
-    mesh's highest material.
+    Parameters
+    ----------
+    thresholds : sequence of float
+        The lower bound of each material 1..K in image units (HU for CT), strictly
+        increasing, as ``dicer segment`` chooses them (``segmentation.json``).
+    mesh : Mesh
+    source : str, optional
+        Where the thresholds came from, for error messages.
+
+    Returns
+    -------
+    (K,) float64 ndarray
+
+    Raises
+    ------
+    DicerError
+        Thresholds that are not finite numbers, not increasing, or fewer than the mesh's
+        highest material.
     """
     try:
         t = np.asarray(thresholds, dtype=float).ravel()
@@ -152,8 +166,17 @@ class ImageSurface:
         self.origin = origin + lo * spacing  # corner of the cropped array's voxel 0
 
     def sample(self, points: np.ndarray) -> np.ndarray:
-        """Trilinear (2D: bilinear) values of the smoothed image at ``points`` (P, dim) mm;
-        beyond the image the nearest edge value. Returns (P,) float32."""
+        """Trilinear (2D: bilinear) values of the smoothed image; beyond the image, the nearest edge value.
+
+        Parameters
+        ----------
+        points : (P, dim) float64 ndarray
+            mm.
+
+        Returns
+        -------
+        (P,) float32 ndarray
+        """
         idx = (points - self.origin) / self.spacing - 0.5
         return ndimage.map_coordinates(self.array, idx.T, order=1, mode="nearest")
 
@@ -231,8 +254,20 @@ class NodeSides:
         self.dim = dim
 
     def normals(self, x: np.ndarray, xb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Unit normals (B, 3) into the higher kind at positions ``x`` (N, 3) (boundary
-        nodes at ``xb`` (B, 3)), and (B,) bool where one is defined."""
+        """Unit normals into the higher kind at the boundary nodes, where one is defined.
+
+        Parameters
+        ----------
+        x : (N, 3) float64 ndarray
+            Positions of all nodes, mm.
+        xb : (B, 3) float64 ndarray
+            Positions of the boundary nodes, mm.
+
+        Returns
+        -------
+        normals : (B, 3) float64 ndarray
+        defined : (B,) bool ndarray
+        """
         centre = x[self.cells].mean(axis=1)
         v = centre[self.elem] - xb[self.rows]
         v /= np.maximum(np.linalg.norm(v, axis=1), 1e-30)[:, None]
@@ -245,7 +280,7 @@ class NodeSides:
 
 
 def lift(sides: NodeSides, y: np.ndarray, floor: float) -> np.ndarray:
-    """Boundary positions ``y`` (B, 3) with flattened corners sharpened to the quality floor.
+    """Boundary positions with flattened corners sharpened to the quality floor.
 
     A voxel at a convex corner of the staircase has up to seven boundary nodes; placed on a
     smooth surface, the corner opposite its interior node goes flat (scaled Jacobian 0).
@@ -256,6 +291,18 @@ def lift(sides: NodeSides, y: np.ndarray, floor: float) -> np.ndarray:
     coordinates only) by the least amount that reaches the target to first order: the
     corner node out, its ends in, the surface's mean position kept. The moves of all
     corners are summed per node; a few rounds, as the moves change neighbouring corners.
+
+    Parameters
+    ----------
+    sides : NodeSides
+    y : (B, 3) float64 ndarray
+        Boundary node positions, mm.
+    floor : float
+        Lowest corner scaled Jacobian wanted.
+
+    Returns
+    -------
+    (B, 3) float64 ndarray
     """
     if sides.corner.size == 0:
         return y
@@ -296,10 +343,29 @@ def project(surface: ImageSurface, sides: NodeSides, adj: sp.csr_matrix, degree:
             bnodes: np.ndarray, xb: np.ndarray, floor: float = 0.2) -> tuple[np.ndarray, dict]:
     """The boundary positions moved onto the image's iso-surfaces.
 
-    ``x`` (N, 3) mm: positions of all nodes (the boundary nodes at ``xb`` (B, 3), the
-    smoothed positions from the labels); ``adj``, ``degree``: the boundary graph (with
-    mirror copies). Returns (B, 3) float64 positions (nodes without a crossing, or not
-    between two kinds, unchanged) and a report (nodes moved, edge widths per pair).
+    Parameters
+    ----------
+    surface : ImageSurface
+    sides : NodeSides
+    adj : scipy.sparse.csr_matrix
+        The boundary graph (with mirror copies).
+    degree : ndarray
+        Neighbours of each node in ``adj``.
+    x : (N, 3) float64 ndarray
+        Positions of all nodes, mm: the smoothed positions from the labels.
+    bnodes : (B,) int64 ndarray
+        The boundary nodes.
+    xb : (B, 3) float64 ndarray
+        Their positions, mm.
+    floor : float, optional
+        Lowest corner scaled Jacobian kept.
+
+    Returns
+    -------
+    positions : (B, 3) float64 ndarray
+        Nodes without a crossing, or not between two kinds, unchanged.
+    report : dict
+        Nodes moved, edge widths per pair.
     """
     dim = surface.dim
     y = xb.copy()

@@ -45,8 +45,18 @@ _E = [[(0, 0, 0), (1, 0, 0), (1, 2, 0), (0, 3, 0), (0, 0, 3), (1, 0, 2), (1, 2, 
 
 
 def oriented(cells: np.ndarray) -> np.ndarray:
-    """Template elements (n, corners, dim) with corners reordered where a reflection turned
-    them inside out (VTK order: positive volume)."""
+    """Template elements with corners reordered where a reflection turned them inside out.
+
+    Parameters
+    ----------
+    cells : (n, corners, dim) ndarray
+        Corner positions of each template element.
+
+    Returns
+    -------
+    (n, corners, dim) ndarray
+        VTK order: positive volume.
+    """
     x = np.asarray(cells, float)
     if x.shape[-1] == 3:
         a, b, c = x[:, 1] - x[:, 0], x[:, 3] - x[:, 0], x[:, 4] - x[:, 0]
@@ -62,8 +72,21 @@ def oriented(cells: np.ndarray) -> np.ndarray:
 
 
 def completion(pattern: np.ndarray) -> np.ndarray:
-    """Per corner mask: the valid mask that adds the fewest marks to it (ties: the smallest
-    mask), so a cell in an invalid pattern gains as few marks as it must."""
+    """For every corner mask, the valid mask that adds the fewest marks to it.
+
+    Ties go to the smallest mask, so a cell in an invalid pattern gains as few marks as it
+    must.
+
+    Parameters
+    ----------
+    pattern : ndarray
+        Per corner mask, the template it selects (``INVALID`` for none).
+
+    Returns
+    -------
+    int ndarray
+        The completed mask per corner mask.
+    """
     n = pattern.size
     valid = np.flatnonzero(pattern != INVALID)
     out = np.arange(n)

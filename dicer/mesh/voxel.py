@@ -18,12 +18,22 @@ _BLOCK = 1 << 16
 def voxel_mesh(labels: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), direction=None) -> Mesh:
     """Mesh every non-zero voxel of ``labels`` as one hexahedron (a quad in 2D).
 
-    labels : (nx, ny, nz) or (nx, ny) integer array, 0 = background, 1..K = material.
-    spacing, origin : voxel size and image origin (``Volume.origin``) in mm (2 or 3 values).
-    direction : None or 9 direction cosines (ITK order, row-major) of a 3D image; kept
-        in the Mesh for the exports (scanner coordinates), nodes stay in the lattice frame.
-    Returns a Mesh whose nodes are shared between neighbouring elements, numbered
-    in C order of their lattice index; elements are in C order of their voxel.
+    Nodes are shared between neighbouring elements and numbered in C order of their
+    lattice index; elements are in C order of their voxel.
+
+    Parameters
+    ----------
+    labels : (nx, ny, nz) or (nx, ny) int ndarray
+        0 background, 1..K material.
+    spacing, origin : sequence of float, optional
+        Voxel size and image origin (``Volume.origin``), mm (2 or 3 values).
+    direction : sequence of 9 float, optional
+        Direction cosines (ITK order, row-major) of a 3D image; kept in the mesh for the
+        exports (scanner coordinates), the nodes stay in the lattice frame.
+
+    Returns
+    -------
+    Mesh
     """
     labels = np.asarray(labels)
     if labels.ndim not in (2, 3):

@@ -81,6 +81,13 @@ def check_radii(options: dict, shape, source: str = "") -> None:
 def morphology_options(config: dict, source: str = "") -> dict:
     """Keyword arguments of :func:`clean_labels` from the ``segment`` section.
 
+    Parameters
+    ----------
+    config : dict
+        A loaded configuration.
+    source : str, optional
+        File named in error messages.
+
     Returns
     -------
     options : dict
@@ -110,6 +117,13 @@ def morphology_options(config: dict, source: str = "") -> dict:
 
 def label_counts(labels: np.ndarray, names: list[str]) -> dict:
     """Voxels and fraction of the volume per class name (background under 'background').
+
+    Parameters
+    ----------
+    labels : ndarray of int
+        0 background, 1..K classes.
+    names : list of str
+        Class names by label (names[0] is label 1's).
 
     Returns
     -------

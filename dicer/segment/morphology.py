@@ -26,6 +26,8 @@ cut planes do not erode.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy import ndimage as ndi
 
@@ -58,10 +60,25 @@ def ball(radius: int, ndim: int) -> np.ndarray:
     return sum(g.astype(np.int64) ** 2 for g in grid) <= r * r
 
 
+def _copy_when_idle(operation):
+    """Wrap ``operation(mask, radius)``: it gets ``mask`` as a bool array, and a radius of 0
+    or less, or an empty mask, returns a copy of ``mask`` without calling it."""
+
+    @functools.wraps(operation)
+    def wrapped(mask: np.ndarray, radius: int) -> np.ndarray:
+        mask = np.asarray(mask, dtype=bool)
+        if radius <= 0 or not mask.any():
+            return mask.copy()
+        return operation(mask, radius)
+
+    return wrapped
+
+
 def _face_structure(ndim: int) -> np.ndarray:
     return ndi.generate_binary_structure(ndim, 1)
 
 
+@_copy_when_idle
 def opening_by_reconstruction(mask: np.ndarray, radius: int) -> np.ndarray:
     """Keep the connected components of ``mask`` that survive an erosion.
 
@@ -81,9 +98,6 @@ def opening_by_reconstruction(mask: np.ndarray, radius: int) -> np.ndarray:
     -------
     opened : ndarray of bool, same shape as ``mask``
     """
-    mask = np.asarray(mask, dtype=bool)
-    if radius <= 0 or not mask.any():
-        return mask.copy()
     eroded = ndi.binary_erosion(mask, structure=ball(radius, mask.ndim), border_value=1)
     comp, n = ndi.label(mask, structure=_face_structure(mask.ndim))
     keep = np.zeros(n + 1, dtype=bool)
@@ -92,6 +106,7 @@ def opening_by_reconstruction(mask: np.ndarray, radius: int) -> np.ndarray:
     return keep[comp]
 
 
+@_copy_when_idle
 def closing(mask: np.ndarray, radius: int) -> np.ndarray:
     """Morphological closing by a ball of ``radius`` voxels.
 
@@ -108,9 +123,6 @@ def closing(mask: np.ndarray, radius: int) -> np.ndarray:
     -------
     closed : ndarray of bool, same shape as ``mask``
     """
-    mask = np.asarray(mask, dtype=bool)
-    if radius <= 0 or not mask.any():
-        return mask.copy()
     fp = ball(radius, mask.ndim)
     padded = np.pad(mask, radius, mode="edge")
     closed = ndi.binary_erosion(ndi.binary_dilation(padded, structure=fp), structure=fp, border_value=1)

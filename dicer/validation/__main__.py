@@ -13,6 +13,18 @@ from dicer.validation.study import run_study
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the validation study and write its results, tables and figures.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Command-line arguments (default ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        Exit status, 0.
+    """
     p = argparse.ArgumentParser(prog="python -m dicer.validation", description=__doc__)
     p.add_argument("--out", default="docs/validation", help="folder for results.json, tables.md and the PNGs")
     p.add_argument("--work", default=None, help="folder for the models and solver runs (default: a temporary one)")

@@ -19,13 +19,39 @@ _LINE = 3 + 10 + 6 * 12  # " -1", node number (10 wide), six values (12 wide): t
 
 
 def ccx_path() -> str | None:
-    """The ``ccx`` executable on PATH, or None."""
+    """The ``ccx`` executable on PATH.
+
+    Returns
+    -------
+    str or None
+        None when there is none.
+    """
     return shutil.which("ccx")
 
 
 def run_ccx(folder: str | os.PathLike, deck: str, job: str = "job", timeout: float = 600) -> Path:
-    """Write ``deck`` to ``folder/job.inp``, solve it with ccx (one thread) and return the
-    path of ``job.frd``. DicerError when ccx is missing, exits non-zero or reports an *ERROR."""
+    """Write a deck to ``folder/job.inp`` and solve it with ccx (one thread).
+
+    Parameters
+    ----------
+    folder : str or os.PathLike
+    deck : str
+        The deck's text.
+    job : str, optional
+        Job name.
+    timeout : float, optional
+        Seconds.
+
+    Returns
+    -------
+    Path
+        ``folder/job.frd``.
+
+    Raises
+    ------
+    DicerError
+        ccx is missing, exits non-zero or reports an *ERROR.
+    """
     exe = ccx_path()
     if exe is None:
         raise DicerError("ccx (CalculiX) is not on PATH; install it (Debian/Ubuntu: apt-get install calculix-ccx)")
@@ -42,9 +68,19 @@ def run_ccx(folder: str | os.PathLike, deck: str, job: str = "job", timeout: flo
 def read_frd_stress(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """The last nodal STRESS block of an ASCII .frd file.
 
-    Returns node numbers (N,) int64 (as in the deck, 1-based) and stresses (N, 6) float64
-    in the order xx, yy, zz, xy, yz, zx (the integration-point values extrapolated to the
-    nodes and averaged over the elements sharing each node, as ccx writes them).
+    The integration-point values extrapolated to the nodes and averaged over the
+    elements sharing each node, as ccx writes them.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    nodes : (N,) int64 ndarray
+        Node numbers as in the deck, 1-based.
+    stress : (N, 6) float64 ndarray
+        xx, yy, zz, xy, yz, zx.
     """
     data = Path(path).read_bytes()
     at = data.rfind(_STRESS)

@@ -24,8 +24,22 @@ from dicer.validation.models import Deck, build, dload
 
 
 def hoop(points: np.ndarray, stress: np.ndarray, centre) -> tuple[np.ndarray, np.ndarray]:
-    """(theta (N,) radians in (-pi, pi], hoop stress (N,)) at nodes ``points`` (N, >=2) about
-    the axis through ``centre`` (x, y) along z, from stresses (N, 6) xx yy zz xy yz zx."""
+    """Hoop stress at nodes about an axis along z.
+
+    Parameters
+    ----------
+    points : (N, >=2) float ndarray
+    stress : (N, 6) float ndarray
+        xx, yy, zz, xy, yz, zx.
+    centre : sequence of float
+        (x, y) of the axis.
+
+    Returns
+    -------
+    theta : (N,) float64 ndarray
+        Radians in (-pi, pi].
+    hoop : (N,) float64 ndarray
+    """
     theta = np.arctan2(points[:, 1] - centre[1], points[:, 0] - centre[0])
     s, c = np.sin(theta), np.cos(theta)
     return theta, stress[:, 0] * s * s + stress[:, 1] * c * c - 2.0 * stress[:, 3] * s * c
@@ -79,13 +93,34 @@ def _solve_kirsch(deck_path: Path, part: str, centre, radius: float) -> dict:
 
 def kirsch(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (), radius: float = 7.0,
            width: int = 140, orders=(1, 2), offset=(0.0, 0.0)) -> dict:
-    """The Kirsch plate (``geometry.kirsch_plate``) meshed with ``--set`` overrides ``sets`` and
-    solved at each element order. Returns {"min_sj", "inverted", "backed_off", order: {...}}
-    where each order gives sigma_x / sigma_0 at theta = 90 degrees (the mean over the
-    points at +-90 degrees the part holds), the largest rim hoop stress and its angle from
-    the load axis (degrees, folded into [0, 90]), the rim node radius at 90 degrees and
-    the rim's hoop stresses by angle. ``offset``: the full plate's hole centre off the image
-    centre (voxels)."""
+    """The Kirsch plate (:func:`~dicer.validation.geometry.kirsch_plate`) meshed and solved at
+    each element order.
+
+    Parameters
+    ----------
+    folder : str or os.PathLike
+        Where the models and solver runs go.
+    part : {"quarter", "full"}, optional
+    sets : list of str, optional
+        ``--set`` overrides.
+    radius : float, optional
+        Hole radius, voxels.
+    width : int, optional
+        Plate width, voxels.
+    orders : sequence of int, optional
+        Element orders.
+    offset : sequence of float, optional
+        The full plate's hole centre off the image centre (voxels).
+
+    Returns
+    -------
+    dict
+        ``{"min_sj", "inverted", "backed_off", order: {...}}`` where each order gives
+        sigma_x / sigma_0 at theta = 90 degrees (the mean over the points at +-90 degrees
+        the part holds), the largest rim hoop stress and its angle from the load axis
+        (degrees, folded into [0, 90]), the rim node radius at 90 degrees and the rim's
+        hoop stresses by angle.
+    """
     labels = geometry.kirsch_plate(radius, width, part, offset)
     centre = np.zeros(2) if part == "quarter" else np.full(2, width / 2) + offset
     built = build(labels, folder, sets, orders)
@@ -140,11 +175,28 @@ def _solve_lame(deck_path: Path, part: str, centre, inner: float, outer: float) 
 
 def lame(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (), inner: float = 7.0,
          outer: float = 14.0, length: int = 2, orders=(1, 2)) -> dict:
-    """The Lamé cylinder (``geometry.lame_cylinder``) meshed with ``--set`` overrides ``sets``
-    and solved at each element order. Returns {"min_sj", "inverted", order: {...}} where each
-    order gives the bore hoop stress / p (mean, min, max over the bore nodes), the exact
-    value, the relative errors of the mean and of the worst node, and the wall fit: Lamé's
-    form A + B / r^2 fitted to the hoop stress at the nodes inside the wall, at r = a."""
+    """The Lamé cylinder (:func:`~dicer.validation.geometry.lame_cylinder`) meshed and solved at
+    each element order.
+
+    Parameters
+    ----------
+    folder, part, sets
+        As in :func:`kirsch`.
+    inner, outer : float, optional
+        Radii, voxels.
+    length : int, optional
+        Voxels along z.
+    orders : sequence of int, optional
+        Element orders.
+
+    Returns
+    -------
+    dict
+        ``{"min_sj", "inverted", order: {...}}`` where each order gives the bore hoop
+        stress / p (mean, min, max over the bore nodes), the exact value, the relative
+        errors of the mean and of the worst node, and the wall fit: Lamé's form
+        A + B / r^2 fitted to the hoop stress at the nodes inside the wall, at r = a.
+    """
     labels = geometry.lame_cylinder(inner, outer, length, part)
     half = labels.shape[0] / 2
     centre = np.zeros(2) if part == "quarter" else np.full(2, half)

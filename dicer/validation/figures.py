@@ -28,8 +28,17 @@ def _plt():
 
 
 def kirsch_figure(results: dict, path: str | os.PathLike) -> None:
-    """sigma_x / sigma_0 at theta = 90 deg and the largest rim stress against smooth.coefficient,
-    one panel per element type, with the minimum scaled Jacobian on a second axis."""
+    """sigma_x / sigma_0 at theta = 90 deg and the largest rim stress against smooth.coefficient.
+
+    One panel per element type, with the minimum scaled Jacobian on a second axis.
+
+    Parameters
+    ----------
+    results : dict
+        From :func:`~dicer.validation.study.run_study`.
+    path : str or os.PathLike
+        The PNG written.
+    """
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
     k = np.array(COEFFICIENTS)
@@ -71,7 +80,15 @@ def _finish(plt, fig, ax, path, xlabel: str, ylabel: str, title: str, legend_siz
 
 
 def rim_figure(results: dict, path: str | os.PathLike) -> None:
-    """Hoop stress along the quarter plate's rim against the angle from the load axis."""
+    """Hoop stress along the quarter plate's rim against the angle from the load axis.
+
+    Parameters
+    ----------
+    results : dict
+        As in :func:`kirsch_figure`.
+    path : str or os.PathLike
+        The PNG.
+    """
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
     theta = np.linspace(0, 90, 181)
@@ -86,8 +103,16 @@ def rim_figure(results: dict, path: str | os.PathLike) -> None:
 
 
 def lame_figure(results: dict, path: str | os.PathLike) -> None:
-    """Bore hoop stress / exact against the inner radius in voxels: the mean over the bore
-    nodes, bars from the lowest to the highest node."""
+    """Bore hoop stress / exact against the inner radius in voxels.
+
+    The mean over the bore nodes, bars from the lowest to the highest node.
+
+    Parameters
+    ----------
+    results : dict
+    path : str or os.PathLike
+        The PNG to write.
+    """
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
     rows = dict(sorted(((k, v) for k, v in results["lame"].items() if "+" not in k), key=lambda kv: float(kv[0][2:])))
@@ -109,9 +134,22 @@ def lame_figure(results: dict, path: str | os.PathLike) -> None:
 
 
 def kirsch_table(results: dict, part: str) -> str:
-    """Markdown rows: setting, min SJ, inverted, then per element type sigma_x at 90 deg
-    (error %; where +90 and -90 deg differ, both follow the mean) and the largest rim stress
-    (error % against 3.0, angle)."""
+    """Markdown rows of the Kirsch plate.
+
+    Setting, min SJ, inverted, then per element type sigma_x at 90 deg (error %; where
+    +90 and -90 deg differ, both follow the mean) and the largest rim stress (error %
+    against 3.0, angle).
+
+    Parameters
+    ----------
+    results : dict
+    part : str
+        ``quarter``, ``full`` or ``full-offset``.
+
+    Returns
+    -------
+    str
+    """
     head = ("| setting | min SJ | inverted | CPS4 σx(90°) | error % | CPS4 largest (angle) | "
             "CPS8 σx(90°) | error % | CPS8 largest (angle) |\n|---|---|---|---|---|---|---|---|---|\n")
     lines = []
@@ -130,9 +168,20 @@ def kirsch_table(results: dict, part: str) -> str:
 
 
 def lame_table(results: dict) -> str:
-    """Markdown rows: case, elements, min SJ, inverted, per element type the mean bore hoop
-    stress / p, its error %, the node range (error % of the lowest and highest node) and the
-    error of the wall fit (Lamé's form through the nodes inside the wall, at the bore)."""
+    """Markdown rows of the Lamé cylinder.
+
+    Case, elements, min SJ, inverted, per element type the mean bore hoop stress / p, its
+    error %, the node range (error % of the lowest and highest node) and the error of the
+    wall fit (Lamé's form through the nodes inside the wall, at the bore).
+
+    Parameters
+    ----------
+    results : dict
+
+    Returns
+    -------
+    str
+    """
     head = ("| case | elements | min SJ | inverted | exact | C3D8 mean | error % | node range % | "
             "wall fit % | C3D20 mean | error % | node range % | wall fit % |\n"
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
@@ -149,7 +198,18 @@ def lame_table(results: dict) -> str:
 
 
 def write_all(results: dict, folder: str | os.PathLike) -> str:
-    """Write kirsch.png, kirsch_rim.png and lame.png into ``folder``; return the Markdown tables."""
+    """Write kirsch.png, kirsch_rim.png and lame.png into a folder.
+
+    Parameters
+    ----------
+    results : dict
+    folder : str or os.PathLike
+
+    Returns
+    -------
+    str
+        The Markdown tables.
+    """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     kirsch_figure(results, folder / "kirsch.png")

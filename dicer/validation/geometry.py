@@ -20,12 +20,25 @@ def _axis(n: int, part: str) -> np.ndarray:
 
 
 def kirsch_plate(radius: float = 7.0, width: int = 140, part: str = "quarter", offset=(0.0, 0.0)) -> np.ndarray:
-    """A square plate ``width`` voxels wide with a round hole of ``radius`` voxels in its middle.
+    """A square plate with a round hole in its middle.
 
-    quarter: the (width/2, width/2) image of the plate's +x +y quarter, the hole about the
-    corner (0, 0), so x = 0 and y = 0 are its symmetry lines; full: the (width, width) image,
-    the hole about its centre moved by ``offset`` (x, y) voxels (full only: off the lattice,
-    the image has no symmetry line through the hole). (nx, ny) uint8.
+    Parameters
+    ----------
+    radius : float, optional
+        Hole radius, voxels.
+    width : int, optional
+        Plate width, voxels.
+    part : {"quarter", "full"}, optional
+        quarter: the (width/2, width/2) image of the plate's +x +y quarter, the hole about
+        the corner (0, 0), so x = 0 and y = 0 are its symmetry lines; full: the
+        (width, width) image, the hole about its centre.
+    offset : sequence of float, optional
+        Full only: the hole moved by (x, y) voxels (off the lattice, the image has no
+        symmetry line through the hole).
+
+    Returns
+    -------
+    (nx, ny) uint8 ndarray
     """
     if part == "quarter" and any(offset):
         raise ValueError("a quarter plate's hole is centred on its corner; offset applies to the full plate")
@@ -36,10 +49,23 @@ def kirsch_plate(radius: float = 7.0, width: int = 140, part: str = "quarter", o
 
 
 def lame_cylinder(inner: float = 7.0, outer: float = 14.0, length: int = 2, part: str = "quarter") -> np.ndarray:
-    """A tube of radii ``inner`` < ``outer`` voxels along z, ``length`` voxels long (a slice of a
-    long cylinder: both end planes are symmetry planes). quarter: its +x +y quarter, the axis
-    on the image edge x = y = 0; full: the whole tube about the image centre. One voxel of
-    background lies beyond the outer surface. (nx, ny, length) uint8.
+    """A tube along z, a slice of a long cylinder: both end planes are symmetry planes.
+
+    One voxel of background lies beyond the outer surface.
+
+    Parameters
+    ----------
+    inner, outer : float, optional
+        Radii, voxels, inner < outer.
+    length : int, optional
+        Voxels along z.
+    part : {"quarter", "full"}, optional
+        quarter: its +x +y quarter, the axis on the image edge x = y = 0; full: the whole
+        tube about the image centre.
+
+    Returns
+    -------
+    (nx, ny, length) uint8 ndarray
     """
     half = int(np.ceil(outer)) + 1
     n = half if part == "quarter" else 2 * half

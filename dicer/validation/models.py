@@ -33,11 +33,28 @@ export:
 
 
 def build(labels: np.ndarray, folder: str | os.PathLike, sets: list[str] = (), orders=(1, 2)) -> dict:
-    """Make the models of ``labels`` (uint8 [x, y(, z)], 1 mm voxels) in ``folder``.
+    """Make the models of a label image in a folder.
 
-    sets : ``--set KEY=VALUE`` overrides (e.g. ``smooth.coefficient=0.8``).
-    Returns {"decks": {order: path of the deck}, "quality": quality.json, "smooth": the smooth
-    stage's report}. DicerError when a stage fails.
+    Parameters
+    ----------
+    labels : uint8 ndarray
+        [x, y(, z)], 1 mm voxels.
+    folder : str or os.PathLike
+    sets : list of str, optional
+        ``--set KEY=VALUE`` overrides (e.g. ``smooth.coefficient=0.8``).
+    orders : sequence of int, optional
+        Element orders of the decks.
+
+    Returns
+    -------
+    dict
+        ``{"decks": {order: path of the deck}, "quality": quality.json, "smooth": the
+        smooth stage's report}``.
+
+    Raises
+    ------
+    DicerError
+        A stage fails.
     """
     from dicer.cli import main
 
@@ -62,8 +79,20 @@ def build(labels: np.ndarray, folder: str | os.PathLike, sets: list[str] = (), o
 
 @dataclass
 class Deck:
-    """A deck dicer wrote: points (N, 3) mm, cells (M, k) 0-based, dim, order, and its
-    exterior faces as (F,) element indices and (F,) face numbers 1.. (Abaqus S1..S6 / S1..S4)."""
+    """A deck dicer wrote.
+
+    Parameters
+    ----------
+    points : (N, 3) float64 ndarray
+        mm.
+    cells : (M, k) int ndarray
+        0-based.
+    dim, order : int
+    face_elements : (F,) int ndarray
+        Element index of each exterior face.
+    face_numbers : (F,) int ndarray
+        Its face number 1.. (Abaqus S1..S6 / S1..S4).
+    """
 
     points: np.ndarray
     cells: np.ndarray
@@ -74,6 +103,7 @@ class Deck:
 
     @classmethod
     def read(cls, path: str | os.PathLike) -> "Deck":
+        """Read a deck with :func:`dicer.export.abaqus.read_abaqus`."""
         from dicer.export.model import ELEMENT_TYPES
         from dicer.export.abaqus import read_abaqus
 
@@ -114,7 +144,20 @@ class Deck:
 
 
 def dload(elements: np.ndarray, numbers: np.ndarray, pressure: float) -> str:
-    """``*DLOAD`` lines: a uniform pressure (MPa; negative pulls) on element faces (0-based
-    element indices, face numbers 1..)."""
+    """``*DLOAD`` lines: a uniform pressure on element faces.
+
+    Parameters
+    ----------
+    elements : (F,) int ndarray
+        0-based element indices.
+    numbers : (F,) int ndarray
+        Face numbers 1...
+    pressure : float
+        MPa; negative pulls.
+
+    Returns
+    -------
+    str
+    """
     rows = np.char.add(np.char.add((elements + 1).astype(str), ", P"), numbers.astype(str))
     return "*DLOAD\n" + "\n".join(np.char.add(rows, f", {float(pressure)!r}").tolist()) + "\n"

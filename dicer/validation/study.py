@@ -43,7 +43,13 @@ def _named(result: dict, case: str) -> dict:
 
 
 def kirsch_settings() -> dict[str, list[str]]:
-    """Setting name -> ``--set`` overrides of the Kirsch sweep."""
+    """The settings of the Kirsch sweep.
+
+    Returns
+    -------
+    dict of str to list of str
+        Setting name -> ``--set`` overrides.
+    """
     out = {f"k={k:g}": [NO_MERGE, f"smooth.coefficient={k!r}"] for k in COEFFICIENTS}
     out["defaults"] = [NO_MERGE]
     out["defaults+merge"] = []
@@ -51,7 +57,19 @@ def kirsch_settings() -> dict[str, list[str]]:
 
 
 def run_study(work: str | os.PathLike, log=print) -> dict:
-    """Run every case in folders under ``work``; the results dict described above."""
+    """Run every case in folders under ``work``.
+
+    Parameters
+    ----------
+    work : str or os.PathLike
+    log : callable, optional
+        Called with each line of progress.
+
+    Returns
+    -------
+    dict
+        The results described in the module notes.
+    """
     work = Path(work)
     results = {"kirsch": {}, "lame": {}}
     for part in ("quarter", "full"):

@@ -19,6 +19,8 @@ import pytest
 
 from dicer.cli import main
 
+import hostile  # the damaged-file edits of the hostile re-run (tests/hostile.py)
+
 pydicom = pytest.importorskip("pydicom")
 
 
@@ -122,32 +124,7 @@ OUT = "labels.nii.gz"
 
 
 def _vtu_edit(src, dst, edit):
-    from hostile import vtu_edit
-
-    return vtu_edit(src, dst, edit)
-
-
-def _connectivity(value):
-    def edit(name, array):
-        if name == "connectivity":
-            array[0] = value
-            return array
-        return None
-    return edit
-
-
-def _nan_point(name, array):
-    if name == "Points":
-        array[4] = np.nan
-        return array
-    return None
-
-
-def _negative_lattice(name, array):
-    if name == "lattice":
-        array[:3] = -5
-        return array
-    return None
+    return hostile.vtu_edit(src, dst, edit)
 
 
 def _huge_npy(path):
@@ -242,10 +219,10 @@ CASES = {
                                                   t / out])(command, out, edit), expected)
        for command, out in (("merge", "g.vtu"), ("export", "model.inp"), ("quality", "q.json"))
        for label, edit, expected in (
-           ("connectivity past the nodes", _connectivity(10 ** 6), "bad.vtu: 1 element corner(s) refer to nodes"),
-           ("negative connectivity", _connectivity(-3), "bad.vtu: 1 element corner(s) refer to nodes"),
-           ("a NaN coordinate", _nan_point, "bad.vtu: 1 node(s) have NaN or infinite coordinates"),
-           ("a negative lattice index", _negative_lattice, "bad.vtu: 1 node(s) have a negative lattice index"))},
+           ("connectivity past the nodes", hostile._set_first(10 ** 6), "bad.vtu: 1 element corner(s) refer to nodes"),
+           ("negative connectivity", hostile._set_first(-3), "bad.vtu: 1 element corner(s) refer to nodes"),
+           ("a NaN coordinate", hostile._nan_point, "bad.vtu: 1 node(s) have NaN or infinite coordinates"),
+           ("a negative lattice index", hostile._negative_lattice, "bad.vtu: 1 node(s) have a negative lattice index"))},
     "downsample: voxel_size=.inf": (
         lambda t, b: ["downsample", _copy(b, t, "labels.nii.gz"), "-o", t / "d.nii.gz",
                       "--set", "downsample.voxel_size=.inf"],

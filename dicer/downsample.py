@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dicer.config import section_defaults
 from dicer.errors import DicerError
 from dicer.image import Volume, regridded_origin
 from dicer.segment import check_radii, label_counts, morphology_options
@@ -47,16 +48,16 @@ def reduction_factor(spacing, config: dict, source: str = "") -> tuple[int, ...]
     -------
     factor : tuple of int, one per axis
     """
-    ds = config.get("downsample", {})
+    ds = section_defaults("downsample") | config.get("downsample", {})
     ndim = len(spacing)
-    target = ds.get("voxel_size")
+    target = ds["voxel_size"]
     if target is not None:
         t = list(target) if isinstance(target, (list, tuple)) else [target] * ndim
         if len(t) != ndim:
             raise DicerError(f"{source}: downsample.voxel_size has {len(t)} values for a {ndim}D volume; "
                              f"give one value or {ndim}")
         return tuple(max(1, int(np.floor(float(a) / float(s) + 0.5))) for a, s in zip(t, spacing))
-    f = ds.get("factor", 1)
+    f = ds["factor"]
     f = list(f) if isinstance(f, (list, tuple)) else [f] * ndim
     if len(f) != ndim:
         raise DicerError(f"{source}: downsample.factor has {len(f)} values for a {ndim}D volume; "
@@ -198,12 +199,12 @@ def downsample(labels: Volume, config: dict, source: str = "") -> tuple[Volume, 
                          f"{'x'.join(map(str, after))} voxels of the {'x'.join(map(str, array.shape))} label "
                          f"volume; dicer needs at least 2 voxels per axis: use a factor of at most "
                          f"{max(array.shape[axis] // 2, 1)} along axis {'xyz'[axis]}")
-    ds = config.get("downsample", {})
+    ds = section_defaults("downsample") | config.get("downsample", {})
     options = morphology_options(config, source)
-    if ds.get("morphology", True):
+    if ds["morphology"]:
         check_radii(options, after, source)
-    coarse = vote(array, factor, k, float(ds.get("min_fraction", 0.25)), options["priority"])
-    if ds.get("morphology", True):
+    coarse = vote(array, factor, k, float(ds["min_fraction"]), options["priority"])
+    if ds["morphology"]:
         cleaned, _ = clean_labels(coarse, **options)
         if coarse.any() and not cleaned.any():
             raise DicerError(f"{source}: the morphology after downsampling removed every voxel; lower "

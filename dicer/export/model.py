@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dicer.config import SET_KINDS, name_clash
+from dicer.config import name_clash, section_defaults
 from dicer.errors import DicerError
 from dicer.export.provenance import provenance, sha256_in_background
 from dicer.image import MAX_LABEL
@@ -150,9 +150,9 @@ def resolve_element_type(mesh: Mesh, config: dict, path: Path) -> tuple[str, int
     DicerError
         An unknown type, or one that does not fit the dimension or the order.
     """
-    ex = config.get("export", {})
-    order = int(ex.get("order", 1))
-    etype = ex.get("element_type")
+    ex = section_defaults("export") | config.get("export", {})
+    order = int(ex["order"])
+    etype = ex["element_type"]
     if order not in (1, 2):
         raise DicerError(f"{path}: export.order must be 1 or 2, got {order}")
     if etype is None:
@@ -295,8 +295,8 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
                          "renumber the materials")
     if not np.all(np.isfinite(mesh.points)):
         raise DicerError(f"{path}: the mesh has non-finite node coordinates; re-run the stage that made it")
-    ex = config.get("export", {})
-    kinds = set(ex.get("sets", SET_KINDS))
+    ex = section_defaults("export") | config.get("export", {})
+    kinds = set(ex["sets"])
     clash = name_clash([m["name"] for m in materials], kinds)
     if clash:
         raise DicerError(f"{path}: {clash}")
@@ -308,18 +308,18 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
     lattice2 = None  # twice the lattice index (order 2: mid-edge nodes at half-integers)
     points = mesh.points
     nb_mat = None
-    if kinds & {"materials", "interfaces", "exterior"} or (order == 2 and ex.get("midside_nodes") == "curved"):
+    if kinds & {"materials", "interfaces", "exterior"} or (order == 2 and ex["midside_nodes"] == "curved"):
         nb_mat = neighbour_materials(mesh)
     if order == 2:
         from dicer.mesh.quadratic import quadratic_mesh
 
-        curved = ex.get("midside_nodes") == "curved"
+        curved = ex["midside_nodes"] == "curved"
         boundary = (nb_mat != mesh.material[:, None].astype(nb_mat.dtype)) if curved else None
         points, cells, lattice2 = quadratic_mesh(mesh, boundary)
     model = SolverModel(
         points=points, cells=cells, material=mesh.material.astype(np.int32), names=names, props=props,
-        element_type=etype, dim=mesh.dim, order=order, thickness=float(ex.get("thickness", 1.0)),
-        digits=int(ex.get("digits", 9)), use_heading=bool(ex.get("heading", True)), mesh=mesh,
+        element_type=etype, dim=mesh.dim, order=order, thickness=float(ex["thickness"]),
+        digits=int(ex["digits"]), use_heading=bool(ex["heading"]), mesh=mesh,
     )
     if "planes" in kinds:
         g2 = 2 * np.asarray(mesh.grid_shape, np.int64)

@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 
+from dicer.config import section_defaults
 from dicer.errors import DicerError
 from dicer.image import Volume
 from dicer.segment.morphology import clean_labels
@@ -94,21 +95,21 @@ def morphology_options(config: dict, source: str = "") -> dict:
         ``n_classes``, ``opening_radius``, ``closing_radius``, ``keep``, ``min_size``,
         ``priority``.
     """
-    seg = config.get("segment", {})
+    seg = section_defaults("segment") | config.get("segment", {})
     names = _names(config)
     k = len(names)
-    keep = seg.get("keep", "all")
+    keep = seg["keep"]
     if keep == "body":  # the largest part of the outermost class, with everything inside it
         keep = ["largest"] + ["all"] * (k - 1)
-    size = seg.get("min_component_size", 0)
+    size = seg["min_component_size"]
     for key, value in (("keep", keep), ("min_component_size", size)):
         if isinstance(value, list) and len(value) != k:
             raise DicerError(f"{source}: segment.{key} has {len(value)} entries for {k} materials "
                              f"({', '.join(names)}); give one per material or a single value")
     return {
         "n_classes": k,
-        "opening_radius": int(seg.get("opening_radius", 1)),
-        "closing_radius": int(seg.get("closing_radius", 1)),
+        "opening_radius": int(seg["opening_radius"]),
+        "closing_radius": int(seg["closing_radius"]),
         "keep": keep,
         "min_size": size,
         "priority": class_priority(config, source),
@@ -191,20 +192,20 @@ def segment(image: Volume, config: dict, source: str = "") -> tuple[Volume, dict
     source = source or "image"
     names = _names(config)
     k = len(names)
-    seg = config.get("segment", {})
-    method = seg.get("method", "manual")
+    seg = section_defaults("segment") | config.get("segment", {})
+    method = seg["method"]
     lo, hi = _check_image(image, source)
     array = image.array
     info: dict = {"method": method}
     if method == "manual":
-        thresholds = check_thresholds(seg.get("thresholds", []), k, names, source)
+        thresholds = check_thresholds(seg["thresholds"], k, names, source)
     elif method == "otsu":
         thresholds = otsu_thresholds(array, k, names, source)
     elif method == "multiotsu":
         thresholds = multiotsu_thresholds(array, k, names, source)
     elif method == "shape_connectivity":
         thresholds, search = shape_connectivity_thresholds(
-            array, seg.get("ranges"), names, source, bins=int(seg.get("bins", 128)))
+            array, seg["ranges"], names, source, bins=int(seg["bins"]))
         info.update({key: value for key, value in search.items() if key != "seconds"})
         info["search_seconds"] = search["seconds"]
     else:

@@ -238,3 +238,27 @@ def test_mapped_read_back_agrees_and_refuses_damage(tmp_path, mesh, cut):
     path.write_bytes(data[:cut] if isinstance(cut, int) else data[:int(len(data) * cut)])
     with pytest.raises(DicerError, match=r"m\.vtu: cannot read mesh .*is the file complete\?"):
         _read_mapped_vtu(path, "m.vtu")
+
+
+def test_lattice_minus_one_only_on_template_nodes_of_graded_meshes(tmp_path):
+    # a graded mesh's template nodes lie between lattice points (lattice -1): written and
+    # read back exactly; the same marker on a node of a voxel element is damage
+    from dataclasses import replace
+
+    from dicer.mesh.coarsen import coarsen_mesh
+    from dicer.mesh.model import LEVEL_DATA
+
+    labels = np.ones((12, 12, 12), np.uint8)
+    graded, _ = coarsen_mesh(voxel_mesh(labels), levels=1)
+    between = np.all(graded.lattice == -1, axis=1)
+    assert between.sum() > 0
+    write_mesh(graded, tmp_path / "graded.vtu")
+    back = read_mesh(tmp_path / "graded.vtu")
+    assert np.array_equal(back.lattice, graded.lattice) and np.array_equal(back.cells, graded.cells)
+    # a voxel element's node marked -1: refused, naming the file
+    voxel_node = graded.cells[np.flatnonzero(graded.cell_data[LEVEL_DATA] == 0)[0], 0]
+    lattice = graded.lattice.copy()
+    lattice[voxel_node] = -1
+    with pytest.raises(DicerError, match=r"bad.vtu: .*1 node\(s\) have a negative lattice index"):
+        write_mesh(replace(graded, lattice=lattice), tmp_path / "bad.vtu")
+    assert not (tmp_path / "bad.vtu").exists()

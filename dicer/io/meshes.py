@@ -33,7 +33,7 @@ from dicer.errors import DicerError
 from dicer.io.atomic import atomic_path
 from dicer.mesh.frame import check_direction, mirrored, to_lattice
 from dicer.mesh.metrics import QUALITY_DATA, quality_arrays, scaled_jacobian
-from dicer.mesh.model import Mesh
+from dicer.mesh.model import LEVEL_DATA, Mesh
 from dicer.mesh.topology import HEX_MIRROR
 
 _FIELDS = ("spacing", "origin", "grid_shape", "direction", "scanner_coordinates")
@@ -395,7 +395,7 @@ def _read_meshio(path: Path, name: str):
     return types.pop(), m.points, cells, dict(m.point_data), cell_data, m.field_data
 
 
-def _check_arrays(name, points, cells, material, lattice) -> None:
+def _check_arrays(name, points, cells, material, lattice, level=None) -> None:
     """Refuse a mesh file whose arrays no stage can work on (a damaged or hand-edited file):
     the stages would index past the nodes, carry NaN into every output, or misplace nodes."""
     fix = "the file is damaged or was edited: write it again with the dicer stage that made it"
@@ -410,9 +410,16 @@ def _check_arrays(name, points, cells, material, lattice) -> None:
     if material.shape != (len(cells),):
         raise DicerError(f"{name}: the material data hold {material.size} values for {len(cells)} elements; {fix}")
     if lattice.size and lattice.min() < 0:
-        # -1 marks a node between lattice points (the transition templates of graded meshes):
-        # (-1, -1, -1), or (-1, -1, 0) in 2D; any other negative index is damage
+        # -1 marks a node between lattice points: (-1, -1, -1), or (-1, -1, 0) in 2D, and only
+        # in a graded mesh, on nodes of its transition templates (no voxel element holds one);
+        # any other negative index is damage
         between = (lattice[:, 0] == -1) & (lattice[:, 1] == -1) & ((lattice[:, 2] == -1) | (lattice[:, 2] == 0))
+        if level is None or np.asarray(level).shape != (len(cells),):
+            between[:] = False
+        elif between.any():
+            in_voxel = np.zeros(len(lattice), bool)
+            in_voxel[cells[np.asarray(level) == 0].ravel()] = True
+            between &= ~in_voxel
         bad = (lattice < 0).any(axis=1) & ~between
         if bad.any():
             raise DicerError(f"{name}: {int(np.count_nonzero(bad))} node(s) have a negative lattice index; {fix}")
@@ -432,7 +439,7 @@ def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data)
     points = np.asarray(points).astype(np.float64, copy=False)
     if points.shape[1] == 2:
         points = np.column_stack([points, np.zeros(len(points))])
-    _check_arrays(name, points, cells, material, lattice)
+    _check_arrays(name, points, cells, material, lattice, cell_data.get(LEVEL_DATA))
     fd = field_data
     spacing = np.asarray(fd.get("spacing", np.ones(3)), float).ravel()
     origin = np.asarray(fd.get("origin", np.zeros(3)), float).ravel()

@@ -35,7 +35,7 @@ from scipy import ndimage
 from dicer.errors import DicerError
 from dicer.mesh.merge import _lattice_boxes
 from dicer.mesh.metrics import element_volumes
-from dicer.mesh.model import LEVEL_DATA, Mesh, pieces
+from dicer.mesh.model import LEVEL_DATA, Mesh
 from dicer.mesh.templates import (BLOCK_TEMPLATES, COARSE, COMPLETION_2D, COMPLETION_BLOCK, FINE, INVALID,
                                   SECTION, TEMPLATES_2D)
 from dicer.mesh.topology import HEX_CORNERS, QUAD_CORNERS
@@ -308,21 +308,29 @@ def _voxels_of(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     return labels, first
 
 
+_THIRDS = 3
+"""Every template node lies on the grid of thirds of a voxel (template coordinates are
+thirds of cells of at least one voxel), so corners are matched as whole numbers of
+thirds."""
+
+
 def _new_elements(decomposition: dict, dim: int):
-    """The coarse and template elements: corners (M, corners, dim) float64 in voxel units,
-    materials and levels."""
-    corners = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim].astype(float)
+    """The coarse and template elements: corners (M, corners, dim) int32 in thirds of a
+    voxel (every template node lies on that grid, ``_THIRDS``), materials and levels."""
+    corners = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim].astype(np.int64)
     per = corners.shape[0]
     _, table = TEMPLATES_2D if dim == 2 else BLOCK_TEMPLATES
-    parts, materials, levels = [np.zeros((0, per, dim))], [np.zeros(0, np.int64)], [np.zeros(0, np.int8)]
+    parts, materials, levels = [np.zeros((0, per, dim), np.int32)], [np.zeros(0, np.int64)], [np.zeros(0, np.int8)]
 
-    def emit(cells, material, level):
+    def emit(origin, shape, material, level):
+        # origin (k, dim) and shape (t, per, dim) in thirds: k * t elements
+        cells = origin.astype(np.int32)[:, None, None, :] + shape.astype(np.int32)[None]
         parts.append(cells.reshape(-1, per, dim))
-        materials.append(np.repeat(material, cells.shape[1]))
-        levels.append(np.full(cells.shape[0] * cells.shape[1], level, np.int8))
+        materials.append(np.repeat(material, shape.shape[0]))
+        levels.append(np.full(origin.shape[0] * shape.shape[0], level, np.int8))
 
     for step in decomposition["steps"]:
-        frame, prior = list(step["frame"]), np.asarray(step["prior"], float)
+        frame, prior = list(step["frame"]), np.asarray(step["prior"], np.int64)
         cell = prior.copy()
         cell[frame[0]] *= 3
         if dim == 2:
@@ -337,7 +345,7 @@ def _new_elements(decomposition: dict, dim: int):
             unit[frame[1:]] *= 2
             coarse = step["cell_plain"] & step["open"]
             if coarse.any():
-                emit(np.argwhere(coarse)[:, None, None, :] * cell + (corners * cell)[None, None],
+                emit(np.argwhere(coarse) * (cell * _THIRDS), (corners * cell * _THIRDS)[None],
                      step["cell_material"][coarse], step["level"])
             any_open = np.zeros(step["state"].shape, bool)
             idx = np.argwhere(step["open"])
@@ -348,14 +356,14 @@ def _new_elements(decomposition: dict, dim: int):
             material = step["block_material"]
         for m in np.unique(kind[templated]):
             rows = templated & (kind == m)
-            origin = np.argwhere(rows) * unit
+            origin = np.argwhere(rows) * (unit * _THIRDS)
             if m < 0:
-                shape = corners * unit
+                shape = (corners * unit * _THIRDS)[None]
             else:
-                local = table[int(m)]  # in cells of the step below, template frame
+                local = np.rint(table[int(m)] * _THIRDS).astype(np.int64)  # thirds of cells of the step below
                 shape = np.empty_like(local)
                 shape[..., frame] = local * prior[frame]
-            emit(origin[:, None, None, :] + shape[None], material[rows], step["level"])
+            emit(origin, shape, material[rows], step["level"])
     return np.concatenate(parts), np.concatenate(materials), np.concatenate(levels)
 
 
@@ -392,47 +400,64 @@ def coarsen_mesh(mesh: Mesh, levels: int = 1, min_distance: int = 1, keep_fine=(
     labels, first = _voxels_of(mesh)
     decomposition = coarsen_labels(labels, int(levels), int(min_distance), keep_fine)
     keep = decomposition["voxels"][tuple(first.T)]
-    corner_points, material, level = _new_elements(decomposition, mesh.dim)
-    out = _assemble(mesh, keep, corner_points, material.astype(np.int32), level)
+    corner_thirds, material, level = _new_elements(decomposition, mesh.dim)
+    out = _assemble(mesh, keep, corner_thirds, material.astype(np.int32), level)
     report = _report(mesh, out, keep, level, time.perf_counter() - t0, int(levels), int(min_distance), keep_fine)
     log.info("merge: templates, %d levels: %d -> %d elements (%.1f s)", levels, mesh.n_cells, out.n_cells,
              report["seconds"])
     return out, report
 
 
-_THIRDS = 3
-"""Every template node lies on the grid of thirds of a voxel (template coordinates are
-thirds of cells of at least one voxel), so corners are matched as whole numbers of
-thirds."""
+def _node_lookup(key: np.ndarray, n_grid: int):
+    """A function from lattice keys (C-order indices in the point grid) to node numbers.
+
+    A dense table when the grid is not much larger than the mesh (one gather), else a
+    sorted search; a key with no node maps to -1."""
+    if n_grid <= 4 * key.size + (1 << 24):
+        table = np.full(n_grid, -1, np.int64)
+        table[key] = np.arange(key.size)
+        return lambda wanted: table[wanted]
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+
+    def find(wanted):
+        pos = np.minimum(np.searchsorted(sorted_key, wanted), max(sorted_key.size - 1, 0))
+        return np.where(sorted_key[pos] == wanted, order[pos], -1)
+    return find
 
 
-def _assemble(mesh: Mesh, keep: np.ndarray, corner_points: np.ndarray, material: np.ndarray,
+def _assemble(mesh: Mesh, keep: np.ndarray, corner_thirds: np.ndarray, material: np.ndarray,
               level: np.ndarray) -> Mesh:
     """The graded mesh: the kept voxel elements of ``mesh`` and the new elements given by
-    their corners (voxel units). A new corner on a voxel corner is the voxel mesh's node
-    there (every such corner lies inside a solid cell, so the node exists); the others are
-    new nodes, shared by position."""
+    their corners (thirds of a voxel). A new corner on a voxel corner is the voxel mesh's
+    node there (every such corner lies inside a solid cell, so the node exists); the others
+    are new nodes, shared by position."""
     dim = mesh.dim
-    n_new, per = corner_points.shape[:2]
+    n_new, per = corner_thirds.shape[:2]
     shape = tuple(int(s) for s in mesh.grid_shape[:dim])
     key, stride = _lattice_keys(mesh.lattice, shape)
-    order = None if np.all(key[1:] > key[:-1]) else np.argsort(key, kind="stable")
-    sorted_key = key if order is None else key[order]
-    flat = np.rint(corner_points.reshape(-1, dim) * _THIRDS).astype(np.int64)
-    whole = np.all(flat % _THIRDS == 0, axis=1)
+    flat = corner_thirds.reshape(-1, dim)
+    whole = np.ones(flat.shape[0], bool)
+    wanted = np.zeros(flat.shape[0], np.int64)  # the voxel corner's key, where whole
+    fine = np.zeros(flat.shape[0], np.int64)  # the key on the grid of thirds
+    fine_stride = [int(np.prod([_THIRDS * s + 1 for s in shape[d + 1:]])) for d in range(dim)]
+    for d in range(dim):
+        q, r = np.divmod(flat[:, d], _THIRDS)
+        whole &= r == 0
+        wanted += q.astype(np.int64) * stride[d]
+        fine += flat[:, d].astype(np.int64) * fine_stride[d]
     ids = np.empty(flat.shape[0], np.int64)
-    wanted = (flat[whole] // _THIRDS) @ stride
-    pos = np.searchsorted(sorted_key, wanted)
-    if np.any(pos >= sorted_key.size) or np.any(sorted_key[np.minimum(pos, sorted_key.size - 1)] != wanted):
+    found = _node_lookup(key, int(np.prod([s + 1 for s in shape])))(wanted[whole])
+    if np.any(found < 0):
         raise DicerError("a coarse element's corner has no node in the voxel mesh; the mesh is not a full voxel mesh")
-    ids[whole] = pos if order is None else order[pos]
-    off, inverse = np.unique(flat[~whole], axis=0, return_inverse=True)
+    ids[whole] = found
+    off, inverse = np.unique(fine[~whole], return_inverse=True)
     ids[~whole] = mesh.n_points + inverse.ravel()
+    del wanted, fine, found
     cells = np.concatenate([np.compress(keep, mesh.cells, axis=0), ids.reshape(n_new, per)])
     # nodes still used, in the voxel mesh's order, then the new ones
     used = np.zeros(mesh.n_points + off.shape[0], bool)
-    for part in pieces(cells.shape[0], _ROWS):
-        used[cells[part]] = True
+    used[cells.ravel()] = True
     number = np.cumsum(used) - 1
     cells = number[cells]
     n_old = int(used[: mesh.n_points].sum())
@@ -443,7 +468,10 @@ def _assemble(mesh: Mesh, keep: np.ndarray, corner_points: np.ndarray, material:
     lattice[:n_old] = np.compress(used[: mesh.n_points], mesh.lattice, axis=0)
     lattice[n_old:, dim:] = 0
     position = np.zeros((n_off, 3))
-    position[:, :dim] = off / _THIRDS
+    rest = off
+    for d in range(dim):
+        position[:, d], rest = np.divmod(rest, fine_stride[d])
+    position[:, :dim] /= _THIRDS
     points[n_old:] = mesh.origin + position * mesh.spacing
     if dim == 2:
         points[n_old:, 2] = mesh.origin[2]

@@ -310,6 +310,8 @@ def bench_processes(sizes, repeat: int = 1, workdir: str | None = None, jobs=Non
     runs by wall time, its CPU time, and the largest peak)."""
     chosen = [j for j in PROCESS_JOBS if jobs is None or j[0] in jobs]
     rows = []
+    if workdir is not None:
+        Path(workdir).mkdir(parents=True, exist_ok=True)  # a new folder is the usual wish
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:
         for n in sizes:
             work = Path(tmp) / str(n)

@@ -235,6 +235,8 @@ PROCESS_JOBS = [
     ("automesh mesh", "npy -> hexahedra -> VTK", "mesh_vtk"),
     ("merge", "dicer merge mesh.vtu -o merged.vtu (default planes)",
      lambda d: ["merge", d / "mesh.vtu", "-o", d / "merged.vtu"]),
+    ("merge templates", "dicer merge mesh.vtu -o graded.vtu --set merge.method=templates (graded)",
+     lambda d: ["merge", d / "mesh.vtu", "-o", d / "graded.vtu", "--set", "merge.method=templates"]),
     ("smooth", "dicer smooth mesh.vtu -o smoothed.vtu (the voxel mesh, as automesh)",
      lambda d: ["smooth", d / "mesh.vtu", "-o", d / "smoothed.vtu"]),
     ("automesh smooth", "npy -> hexahedra -> Taubin, hierarchical, 10 iterations -> VTK", "smooth_vtk"),

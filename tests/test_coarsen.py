@@ -238,6 +238,11 @@ def test_templates_refuse_a_merged_mesh():
     merged, _ = merge_mesh(voxel_mesh(labels), {"passes": [1, 0, 0]})
     with pytest.raises(DicerError, match="voxel mesh"):
         coarsen_mesh(merged, levels=1)
+    # one voxel's corners turned about its axis: still a box, no longer in VTK order
+    turned = voxel_mesh(labels)
+    turned.cells[7] = turned.cells[7][[1, 2, 3, 0, 5, 6, 7, 4]]
+    with pytest.raises(DicerError, match="voxel mesh"):
+        coarsen_mesh(turned, levels=1)
     with pytest.raises(DicerError, match="min_distance"):
         coarsen_mesh(voxel_mesh(labels), levels=1, min_distance=0)
 

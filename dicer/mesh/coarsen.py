@@ -33,9 +33,8 @@ import numpy as np
 from scipy import ndimage
 
 from dicer.errors import DicerError
-from dicer.mesh.merge import _lattice_boxes
 from dicer.mesh.metrics import element_volumes
-from dicer.mesh.model import LEVEL_DATA, Mesh
+from dicer.mesh.model import LEVEL_DATA, Mesh, pieces
 from dicer.mesh.templates import (BLOCK_TEMPLATES, COARSE, COMPLETION_2D, COMPLETION_BLOCK, FINE, INVALID,
                                   SECTION, TEMPLATES_2D)
 from dicer.mesh.topology import HEX_CORNERS, QUAD_CORNERS
@@ -292,11 +291,16 @@ def _voxels_of(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     lattice = np.asarray(mesh.lattice, np.int64)
     if lattice.shape != (mesh.n_points, 3) or lattice.min() < 0 or np.any(lattice[:, :dim].max(axis=0) > shape):
         raise DicerError("node lattice indices lie outside the image grid; remesh from the labels with 'dicer mesh'")
-    # every element a lattice box (the test plane merging uses) of one voxel
-    box, size = _lattice_boxes(mesh.cells, lattice, dim)
-    if not (box.all() and np.all(size == 1)):
-        raise DicerError("merge.method=templates needs a voxel mesh (one element per voxel, as 'dicer mesh' "
-                         "writes it); this mesh was merged or edited already")
+    # every element one voxel, corners in VTK order: each corner's key a fixed step from
+    # the first corner's (keys are one-to-one on the point grid)
+    key, stride = _lattice_keys(lattice, shape)
+    corners = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim].astype(np.int64)
+    step = corners @ stride
+    for part in pieces(mesh.n_cells, _ROWS):
+        corner = key[mesh.cells[part]]
+        if not np.array_equal(corner - corner[:, :1], np.broadcast_to(step, corner.shape)):
+            raise DicerError("merge.method=templates needs a voxel mesh (one element per voxel, as 'dicer mesh' "
+                             "writes it); this mesh was merged or edited already")
     first = lattice[mesh.cells[:, 0], :dim]
     if np.any(first >= np.asarray(shape)):
         raise DicerError("element lattice indices lie outside the image grid; remesh from the labels with 'dicer mesh'")

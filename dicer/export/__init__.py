@@ -91,7 +91,7 @@ def export_mesh(mesh: Mesh, path: str | os.PathLike, config: dict, source: str |
     -------
     dict
         Summary: format, file, nodes, elements, element type, order, bytes, elements per
-        material, nodes per node set, exterior faces, verified.
+        material, nodes per node set and exterior faces (formats that hold sets), verified.
 
     Raises
     ------
@@ -100,7 +100,7 @@ def export_mesh(mesh: Mesh, path: str | os.PathLike, config: dict, source: str |
     """
     path = Path(path)
     fmt = _format_for(mesh, path)
-    model = prepare_model(mesh, config, source, path)
+    model = prepare_model(mesh, config, source, path, sets=fmt.sets)
     if model.order not in fmt.orders:
         raise DicerError(f"{path}: {fmt.limits.format(dim=model.dim, order=model.order)}")
     ex = config.get("export", {})
@@ -111,7 +111,8 @@ def export_mesh(mesh: Mesh, path: str | os.PathLike, config: dict, source: str |
         "format": fmt.name, "file": path.name, "nodes": model.n_points, "elements": model.n_cells,
         "element_type": model.element_type, "order": model.order, "bytes": size,
         "materials": {model.names[k]: int(np.count_nonzero(model.material == k)) for k in model.labels()},
-        "node_sets": {name: int(ids.size) for name, ids in model.node_sets.items()},
-        "exterior_faces": 0 if model.exterior is None else int(model.exterior.shape[0]),
+        # a format with no sets (VTU) reports none rather than empty ones
+        **({"node_sets": {name: int(ids.size) for name, ids in model.node_sets.items()},
+            "exterior_faces": 0 if model.exterior is None else int(model.exterior.shape[0])} if fmt.sets else {}),
         "verified": bool(verify),
     }

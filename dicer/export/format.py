@@ -31,6 +31,9 @@ class Format:
         Keyword of ``write`` / ``check`` -> (``export`` setting, default).
     requires : tuple of str
         A module the writer needs and the hint given when it is missing, or empty.
+    sets : bool
+        Whether the file holds node sets and surfaces (``export.sets``); a format that
+        does not is spared building them.
     """
 
     name: str
@@ -43,6 +46,7 @@ class Format:
     write_options: dict[str, tuple[str, object]] = field(default_factory=dict)
     check_options: dict[str, tuple[str, object]] = field(default_factory=dict)
     requires: tuple[str, ...] = ()
+    sets: bool = True
 
     def options(self, which: str, export: dict) -> dict:
         """Keyword arguments of ``write`` or ``check`` from the ``export`` settings.

@@ -257,7 +257,7 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> No
             model.interfaces[f"{model.names[c >> 16]}_{model.names[c & 0xFFFF]}"] = rows
 
 
-def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "model") -> SolverModel:
+def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "model", sets: bool = True) -> SolverModel:
     """Validate a mesh against the configuration and build the SolverModel the writers share.
 
     Parameters
@@ -269,6 +269,9 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
         The input the model was made from, for the provenance.
     path : Path or str, optional
         The output file, named in error messages.
+    sets : bool, optional
+        Build the node sets and surfaces ``export.sets`` asks for (False for a format
+        that holds none).
 
     Returns
     -------
@@ -300,6 +303,7 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
     clash = name_clash([m["name"] for m in materials], kinds)
     if clash:
         raise DicerError(f"{path}: {clash}")
+    kinds = kinds if sets else set()
     digest = sha256_in_background(source)
     names = {i + 1: m["name"] for i, m in enumerate(materials)}
     props = {i + 1: {"youngs_modulus": 1000.0, "poissons_ratio": 0.3, "density": 1.0e-9, **m}

@@ -1,28 +1,25 @@
-"""VTU export for ParaView (cell data ``material``, ``scaled_jacobian`` and ``edge_ratio``) through meshio.
+"""VTU export for ParaView (cell data ``material``, ``scaled_jacobian`` and ``edge_ratio``).
 
-Order 1 is written with meshio (zlib level 1) plus dicer's grid field data, so the
-file is also a valid dicer mesh (``lattice`` point data, grid field data) that every
-stage can read; unlike the intermediate meshes (raw data, :mod:`dicer.io.meshes`) the
-delivered file stays compressed, about a sixth of the raw size, and meshio's check of
-it reads zlib data several times faster than raw appended data. Order 2 is written with meshio as ``hexahedron20`` /
+Order 1 is written as the intermediate meshes are (:mod:`dicer.io.meshes`: raw appended
+arrays, dicer's grid field data, so the file is also a valid dicer mesh every stage can
+read), but each array in zlib blocks (level 1, VTK's ``vtkZLibDataCompressor`` layout),
+about a sixth of the raw size; it is read back with dicer's reader and compared exactly,
+and small files also with meshio. Order 2 is written with meshio as ``hexahedron20`` /
 ``quad8`` cells; the quality arrays are then those of the element's corners.
 """
 
 from __future__ import annotations
 
-import contextlib
-import functools
-import sys
-import zlib
+from dataclasses import replace
 from pathlib import Path
 
 import meshio
-import meshio.vtu._vtu  # noqa: F401  (its zlib is swapped while writing, see _fast_vtu_compression)
 import numpy as np
 
 from dicer.export.format import Format
 from dicer.export.model import scanner_mesh
-from dicer.io.meshes import _field_data_xml, names_xml, splice_field_data, to_meshio
+from dicer.errors import DicerError
+from dicer.io.meshes import MESHIO_CHECK_CELLS, names_from_field_data, names_xml, read_raw_vtu, splice_field_data, write_raw_vtu
 from dicer.mesh.metrics import quality_arrays
 from dicer.mesh.model import Mesh
 from dicer.mesh.topology import MESHIO_TYPES
@@ -33,35 +30,8 @@ def _corner_quality(model) -> dict[str, np.ndarray]:
     return quality_arrays(model.points, model.cells[:, :k])
 
 
-class _FastZlib:
-    """zlib at level 1 for meshio's VTU writer: its default level 6 took over half of the
-    writing time of a large mesh, for files only slightly smaller."""
-
-    compress = staticmethod(functools.partial(zlib.compress, level=1))
-    decompress = staticmethod(zlib.decompress)
-
-
-@contextlib.contextmanager
-def _fast_vtu_compression():
-    module = sys.modules["meshio.vtu._vtu"]
-    saved = module.zlib
-    module.zlib = _FastZlib
-    try:
-        yield
-    finally:
-        module.zlib = saved
-
-
 def _write_vtu(mesh: Mesh, path: Path) -> None:
-    # meshio's VTU writer drops field data (its reader keeps it): write with meshio,
-    # then splice a <FieldData> block in after <UnstructuredGrid>.
-    raw = path.with_name(path.name + ".raw.vtu")
-    try:
-        with _fast_vtu_compression():
-            meshio.write(raw, to_meshio(mesh), file_format="vtu", binary=True, compression="zlib")
-        splice_field_data(raw, path, _field_data_xml(mesh).encode())
-    finally:
-        raw.unlink(missing_ok=True)
+    write_raw_vtu(mesh, path, compress=True)
 
 
 def write_vtu(model, path: str | Path, mesh: Mesh | None = None) -> None:
@@ -85,9 +55,9 @@ def write_vtu(model, path: str | Path, mesh: Mesh | None = None) -> None:
             if model.mesh is None:
                 raise ValueError("a linear model is written to VTU with its mesh; pass mesh=")
             mesh = scanner_mesh(model.mesh, model)
-        out = mesh.copy()
-        out.names = model.name_list()  # the config's names, whatever the mesh carried
-        out.cell_data = quality_arrays(mesh.points, mesh.cells) | out.cell_data
+        # the config's names, whatever the mesh carried; arrays shared, not copied
+        out = replace(mesh, names=model.name_list(),
+                      cell_data=quality_arrays(mesh.points, mesh.cells) | mesh.cell_data)
         _write_vtu(out, Path(path))
         return
     m = meshio.Mesh(model.points, [(MESHIO_TYPES[(model.dim, model.order)], model.cells)],
@@ -118,7 +88,31 @@ def check_vtu(path: str | Path, model) -> None:
     """
     from dicer.export.readers import check_meshio
 
-    check_meshio(path, model, "vtu")
+    path = Path(path)
+    parts = read_raw_vtu(path, str(path)) if model.order == 1 else None
+    if parts is None or model.n_cells <= MESHIO_CHECK_CELLS:
+        check_meshio(path, model, "vtu")
+    if parts is not None:
+        _check_raw(parts, model)
 
 
-FORMAT = Format("vtu", (".vtu",), write_vtu, check_vtu)
+def _check_raw(parts, model) -> None:
+    """The arrays dicer's reader got from an order-1 file against the model, exactly."""
+    from dicer.mesh.metrics import QUALITY_DATA
+
+    _, points, cells, _, cell_data, fields = parts
+    if points.shape[0] != model.n_points or not np.array_equal(points[:, :model.dim], model.points[:, :model.dim]):
+        raise DicerError("the node coordinates read back differ from those written")
+    if not np.array_equal(cells, model.cells):
+        raise DicerError("the connectivity read back differs from that written")
+    if not np.array_equal(cell_data.get("material"), model.material):
+        raise DicerError("the element materials read back differ from those written")
+    for name in QUALITY_DATA:
+        if np.shape(cell_data.get(name)) != (model.n_cells,):
+            raise DicerError(f"cell data {name} read back with the wrong length")
+    names = names_from_field_data(fields)
+    if names != model.name_list():
+        raise DicerError(f"material names {names} read back, expected {model.name_list()}")
+
+
+FORMAT = Format("vtu", (".vtu",), write_vtu, check_vtu, sets=False)

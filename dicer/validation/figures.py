@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dicer.validation.study import COEFFICIENTS, setting_order
+from dicer.validation.study import COEFFICIENTS, kirsch_settings, scan_settings
 
 KIRSCH_EXACT = 3.0
 _PNG = {"dpi": 110, "metadata": {"Software": None}}  # no version string: same bytes on a rerun
@@ -163,7 +163,8 @@ def kirsch_table(results: dict, part: str) -> str:
             + "|---" * (11 if rim else 9) + "|\n")
     lines = []
     rows = results["kirsch"][part]
-    for name in [n for n in setting_order() if n in rows]:  # the study's order, whatever the dict's
+    order = scan_settings("quarter") if rim else kirsch_settings()
+    for name in [n for n in order if n in rows]:  # the study's order, whatever the dict's
         r = rows[name]
         cells = [name, f"{r['min_sj']:.3f}", str(r["inverted"])]
         if rim:

@@ -86,11 +86,6 @@ def scan_settings(part: str = "quarter") -> dict[str, list[str]]:
     return out
 
 
-def setting_order() -> list[str]:
-    """Every setting name of the Kirsch tables, in the order they are shown."""
-    return list(dict.fromkeys([*kirsch_settings(), *scan_settings("quarter")]))
-
-
 def run_study(work: str | os.PathLike, log=print) -> dict:
     """Run every case in folders under ``work``.
 

@@ -105,7 +105,7 @@ def _solve_kirsch(deck_path: Path, part: str, centre, radius: float) -> dict:
 
 
 def kirsch(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (), radius: float = 7.0,
-           width: int = 140, orders=(1, 2), offset=(0.0, 0.0), scan: bool = False) -> dict:
+           width: int = 140, orders=(1, 2), offset=(0.0, 0.0), scan: bool = False, noise: float = 30.0) -> dict:
     """The Kirsch plate (:func:`~dicer.validation.geometry.kirsch_plate`) meshed and solved at
     each element order.
 
@@ -128,6 +128,8 @@ def kirsch(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (
         Model the plate from a CT-like grey-value image
         (:func:`~dicer.validation.geometry.kirsch_scan`) by ``dicer run`` on the image (manual
         threshold, the smoothing pulled onto the image's iso-line) instead of from labels.
+    noise : float, optional
+        With ``scan``: the image's noise (standard deviation, of a contrast of 1000).
 
     Returns
     -------
@@ -142,7 +144,8 @@ def kirsch(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (
     """
     if scan and any(offset):
         raise ValueError("the grey-value plate has its hole about the image centre; no offset")
-    image = geometry.kirsch_scan(radius, width, part) if scan else geometry.kirsch_plate(radius, width, part, offset)
+    image = (geometry.kirsch_scan(radius, width, part, noise=noise) if scan
+             else geometry.kirsch_plate(radius, width, part, offset))
     centre = np.zeros(2) if part == "quarter" else np.full(2, width / 2) + offset
     built = build(image, folder, sets, orders, scan=scan)
     out = {"min_sj": built["quality"]["scaled_jacobian"]["min"], "inverted": built["quality"]["inverted_elements"],

@@ -143,20 +143,21 @@ def kirsch_table(results: dict, part: str) -> str:
 
     Setting, min SJ, inverted, then per element type sigma_x at 90 deg (error %; where
     +90 and -90 deg differ, both follow the mean) and the largest rim stress (error %
-    against 3.0, angle); for the grey-value parts (``*-scan``) also the rim nodes' distance
-    from the hole's circle (mean and largest |r - a|, voxels).
+    against 3.0, angle); for the grey-value parts (``*-scan*``) also the rim nodes' distance
+    from the hole's circle (mean and largest |r - a|, voxels) and the rim fit at 90 deg.
 
     Parameters
     ----------
     results : dict
     part : str
-        ``quarter``, ``full``, ``full-offset``, ``quarter-scan`` or ``full-scan``.
+        ``quarter``, ``full``, ``full-offset``, or a grey-value part: ``quarter-scan``,
+        ``full-scan``, ``quarter-scan-clean``, ``full-scan-clean``.
 
     Returns
     -------
     str
     """
-    rim = part.endswith("-scan")
+    rim = "-scan" in part
     head = ("| setting | min SJ | inverted | " + ("rim \\|r − a\\| mean / max | " if rim else "")
             + "CPS4 σx(90°) | error % | CPS4 largest (angle) | CPS8 σx(90°) | error % | CPS8 largest (angle) |"
             + (" rim fit at 90° CPS4 / CPS8 (scatter) |" if rim else "") + "\n"
@@ -255,6 +256,10 @@ def write_all(results: dict, folder: str | os.PathLike) -> str:
             + kirsch_table(results, "full-offset")
             + "\n### Kirsch from a grey-value image, quarter plate\n\n" + kirsch_table(results, "quarter-scan")
             + "\n### Kirsch from a grey-value image, full plate\n\n" + kirsch_table(results, "full-scan")
+            + "\n### Kirsch from a grey-value image without noise, quarter plate\n\n"
+            + kirsch_table(results, "quarter-scan-clean")
+            + "\n### Kirsch from a grey-value image without noise, full plate\n\n"
+            + kirsch_table(results, "full-scan-clean")
             + "\n### Kirsch, the O-grid reference (infinite plate, exact 3.0)\n\n" + reference_table(results)
             + "\n### Lamé, quarter cylinder\n\n" + lame_table(results)
             + "\n### Lamé from a grey-value image, quarter cylinder\n\n" + lame_table(results, "lame-scan"))

@@ -12,7 +12,8 @@ the same bytes):
 * ``kirsch`` parts ``quarter-scan`` and ``full-scan``, and ``lame-scan``: the same bodies
   from a CT-like grey-value image (``geometry.kirsch_scan``, ``geometry.lame_scan``) by
   ``dicer run`` on the image with ``smooth.surface_from_image`` (the rim pulled onto the
-  image's iso-line), at the settings ``scan_settings(part)`` and ``LAME_SCAN_RADII``.
+  image's iso-line), at the settings ``scan_settings(part)`` and ``LAME_SCAN_RADII``; parts
+  ``quarter-scan-clean`` and ``full-scan-clean``: the plate's image without noise.
 * ``kirsch-reference``: {"CPS4": {...}, "CPS8": {...}}, the ideal O-grid mesh of dicer's
   element size (``reference.kirsch_ogrid``).
 """
@@ -33,6 +34,7 @@ OFFSET_SETTINGS = ("k=0", "k=0.8", "defaults", "defaults+merge")
 LAME_RADII = (7.0, 14.0, 28.0)  # inner radius a; outer 2 a
 LAME_SCAN_RADII = (7.0, 14.0)
 MIN_SJ_03 = "smooth.min_scaled_jacobian=0.3"  # issue #17's quality target as the guard's floor
+SCAN_NOISE = 30.0  # the grey-value images' noise on a contrast of 1000 (the ``-clean`` parts: none)
 ORDER_NAMES = {"kirsch": {1: "CPS4", 2: "CPS8"}, "lame": {1: "C3D8", 2: "C3D20"}}
 
 
@@ -138,15 +140,19 @@ def _run_scans(work: Path, results: dict, log) -> None:
     t0 = time.perf_counter()
     results["kirsch-reference"] = {ORDER_NAMES["kirsch"][o]: reference.kirsch_ogrid(work / "kirsch_ogrid", o)
                                    for o in (1, 2)}
-    for part in ("quarter", "full"):
+    clean = {name: sets for name, sets in scan_settings("quarter").items() if name in ("defaults", "min SJ 0.3")}
+    for key, part, noise, settings in (("quarter-scan", "quarter", SCAN_NOISE, scan_settings("quarter")),
+                                       ("full-scan", "full", SCAN_NOISE, scan_settings("full")),
+                                       ("quarter-scan-clean", "quarter", 0.0, clean),
+                                       ("full-scan-clean", "full", 0.0, {"min SJ 0.3": clean["min SJ 0.3"]})):
         rows = {}
-        for name, sets in scan_settings(part).items():
-            r = cases.kirsch(work / f"kirsch_scan_{part}_{name.replace(' ', '_')}", part, sets, KIRSCH_RADIUS,
-                             KIRSCH_WIDTH, scan=True)
+        for name, sets in settings.items():
+            r = cases.kirsch(work / f"kirsch_{key}_{name.replace(' ', '_')}", part, sets, KIRSCH_RADIUS,
+                             KIRSCH_WIDTH, scan=True, noise=noise)
             rows[name] = _named(r, "kirsch")
-            log(f"kirsch {part}-scan {name}: CPS4 {r[1]['sigma_x_90']:.4f} CPS8 {r[2]['sigma_x_90']:.4f} "
+            log(f"kirsch {key} {name}: CPS4 {r[1]['sigma_x_90']:.4f} CPS8 {r[2]['sigma_x_90']:.4f} "
                 f"min SJ {r['min_sj']:.3f}")
-        results["kirsch"][f"{part}-scan"] = rows
+        results["kirsch"][key] = rows
     log(f"kirsch scans: {time.perf_counter() - t0:.0f} s")
     t0 = time.perf_counter()
     rows = {}

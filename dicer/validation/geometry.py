@@ -137,6 +137,17 @@ def lame_scan(inner: float = 7.0, outer: float = 14.0, length: int = 2, part: st
     The cross-section is made as in :func:`kirsch_scan` and repeated along z (the tube is a
     prism, so block averaging and blur act in the section); the noise is drawn per voxel.
 
+    Parameters
+    ----------
+    inner, outer : float, optional
+        Radii, voxels, inner < outer.
+    length : int, optional
+        Voxels along z.
+    part : {"quarter", "full"}, optional
+        quarter: the whole tube's image cut at its axis (its +x +y quarter).
+    supersample, blur, noise, seed
+        As in :func:`kirsch_scan`.
+
     Returns
     -------
     (nx, ny, length) float32 ndarray

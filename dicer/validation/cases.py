@@ -20,7 +20,7 @@ import numpy as np
 
 from dicer.validation import analytic, geometry
 from dicer.validation.calculix import read_frd_stress, run_ccx
-from dicer.validation.models import Deck, build, dload
+from dicer.validation.models import Deck, build, dload, write_moved
 
 
 def hoop(points: np.ndarray, stress: np.ndarray, centre) -> tuple[np.ndarray, np.ndarray]:
@@ -104,8 +104,44 @@ def _solve_kirsch(deck_path: Path, part: str, centre, radius: float) -> dict:
     }
 
 
+def rim_on_circle(deck_path: Path, centre, radius: float) -> Path:
+    """A copy of a Kirsch deck with its rim on the exact circle: what the same elements read
+    when the rim's position is no error at all.
+
+    The rim's corner nodes move radially onto r = ``radius``; a quadratic deck's mid-edge
+    rim nodes go to the midpoints of their moved ends (as ``dicer export`` places them).
+    Nothing else moves, so the elements at the staircase's convex corners (three rim nodes)
+    get a corner angle above 180 degrees there.
+
+    Parameters
+    ----------
+    deck_path : Path
+        A deck :func:`kirsch` solved.
+    centre : sequence of float
+        The hole's centre (x, y).
+    radius : float
+
+    Returns
+    -------
+    Path
+        ``<deck>_circle.inp`` beside it.
+    """
+    deck = Deck.read(deck_path)
+    points = deck.points.copy()
+    free = deck.free_faces()
+    sides = deck.face_nodes()[free]
+    ends = np.unique(sides[:, :2])
+    ends = ends[np.hypot(*(points[ends, :2] - centre).T) < 2 * radius]
+    d = points[ends, :2] - centre
+    points[ends, :2] = centre + d * (radius / np.hypot(*d.T))[:, None]
+    if sides.shape[1] == 3:
+        points[sides[:, 2]] = 0.5 * (points[sides[:, 0]] + points[sides[:, 1]])
+    return write_moved(deck_path, points, deck_path.with_name(f"{deck_path.stem}_circle.inp"))
+
+
 def kirsch(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (), radius: float = 7.0,
-           width: int = 140, orders=(1, 2), offset=(0.0, 0.0), scan: bool = False, noise: float = 30.0) -> dict:
+           width: int = 140, orders=(1, 2), offset=(0.0, 0.0), scan: bool = False, noise: float = 30.0,
+           on_circle: bool = False) -> dict:
     """The Kirsch plate (:func:`~dicer.validation.geometry.kirsch_plate`) meshed and solved at
     each element order.
 
@@ -130,6 +166,9 @@ def kirsch(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (
         threshold, the smoothing pulled onto the image's iso-line) instead of from labels.
     noise : float, optional
         With ``scan``: the image's noise (standard deviation, of a contrast of 1000).
+    on_circle : bool, optional
+        Also solve each deck with its rim moved onto the exact circle (:func:`rim_on_circle`),
+        as ``"<order> on circle"``.
 
     Returns
     -------
@@ -152,6 +191,8 @@ def kirsch(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (
            "backed_off": built["smooth"]["backed_off_nodes"]}
     for order, path in built["decks"].items():
         out[order] = _solve_kirsch(path, part, centre, radius)
+        if on_circle:
+            out[f"{order} on circle"] = _solve_kirsch(rim_on_circle(path, centre, radius), part, centre, radius)
     return out
 
 

@@ -195,3 +195,30 @@ def dload(elements: np.ndarray, numbers: np.ndarray, pressure: float) -> str:
     """
     rows = np.char.add(np.char.add((elements + 1).astype(str), ", P"), numbers.astype(str))
     return "*DLOAD\n" + "\n".join(np.char.add(rows, f", {float(pressure)!r}").tolist()) + "\n"
+
+
+def write_moved(deck_path: str | os.PathLike, points: np.ndarray, out_path: str | os.PathLike) -> Path:
+    """A copy of a deck dicer wrote with its nodes at other positions (the rest as written).
+
+    Parameters
+    ----------
+    deck_path : str or os.PathLike
+        The deck; its ``*NODE`` block holds nodes 1..N in order, as dicer writes it.
+    points : (N, 3) float ndarray
+        The new positions, mm.
+    out_path : str or os.PathLike
+
+    Returns
+    -------
+    Path
+        ``out_path``.
+    """
+    import io
+
+    text = Path(deck_path).read_text()
+    start = text.index("*NODE\n") + len("*NODE\n")
+    end = text.index("\n*", start) + 1
+    rows = io.StringIO()
+    np.savetxt(rows, np.column_stack([np.arange(1, len(points) + 1), points]), fmt="%7d, %.12e, %.12e, %.12e")
+    Path(out_path).write_text(text[:start] + rows.getvalue() + text[end:])
+    return Path(out_path)

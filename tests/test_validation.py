@@ -1,6 +1,8 @@
 """Finite-element validation (docs/validation.md): dicer's models of a plate with a hole
-(Kirsch) and a thick-walled tube (Lamé), made from label images by ``dicer run``, solved
-with CalculiX; stresses from its .frd output against the closed-form values.
+(Kirsch) and a thick-walled tube (Lamé), made from label images by ``dicer run --labels``
+and from CT-like grey-value images by ``dicer run`` on the image (the surface pulled onto
+the image's iso-line), solved with CalculiX; stresses from its .frd output against the
+closed-form values.
 
 Each assertion pins the figure the current code measures (docs/validation.md's tables)
 within a small margin; the accuracy targets of issue #17 are the strict xfail tests at the
@@ -9,12 +11,13 @@ end, which fail (and so must be turned into plain tests) once the targets are me
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from calculix import needs_ccx
 
-from dicer.validation import cases
-from dicer.validation.study import NO_MERGE, OFFSET
+from dicer.validation import cases, geometry, reference
+from dicer.validation.study import MIN_SJ_03, NO_MERGE, OFFSET
 
 pytestmark = [pytest.mark.calculix, needs_ccx]
 
@@ -31,11 +34,59 @@ def test_lame_quarter_tube_end_to_end(tmp_path):
     assert e["bore_radius_mean"] == pytest.approx(7.036, abs=0.01)
 
 
+def test_grey_value_images():
+    """The CT-like images: the quarter is the full plate's image cut; thresholded at the
+    half contrast they are the label images but for the few voxels the edge's curvature
+    and the noise tip."""
+    full, quarter = geometry.kirsch_scan(part="full"), geometry.kirsch_scan(part="quarter")
+    assert full.shape == (140, 140) and full.dtype == np.float32
+    assert np.array_equal(quarter, full[70:, 70:])
+    labels = geometry.kirsch_plate(part="full")
+    differ = np.count_nonzero((full >= geometry.THRESHOLD) != labels.astype(bool))
+    assert 0 < differ <= 4  # measured 1 of the 44 voxels along the rim
+    # far from the rim: the contrast and the noise
+    assert np.mean(full[:20, :20]) == pytest.approx(geometry.CONTRAST, abs=5.0)
+    assert np.std(full[:20, :20]) == pytest.approx(30.0, rel=0.15)
+    tube = geometry.lame_scan(part="quarter")
+    ring = geometry.lame_cylinder(part="quarter").astype(bool)
+    assert tube.shape == ring.shape == (15, 15, 2)
+    assert np.count_nonzero((tube >= geometry.THRESHOLD) != ring) <= 4  # measured 2
+
+
+def test_lame_quarter_tube_from_a_grey_value_image(tmp_path):
+    """Fast: the grey-value path end to end (dicer run on the image, manual threshold, the bore
+    pulled onto the iso-line; a = 7 voxels, C3D8)."""
+    r = cases.lame(tmp_path, "quarter", [NO_MERGE], inner=7.0, outer=14.0, orders=(1,), scan=True)
+    assert r["inverted"] == 0 and r["min_sj"] == pytest.approx(0.22, abs=0.005)
+    e = r[1]
+    assert e["error_mean"] == pytest.approx(-0.048, abs=0.01)  # from labels: -0.1415
+    assert e["error_wall_fit"] == pytest.approx(-0.008, abs=0.01)
+    assert e["bore_radius_mean"] == pytest.approx(6.974, abs=0.01)
+
+
+@pytest.mark.parametrize("order,at_90", [(1, 3.0503), (2, 3.0213)])
+def test_kirsch_ogrid_reference(tmp_path, order, at_90):
+    """An ideal mesh of dicer's element size (11 elements along the quarter rim, 1 voxel deep,
+    exact displacements at r = 5a): CPS4 reads 1.7 %, CPS8 0.7 % above Kirsch's 3.0."""
+    r = reference.kirsch_ogrid(tmp_path, order)
+    assert r["elements"] == 143
+    assert r["sigma_x_90"] == pytest.approx(at_90, abs=0.002)
+    assert r["sigma_x_90"] == pytest.approx(3.0, rel=0.03)
+
+
+def test_kirsch_displacement_is_kirsch():
+    # at the rim: u_r = sigma0 a / E (1 + 2 cos 2 theta) in plane stress
+    t = np.linspace(0.0, np.pi / 2, 7)
+    ux, uy = reference.kirsch_displacement(7.0 * np.cos(t), 7.0 * np.sin(t), 7.0)
+    ur = ux * np.cos(t) + uy * np.sin(t)
+    assert ur == pytest.approx(7.0 / 1000.0 * (1 + 2 * np.cos(2 * t)), rel=1e-12)
+
+
 @pytest.fixture(scope="module")
 def kirsch_defaults(tmp_path_factory):
     """Quarter and full plate at the default smoothing, no merging, CPS4 and CPS8."""
-    return {part: cases.kirsch(tmp_path_factory.mktemp(f"kirsch_{part}"), part, [NO_MERGE])
-            for part in ("quarter", "full")}
+    return {part: cases.kirsch(tmp_path_factory.mktemp(f"kirsch_{part}"), part, [NO_MERGE],
+                               on_circle=part == "quarter") for part in ("quarter", "full")}
 
 
 @pytest.mark.slow
@@ -93,6 +144,125 @@ def test_lame_refined(tmp_path, a, c3d8, c3d20):
     assert abs(r[1]["error_wall_fit"]) < 0.01 and abs(r[2]["error_wall_fit"]) < 0.015
 
 
+# --- from a grey-value image: dicer run on a CT-like image, the rim on its iso-line ---------
+
+
+@pytest.fixture(scope="module")
+def kirsch_scan(tmp_path_factory):
+    """Quarter and full plate from the grey-value image, no merging, at the default smoothing
+    and with the guard's floor at 0.3."""
+    return {(part, name): cases.kirsch(tmp_path_factory.mktemp(f"kirsch_scan_{part}"), part, sets, scan=True,
+                                       on_circle=(part, name) == ("quarter", "defaults"))
+            for part in ("quarter", "full") for name, sets in (("defaults", [NO_MERGE]),
+                                                               ("min SJ 0.3", [NO_MERGE, MIN_SJ_03]))}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("part,name,min_sj,cps4,cps8", [
+    ("quarter", "defaults", 0.220, (3.2296, 3.2296, 90.0), (3.0775, 3.2912, 79.1)),
+    ("full", "defaults", 0.220, (3.1466, 3.1894, 83.0), (3.0104, 3.3308, 79.2)),
+    ("quarter", "min SJ 0.3", 0.320, (3.2176, 3.2176, 90.0), (3.0562, 3.3272, 79.1)),
+    ("full", "min SJ 0.3", 0.320, (3.1394, 3.1895, 83.0), (3.0014, 3.3670, 79.2)),
+])
+def test_kirsch_plate_from_a_grey_value_image(kirsch_scan, part, name, min_sj, cps4, cps8):
+    r = kirsch_scan[(part, name)]
+    assert r["min_sj"] == pytest.approx(min_sj, abs=0.005) and r["inverted"] == 0
+    for order, (at_90, peak, angle) in ((1, cps4), (2, cps8)):
+        assert r[order]["sigma_x_90"] == pytest.approx(at_90, abs=0.02)
+        assert r[order]["peak"] == pytest.approx(peak, abs=0.03)
+        assert r[order]["peak_angle_deg"] == pytest.approx(angle, abs=3.0)
+
+
+@pytest.mark.slow
+def test_kirsch_rim_from_a_grey_value_image(kirsch_scan, kirsch_defaults):
+    # the rim nodes' distance from the hole's circle: labels 0.186 mean, 0.52 largest;
+    # from the image 0.06 and 0.13 (noise of 30 on 1000 and the guard's sharpened corners)
+    labels, scan = kirsch_defaults["quarter"][1], kirsch_scan[("quarter", "defaults")][1]
+    assert labels["rim_radius_error_mean"] == pytest.approx(0.186, abs=0.005)
+    assert labels["rim_radius_error_max"] == pytest.approx(0.522, abs=0.005)
+    assert scan["rim_radius_error_mean"] == pytest.approx(0.062, abs=0.005)
+    assert scan["rim_radius_error_max"] == pytest.approx(0.129, abs=0.005)
+    assert scan["rim_radius_90"] == pytest.approx(7.039, abs=0.005)
+    floor = kirsch_scan[("quarter", "min SJ 0.3")][1]  # a higher floor sharpens the corners more
+    assert floor["rim_radius_error_mean"] == pytest.approx(0.073, abs=0.005)
+    # the field about the hole: Kirsch's form fitted through the rim nodes, at 90 deg (about
+    # 3.03 for this finite plate): the labels' rim makes it 12 % (CPS4) and 18 % (CPS8) low,
+    # the image's 2.7 %; the nodes scatter about it by 0.17 (CPS4) and 0.31 (CPS8)
+    for order, from_labels, from_scan, scatter in ((1, 2.636, 2.949, 0.17), (2, 2.474, 2.957, 0.31)):
+        assert kirsch_defaults["quarter"][order]["rim_fit_90"] == pytest.approx(from_labels, abs=0.01)
+        assert kirsch_scan[("quarter", "defaults")][order]["rim_fit_90"] == pytest.approx(from_scan, abs=0.01)
+        assert kirsch_scan[("full", "defaults")][order]["rim_fit_90"] == pytest.approx(from_scan, abs=0.04)
+        assert kirsch_scan[("quarter", "defaults")][order]["rim_fit_scatter"] == pytest.approx(scatter, abs=0.02)
+
+
+@pytest.mark.slow
+def test_kirsch_rim_on_the_exact_circle(kirsch_defaults, kirsch_scan):
+    """The rim nodes moved onto r = a exactly: the same elements still read 5-6 % above 3.0
+    (the O-grid of this size: CPS4 +1.7 %, CPS8 +0.7 %, and the finite plate about 1 % more),
+    whether the mesh came from the labels or from the image: the element layout, not the
+    rim's position."""
+    for r, cps4, cps8 in ((kirsch_defaults["quarter"], 3.175, 3.182), (kirsch_scan[("quarter", "defaults")],
+                                                                        3.183, 3.156)):
+        assert r["1 on circle"]["rim_radius_error_max"] < 1e-9
+        assert r["1 on circle"]["sigma_x_90"] == pytest.approx(cps4, abs=0.01)
+        assert r["2 on circle"]["sigma_x_90"] == pytest.approx(cps8, abs=0.01)
+
+
+@pytest.fixture(scope="module")
+def kirsch_scan_clean(tmp_path_factory):
+    """Quarter and full plate from the grey-value image without noise, guard's floor 0.3."""
+    return {part: cases.kirsch(tmp_path_factory.mktemp(f"kirsch_clean_{part}"), part, [NO_MERGE, MIN_SJ_03],
+                               scan=True, noise=0.0) for part in ("quarter", "full")}
+
+
+@pytest.mark.slow
+def test_kirsch_plate_from_a_noise_free_image(kirsch_scan_clean):
+    # without noise the quarter and the full plate agree again (the full plate is the quarter
+    # mirrored), and the rim fit is the finite plate's 3.0
+    q, f = kirsch_scan_clean["quarter"], kirsch_scan_clean["full"]
+    for r in (q, f):
+        assert r["min_sj"] == pytest.approx(0.364, abs=0.005) and r["inverted"] == 0
+        assert r[1]["sigma_x_90"] == pytest.approx(3.144, abs=0.01)
+        assert r[2]["sigma_x_90"] == pytest.approx(3.055, abs=0.01)
+        assert r[2]["peak"] == pytest.approx(3.069, abs=0.01) and r[2]["peak_angle_deg"] == pytest.approx(82.4, abs=1)
+        assert r[1]["rim_fit_90"] == pytest.approx(3.0, abs=0.02)
+    for order in (1, 2):
+        assert f[order]["sigma_x_90"] == pytest.approx(q[order]["sigma_x_90"], abs=1e-3)
+        assert f[order]["peak"] == pytest.approx(q[order]["peak"], abs=1e-3)
+
+
+@pytest.mark.slow
+def test_target_kirsch_cps8_from_a_noise_free_image(kirsch_scan_clean):
+    """Issue #17's Kirsch target holds for CPS8 from the grey-value image without noise, at
+    smooth.min_scaled_jacobian 0.3 (measured: 3.055 at 90 deg, largest 3.069 at 82 deg, min SJ
+    0.364, quarter and full within 0.02 %)."""
+    q, f = kirsch_scan_clean["quarter"], kirsch_scan_clean["full"]
+    for r in (q, f):
+        assert r["min_sj"] >= 0.3 and r["inverted"] == 0
+        assert r[2]["sigma_x_90"] == pytest.approx(3.0, rel=0.03)
+        assert r[2]["peak"] == pytest.approx(3.0, rel=0.03)
+        assert abs(r[2]["peak_angle_deg"] - 90.0) <= 10.0
+    assert q[2]["sigma_x_90"] == pytest.approx(f[2]["sigma_x_90"], rel=0.01)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="CPS4 from the noise-free image at min SJ 0.3: sigma_x(90) 3.144 (+4.8 %); "
+                   "the O-grid reference of the same element size reads +1.7 % (infinite plate)")
+def test_target_kirsch_cps4_from_a_noise_free_image(kirsch_scan_clean):
+    for r in kirsch_scan_clean.values():
+        assert r[1]["sigma_x_90"] == pytest.approx(3.0, rel=0.03)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("a,c3d8,c3d20", [(7.0, -0.048, -0.103), (14.0, -0.026, -0.067)])
+def test_lame_from_a_grey_value_image(tmp_path, a, c3d8, c3d20):
+    r = cases.lame(tmp_path, "quarter", [NO_MERGE], inner=a, outer=2 * a, scan=True)
+    assert r["inverted"] == 0 and r["min_sj"] == pytest.approx(0.22, abs=0.005)
+    assert r[1]["error_mean"] == pytest.approx(c3d8, abs=0.01)
+    assert r[2]["error_mean"] == pytest.approx(c3d20, abs=0.01)
+    assert abs(r[1]["error_wall_fit"]) < 0.01 and abs(r[2]["error_wall_fit"]) < 0.01
+
+
 # --- issue #17's targets, not met by the current defaults (numbers in docs/validation.md) ---
 
 
@@ -111,4 +281,28 @@ def test_target_kirsch_within_3_percent(kirsch_defaults, order):
 @pytest.mark.xfail(strict=True, reason="target: bore hoop within 3 %; measured mean -14.2 % (C3D8), -20.6 % (C3D20)")
 def test_target_lame_within_3_percent(tmp_path):
     r = cases.lame(tmp_path, "quarter", [NO_MERGE], inner=7.0, outer=14.0)
+    assert abs(r[1]["error_mean"]) <= 0.03 and abs(r[2]["error_mean"]) <= 0.03
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="target from a grey-value image at min SJ >= 0.3 (smooth.min_scaled_jacobian "
+                   "0.3): sigma_x(90) quarter / full 3.218 / 3.139 (CPS4, +7.3 / +4.6 %), 3.056 / 3.001 (CPS8); "
+                   "largest rim stress (CPS8) 3.327 / 3.367 at 79 deg; quarter and full 2.5 % (CPS4), "
+                   "1.8 % (CPS8) apart")
+@pytest.mark.parametrize("order", [1, 2])
+def test_target_kirsch_from_a_grey_value_image(kirsch_scan, order):
+    q, f = kirsch_scan[("quarter", "min SJ 0.3")], kirsch_scan[("full", "min SJ 0.3")]
+    for r in (q, f):
+        assert r["min_sj"] >= 0.3 and r["inverted"] == 0
+        assert r[order]["sigma_x_90"] == pytest.approx(3.0, rel=0.03)
+        assert r[order]["peak"] == pytest.approx(3.0, rel=0.03)
+        assert abs(r[order]["peak_angle_deg"] - 90.0) <= 10.0
+    assert q[order]["sigma_x_90"] == pytest.approx(f[order]["sigma_x_90"], rel=0.01)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="target from a grey-value image: bore hoop within 3 %; measured at a = 7 "
+                   "mean -4.8 % (C3D8), -10.3 % (C3D20)")
+def test_target_lame_from_a_grey_value_image(tmp_path):
+    r = cases.lame(tmp_path, "quarter", [NO_MERGE], inner=7.0, outer=14.0, scan=True)
     assert abs(r[1]["error_mean"]) <= 0.03 and abs(r[2]["error_mean"]) <= 0.03

@@ -20,7 +20,7 @@ import numpy as np
 
 from dicer.validation import analytic, geometry
 from dicer.validation.calculix import read_frd_stress, run_ccx
-from dicer.validation.models import Deck, build, dload
+from dicer.validation.models import Deck, build, dload, write_moved
 
 
 def hoop(points: np.ndarray, stress: np.ndarray, centre) -> tuple[np.ndarray, np.ndarray]:
@@ -78,6 +78,13 @@ def _solve_kirsch(deck_path: Path, part: str, centre, radius: float) -> dict:
     theta, s_hoop, s_xx = theta[order], s_hoop[order], stress[rim[order], 0]
     at_90 = [float(np.interp(t, theta, s_xx)) for t in (np.pi / 2, -np.pi / 2) if theta[0] <= t <= theta[-1]]
     top = int(np.argmax(s_hoop))
+    rim_r = np.hypot(*(deck.points[rim[order], :2] - centre).T)
+    # the field about the hole apart from the rim's local kinks: Kirsch's form at the rim,
+    # A + B cos 2 theta (exact 1 - 2 cos 2 theta), fitted by least squares to every rim node
+    # and evaluated at 90 deg; the residual is the nodes' scatter about it
+    form = np.column_stack([np.ones(theta.size), np.cos(2.0 * theta)])
+    coef, *_ = np.linalg.lstsq(form, s_hoop, rcond=None)
+    scatter = float(np.sqrt(np.mean((s_hoop - form @ coef) ** 2)))
     return {
         "elements": int(deck.cells.shape[0]),
         "nodes": int(deck.points.shape[0]),
@@ -85,14 +92,56 @@ def _solve_kirsch(deck_path: Path, part: str, centre, radius: float) -> dict:
         "sigma_x_90_each": at_90,
         "peak": float(s_hoop[top]),
         "peak_angle_deg": float(np.degrees(np.arccos(abs(np.cos(theta[top]))))),  # folded into [0, 90]
-        "rim_radius_90": float(np.interp(np.pi / 2, theta, np.hypot(*(deck.points[rim[order], :2] - centre).T))),
+        "rim_fit_90": float(coef[0] - coef[1]),
+        "rim_fit_scatter": scatter,
+        "rim_radius_90": float(np.interp(np.pi / 2, theta, rim_r)),
+        # the rim's geometry: its nodes' distance from the hole's circle (voxels)
+        "rim_radius_error_mean": float(np.abs(rim_r - radius).mean()),
+        "rim_radius_error_max": float(np.abs(rim_r - radius).max()),
         "rim_theta_deg": np.degrees(theta).tolist(),
+        "rim_radius": rim_r.tolist(),
         "rim_hoop": s_hoop.tolist(),
     }
 
 
+def rim_on_circle(deck_path: Path, centre, radius: float) -> Path:
+    """A copy of a Kirsch deck with its rim on the exact circle: what the same elements read
+    when the rim's position is no error at all.
+
+    The rim's corner nodes move radially onto r = ``radius``; a quadratic deck's mid-edge
+    rim nodes go to the midpoints of their moved ends (as ``dicer export`` places them).
+    Nothing else moves, so the elements at the staircase's convex corners (three rim nodes)
+    get a corner angle above 180 degrees there.
+
+    Parameters
+    ----------
+    deck_path : Path
+        A deck :func:`kirsch` solved.
+    centre : sequence of float
+        The hole's centre (x, y).
+    radius : float
+
+    Returns
+    -------
+    Path
+        ``<deck>_circle.inp`` beside it.
+    """
+    deck = Deck.read(deck_path)
+    points = deck.points.copy()
+    free = deck.free_faces()
+    sides = deck.face_nodes()[free]
+    ends = np.unique(sides[:, :2])
+    ends = ends[np.hypot(*(points[ends, :2] - centre).T) < 2 * radius]
+    d = points[ends, :2] - centre
+    points[ends, :2] = centre + d * (radius / np.hypot(*d.T))[:, None]
+    if sides.shape[1] == 3:
+        points[sides[:, 2]] = 0.5 * (points[sides[:, 0]] + points[sides[:, 1]])
+    return write_moved(deck_path, points, deck_path.with_name(f"{deck_path.stem}_circle.inp"))
+
+
 def kirsch(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (), radius: float = 7.0,
-           width: int = 140, orders=(1, 2), offset=(0.0, 0.0)) -> dict:
+           width: int = 140, orders=(1, 2), offset=(0.0, 0.0), scan: bool = False, noise: float = 30.0,
+           on_circle: bool = False) -> dict:
     """The Kirsch plate (:func:`~dicer.validation.geometry.kirsch_plate`) meshed and solved at
     each element order.
 
@@ -111,6 +160,15 @@ def kirsch(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (
         Element orders.
     offset : sequence of float, optional
         The full plate's hole centre off the image centre (voxels).
+    scan : bool, optional
+        Model the plate from a CT-like grey-value image
+        (:func:`~dicer.validation.geometry.kirsch_scan`) by ``dicer run`` on the image (manual
+        threshold, the smoothing pulled onto the image's iso-line) instead of from labels.
+    noise : float, optional
+        With ``scan``: the image's noise (standard deviation, of a contrast of 1000).
+    on_circle : bool, optional
+        Also solve each deck with its rim moved onto the exact circle (:func:`rim_on_circle`),
+        as ``"<order> on circle"``.
 
     Returns
     -------
@@ -118,16 +176,23 @@ def kirsch(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (
         ``{"min_sj", "inverted", "backed_off", order: {...}}`` where each order gives
         sigma_x / sigma_0 at theta = 90 degrees (the mean over the points at +-90 degrees
         the part holds), the largest rim hoop stress and its angle from the load axis
-        (degrees, folded into [0, 90]), the rim node radius at 90 degrees and the rim's
-        hoop stresses by angle.
+        (degrees, folded into [0, 90]), the rim fit (Kirsch's form A + B cos 2 theta fitted
+        to the rim nodes' hoop stresses, at 90 degrees, and the nodes' rms scatter about
+        it), the rim node radius at 90 degrees, the rim nodes' distance from the circle
+        (mean and largest |r - a|) and the rim's hoop stresses and radii by angle.
     """
-    labels = geometry.kirsch_plate(radius, width, part, offset)
+    if scan and any(offset):
+        raise ValueError("the grey-value plate has its hole about the image centre; no offset")
+    image = (geometry.kirsch_scan(radius, width, part, noise=noise) if scan
+             else geometry.kirsch_plate(radius, width, part, offset))
     centre = np.zeros(2) if part == "quarter" else np.full(2, width / 2) + offset
-    built = build(labels, folder, sets, orders)
+    built = build(image, folder, sets, orders, scan=scan)
     out = {"min_sj": built["quality"]["scaled_jacobian"]["min"], "inverted": built["quality"]["inverted_elements"],
            "backed_off": built["smooth"]["backed_off_nodes"]}
     for order, path in built["decks"].items():
         out[order] = _solve_kirsch(path, part, centre, radius)
+        if on_circle:
+            out[f"{order} on circle"] = _solve_kirsch(rim_on_circle(path, centre, radius), part, centre, radius)
     return out
 
 
@@ -174,7 +239,7 @@ def _solve_lame(deck_path: Path, part: str, centre, inner: float, outer: float) 
 
 
 def lame(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (), inner: float = 7.0,
-         outer: float = 14.0, length: int = 2, orders=(1, 2)) -> dict:
+         outer: float = 14.0, length: int = 2, orders=(1, 2), scan: bool = False) -> dict:
     """The Lamé cylinder (:func:`~dicer.validation.geometry.lame_cylinder`) meshed and solved at
     each element order.
 
@@ -188,6 +253,9 @@ def lame(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (),
         Voxels along z.
     orders : sequence of int, optional
         Element orders.
+    scan : bool, optional
+        From a CT-like grey-value image (:func:`~dicer.validation.geometry.lame_scan`), as in
+        :func:`kirsch`.
 
     Returns
     -------
@@ -197,10 +265,10 @@ def lame(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (),
         errors of the mean and of the worst node, and the wall fit: Lamé's form
         A + B / r^2 fitted to the hoop stress at the nodes inside the wall, at r = a.
     """
-    labels = geometry.lame_cylinder(inner, outer, length, part)
-    half = labels.shape[0] / 2
+    image = (geometry.lame_scan if scan else geometry.lame_cylinder)(inner, outer, length, part)
+    half = image.shape[0] / 2
     centre = np.zeros(2) if part == "quarter" else np.full(2, half)
-    built = build(labels, folder, sets, orders)
+    built = build(image, folder, sets, orders, scan=scan)
     out = {"min_sj": built["quality"]["scaled_jacobian"]["min"], "inverted": built["quality"]["inverted_elements"],
            "backed_off": built["smooth"]["backed_off_nodes"]}
     for order, path in built["decks"].items():

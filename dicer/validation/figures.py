@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dicer.validation.study import COEFFICIENTS, kirsch_settings
+from dicer.validation.study import COEFFICIENTS, kirsch_settings, scan_settings
 
 KIRSCH_EXACT = 3.0
 _PNG = {"dpi": 110, "metadata": {"Software": None}}  # no version string: same bytes on a rerun
@@ -126,11 +126,16 @@ def lame_figure(results: dict, path: str | os.PathLike) -> None:
         ax.errorbar(a * shift, mean, yerr=[lo, hi], fmt="o-", color=color, capsize=3, label=f"{etype}: mean, node range")
         fit = np.array([r[etype]["wall_fit"] for r in rows.values()]) / exact
         ax.plot(a * shift, fit, "D", mfc="none", color=color, label=f"{etype}: wall fit at r = a")
+        scans = {float(k[2:]): r for k, r in results.get("lame-scan", {}).items() if "+" not in k}
+        if scans:
+            ax.plot(np.array(sorted(scans)) * shift, [scans[k][etype]["mean"] / scans[k][etype]["exact"]
+                                                      for k in sorted(scans)],
+                    "*", ms=10, color=color, label=f"{etype}: mean, from the grey-value image")
     ax.set_xscale("log")
     ax.minorticks_off()
     ax.set_xticks(a, [f"{v:g}" for v in a])
     _finish(plt, fig, ax, path, "inner radius a (voxels); outer radius 2a", "bore hoop stress / exact",
-            "Lamé cylinder under internal pressure, default smoothing", 8)
+            "Lamé cylinder under internal pressure, default smoothing", 7)
 
 
 def kirsch_table(results: dict, part: str) -> str:
@@ -138,36 +143,65 @@ def kirsch_table(results: dict, part: str) -> str:
 
     Setting, min SJ, inverted, then per element type sigma_x at 90 deg (error %; where
     +90 and -90 deg differ, both follow the mean) and the largest rim stress (error %
-    against 3.0, angle).
+    against 3.0, angle); for the grey-value parts (``*-scan*``) also the rim nodes' distance
+    from the hole's circle (mean and largest |r - a|, voxels) and the rim fit at 90 deg.
 
     Parameters
     ----------
     results : dict
     part : str
-        ``quarter``, ``full`` or ``full-offset``.
+        ``quarter``, ``full``, ``full-offset``, or a grey-value part: ``quarter-scan``,
+        ``full-scan``, ``quarter-scan-clean``, ``full-scan-clean``.
 
     Returns
     -------
     str
     """
-    head = ("| setting | min SJ | inverted | CPS4 σx(90°) | error % | CPS4 largest (angle) | "
-            "CPS8 σx(90°) | error % | CPS8 largest (angle) |\n|---|---|---|---|---|---|---|---|---|\n")
+    rim = "-scan" in part
+    head = ("| setting | min SJ | inverted | " + ("rim \\|r − a\\| mean / max | " if rim else "")
+            + "CPS4 σx(90°) | error % | CPS4 largest (angle) | CPS8 σx(90°) | error % | CPS8 largest (angle) |"
+            + (" rim fit at 90° CPS4 / CPS8 (scatter) |" if rim else "") + "\n"
+            + "|---" * (11 if rim else 9) + "|\n")
     lines = []
     rows = results["kirsch"][part]
-    for name in [n for n in kirsch_settings() if n in rows]:  # the study's order, whatever the dict's
+    order = scan_settings("quarter") if rim else kirsch_settings()
+    for name in [n for n in order if n in rows]:  # the study's order, whatever the dict's
         r = rows[name]
         cells = [name, f"{r['min_sj']:.3f}", str(r["inverted"])]
+        if rim:
+            cells.append(f"{r['CPS4']['rim_radius_error_mean']:.3f} / {r['CPS4']['rim_radius_error_max']:.3f}")
         for etype in ("CPS4", "CPS8"):
             e = r[etype]
             each = e["sigma_x_90_each"]
             both = f" ({each[0]:.3f} / {each[1]:.3f})" if len(each) == 2 and abs(each[0] - each[1]) > 5e-4 else ""
             cells += [f"{e['sigma_x_90']:.3f}{both}", _pct(e["sigma_x_90"], KIRSCH_EXACT),
                       f"{e['peak']:.3f} ({_pct(e['peak'], KIRSCH_EXACT)} %, {e['peak_angle_deg']:.0f}°)"]
+        if rim:
+            c4, c8 = r["CPS4"], r["CPS8"]
+            cells.append(f"{c4['rim_fit_90']:.3f} / {c8['rim_fit_90']:.3f} ({c4['rim_fit_scatter']:.2f} / "
+                         f"{c8['rim_fit_scatter']:.2f})")
         lines.append("| " + " | ".join(cells) + " |")
     return head + "\n".join(lines) + "\n"
 
 
-def lame_table(results: dict) -> str:
+def reference_table(results: dict) -> str:
+    """Markdown rows of the O-grid reference (``reference.kirsch_ogrid``): sigma_x at 90 deg.
+
+    Parameters
+    ----------
+    results : dict
+
+    Returns
+    -------
+    str
+    """
+    rows = results.get("kirsch-reference", {})
+    lines = [f"| {etype} | {r['elements']} | {r['sigma_x_90']:.3f} | {_pct(r['sigma_x_90'], KIRSCH_EXACT)} |"
+             for etype, r in rows.items()]
+    return "| element | elements | σx(90°) | error % |\n|---|---|---|---|\n" + "\n".join(lines) + "\n"
+
+
+def lame_table(results: dict, key: str = "lame") -> str:
     """Markdown rows of the Lamé cylinder.
 
     Case, elements, min SJ, inverted, per element type the mean bore hoop stress / p, its
@@ -177,6 +211,8 @@ def lame_table(results: dict) -> str:
     Parameters
     ----------
     results : dict
+    key : str, optional
+        ``lame`` (from labels) or ``lame-scan`` (from the grey-value image).
 
     Returns
     -------
@@ -186,7 +222,7 @@ def lame_table(results: dict) -> str:
             "wall fit % | C3D20 mean | error % | node range % | wall fit % |\n"
             "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
     lines = []
-    for name, r in sorted(results["lame"].items(), key=lambda kv: ("+" in kv[0], float(kv[0][2:].split("+")[0]))):
+    for name, r in sorted(results[key].items(), key=lambda kv: ("+" in kv[0], float(kv[0][2:].split("+")[0]))):
         cells = [name, str(r["C3D8"]["elements"]), f"{r['min_sj']:.3f}", str(r["inverted"]),
                  f"{r['C3D8']['exact']:.4f}"]
         for etype in ("C3D8", "C3D20"):
@@ -217,4 +253,13 @@ def write_all(results: dict, folder: str | os.PathLike) -> str:
     lame_figure(results, folder / "lame.png")
     return ("### Kirsch, quarter plate\n\n" + kirsch_table(results, "quarter") + "\n### Kirsch, full plate\n\n"
             + kirsch_table(results, "full") + "\n### Kirsch, full plate, hole centre off the lattice\n\n"
-            + kirsch_table(results, "full-offset") + "\n### Lamé, quarter cylinder\n\n" + lame_table(results))
+            + kirsch_table(results, "full-offset")
+            + "\n### Kirsch from a grey-value image, quarter plate\n\n" + kirsch_table(results, "quarter-scan")
+            + "\n### Kirsch from a grey-value image, full plate\n\n" + kirsch_table(results, "full-scan")
+            + "\n### Kirsch from a grey-value image without noise, quarter plate\n\n"
+            + kirsch_table(results, "quarter-scan-clean")
+            + "\n### Kirsch from a grey-value image without noise, full plate\n\n"
+            + kirsch_table(results, "full-scan-clean")
+            + "\n### Kirsch, the O-grid reference (infinite plate, exact 3.0)\n\n" + reference_table(results)
+            + "\n### Lamé, quarter cylinder\n\n" + lame_table(results)
+            + "\n### Lamé from a grey-value image, quarter cylinder\n\n" + lame_table(results, "lame-scan"))

@@ -73,3 +73,89 @@ def lame_cylinder(inner: float = 7.0, outer: float = 14.0, length: int = 2, part
     r = np.hypot(g[:, None], g[None, :])
     ring = ((r >= inner) & (r < outer)).astype(np.uint8)
     return np.repeat(ring[:, :, None], length, axis=2)
+
+
+# --- grey-value images: what a CT scanner would show of the same bodies ----------------------------
+
+CONTRAST = 1000.0  # solid minus background, image units (HU)
+THRESHOLD = 0.5 * CONTRAST  # the iso-value between them, the segmentation's manual threshold
+
+
+def _ct_section(inside, n: int, supersample: int, blur: float) -> np.ndarray:
+    """A noise-free CT-like image of a cross-section: the body's indicator supersampled and
+    block-averaged (partial volume), then blurred by a Gaussian (sigma ``blur`` voxels).
+
+    ``inside(x, y)`` takes sparse supersampled grids of coordinates relative to the image
+    centre (a voxel corner) and returns the body's indicator; the image is (n, n).
+    """
+    from scipy import ndimage
+
+    g = (np.arange(n * supersample) + 0.5) / supersample - n / 2
+    x, y = np.meshgrid(g, g, indexing="ij", sparse=True)
+    fraction = inside(x, y).reshape(n, supersample, n, supersample).mean(axis=(1, 3))
+    # mode "nearest": the body goes on beyond the image's edge as it is there
+    return ndimage.gaussian_filter(CONTRAST * fraction, blur, mode="nearest")
+
+
+def kirsch_scan(radius: float = 7.0, width: int = 140, part: str = "quarter", supersample: int = 8,
+                blur: float = 0.6, noise: float = 30.0, seed: int = 0) -> np.ndarray:
+    """A CT-like grey-value image of the Kirsch plate (0 in the hole, ``CONTRAST`` in the solid).
+
+    The whole plate's image is made (the hole about its centre, a voxel corner); the quarter
+    is its +x +y quarter cut out, as one would cut a scan to model a quarter with symmetry,
+    so the quarter's grey values are the full plate's there.
+
+    Parameters
+    ----------
+    radius : float, optional
+        Hole radius, voxels.
+    width : int, optional
+        Plate width, voxels (even).
+    part : {"quarter", "full"}, optional
+    supersample : int, optional
+        Sub-voxels per voxel and axis for the partial volume.
+    blur : float, optional
+        The scanner's point spread, a Gaussian's sigma in voxels.
+    noise : float, optional
+        Gaussian noise, image units (of a contrast of 1000).
+    seed : int, optional
+
+    Returns
+    -------
+    (nx, ny) float32 ndarray
+    """
+    _axis(1, part)
+    image = _ct_section(lambda x, y: np.hypot(x, y) >= radius, width, supersample, blur)
+    image = (image + np.random.default_rng(seed).normal(0.0, noise, image.shape)).astype(np.float32)
+    return image[width // 2:, width // 2:] if part == "quarter" else image
+
+
+def lame_scan(inner: float = 7.0, outer: float = 14.0, length: int = 2, part: str = "quarter",
+              supersample: int = 8, blur: float = 0.6, noise: float = 30.0, seed: int = 0) -> np.ndarray:
+    """A CT-like grey-value image of the Lamé tube (sizes as :func:`lame_cylinder`).
+
+    The cross-section is made as in :func:`kirsch_scan` and repeated along z (the tube is a
+    prism, so block averaging and blur act in the section); the noise is drawn per voxel.
+
+    Parameters
+    ----------
+    inner, outer : float, optional
+        Radii, voxels, inner < outer.
+    length : int, optional
+        Voxels along z.
+    part : {"quarter", "full"}, optional
+        quarter: the whole tube's image cut at its axis (its +x +y quarter).
+    supersample, blur, noise, seed
+        As in :func:`kirsch_scan`.
+
+    Returns
+    -------
+    (nx, ny, length) float32 ndarray
+    """
+    _axis(1, part)
+    half = int(np.ceil(outer)) + 1
+    n = 2 * half
+    section = _ct_section(lambda x, y: (np.hypot(x, y) >= inner) & (np.hypot(x, y) < outer), n, supersample, blur)
+    image = section[:, :, None] + np.random.default_rng(seed).normal(0.0, noise, (n, n, length))
+    image = image.astype(np.float32)
+    return image[half:, half:] if part == "quarter" else image

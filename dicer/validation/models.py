@@ -3,7 +3,9 @@ the load steps need.
 
 ``build`` runs ``dicer run --labels`` on a label image (fix, mesh, merge, smooth, export
 to ``model.inp``, quality) with ``--set`` overrides, then ``dicer export --order 2`` on the
-smoothed mesh, exactly as a user would. ``Deck`` reads a written deck back (dicer's strict
+smoothed mesh, exactly as a user would; given a grey-value image instead (``scan=True``) it
+runs ``dicer run`` on the image (segment by a manual threshold, downsample, fix, ...), which
+passes the scan to the smooth stage (``smooth.surface_from_image``). ``Deck`` reads a written deck back (dicer's strict
 reader) and finds element faces: on a bounding plane of the model, or free (the exterior
 less the bounding planes: a hole's rim, a bore).
 """
@@ -19,6 +21,7 @@ import numpy as np
 
 from dicer.errors import DicerError
 from dicer.mesh.topology import HEX20_FACES, HEX_FACES, QUAD8_SIDES, QUAD_EDGES
+from dicer.validation.geometry import THRESHOLD
 
 E_MODULUS, POISSON = 1000.0, 0.3  # MPa, -; stress ratios do not depend on them
 
@@ -31,19 +34,42 @@ export:
   thickness: 1.0
 """
 
+SCAN_CONFIG = f"""\
+materials:
+  - {{name: solid, youngs_modulus: {E_MODULUS}, poissons_ratio: {POISSON}}}
+segment:
+  method: manual
+  thresholds: [{THRESHOLD}]
+  opening_radius: 0
+  closing_radius: 0
+  keep: all
+smooth:
+  surface_from_image: true
+export:
+  thickness: 1.0
+"""
+"""A grey-value image: one material above the threshold, no morphology (the threshold alone
+decides, as the label images' voxel-centre rule does), and the smoothing pulls the surface
+onto the image's iso-line."""
 
-def build(labels: np.ndarray, folder: str | os.PathLike, sets: list[str] = (), orders=(1, 2)) -> dict:
-    """Make the models of a label image in a folder.
+
+def build(labels: np.ndarray, folder: str | os.PathLike, sets: list[str] = (), orders=(1, 2),
+          scan: bool = False) -> dict:
+    """Make the models of a label image (or a grey-value image) in a folder.
 
     Parameters
     ----------
-    labels : uint8 ndarray
-        [x, y(, z)], 1 mm voxels.
+    labels : uint8 or float ndarray
+        [x, y(, z)], 1 mm voxels: labels, or with ``scan`` grey values (segmented at
+        ``THRESHOLD``).
     folder : str or os.PathLike
     sets : list of str, optional
         ``--set KEY=VALUE`` overrides (e.g. ``smooth.coefficient=0.8``).
     orders : sequence of int, optional
         Element orders of the decks.
+    scan : bool, optional
+        ``labels`` is a scan: written as ``scan.nii.gz`` and given to ``dicer run`` with
+        ``SCAN_CONFIG``.
 
     Returns
     -------
@@ -60,11 +86,19 @@ def build(labels: np.ndarray, folder: str | os.PathLike, sets: list[str] = (), o
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    np.save(folder / "labels.npy", labels)
-    (folder / "config.yaml").write_text(CONFIG)
+    if scan:
+        from dicer.image import Volume
+        from dicer.io.images import write_image
+
+        write_image(Volume(np.asarray(labels, np.float32), (1.0,) * labels.ndim), folder / "scan.nii.gz")
+        source = [str(folder / "scan.nii.gz")]
+    else:
+        np.save(folder / "labels.npy", labels)
+        source = ["--labels", str(folder / "labels.npy")]
+    (folder / "config.yaml").write_text(SCAN_CONFIG if scan else CONFIG)
     out = folder / "run"
     common = ["--config", str(folder / "config.yaml")] + [a for s in sets for a in ("--set", s)] + ["-q"]
-    if main(["run", "--labels", str(folder / "labels.npy"), "-o", str(out), *common]) != 0:
+    if main(["run", *source, "-o", str(out), *common]) != 0:
         raise DicerError(f"{folder}: dicer run failed")
     decks = {}
     for order in orders:
@@ -161,3 +195,30 @@ def dload(elements: np.ndarray, numbers: np.ndarray, pressure: float) -> str:
     """
     rows = np.char.add(np.char.add((elements + 1).astype(str), ", P"), numbers.astype(str))
     return "*DLOAD\n" + "\n".join(np.char.add(rows, f", {float(pressure)!r}").tolist()) + "\n"
+
+
+def write_moved(deck_path: str | os.PathLike, points: np.ndarray, out_path: str | os.PathLike) -> Path:
+    """A copy of a deck dicer wrote with its nodes at other positions (the rest as written).
+
+    Parameters
+    ----------
+    deck_path : str or os.PathLike
+        The deck; its ``*NODE`` block holds nodes 1..N in order, as dicer writes it.
+    points : (N, 3) float ndarray
+        The new positions, mm.
+    out_path : str or os.PathLike
+
+    Returns
+    -------
+    Path
+        ``out_path``.
+    """
+    import io
+
+    text = Path(deck_path).read_text()
+    start = text.index("*NODE\n") + len("*NODE\n")
+    end = text.index("\n*", start) + 1
+    rows = io.StringIO()
+    np.savetxt(rows, np.column_stack([np.arange(1, len(points) + 1), points]), fmt="%7d, %.12e, %.12e, %.12e")
+    Path(out_path).write_text(text[:start] + rows.getvalue() + text[end:])
+    return Path(out_path)

@@ -9,6 +9,13 @@ the same bytes):
   whole default chain of ``dicer run``; and part ``full-offset`` (the full plate with its
   hole centre off the lattice by ``OFFSET``) at the settings ``OFFSET_SETTINGS``.
 * ``lame``: {"a=<inner>": {...}} at default smoothing without merging, and ``a=7+merge``.
+* ``kirsch`` parts ``quarter-scan`` and ``full-scan``, and ``lame-scan``: the same bodies
+  from a CT-like grey-value image (``geometry.kirsch_scan``, ``geometry.lame_scan``) by
+  ``dicer run`` on the image with ``smooth.surface_from_image`` (the rim pulled onto the
+  image's iso-line), at the settings ``scan_settings(part)`` and ``LAME_SCAN_RADII``; parts
+  ``quarter-scan-clean`` and ``full-scan-clean``: the plate's image without noise.
+* ``kirsch-reference``: {"CPS4": {...}, "CPS8": {...}}, the ideal O-grid mesh of dicer's
+  element size (``reference.kirsch_ogrid``).
 """
 
 from __future__ import annotations
@@ -17,7 +24,7 @@ import os
 import time
 from pathlib import Path
 
-from dicer.validation import cases
+from dicer.validation import cases, reference
 
 COEFFICIENTS = (0.0, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95)
 NO_MERGE = "merge.passes=[0,0,0]"
@@ -25,6 +32,9 @@ KIRSCH_RADIUS, KIRSCH_WIDTH = 7.0, 140  # a = 7 voxels, L = 20 a
 OFFSET = (0.35, 0.2)  # the full plate's hole centre off the lattice (voxels)
 OFFSET_SETTINGS = ("k=0", "k=0.8", "defaults", "defaults+merge")
 LAME_RADII = (7.0, 14.0, 28.0)  # inner radius a; outer 2 a
+LAME_SCAN_RADII = (7.0, 14.0)
+MIN_SJ_03 = "smooth.min_scaled_jacobian=0.3"  # issue #17's quality target as the guard's floor
+SCAN_NOISE = 30.0  # the grey-value images' noise on a contrast of 1000 (the ``-clean`` parts: none)
 ORDER_NAMES = {"kirsch": {1: "CPS4", 2: "CPS8"}, "lame": {1: "C3D8", 2: "C3D20"}}
 
 
@@ -56,6 +66,28 @@ def kirsch_settings() -> dict[str, list[str]]:
     return out
 
 
+def scan_settings(part: str = "quarter") -> dict[str, list[str]]:
+    """The settings of the grey-value plates: defaults, the guard's floor at 0.3, k = 0.8, a
+    wider image smoothing and the whole default chain (the full plate, four times the
+    elements, at the first two and the last only).
+
+    Parameters
+    ----------
+    part : {"quarter", "full"}, optional
+
+    Returns
+    -------
+    dict of str to list of str
+        Setting name -> ``--set`` overrides.
+    """
+    out = {"defaults": [NO_MERGE], "min SJ 0.3": [NO_MERGE, MIN_SJ_03]}
+    if part == "quarter":
+        out["k=0.8"] = [NO_MERGE, "smooth.coefficient=0.8"]
+        out["image_sigma=1"] = [NO_MERGE, "smooth.image_sigma=1.0"]
+    out["defaults+merge"] = []
+    return out
+
+
 def run_study(work: str | os.PathLike, log=print) -> dict:
     """Run every case in folders under ``work``.
 
@@ -71,7 +103,7 @@ def run_study(work: str | os.PathLike, log=print) -> dict:
         The results described in the module notes.
     """
     work = Path(work)
-    results = {"kirsch": {}, "lame": {}}
+    results = {"kirsch": {}, "lame": {}, "lame-scan": {}}
     for part in ("quarter", "full"):
         t0 = time.perf_counter()
         rows = {}
@@ -99,4 +131,37 @@ def run_study(work: str | os.PathLike, log=print) -> dict:
     r = cases.lame(work / "lame_7_merge", "quarter", [], inner=LAME_RADII[0], outer=2 * LAME_RADII[0])
     results["lame"][f"a={LAME_RADII[0]:g}+merge"] = _named(r, "lame")
     log(f"lame: {time.perf_counter() - t0:.0f} s")
+    _run_scans(work, results, log)
     return _rounded(results)
+
+
+def _run_scans(work: Path, results: dict, log) -> None:
+    """The grey-value cases into ``results`` (parts ``quarter-scan``, ``full-scan``, ``lame-scan``)."""
+    t0 = time.perf_counter()
+    results["kirsch-reference"] = {ORDER_NAMES["kirsch"][o]: reference.kirsch_ogrid(work / "kirsch_ogrid", o)
+                                   for o in (1, 2)}
+    clean = {name: sets for name, sets in scan_settings("quarter").items() if name in ("defaults", "min SJ 0.3")}
+    for key, part, noise, settings in (("quarter-scan", "quarter", SCAN_NOISE, scan_settings("quarter")),
+                                       ("full-scan", "full", SCAN_NOISE, scan_settings("full")),
+                                       ("quarter-scan-clean", "quarter", 0.0, clean),
+                                       ("full-scan-clean", "full", 0.0, {"min SJ 0.3": clean["min SJ 0.3"]})):
+        rows = {}
+        for name, sets in settings.items():
+            r = cases.kirsch(work / f"kirsch_{key}_{name.replace(' ', '_')}", part, sets, KIRSCH_RADIUS,
+                             KIRSCH_WIDTH, scan=True, noise=noise)
+            rows[name] = _named(r, "kirsch")
+            log(f"kirsch {key} {name}: CPS4 {r[1]['sigma_x_90']:.4f} CPS8 {r[2]['sigma_x_90']:.4f} "
+                f"min SJ {r['min_sj']:.3f}")
+        results["kirsch"][key] = rows
+    log(f"kirsch scans: {time.perf_counter() - t0:.0f} s")
+    t0 = time.perf_counter()
+    rows = {}
+    for a in LAME_SCAN_RADII:
+        r = cases.lame(work / f"lame_scan_{a:g}", "quarter", [NO_MERGE], inner=a, outer=2 * a, scan=True)
+        rows[f"a={a:g}"] = _named(r, "lame")
+        log(f"lame scan a={a:g}: C3D8 {r[1]['error_mean']:+.4f} C3D20 {r[2]['error_mean']:+.4f}")
+    r = cases.lame(work / "lame_scan_7_merge", "quarter", [], inner=LAME_SCAN_RADII[0], outer=2 * LAME_SCAN_RADII[0],
+                   scan=True)
+    rows[f"a={LAME_SCAN_RADII[0]:g}+merge"] = _named(r, "lame")
+    results["lame-scan"] = rows
+    log(f"lame scans: {time.perf_counter() - t0:.0f} s")

@@ -179,7 +179,7 @@ def ball_labels(shape, radii, centre=None):
 def test_2d_disc_coarsens_and_keeps_every_boundary():
     labels = ball_labels((120, 120), (55, 25))
     voxel = voxel_mesh(labels)
-    graded, report = coarsen_mesh(voxel, levels=2)
+    graded, report = coarsen_mesh(voxel, levels=2, min_distance=1, keep_fine=())
     check_graded(voxel, graded)
     assert voxel.n_cells == 9500
     assert report["element_ratio"] >= 2.5
@@ -187,19 +187,19 @@ def test_2d_disc_coarsens_and_keeps_every_boundary():
     for k in ("1", "2"):
         assert report["volume"][k]["change_percent"] == 0.0
     # more levels never give more elements
-    one, _ = coarsen_mesh(voxel, levels=1)
+    one, _ = coarsen_mesh(voxel, levels=1, min_distance=1, keep_fine=())
     assert graded.n_cells <= one.n_cells < voxel.n_cells
 
 
 def test_levels_zero_and_keep_fine_leave_voxels():
     labels = ball_labels((60, 60), (28, 12))
     voxel = voxel_mesh(labels)
-    same, _ = coarsen_mesh(voxel, levels=0)
+    same, _ = coarsen_mesh(voxel, levels=0, min_distance=1, keep_fine=())
     assert same.n_cells == voxel.n_cells
     np.testing.assert_array_equal(same.points, voxel.points)
-    kept, report = coarsen_mesh(voxel, levels=2, keep_fine=[1, 2])
+    kept, report = coarsen_mesh(voxel, levels=2, keep_fine=[1, 2], min_distance=1)
     assert kept.n_cells == voxel.n_cells
-    part, report = coarsen_mesh(voxel, levels=2, keep_fine=[2])
+    part, report = coarsen_mesh(voxel, levels=2, keep_fine=[2], min_distance=1)
     assert report["elements_by_material"]["2"]["after"] == report["elements_by_material"]["2"]["before"]
     assert report["elements_by_material"]["1"]["after"] < report["elements_by_material"]["1"]["before"]
 
@@ -209,9 +209,9 @@ def test_min_distance_keeps_thin_parts_fine():
     labels[5:55, 5:55] = 1
     labels[5:55, 28:32] = 2  # a 4-voxel band
     voxel = voxel_mesh(labels)
-    graded, report = coarsen_mesh(voxel, levels=1, min_distance=1)
+    graded, report = coarsen_mesh(voxel, levels=1, min_distance=1, keep_fine=())
     assert report["elements_by_material"]["2"]["after"] == 200
-    far, report_far = coarsen_mesh(voxel, levels=1, min_distance=4)
+    far, report_far = coarsen_mesh(voxel, levels=1, min_distance=4, keep_fine=())
     assert far.n_cells > graded.n_cells
     check_graded(voxel, far)
 
@@ -219,7 +219,7 @@ def test_min_distance_keeps_thin_parts_fine():
 def test_graded_2d_mesh_smooths_like_the_voxel_mesh():
     labels = ball_labels((90, 90), (40, 18))
     voxel = voxel_mesh(labels)
-    graded, _ = coarsen_mesh(voxel, levels=2)
+    graded, _ = coarsen_mesh(voxel, levels=2, min_distance=1, keep_fine=())
     smooth_v, rep_v = smooth_mesh(voxel, {})
     smooth_g, rep_g = smooth_mesh(graded, {})
     assert rep_g["inverted_elements"] == 0
@@ -237,14 +237,14 @@ def test_templates_refuse_a_merged_mesh():
     labels = ball_labels((30, 30, 30), (12,))
     merged, _ = merge_mesh(voxel_mesh(labels), {"passes": [1, 0, 0]})
     with pytest.raises(DicerError, match="voxel mesh"):
-        coarsen_mesh(merged, levels=1)
+        coarsen_mesh(merged, levels=1, min_distance=1, keep_fine=())
     # one voxel's corners turned about its axis: still a box, no longer in VTK order
     turned = voxel_mesh(labels)
     turned.cells[7] = turned.cells[7][[1, 2, 3, 0, 5, 6, 7, 4]]
     with pytest.raises(DicerError, match="voxel mesh"):
-        coarsen_mesh(turned, levels=1)
+        coarsen_mesh(turned, levels=1, min_distance=1, keep_fine=())
     with pytest.raises(DicerError, match="min_distance"):
-        coarsen_mesh(voxel_mesh(labels), levels=1, min_distance=0)
+        coarsen_mesh(voxel_mesh(labels), levels=1, min_distance=0, keep_fine=())
 
 
 def test_merge_stage_grades_3d_meshes():
@@ -287,7 +287,7 @@ def test_random_2d_volumes_keep_every_invariant(labels, levels, distance):
     if not labels.any():
         return
     voxel = voxel_mesh(labels)
-    graded, _ = coarsen_mesh(voxel, levels=levels, min_distance=distance)
+    graded, _ = coarsen_mesh(voxel, levels=levels, min_distance=distance, keep_fine=())
     check_graded(voxel, graded)
     smoothed, report = smooth_mesh(graded, {})
     assert report["inverted_elements"] == 0
@@ -299,7 +299,7 @@ def test_random_3d_volumes_keep_every_invariant(labels, levels):
     if not labels.any():
         return
     voxel = voxel_mesh(labels)
-    graded, _ = coarsen_mesh(voxel, levels=levels)
+    graded, _ = coarsen_mesh(voxel, levels=levels, min_distance=1, keep_fine=())
     check_graded(voxel, graded)
     smoothed, report = smooth_mesh(graded, {})  # never raises: the templates keep their floor
     assert report["inverted_elements"] == 0 and report["min_scaled_jacobian"] >= 0.2
@@ -320,11 +320,11 @@ def test_3d_volumes_large_enough_for_every_step(seed):
     # 56 voxels a side, seeds whose x, y and z steps all hold coarse cells next to the
     # templates and refined cells of the steps below
     labels, _ = fix_connectivity(_overlapping_balls(56, seed))
-    steps = coarsen_labels(labels, levels=2)["steps"]
+    steps = coarsen_labels(labels, levels=2, min_distance=1, keep_fine=())["steps"]
     coarse = {(s["level"], s["frame"][0]): int((s["cell_plain"] & s["open"]).sum()) for s in steps}
     assert min(coarse.get((1, axis), 0) for axis in range(3)) > 0, coarse
     voxel = voxel_mesh(labels)
-    graded, report = coarsen_mesh(voxel, levels=2)
+    graded, report = coarsen_mesh(voxel, levels=2, min_distance=1, keep_fine=())
     check_graded(voxel, graded)
     assert report["elements_after"] < 0.9 * report["elements_before"]
     _, smoothed = smooth_mesh(graded, {})

@@ -249,7 +249,7 @@ def test_lattice_minus_one_only_on_template_nodes_of_graded_meshes(tmp_path):
     from dicer.mesh.model import LEVEL_DATA
 
     labels = np.ones((12, 12, 12), np.uint8)
-    graded, _ = coarsen_mesh(voxel_mesh(labels), levels=1)
+    graded, _ = coarsen_mesh(voxel_mesh(labels), levels=1, min_distance=1, keep_fine=())
     between = np.all(graded.lattice == -1, axis=1)
     assert between.sum() > 0
     write_mesh(graded, tmp_path / "graded.vtu")
@@ -262,3 +262,49 @@ def test_lattice_minus_one_only_on_template_nodes_of_graded_meshes(tmp_path):
     with pytest.raises(DicerError, match=r"bad.vtu: .*1 node\(s\) have a negative lattice index"):
         write_mesh(replace(graded, lattice=lattice), tmp_path / "bad.vtu")
     assert not (tmp_path / "bad.vtu").exists()
+
+
+# --- zlib-compressed VTU (model.vtu) -------------------------------------------------------
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+import dicer.io.meshes as meshes_io  # noqa: E402
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 10_000), dim=st.sampled_from([2, 3]), block=st.sampled_from([64, 1000, 1 << 18]))
+def test_compressed_vtu_reads_as_meshio_reads_it(tmp_path, monkeypatch, seed, dim, block):
+    rng = np.random.default_rng(seed)
+    shape = tuple(rng.integers(2, 7, dim))
+    labels = rng.integers(0, 3, shape).astype(np.uint8)
+    labels.flat[0] = 1
+    m = voxel_mesh(labels)
+    m.points[:, :dim] += rng.uniform(-0.2, 0.2, (m.n_points, dim))
+    plain, m = m, meshes_io.with_quality(m)
+    monkeypatch.setattr(meshes_io, "_ZLIB_BLOCK", block)  # many blocks, a partial last one
+    path = tmp_path / f"c{seed}_{dim}_{block}.vtu"
+    meshes_io.write_raw_vtu(m, path, compress=True)
+    assert b'compressor="vtkZLibDataCompressor"' in path.read_bytes()[:300]
+    cell_type, points, cells, point_data, cell_data, fields = meshes_io.read_raw_vtu(path, str(path))
+    ref = meshio.read(path)
+    assert np.array_equal(points, ref.points) and np.array_equal(points, m.points)
+    assert np.array_equal(cells, ref.cells[0].data) and np.array_equal(cells, m.cells)
+    assert np.array_equal(point_data["lattice"], ref.point_data["lattice"])
+    for key in ("material", "scaled_jacobian", "edge_ratio"):
+        assert np.array_equal(cell_data[key], ref.cell_data[key][0])
+    assert meshes_io._same_mesh(plain, read_mesh(path))  # the reader drops the quality data
+
+
+def test_compressed_vtu_refuses_damage(tmp_path, mesh):
+    path = tmp_path / "c.vtu"
+    meshes_io.write_raw_vtu(meshes_io.with_quality(mesh), path, compress=True)
+    data = path.read_bytes()
+    at = data.index(b"_", data.index(b"<AppendedData")) + 1
+    for name, damaged in (("flipped", data[:at + 200] + bytes([data[at + 200] ^ 0xFF]) + data[at + 201:]),
+                          ("cut", data[: (at + len(data)) // 2]),
+                          ("header", data[:at] + (10**12).to_bytes(8, "little") + data[at + 8:])):
+        bad = tmp_path / f"{name}.vtu"
+        bad.write_bytes(damaged)
+        with pytest.raises(DicerError, match="cannot read mesh"):
+            read_mesh(bad)

@@ -94,9 +94,11 @@ def mesh_of(name):
     elif name == "merged":
         m = merge_mesh(mesh_of("ball"), {})[0]
     elif name == "graded":
-        m = coarsen_mesh(voxel_mesh(shells(30, 3, [(0, 6.2, 2), (6.2, 13.1, 1)], (15.2, 14.9, 15.1))), levels=1)[0]
+        m = coarsen_mesh(voxel_mesh(shells(30, 3, [(0, 6.2, 2), (6.2, 13.1, 1)], (15.2, 14.9, 15.1))),
+                         levels=1, min_distance=1, keep_fine=())[0]
     elif name == "graded_2d":
-        m = coarsen_mesh(voxel_mesh(shells(60, 2, [(0, 12.2, 2), (12.2, 27.1, 1)], (30.2, 29.7))), levels=2)[0]
+        m = coarsen_mesh(voxel_mesh(shells(60, 2, [(0, 12.2, 2), (12.2, 27.1, 1)], (30.2, 29.7))),
+                         levels=2, min_distance=1, keep_fine=())[0]
     elif name == "stripes":  # 24 materials: the sorted edge count of boundary_graph
         lab = np.zeros((26, 10, 8), np.uint8)
         lab[1:25, 1:9, 1:7] = np.arange(1, 25, dtype=np.uint8)[:, None, None]

@@ -163,13 +163,33 @@ def _vtu_arrays(mesh: Mesh, path: Path) -> dict[str, list[tuple[str, np.ndarray]
     }
 
 
-def _zlib_blocks(a: np.ndarray) -> list:
-    """The array in VTK's zlib layout: [header words (<u8), compressed blocks...]."""
+def _deflate(data, flushes: int = 0) -> bytes:
+    """zlib level 1 of ``data``, with ``flushes`` empty sync-flush blocks before the end
+    (each a few bytes that change the stream's length, not what it holds)."""
+    c = zlib.compressobj(1)
+    out = [c.compress(data)] + [c.flush(zlib.Z_SYNC_FLUSH) for _ in range(flushes)]
+    return b"".join(out + [c.flush()])
+
+
+def _zlib_blocks(a: np.ndarray, start: int) -> list:
+    """The array in VTK's zlib layout, [header words (<u8), compressed blocks...], to be
+    placed at byte ``start`` of the appended data.
+
+    meshio's reader of raw appended data walks the arrays in order, finds each one's tag
+    by its offset and rewrites that offset as it goes, always to a multiple of 4 (a base64
+    length); a later array whose offset equals such a value would be taken for an earlier
+    one. So every array is made to end (the next one to start) off the multiples of 4: the
+    last block gets up to a few empty flush blocks."""
     raw = memoryview(a.reshape(-1).view(np.uint8))
     n = len(raw)
-    starts = range(0, n, _ZLIB_BLOCK)
+    starts = list(range(0, n, _ZLIB_BLOCK))
     with ThreadPoolExecutor(max(1, min(2, os.cpu_count() or 1))) as pool:  # zlib frees the GIL
-        blocks = list(pool.map(lambda i: zlib.compress(raw[i:i + _ZLIB_BLOCK], 1), starts))
+        blocks = list(pool.map(lambda i: _deflate(raw[i:i + _ZLIB_BLOCK]), starts))
+    for flushes in range(1, 9):
+        end = start + 8 * (3 + len(blocks)) + sum(map(len, blocks))
+        if not blocks or end % 4:
+            break
+        blocks[-1] = _deflate(raw[starts[-1]:], flushes)
     last = n - (len(blocks) - 1) * _ZLIB_BLOCK if blocks else 0
     header = np.array([len(blocks), _ZLIB_BLOCK, last, *map(len, blocks)], "<u8").tobytes()
     return [header, *blocks]
@@ -186,8 +206,8 @@ def _write_vtu(mesh: Mesh, path: Path, compress: bool = False) -> None:
             tags.append(f'<DataArray type="{_VTK_TYPES[a.dtype.newbyteorder("=")]}" Name={quoteattr(name)}'
                         f'{ncomp} format="appended" offset="{offset}"/>\n')
             # the array's own memory, no copy, or its compressed blocks
-            parts = _zlib_blocks(a) if compress else [np.uint64(a.nbytes).astype("<u8").tobytes(),
-                                                      a.reshape(-1).view(np.uint8).data]
+            parts = (_zlib_blocks(a, offset) if compress
+                     else [np.uint64(a.nbytes).astype("<u8").tobytes(), a.reshape(-1).view(np.uint8).data])
             blocks.extend(parts)
             offset += sum(len(p) if isinstance(p, bytes) else p.nbytes for p in parts)
         tags.append(f"</{section}>\n")

@@ -215,18 +215,18 @@ def _steps_3d(labels: np.ndarray, levels: int, min_distance: int, keep_fine) -> 
     return steps
 
 
-def coarsen_labels(labels: np.ndarray, levels: int = 1, min_distance: int = 1, keep_fine=()) -> dict:
+def coarsen_labels(labels: np.ndarray, *, levels: int, min_distance: int, keep_fine) -> dict:
     """The graded decomposition of a label volume: which cells of which step are elements.
 
     Parameters
     ----------
     labels : (nx, ny, nz) or (nx, ny) int ndarray
         0 background.
-    levels : int, optional
+    levels : int
         Coarsening levels (0: every voxel its own element).
-    min_distance : int, optional
+    min_distance : int
         Voxels (>= 1) of one material around a cell before it may coarsen.
-    keep_fine : sequence of int, optional
+    keep_fine : sequence of int
         Material labels kept at voxel size.
 
     Returns
@@ -371,7 +371,7 @@ def _new_elements(decomposition: dict, dim: int):
     return np.concatenate(parts), np.concatenate(materials), np.concatenate(levels)
 
 
-def coarsen_mesh(mesh: Mesh, levels: int = 1, min_distance: int = 1, keep_fine=()) -> tuple[Mesh, dict]:
+def coarsen_mesh(mesh: Mesh, *, levels: int, min_distance: int, keep_fine) -> tuple[Mesh, dict]:
     """A graded mesh of a voxel mesh (see the module notes).
 
     The graded mesh keeps the voxel mesh's remaining voxels and nodes (in their order),
@@ -383,11 +383,11 @@ def coarsen_mesh(mesh: Mesh, levels: int = 1, min_distance: int = 1, keep_fine=(
     ----------
     mesh : Mesh
         A voxel mesh from :func:`~dicer.mesh.voxel.voxel_mesh` (hexahedra or quads).
-    levels : int, optional
+    levels : int
         Coarsening levels; elements grow to 3**levels voxels at most (0: unchanged).
-    min_distance : int, optional
+    min_distance : int
         Voxels (>= 1) of one material around a cell before it coarsens.
-    keep_fine : sequence of int, optional
+    keep_fine : sequence of int
         Material labels kept at voxel size.
 
     Returns
@@ -402,7 +402,7 @@ def coarsen_mesh(mesh: Mesh, levels: int = 1, min_distance: int = 1, keep_fine=(
         raise DicerError(f"merge.templates.min_distance={min_distance!r}: give a whole number of voxels >= 1")
     t0 = time.perf_counter()
     labels, first = _voxels_of(mesh)
-    decomposition = coarsen_labels(labels, int(levels), int(min_distance), keep_fine)
+    decomposition = coarsen_labels(labels, levels=int(levels), min_distance=int(min_distance), keep_fine=keep_fine)
     keep = decomposition["voxels"][tuple(first.T)]
     corner_thirds, material, level = _new_elements(decomposition, mesh.dim)
     out = _assemble(mesh, keep, corner_thirds, material.astype(np.int32), level)

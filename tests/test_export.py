@@ -240,7 +240,7 @@ def _no_files(folder, keep=()):
 
 
 @pytest.mark.parametrize("settings,message", [
-    ({"element_type": "C3D27"}, "unknown element type"),
+    ({"element_type": "C3D27"}, "export.element_type': \"C3D27\" is not allowed"),
     ({"element_type": "CPS4"}, "for 2D meshes"),
     ({"element_type": "C3D20"}, "has order 2"),
     ({"element_type": "C3D8", "order": 2}, "has order 1"),

@@ -33,7 +33,7 @@ STAGE_SECTIONS = {
     "merge": ("merge",),
     "smooth": ("smooth",),
     "export": ("materials", "export"),
-    "quality": ("quality",),
+    "quality": ("materials", "quality"),  # the report names the materials
 }
 
 
@@ -561,7 +561,7 @@ _ADAPTERS = {
     "merge": lambda s: dict(s["merge"]),
     "smooth": lambda s: dict(s["smooth"]),
     "export": lambda s: {"materials": s["materials"], **s["export"]},
-    "quality": lambda s: dict(s["quality"]),
+    "quality": lambda s: {"names": _names(s), **s["quality"]},
 }
 
 

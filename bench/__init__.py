@@ -178,7 +178,7 @@ def benchmark_export(mesh, folder, suffix: str = ".inp", config: dict | None = N
 
     path = Path(folder) / f"bench_model{suffix}"
     t0 = time.perf_counter()
-    info = export_mesh(mesh, path, config or load_config(), source=None, verify=False)
+    info = export_mesh(mesh, path, config or load_config(), source=None, check=False)
     seconds = time.perf_counter() - t0
     path.unlink(missing_ok=True)
     return {"seconds": seconds, "bytes": info["bytes"], "elements": info["elements"], "nodes": info["nodes"]}

@@ -207,7 +207,7 @@ def _crop(volume, config: dict, source: str):
 
 def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = None, info_path: Path | None = None,
                plot: Path | None = None):
-    from dicer.config import material_names
+    from dicer.config import material_names, stage_kwargs
     from dicer.io.atomic import write_bytes_atomic
     from dicer.io.images import read_image
     from dicer.io.pictures import save_overlay_png, save_threshold_plot
@@ -218,7 +218,7 @@ def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = 
         image = read_image(image_path, spacing=config["image"]["spacing"],
                            allow_irregular_slices=config["image"]["allow_irregular_slices"])
         image, cropped = _crop(image, config, image_path)
-        labels, info = segment(image, config, source=image_path)
+        labels, info = segment(image, **stage_kwargs(config, "segment"), source=image_path)
         if cropped:
             info["crop"] = cropped
         # a NIfTI scan lends its header: the labels overlay it with exactly its affine
@@ -241,13 +241,14 @@ def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = 
 
 def do_labels(labels_path: str, out: Path, config: dict, materials_path: Path | None = None) -> list[dict]:
     """Map a label volume made elsewhere to materials 1..K (config ``labels``); returns the materials."""
+    from dicer.config import stage_kwargs
     from dicer.io.atomic import write_bytes_atomic
     from dicer.io.images import read_labels
     from dicer.labels import map_labels, write_mapped_labels
 
     with _Stage("labels"):
         labels, _ = _crop(read_labels(labels_path), config, labels_path)
-        mapped, materials, info = map_labels(labels, config, source=labels_path)
+        mapped, materials, info = map_labels(labels, **stage_kwargs(config, "labels"), source=labels_path)
         write_mapped_labels(mapped, labels_path, out)
         if materials_path:
             text = json.dumps({"materials": materials, "values": info["values"]}, indent=1, sort_keys=True)
@@ -267,13 +268,14 @@ def downsample_applies(config: dict) -> bool:
 
 
 def do_downsample(labels_path: str, out: Path, config: dict):
+    from dicer.config import stage_kwargs
     from dicer.downsample import downsample
     from dicer.io.images import read_labels
     from dicer.labels import write_mapped_labels
 
     with _Stage("downsample"):
         labels = read_labels(labels_path)
-        reduced, info = downsample(labels, config, source=labels_path)
+        reduced, info = downsample(labels, **stage_kwargs(config, "downsample"), source=labels_path)
         # factor 1 keeps the grid, and then the input's header (exactly its affine)
         write_mapped_labels(reduced, labels_path, out)
         log.info("downsample: wrote %s (%s)", out, json.dumps(info, sort_keys=True))
@@ -281,7 +283,7 @@ def do_downsample(labels_path: str, out: Path, config: dict):
 
 
 def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None = None):
-    from dicer.config import material_names
+    from dicer.config import stage_kwargs
     from dicer.connectivity import fix_stage
     from dicer.image import Volume
     from dicer.io.images import read_labels
@@ -290,10 +292,9 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
     with _Stage("fix"):
         labels = read_labels(labels_path)
         _check_labels(labels, labels_path, config)
-        settings = config["fix"]
-        names = {str(k): v for k, v in material_names(config).items()}
+        settings = stage_kwargs(config, "fix")
         try:
-            fixed, report = fix_stage(labels.array, names, **settings)
+            fixed, report = fix_stage(labels.array, **settings)
         except DicerError as exc:
             raise DicerError(f"{labels_path}: {exc}") from None
         removed = report["islands"]["removed_by_material"]
@@ -344,12 +345,14 @@ def _mesh_to_mesh(stage: str, func, mesh_path: str, out: Path, report_path: Path
 
 
 def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None = None, mesh=None):
+    from dicer.config import stage_kwargs
     from dicer.mesh.merge import merge_mesh
 
+    settings = stage_kwargs(config, "merge")
     # coarsening builds a new mesh and only reads the voxel mesh (a copy of 0.9 GB at 256^3
     # cost more than the coarsening)
-    merged, report = _mesh_to_mesh("merge", lambda m: merge_mesh(m, config["merge"]), mesh_path, out, report_path,
-                                   mesh, mapped=config["merge"]["method"] == "templates")
+    merged, report = _mesh_to_mesh("merge", lambda m: merge_mesh(m, **settings), mesh_path, out, report_path,
+                                   mesh, mapped=settings["method"] == "templates")
     log.info("merge: wrote %s (%d -> %d elements, %d -> %d nodes; volume %s)", out,
              report["elements_before"], report["elements_after"], report["nodes_before"],
              report["nodes_after"], json.dumps(_stable(report["volume"]), sort_keys=True))
@@ -360,7 +363,7 @@ def _read_thresholds(path: str | None, config: dict, image_path: str) -> list:
     """The thresholds segmentation chose: from its info file (dicer segment --info), or
     the config's manual segment.thresholds."""
     if path is None:
-        if config["segment"].get("method") == "manual" and config["segment"].get("thresholds"):
+        if config["segment"]["method"] == "manual" and config["segment"]["thresholds"]:
             return config["segment"]["thresholds"]
         raise DicerError(f"{image_path}: --image needs the thresholds segmentation chose; give --thresholds "
                          "segmentation.json (written by dicer segment --info)")
@@ -379,10 +382,12 @@ def _read_thresholds(path: str | None, config: dict, image_path: str) -> list:
 
 def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None = None,
               image_path: str | None = None, thresholds_path: str | None = None, mesh=None):
+    from dicer.config import stage_kwargs
     from dicer.mesh.smooth import smooth_mesh
 
+    settings = stage_kwargs(config, "smooth")
     image = thresholds = None
-    if image_path is not None and config["smooth"].get("surface_from_image", False):
+    if image_path is not None and settings["surface_from_image"]:
         from dicer.io.images import read_image
 
         thresholds = _read_thresholds(thresholds_path, config, image_path)
@@ -391,8 +396,7 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
 
     def run(m):
         try:
-            return smooth_mesh(m, config["smooth"], image=image, thresholds=thresholds,
-                               image_source=image_path or "image")
+            return smooth_mesh(m, **settings, image=image, thresholds=thresholds, image_source=image_path or "image")
         except DicerError as exc:
             text = str(exc)
             if image_path and (text.startswith(image_path) or (thresholds_path and text.startswith(thresholds_path))):
@@ -405,33 +409,32 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
 
 
 def do_mesh(labels_path: str, out: Path, config: dict):
+    from dicer.config import stage_kwargs
     from dicer.io.images import read_labels
     from dicer.io.meshes import write_mesh
-    from dicer.mesh.voxel import voxel_mesh
+    from dicer.mesh.voxel import mesh_labels
 
     with _Stage("mesh"):
         labels = read_labels(labels_path)
         _check_labels(labels, labels_path, config)
-        # mesh.coordinates: scanner keeps the image's direction cosines for the exports
-        direction = labels.direction if config["mesh"]["coordinates"] == "scanner" else None
         try:
-            mesh = voxel_mesh(labels.array, labels.spacing, labels.origin, direction)
+            mesh = mesh_labels(labels, **stage_kwargs(config, "mesh"))
         except DicerError as exc:
             raise DicerError(f"{labels_path}: {exc}") from None
-        mesh.names = [m["name"] for m in config["materials"]]
         write_mesh(mesh, out)
         log.info("mesh: wrote %s (%d nodes, %d elements)", out, mesh.n_points, mesh.n_cells)
     return mesh
 
 
 def do_export(mesh_path: str, out: Path, config: dict, mesh=None):
+    from dicer.config import stage_kwargs
     from dicer.export import export_mesh
     from dicer.io.meshes import read_mesh
 
     with _Stage("export"):
         # the export only reads the mesh: its arrays stay in the page cache, mapped, not copied
         mesh = read_mesh(mesh_path, mapped=True) if mesh is None else mesh
-        info = export_mesh(mesh, out, config, source=mesh_path)
+        info = export_mesh(mesh, out, **stage_kwargs(config, "export"), source=mesh_path)
         log.info("export: wrote %s (%s)", out, json.dumps(info, sort_keys=True))
 
 
@@ -701,6 +704,7 @@ def _check_memory(source: str, config: dict) -> None:
     run without a message."""
     import numpy as np
 
+    from dicer.config import stage_kwargs
     from dicer.downsample import reduction_factor
     from dicer.resources import machine_memory_mb, run_peak_mb, scan_header
 
@@ -708,8 +712,9 @@ def _check_memory(source: str, config: dict) -> None:
         voxels, spacing = scan_header(source)
     except OSError:  # missing or unreadable: the first stage names the problem
         return
-    factor = (reduction_factor(spacing or (1.0, 1.0, 1.0), config, source=source)
-              if downsample_applies(config) else 1)
+    ds = stage_kwargs(config, "downsample")
+    factor = (reduction_factor(spacing or (1.0, 1.0, 1.0), factor=ds["factor"], voxel_size=ds["voxel_size"],
+                               source=source) if downsample_applies(config) else 1)
     whole, voxels = voxels, _cropped_voxels(voxels, spacing, config["image"]["crop"])
     need, have = run_peak_mb(voxels, factor), machine_memory_mb()
     if voxels < whole:  # the whole scan is read (as float32) before it is cut

@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import functools
 import hashlib
+import inspect
 import json
 import math
 import re
@@ -32,7 +33,7 @@ STAGE_SECTIONS = {
     "merge": ("merge",),
     "smooth": ("smooth",),
     "export": ("materials", "export"),
-    "quality": ("quality",),
+    "quality": ("materials", "quality"),  # the report names the materials
 }
 
 
@@ -97,6 +98,18 @@ def section_defaults(section: str) -> dict:
         Every key of the section that has a default, at that default (a fresh copy).
     """
     return _defaults(_schema()["properties"][section])
+
+
+def material_defaults() -> dict:
+    """The properties a ``materials`` entry takes when it leaves them out, from the schema.
+
+    Returns
+    -------
+    dict
+        Property name -> default (a fresh copy).
+    """
+    items = _schema()["properties"]["materials"]["items"]["properties"]
+    return {k: copy.deepcopy(v["default"]) for k, v in items.items() if "default" in v}
 
 
 def default_config() -> dict:
@@ -310,6 +323,12 @@ def _numbers(value, where: str = ""):
         yield where, value
 
 
+@functools.lru_cache(maxsize=1)
+def _validator() -> jsonschema.Draft202012Validator:
+    # made once per process: every stage call checks its settings (stage_kwargs)
+    return jsonschema.Draft202012Validator(_schema())
+
+
 def validate(config: dict, source: str = "config") -> dict:
     """Validate a configuration against the schema.
 
@@ -333,8 +352,7 @@ def validate(config: dict, source: str = "config") -> dict:
         if not math.isfinite(value):
             raise DicerError(f"{source}: key '{where}': {value} is not a finite number; give a finite number "
                              "(see the allowed range in config/config.yaml)")
-    validator = jsonschema.Draft202012Validator(schema())
-    errors = sorted(validator.iter_errors(config), key=lambda e: (len(list(e.absolute_path)), e.message))
+    errors = sorted(_validator().iter_errors(config), key=lambda e: (len(list(e.absolute_path)), e.message))
     if errors:
         err = errors[0]
         if err.validator == "additionalProperties":
@@ -499,6 +517,160 @@ def stage_settings(config: dict, stage: str) -> dict:
     dict
     """
     return {k: copy.deepcopy(config[k]) for k in STAGE_SECTIONS[stage] if k in config}
+
+
+def _plain(value):
+    """``value`` as plain JSON types (a fresh copy): tuples become lists and numpy scalars
+    Python numbers, so the schema checks library arguments as it checks a YAML file."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if hasattr(value, "item") and getattr(value, "ndim", None) == 0:  # numpy scalars
+        return value.item()
+    return value
+
+
+def _stage_sections(config: dict, stage: str, source: str = "settings") -> dict:
+    """The sections ``stage`` reads, each completed from the schema's defaults and validated."""
+    config = _label_keys(config)
+    sections = {}
+    for name in STAGE_SECTIONS[stage]:
+        node = _schema()["properties"][name]
+        sections[name] = _fill(_plain(config[name]) if name in config else _defaults(node), node)
+    # export.sets decide which material names clash; a stage that does not read them
+    # checks the names for what holds whatever the sets (:func:`validate` did the rest)
+    validate(sections if "export" in sections else {**sections, "export": {"sets": []}}, source)
+    return sections
+
+
+def _names(sections: dict) -> list[str]:
+    return [m["name"] for m in sections["materials"]]
+
+
+# The stage settings that segment's class cleaning takes; downsample cleans again with them.
+_MORPHOLOGY = ("opening_radius", "closing_radius", "keep", "min_component_size", "priority")
+
+#: sections -> keyword arguments of each stage's library function
+_ADAPTERS = {
+    "segment": lambda s: {"names": _names(s), **s["segment"]},
+    "labels": lambda s: {"materials": s["materials"], "map": s["labels"]["map"], "drop": s["labels"]["drop"]},
+    "downsample": lambda s: {"names": _names(s), **s["downsample"], **{k: s["segment"][k] for k in _MORPHOLOGY}},
+    "fix": lambda s: {"names": {str(i): n for i, n in enumerate(_names(s), start=1)}, **s["fix"]},
+    "mesh": lambda s: {"names": _names(s), **s["mesh"]},
+    "merge": lambda s: dict(s["merge"]),
+    "smooth": lambda s: dict(s["smooth"]),
+    "export": lambda s: {"materials": s["materials"], **s["export"]},
+    "quality": lambda s: {"names": _names(s), **s["quality"]},
+}
+
+
+def stage_kwargs(config: dict, stage: str, source: str = "settings") -> dict:
+    """The keyword arguments of a stage's library function, from a configuration.
+
+    The one path from settings to the stages: the command line, ``dicer run`` and the
+    workflow's rules call every stage function with what this returns. Only the
+    sections the stage reads (:data:`STAGE_SECTIONS`) are used; a key or section left
+    out takes the schema's default (the schema is the only source of defaults and
+    ranges), and the sections are validated against the schema.
+
+    Parameters
+    ----------
+    config : dict
+        A configuration, whole (as :func:`load_config` gives it) or partial.
+    stage : str
+        A stage name (``segment``, ``labels``, ``downsample``, ``fix``, ``mesh``,
+        ``merge``, ``smooth``, ``export``, ``quality``).
+    source : str, optional
+        Named in error messages.
+
+    Returns
+    -------
+    dict
+        The stage's own section keys under their names (``labels``: ``map``, ``drop``),
+        plus ``materials`` (export, labels) or the material ``names`` (segment,
+        downsample, mesh: a list; fix: label value as a string -> name);
+        ``downsample`` also takes segment's class-cleaning keys.
+
+    Raises
+    ------
+    DicerError
+        A bad key or value, named.
+    """
+    return _ADAPTERS[stage](_stage_sections(config, stage, source))
+
+
+def _section_of(stage: str, key: str) -> str | None:
+    """The section of ``stage`` whose key (or which itself) is named ``key``."""
+    for name in STAGE_SECTIONS[stage]:
+        node = _schema()["properties"][name]
+        if name == key and node.get("type") != "object":
+            return name
+        if key in node.get("properties", {}):
+            return name
+    return None
+
+
+def takes_settings(stage: str, section: bool = False):
+    """Decorator of a stage function whose settings are keyword-only arguments without defaults.
+
+    The decorated function may also be called the short way a library user or test
+    writes: with a configuration (``section=True``: the stage's own section) as one
+    more positional argument, and with settings left out. The settings given (as
+    keywords, or in that dict) then go through :func:`stage_kwargs`, which checks them
+    against the schema and completes them with its defaults, so the function body
+    always receives every setting, checked.
+
+    Parameters
+    ----------
+    stage : str
+        The stage whose settings the function takes (:data:`STAGE_SECTIONS`).
+    section : bool, optional
+        The positional dict is the section named ``stage``, not a configuration.
+
+    Returns
+    -------
+    callable
+        The decorator.
+    """
+    def decorate(fn):
+        params = inspect.signature(fn).parameters.values()
+        n_positional = sum(p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) for p in params)
+        wanted = [p.name for p in params if p.kind == p.KEYWORD_ONLY and p.default is p.empty]
+        optional = [p.name for p in params if p.kind == p.KEYWORD_ONLY and p.default is not p.empty]
+
+        @functools.wraps(fn)
+        def call(*args, **kwargs):
+            config: dict = {}
+            if len(args) > n_positional:
+                # the short form: (data..., config[, the optional keywords in order])
+                extra = args[n_positional + 1:]
+                if len(extra) > len(optional):
+                    raise TypeError(f"{fn.__name__}() takes at most {n_positional + 1 + len(optional)} positional "
+                                    "arguments")
+                for name, value in zip(optional, extra):
+                    if name in kwargs:
+                        raise TypeError(f"{fn.__name__}() got multiple values for argument {name!r}")
+                    kwargs[name] = value
+                given = args[n_positional] or {}
+                config = {stage: given} if section else given
+                args = args[:n_positional]
+            derived = {}
+            for key in [k for k in kwargs if k in wanted]:
+                name = _section_of(stage, key)
+                if name is None:
+                    derived[key] = kwargs.pop(key)  # e.g. names, made from materials
+                elif name == key:
+                    config = {**config, key: kwargs.pop(key)}
+                else:
+                    config = deep_merge(config, {name: {key: kwargs.pop(key)}})
+            settings = stage_kwargs(config, stage, f"{fn.__name__}()")
+            settings.update(derived)
+            return fn(*args, **{k: settings[k] for k in wanted}, **kwargs)
+
+        return call
+
+    return decorate
 
 
 def config_hash(config: dict) -> str:

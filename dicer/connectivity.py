@@ -33,6 +33,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from dicer.config import takes_settings
 from dicer.errors import DicerError
 
 __all__ = ["fix_connectivity", "fix_stage", "connectivity_defects", "boundary_edge_counts", "remove_islands"]
@@ -515,8 +516,9 @@ def _tally(table: dict, new_values: np.ndarray) -> None:
         table[int(v)] = table.get(int(v), 0) + int(c)
 
 
-def fix_connectivity(labels: np.ndarray, max_iterations: int = 100, type_c: bool = True,
-                     max_type_c_rounds: int = 100, majority_rounds: int = 5) -> tuple[np.ndarray, dict]:
+@takes_settings("fix")
+def fix_connectivity(labels: np.ndarray, *, max_iterations: int, type_c: bool, max_type_c_rounds: int,
+                     majority_rounds: int) -> tuple[np.ndarray, dict]:
     """Repair Type A, B and C connectivity in a 2D or 3D label volume.
 
     Type A and B sweeps repeat until nothing changes (at most ``max_iterations``
@@ -531,17 +533,20 @@ def fix_connectivity(labels: np.ndarray, max_iterations: int = 100, type_c: bool
        Every change raises a class, so this phase ends, and when it ends no Type A, B
        or C arrangement is left.
 
+    The settings are those of the ``fix:`` section, keyword-only with no defaults here;
+    settings left out take the schema's defaults (:func:`dicer.config.takes_settings`).
+
     Parameters
     ----------
     labels : (nx, ny[, nz]) int ndarray
         0 background.
-    max_iterations : int, optional
+    max_iterations : int
         A/B sweeps per round at most.
-    type_c : bool, optional
+    type_c : bool
         Repair Type C too (3D).
-    max_type_c_rounds : int, optional
+    max_type_c_rounds : int
         Rounds of the raising phase at most.
-    majority_rounds : int, optional
+    majority_rounds : int
         Rounds of the majority phase at most.
 
     Returns
@@ -721,9 +726,14 @@ def remove_islands(labels: np.ndarray, min_voxels: int) -> tuple[np.ndarray, dic
     return out, report
 
 
-def fix_stage(labels: np.ndarray, names: dict[str, str], *, min_component_voxels: int, max_iterations: int,
+@takes_settings("fix")
+def fix_stage(labels: np.ndarray, *, names: dict[str, str], min_component_voxels: int, max_iterations: int,
               type_c: bool, max_type_c_rounds: int, majority_rounds: int) -> tuple[np.ndarray, dict]:
     """The fix stage: floating parts removed, the connectivity fixes, floating parts again.
+
+    The command line passes ``dicer.config.stage_kwargs(config, "fix")``; a library call
+    may give a configuration as the second argument instead, or leave settings out (the
+    schema's defaults fill them, :func:`dicer.config.takes_settings`).
 
     Parameters
     ----------
@@ -745,7 +755,7 @@ def fix_stage(labels: np.ndarray, names: dict[str, str], *, min_component_voxels
     # floating parts go first (the fixes need not work on them) and again after the fixes
     # (which can cut a thin bridge)
     array, islands = remove_islands(labels, min_component_voxels)
-    fixed, report = fix_connectivity(array, max_iterations=max_iterations, type_c=type_c,
+    fixed, report = fix_connectivity.__wrapped__(array, max_iterations=max_iterations, type_c=type_c,
                                      max_type_c_rounds=max_type_c_rounds, majority_rounds=majority_rounds)
     fixed, after = remove_islands(fixed, min_component_voxels)
     removed: dict[str, int] = {}

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dicer.config import section_defaults
+from dicer.config import takes_settings
 from dicer.errors import DicerError
 from dicer.image import Volume, regridded_origin
 from dicer.segment import check_radii, label_counts, morphology_options
@@ -30,44 +30,45 @@ from dicer.segment.morphology import clean_labels
 __all__ = ["downsample", "reduction_factor", "vote"]
 
 
-def reduction_factor(spacing, config: dict, source: str = "") -> tuple[int, ...]:
+def reduction_factor(spacing, *, factor, voxel_size, source: str = "") -> tuple[int, ...]:
     """Integer reduction factor per axis from ``downsample.factor`` or ``downsample.voxel_size``.
 
     Parameters
     ----------
     spacing : sequence of float
         Voxel size in mm, one per axis.
-    config : dict
-        Reads ``downsample.factor`` (int or one per axis) and ``downsample.voxel_size``
-        (mm, one value or one per axis; when set it wins: factor =
-        ``max(1, round(voxel_size / spacing))`` per axis).
+    factor : int or list of int
+        ``downsample.factor``: one for all axes or one per axis.
+    voxel_size : float or list of float or None
+        ``downsample.voxel_size`` in mm; when set it wins: factor =
+        ``max(1, round(voxel_size / spacing))`` per axis.
     source : str, optional
         File named in error messages.
 
     Returns
     -------
     factor : tuple of int, one per axis
+
+    Raises
+    ------
+    DicerError
+        A list of another length than the volume's axes.
     """
-    ds = section_defaults("downsample") | config.get("downsample", {})
     ndim = len(spacing)
-    target = ds["voxel_size"]
-    if target is not None:
-        t = list(target) if isinstance(target, (list, tuple)) else [target] * ndim
+    if voxel_size is not None:
+        t = list(voxel_size) if isinstance(voxel_size, (list, tuple)) else [voxel_size] * ndim
         if len(t) != ndim:
             raise DicerError(f"{source}: downsample.voxel_size has {len(t)} values for a {ndim}D volume; "
                              f"give one value or {ndim}")
         return tuple(max(1, int(np.floor(float(a) / float(s) + 0.5))) for a, s in zip(t, spacing))
-    f = ds["factor"]
-    f = list(f) if isinstance(f, (list, tuple)) else [f] * ndim
+    f = list(factor) if isinstance(factor, (list, tuple)) else [factor] * ndim
     if len(f) != ndim:
         raise DicerError(f"{source}: downsample.factor has {len(f)} values for a {ndim}D volume; "
                          f"give one value or {ndim}")
-    if any(int(x) < 1 for x in f):
-        raise DicerError(f"{source}: downsample.factor must be >= 1 on every axis, got {f}")
     return tuple(int(x) for x in f)
 
 
-def vote(labels: np.ndarray, factor, n_classes: int, min_fraction: float = 0.25, priority=None) -> np.ndarray:
+def vote(labels: np.ndarray, factor, n_classes: int, min_fraction: float, priority=None) -> np.ndarray:
     """Reduce a label array by the thin-class vote (see the module notes).
 
     Parameters
@@ -148,16 +149,28 @@ def _vote_blocks(rows: np.ndarray, rank: np.ndarray, order: np.ndarray, need: fl
     return order[np.where(best < outside, best, plural_rank)].astype(rows.dtype)
 
 
-def downsample(labels: Volume, config: dict, source: str = "") -> tuple[Volume, dict]:
+@takes_settings("downsample")
+def downsample(labels: Volume, *, names: list[str], factor, voxel_size, min_fraction: float, morphology: bool,
+               opening_radius: int, closing_radius: int, keep, min_component_size, priority,
+               source: str = "") -> tuple[Volume, dict]:
     """Reduce a label volume's resolution, keeping thin classes, then clean it again.
+
+    The settings are keyword-only with no defaults here: the command line passes
+    ``dicer.config.stage_kwargs(config, "downsample")``. A library call may instead give
+    a configuration as the second argument (and ``source`` third), or leave settings
+    out; the schema's defaults fill them (:func:`dicer.config.takes_settings`).
 
     Parameters
     ----------
     labels : Volume
         (nx, ny[, nz]) integer labels, 0 background, 1..K classes; spacing in mm.
-    config : dict
-        Reads ``downsample`` (factor or voxel_size, min_fraction, morphology),
-        ``materials`` and ``segment`` (priority and morphology options).
+    names : list of str
+        The material names (the ``materials`` section); label i is ``names[i - 1]``.
+    factor, voxel_size, min_fraction, morphology
+        The ``downsample:`` config section (see the schema).
+    opening_radius, closing_radius, keep, min_component_size, priority
+        Those keys of the ``segment:`` section: the vote's class priority and the
+        cleaning after the reduction.
     source : str
         The label file's name, used in error messages.
 
@@ -171,7 +184,6 @@ def downsample(labels: Volume, config: dict, source: str = "") -> tuple[Volume, 
         ``voxels_before`` / ``voxels_after`` per class name.
     """
     source = source or "labels"
-    names = [m["name"] for m in config["materials"]]
     k = len(names)
     array = labels.array
     if array.ndim not in (2, 3):
@@ -183,7 +195,7 @@ def downsample(labels: Volume, config: dict, source: str = "") -> tuple[Volume, 
     if array.size and (int(array.min()) < 0 or int(array.max()) > k):
         raise DicerError(f"{source}: labels span {int(array.min())} .. {int(array.max())} but the config names "
                          f"{k} material(s) (labels 0..{k}); use the config the labels were segmented with")
-    factor = reduction_factor(labels.spacing, config, source)
+    factor = reduction_factor(labels.spacing, factor=factor, voxel_size=voxel_size, source=source)
     before = {n: v["voxels"] for n, v in label_counts(array, names).items()}
     info = {"factor": list(factor), "shape_before": list(array.shape)}
     if all(f == 1 for f in factor):
@@ -193,18 +205,17 @@ def downsample(labels: Volume, config: dict, source: str = "") -> tuple[Volume, 
     after = [-(-n // f) for n, f in zip(array.shape, factor)]
     if min(after) < 2:
         axis = int(np.argmin(after))
-        what = "downsample.voxel_size" if config.get("downsample", {}).get("voxel_size") is not None \
-            else "downsample.factor"
+        what = "downsample.voxel_size" if voxel_size is not None else "downsample.factor"
         raise DicerError(f"{source}: {what} gives a factor {'x'.join(map(str, factor))} that leaves "
                          f"{'x'.join(map(str, after))} voxels of the {'x'.join(map(str, array.shape))} label "
                          f"volume; dicer needs at least 2 voxels per axis: use a factor of at most "
                          f"{max(array.shape[axis] // 2, 1)} along axis {'xyz'[axis]}")
-    ds = section_defaults("downsample") | config.get("downsample", {})
-    options = morphology_options(config, source)
-    if ds["morphology"]:
+    options = morphology_options(names, opening_radius=opening_radius, closing_radius=closing_radius, keep=keep,
+                                 min_component_size=min_component_size, priority=priority, source=source)
+    if morphology:
         check_radii(options, after, source)
-    coarse = vote(array, factor, k, float(ds["min_fraction"]), options["priority"])
-    if ds["morphology"]:
+    coarse = vote(array, factor, k, float(min_fraction), options["priority"])
+    if morphology:
         cleaned, _ = clean_labels(coarse, **options)
         if coarse.any() and not cleaned.any():
             raise DicerError(f"{source}: the morphology after downsampling removed every voxel; lower "

@@ -15,26 +15,34 @@ from pathlib import Path
 
 import numpy as np
 
-from dicer.config import validate
+from dicer.config import material_defaults, takes_settings, validate
 from dicer.errors import DicerError
 from dicer.image import MAX_LABEL, Volume
 
 log = logging.getLogger("dicer")
 
 #: properties of a material that has no ``materials`` entry of its name (the schema's item defaults)
-DEFAULT_PROPERTIES = {"youngs_modulus": 1000.0, "poissons_ratio": 0.3, "density": 1.0e-9}
+DEFAULT_PROPERTIES = material_defaults()
 
 
-def resolve_materials(values, config: dict, source: str = "labels") -> tuple[dict[int, int], list[dict]]:
+@takes_settings("labels")
+def resolve_materials(values, *, materials: list[dict], map: dict, drop: list,  # noqa: A002 (the key's name)
+                      source: str = "labels") -> tuple[dict[int, int], list[dict]]:
     """Which material each label value becomes.
+
+    The settings are keyword-only with no defaults here (``dicer.config.stage_kwargs(config,
+    "labels")`` gives them); a configuration may be given as the second argument instead,
+    or settings left out (the schema's defaults fill them, :func:`dicer.config.takes_settings`).
 
     Parameters
     ----------
     values : iterable of int
         The distinct label values of the volume (0, background, may be among them).
-    config : dict
-        A loaded configuration; its ``labels`` section (``map``: value -> material name,
-        ``drop``: values made background) and ``materials`` (properties, found by name).
+    materials : list of dict
+        The ``materials`` section: properties, found by name.
+    map, drop
+        The ``labels:`` section: label value (a string) -> material name, and the values
+        made background.
     source : str
         The label file's name, for messages.
 
@@ -53,9 +61,8 @@ def resolve_materials(values, config: dict, source: str = "labels") -> tuple[dic
         No material left (only background and dropped values), or names that would
         clash in an export.
     """
-    section = config.get("labels", {})
-    names = {int(k): v for k, v in section.get("map", {}).items()}
-    drop = set(section.get("drop", []))
+    names = {int(k): v for k, v in map.items()}
+    drop = set(drop)
     lut: dict[int, int] = {}
     number: dict[str, int] = {}
     for value in sorted(int(v) for v in values):
@@ -66,9 +73,9 @@ def resolve_materials(values, config: dict, source: str = "labels") -> tuple[dic
         lut[value] = number.setdefault(name, len(number) + 1)
     if not number:
         raise DicerError(f"{source}: no labelled voxels are left (values found: "
-                         f"{', '.join(map(str, sorted(lut))) or 'none'}, dropped: {sorted(drop)}); "
+                         f"{', '.join(str(v) for v in sorted(lut)) or 'none'}, dropped: {sorted(drop)}); "
                          "check labels.drop in the config")
-    given = {m["name"]: m for m in config.get("materials", [])}
+    given = {m["name"]: m for m in materials}
     materials, defaulted = [], []
     for name in number:
         if name in given:
@@ -88,21 +95,23 @@ def resolve_materials(values, config: dict, source: str = "labels") -> tuple[dic
         raise DicerError(f"{source}: {len(materials)} materials, more than the {MAX_LABEL} a label volume holds; "
                          "merge labels with labels.map")
     try:
-        validate({**config, "materials": materials}, source)
+        validate({"materials": materials, "labels": {"map": map, "drop": sorted(drop)}}, source)
     except DicerError as exc:
         raise DicerError(f"{exc} (materials made from the label values by labels.map)") from None
     return lut, materials
 
 
-def map_labels(volume: Volume, config: dict, source: str = "labels") -> tuple[Volume, list[dict], dict]:
+@takes_settings("labels")
+def map_labels(volume: Volume, *, materials: list[dict], map: dict, drop: list,  # noqa: A002 (the key's name)
+               source: str = "labels") -> tuple[Volume, list[dict], dict]:
     """The volume with its label values replaced by material numbers 1..K (0: background).
 
     Parameters
     ----------
     volume : Volume
         Integer labels.
-    config : dict
-        A loaded configuration (see :func:`resolve_materials`).
+    materials, map, drop
+        The ``materials`` and ``labels:`` sections (see :func:`resolve_materials`).
     source : str, optional
         The label file's name, for messages.
 
@@ -118,7 +127,8 @@ def map_labels(volume: Volume, config: dict, source: str = "labels") -> tuple[Vo
     """
     array = volume.array
     values, inverse = np.unique(array, return_inverse=True)
-    lut, materials = resolve_materials(values.tolist(), config, source)
+    lut, materials = resolve_materials.__wrapped__(values.tolist(), materials=materials, map=map, drop=drop,
+                                                   source=source)
     table = np.array([lut[int(v)] for v in values], dtype=np.uint8 if len(materials) < 256 else np.uint16)
     mapped = table[inverse].reshape(array.shape)
     counts = np.bincount(mapped.ravel(), minlength=len(materials) + 1)

@@ -163,7 +163,7 @@ def test_plane_merged_bar_in_series(tmp_path, order):
     labels = np.ones((4, 6, 8), np.uint8)
     labels[:, :, 4:] = 2
     spacing = (0.5, 0.75, 1.25)
-    mesh, _ = merge.merge_planes(voxel_mesh(labels, spacing), (1, 1, 1))
+    mesh, _ = merge.merge_planes(voxel_mesh(labels, spacing), passes=(1, 1, 1))
     assert mesh.n_cells < labels.size
     e1, e2 = 800.0, 12000.0
     export_mesh(mesh, tmp_path / "bar.inp", config(("soft", e1, 0.0), ("stiff", e2, 0.0), order=order))

@@ -101,6 +101,7 @@ def test_stage_settings_only_hold_their_sections():
     config = load_config()
     assert set(stage_settings(config, "export")) == {"materials", "export"}
     assert set(stage_settings(config, "mesh")) == {"materials", "mesh"}  # names go into the mesh
+    assert set(stage_settings(config, "quality")) == {"materials", "quality"}  # the report names them
     changed = load_config(sets=["export.thickness=3"])
     assert stage_settings(changed, "segment") == stage_settings(config, "segment")
     assert stage_settings(changed, "export") != stage_settings(config, "export")

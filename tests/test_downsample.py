@@ -70,7 +70,7 @@ def test_factor_1_is_identity():
     ((0.3, 0.3, 0.3), 0.1, (1, 1, 1)),
 ])
 def test_voxel_size_arithmetic(spacing, target, expected):
-    assert reduction_factor(spacing, config(voxel_size=target)) == expected
+    assert reduction_factor(spacing, factor=1, voxel_size=target) == expected
 
 
 def test_voxel_size_wins_over_factor_and_padding():

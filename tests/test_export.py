@@ -211,6 +211,29 @@ def test_two_dimensional_deck(tmp_path, config):
     assert "EXTERIOR_S4, S4" in text
 
 
+def test_heading_is_the_same_for_a_config_its_sections_and_the_keywords(tmp_path, mesh, config):
+    # one settings path: the whole config, the export sections alone (as the workflow passes
+    # them), the keywords of stage_kwargs and a partial config that leaves defaults out give
+    # one heading; export.verify (how the file is checked) does not change it
+    from dicer.config import stage_kwargs, stage_settings
+
+    partial = {"materials": config["materials"]}
+    calls = {
+        "config": lambda p: export_mesh(mesh, p, config, source=None),
+        "sections": lambda p: export_mesh(mesh, p, stage_settings(config, "export")),
+        "keywords": lambda p: export_mesh(mesh, p, **stage_kwargs(config, "export")),
+        "partial": lambda p: export_mesh(mesh, p, partial),
+        "meshio": lambda p: export_mesh(mesh, p, **{**stage_kwargs(config, "export"), "verify": "meshio"}),
+    }
+    heads = set()
+    for name, call in calls.items():
+        call(tmp_path / f"{name}.inp")
+        heads.add((tmp_path / f"{name}.inp").read_text().split("*NODE")[0])
+    assert len(heads) == 1
+    assert settings_hash(config) == settings_hash(partial) == settings_hash(stage_settings(config, "export"))
+    assert settings_hash(config) != settings_hash({**partial, "export": {"digits": 13}})
+
+
 def test_heading_can_be_left_to_the_including_deck(tmp_path, mesh):
     cfg = load_config(settings={"export": {"heading": False, "sets": ["planes"]}})
     export_mesh(mesh, tmp_path / "m.inp", cfg, source="scan.nii")
@@ -240,7 +263,7 @@ def _no_files(folder, keep=()):
 
 
 @pytest.mark.parametrize("settings,message", [
-    ({"element_type": "C3D27"}, "unknown element type"),
+    ({"element_type": "C3D27"}, "export.element_type': \"C3D27\" is not allowed"),
     ({"element_type": "CPS4"}, "for 2D meshes"),
     ({"element_type": "C3D20"}, "has order 2"),
     ({"element_type": "C3D8", "order": 2}, "has order 1"),

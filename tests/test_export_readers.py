@@ -234,7 +234,7 @@ def test_corrupted_write_fails_the_export_and_leaves_no_file(tmp_path, mesh, mon
         Path(path).write_bytes(data[: keep["bytes"]])  # as if the disk had kept less
 
     monkeypatch.setitem(registry.BY_SUFFIX, ".inp", dataclasses.replace(abaqus.FORMAT, write=corrupting))
-    export_mesh(mesh, tmp_path / "full.inp", _config(2), verify=False)
+    export_mesh(mesh, tmp_path / "full.inp", _config(2), check=False)
     size = (tmp_path / "full.inp").stat().st_size
     (tmp_path / "full.inp").unlink()
     keep["bytes"] = size // 2  # inside the element blocks: both checks see it

@@ -520,7 +520,7 @@ def test_config_section_drives_the_merge():
     assert out.n_cells == 1 and report["passes"] == DEFAULTS["passes"]
     out, report = merge_mesh(mesh, {"passes": [0, 0, 1], "granularity": "plane"})
     assert out.n_cells == 4 and report["granularity"] == "plane"
-    with pytest.raises(DicerError, match="merge.passes_per_axis: unknown setting"):
+    with pytest.raises(DicerError, match="unknown key 'merge.passes_per_axis'"):
         merge_mesh(mesh, {"passes_per_axis": [1, 1, 1]})
     with pytest.raises(DicerError, match="merge.rim_moves"):
         merge_mesh(mesh, {"rim_moves": "yes"})

@@ -206,9 +206,7 @@ def test_priority_settles_non_nested_voxels():
     lab[1:11, 1:11, 1:11] = 3
     out_default, _ = clean_labels(lab, 3, 0, 0)
     assert np.array_equal(out_default, lab)
-    prio = class_priority(load_config(settings={
-        "materials": [{"name": "a"}, {"name": "b"}, {"name": "c"}],
-        "segment": {"priority": ["a"]}}))
+    prio = class_priority(["a", "b", "c"], ["a"])
     assert prio == [1, 3, 2]
 
 

@@ -136,7 +136,7 @@ def test_bounding_planes_stay_flat():
     assert np.abs(held.points - m.points).max() > 0.05
     with pytest.raises(DicerError, match="bounding_planes: free"):
         smooth_mesh(m, {"keep_bounding_planes": False})
-    with pytest.raises(DicerError, match="mirror, fixed or free"):
+    with pytest.raises(DicerError, match="smooth.bounding_planes.*not one of mirror, fixed, free"):
         smooth_mesh(m, {"bounding_planes": "periodic"})
 
 
@@ -175,12 +175,13 @@ def test_guard_error_names_the_worst_element():
 
 
 @pytest.mark.parametrize("section, match", [
-    ({"coefficient": 1.0}, r"outside \[0, 1\)"),
-    ({"coefficient": -0.1}, r"outside \[0, 1\)"),
+    # the schema checks the settings (dicer.config.stage_kwargs), whatever the entry point
+    ({"coefficient": 1.0}, r"smooth.coefficient': 1.0 is not allowed; give null or a number >= 0 and < 1"),
+    ({"coefficient": -0.1}, r"smooth.coefficient': -0.1 is not allowed"),
     ({"coefficients": {"A": 1.2}}, r"smooth.coefficients.A"),
-    ({"coefficients": {"Q": 0.5}}, r"unknown node class"),
+    ({"coefficients": {"Q": 0.5}}, r"unknown key 'smooth.coefficients.Q'; known keys here: A, B, C, D, E, F"),
     ({"min_scaled_jacobian": 1.5}, r"min_scaled_jacobian"),
-    ({"colour": 1}, r"unknown setting"),
+    ({"colour": 1}, r"unknown key 'smooth.colour'"),
 ])
 def test_bad_settings(section, match):
     m = ball(n=12, radii=(4.3,), centre=np.array([6.1, 5.9, 6.2]))
@@ -242,7 +243,7 @@ def test_deterministic():
 def test_plane_merged_mesh():
     merge = pytest.importorskip("dicer.mesh.merge")
     m = ball(radii=(16.3, 9.7))
-    merged, _ = merge.merge_planes(m, (1, 1, 1))
+    merged, _ = merge.merge_planes(m, passes=(1, 1, 1))
     assert merged.n_cells < m.n_cells
     out, rep = smooth_mesh(merged, {})
     assert rep["node_classes"]["X"] == 0

@@ -222,6 +222,31 @@ def test_workflow_heading_equals_the_stage_commands(cohort, tmp_path):
     assert head == again.read_text().split("*NODE")[0] and "mesh sha256 " in head
 
 
+def test_model_heading_is_the_same_from_the_workflow_dicer_run_and_the_stage(cohort, tmp_path):
+    # issue #14: one settings path. The workflow (export sections as --settings JSON), dicer run
+    # (the whole config) and the stage command (--config) all reach export_mesh through
+    # dicer.config.stage_kwargs, so the same settings give the same heading, byte for byte
+    from dicer.config import load_config
+    from dicer.export import settings_hash
+
+    config = cohort / "config" / "config.yaml"
+    image = cohort / "resources" / "phantoms" / "head.nii.gz"
+    run = subprocess.run(["dicer", "run", str(image), "-o", str(tmp_path / "run"), "-q", "--config", str(config)],
+                         capture_output=True, text=True, env=_env(), timeout=600)
+    assert run.returncode == 0, run.stderr
+    stage = tmp_path / "stage.inp"
+    proc = subprocess.run(["dicer", "export", str(tmp_path / "run" / "smoothed.vtu"), "-o", str(stage), "-q",
+                           "--config", str(config)], capture_output=True, text=True, env=_env(), timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    heads = {name: path.read_text().split("*NODE")[0] for name, path in (
+        ("workflow", cohort / "results" / "head" / "model.inp"), ("run", tmp_path / "run" / "model.inp"),
+        ("stage", stage))}
+    assert heads["workflow"] == heads["run"] == heads["stage"], heads
+    # the same smoothed mesh (its checksum is in the heading) and the settings' hash
+    assert (cohort / "results" / "head" / "smoothed.vtu").read_bytes() == (tmp_path / "run" / "smoothed.vtu").read_bytes()
+    assert f"config sha256/16 {settings_hash(load_config(config))}" in heads["workflow"]
+
+
 def _requested(proc: subprocess.CompletedProcess) -> dict[tuple[str, str], int]:
     """(patient, stage) -> mem_mb from a dry run's job listing."""
     requests = {}

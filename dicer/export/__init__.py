@@ -1,6 +1,7 @@
 """Solver and viewer exports: the format follows the output file's extension.
 
-``export_mesh(mesh, path, config, source)`` prepares one :class:`SolverModel`
+``export_mesh(mesh, path, materials=..., order=..., ...)`` (the settings of
+``dicer.config.stage_kwargs(config, "export")``) prepares one :class:`SolverModel`
 (:mod:`dicer.export.model`), hands it to the writer of the format the suffix names
 (:mod:`dicer.export.registry`), reads the file back and checks it, and only then
 renames it into place. A failed check raises DicerError and leaves no file behind.
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dicer.config import takes_settings
 from dicer.errors import DicerError
 from dicer.export.format import Format
 from dicer.export.model import (DEFAULT_TYPES, ELEMENT_TYPES, SolverModel, prepare_model, resolve_element_type,
@@ -52,15 +54,15 @@ def _format_for(mesh: Mesh, path: Path) -> Format:
     return fmt
 
 
-def _write_and_check(fmt: Format, model: SolverModel, tmp: Path, path: Path, ex: dict, verify: bool) -> None:
-    """Write ``model`` at ``tmp`` and, with ``verify``, read it back; errors name ``path``."""
+def _write_and_check(fmt: Format, model: SolverModel, tmp: Path, path: Path, ex: dict, check: bool) -> None:
+    """Write ``model`` at ``tmp`` and, with ``check``, read it back; errors name ``path``."""
     try:
         fmt.write(model, tmp, **fmt.options("write", ex))
     except ValueError as exc:  # a number no field of the format can hold
         raise DicerError(f"{path}: cannot write the {fmt.name} file ({exc})") from None
     except OSError as exc:
         raise DicerError(f"{path}: cannot write ({exc.strerror}); choose a writable output path") from None
-    if not verify:
+    if not check:
         return
     try:
         fmt.check(tmp, model, **fmt.options("check", ex))
@@ -69,9 +71,17 @@ def _write_and_check(fmt: Format, model: SolverModel, tmp: Path, path: Path, ex:
                          "and export again") from None
 
 
-def export_mesh(mesh: Mesh, path: str | os.PathLike, config: dict, source: str | os.PathLike | None = None,
-                verify: bool = True) -> dict:
+@takes_settings("export")
+def export_mesh(mesh: Mesh, path: str | os.PathLike, *, materials: list[dict], order: int, element_type: str | None,
+                midside_nodes: str, thickness: float, digits: int, sets: list[str], heading: bool,
+                febio_material: str, verify: str, source: str | os.PathLike | None = None,
+                check: bool = True) -> dict:
     """Write a mesh in the format its file extension names.
+
+    The settings are keyword-only with no defaults here: the command line passes
+    ``dicer.config.stage_kwargs(config, "export")``. A library call may instead give a
+    configuration as the third argument (and ``source`` fourth), or leave settings out;
+    the schema's defaults fill them (:func:`dicer.config.takes_settings`).
 
     Parameters
     ----------
@@ -79,13 +89,15 @@ def export_mesh(mesh: Mesh, path: str | os.PathLike, config: dict, source: str |
         The mesh to export.
     path : str or os.PathLike
         The output file; its suffix names the format (:data:`EXPORT_SUFFIXES`).
-    config : dict
-        The dicer configuration (``materials`` and ``export`` sections).
+    materials : list of dict
+        The ``materials`` section.
+    order, element_type, midside_nodes, thickness, digits, sets, heading, febio_material, verify
+        The ``export:`` section (see the schema); ``verify`` names the reader of the
+        read-back check of an Abaqus deck (strict or meshio).
     source : str or os.PathLike, optional
         The input the model was made from (its SHA-256 goes into the provenance).
-    verify : bool, optional
-        Read the file back and check it before renaming it into place (default); an
-        Abaqus deck with dicer's strict reader, or meshio's when ``export.verify`` is meshio.
+    check : bool, optional
+        Read the file back and check it before renaming it into place (default).
 
     Returns
     -------
@@ -98,14 +110,15 @@ def export_mesh(mesh: Mesh, path: str | os.PathLike, config: dict, source: str |
     DicerError
         On any problem; no file is left at ``path``.
     """
+    ex = {"order": order, "element_type": element_type, "midside_nodes": midside_nodes, "thickness": thickness,
+          "digits": digits, "sets": sets, "heading": heading, "febio_material": febio_material, "verify": verify}
     path = Path(path)
     fmt = _format_for(mesh, path)
-    model = prepare_model(mesh, config, source, path, sets=fmt.sets)
+    model = prepare_model(mesh, {"materials": materials, "export": ex}, source, path, build_sets=fmt.holds_sets)
     if model.order not in fmt.orders:
         raise DicerError(f"{path}: {fmt.limits.format(dim=model.dim, order=model.order)}")
-    ex = config.get("export", {})
     with atomic_path(path) as tmp:
-        _write_and_check(fmt, model, tmp, path, ex, verify)
+        _write_and_check(fmt, model, tmp, path, ex, check)
         size = tmp.stat().st_size
     return {
         "format": fmt.name, "file": path.name, "nodes": model.n_points, "elements": model.n_cells,
@@ -113,6 +126,6 @@ def export_mesh(mesh: Mesh, path: str | os.PathLike, config: dict, source: str |
         "materials": {model.names[k]: int(np.count_nonzero(model.material == k)) for k in model.labels()},
         # a format with no sets (VTU) reports none rather than empty ones
         **({"node_sets": {name: int(ids.size) for name, ids in model.node_sets.items()},
-            "exterior_faces": 0 if model.exterior is None else int(model.exterior.shape[0])} if fmt.sets else {}),
-        "verified": bool(verify),
+            "exterior_faces": 0 if model.exterior is None else int(model.exterior.shape[0])} if fmt.holds_sets else {}),
+        "verified": bool(check),
     }

@@ -704,14 +704,14 @@ def _same_sets(kind: str, got: dict[str, np.ndarray], want: dict[str, np.ndarray
             raise DicerError(f"{kind} {name} differs")
 
 
-def check_deck(path: str | Path, model, verify: str = "strict") -> None:
+def check_deck(path: str | Path, model, *, verify: str) -> None:
     """Read the deck back and compare it with the model.
 
     Parameters
     ----------
     path : str or Path
     model : SolverModel
-    verify : {"strict", "meshio"}, optional
+    verify : {"strict", "meshio"}
         dicer's strict reader, or meshio's (``export.verify``).
 
     Raises
@@ -725,4 +725,4 @@ def check_deck(path: str | Path, model, verify: str = "strict") -> None:
         check_abaqus(path, model)
 
 
-FORMAT = Format("abaqus", (".inp",), write_abaqus, check_deck, check_options={"verify": ("verify", "strict")})
+FORMAT = Format("abaqus", (".inp",), write_abaqus, check_deck, check_options={"verify": "verify"})

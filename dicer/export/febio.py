@@ -87,7 +87,7 @@ def _rows(stream, tag: bytes, ids: np.ndarray, values: np.ndarray, width: int, f
     write_chunks(stream, ids.size, fields, compact=True)
 
 
-def write_febio(model, path: str | Path, material_type: str = "isotropic elastic") -> None:
+def write_febio(model, path: str | Path, *, material_type: str) -> None:
     """Write a SolverModel (3D) as an FEBio 4.0 input file.
 
     Parameters
@@ -95,7 +95,7 @@ def write_febio(model, path: str | Path, material_type: str = "isotropic elastic
     model : SolverModel
     path : str or Path
         The ``.feb`` file.
-    material_type : {"isotropic elastic", "neo-Hookean"}, optional
+    material_type : {"isotropic elastic", "neo-Hookean"}
         FEBio material of every domain (both take E, v and density from the config's
         materials).
     """
@@ -318,7 +318,7 @@ def _end_element(path_: str, el, stack: list[str], parents: list, out: dict, got
         raise DicerError(f"unexpected <{el.tag}> in <Mesh>")
 
 
-def check_febio(path: str | Path, model, material_type: str = "isotropic elastic") -> None:
+def check_febio(path: str | Path, model, *, material_type: str) -> None:
     """Re-read an FEBio file with :func:`read_febio` and compare it with the model.
 
     The node coordinates equal the printed values exactly, element numbers and
@@ -329,7 +329,7 @@ def check_febio(path: str | Path, model, material_type: str = "isotropic elastic
     ----------
     path : str or Path
     model : SolverModel
-    material_type : str, optional
+    material_type : str
         As written (:func:`write_febio`).
 
     Raises
@@ -389,5 +389,5 @@ def check_febio(path: str | Path, model, material_type: str = "isotropic elastic
 FORMAT = Format("febio", (".feb",), write_febio, check_febio, dims=(3,),
                 limits="FEBio has no plane (2D) elements; export this {dim}D mesh to .inp (CPS4/CPE4) or another "
                        "format, or mesh a 3D volume for .feb",
-                write_options={"material_type": ("febio_material", "isotropic elastic")},
-                check_options={"material_type": ("febio_material", "isotropic elastic")})
+                write_options={"material_type": "febio_material"},
+                check_options={"material_type": "febio_material"})

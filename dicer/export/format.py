@@ -28,10 +28,11 @@ class Format:
         What the format cannot hold and what to do instead, for the error message;
         ``{dim}`` and ``{order}`` are filled in.
     write_options, check_options : dict
-        Keyword of ``write`` / ``check`` -> (``export`` setting, default).
+        Keyword of ``write`` / ``check`` -> the name of the ``export`` setting it takes
+        (the schema gives its default).
     requires : tuple of str
         A module the writer needs and the hint given when it is missing, or empty.
-    sets : bool
+    holds_sets : bool
         Whether the file holds node sets and surfaces (``export.sets``); a format that
         does not is spared building them.
     """
@@ -43,10 +44,10 @@ class Format:
     dims: tuple[int, ...] = (2, 3)
     orders: tuple[int, ...] = (1, 2)
     limits: str = ""
-    write_options: dict[str, tuple[str, object]] = field(default_factory=dict)
-    check_options: dict[str, tuple[str, object]] = field(default_factory=dict)
+    write_options: dict[str, str] = field(default_factory=dict)
+    check_options: dict[str, str] = field(default_factory=dict)
     requires: tuple[str, ...] = ()
-    sets: bool = True
+    holds_sets: bool = True
 
     def options(self, which: str, export: dict) -> dict:
         """Keyword arguments of ``write`` or ``check`` from the ``export`` settings.
@@ -55,11 +56,11 @@ class Format:
         ----------
         which : {"write", "check"}
         export : dict
-            The ``export`` section.
+            The ``export`` settings, every key present (:func:`dicer.config.stage_kwargs`).
 
         Returns
         -------
         dict
         """
         table = self.write_options if which == "write" else self.check_options
-        return {kw: export.get(key, default) for kw, (key, default) in table.items()}
+        return {kw: export[key] for kw, key in table.items()}

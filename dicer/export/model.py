@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dicer.config import name_clash, section_defaults
+from dicer.config import name_clash, stage_kwargs
 from dicer.errors import DicerError
 from dicer.export.provenance import provenance, sha256_in_background
 from dicer.image import MAX_LABEL
@@ -128,13 +128,16 @@ class SolverModel(Sized):
         return out
 
 
-def resolve_element_type(mesh: Mesh, config: dict, path: Path) -> tuple[str, int]:
-    """The element type and order from ``config['export']``, checked against the mesh's dimension.
+def resolve_element_type(mesh: Mesh, order: int, element_type: str | None, path: Path) -> tuple[str, int]:
+    """The element type and order (``export.order``, ``export.element_type``), checked against the mesh.
 
     Parameters
     ----------
     mesh : Mesh
-    config : dict
+    order : int
+        1 or 2 (the schema checked it).
+    element_type : str or None
+        An Abaqus name of the schema's list; None picks the default for the dimension and order.
     path : Path
         The output file, named in error messages.
 
@@ -148,18 +151,11 @@ def resolve_element_type(mesh: Mesh, config: dict, path: Path) -> tuple[str, int
     Raises
     ------
     DicerError
-        An unknown type, or one that does not fit the dimension or the order.
+        A type that does not fit the dimension or the order.
     """
-    ex = section_defaults("export") | config.get("export", {})
-    order = int(ex["order"])
-    etype = ex["element_type"]
-    if order not in (1, 2):
-        raise DicerError(f"{path}: export.order must be 1 or 2, got {order}")
+    order, etype = int(order), element_type
     if etype is None:
         return DEFAULT_TYPES[(mesh.dim, order)], order
-    etype = str(etype).upper()
-    if etype not in ELEMENT_TYPES:
-        raise DicerError(f"{path}: unknown element type {etype!r}; choose one of {', '.join(ELEMENT_TYPES)}")
     dim, etype_order = ELEMENT_TYPES[etype]
     if dim != mesh.dim:
         kinds = [t for t, (d, o) in ELEMENT_TYPES.items() if d == mesh.dim and o == order]
@@ -257,19 +253,21 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> No
             model.interfaces[f"{model.names[c >> 16]}_{model.names[c & 0xFFFF]}"] = rows
 
 
-def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "model", sets: bool = True) -> SolverModel:
+def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "model",
+                  build_sets: bool = True) -> SolverModel:
     """Validate a mesh against the configuration and build the SolverModel the writers share.
 
     Parameters
     ----------
     mesh : Mesh
     config : dict
-        The ``materials`` and ``export`` sections.
+        The ``materials`` and ``export`` sections (as whole or in part: read through
+        :func:`dicer.config.stage_kwargs`, the schema's defaults fill what is left out).
     source : str or os.PathLike, optional
         The input the model was made from, for the provenance.
     path : Path or str, optional
         The output file, named in error messages.
-    sets : bool, optional
+    build_sets : bool, optional
         Build the node sets and surfaces ``export.sets`` asks for (False for a format
         that holds none).
 
@@ -284,8 +282,9 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
         clashing set names.
     """
     path = Path(path)
-    etype, order = resolve_element_type(mesh, config, path)
-    materials = config["materials"]
+    ex = stage_kwargs(config, "export")
+    etype, order = resolve_element_type(mesh, ex["order"], ex["element_type"], path)
+    materials = ex["materials"]
     k = len(materials)
     if mesh.n_cells == 0:
         raise DicerError(f"{path}: the mesh has no elements; nothing to export")
@@ -298,16 +297,14 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
                          "renumber the materials")
     if not np.all(np.isfinite(mesh.points)):
         raise DicerError(f"{path}: the mesh has non-finite node coordinates; re-run the stage that made it")
-    ex = section_defaults("export") | config.get("export", {})
     kinds = set(ex["sets"])
     clash = name_clash([m["name"] for m in materials], kinds)
     if clash:
         raise DicerError(f"{path}: {clash}")
-    kinds = kinds if sets else set()
+    kinds = kinds if build_sets else set()
     digest = sha256_in_background(source)
     names = {i + 1: m["name"] for i, m in enumerate(materials)}
-    props = {i + 1: {"youngs_modulus": 1000.0, "poissons_ratio": 0.3, "density": 1.0e-9, **m}
-             for i, m in enumerate(materials)}
+    props = {i + 1: dict(m) for i, m in enumerate(materials)}  # every property: the schema fills them
     cells = np.asarray(mesh.cells, dtype=np.int64)
     lattice2 = None  # twice the lattice index (order 2: mid-edge nodes at half-integers)
     points = mesh.points

@@ -11,7 +11,7 @@ import os
 from pathlib import Path
 
 from dicer import __version__
-from dicer.config import config_hash, stage_settings
+from dicer.config import config_hash, stage_kwargs
 
 
 def file_sha256(path: str | os.PathLike | None) -> str | None:
@@ -99,6 +99,7 @@ def provenance(source: str | os.PathLike | None, config: dict, element_type: str
     source : str or os.PathLike or None
         The mesh file.
     config : dict
+        A configuration, or its ``materials`` and ``export`` sections (:func:`settings_hash`).
     element_type : str
     order : int
     digest : str, optional
@@ -121,19 +122,22 @@ def provenance(source: str | os.PathLike | None, config: dict, element_type: str
 def settings_hash(config: dict) -> str:
     """Hash of the ``materials`` and ``export`` settings that shape the file.
 
-    All but ``export.verify``: how a file is checked does not change it.
+    All but ``export.verify``: how a file is checked does not change it. The sections are
+    those the export stage reads, completed from the schema's defaults
+    (:func:`dicer.config.stage_kwargs`), so ``dicer run``, ``dicer export``, the workflow's
+    rule and a library call give one hash for the same settings.
 
     Parameters
     ----------
     config : dict
-        The whole configuration.
+        A configuration, or its ``materials`` and ``export`` sections (in part or whole).
 
     Returns
     -------
     str
         As :func:`dicer.config.config_hash`.
     """
-    settings = stage_settings(config, "export")
-    settings.get("export", {}).pop("verify", None)
-    return config_hash(settings)
-
+    export = stage_kwargs(config, "export")
+    materials = export.pop("materials")
+    export.pop("verify")
+    return config_hash({"materials": materials, "export": export})

@@ -115,4 +115,4 @@ def _check_raw(parts, model) -> None:
         raise DicerError(f"material names {names} read back, expected {model.name_list()}")
 
 
-FORMAT = Format("vtu", (".vtu",), write_vtu, check_vtu, sets=False)
+FORMAT = Format("vtu", (".vtu",), write_vtu, check_vtu, holds_sets=False)

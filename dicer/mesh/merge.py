@@ -39,14 +39,14 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from dicer.config import section_defaults
+from dicer.config import section_defaults, takes_settings
 from dicer.errors import DicerError
 from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes
 from dicer.mesh.model import CHUNK, Mesh, pieces
 from dicer.mesh.topology import (HEX_AXIS_CORNERS, HEX_CORNERS, HEX_EDGES, HEX_FACES, QUAD_AXIS_CORNERS,
                                  QUAD_CORNERS, QUAD_EDGES)
 
-__all__ = ["merge_planes", "merge_mesh", "merge_settings", "thick_elements", "DEFAULTS"]
+__all__ = ["merge_planes", "merge_mesh", "thick_elements", "DEFAULTS"]
 
 _AXIS_NAMES = "xyz"
 log = logging.getLogger("dicer")  # the command line's logger: progress of long merges
@@ -117,14 +117,8 @@ def _any_at(mask: np.ndarray, index: np.ndarray) -> np.ndarray:
 
 
 def _check_passes(passes, dim: int) -> tuple[int, int, int]:
-    try:
-        values = [int(p) for p in passes]
-        ok = all(float(p) == int(p) for p in passes)
-    except (TypeError, ValueError):
-        ok = False
-    if not ok or len(values) not in (2, 3) or min(values) < 0:
-        raise DicerError(f"merge.passes={passes!r}: give 2 or 3 non-negative integers [px, py, pz]")
-    values = (values + [0])[:3]
+    """Merges per axis as three ints (the schema checked the values): z is 0 for a 2D mesh."""
+    values = ([int(p) for p in passes] + [0])[:3]
     if dim == 2:
         values[2] = 0  # a quad mesh has no element layers along z
     return tuple(values)
@@ -1146,29 +1140,22 @@ def _finish_step(plane: _Plane, trial: _Trial, work: _Work, info: dict
     return keep, delete, shift, info
 
 
-def _check_settings(mesh: Mesh, passes, min_thickness, granularity, min_scaled_jacobian, rim_moves, axes
+def _check_settings(mesh: Mesh, passes, granularity, min_scaled_jacobian, rim_moves, axes
                     ) -> tuple[tuple[int, int, int], _Settings]:
-    """The options of ``merge_planes`` checked: merges per axis (3 ints) and the settings.
+    """The options of ``merge_planes`` as the steps read them: merges per axis (3 ints) and the settings.
 
-    Raises ``DicerError`` naming the first bad option, or a mesh that cannot be merged.
+    The schema checked the settings' types and ranges (:func:`dicer.config.stage_kwargs`);
+    raises ``DicerError`` for bad ``axes`` (not a setting) or a mesh that cannot be merged.
     """
-    if granularity not in ("region", "plane"):
-        raise DicerError(f"merge.granularity={granularity!r}: use 'region' or 'plane'")
-    if not np.isfinite(min_thickness) or min_thickness < 0:
-        raise DicerError(f"merge.min_thickness={min_thickness!r}: give a number of voxels >= 0")
     counts = _check_passes(passes, mesh.dim)
-    if not isinstance(rim_moves, (bool, np.bool_)):
-        raise DicerError(f"merge.rim_moves={rim_moves!r}: give true or false")
     if sorted(axes) != [0, 1, 2]:
         raise DicerError(f"merge.axes={axes!r}: give a permutation of 0, 1, 2")
     if mesh.n_cells == 0:
         raise DicerError("the mesh has no elements; nothing to merge")
     if int(mesh.material.min()) < 0:
         raise DicerError("the mesh has negative material labels; materials are numbered 1..K")
-    msj = float(min_scaled_jacobian)
-    if not -1.0 <= msj < 1.0:
-        raise DicerError(f"merge.min_scaled_jacobian={min_scaled_jacobian!r}: give a value in [-1, 1)")
-    return counts, _Settings(mesh.dim, granularity, msj, bool(rim_moves), np.asarray(mesh.spacing, dtype=np.float64))
+    return counts, _Settings(mesh.dim, granularity, float(min_scaled_jacobian), bool(rim_moves),
+                             np.asarray(mesh.spacing, dtype=np.float64))
 
 
 def _apply_step(work: _Work, keep: np.ndarray, delete: np.ndarray, shift: np.ndarray, axis: int,
@@ -1217,10 +1204,14 @@ def _volume_report(before: dict[int, float], after: dict[int, float]) -> dict[st
             for k in sorted(before)}
 
 
-def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
-                 granularity: str = "region", min_scaled_jacobian: float = 0.2,
-                 rim_moves: bool = True, axes=(0, 1, 2)) -> tuple[Mesh, dict]:
+@takes_settings("merge")
+def merge_planes(mesh: Mesh, *, passes, min_thickness: float, granularity: str, min_scaled_jacobian: float,
+                 rim_moves: bool, axes=(0, 1, 2)) -> tuple[Mesh, dict]:
     """Merge element layers along each axis (DICER Box 2, multi-material, optionally selective).
+
+    The settings are the ``merge:`` section's (``passes`` ... ``rim_moves``), keyword-only
+    with no defaults here; settings left out take the schema's defaults, and every value
+    given is checked against the schema (:func:`dicer.config.takes_settings`).
 
     Nodes keep their coordinates and integer lattice indices; a moved rim node gets the
     index of the lattice corner it moved to; merged elements span two or more lattice
@@ -1231,22 +1222,22 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
     mesh : Mesh
         A voxel mesh (:func:`~dicer.mesh.voxel.voxel_mesh`), hexahedral or quad, one or
         several materials.
-    passes : sequence of int, optional
+    passes : sequence of int
         Merges per axis (px, py[, pz]). ``p`` merges join every group of ``p + 1``
         element layers into one: the first two layers of the group, then the result
         with the next layer, and so on. Groups start at the mesh's first element layer.
-    min_thickness : float, optional
+    min_thickness : float
         Selective merging. 0 merges wherever it is safe; t > 0 refuses every merge region
         that holds an element lying in a part of its material thinner than ``t`` voxels
         (see :func:`thick_elements`).
-    granularity : {"region", "plane"}, optional
+    granularity : {"region", "plane"}
         "region" refuses only the connected merge region that failed a check; "plane"
         refuses the whole plane, as the paper does.
-    min_scaled_jacobian : float, optional
+    min_scaled_jacobian : float
         Lowest corner scaled Jacobian (measured on the lattice) a changed element may
         have; 0.2 matches the smoothing floor. 0 allows flat corners, -1 switches the test
         off (the paper checks connectivity only).
-    rim_moves : bool, optional
+    rim_moves : bool
         Repair an element that fails a check by moving its rim nodes one lattice step
         across the plane, or joining them to the node already there (the element then
         fills the empty voxel beside it), before refusing its region.
@@ -1260,8 +1251,7 @@ def merge_planes(mesh: Mesh, passes=(1, 1, 1), *, min_thickness: float = 0.0,
         Element and node counts per axis and pass, and the volume of every material
         before and after.
     """
-    counts, settings = _check_settings(mesh, passes, min_thickness, granularity, min_scaled_jacobian, rim_moves,
-                                       axes)
+    counts, settings = _check_settings(mesh, passes, granularity, min_scaled_jacobian, rim_moves, axes)
     t_start = time.perf_counter()
     index = np.int32 if mesh.n_points < 2**31 - 1 else np.int64  # halves memory traffic
     cells = mesh.cells.astype(index)
@@ -1291,75 +1281,37 @@ DEFAULTS = section_defaults("merge")
 docs/merging.md and docs/coarsening.md)."""
 
 
-def merge_settings(section: dict | None) -> dict:
-    """The ``merge:`` config section with defaults filled in.
-
-    Parameters
-    ----------
-    section : dict or None
-        The section as read; None for all defaults.
-
-    Returns
-    -------
-    dict
-        Every key of :data:`DEFAULTS`.
-
-    Raises
-    ------
-    DicerError
-        An unknown key, or ``templates`` not a mapping.
-    """
-    settings = {k: (dict(v) if isinstance(v, dict) else v) for k, v in DEFAULTS.items()}
-    for key, value in (section or {}).items():
-        if key not in settings:
-            raise DicerError(f"merge.{key}: unknown setting; use one of {', '.join(sorted(settings))}")
-        if key == "templates":
-            if not isinstance(value, dict):
-                raise DicerError("merge.templates: give a mapping of levels, min_distance and keep_fine")
-            for sub, v in value.items():
-                if sub not in settings["templates"]:
-                    raise DicerError(f"merge.templates.{sub}: unknown setting; use levels, min_distance or keep_fine")
-                settings["templates"][sub] = v
-        else:
-            settings[key] = value
-    return settings
-
-
-def merge_mesh(mesh: Mesh, config_section: dict | None = None) -> tuple[Mesh, dict]:
-    """The merge stage driven by the ``merge:`` config section.
+@takes_settings("merge", section=True)
+def merge_mesh(mesh: Mesh, *, method: str, templates: dict, passes, min_thickness: float, granularity: str,
+               min_scaled_jacobian: float, rim_moves: bool) -> tuple[Mesh, dict]:
+    """The merge stage driven by the ``merge:`` settings.
 
     Plane merging (``method: planes``, :func:`merge_planes`) or graded coarsening by
     transition templates (``method: templates``, :func:`dicer.mesh.coarsen.coarsen_mesh`).
+    The settings are keyword-only with no defaults here: the command line passes
+    ``dicer.config.stage_kwargs(config, "merge")``. A library call may instead give the
+    ``merge:`` section (or part of it) as the second argument, or leave settings out; the
+    schema's defaults fill them (:func:`dicer.config.takes_settings`).
 
     Parameters
     ----------
     mesh : Mesh
         A voxel mesh.
-    config_section : dict, optional
-        The ``merge:`` section; missing keys take :data:`DEFAULTS`.
+    method, templates, passes, min_thickness, granularity, min_scaled_jacobian, rim_moves
+        The ``merge:`` config section (see the schema).
 
     Returns
     -------
     merged : Mesh
     report : dict
     """
-    s = merge_settings(config_section)
-    if s["method"] == "templates":
+    if method == "templates":
         from dicer.mesh.coarsen import coarsen_mesh
 
-        t = s["templates"]
-        keep = t["keep_fine"]
-        if not isinstance(keep, (list, tuple)) or any(isinstance(k, bool) or not isinstance(k, int) for k in keep):
-            raise DicerError(f"merge.templates.keep_fine={keep!r}: give a list of material labels")
-        return coarsen_mesh(mesh, levels=t["levels"], min_distance=t["min_distance"], keep_fine=list(keep))
-    if s["method"] != "planes":
-        raise DicerError(f"merge.method={s['method']!r}: use 'planes' or 'templates'")
-    for key in ("min_thickness", "min_scaled_jacobian"):
-        if isinstance(s[key], bool) or not isinstance(s[key], (int, float)):
-            raise DicerError(f"merge.{key}={s[key]!r}: give a number")
-    return merge_planes(mesh, passes=s["passes"], min_thickness=float(s["min_thickness"]),
-                        granularity=s["granularity"], min_scaled_jacobian=float(s["min_scaled_jacobian"]),
-                        rim_moves=s["rim_moves"])
+        return coarsen_mesh(mesh, levels=templates["levels"], min_distance=templates["min_distance"],
+                            keep_fine=list(templates["keep_fine"]))
+    return merge_planes.__wrapped__(mesh, passes=passes, min_thickness=float(min_thickness), granularity=granularity,
+                                    min_scaled_jacobian=float(min_scaled_jacobian), rim_moves=rim_moves)
 
 
 def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int = 1 << 20

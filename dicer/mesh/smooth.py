@@ -52,7 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from dicer.config import section_defaults
+from dicer.config import section_defaults, takes_settings
 from dicer.errors import DicerError
 from dicer.mesh.boundary import (NODE_CLASSES, BoundaryGraph, boundary_graph, bounding_planes, class_counts,
                                  mirror_share, mirror_weights, plane_axes)
@@ -66,59 +66,44 @@ DEFAULTS = section_defaults("smooth")
 """The ``smooth:`` section's defaults, as the config schema gives them."""
 _CLASS_LETTERS = ("A", "B", "C", "D", "E", "F")
 _PULL_ROUNDS = 5  # guard rounds per solve that back off the pull onto the image's surface
-_PLANE_MODES = ("mirror", "fixed", "free")
 
 
-def smoothing_settings(section: dict | None) -> dict:
-    """The ``smooth:`` config section with defaults filled in and values checked."""
-    s = {k: (dict(v) if isinstance(v, dict) else v) for k, v in DEFAULTS.items()}
-    for key, value in (section or {}).items():
-        if key not in s:
-            raise DicerError(f"smooth.{key}: unknown setting; use one of {', '.join(sorted(s))}")
-        if key == "coefficients":
-            if not isinstance(value, dict):
-                raise DicerError("smooth.coefficients: give a mapping of node classes A-F to values in [0, 1)")
-            for cls, k in value.items():
-                if cls not in _CLASS_LETTERS:
-                    raise DicerError(f"smooth.coefficients.{cls}: unknown node class; use A, B, C, D, E or F")
-                s["coefficients"][cls] = k
-        else:
-            s[key] = value
+@takes_settings("smooth", section=True)
+def smoothing_settings(*, surface_from_image, image_sigma, coefficient, coefficients, bounding_planes,
+                       keep_bounding_planes, interior, shrink_compensation, interior_band, min_scaled_jacobian,
+                       backoff_factor, max_backoff_rounds, tolerance) -> dict:
+    """The ``smooth:`` settings as the solves read them: a coefficient per node class.
 
-    def coef(name, k):
-        if isinstance(k, bool) or not isinstance(k, (int, float)) or not (0.0 <= float(k) < 1.0):
-            raise DicerError(f"{name} = {k!r} is outside [0, 1); 0 keeps nodes still, values near 1 flatten the surface")
-        return float(k)
+    Types and ranges are the schema's to check (:func:`dicer.config.stage_kwargs`, through
+    which a section or partial settings may be given); this adds what the schema cannot say.
 
-    if s["coefficient"] is not None:
-        k = coef("smooth.coefficient", s["coefficient"])
-        s["coefficients"] = {c: k for c in _CLASS_LETTERS}
-    s["coefficients"] = {c: coef(f"smooth.coefficients.{c}", s["coefficients"][c]) for c in _CLASS_LETTERS}
-    msj = s["min_scaled_jacobian"]
-    if isinstance(msj, bool) or not isinstance(msj, (int, float)) or not (0.0 <= msj < 1.0):
-        raise DicerError(f"smooth.min_scaled_jacobian = {msj!r} must lie in [0, 1)")
-    bf = s["backoff_factor"]
-    if isinstance(bf, bool) or not isinstance(bf, (int, float)) or not (0.0 <= bf < 1.0):
-        raise DicerError(f"smooth.backoff_factor = {bf!r} must lie in [0, 1)")
-    for key in ("interior_band", "max_backoff_rounds"):
-        v = s[key]
-        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-            raise DicerError(f"smooth.{key} = {v!r} must be a whole number >= 0")
-    tol = s["tolerance"]
-    if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not (0 < tol < 1):
-        raise DicerError(f"smooth.tolerance = {tol!r} must lie in (0, 1)")
-    sigma = s["image_sigma"]
-    if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not (0 <= sigma <= 3):
-        raise DicerError(f"smooth.image_sigma = {sigma!r} must lie in [0, 3] (voxels of the image)")
-    for key in ("keep_bounding_planes", "interior", "shrink_compensation", "surface_from_image"):
-        if not isinstance(s[key], bool):
-            raise DicerError(f"smooth.{key} = {s[key]!r} must be true or false")
-    if s["bounding_planes"] not in _PLANE_MODES:
-        raise DicerError(f"smooth.bounding_planes = {s['bounding_planes']!r}: use mirror, fixed or free")
-    if not s["keep_bounding_planes"] and s["bounding_planes"] != "free":
+    Parameters
+    ----------
+    surface_from_image, image_sigma, coefficient, coefficients, bounding_planes, keep_bounding_planes, \
+interior, shrink_compensation, interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, tolerance
+        The ``smooth:`` config section (see the schema).
+
+    Returns
+    -------
+    dict
+        The settings; ``coefficients`` holds every class A-F as a float (``coefficient``,
+        when not None, replaces them all).
+
+    Raises
+    ------
+    DicerError
+        ``keep_bounding_planes: false`` without ``bounding_planes: free``.
+    """
+    if not keep_bounding_planes and bounding_planes != "free":
         raise DicerError("smooth.keep_bounding_planes = false lets plane nodes leave their plane, which only "
                          "bounding_planes: free does; set smooth.bounding_planes: free with it")
-    return s
+    per_class = {c: float(coefficients[c] if coefficient is None else coefficient) for c in _CLASS_LETTERS}
+    return {"surface_from_image": surface_from_image, "image_sigma": image_sigma, "coefficient": coefficient,
+            "coefficients": per_class, "bounding_planes": bounding_planes,
+            "keep_bounding_planes": keep_bounding_planes, "interior": interior,
+            "shrink_compensation": shrink_compensation, "interior_band": interior_band,
+            "min_scaled_jacobian": min_scaled_jacobian, "backoff_factor": backoff_factor,
+            "max_backoff_rounds": max_backoff_rounds, "tolerance": tolerance}
 
 
 # --- solvers -------------------------------------------------------------------------------
@@ -1047,16 +1032,25 @@ def _report(st: _Smoothing, t0: float) -> dict:
     }
 
 
-def smooth_mesh(mesh: Mesh, config_section: dict | None = None, image=None, thresholds=None,
+@takes_settings("smooth", section=True)
+def smooth_mesh(mesh: Mesh, *, surface_from_image, image_sigma, coefficient, coefficients, bounding_planes,
+                keep_bounding_planes, interior, shrink_compensation, interior_band, min_scaled_jacobian,
+                backoff_factor, max_backoff_rounds, tolerance, image=None, thresholds=None,
                 image_source: str = "image") -> tuple[Mesh, dict]:
     """Smooth ``mesh``: node classes, boundary solve, pull onto the image, interior solve, guard.
+
+    The settings are keyword-only, with no defaults here: the command line passes
+    ``dicer.config.stage_kwargs(config, "smooth")``. A library call may instead give
+    the ``smooth:`` section (or part of it) as the second argument, or leave settings
+    out; the schema's defaults fill them (:func:`dicer.config.takes_settings`).
 
     Parameters
     ----------
     mesh : Mesh
         A mesh made by 'dicer mesh' (voxel, plane-merged or graded), with ``lattice`` point data.
-    config_section : dict, optional
-        The ``smooth:`` config section (missing keys take DEFAULTS).
+    surface_from_image, image_sigma, coefficient, coefficients, bounding_planes, keep_bounding_planes, \
+interior, shrink_compensation, interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, tolerance
+        The ``smooth:`` config section (see the schema and :func:`smoothing_settings`).
     image : dicer.image.Volume, optional
         The scan the labels were segmented from; with ``surface_from_image`` the boundary nodes
         move onto its iso-surfaces after the boundary solve (``dicer.mesh.subvoxel``).
@@ -1078,7 +1072,12 @@ def smooth_mesh(mesh: Mesh, config_section: dict | None = None, image=None, thre
         Bad settings, an empty mesh, a mesh without lattice data, an image or thresholds that
         do not fit the mesh, or a mesh the guard cannot bring above ``min_scaled_jacobian``.
     """
-    s = smoothing_settings(config_section)
+    s = smoothing_settings.__wrapped__(
+        surface_from_image=surface_from_image, image_sigma=image_sigma, coefficient=coefficient,
+        coefficients=coefficients, bounding_planes=bounding_planes, keep_bounding_planes=keep_bounding_planes,
+        interior=interior, shrink_compensation=shrink_compensation, interior_band=interior_band,
+        min_scaled_jacobian=min_scaled_jacobian, backoff_factor=backoff_factor,
+        max_backoff_rounds=max_backoff_rounds, tolerance=tolerance)
     _check_input(mesh)
     surface, t_img = _image_surface(mesh, s, image, thresholds, image_source)
     t0 = time.perf_counter()

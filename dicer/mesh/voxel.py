@@ -6,6 +6,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
+from dicer.config import takes_settings
 from dicer.errors import DicerError
 from dicer.mesh.frame import check_direction
 from dicer.mesh.model import Mesh
@@ -137,3 +138,32 @@ def _small_pages():
         yield
     finally:
         _set_madvise_hugepage(previous)
+
+
+@takes_settings("mesh")
+def mesh_labels(labels, *, names: list[str], coordinates: str) -> Mesh:
+    """The mesh stage: :func:`voxel_mesh` of a label volume, with the material names.
+
+    The settings are keyword-only with no defaults here: the command line passes
+    ``dicer.config.stage_kwargs(config, "mesh")``; a library call may give a
+    configuration as the second argument instead, or leave settings out (the schema's
+    defaults fill them, :func:`dicer.config.takes_settings`).
+
+    Parameters
+    ----------
+    labels : dicer.image.Volume
+        Label volume, 0 background, 1..K materials.
+    names : list of str
+        The material names (the ``materials`` section); label i is ``names[i - 1]``.
+    coordinates : {"scanner", "index"}
+        ``mesh.coordinates``: scanner keeps the image's direction cosines for the
+        exports, index drops them.
+
+    Returns
+    -------
+    Mesh
+    """
+    direction = labels.direction if coordinates == "scanner" else None
+    mesh = voxel_mesh(labels.array, labels.spacing, labels.origin, direction)
+    mesh.names = list(names)
+    return mesh

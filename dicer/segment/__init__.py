@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from dicer.config import section_defaults
+from dicer.config import takes_settings
 from dicer.errors import DicerError
 from dicer.image import Volume
 from dicer.segment.morphology import clean_labels
@@ -28,17 +28,15 @@ from dicer.segment.thresholds import (
 __all__ = ["segment", "class_priority", "morphology_options", "label_counts"]
 
 
-def _names(config: dict) -> list[str]:
-    return [m["name"] for m in config["materials"]]
-
-
-def class_priority(config: dict, source: str = "") -> list[int]:
+def class_priority(names: list[str], priority, source: str = "") -> list[int]:
     """Class labels in priority order, highest first, from ``segment.priority``.
 
     Parameters
     ----------
-    config : dict
-        A loaded configuration.
+    names : list of str
+        The material names; label i is ``names[i - 1]``.
+    priority : list of str or None
+        ``segment.priority``: class names, highest priority first.
     source : str
         File named in error messages.
 
@@ -46,17 +44,15 @@ def class_priority(config: dict, source: str = "") -> list[int]:
     -------
     priority : list of int
         Every label 1..K once. Named classes come first in the given order; classes
-        not named follow, densest first. Default (``null``): ``K, K-1, ..., 1``.
+        not named follow, densest first. ``None``: ``K, K-1, ..., 1``.
 
     Raises
     ------
     DicerError
         An unknown or repeated class name.
     """
-    names = _names(config)
-    given = config.get("segment", {}).get("priority") or []
     out = []
-    for name in given:
+    for name in priority or []:
         if name not in names:
             raise DicerError(f"{source}: segment.priority names unknown class '{name}'; "
                              f"known classes: {', '.join(names)}")
@@ -79,13 +75,16 @@ def check_radii(options: dict, shape, source: str = "") -> None:
                              f"({'x'.join(map(str, shape))} voxels); give a radius of 0..{top} voxels")
 
 
-def morphology_options(config: dict, source: str = "") -> dict:
-    """Keyword arguments of :func:`clean_labels` from the ``segment`` section.
+def morphology_options(names: list[str], *, opening_radius: int, closing_radius: int, keep, min_component_size,
+                       priority, source: str = "") -> dict:
+    """Keyword arguments of :func:`clean_labels` from the ``segment`` settings.
 
     Parameters
     ----------
-    config : dict
-        A loaded configuration.
+    names : list of str
+        The material names; label i is ``names[i - 1]``.
+    opening_radius, closing_radius, keep, min_component_size, priority
+        Those keys of the ``segment:`` config section (see the schema).
     source : str, optional
         File named in error messages.
 
@@ -94,25 +93,26 @@ def morphology_options(config: dict, source: str = "") -> dict:
     options : dict
         ``n_classes``, ``opening_radius``, ``closing_radius``, ``keep``, ``min_size``,
         ``priority``.
+
+    Raises
+    ------
+    DicerError
+        A per-material list of another length than the materials.
     """
-    seg = section_defaults("segment") | config.get("segment", {})
-    names = _names(config)
     k = len(names)
-    keep = seg["keep"]
     if keep == "body":  # the largest part of the outermost class, with everything inside it
         keep = ["largest"] + ["all"] * (k - 1)
-    size = seg["min_component_size"]
-    for key, value in (("keep", keep), ("min_component_size", size)):
+    for key, value in (("keep", keep), ("min_component_size", min_component_size)):
         if isinstance(value, list) and len(value) != k:
             raise DicerError(f"{source}: segment.{key} has {len(value)} entries for {k} materials "
                              f"({', '.join(names)}); give one per material or a single value")
     return {
         "n_classes": k,
-        "opening_radius": int(seg["opening_radius"]),
-        "closing_radius": int(seg["closing_radius"]),
+        "opening_radius": int(opening_radius),
+        "closing_radius": int(closing_radius),
         "keep": keep,
-        "min_size": size,
-        "priority": class_priority(config, source),
+        "min_size": min_component_size,
+        "priority": class_priority(names, priority, source),
     }
 
 
@@ -158,15 +158,24 @@ def _check_image(image: Volume, source: str) -> tuple[float, float]:
     return lo, hi
 
 
-def segment(image: Volume, config: dict, source: str = "") -> tuple[Volume, dict]:
+@takes_settings("segment")
+def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges, bins: int, opening_radius: int,
+            closing_radius: int, keep, min_component_size, priority, source: str = "") -> tuple[Volume, dict]:
     """Classify voxels into the configured materials and clean the classes.
+
+    The settings are keyword-only with no defaults here: the command line passes
+    ``dicer.config.stage_kwargs(config, "segment")``. A library call may instead give a
+    configuration as the second argument (and ``source`` third), or leave settings out;
+    the schema's defaults fill them (:func:`dicer.config.takes_settings`).
 
     Parameters
     ----------
     image : Volume
         Grey-level image, (nx, ny[, nz]) array of int or float (HU for CT).
-    config : dict
-        A loaded configuration; reads ``materials`` and ``segment``.
+    names : list of str
+        The material names, in order of increasing intensity (the ``materials`` section).
+    method, thresholds, ranges, bins, opening_radius, closing_radius, keep, min_component_size, priority
+        The ``segment:`` config section (see the schema).
     source : str
         The image's file name, used in error messages.
 
@@ -190,27 +199,20 @@ def segment(image: Volume, config: dict, source: str = "") -> tuple[Volume, dict
     """
     t0 = time.perf_counter()
     source = source or "image"
-    names = _names(config)
     k = len(names)
-    seg = section_defaults("segment") | config.get("segment", {})
-    method = seg["method"]
     lo, hi = _check_image(image, source)
     array = image.array
     info: dict = {"method": method}
     if method == "manual":
-        thresholds = check_thresholds(seg["thresholds"], k, names, source)
+        thresholds = check_thresholds(thresholds, k, names, source)
     elif method == "otsu":
         thresholds = otsu_thresholds(array, k, names, source)
     elif method == "multiotsu":
         thresholds = multiotsu_thresholds(array, k, names, source)
-    elif method == "shape_connectivity":
-        thresholds, search = shape_connectivity_thresholds(
-            array, seg["ranges"], names, source, bins=int(seg["bins"]))
+    else:  # shape_connectivity (the schema knows no other method)
+        thresholds, search = shape_connectivity_thresholds(array, ranges, names, source, bins=int(bins))
         info.update({key: value for key, value in search.items() if key != "seconds"})
         info["search_seconds"] = search["seconds"]
-    else:
-        raise DicerError(f"{source}: unknown segment.method '{method}'; "
-                         "use manual, otsu, multiotsu or shape_connectivity")
     info["thresholds"] = [round(float(t), 4) for t in thresholds]
     t_threshold = time.perf_counter()
 
@@ -220,7 +222,8 @@ def segment(image: Volume, config: dict, source: str = "") -> tuple[Volume, dict
                          f"the image spans {lo:g} .. {hi:g}; lower segment.thresholds")
     info["thresholded"] = {name: v["voxels"] for name, v in label_counts(raw, names).items()}
 
-    options = morphology_options(config, source)
+    options = morphology_options(names, opening_radius=opening_radius, closing_radius=closing_radius, keep=keep,
+                                 min_component_size=min_component_size, priority=priority, source=source)
     check_radii(options, raw.shape, source)
     labels, minfo = clean_labels(raw, **options)
     if not labels.any():

@@ -158,7 +158,7 @@ def filter_components(mask: np.ndarray, keep: str = "all", min_size: int = 0) ->
     return flags[comp]
 
 
-def clean_mask(mask: np.ndarray, opening_radius: int = 1, closing_radius: int = 1,
+def clean_mask(mask: np.ndarray, opening_radius: int, closing_radius: int,
                keep: str = "all", min_size: int = 0) -> np.ndarray:
     """Opening by reconstruction, closing, then the component filters, in that order.
 
@@ -187,7 +187,7 @@ def _per_class(value, k: int, name: str) -> list:
     return [value] * k
 
 
-def clean_labels(labels: np.ndarray, n_classes: int, opening_radius: int = 1, closing_radius: int = 1,
+def clean_labels(labels: np.ndarray, n_classes: int, opening_radius: int, closing_radius: int,
                  keep="all", min_size=0, priority=None) -> tuple[np.ndarray, dict]:
     """Clean a label volume class by class on cumulative masks (see the module notes).
 

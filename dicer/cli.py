@@ -453,7 +453,8 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
     from dicer.quality import quality_report, render_html
 
     with _Stage("quality"):
-        mesh = read_mesh(mesh_path) if mesh is None else mesh
+        # the report only reads the mesh: its arrays stay in the page cache, mapped, not copied
+        mesh = read_mesh(mesh_path, mapped=True) if mesh is None else mesh
         labels = original = None
         if labels_path or original_path:
             from dicer.io.images import read_labels

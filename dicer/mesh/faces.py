@@ -200,19 +200,28 @@ def face_neighbours(cells: np.ndarray, dim: int, n_points: int) -> np.ndarray:
     table = HEX_FACES if dim == 3 else QUAD_EDGES
     m, nf = cells.shape[0], table.shape[0]
     keys = np.empty((m, nf), np.int64)
-    for f, face in enumerate(table):
-        c = cells[:, face]
-        if dim == 3:
-            pos = np.argmin(c, axis=1)
-            lo = np.take_along_axis(c, pos[:, None], 1)[:, 0]
-            hi = np.take_along_axis(c, ((pos + 2) % 4)[:, None], 1)[:, 0]
-        else:
-            lo, hi = np.minimum(c[:, 0], c[:, 1]), np.maximum(c[:, 0], c[:, 1])
-        keys[:, f] = lo * n_points + hi
+    # piece by piece: the temporaries of a piece stay small and are reused, where whole-mesh
+    # temporaries would each take fresh memory (slow to fault in on a virtual machine)
+    for part in pieces(m):
+        block = cells[part]
+        for f, face in enumerate(table):
+            c = block[:, face]
+            if dim == 3:
+                pos = np.argmin(c, axis=1)
+                lo = np.take_along_axis(c, pos[:, None], 1)[:, 0]
+                hi = np.take_along_axis(c, ((pos + 2) % 4)[:, None], 1)[:, 0]
+            else:
+                lo, hi = np.minimum(c[:, 0], c[:, 1]), np.maximum(c[:, 0], c[:, 1])
+            keys[part, f] = lo * np.int64(n_points) + hi
     flat = keys.ravel()
     order = np.argsort(flat, kind="stable")
-    sk = flat[order]
-    first = np.flatnonzero(sk[1:] == sk[:-1])
+    same = np.empty(max(flat.size - 1, 0), bool)  # sorted key i + 1 equals key i
+    for part in pieces(same.size):
+        i = order[part.start:part.stop + 1]
+        sk = flat[i]
+        np.equal(sk[1:], sk[:-1], out=same[part])
+    del keys, flat
+    first = np.flatnonzero(same)
     nb = np.full(m * nf, -1, np.int64)
     a, b = order[first], order[first + 1]
     nb[a] = b // nf

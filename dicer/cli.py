@@ -460,7 +460,8 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
     from dicer.quality import quality_report, render_html
 
     with _Stage("quality"):
-        mesh = read_mesh(mesh_path) if mesh is None else mesh
+        # the report only reads the mesh: its arrays stay in the page cache, mapped, not copied
+        mesh = read_mesh(mesh_path, mapped=True) if mesh is None else mesh
         labels = original = None
         if labels_path or original_path:
             from dicer.io.images import read_labels
@@ -482,7 +483,9 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
         names = REPORT_METRICS + (("skew",) if csv else ())
         metrics = element_metrics(mesh.points, mesh.cells, names)
         sj = metrics["scaled_jacobian"]
-        neighbours = element_neighbours(mesh)  # the report's parts and the model picture's faces
+        # the model picture's faces, shared with the report's parts; without the picture the
+        # parts of a voxel mesh come from its voxel grid and need no neighbour array
+        neighbours = element_neighbours(mesh) if model_picture else None
         report = quality_report(mesh, config, labels=labels, original=original, metrics=metrics,
                                 neighbours=neighbours)
         stages = {}

@@ -76,6 +76,9 @@ def _material_nodes(cells: np.ndarray, material: np.ndarray, label: np.ndarray, 
 def element_neighbours(mesh: Mesh) -> np.ndarray:
     """The element across each face (2D: edge) of any conforming mesh.
 
+    A voxel mesh of its lattice (smoothed or not) reads them off its voxel grid; any
+    other mesh matches faces by their nodes.
+
     Parameters
     ----------
     mesh : Mesh
@@ -85,35 +88,87 @@ def element_neighbours(mesh: Mesh) -> np.ndarray:
     (M, F) int64 ndarray
         Element index, -1 for none.
     """
-    from dicer.mesh.faces import face_neighbours
+    from dicer.mesh.faces import face_neighbours, voxel_face_neighbours
 
-    return face_neighbours(np.asarray(mesh.cells, np.int64), mesh.dim, mesh.n_points)
+    nb = voxel_face_neighbours(mesh)
+    if nb is None:
+        nb = face_neighbours(np.asarray(mesh.cells, np.int64), mesh.dim, mesh.n_points)
+    return nb
 
 
-def _component_sizes(m: int, a: np.ndarray, b: np.ndarray, keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Connected components of the graph on ``m`` elements with edges ``a``-``b``:
-    (component of each element (M,), element count of each component)."""
-    from scipy.sparse import coo_matrix
+def _grid_parts(shape: tuple[int, ...], voxel: np.ndarray, material: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Face-connected parts of a voxel mesh (each element's ``voxel`` in the grid of
+    ``shape``, :func:`dicer.mesh.faces.voxel_elements`) by labelling its voxel grid: its
+    voxels are its elements, and face neighbours are voxels next to each other along an axis.
+
+    Returns the element count of each part of the model, and of each part of one material
+    with that material: (model sizes, part materials, part sizes).
+    """
+    from scipy import ndimage
+    from skimage.measure import label as label_regions
+
+    top = int(material.max())
+    kind = np.uint8 if top < 256 else np.uint16 if top < 65536 else np.int64
+    grid = np.zeros(int(np.prod(shape)), kind)  # 0: no element
+    grid[voxel] = material
+    grid = grid.reshape(shape)
+    # face connectivity: neighbours along one axis only
+    parts, _ = ndimage.label(grid, ndimage.generate_binary_structure(grid.ndim, 1))
+    model_sizes = np.bincount(parts.ravel()[voxel])[1:]  # the elements' voxels: no count of the empty ones
+    del parts
+    # parts of one material: skimage joins neighbours only when they hold the same value
+    regions = label_regions(grid, background=0, connectivity=1).ravel()[voxel]
+    sizes = np.bincount(regions)
+    region_material = np.zeros(sizes.size, np.int64)
+    region_material[regions] = material
+    return model_sizes, region_material[1:], sizes[1:]
+
+
+def _graph_parts(m: int, nb: np.ndarray, material: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Face-connected parts of any mesh from the element across each face ``nb`` (M, F):
+    connected components of the graph of shared faces, for the model and, keeping only
+    faces between elements of one material, per material. Same returns as :func:`_grid_parts`."""
+    from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import connected_components
 
-    if keep is not None:
-        a, b = a[keep], b[keep]
-    graph = coo_matrix((np.ones(a.size, np.int8), (a, b)), shape=(m, m)).tocsr()
-    _, comp = connected_components(graph, directed=False)
-    return comp, np.bincount(comp)
+    row = np.arange(m)[:, None]
+    same = material[nb] == material[:, None]  # nb = -1 gives rubbish, dropped by nb > row
+
+    def components(keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # each shared face once (towards the higher element), the rows' entries straight
+        # into CSR form: no (row, column) pair arrays and no sort of them
+        indptr = np.zeros(m + 1, np.int64)
+        np.cumsum(np.count_nonzero(keep, axis=1), out=indptr[1:])
+        indices = nb[keep].astype(np.int32 if m < 2**31 else np.int64)
+        graph = csr_matrix((np.ones(indices.size), indices, indptr), shape=(m, m))
+        _, comp = connected_components(graph, directed=False)
+        return comp, np.bincount(comp)
+
+    upper = nb > row
+    _, model_sizes = components(upper)
+    upper &= same
+    del same
+    comp, sizes = components(upper)
+    comp_material = np.zeros(sizes.size, np.int64)
+    comp_material[comp] = material  # any element's material: all of a component share it
+    return model_sizes, comp_material, sizes
 
 
 def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None) -> dict:
     """Connected parts of the model and of each material, through shared faces (2D: edges).
 
     Elements that share only an edge or a node do not hold together in a solve, so parts are
-    face-connected, as ``fix`` counts them on the voxels.
+    face-connected, as ``fix`` counts them on the voxels. A voxel mesh of its lattice
+    (smoothed or not) is labelled on its voxel grid; any other mesh goes through the
+    graph of its face neighbours.
 
     Parameters
     ----------
     mesh : Mesh
     neighbours : (M, F) int64 ndarray, optional
-        From :func:`element_neighbours`; computed here when not given.
+        From :func:`element_neighbours`; for a mesh that is not a voxel mesh, computed
+        here when not given.
 
     Returns
     -------
@@ -123,23 +178,22 @@ def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None) -> dict:
         model's also ``floating_elements``: the elements outside its largest part (any is
         a part a static solve cannot hold).
     """
+    from dicer.mesh.faces import voxel_elements
+
     m = mesh.n_cells
-    nb = element_neighbours(mesh) if neighbours is None else neighbours
-    a = np.repeat(np.arange(m, dtype=np.int64), nb.shape[1])
-    b = nb.ravel()
-    edge = b > a  # each shared face once
-    a, b = a[edge], b[edge]
-    material = np.asarray(mesh.material, np.int64)
     out = {"model": {"parts": 0, "largest": 0, "smallest": 0, "floating_elements": 0}, "materials": {}}
     if m == 0:
         return out
-    _, sizes = _component_sizes(m, a, b)
-    out["model"] = {"parts": int(sizes.size), "largest": int(sizes.max()), "smallest": int(sizes.min()),
-                    "floating_elements": int(m - sizes.max())}
-    comp, sizes = _component_sizes(m, a, b, material[a] == material[b])
-    # material of each component: that of any of its elements
-    comp_material = np.zeros(sizes.size, np.int64)
-    comp_material[comp] = material
+    material = np.asarray(mesh.material, np.int64)
+    voxel = voxel_elements(mesh) if material.min() > 0 else None  # the grid holds 0 for no element
+    if voxel is not None:
+        shape = tuple(int(n) for n in np.asarray(mesh.grid_shape)[:mesh.dim])
+        model_sizes, comp_material, sizes = _grid_parts(shape, voxel, material)
+    else:
+        nb = element_neighbours(mesh) if neighbours is None else neighbours
+        model_sizes, comp_material, sizes = _graph_parts(m, nb, material)
+    out["model"] = {"parts": int(model_sizes.size), "largest": int(model_sizes.max()),
+                    "smallest": int(model_sizes.min()), "floating_elements": int(m - model_sizes.max())}
     order = np.argsort(comp_material, kind="stable")
     cm, sz = comp_material[order], sizes[order]
     start = np.flatnonzero(np.r_[True, cm[1:] != cm[:-1]])

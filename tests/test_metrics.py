@@ -146,3 +146,21 @@ def test_element_metrics_in_one_pass_equal_each_metric_bit_for_bit(dim):
     assert list(element_metrics(points, mesh.cells, ("volume",))) == ["volume"]
     with pytest.raises(ValueError, match="unknown metric"):
         element_metrics(points, mesh.cells, ("warp",))
+
+
+@pytest.mark.parametrize("corners", [8, 4])
+def test_quality_arrays_in_one_pass_equal_the_single_metrics(corners):
+    """quality_arrays computes both arrays in one pass: bit for bit the single metrics."""
+    from dicer.mesh.metrics import QUALITY_DATA, quality_arrays
+    from dicer.mesh.voxel import voxel_mesh
+
+    rng = np.random.default_rng(corners)
+    labels = rng.integers(0, 3, (9, 8, 7) if corners == 8 else (9, 8)).astype(np.uint8)
+    mesh = voxel_mesh(labels)
+    mesh.points[:, :3 if corners == 8 else 2] += rng.normal(0, 0.2, (mesh.n_points, 3 if corners == 8 else 2))
+    got = quality_arrays(mesh.points, mesh.cells)
+    assert tuple(got) == QUALITY_DATA
+    assert np.array_equal(got["scaled_jacobian"], scaled_jacobian(mesh.points, mesh.cells))
+    assert np.array_equal(got["edge_ratio"], edge_ratio(mesh.points, mesh.cells))
+    sj = got["scaled_jacobian"]
+    assert quality_arrays(mesh.points, mesh.cells, sj)["scaled_jacobian"] is sj

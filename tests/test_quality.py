@@ -94,3 +94,123 @@ def test_nodes_per_material_by_flags_and_by_sorting(materials):
     assert got.tolist() == expect
     # 2 materials take the flags, 90 the sort (a table of 90 flags per node outgrows the keys)
     assert (mesh.n_points * present.size <= mesh.cells.size * 8) == (materials == 2)
+
+
+# --- floating parts: the voxel grid and the face graph against a plain reference ------------
+
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+
+def _reference_parts(mesh) -> dict:
+    """Face-connected parts the plain way: faces keyed by their set of nodes, elements of one
+    face joined in a union-find; per material only faces between elements of one material."""
+    from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
+
+    table = HEX_FACES if mesh.dim == 3 else QUAD_EDGES
+    owners: dict[frozenset, list[int]] = {}
+    for e, cell in enumerate(mesh.cells.tolist()):
+        for face in table:
+            owners.setdefault(frozenset(cell[i] for i in face), []).append(e)
+    material = mesh.material.tolist()
+
+    def parts(same_material: bool) -> list[tuple[int, int]]:
+        root = list(range(mesh.n_cells))
+
+        def find(i):
+            while root[i] != i:
+                root[i] = root[root[i]]
+                i = root[i]
+            return i
+
+        for elements in owners.values():
+            for a, b in zip(elements, elements[1:]):
+                if not same_material or material[a] == material[b]:
+                    root[find(a)] = find(b)
+        count: dict[int, int] = {}
+        for e in range(mesh.n_cells):
+            count[find(e)] = count.get(find(e), 0) + 1
+        return [(material[r], n) for r, n in count.items()]
+
+    model = [n for _, n in parts(False)]
+    out = {"model": {"parts": len(model), "largest": max(model), "smallest": min(model),
+                     "floating_elements": mesh.n_cells - max(model)}, "materials": {}}
+    for k in sorted(set(material)):
+        sizes = [n for mk, n in parts(True) if mk == k]
+        out["materials"][k] = {"parts": len(sizes), "largest": max(sizes), "smallest": min(sizes)}
+    return out
+
+
+def _graph_floating_parts(mesh) -> dict:
+    """floating_parts through the face graph whatever the mesh (the path of merged and graded
+    meshes), by hiding the lattice."""
+    from dicer.quality import floating_parts
+
+    graph = mesh.copy()
+    graph.lattice = np.full_like(graph.lattice, -1)
+    return floating_parts(graph)
+
+
+_labels_2d = arrays(np.uint8, st.tuples(st.integers(1, 7), st.integers(1, 7)), elements=st.integers(0, 3))
+_labels_3d = arrays(np.uint8, st.tuples(st.integers(1, 5), st.integers(1, 5), st.integers(1, 5)),
+                    elements=st.integers(0, 3))
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.one_of(_labels_2d, _labels_3d))
+def test_floating_parts_match_a_reference_on_random_labels(labels):
+    """Random labels, 2D and 3D (islands, elements touching only along an edge or at a node,
+    empty voxels): the voxel grid's labelling and the face graph both give the parts of a
+    plain union-find over faces keyed by their nodes."""
+    from dicer.mesh.faces import face_neighbours, voxel_elements, voxel_face_neighbours
+    from dicer.quality import floating_parts
+
+    if not labels.any():
+        labels = labels.copy()
+        labels.flat[0] = 1
+    mesh = voxel_mesh(labels)
+    expect = _reference_parts(mesh)
+    assert voxel_elements(mesh) is not None
+    assert floating_parts(mesh) == expect
+    assert _graph_floating_parts(mesh) == expect
+    # the voxel grid's neighbours are the face sort's, face for face
+    assert np.array_equal(voxel_face_neighbours(mesh), face_neighbours(mesh.cells, mesh.dim, mesh.n_points))
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(arrays(np.uint8, (12, 12, 10), elements=st.sampled_from([0, 1, 1, 1, 2])))
+def test_floating_parts_of_graded_meshes_match_a_reference(labels):
+    """A graded mesh (templates: not a voxel mesh) goes through the face graph."""
+    from dicer.mesh.coarsen import coarsen_mesh
+    from dicer.mesh.faces import voxel_elements
+    from dicer.quality import floating_parts
+
+    labels = labels.copy()
+    labels[:, :, :7] = 1  # a solid slab that coarsens; random voxels above it
+    graded, _ = coarsen_mesh(voxel_mesh(labels), levels=1)
+    assert graded.cell_data["coarsening_level"].max() == 1 and voxel_elements(graded) is None
+    assert floating_parts(graded) == _reference_parts(graded)
+
+
+def test_a_voxel_mesh_with_split_nodes_is_no_voxel_mesh():
+    """Two elements side by side on their own nodes share no face: the voxel grid would join
+    them, so such a mesh goes through the face graph."""
+    from dicer.mesh.faces import voxel_elements
+    from dicer.quality import floating_parts
+
+    mesh = voxel_mesh(np.array([[[1]], [[1]]], np.uint8))  # two voxels along x
+    assert voxel_elements(mesh) is not None
+    assert floating_parts(mesh)["model"]["parts"] == 1
+    split = mesh.copy()
+    shared = np.unique(split.cells[1][np.isin(split.cells[1], split.cells[0])])
+    copies = np.arange(split.n_points, split.n_points + shared.size)
+    split.points = np.vstack([split.points, split.points[shared]])
+    split.lattice = np.vstack([split.lattice, split.lattice[shared]])
+    remap = np.arange(mesh.n_points)
+    remap[shared] = copies
+    split.cells = split.cells.copy()
+    split.cells[1] = remap[split.cells[1]]  # the second element on copies of the shared nodes
+    assert voxel_elements(split) is None
+    assert floating_parts(split)["model"] == {"parts": 2, "largest": 1, "smallest": 1, "floating_elements": 1}
+    assert floating_parts(split) == _reference_parts(split)

@@ -79,6 +79,104 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
     return nb
 
 
+def _distinct(values: np.ndarray, size: int) -> bool:
+    """Whether the integers ``values`` in [0, size) are all different: at once when they
+    increase (the order the voxel mesher writes nodes and elements in), else by flags."""
+    if np.all(values[1:] > values[:-1]):
+        return True
+    seen = np.zeros(size, bool)
+    seen[values] = True
+    return int(np.count_nonzero(seen)) == values.size
+
+
+def voxel_elements(mesh: Mesh) -> np.ndarray | None:
+    """Each element's voxel, when the mesh is a voxel mesh of its lattice (smoothed or not).
+
+    Valid when every element is the unit box of one voxel with its corners at that voxel's
+    lattice corners, no two elements share a voxel and no two nodes share a lattice point.
+    Then two elements share a face exactly when their voxels share one (a voxel's face has
+    one set of four nodes), so face neighbours and face-connected parts come from the
+    voxel grid, without matching faces by their nodes. Smoothing moves points, not lattice
+    indices, so a smoothed voxel mesh qualifies; a merged or graded mesh does not.
+
+    Parameters
+    ----------
+    mesh : Mesh
+
+    Returns
+    -------
+    (M,) int64 ndarray or None
+        The flat index of each element's voxel in the grid of the first ``dim`` axes of
+        ``grid_shape`` (C order); None when the mesh is not such a voxel mesh or has no
+        elements.
+    """
+    dim = mesh.dim
+    cells = mesh.cells
+    m = cells.shape[0]
+    shape = np.asarray(mesh.grid_shape, np.int64)[:dim]
+    lattice = np.asarray(mesh.lattice)[:, :dim]
+    if m == 0 or lattice.shape[0] == 0 or shape.min() < 1 or lattice.min() < 0 or np.any(lattice.max(axis=0) > shape):
+        return None
+    nstrides = np.array([int(np.prod(shape[i + 1:] + 1)) for i in range(dim)], np.int64)
+    strides = np.array([int(np.prod(shape[i + 1:])) for i in range(dim)], np.int64)
+    node_lin = lattice @ nstrides
+    # one node per lattice point: two nodes at one point would let voxels that touch
+    # hold different nodes on their common face, which is then no shared face
+    if not _distinct(node_lin, int(np.prod(shape + 1))):
+        return None
+    corner_step = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim] @ nstrides
+    voxel = np.empty(m, np.int64)
+    for part in pieces(m):
+        at = node_lin[cells[part]]  # (p, corners) lattice points of the corners
+        lo = lattice[cells[part, 0]]
+        # corner 0 below the far lattice plane: else corner 0 + 1 would wrap into the next row
+        if np.any(lo >= shape) or not np.array_equal(at - at[:, :1], np.broadcast_to(corner_step, at.shape)):
+            return None
+        voxel[part] = lo @ strides
+    if not _distinct(voxel, int(np.prod(shape))):  # two elements in one voxel
+        return None
+    return voxel
+
+
+def voxel_face_neighbours(mesh: Mesh) -> np.ndarray | None:
+    """The element across each face of a voxel mesh, from its voxel grid.
+
+    The same array as :func:`face_neighbours` for a mesh :func:`voxel_elements` accepts,
+    in gathers of the neighbouring voxels rather than a sort of all faces.
+
+    Parameters
+    ----------
+    mesh : Mesh
+
+    Returns
+    -------
+    (M, F) int64 ndarray or None
+        Element index across faces S1..S6 (2D: edges S1..S4), -1 for none; None when
+        the mesh is not a voxel mesh of its lattice.
+    """
+    voxel = voxel_elements(mesh)
+    if voxel is None:
+        return None
+    shape = [int(n) for n in np.asarray(mesh.grid_shape)[:mesh.dim]]
+    m = voxel.size
+    kind = np.int32 if m < 2**31 else np.int64
+    index = np.full(int(np.prod(shape)), -1, kind)  # the element in each voxel
+    index[voxel] = np.arange(m, dtype=kind)
+    strides = [int(np.prod(shape[i + 1:])) for i in range(len(shape))]
+    axes = HEX_FACE_PLANES if mesh.dim == 3 else QUAD_SIDE_PLANES
+    nb = np.empty((m, len(axes)), np.int64)
+    for part in pieces(m):
+        v = voxel[part]
+        for f, (axis, side) in enumerate(axes):
+            pos = (v // strides[axis]) % shape[axis]  # the voxel's index along the face's axis
+            inside = pos > 0 if side == 0 else pos < shape[axis] - 1
+            step = -strides[axis] if side == 0 else strides[axis]
+            got = index[np.where(inside, v + step, 0)].astype(np.int64)
+            got[~inside] = -1
+            nb[part, f] = got
+    return nb
+
+
 def face_neighbours(cells: np.ndarray, dim: int, n_points: int) -> np.ndarray:
     """The element across each face, from a sort of face keys (any conforming mesh).
 
@@ -102,19 +200,28 @@ def face_neighbours(cells: np.ndarray, dim: int, n_points: int) -> np.ndarray:
     table = HEX_FACES if dim == 3 else QUAD_EDGES
     m, nf = cells.shape[0], table.shape[0]
     keys = np.empty((m, nf), np.int64)
-    for f, face in enumerate(table):
-        c = cells[:, face]
-        if dim == 3:
-            pos = np.argmin(c, axis=1)
-            lo = np.take_along_axis(c, pos[:, None], 1)[:, 0]
-            hi = np.take_along_axis(c, ((pos + 2) % 4)[:, None], 1)[:, 0]
-        else:
-            lo, hi = np.minimum(c[:, 0], c[:, 1]), np.maximum(c[:, 0], c[:, 1])
-        keys[:, f] = lo * n_points + hi
+    # piece by piece: the temporaries of a piece stay small and are reused, where whole-mesh
+    # temporaries would each take fresh memory (slow to fault in on a virtual machine)
+    for part in pieces(m):
+        block = cells[part]
+        for f, face in enumerate(table):
+            c = block[:, face]
+            if dim == 3:
+                pos = np.argmin(c, axis=1)
+                lo = np.take_along_axis(c, pos[:, None], 1)[:, 0]
+                hi = np.take_along_axis(c, ((pos + 2) % 4)[:, None], 1)[:, 0]
+            else:
+                lo, hi = np.minimum(c[:, 0], c[:, 1]), np.maximum(c[:, 0], c[:, 1])
+            keys[part, f] = lo * np.int64(n_points) + hi
     flat = keys.ravel()
     order = np.argsort(flat, kind="stable")
-    sk = flat[order]
-    first = np.flatnonzero(sk[1:] == sk[:-1])
+    same = np.empty(max(flat.size - 1, 0), bool)  # sorted key i + 1 equals key i
+    for part in pieces(same.size):
+        i = order[part.start:part.stop + 1]
+        sk = flat[i]
+        np.equal(sk[1:], sk[:-1], out=same[part])
+    del keys, flat
+    first = np.flatnonzero(same)
     nb = np.full(m * nf, -1, np.int64)
     a, b = order[first], order[first + 1]
     nb[a] = b // nf

@@ -60,6 +60,33 @@ def _corner_edge_table() -> list[list[tuple[int, int]]]:
 _CORNER_EDGES = _corner_edge_table()
 
 
+# HEX_EDGES runs 0-1 1-2 2-3 3-0, 4-5 5-6 6-7 7-4, then 0-4 1-5 2-6 3-7: _hex_edges takes the
+# edge vectors as differences of slices of the corner rows in that order (no gathered copies)
+assert HEX_EDGES.tolist() == [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4],
+                              [0, 4], [1, 5], [2, 6], [3, 7]]
+
+
+def _hex_edges(x: list[np.ndarray]) -> list[np.ndarray]:
+    """The 12 edge vectors (``HEX_EDGES`` order, end minus start) of hexahedra as three
+    (12, m) arrays, from the x, y and z coordinates of the corners, three (8, m) arrays."""
+    out = []
+    for c in x:
+        e = np.empty((12, c.shape[1]))
+        np.subtract(c[1:4], c[0:3], out=e[0:3])
+        np.subtract(c[0], c[3], out=e[3])
+        np.subtract(c[5:8], c[4:7], out=e[4:7])
+        np.subtract(c[4], c[7], out=e[7])
+        np.subtract(c[4:8], c[0:4], out=e[8:12])
+        out.append(e)
+    return out
+
+
+def _squared_lengths(e: list[np.ndarray]) -> np.ndarray:
+    """(12, m) squared edge lengths, summed x, y, z in that order (every metric sums them
+    alike, so the metrics that share them stay bit for bit those computed alone)."""
+    return e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
+
+
 def _hex_min_scaled_jacobian(x: list[np.ndarray]) -> np.ndarray:
     """Minimum corner scaled Jacobian of hexahedra from their corner coordinates.
 
@@ -67,8 +94,13 @@ def _hex_min_scaled_jacobian(x: list[np.ndarray]) -> np.ndarray:
     the 12 edges is normalised once and shared by its two corners; the triple products
     are written out per component. Same values as corner_scaled_jacobians.
     """
-    e = [x[d][HEX_EDGES[:, 1]] - x[d][HEX_EDGES[:, 0]] for d in range(3)]  # 3 x (12, m)
-    length = np.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+    e = _hex_edges(x)
+    return _min_scaled_jacobian_of_edges(e, _squared_lengths(e))
+
+
+def _min_scaled_jacobian_of_edges(e: list[np.ndarray], sq: np.ndarray) -> np.ndarray:
+    """:func:`_hex_min_scaled_jacobian` from the edge vectors and their squared lengths."""
+    length = np.sqrt(sq)
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = np.where(length > 0, 1.0 / length, 0.0)
     u = [c * inv for c in e]
@@ -82,6 +114,12 @@ def _hex_min_scaled_jacobian(x: list[np.ndarray]) -> np.ndarray:
             t = -t
         best = t if best is None else np.minimum(best, t)
     return best
+
+
+def _edge_ratio_of_lengths(sq: np.ndarray) -> np.ndarray:
+    """Edge ratio from the (edges, m) squared edge lengths."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.sqrt(sq.max(axis=0) / sq.min(axis=0))
 
 
 # elements per block of the hexahedron loops: the block's temporaries stay in the cache
@@ -215,9 +253,11 @@ def edge_ratio(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np
     (M,) float64 ndarray
         1 for a cube; inf for an element with a zero-length edge.
     """
-    pairs = HEX_EDGES if cells.shape[1] == 8 else QUAD_EDGES
     columns = _columns(points)
     out = np.empty(cells.shape[0])
+    if cells.shape[1] == 8:  # edge vectors from slices of the corner rows, as element_metrics
+        return _per_block(_hex_edge_ratio, columns, cells.T, chunk, out)
+    pairs = QUAD_EDGES
     for part in pieces(cells.shape[0], chunk):
         block = cells[part].T  # (corners, block)
         sq = None
@@ -255,12 +295,7 @@ def skew(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np.ndarr
 
 def _hex_edge_ratio(x: list[np.ndarray]) -> np.ndarray:
     """edge_ratio of hexahedra from their corner coordinates, three (8, m) arrays."""
-    sq = None
-    for c in x:
-        d = c[HEX_EDGES[:, 1]] - c[HEX_EDGES[:, 0]]
-        sq = d * d if sq is None else sq + d * d
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.sqrt(sq.max(axis=0) / sq.min(axis=0))
+    return _edge_ratio_of_lengths(_squared_lengths(_hex_edges(x)))
 
 
 # (+ ends, - ends) of each principal axis
@@ -355,11 +390,20 @@ def element_metrics(points: np.ndarray, cells: np.ndarray, names=METRICS, chunk:
     cells_t = cells.T
     m = cells.shape[0]
     out = {k: np.empty(m) for k in names}
+    # the scaled Jacobian and the edge ratio share a block's edge vectors and lengths
+    shared = {"scaled_jacobian": _min_scaled_jacobian_of_edges, "edge_ratio": lambda e, sq: _edge_ratio_of_lengths(sq)}
     for part in pieces(m, chunk):
         block = cells_t[:, part]
         x = [c[block] for c in columns]
+        edges = None
         for k in names:
-            out[k][part] = funcs[k](x)
+            if k in shared:
+                if edges is None:
+                    e = _hex_edges(x)
+                    edges = (e, _squared_lengths(e))
+                out[k][part] = shared[k](*edges)
+            else:
+                out[k][part] = funcs[k](x)
     return out
 
 
@@ -383,5 +427,6 @@ def quality_arrays(points: np.ndarray, cells: np.ndarray, sj: np.ndarray | None 
     -------
     dict of str to (M,) float64 ndarray
     """
-    return {"scaled_jacobian": scaled_jacobian(points, cells) if sj is None else sj,
-            "edge_ratio": edge_ratio(points, cells)}
+    if sj is None:  # both in one pass over the elements, each block's corners gathered once
+        return element_metrics(points, cells, QUALITY_DATA)
+    return {"scaled_jacobian": sj, "edge_ratio": edge_ratio(points, cells)}

@@ -454,7 +454,7 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
                pictures: list[str] = (), stage_reports: list[str] = (), csv: Path | None = None,
                original_path: str | None = None, histogram: Path | None = None, model_picture: Path | None = None,
                node_classes: Path | None = None, mesh=None):
-    from dicer.config import material_names
+    from dicer.config import material_names, stage_kwargs
     from dicer.io.atomic import pending, write_bytes_atomic
     from dicer.io.meshes import read_mesh
     from dicer.quality import quality_report, render_html
@@ -486,8 +486,8 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
         # the model picture's faces, shared with the report's parts; without the picture the
         # parts of a voxel mesh come from its voxel grid and need no neighbour array
         neighbours = element_neighbours(mesh) if model_picture else None
-        report = quality_report(mesh, config, labels=labels, original=original, metrics=metrics,
-                                neighbours=neighbours)
+        report = quality_report(mesh, **stage_kwargs(config, "quality"), labels=labels, original=original,
+                                metrics=metrics, neighbours=neighbours)
         stages = {}
         for path in stage_reports:
             try:

@@ -13,7 +13,7 @@ import json
 import numpy as np
 
 from dicer import __version__
-from dicer.config import material_names
+from dicer.config import takes_settings
 from dicer.mesh.metrics import element_metrics
 from dicer.mesh.model import Mesh
 
@@ -204,16 +204,22 @@ def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None) -> dict:
     return out
 
 
-def quality_report(mesh: Mesh, config: dict, labels=None, original=None, metrics: dict | None = None,
-                   neighbours: np.ndarray | None = None) -> dict:
+@takes_settings("quality")
+def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, labels=None, original=None,
+                   metrics: dict | None = None, neighbours: np.ndarray | None = None) -> dict:
     """Quality figures of a mesh as a JSON-ready dict.
+
+    Settings come as keywords (:func:`dicer.config.stage_kwargs` of ``quality``); a
+    configuration given as the second argument works too (:func:`dicer.config.takes_settings`).
 
     Parameters
     ----------
     mesh : Mesh
         The mesh to assess.
-    config : dict
-        dicer configuration (material names, ``quality.poor_scaled_jacobian``).
+    names : list of str
+        Material names, label 1 first.
+    poor_scaled_jacobian : float
+        Elements below this scaled Jacobian are counted as poor.
     labels : Volume, optional
         The labels the mesh came from; adds voxel counts and the volume of the mesh
         against the voxel volume per material.
@@ -231,11 +237,11 @@ def quality_report(mesh: Mesh, config: dict, labels=None, original=None, metrics
     -------
     dict
     """
-    names = material_names(config)
+    names = {i: n for i, n in enumerate(names, start=1)}
     if metrics is None:
         metrics = element_metrics(mesh.points, mesh.cells, REPORT_METRICS)
     sj, vol, er = metrics["scaled_jacobian"], metrics["volume"], metrics["edge_ratio"]
-    poor = float(config["quality"]["poor_scaled_jacobian"])
+    poor = float(poor_scaled_jacobian)
     unit = "mm^3" if mesh.dim == 3 else "mm^2"
 
     materials = {}

@@ -106,13 +106,7 @@ def run_study(work: str | os.PathLike, log=print) -> dict:
     results = {"kirsch": {}, "lame": {}, "lame-scan": {}}
     for part in ("quarter", "full"):
         t0 = time.perf_counter()
-        rows = {}
-        for name, sets in kirsch_settings().items():
-            r = cases.kirsch(work / f"kirsch_{part}_{name}", part, sets, KIRSCH_RADIUS, KIRSCH_WIDTH)
-            rows[name] = _named(r, "kirsch")
-            log(f"kirsch {part} {name}: CPS4 {r[1]['sigma_x_90']:.4f} CPS8 {r[2]['sigma_x_90']:.4f} "
-                f"min SJ {r['min_sj']:.3f}")
-        results["kirsch"][part] = rows
+        results["kirsch"][part] = _kirsch_rows(work, part, part, kirsch_settings(), log)
         log(f"kirsch {part}: {time.perf_counter() - t0:.0f} s")
     t0 = time.perf_counter()
     rows = {}
@@ -135,6 +129,18 @@ def run_study(work: str | os.PathLike, log=print) -> dict:
     return _rounded(results)
 
 
+def _kirsch_rows(work: Path, key: str, part: str, settings: dict, log, **scan) -> dict:
+    """One Kirsch plate (``part``) at each of ``settings``, solved: rows by setting name."""
+    rows = {}
+    for name, sets in settings.items():
+        r = cases.kirsch(work / f"kirsch_{key}_{name.replace(' ', '_')}", part, sets, KIRSCH_RADIUS, KIRSCH_WIDTH,
+                         **scan)
+        rows[name] = _named(r, "kirsch")
+        log(f"kirsch {key} {name}: CPS4 {r[1]['sigma_x_90']:.4f} CPS8 {r[2]['sigma_x_90']:.4f} "
+            f"min SJ {r['min_sj']:.3f}")
+    return rows
+
+
 def _run_scans(work: Path, results: dict, log) -> None:
     """The grey-value cases into ``results`` (parts ``quarter-scan``, ``full-scan``, ``lame-scan``)."""
     t0 = time.perf_counter()
@@ -145,14 +151,7 @@ def _run_scans(work: Path, results: dict, log) -> None:
                                        ("full-scan", "full", SCAN_NOISE, scan_settings("full")),
                                        ("quarter-scan-clean", "quarter", 0.0, clean),
                                        ("full-scan-clean", "full", 0.0, {"min SJ 0.3": clean["min SJ 0.3"]})):
-        rows = {}
-        for name, sets in settings.items():
-            r = cases.kirsch(work / f"kirsch_{key}_{name.replace(' ', '_')}", part, sets, KIRSCH_RADIUS,
-                             KIRSCH_WIDTH, scan=True, noise=noise)
-            rows[name] = _named(r, "kirsch")
-            log(f"kirsch {key} {name}: CPS4 {r[1]['sigma_x_90']:.4f} CPS8 {r[2]['sigma_x_90']:.4f} "
-                f"min SJ {r['min_sj']:.3f}")
-        results["kirsch"][key] = rows
+        results["kirsch"][key] = _kirsch_rows(work, key, part, settings, log, scan=True, noise=noise)
     log(f"kirsch scans: {time.perf_counter() - t0:.0f} s")
     t0 = time.perf_counter()
     rows = {}

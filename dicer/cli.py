@@ -349,10 +349,10 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
     from dicer.mesh.merge import merge_mesh
 
     settings = stage_kwargs(config, "merge")
-    # coarsening builds a new mesh and only reads the voxel mesh (a copy of 0.9 GB at 256^3
-    # cost more than the coarsening)
+    # both methods build a new mesh and only read the input (a copy of 0.9 GB at 256^3
+    # cost more than coarsening it)
     merged, report = _mesh_to_mesh("merge", lambda m: merge_mesh(m, **settings), mesh_path, out, report_path,
-                                   mesh, mapped=settings["method"] == "templates")
+                                   mesh, mapped=True)
     log.info("merge: wrote %s (%d -> %d elements, %d -> %d nodes; volume %s)", out,
              report["elements_before"], report["elements_after"], report["nodes_before"],
              report["nodes_after"], json.dumps(_stable(report["volume"]), sort_keys=True))
@@ -403,7 +403,8 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
                 raise _InputError(text) from None
             raise
 
-    smoothed, report = _mesh_to_mesh("smooth", run, mesh_path, out, report_path, mesh)
+    # smoothing only reads its input mesh (new points; cells and data shared)
+    smoothed, report = _mesh_to_mesh("smooth", run, mesh_path, out, report_path, mesh, mapped=True)
     log.info("smooth: wrote %s (%s)", out, json.dumps(_stable(report), sort_keys=True)[:600])
     return smoothed
 

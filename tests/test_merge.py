@@ -309,6 +309,31 @@ def test_result_is_deterministic_and_the_input_mesh_unchanged():
     assert [s["elements_after"] for s in ra["steps"]] == [s["elements_after"] for s in rb["steps"]]
 
 
+@pytest.mark.parametrize("options", [{}, {"granularity": "plane"}, {"rim_moves": False},
+                                     {"method": "templates"}, {"passes": [2, 1, 0]}])
+def test_merge_and_smooth_read_their_input_only(tmp_path, options):
+    """The merge and smooth stages read their mesh mapped read-only: every method and
+    option must give from such a mesh what it gives from one in memory."""
+    from dicer.io.meshes import read_mesh, write_mesh
+    from dicer.mesh.merge import merge_mesh
+    from dicer.mesh.smooth import smooth_mesh
+
+    labels = fixed(_thick_shell(32, 0.2, 0.45))
+    labels[:, :, 16:][labels[:, :, 16:] == 1] = 2  # two materials, one interface
+    write_mesh(voxel_mesh(labels), tmp_path / "m.vtu")
+    mapped = read_mesh(tmp_path / "m.vtu", mapped=True)
+    assert not mapped.cells.flags.writeable and not mapped.points.flags.writeable
+    a, ra = merge_mesh(mapped, options)
+    b, rb = merge_mesh(read_mesh(tmp_path / "m.vtu"), options)
+    assert ra["elements_after"] == rb["elements_after"] < ra["elements_before"]
+    assert np.array_equal(a.cells, b.cells) and np.array_equal(a.points, b.points)
+    # dicer smooth reads its mesh mapped too
+    write_mesh(a, tmp_path / "merged.vtu")
+    sa, _ = smooth_mesh(read_mesh(tmp_path / "merged.vtu", mapped=True), {})
+    sb, _ = smooth_mesh(b, {})
+    assert np.array_equal(sa.points, sb.points) and np.array_equal(sa.cells, sb.cells)
+
+
 @pytest.mark.parametrize("passes", [(1,), (1, -1, 0), (1, 1.5, 1), "abc", (1, 1, 1, 1)])
 def test_bad_passes_are_errors(passes):
     with pytest.raises(DicerError, match="merge.passes"):

@@ -417,15 +417,21 @@ def _read_raw_vtu(path: Path, name: str, mapped: bool = False):
             raise _damaged(name, "the end of the file is missing or damaged")
     if len(points) != 1 or set(cells) != {"connectivity", "offsets", "types"}:
         raise _damaged(name, "points or cells are missing from the XML header")
-    points = next(iter(points.values())).reshape(n_points, -1)
+    block = _one_block(cells, n_cells)
+    if block is None:
+        return None  # not one hex or quad block: meshio reads it and says what it holds
+    return block[0], next(iter(points.values())).reshape(n_points, -1), block[1], point_data, cell_data, fields
+
+
+def _one_block(cells: dict, n_cells: int):
+    """(cell type, (M, k) connectivity) when the cells are one block of hexahedra or quads."""
     conn, offsets, types = cells["connectivity"], cells["offsets"], cells["types"]
     k = conn.size // n_cells if n_cells else 0
     if (k not in _VTK_CELL_TYPES or conn.size != k * n_cells
             or not np.array_equal(offsets, np.arange(k, k * n_cells + 1, k))
             or not np.all(types == _VTK_CELL_TYPES[k])):
-        return None  # not one hex or quad block: meshio reads it and says what it holds
-    cell_type = "hexahedron" if k == 8 else "quad"
-    return cell_type, points, conn.reshape(n_cells, k), point_data, cell_data, fields
+        return None
+    return ("hexahedron" if k == 8 else "quad"), conn.reshape(n_cells, k)
 
 
 def _inflate(fetch, start: int, file_size: int, name: str, label: str) -> tuple[np.ndarray, int]:

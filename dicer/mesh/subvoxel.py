@@ -340,7 +340,7 @@ def lift(sides: NodeSides, y: np.ndarray, floor: float) -> np.ndarray:
 
 
 def project(surface: ImageSurface, sides: NodeSides, adj: sp.csr_matrix, degree: np.ndarray, x: np.ndarray,
-            bnodes: np.ndarray, xb: np.ndarray, floor: float = 0.2) -> tuple[np.ndarray, dict]:
+            bnodes: np.ndarray, xb: np.ndarray, floor: float) -> tuple[np.ndarray, dict]:
     """The boundary positions moved onto the image's iso-surfaces.
 
     Parameters
@@ -357,8 +357,8 @@ def project(surface: ImageSurface, sides: NodeSides, adj: sp.csr_matrix, degree:
         The boundary nodes.
     xb : (B, 3) float64 ndarray
         Their positions, mm.
-    floor : float, optional
-        Lowest corner scaled Jacobian kept.
+    floor : float
+        Lowest corner scaled Jacobian kept (``smooth.min_scaled_jacobian``).
 
     Returns
     -------

@@ -418,8 +418,9 @@ def _node_lookup(key: np.ndarray, n_grid: int):
     A dense table when the grid is not much larger than the mesh (one gather), else a
     sorted search; a key with no node maps to -1."""
     if n_grid <= 4 * key.size + (1 << 24):
-        table = np.full(n_grid, -1, np.int64)
-        table[key] = np.arange(key.size)
+        kind = np.int32 if key.size < 2**31 else np.int64  # half the table's memory
+        table = np.full(n_grid, -1, kind)
+        table[key] = np.arange(key.size, dtype=kind)
         return lambda wanted: table[wanted]
     order = np.argsort(key, kind="stable")
     sorted_key = key[order]

@@ -139,10 +139,8 @@ def lame_scan(inner: float = 7.0, outer: float = 14.0, length: int = 2, part: st
 
     Parameters
     ----------
-    inner, outer : float, optional
-        Radii, voxels, inner < outer.
-    length : int, optional
-        Voxels along z.
+    inner, outer, length
+        As in :func:`lame_cylinder`.
     part : {"quarter", "full"}, optional
         quarter: the whole tube's image cut at its axis (its +x +y quarter).
     supersample, blur, noise, seed

@@ -100,17 +100,17 @@ SIZE_OF = {
 #: smallest measured peak (the interpreter with numpy, scipy, SimpleITK and meshio loaded,
 #: which dominates small scans), the slope the steepest growth seen over the cases
 COEFFICIENTS = {
-    "phantom": (133, 21.8, 0.3, 1.4),
-    "segment": (198, 21.3, 1.7, 5.8),
-    "labels": (137, 27.5, 0.5, 2.1),
-    "downsample": (156, 16.3, 0.8, 1.4),
-    "fix": (169, 25.6, 1.2, 3.7),
-    "mesh": (161, 76.2, 0.7, 3.2),
-    "merge": (96, 515.5, 1.1, 25.9),
-    "smooth": (79, 401.6, 0.9, 22.8),
-    "export_inp": (62, 658.6, 0.8, 46.2),
-    "export_vtu": (62, 516.1, 0.6, 22.5),
-    "quality": (244, 532.1, 1.7, 38.4),
+    "phantom": (135, 23.2, 0.4, 1.0),
+    "segment": (198, 21.4, 1.8, 5.2),
+    "labels": (138, 27.5, 0.5, 1.2),
+    "downsample": (157, 16.4, 0.8, 1.5),
+    "fix": (170, 18.9, 0.9, 5.3),
+    "mesh": (164, 91.3, 0.7, 1.5),
+    "merge": (99, 504.2, 0.9, 4.9),
+    "smooth": (83, 425.8, 0.9, 3.6),
+    "export_inp": (68, 397.9, 0.6, 2.4),
+    "export_vtu": (70, 293.4, 0.6, 2.0),
+    "quality": (234, 479.6, 2.0, 18.5),
 }
 #: smooth with the scan (smooth.surface_from_image): the image reader's libraries at import
 #: and the scan (float32, its smoothed crop) on top of the mesh, per million scan voxels;

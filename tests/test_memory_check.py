@@ -9,7 +9,9 @@ from dicer.cli import main
 
 def test_peak_estimate_grows_with_voxels_and_shrinks_with_downsampling():
     full = resources.run_peak_mb(512**3)
-    assert 40_000 < full < 80_000                      # a 512^3 phantom: ~40 GB measured at its failure point
+    # the 512^3 ball's stage processes peak at 10.5-15.6 GB (docs/benchmark.md); dicer run
+    # holds about 1.25 times its largest stage (2.5 against 2.0 GB at 256^3)
+    assert 1.25 * 15_644 < full < 40_000
     assert resources.run_peak_mb(512**3, 2) < full / 6  # about 1/8 of the elements
     # per-axis factors count by the voxels they leave: (2, 2, 1) as (4, 1, 1), between factors 1 and 2
     assert resources.run_peak_mb(512**3, (2, 2, 1)) == resources.run_peak_mb(512**3, (4, 1, 1))

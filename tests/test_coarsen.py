@@ -339,3 +339,20 @@ def test_fine_template_is_the_unit_grid():
             if dim == 3 else np.array([[0, 0], [1, 0], [1, 1], [0, 1]]))))
             for c in itertools.product(range(3), repeat=dim))
         assert sorted(tuple(map(tuple, c.astype(int))) for c in fine) == expected
+
+
+def test_node_lookup_by_table_and_by_search_agree():
+    """Template corners find their nodes in a dense table, or by a sorted search when the
+    image's grid is far larger than the mesh: both give the same node, and -1 for none."""
+    from dicer.mesh.coarsen import _node_lookup
+
+    rng = np.random.default_rng(3)
+    n_grid = 1000
+    key = rng.permutation(n_grid)[:300]  # nodes on 300 of 1000 lattice points, any order
+    wanted = rng.integers(0, n_grid, 5000)
+    dense = _node_lookup(key, n_grid)(wanted)
+    search = _node_lookup(key, 10**12)(wanted)  # far larger than the mesh: the search
+    expect = np.full(n_grid, -1)
+    expect[key] = np.arange(key.size)
+    assert np.array_equal(dense, expect[wanted]) and np.array_equal(search, expect[wanted])
+    assert np.count_nonzero(dense < 0) > 1000

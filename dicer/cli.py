@@ -315,7 +315,7 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
                  "Type C rounds %d + %d, sites per round %s)", out, report["changed_voxels"], report["type_a"], report["type_b"],
                  report["type_c"], report["iterations"], report["majority_rounds"],
                  report["type_c_rounds"], report["type_c_sites"])
-    return report
+    return fixed
 
 
 class _InputError(DicerError):
@@ -702,15 +702,21 @@ def _cropped_voxels(voxels: int, spacing, crop: dict | None) -> int:
     return int(min(voxels, np.prod(extent)))
 
 
-def _check_memory(source: str, config: dict) -> None:
+class _MemoryError(DicerError):
+    """The run would need more memory than the machine has: refused before the stage that
+    would, with nothing written."""
+
+
+def _check_memory(source: str, config: dict, elements: int | None = None) -> None:
     """DicerError when the run's fitted peak memory (dicer/resources.py) exceeds what this
-    machine or job may use, before any stage allocates: the kernel would otherwise kill the
-    run without a message."""
+    machine or job may use: before any stage, for the stages that read the scan; with the
+    mesh's ``elements`` (after fix), for the stages from the mesh on. The kernel would
+    otherwise kill the run without a message."""
     import numpy as np
 
     from dicer.config import stage_kwargs
     from dicer.downsample import reduction_factor
-    from dicer.resources import machine_memory_mb, run_peak_mb, scan_header
+    from dicer.resources import machine_memory_mb, run_peak_mb, scan_header, voxel_reduction
 
     try:
         voxels, spacing = scan_header(source)
@@ -720,17 +726,23 @@ def _check_memory(source: str, config: dict) -> None:
     factor = (reduction_factor(spacing or (1.0, 1.0, 1.0), factor=ds["factor"], voxel_size=ds["voxel_size"],
                                source=source) if downsample_applies(config) else 1)
     whole, voxels = voxels, _cropped_voxels(voxels, spacing, config["image"]["crop"])
-    need, have = run_peak_mb(voxels, factor), machine_memory_mb()
+    need, have = run_peak_mb(voxels, factor, elements), machine_memory_mb()
     if voxels < whole:  # the whole scan is read (as float32) before it is cut
         need += whole * 4 / 2**20
     if have is None or need <= have:
         return
-    peaks = [(f, run_peak_mb(voxels, np.maximum(factor, f))) for f in range(2, 9)]
-    fits = [(f, peak) for f, peak in peaks if peak <= 0.8 * have]
+
+    def peak(f):  # the elements shrink with the voxels a coarser grid leaves
+        coarser = np.maximum(factor, f)
+        fewer = None if elements is None else elements * voxel_reduction(factor) // voxel_reduction(coarser)
+        return run_peak_mb(voxels, coarser, fewer)
+
+    fits = [(f, p) for f, p in ((f, peak(f)) for f in range(2, 9)) if p <= 0.8 * have]
     hint = (f"set downsample.factor: {fits[0][0]} (about {fits[0][1] / 1024:.1f} GB)" if fits
             else "crop or downsample the scan")
     shown = "x".join(str(int(f)) for f in np.atleast_1d(factor))
-    raise DicerError(f"{source}: {voxels:,} voxels at downsample factor {shown} need about {need / 1024:.1f} GB "
+    size = f"{voxels:,} voxels" + ("" if elements is None else f" ({elements:,} elements)")
+    raise _MemoryError(f"{source}: {size} at downsample factor {shown} need about {need / 1024:.1f} GB "
                      f"of memory, this machine (or job) has {have / 1024:.1f} GB; {hint}, or use a larger machine "
                      "(--skip-memory-check runs anyway)")
 
@@ -790,10 +802,13 @@ def cmd_run(args):
             do_downsample(str(path("labels.nii.gz")), path("labels_ds.nii.gz"), config)
             fix_input = path("labels_ds.nii.gz")
         step("fix")
-        do_fix(str(fix_input), path("labels_fixed.nii.gz"), config, path("fix.json"))
+        fixed = do_fix(str(fix_input), path("labels_fixed.nii.gz"), config, path("fix.json"))
+        step("mesh")
+        if not args.skip_memory_check:  # the mesh's size is known now: one element per labelled voxel
+            _check_memory(args.labels if args.image is None else args.image, config, int(fixed.size - (fixed == 0).sum()))
+        del fixed
         # each stage hands its mesh to the next in memory: the mesh its file was checked to
         # hold, so the next stage need not read it again
-        step("mesh")
         mesh = do_mesh(str(path("labels_fixed.nii.gz")), path("mesh.vtu"), config)
         step("merge")
         mesh = do_merge(str(path("mesh.vtu")), path("merged.vtu"), config, path("merge.json"), mesh=mesh)
@@ -812,6 +827,9 @@ def cmd_run(args):
                    stage_reports=[str(path(n)) for n in ("fix.json", "merge.json", "smooth.json")],
                    original_path=str(path("labels.nii.gz")), histogram=path("jacobian.png"),
                    model_picture=path("model.png"), node_classes=path("node_classes.png"), mesh=mesh)
+    except _MemoryError:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
     except BaseException as exc:
         kept = _keep_failed(staging, failed)
         if isinstance(exc, DicerError):

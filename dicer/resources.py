@@ -121,6 +121,13 @@ SMOOTH_SCAN = (119, 21.3, 0.8, 5.8)
 #: before any of its stages ran): measured 0.30 (head phantoms, head CT) to 0.52 (long
 #: bone); a fuller scan runs out of memory on the first attempt and gets twice on the retry
 ELEMENT_FRACTION = 0.5
+#: dicer run's peak from its mesh stage on: (baseline MB, MB per million elements of the
+#: voxel mesh). One process holds the mesh from stage to stage, so its peak is not the
+#: largest stage process's. Measured with `python -m bench --processes` on the CT phantom
+#: (docs/benchmark.md): 64^3 290 MB at 0.10 M elements, 128^3 544 MB at 0.80 M, 256^3
+#: 2,507 MB at 6.40 M, 512^3 17.7 GB at 51.2 M; the slope is the steepest between two
+#: sizes (363), rounded up
+RUN_MESH = (255, 365)
 #: requested memory over the fitted peak: room for other library versions and inputs
 MEMORY_MARGIN = 1.15
 #: the baseline again over the fitted one: the same library versions installed afresh on
@@ -192,10 +199,20 @@ def estimate(stage: str, voxels: int, voxels_ds: int | None = None, elements: in
     return mem, minutes
 
 
-def run_peak_mb(voxels: int, factor=1) -> int:
-    """Fitted peak memory of the heaviest stage of ``dicer run``, before any mesh exists.
+def voxel_reduction(factor) -> int:
+    """How many voxels become one at downsampling ``factor`` (one, applied on three axes,
+    or one per axis)."""
+    factor = np.asarray(factor, dtype=np.int64)
+    return max(1, int(factor ** 3 if factor.ndim == 0 else np.prod(factor)))
 
-    Elements are taken as ELEMENT_FRACTION of the downsampled voxels.
+
+def run_peak_mb(voxels: int, factor=1, elements: int | None = None) -> int:
+    """Fitted peak memory of ``dicer run``.
+
+    Without ``elements`` (before the scan is segmented): the stages that read the scan or
+    its label volume (segment, downsample, fix), whose size the header gives. With the
+    mesh's element count (known once the labels are fixed): also the stages from the mesh
+    on, by RUN_MESH.
 
     Parameters
     ----------
@@ -203,18 +220,19 @@ def run_peak_mb(voxels: int, factor=1) -> int:
         Voxels of the scan.
     factor : int or sequence of int, optional
         Downsampling factor, one or one per axis.
+    elements : int, optional
+        Elements of the voxel mesh (the fixed labels' non-zero voxels).
 
     Returns
     -------
     int
         MB.
     """
-    factor = np.asarray(factor, dtype=np.int64)
-    reduction = int(factor ** 3 if factor.ndim == 0 else np.prod(factor))
-    voxels_ds = max(1, voxels // max(1, reduction))
-    peaks = []
-    for stage in ("segment", "downsample", "fix", "mesh", "merge", "smooth", "export_inp", "export_vtu", "quality"):
-        peaks.append(estimate(stage, voxels, voxels_ds)[0] / MEMORY_MARGIN)
+    voxels_ds = max(1, voxels // voxel_reduction(factor))
+    peaks = [estimate(stage, voxels, voxels_ds)[0] / MEMORY_MARGIN for stage in ("segment", "downsample", "fix")]
+    if elements is not None:
+        base_mb, mb_per_m = RUN_MESH
+        peaks.append(BASELINE_FACTOR * base_mb + mb_per_m * elements / 1e6)
     return int(max(peaks))
 
 

@@ -3,20 +3,24 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import dicer.resources as resources
 from dicer.cli import main
 
 
-def test_peak_estimate_grows_with_voxels_and_shrinks_with_downsampling():
-    full = resources.run_peak_mb(512**3)
-    # the 512^3 ball's stage processes peak at 10.5-15.6 GB (docs/benchmark.md); dicer run
-    # holds about 1.25 times its largest stage (2.5 against 2.0 GB at 256^3)
-    assert 1.25 * 15_644 < full < 40_000
-    assert resources.run_peak_mb(512**3, 2) < full / 6  # about 1/8 of the elements
+def test_peak_estimate_grows_with_voxels_and_elements_and_shrinks_with_downsampling():
+    # before any stage: the stages that read the scan (the 512^3 CT's segment peaks near 3 GB)
+    scan = resources.run_peak_mb(512**3)
+    assert 2_000 < scan < 5_000
+    # with the mesh's size: dicer run on the 512^3 CT (51.2 M elements) measured 17.7 GB
+    full = resources.run_peak_mb(512**3, elements=51_200_000)
+    assert 17.7 * 1024 < full < 1.1 * 17.7 * 1024
+    assert resources.run_peak_mb(512**3, 2, elements=51_200_000 // 8) < full / 5  # a factor 2 leaves 1/8
     # per-axis factors count by the voxels they leave: (2, 2, 1) as (4, 1, 1), between factors 1 and 2
-    assert resources.run_peak_mb(512**3, (2, 2, 1)) == resources.run_peak_mb(512**3, (4, 1, 1))
-    assert resources.run_peak_mb(512**3, 2) < resources.run_peak_mb(512**3, (2, 2, 1)) < full
-    small = resources.run_peak_mb(48**3)
+    assert resources.voxel_reduction((2, 2, 1)) == resources.voxel_reduction((4, 1, 1)) == 4
+    assert resources.voxel_reduction(2) == 8 and resources.voxel_reduction(1) == 1
+    assert resources.run_peak_mb(512**3, (2, 2, 1)) == resources.run_peak_mb(512**3, (4, 1, 1)) <= scan
+    small = resources.run_peak_mb(48**3, elements=48**3 // 2)
     assert 150 < small < 400                            # the interpreter's baseline dominates
 
 
@@ -39,16 +43,34 @@ def test_run_refuses_a_scan_too_big_for_the_machine(tmp_path, monkeypatch, capsy
     assert not out.exists() and not (tmp_path / ".out.partial").exists()
 
 
-def test_the_hint_names_a_factor_that_fits(tmp_path, monkeypatch, capsys):
-    labels = np.zeros((64, 64, 64), np.uint8)
-    labels[8:56, 8:56, 8:56] = 1
-    np.save(tmp_path / "labels.npy", labels)
-    # pretend the scan is 512^3 on a 24 GB machine
+def test_the_hint_names_a_factor_that_fits(tmp_path, monkeypatch):
+    from dicer.cli import _check_memory
+    from dicer.config import default_config
+    from dicer.errors import DicerError
+
+    # a 512^3 scan whose labels fill the box (134 M elements) on a 24 GB machine
     monkeypatch.setattr(resources, "scan_header", lambda path: (512**3, (1.0, 1.0, 1.0)))
     monkeypatch.setattr(resources, "machine_memory_mb", lambda: 24_000)
-    assert main(["run", "--labels", str(tmp_path / "labels.npy"), "-o", str(tmp_path / "out")]) == 2
-    err = capsys.readouterr().err
-    assert "downsample.factor: 2" in err
+    _check_memory("scan.nii.gz", default_config())                  # its segment, downsample and fix fit
+    with pytest.raises(DicerError) as err:
+        _check_memory("scan.nii.gz", default_config(), elements=512**3)
+    assert "134,217,728 elements" in str(err.value) and "downsample.factor: 2" in str(err.value)
+    _check_memory("scan.nii.gz", default_config(), elements=51_200_000)  # the CT phantom's 38 % fits
+
+
+def test_run_refuses_a_mesh_too_big_after_fix_and_writes_nothing(tmp_path, monkeypatch, capsys):
+    labels = np.zeros((64, 64, 64), np.uint8)
+    labels[16:48, 16:48, 16:48] = 1
+    np.save(tmp_path / "labels.npy", labels)
+    scan, mesh = resources.run_peak_mb(labels.size), resources.run_peak_mb(labels.size, elements=32**3)
+    assert scan < mesh
+    monkeypatch.setattr(resources, "machine_memory_mb", lambda: (scan + mesh) // 2)
+    out = tmp_path / "out"
+    assert main(["run", "--labels", str(tmp_path / "labels.npy"), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "labels.npy" in err[0]
+    assert "32,768 elements" in err[0] and "--skip-memory-check" in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy"]  # no out, .partial or .failed
 
 
 def test_skip_memory_check_runs_anyway(tmp_path, monkeypatch):

@@ -17,6 +17,7 @@ import signal
 import sys
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from dicer import __version__
@@ -747,6 +748,22 @@ def _check_memory(source: str, config: dict, elements: int | None = None) -> Non
                      "(--skip-memory-check runs anyway)")
 
 
+def _side_by_side(source: str, elements: int) -> bool:
+    """Whether ``dicer run`` may make its quality report beside the exports: a second core
+    for it, and memory for twice the run's fitted peak (dicer/resources.py)."""
+    from dicer.resources import machine_memory_mb, run_peak_mb, scan_header
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if cores < 2:
+        return False
+    have = machine_memory_mb()
+    try:
+        voxels = scan_header(source)[0]
+    except OSError:
+        return False
+    return have is None or 2 * run_peak_mb(voxels, 1, elements) <= have
+
+
 def cmd_run(args):
     """segment -> downsample -> fix -> mesh -> merge -> smooth -> export (.inp, .vtu) -> quality, into OUTDIR.
 
@@ -763,8 +780,9 @@ def cmd_run(args):
     outdir = Path(args.output)
     if (outdir.exists() or outdir.is_symlink()) and not outdir.is_dir():
         raise DicerError(f"{outdir}: exists and is not a folder; give an output folder with -o")
+    source = args.labels if args.image is None else args.image
     if not args.skip_memory_check:
-        _check_memory(args.labels if args.image is None else args.image, config)
+        _check_memory(source, config)
     # every stage writes into a staging folder beside OUTDIR; only a finished run moves its
     # files into OUTDIR (an existing OUTDIR keeps its old files until then), and a failed
     # one leaves its finished, checked stage files in OUTDIR.failed for a look or a report
@@ -804,9 +822,10 @@ def cmd_run(args):
         step("fix")
         fixed = do_fix(str(fix_input), path("labels_fixed.nii.gz"), config, path("fix.json"))
         step("mesh")
-        if not args.skip_memory_check:  # the mesh's size is known now: one element per labelled voxel
-            _check_memory(args.labels if args.image is None else args.image, config, int(fixed.size - (fixed == 0).sum()))
+        elements = int(fixed.size - (fixed == 0).sum())  # one element per labelled voxel
         del fixed
+        if not args.skip_memory_check:  # the mesh's size is known now
+            _check_memory(source, config, elements)
         # each stage hands its mesh to the next in memory: the mesh its file was checked to
         # hold, so the next stage need not read it again
         mesh = do_mesh(str(path("labels_fixed.nii.gz")), path("mesh.vtu"), config)
@@ -817,16 +836,27 @@ def cmd_run(args):
         scan = (args.image, str(path("segmentation.json"))) if args.labels is None else (None, None)
         mesh = do_smooth(str(path("merged.vtu")), path("smoothed.vtu"), config, path("smooth.json"),
                          image_path=scan[0], thresholds_path=scan[1], mesh=mesh)
-        step("export")
-        for name in ("model.inp", "model.vtu"):
-            do_export(str(path("smoothed.vtu")), path(name), config, mesh=mesh)
-        step("quality")
         pictures = [str(path(n)) for n in ("segmentation.png", "thresholds.png") if path(n).exists()]
-        do_quality(str(path("smoothed.vtu")), path("quality.json"), config,
-                   labels_path=str(path("labels_fixed.nii.gz")), html=str(path("report.html")), pictures=pictures,
-                   stage_reports=[str(path(n)) for n in ("fix.json", "merge.json", "smooth.json")],
-                   original_path=str(path("labels.nii.gz")), histogram=path("jacobian.png"),
-                   model_picture=path("model.png"), node_classes=path("node_classes.png"), mesh=mesh)
+
+        def quality():
+            do_quality(str(path("smoothed.vtu")), path("quality.json"), config,
+                       labels_path=str(path("labels_fixed.nii.gz")), html=str(path("report.html")), pictures=pictures,
+                       stage_reports=[str(path(n)) for n in ("fix.json", "merge.json", "smooth.json")],
+                       original_path=str(path("labels.nii.gz")), histogram=path("jacobian.png"),
+                       model_picture=path("model.png"), node_classes=path("node_classes.png"), mesh=mesh)
+
+        # the exports and the quality report only read the smoothed mesh: with a second core
+        # and memory for both, the report is made beside the exports
+        with ThreadPoolExecutor(1) as pool:
+            beside = None
+            if _side_by_side(source, elements):
+                log.info("run: the quality report is made beside the exports (a second core)")
+                beside = pool.submit(quality)
+            step("export")
+            for name in ("model.inp", "model.vtu"):
+                do_export(str(path("smoothed.vtu")), path(name), config, mesh=mesh)
+            step("quality")
+            beside.result() if beside is not None else quality()
     except _MemoryError:
         shutil.rmtree(staging, ignore_errors=True)
         raise

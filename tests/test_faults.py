@@ -225,3 +225,71 @@ def test_a_sigterm_whose_exception_was_lost_still_stops_before_any_rename(tmp_pa
     assert main(["mesh", str(labels), "-o", str(tmp_path / "m.vtu"), "-q"]) == 143
     assert "terminated (SIGTERM" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy"] and atomic.stop_requested == []
+
+
+def _head_run(tmp_path):
+    from dicer.cli import main
+
+    image = tmp_path / "head.nii.gz"
+    assert main(["phantom", "head", "-o", str(image), "-q"]) == 0
+    return main, ["run", str(image), "-q", "--set", "downsample.factor=4"]
+
+
+def test_the_quality_report_beside_the_exports_leaves_the_same_files(tmp_path, monkeypatch):
+    import dicer.cli as cli
+
+    main, args = _head_run(tmp_path)
+    results = {}
+    for beside in (False, True):
+        monkeypatch.setattr(cli, "_side_by_side", lambda source, elements, beside=beside: beside)
+        out = tmp_path / f"out_{beside}"
+        assert main(args + ["-o", str(out)]) == 0
+        results[beside] = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert len(results[True]) >= 15 and {"model.inp", "model.vtu", "quality.json", "report.html"} <= set(results[True])
+    assert results[True] == results[False]
+
+
+def test_a_failure_beside_the_exports_names_the_quality_stage(tmp_path, monkeypatch, capsys):
+    import dicer.cli as cli
+
+    main, args = _head_run(tmp_path)
+    monkeypatch.setattr(cli, "_side_by_side", lambda source, elements: True)
+
+    def broken(mesh_path, out, *a, **k):
+        time.sleep(0.5)  # still running when the exports end
+        raise DicerError(f"{mesh_path}: broken on purpose")
+
+    monkeypatch.setattr(cli, "do_quality", broken)
+    out = tmp_path / "out"
+    assert main(args + ["-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "broken on purpose" in err[0] and "stopped at the quality stage" in err[0]
+    failed = tmp_path / "out.failed"
+    assert {"model.inp", "model.vtu", "smoothed.vtu"} <= {p.name for p in failed.iterdir()}
+    assert not out.exists() and not list(failed.glob(".*tmp*"))
+
+
+def test_sigterm_while_the_report_is_made_beside_the_exports(tmp_path):
+    from dicer.cli import main
+
+    image = tmp_path / "head.nii.gz"
+    assert main(["phantom", "head", "-o", str(image), "-q"]) == 0
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "dicer", "run", str(image), "-o", str(out), "--set",
+                             "downsample.factor=2"], stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)})
+    staging = tmp_path / ".out.partial"
+    deadline = time.monotonic() + 300
+    while not list(staging.glob(".model.inp.*.tmp*")):  # the exports began, the report beside them
+        assert proc.poll() is None, "the run ended before it began its exports"
+        assert time.monotonic() < deadline
+        time.sleep(0.005)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 143, err
+    assert "dicer run: the quality report is made beside the exports" in err
+    assert [line for line in err.splitlines() if line.startswith("error:")] == [
+        "error: terminated (SIGTERM, e.g. a cluster time limit); no output of the unfinished step was kept"]
+    assert not out.exists() and not staging.exists()
+    failed = tmp_path / "out.failed"
+    assert not list(failed.glob(".*tmp*")) and not (failed / "model.inp").exists()

@@ -14,6 +14,7 @@ import os
 import secrets
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 from dicer.errors import DicerError
@@ -77,10 +78,15 @@ def check_stop() -> None:
         raise stop_requested[0]()
 
 
-#: the writes of the open all_or_nothing() block: (temporary file, target), renamed at its end
-_pending: list[tuple[Path, Path]] | None = None
-#: folders made for those writes, removed again when the block fails
-_made: list[Path] = []
+#: per thread (dicer run makes its quality report beside the exports), the open
+#: all_or_nothing() block: ``pending``, its writes as (temporary file, target), renamed at
+#: its end (None: no block), and ``made``, the folders made for them, removed again when
+#: the block fails
+_block = threading.local()
+
+
+def _pending() -> list[tuple[Path, Path]] | None:
+    return getattr(_block, "pending", None)
 
 
 def _missing_folders(parent: Path) -> list[Path]:
@@ -103,7 +109,7 @@ def pending(path: str | os.PathLike) -> Path:
     """Where the content written to ``path`` is now: its temporary file while an
     all_or_nothing() block holds it back, else ``path`` itself."""
     path = Path(path)
-    for tmp, target in _pending or ():
+    for tmp, target in _pending() or ():
         if target == path:
             return tmp
     return path
@@ -116,30 +122,29 @@ def all_or_nothing():
     info, a mesh and its report) leaves all of them as they were when any write or any
     later step fails. Each file is still written, read back and flushed to disk as it comes;
     only the renames wait for the end. Nested blocks join the outer one."""
-    global _pending, _made
-    if _pending is not None:
+    if _pending() is not None:
         yield
         return
-    _pending, _made = [], []
+    _block.pending, _block.made = [], []
     try:
         yield
         check_stop()
-        items, _pending = _pending, None
+        items, _block.pending = _block.pending, None
         for tmp, path in items:
             try:
                 os.replace(tmp, path)
             except OSError as exc:
-                _pending = [(t, p) for t, p in items if t.exists()]
+                _block.pending = [(t, p) for t, p in items if t.exists()]
                 raise DicerError(f"{path}: cannot write the file there ({exc.strerror}); give the path of a file "
                                  "that can be replaced") from None
     except BaseException:
-        for tmp, _ in _pending or ():
+        for tmp, _ in _pending() or ():
             with contextlib.suppress(OSError):
                 tmp.unlink()
-        _remove_folders(_made)
+        _remove_folders(_block.made)
         raise
     finally:
-        _pending, _made = None, []
+        _block.pending, _block.made = None, []
 
 
 def _new_temporary(path: Path, parent: Path, names: list) -> Path:
@@ -185,9 +190,9 @@ def atomic_path(path: str | os.PathLike):
             _fsync(tmp)
         except OSError as exc:
             raise _os_error(path, exc) from None
-        if _pending is not None:
-            _pending.append((tmp, path))
-            _made.extend(made)
+        if _pending() is not None:
+            _block.pending.append((tmp, path))
+            _block.made.extend(made)
             return
         check_stop()
         try:

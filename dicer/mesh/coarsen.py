@@ -30,7 +30,6 @@ import logging
 import time
 
 import numpy as np
-from scipy import ndimage
 
 from dicer.errors import DicerError
 from dicer.mesh.metrics import element_volumes
@@ -84,12 +83,41 @@ def _close(candidate: np.ndarray, corners: np.ndarray, pattern: np.ndarray, comp
             marked[s] |= (target >> c & 1).astype(bool)
 
 
+def _sweep(a: np.ndarray, axis: int, radius: int, op) -> np.ndarray:
+    """``op`` (np.minimum or np.maximum) of ``a`` over a window of 2 * radius + 1 along
+    ``axis``, positions beyond the image counting as 0: ndimage's min/max filter with
+    mode="constant", cval=0 in slices (no sort per window)."""
+    out = a.copy()
+    n = a.shape[axis]
+
+    def cut(start, stop):
+        index = [slice(None)] * a.ndim
+        index[axis] = slice(start, stop)
+        return tuple(index)
+    for s in range(1, min(radius, n - 1) + 1):
+        op(out[cut(s, None)], a[cut(None, -s)], out=out[cut(s, None)])  # a[i - s]
+        op(out[cut(None, -s)], a[cut(s, None)], out=out[cut(None, -s)])  # a[i + s]
+    k = min(radius, n)  # windows that reach beyond the image take its 0
+    if k:
+        op(out[cut(None, k)], 0, out=out[cut(None, k)])
+        op(out[cut(n - k, None)], 0, out=out[cut(n - k, None)])
+    return out
+
+
+def _window_min_max(labels: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """The smallest and largest label within ``radius`` voxels (a cube; 0 beyond the
+    image): separable sweeps along each axis."""
+    lo = hi = labels
+    for axis in range(labels.ndim):
+        lo = _sweep(lo, axis, radius, np.minimum)
+        hi = _sweep(hi, axis, radius, np.maximum)
+    return lo, hi
+
+
 def _coarsenable(labels: np.ndarray, min_distance: int, keep_fine) -> np.ndarray:
     """(labels.shape, labels.dtype): the material of every voxel whose neighbours within
     ``min_distance`` voxels (inside the image) all hold it, else 0; materials kept fine 0."""
-    size = 2 * min_distance + 1
-    lo = ndimage.minimum_filter(labels, size=size, mode="constant", cval=0)
-    hi = ndimage.maximum_filter(labels, size=size, mode="constant", cval=0)
+    lo, hi = _window_min_max(labels, min_distance)
     material = np.where(lo == hi, lo, 0)
     if len(keep_fine):
         material[np.isin(material, np.asarray(keep_fine, np.int64))] = 0
@@ -100,9 +128,7 @@ def _level_one(labels: np.ndarray, dim: int, min_distance: int, keep_fine) -> tu
     """Candidates and materials of the level-1 cells (2D): one material in the cell and
     within ``min_distance`` voxels of it, inside the image, not a material kept fine."""
     n = tuple(-(-s // 3) for s in labels.shape)
-    size = 3 + 2 * min_distance
-    lo = ndimage.minimum_filter(labels, size=size, mode="constant", cval=0)
-    hi = ndimage.maximum_filter(labels, size=size, mode="constant", cval=0)
+    lo, hi = _window_min_max(labels, 1 + min_distance)
     # a cell's window is centred on its middle voxel; cells cut by the image's far end
     # have no middle voxel and stay 0
     centre = tuple(slice(1, None, 3) for _ in n)

@@ -296,8 +296,9 @@ def _children(parent: np.ndarray, shape: tuple, axes, factors) -> np.ndarray:
     return out[tuple(slice(0, s) for s in shape)]
 
 
-_ROWS = 1 << 20
-"""Elements per block of the passes over all elements (a block's temporaries stay small)."""
+_ROWS = 1 << 16
+"""Elements per block of the passes over all elements (a block's temporaries stay in the
+cache)."""
 
 
 def _lattice_keys(lattice: np.ndarray, shape: tuple) -> np.ndarray:
@@ -307,9 +308,15 @@ def _lattice_keys(lattice: np.ndarray, shape: tuple) -> np.ndarray:
     return np.asarray(lattice, np.int64)[:, : len(shape)] @ stride, stride
 
 
-def _voxels_of(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
-    """The label volume (grid_shape; 2D: (nx, ny)) of a voxel mesh and each element's
-    voxel (M, dim); DicerError for any other mesh."""
+def _key_type(n: int):
+    """The integer type of keys below ``n`` (and of -1 - key): int32 where they fit."""
+    return np.int32 if n < 2**31 - 1 else np.int64
+
+
+def _voxels_of(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The label volume (grid_shape; 2D: (nx, ny)) of a voxel mesh, each element's first
+    corner as its key in the point grid (M,) and every node's key (N,) (both of the type
+    ``_key_type`` of the point grid); DicerError for any other mesh."""
     dim = mesh.dim
     if mesh.n_cells == 0:
         raise DicerError("the mesh has no elements; nothing to coarsen")
@@ -317,25 +324,36 @@ def _voxels_of(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     lattice = np.asarray(mesh.lattice, np.int64)
     if lattice.shape != (mesh.n_points, 3) or lattice.min() < 0 or np.any(lattice[:, :dim].max(axis=0) > shape):
         raise DicerError("node lattice indices lie outside the image grid; remesh from the labels with 'dicer mesh'")
+    outside = "element lattice indices lie outside the image grid; remesh from the labels with 'dicer mesh'"
     # every element one voxel, corners in VTK order: each corner's key a fixed step from
     # the first corner's (keys are one-to-one on the point grid)
+    grid = tuple(s + 1 for s in shape)
+    kind = _key_type(int(np.prod(grid)))
     key, stride = _lattice_keys(lattice, shape)
+    key = key.astype(kind)
     corners = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim].astype(np.int64)
-    step = corners @ stride
+    step = (corners @ stride).astype(kind)
+    first = np.empty(mesh.n_cells, kind)
     for part in pieces(mesh.n_cells, _ROWS):
         corner = key[mesh.cells[part]]
-        if not np.array_equal(corner - corner[:, :1], np.broadcast_to(step, corner.shape)):
+        first[part] = corner[:, 0]
+        corner -= corner[:, :1]
+        if not np.array_equal(corner, np.broadcast_to(step, corner.shape)):
             raise DicerError("merge.method=templates needs a voxel mesh (one element per voxel, as 'dicer mesh' "
                              "writes it); this mesh was merged or edited already")
-    first = lattice[mesh.cells[:, 0], :dim]
-    if np.any(first >= np.asarray(shape)):
-        raise DicerError("element lattice indices lie outside the image grid; remesh from the labels with 'dicer mesh'")
     if int(mesh.material.min()) <= 0:
+        if np.any(lattice[mesh.cells[:, 0], :dim] >= np.asarray(shape)):
+            raise DicerError(outside)
         raise DicerError("the mesh has material labels <= 0; materials are numbered 1..K")
-    # the smallest integer type: the filters of _coarsenable run on it
-    labels = np.zeros(shape, np.min_scalar_type(int(mesh.material.max())))
-    labels[tuple(first.T)] = mesh.material
-    return labels, first
+    # the labels on the point grid, by the first corners' keys; the smallest integer type:
+    # the filters of _coarsenable run on it
+    on_points = np.zeros(grid, np.min_scalar_type(int(mesh.material.max())))
+    on_points.reshape(-1)[first] = mesh.material
+    # an element cornered on a far plane of the point grid lies outside the image (its
+    # label is > 0 there)
+    if any(on_points.take(-1, axis=axis).any() for axis in range(dim)):
+        raise DicerError(outside)
+    return np.ascontiguousarray(on_points[tuple(slice(0, s) for s in shape)]), first, key
 
 
 _THIRDS = 3
@@ -427,9 +445,13 @@ def coarsen_mesh(mesh: Mesh, *, levels: int, min_distance: int, keep_fine) -> tu
     if isinstance(min_distance, bool) or not isinstance(min_distance, (int, np.integer)) or min_distance < 1:
         raise DicerError(f"merge.templates.min_distance={min_distance!r}: give a whole number of voxels >= 1")
     t0 = time.perf_counter()
-    labels, first = _voxels_of(mesh)
+    labels, first, key = _voxels_of(mesh)
     decomposition = coarsen_labels(labels, levels=int(levels), min_distance=int(min_distance), keep_fine=keep_fine)
-    keep = decomposition["voxels"][tuple(first.T)]
+    # the kept voxels on the point grid, read at each element's first corner
+    voxels = np.zeros(tuple(s + 1 for s in labels.shape), bool)
+    voxels[tuple(slice(0, s) for s in labels.shape)] = decomposition["voxels"]
+    keep = voxels.reshape(-1)[first]
+    del voxels, first
     corner_thirds, material, level = _new_elements(decomposition, mesh.dim)
     out = _assemble(mesh, keep, corner_thirds, material.astype(np.int32), level)
     report = _report(mesh, out, keep, level, time.perf_counter() - t0, int(levels), int(min_distance), keep_fine)

@@ -362,18 +362,44 @@ thirds of cells of at least one voxel), so corners are matched as whole numbers 
 thirds."""
 
 
-def _new_elements(decomposition: dict, dim: int):
-    """The coarse and template elements: corners (M, corners, dim) int32 in thirds of a
-    voxel (every template node lies on that grid, ``_THIRDS``), materials and levels."""
+def _strides(grid) -> np.ndarray:
+    """(dim,) int64: C-order strides of a grid of ``grid`` points."""
+    return np.array([int(np.prod(grid[d + 1:])) for d in range(len(grid))], np.int64)
+
+
+def _pool_pairs(a: np.ndarray, axes) -> np.ndarray:
+    """any() of ``a`` over pairs of cells along each of ``axes`` (a last odd cell alone)."""
+    for axis in axes:
+        n = -(-a.shape[axis] // 2)
+        pad = [(0, 0)] * a.ndim
+        pad[axis] = (0, 2 * n - a.shape[axis])
+        a = np.pad(a, pad).reshape(a.shape[:axis] + (n, 2) + a.shape[axis + 1:]).any(axis=axis + 1)
+    return a
+
+
+def _new_elements(decomposition: dict, shape: tuple):
+    """The coarse and template elements: a code per corner (M, corners), the corner's key in
+    the point grid where it is a voxel corner, else -1 - its key on the grid of thirds of a
+    voxel (every template node lies on that grid, ``_THIRDS``); materials and levels."""
+    dim = len(shape)
     corners = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim].astype(np.int64)
     per = corners.shape[0]
     _, table = TEMPLATES_2D if dim == 2 else BLOCK_TEMPLATES
-    parts, materials, levels = [np.zeros((0, per, dim), np.int32)], [np.zeros(0, np.int64)], [np.zeros(0, np.int8)]
+    stride = _strides([s + 1 for s in shape])
+    fine_stride = _strides([_THIRDS * s + 1 for s in shape])
+    kind = _key_type(int(np.prod([_THIRDS * s + 1 for s in shape])))
+    parts, materials, levels = [np.zeros((0, per), kind)], [np.zeros(0, np.int64)], [np.zeros(0, np.int8)]
 
-    def emit(origin, shape, material, level):
-        # origin (k, dim) and shape (t, per, dim) in thirds: k * t elements
-        cells = origin.astype(np.int32)[:, None, None, :] + shape.astype(np.int32)[None]
-        parts.append(cells.reshape(-1, per, dim))
+    def emit(index, unit, shape, material, level):
+        # index (k, dim) cells of ``unit`` voxels; shape (t, per, dim) corners in thirds of
+        # a voxel from a cell's origin (a voxel corner): k * t elements
+        origin = index.astype(np.int64) * unit
+        on_voxel = np.all(shape % _THIRDS == 0, axis=-1)
+        code = (origin @ stride)[:, None, None] + (shape // _THIRDS) @ stride
+        if not on_voxel.all():
+            off = (origin * _THIRDS @ fine_stride)[:, None, None] + shape @ fine_stride
+            code = np.where(on_voxel, code, -1 - off)
+        parts.append(code.astype(kind).reshape(-1, per))
         materials.append(np.repeat(material, shape.shape[0]))
         levels.append(np.full(origin.shape[0] * shape.shape[0], level, np.int8))
 
@@ -385,33 +411,37 @@ def _new_elements(decomposition: dict, dim: int):
             cell[frame[1]] *= 3
             unit, material = cell, step["material"]
             templated = step["open"] & (step["state"] != FINE)
-            kind = np.where(step["state"] == COARSE, -1, step["mask"])
+            kinds = np.where(step["state"] == COARSE, -1, step["mask"])
         else:
             # a block is 2 x 2 cells across the axis; a coarse block's cells are emitted
             # one by one (the next step may have taken some of them)
             unit = cell.copy()
             unit[frame[1:]] *= 2
-            coarse = step["cell_plain"] & step["open"]
-            if coarse.any():
-                emit(np.argwhere(coarse) * (cell * _THIRDS), (corners * cell * _THIRDS)[None],
-                     step["cell_material"][coarse], step["level"])
-            any_open = np.zeros(step["state"].shape, bool)
-            idx = np.argwhere(step["open"])
-            idx[:, frame[1:]] //= 2
-            any_open[tuple(idx.T)] = True
+            coarse = np.flatnonzero(step["cell_plain"] & step["open"])
+            if coarse.size:
+                emit(np.stack(np.unravel_index(coarse, step["cell_plain"].shape), axis=1), cell,
+                     (corners * cell * _THIRDS)[None], step["cell_material"].reshape(-1)[coarse], step["level"])
+            any_open = _pool_pairs(step["open"], frame[1:])
             templated = any_open & (step["state"] != FINE) & (step["state"] != COARSE)
-            kind = step["mask"]
+            kinds = step["mask"]
             material = step["block_material"]
-        for m in np.unique(kind[templated]):
-            rows = templated & (kind == m)
-            origin = np.argwhere(rows) * (unit * _THIRDS)
+        # the templated cells by kind, each kind's in C order
+        rows = np.flatnonzero(templated)
+        by_kind = np.argsort(kinds.reshape(-1)[rows], kind="stable")
+        rows = rows[by_kind]
+        kind_of = kinds.reshape(-1)[rows]
+        starts = np.flatnonzero(np.diff(kind_of, prepend=kind_of[:1] - 1)) if rows.size else rows
+        index = np.stack(np.unravel_index(rows, templated.shape), axis=1)
+        row_material = material.reshape(-1)[rows]
+        for start, stop in zip(starts, list(starts[1:]) + [rows.size]):
+            m = int(kind_of[start])
             if m < 0:
-                shape = (corners * unit * _THIRDS)[None]
+                shape_m = (corners * unit * _THIRDS)[None]
             else:
-                local = np.rint(table[int(m)] * _THIRDS).astype(np.int64)  # thirds of cells of the step below
-                shape = np.empty_like(local)
-                shape[..., frame] = local * prior[frame]
-            emit(origin, shape, material[rows], step["level"])
+                local = np.rint(table[m] * _THIRDS).astype(np.int64)  # thirds of cells of the step below
+                shape_m = np.empty_like(local)
+                shape_m[..., frame] = local * prior[frame]
+            emit(index[start:stop], unit, shape_m, row_material[start:stop], step["level"])
     return np.concatenate(parts), np.concatenate(materials), np.concatenate(levels)
 
 
@@ -452,8 +482,8 @@ def coarsen_mesh(mesh: Mesh, *, levels: int, min_distance: int, keep_fine) -> tu
     voxels[tuple(slice(0, s) for s in labels.shape)] = decomposition["voxels"]
     keep = voxels.reshape(-1)[first]
     del voxels, first
-    corner_thirds, material, level = _new_elements(decomposition, mesh.dim)
-    out = _assemble(mesh, keep, corner_thirds, material.astype(np.int32), level)
+    code, material, level = _new_elements(decomposition, labels.shape)
+    out = _assemble(mesh, keep, code, material.astype(np.int32), level, key)
     report = _report(mesh, out, keep, level, time.perf_counter() - t0, int(levels), int(min_distance), keep_fine)
     log.info("merge: templates, %d levels: %d -> %d elements (%.1f s)", levels, mesh.n_cells, out.n_cells,
              report["seconds"])
@@ -479,51 +509,45 @@ def _node_lookup(key: np.ndarray, n_grid: int):
     return find
 
 
-def _assemble(mesh: Mesh, keep: np.ndarray, corner_thirds: np.ndarray, material: np.ndarray,
-              level: np.ndarray) -> Mesh:
+def _assemble(mesh: Mesh, keep: np.ndarray, code: np.ndarray, material: np.ndarray, level: np.ndarray,
+              key: np.ndarray) -> Mesh:
     """The graded mesh: the kept voxel elements of ``mesh`` and the new elements given by
-    their corners (thirds of a voxel). A new corner on a voxel corner is the voxel mesh's
-    node there (every such corner lies inside a solid cell, so the node exists); the others
-    are new nodes, shared by position."""
+    their corners' codes (``_new_elements``); ``key``: each node's key in the point grid. A
+    new corner on a voxel corner is the voxel mesh's node there (every such corner lies
+    inside a solid cell, so the node exists); the others are new nodes, shared by position."""
     dim = mesh.dim
-    n_new, per = corner_thirds.shape[:2]
+    n_new, per = code.shape
     shape = tuple(int(s) for s in mesh.grid_shape[:dim])
-    key, stride = _lattice_keys(mesh.lattice, shape)
-    flat = corner_thirds.reshape(-1, dim)
-    whole = np.ones(flat.shape[0], bool)
-    wanted = np.zeros(flat.shape[0], np.int64)  # the voxel corner's key, where whole
-    fine = np.zeros(flat.shape[0], np.int64)  # the key on the grid of thirds
-    fine_stride = [int(np.prod([_THIRDS * s + 1 for s in shape[d + 1:]])) for d in range(dim)]
-    for d in range(dim):
-        q, r = np.divmod(flat[:, d], _THIRDS)
-        whole &= r == 0
-        wanted += q.astype(np.int64) * stride[d]
-        fine += flat[:, d].astype(np.int64) * fine_stride[d]
-    ids = np.empty(flat.shape[0], np.int64)
-    found = _node_lookup(key, int(np.prod([s + 1 for s in shape])))(wanted[whole])
+    flat = code.reshape(-1)
+    whole = flat >= 0
+    found = _node_lookup(key, int(np.prod([s + 1 for s in shape])))(flat[whole])
     if np.any(found < 0):
         raise DicerError("a coarse element's corner has no node in the voxel mesh; the mesh is not a full voxel mesh")
-    ids[whole] = found
-    off, inverse = np.unique(fine[~whole], return_inverse=True)
-    ids[~whole] = mesh.n_points + inverse.ravel()
-    del wanted, fine, found
-    cells = np.concatenate([np.compress(keep, mesh.cells, axis=0), ids.reshape(n_new, per)])
+    # the new nodes by their keys on the grid of thirds, ascending
+    off, inverse = np.unique(-1 - flat[~whole].astype(np.int64), return_inverse=True)
     # nodes still used, in the voxel mesh's order, then the new ones
-    used = np.zeros(mesh.n_points + off.shape[0], bool)
-    used[cells.ravel()] = True
+    kept = np.compress(keep, mesh.cells, axis=0)
+    used = np.zeros(mesh.n_points, bool)
+    used[kept] = True
+    used[found] = True
     number = np.cumsum(used) - 1
-    cells = number[cells]
-    n_old = int(used[: mesh.n_points].sum())
+    n_old = int(number[-1]) + 1
     n_off = off.shape[0]
+    cells = np.empty((kept.shape[0] + n_new, per), np.int64)
+    np.take(number, kept, out=cells[: kept.shape[0]])
+    new = cells[kept.shape[0]:].reshape(-1)
+    new[whole] = number[found]
+    new[~whole] = n_old + inverse.ravel()
+    del kept, found, inverse, number, flat, whole
     points = np.empty((n_old + n_off, 3))
-    points[:n_old] = np.compress(used[: mesh.n_points], mesh.points, axis=0)
+    points[:n_old] = np.compress(used, mesh.points, axis=0)
     lattice = np.full((n_old + n_off, 3), -1, np.int64)
-    lattice[:n_old] = np.compress(used[: mesh.n_points], mesh.lattice, axis=0)
+    lattice[:n_old] = np.compress(used, mesh.lattice, axis=0)
     lattice[n_old:, dim:] = 0
     position = np.zeros((n_off, 3))
     rest = off
-    for d in range(dim):
-        position[:, d], rest = np.divmod(rest, fine_stride[d])
+    for d, f in enumerate(_strides([_THIRDS * s + 1 for s in shape])):
+        position[:, d], rest = np.divmod(rest, int(f))
     position[:, :dim] /= _THIRDS
     points[n_old:] = mesh.origin + position * mesh.spacing
     if dim == 2:

@@ -211,8 +211,12 @@ def _axis_step(plain: np.ndarray, material: np.ndarray, axis: int) -> dict:
     # blocks of 2 x 2 cells across the axis, all four candidates of one material
     nb, nc = (-(-k // 2) for k in cell.shape[1:])
     pad2 = ((0, 0), (0, 2 * nb - cell.shape[1]), (0, 2 * nc - cell.shape[2]))
-    quad = np.pad(cell_material, pad2).reshape(n, nb, 2, nc, 2)
-    blo, bhi = quad.min(axis=(2, 4)), quad.max(axis=(2, 4))
+    quad = np.pad(cell_material, pad2)
+    # the four cells of each block as strided views (a reduction over two axes of two
+    # is slow)
+    four = [quad[:, i::2, j::2] for i in (0, 1) for j in (0, 1)]
+    blo = np.minimum(np.minimum(four[0], four[1]), np.minimum(four[2], four[3]))
+    bhi = np.maximum(np.maximum(four[0], four[1]), np.maximum(four[2], four[3]))
     block = (blo == bhi) & (blo > 0)
     _, mask = _close(block, SECTION, pattern, COMPLETION_BLOCK, lead=1)
     state = np.where(block, pattern[mask], FINE)
@@ -373,7 +377,10 @@ def _pool_pairs(a: np.ndarray, axes) -> np.ndarray:
         n = -(-a.shape[axis] // 2)
         pad = [(0, 0)] * a.ndim
         pad[axis] = (0, 2 * n - a.shape[axis])
-        a = np.pad(a, pad).reshape(a.shape[:axis] + (n, 2) + a.shape[axis + 1:]).any(axis=axis + 1)
+        a = np.pad(a, pad)
+        even, odd = ([slice(None)] * a.ndim for _ in range(2))
+        even[axis], odd[axis] = slice(0, None, 2), slice(1, None, 2)
+        a = a[tuple(even)] | a[tuple(odd)]
     return a
 
 

@@ -326,7 +326,9 @@ def _voxels_of(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise DicerError("the mesh has no elements; nothing to coarsen")
     shape = tuple(int(s) for s in mesh.grid_shape[:dim])
     lattice = np.asarray(mesh.lattice, np.int64)
-    if lattice.shape != (mesh.n_points, 3) or lattice.min() < 0 or np.any(lattice[:, :dim].max(axis=0) > shape):
+    # the largest index over all axes first (a reduction along the rows is slow)
+    if lattice.shape != (mesh.n_points, 3) or lattice.min() < 0 or (
+            lattice.max() > min(shape) and np.any(lattice[:, :dim].max(axis=0) > shape)):
         raise DicerError("node lattice indices lie outside the image grid; remesh from the labels with 'dicer mesh'")
     outside = "element lattice indices lie outside the image grid; remesh from the labels with 'dicer mesh'"
     # every element one voxel, corners in VTK order: each corner's key a fixed step from

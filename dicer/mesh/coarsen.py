@@ -518,6 +518,14 @@ def _node_lookup(key: np.ndarray, n_grid: int):
     return find
 
 
+def _compress_into(mask: np.ndarray, a: np.ndarray, out: np.ndarray) -> None:
+    """out[:] = the rows of ``a`` where ``mask`` (no temporary where the types agree)."""
+    if a.dtype == out.dtype:
+        np.compress(mask, a, axis=0, out=out)
+    else:
+        out[:] = np.compress(mask, a, axis=0)
+
+
 def _assemble(mesh: Mesh, keep: np.ndarray, code: np.ndarray, material: np.ndarray, level: np.ndarray,
               key: np.ndarray) -> Mesh:
     """The graded mesh: the kept voxel elements of ``mesh`` and the new elements given by
@@ -528,30 +536,44 @@ def _assemble(mesh: Mesh, keep: np.ndarray, code: np.ndarray, material: np.ndarr
     n_new, per = code.shape
     shape = tuple(int(s) for s in mesh.grid_shape[:dim])
     flat = code.reshape(-1)
-    whole = flat >= 0
-    found = _node_lookup(key, int(np.prod([s + 1 for s in shape])))(flat[whole])
-    if np.any(found < 0):
-        raise DicerError("a coarse element's corner has no node in the voxel mesh; the mesh is not a full voxel mesh")
+    lookup = _node_lookup(key, int(np.prod([s + 1 for s in shape])))
+    rows = _ROWS * per
+    # the voxel mesh's nodes on the new corners, in blocks (the temporaries stay small)
+    used = np.zeros(mesh.n_points, bool)
+    for part in pieces(flat.size, rows):
+        block = flat[part]
+        found = lookup(block[block >= 0])
+        if np.any(found < 0):
+            raise DicerError("a coarse element's corner has no node in the voxel mesh; the mesh is not a full voxel "
+                             "mesh")
+        used[found] = True
     # the new nodes by their keys on the grid of thirds, ascending
-    off, inverse = np.unique(-1 - flat[~whole].astype(np.int64), return_inverse=True)
+    off, inverse = np.unique(-1 - flat[flat < 0].astype(np.int64), return_inverse=True)
     # nodes still used, in the voxel mesh's order, then the new ones
     kept = np.compress(keep, mesh.cells, axis=0)
-    used = np.zeros(mesh.n_points, bool)
     used[kept] = True
-    used[found] = True
     number = np.cumsum(used) - 1
     n_old = int(number[-1]) + 1
     n_off = off.shape[0]
-    cells = np.empty((kept.shape[0] + n_new, per), np.int64)
-    np.take(number, kept, out=cells[: kept.shape[0]])
-    new = cells[kept.shape[0]:].reshape(-1)
-    new[whole] = number[found]
-    new[~whole] = n_old + inverse.ravel()
-    del kept, found, inverse, number, flat, whole
+    n_keep = kept.shape[0]
+    cells = np.empty((n_keep + n_new, per), np.int64)
+    np.take(number, kept, out=cells[:n_keep])
+    del kept
+    new = cells[n_keep:].reshape(-1)
+    inverse = n_old + inverse.ravel()
+    done = 0
+    for part in pieces(flat.size, rows):
+        block, out = flat[part], new[part]
+        whole = block >= 0
+        out[whole] = number[lookup(block[whole])]
+        k = done + whole.size - int(np.count_nonzero(whole))
+        out[~whole] = inverse[done:k]
+        done = k
+    del number, inverse
     points = np.empty((n_old + n_off, 3))
-    points[:n_old] = np.compress(used, mesh.points, axis=0)
+    _compress_into(used, mesh.points, points[:n_old])
     lattice = np.full((n_old + n_off, 3), -1, np.int64)
-    lattice[:n_old] = np.compress(used, mesh.lattice, axis=0)
+    _compress_into(used, mesh.lattice, lattice[:n_old])
     lattice[n_old:, dim:] = 0
     position = np.zeros((n_off, 3))
     rest = off

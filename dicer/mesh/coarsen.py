@@ -597,6 +597,8 @@ def _report(mesh: Mesh, out: Mesh, keep: np.ndarray, level: np.ndarray, seconds:
     after = np.bincount(out.material, minlength=top)
     voxel = float(np.prod(mesh.spacing[: mesh.dim]))
     coarse = np.flatnonzero(out.cell_data[LEVEL_DATA] > 0)
+    if coarse.size and coarse[-1] - coarse[0] == coarse.size - 1:
+        coarse = slice(int(coarse[0]), int(coarse[-1]) + 1)  # the new elements follow the kept voxels: no copies
     vol = np.bincount(out.material[coarse], weights=element_volumes(out.points, out.cells[coarse]),
                       minlength=top).astype(float)
     vol += np.bincount(mesh.material[keep], minlength=top) * voxel

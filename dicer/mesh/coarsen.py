@@ -538,15 +538,21 @@ def _assemble(mesh: Mesh, keep: np.ndarray, code: np.ndarray, material: np.ndarr
     flat = code.reshape(-1)
     lookup = _node_lookup(key, int(np.prod([s + 1 for s in shape])))
     rows = _ROWS * per
-    # the voxel mesh's nodes on the new corners, in blocks (the temporaries stay small)
+    n_keep = int(np.count_nonzero(keep))
+    cells = np.empty((n_keep + n_new, per), np.int64)
+    new = cells[n_keep:].reshape(-1)
+    # the voxel mesh's nodes on the new corners (their numbers in the voxel mesh for now),
+    # in blocks: the temporaries stay small
     used = np.zeros(mesh.n_points, bool)
     for part in pieces(flat.size, rows):
-        block = flat[part]
-        found = lookup(block[block >= 0])
+        block, out = flat[part], new[part]
+        whole = block >= 0
+        found = lookup(block[whole])
         if np.any(found < 0):
             raise DicerError("a coarse element's corner has no node in the voxel mesh; the mesh is not a full voxel "
                              "mesh")
         used[found] = True
+        out[whole] = found
     # the new nodes by their keys on the grid of thirds, ascending
     off, inverse = np.unique(-1 - flat[flat < 0].astype(np.int64), return_inverse=True)
     # nodes still used, in the voxel mesh's order, then the new ones
@@ -555,17 +561,13 @@ def _assemble(mesh: Mesh, keep: np.ndarray, code: np.ndarray, material: np.ndarr
     number = np.cumsum(used) - 1
     n_old = int(number[-1]) + 1
     n_off = off.shape[0]
-    n_keep = kept.shape[0]
-    cells = np.empty((n_keep + n_new, per), np.int64)
     np.take(number, kept, out=cells[:n_keep])
     del kept
-    new = cells[n_keep:].reshape(-1)
     inverse = n_old + inverse.ravel()
     done = 0
     for part in pieces(flat.size, rows):
-        block, out = flat[part], new[part]
-        whole = block >= 0
-        out[whole] = number[lookup(block[whole])]
+        whole, out = flat[part] >= 0, new[part]
+        out[whole] = number[out[whole]]
         k = done + whole.size - int(np.count_nonzero(whole))
         out[~whole] = inverse[done:k]
         done = k

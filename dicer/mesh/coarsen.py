@@ -399,18 +399,18 @@ def _new_elements(decomposition: dict, shape: tuple):
     kind = _key_type(int(np.prod([_THIRDS * s + 1 for s in shape])))
     parts, materials, levels = [np.zeros((0, per), kind)], [np.zeros(0, np.int64)], [np.zeros(0, np.int8)]
 
-    def emit(index, unit, shape, material, level):
-        # index (k, dim) cells of ``unit`` voxels; shape (t, per, dim) corners in thirds of
-        # a voxel from a cell's origin (a voxel corner): k * t elements
+    def emit(index, unit, offsets, material, level):
+        # index (k, dim) cells of ``unit`` voxels; offsets (t, per, dim) corners in thirds
+        # of a voxel from a cell's origin (a voxel corner): k * t elements
         origin = index.astype(np.int64) * unit
-        on_voxel = np.all(shape % _THIRDS == 0, axis=-1)
-        code = (origin @ stride)[:, None, None] + (shape // _THIRDS) @ stride
+        on_voxel = np.all(offsets % _THIRDS == 0, axis=-1)
+        code = (origin @ stride)[:, None, None] + (offsets // _THIRDS) @ stride
         if not on_voxel.all():
-            off = (origin * _THIRDS @ fine_stride)[:, None, None] + shape @ fine_stride
+            off = (origin * _THIRDS @ fine_stride)[:, None, None] + offsets @ fine_stride
             code = np.where(on_voxel, code, -1 - off)
         parts.append(code.astype(kind).reshape(-1, per))
-        materials.append(np.repeat(material, shape.shape[0]))
-        levels.append(np.full(origin.shape[0] * shape.shape[0], level, np.int8))
+        materials.append(np.repeat(material, offsets.shape[0]))
+        levels.append(np.full(origin.shape[0] * offsets.shape[0], level, np.int8))
 
     for step in decomposition["steps"]:
         frame, prior = list(step["frame"]), np.asarray(step["prior"], np.int64)
@@ -445,12 +445,12 @@ def _new_elements(decomposition: dict, shape: tuple):
         for start, stop in zip(starts, list(starts[1:]) + [rows.size]):
             m = int(kind_of[start])
             if m < 0:
-                shape_m = (corners * unit * _THIRDS)[None]
+                offsets = (corners * unit * _THIRDS)[None]
             else:
                 local = np.rint(table[m] * _THIRDS).astype(np.int64)  # thirds of cells of the step below
-                shape_m = np.empty_like(local)
-                shape_m[..., frame] = local * prior[frame]
-            emit(index[start:stop], unit, shape_m, row_material[start:stop], step["level"])
+                offsets = np.empty_like(local)
+                offsets[..., frame] = local * prior[frame]
+            emit(index[start:stop], unit, offsets, row_material[start:stop], step["level"])
     return np.concatenate(parts), np.concatenate(materials), np.concatenate(levels)
 
 

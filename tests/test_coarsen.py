@@ -356,3 +356,38 @@ def test_node_lookup_by_table_and_by_search_agree():
     expect[key] = np.arange(key.size)
     assert np.array_equal(dense, expect[wanted]) and np.array_equal(search, expect[wanted])
     assert np.count_nonzero(dense < 0) > 1000
+
+
+@settings(max_examples=200, deadline=None)
+@given(dim=st.integers(1, 3), radius=st.integers(1, 5), seed=st.integers(0, 2**31 - 1),
+       dtype=st.sampled_from([np.uint8, np.uint16, np.int32, np.int64]))
+def test_window_min_max_is_ndimage_min_max_filter(dim, radius, seed, dtype):
+    """The neighbourhood test's sweeps give ndimage's cube min/max filters (mode constant,
+    cval 0) exactly, at every size, also windows wider than the image and signed labels."""
+    from dicer.mesh.coarsen import _window_min_max
+
+    rng = np.random.default_rng(seed)
+    shape = tuple(int(s) for s in rng.integers(1, 10, dim))
+    labels = rng.integers(-2 if np.issubdtype(dtype, np.signedinteger) else 0, 4, shape).astype(dtype)
+    lo, hi = _window_min_max(labels, radius)
+    size = 2 * radius + 1
+    expect_lo = ndimage.minimum_filter(labels, size=size, mode="constant", cval=0)
+    expect_hi = ndimage.maximum_filter(labels, size=size, mode="constant", cval=0)
+    assert lo.dtype == labels.dtype and np.array_equal(lo, expect_lo) and np.array_equal(hi, expect_hi)
+
+
+def test_templates_refuse_elements_outside_the_image():
+    """An element whose first corner lies on a far plane of the point grid (its corners'
+    keys still one voxel apart) is outside the image; with a material <= 0 as well, the
+    lattice is named first."""
+    labels = np.zeros((8, 6, 5), np.int32)
+    labels[:-3] = 1
+    voxel = voxel_mesh(labels)
+    grid = tuple(int(s) + 1 for s in voxel.grid_shape)
+    key = np.ravel_multi_index(tuple(voxel.lattice.T), grid) + 1  # every node one step along z
+    voxel.lattice[:] = np.stack(np.unravel_index(key, grid), axis=1)
+    with pytest.raises(DicerError, match="element lattice indices lie outside"):
+        coarsen_mesh(voxel, levels=1, min_distance=1, keep_fine=())
+    voxel.material[0] = 0
+    with pytest.raises(DicerError, match="element lattice indices lie outside"):
+        coarsen_mesh(voxel, levels=1, min_distance=1, keep_fine=())

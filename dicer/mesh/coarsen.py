@@ -30,7 +30,6 @@ import logging
 import time
 
 import numpy as np
-from scipy import ndimage
 
 from dicer.errors import DicerError
 from dicer.mesh.metrics import element_volumes
@@ -84,12 +83,41 @@ def _close(candidate: np.ndarray, corners: np.ndarray, pattern: np.ndarray, comp
             marked[s] |= (target >> c & 1).astype(bool)
 
 
+def _sweep(a: np.ndarray, axis: int, radius: int, op) -> np.ndarray:
+    """``op`` (np.minimum or np.maximum) of ``a`` over a window of 2 * radius + 1 along
+    ``axis``, positions beyond the image counting as 0: ndimage's min/max filter with
+    mode="constant", cval=0 in slices (no sort per window)."""
+    out = a.copy()
+    n = a.shape[axis]
+
+    def cut(start, stop):
+        index = [slice(None)] * a.ndim
+        index[axis] = slice(start, stop)
+        return tuple(index)
+    for s in range(1, min(radius, n - 1) + 1):
+        op(out[cut(s, None)], a[cut(None, -s)], out=out[cut(s, None)])  # a[i - s]
+        op(out[cut(None, -s)], a[cut(s, None)], out=out[cut(None, -s)])  # a[i + s]
+    k = min(radius, n)  # windows that reach beyond the image take its 0
+    if k:
+        op(out[cut(None, k)], 0, out=out[cut(None, k)])
+        op(out[cut(n - k, None)], 0, out=out[cut(n - k, None)])
+    return out
+
+
+def _window_min_max(labels: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """The smallest and largest label within ``radius`` voxels (a cube; 0 beyond the
+    image): separable sweeps along each axis."""
+    lo = hi = labels
+    for axis in range(labels.ndim):
+        lo = _sweep(lo, axis, radius, np.minimum)
+        hi = _sweep(hi, axis, radius, np.maximum)
+    return lo, hi
+
+
 def _coarsenable(labels: np.ndarray, min_distance: int, keep_fine) -> np.ndarray:
     """(labels.shape, labels.dtype): the material of every voxel whose neighbours within
     ``min_distance`` voxels (inside the image) all hold it, else 0; materials kept fine 0."""
-    size = 2 * min_distance + 1
-    lo = ndimage.minimum_filter(labels, size=size, mode="constant", cval=0)
-    hi = ndimage.maximum_filter(labels, size=size, mode="constant", cval=0)
+    lo, hi = _window_min_max(labels, min_distance)
     material = np.where(lo == hi, lo, 0)
     if len(keep_fine):
         material[np.isin(material, np.asarray(keep_fine, np.int64))] = 0
@@ -100,9 +128,7 @@ def _level_one(labels: np.ndarray, dim: int, min_distance: int, keep_fine) -> tu
     """Candidates and materials of the level-1 cells (2D): one material in the cell and
     within ``min_distance`` voxels of it, inside the image, not a material kept fine."""
     n = tuple(-(-s // 3) for s in labels.shape)
-    size = 3 + 2 * min_distance
-    lo = ndimage.minimum_filter(labels, size=size, mode="constant", cval=0)
-    hi = ndimage.maximum_filter(labels, size=size, mode="constant", cval=0)
+    lo, hi = _window_min_max(labels, 1 + min_distance)
     # a cell's window is centred on its middle voxel; cells cut by the image's far end
     # have no middle voxel and stay 0
     centre = tuple(slice(1, None, 3) for _ in n)
@@ -185,8 +211,12 @@ def _axis_step(plain: np.ndarray, material: np.ndarray, axis: int) -> dict:
     # blocks of 2 x 2 cells across the axis, all four candidates of one material
     nb, nc = (-(-k // 2) for k in cell.shape[1:])
     pad2 = ((0, 0), (0, 2 * nb - cell.shape[1]), (0, 2 * nc - cell.shape[2]))
-    quad = np.pad(cell_material, pad2).reshape(n, nb, 2, nc, 2)
-    blo, bhi = quad.min(axis=(2, 4)), quad.max(axis=(2, 4))
+    quad = np.pad(cell_material, pad2)
+    # the four cells of each block as strided views (a reduction over two axes of two
+    # is slow)
+    four = [quad[:, i::2, j::2] for i in (0, 1) for j in (0, 1)]
+    blo = np.minimum(np.minimum(four[0], four[1]), np.minimum(four[2], four[3]))
+    bhi = np.maximum(np.maximum(four[0], four[1]), np.maximum(four[2], four[3]))
     block = (blo == bhi) & (blo > 0)
     _, mask = _close(block, SECTION, pattern, COMPLETION_BLOCK, lead=1)
     state = np.where(block, pattern[mask], FINE)
@@ -270,8 +300,9 @@ def _children(parent: np.ndarray, shape: tuple, axes, factors) -> np.ndarray:
     return out[tuple(slice(0, s) for s in shape)]
 
 
-_ROWS = 1 << 20
-"""Elements per block of the passes over all elements (a block's temporaries stay small)."""
+_ROWS = 1 << 16
+"""Elements per block of the passes over all elements (a block's temporaries stay in the
+cache)."""
 
 
 def _lattice_keys(lattice: np.ndarray, shape: tuple) -> np.ndarray:
@@ -281,35 +312,54 @@ def _lattice_keys(lattice: np.ndarray, shape: tuple) -> np.ndarray:
     return np.asarray(lattice, np.int64)[:, : len(shape)] @ stride, stride
 
 
-def _voxels_of(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
-    """The label volume (grid_shape; 2D: (nx, ny)) of a voxel mesh and each element's
-    voxel (M, dim); DicerError for any other mesh."""
+def _key_type(n: int):
+    """The integer type of keys below ``n`` (and of -1 - key): int32 where they fit."""
+    return np.int32 if n < 2**31 - 1 else np.int64
+
+
+def _voxels_of(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The label volume (grid_shape; 2D: (nx, ny)) of a voxel mesh, each element's first
+    corner as its key in the point grid (M,) and every node's key (N,) (both of the type
+    ``_key_type`` of the point grid); DicerError for any other mesh."""
     dim = mesh.dim
     if mesh.n_cells == 0:
         raise DicerError("the mesh has no elements; nothing to coarsen")
     shape = tuple(int(s) for s in mesh.grid_shape[:dim])
     lattice = np.asarray(mesh.lattice, np.int64)
-    if lattice.shape != (mesh.n_points, 3) or lattice.min() < 0 or np.any(lattice[:, :dim].max(axis=0) > shape):
+    # the largest index over all axes first (a reduction along the rows is slow)
+    if lattice.shape != (mesh.n_points, 3) or lattice.min() < 0 or (
+            lattice.max() > min(shape) and np.any(lattice[:, :dim].max(axis=0) > shape)):
         raise DicerError("node lattice indices lie outside the image grid; remesh from the labels with 'dicer mesh'")
+    outside = "element lattice indices lie outside the image grid; remesh from the labels with 'dicer mesh'"
     # every element one voxel, corners in VTK order: each corner's key a fixed step from
     # the first corner's (keys are one-to-one on the point grid)
+    grid = tuple(s + 1 for s in shape)
+    kind = _key_type(int(np.prod(grid)))
     key, stride = _lattice_keys(lattice, shape)
+    key = key.astype(kind)
     corners = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim].astype(np.int64)
-    step = corners @ stride
+    step = (corners @ stride).astype(kind)
+    first = np.empty(mesh.n_cells, kind)
     for part in pieces(mesh.n_cells, _ROWS):
         corner = key[mesh.cells[part]]
-        if not np.array_equal(corner - corner[:, :1], np.broadcast_to(step, corner.shape)):
+        first[part] = corner[:, 0]
+        corner -= corner[:, :1]
+        if not np.array_equal(corner, np.broadcast_to(step, corner.shape)):
             raise DicerError("merge.method=templates needs a voxel mesh (one element per voxel, as 'dicer mesh' "
                              "writes it); this mesh was merged or edited already")
-    first = lattice[mesh.cells[:, 0], :dim]
-    if np.any(first >= np.asarray(shape)):
-        raise DicerError("element lattice indices lie outside the image grid; remesh from the labels with 'dicer mesh'")
     if int(mesh.material.min()) <= 0:
+        if np.any(lattice[mesh.cells[:, 0], :dim] >= np.asarray(shape)):
+            raise DicerError(outside)
         raise DicerError("the mesh has material labels <= 0; materials are numbered 1..K")
-    # the smallest integer type: the filters of _coarsenable run on it
-    labels = np.zeros(shape, np.min_scalar_type(int(mesh.material.max())))
-    labels[tuple(first.T)] = mesh.material
-    return labels, first
+    # the labels on the point grid, by the first corners' keys; the smallest integer type:
+    # the filters of _coarsenable run on it
+    on_points = np.zeros(grid, np.min_scalar_type(int(mesh.material.max())))
+    on_points.reshape(-1)[first] = mesh.material
+    # an element cornered on a far plane of the point grid lies outside the image (its
+    # label is > 0 there)
+    if any(on_points.take(-1, axis=axis).any() for axis in range(dim)):
+        raise DicerError(outside)
+    return np.ascontiguousarray(on_points[tuple(slice(0, s) for s in shape)]), first, key
 
 
 _THIRDS = 3
@@ -318,20 +368,49 @@ thirds of cells of at least one voxel), so corners are matched as whole numbers 
 thirds."""
 
 
-def _new_elements(decomposition: dict, dim: int):
-    """The coarse and template elements: corners (M, corners, dim) int32 in thirds of a
-    voxel (every template node lies on that grid, ``_THIRDS``), materials and levels."""
+def _strides(grid) -> np.ndarray:
+    """(dim,) int64: C-order strides of a grid of ``grid`` points."""
+    return np.array([int(np.prod(grid[d + 1:])) for d in range(len(grid))], np.int64)
+
+
+def _pool_pairs(a: np.ndarray, axes) -> np.ndarray:
+    """any() of ``a`` over pairs of cells along each of ``axes`` (a last odd cell alone)."""
+    for axis in axes:
+        n = -(-a.shape[axis] // 2)
+        pad = [(0, 0)] * a.ndim
+        pad[axis] = (0, 2 * n - a.shape[axis])
+        a = np.pad(a, pad)
+        even, odd = ([slice(None)] * a.ndim for _ in range(2))
+        even[axis], odd[axis] = slice(0, None, 2), slice(1, None, 2)
+        a = a[tuple(even)] | a[tuple(odd)]
+    return a
+
+
+def _new_elements(decomposition: dict, shape: tuple):
+    """The coarse and template elements: a code per corner (M, corners), the corner's key in
+    the point grid where it is a voxel corner, else -1 - its key on the grid of thirds of a
+    voxel (every template node lies on that grid, ``_THIRDS``); materials and levels."""
+    dim = len(shape)
     corners = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim].astype(np.int64)
     per = corners.shape[0]
     _, table = TEMPLATES_2D if dim == 2 else BLOCK_TEMPLATES
-    parts, materials, levels = [np.zeros((0, per, dim), np.int32)], [np.zeros(0, np.int64)], [np.zeros(0, np.int8)]
+    stride = _strides([s + 1 for s in shape])
+    fine_stride = _strides([_THIRDS * s + 1 for s in shape])
+    kind = _key_type(int(np.prod([_THIRDS * s + 1 for s in shape])))
+    parts, materials, levels = [np.zeros((0, per), kind)], [np.zeros(0, np.int64)], [np.zeros(0, np.int8)]
 
-    def emit(origin, shape, material, level):
-        # origin (k, dim) and shape (t, per, dim) in thirds: k * t elements
-        cells = origin.astype(np.int32)[:, None, None, :] + shape.astype(np.int32)[None]
-        parts.append(cells.reshape(-1, per, dim))
-        materials.append(np.repeat(material, shape.shape[0]))
-        levels.append(np.full(origin.shape[0] * shape.shape[0], level, np.int8))
+    def emit(index, unit, offsets, material, level):
+        # index (k, dim) cells of ``unit`` voxels; offsets (t, per, dim) corners in thirds
+        # of a voxel from a cell's origin (a voxel corner): k * t elements
+        origin = index.astype(np.int64) * unit
+        on_voxel = np.all(offsets % _THIRDS == 0, axis=-1)
+        code = (origin @ stride)[:, None, None] + (offsets // _THIRDS) @ stride
+        if not on_voxel.all():
+            off = (origin * _THIRDS @ fine_stride)[:, None, None] + offsets @ fine_stride
+            code = np.where(on_voxel, code, -1 - off)
+        parts.append(code.astype(kind).reshape(-1, per))
+        materials.append(np.repeat(material, offsets.shape[0]))
+        levels.append(np.full(origin.shape[0] * offsets.shape[0], level, np.int8))
 
     for step in decomposition["steps"]:
         frame, prior = list(step["frame"]), np.asarray(step["prior"], np.int64)
@@ -341,33 +420,37 @@ def _new_elements(decomposition: dict, dim: int):
             cell[frame[1]] *= 3
             unit, material = cell, step["material"]
             templated = step["open"] & (step["state"] != FINE)
-            kind = np.where(step["state"] == COARSE, -1, step["mask"])
+            kinds = np.where(step["state"] == COARSE, -1, step["mask"])
         else:
             # a block is 2 x 2 cells across the axis; a coarse block's cells are emitted
             # one by one (the next step may have taken some of them)
             unit = cell.copy()
             unit[frame[1:]] *= 2
-            coarse = step["cell_plain"] & step["open"]
-            if coarse.any():
-                emit(np.argwhere(coarse) * (cell * _THIRDS), (corners * cell * _THIRDS)[None],
-                     step["cell_material"][coarse], step["level"])
-            any_open = np.zeros(step["state"].shape, bool)
-            idx = np.argwhere(step["open"])
-            idx[:, frame[1:]] //= 2
-            any_open[tuple(idx.T)] = True
+            coarse = np.flatnonzero(step["cell_plain"] & step["open"])
+            if coarse.size:
+                emit(np.stack(np.unravel_index(coarse, step["cell_plain"].shape), axis=1), cell,
+                     (corners * cell * _THIRDS)[None], step["cell_material"].reshape(-1)[coarse], step["level"])
+            any_open = _pool_pairs(step["open"], frame[1:])
             templated = any_open & (step["state"] != FINE) & (step["state"] != COARSE)
-            kind = step["mask"]
+            kinds = step["mask"]
             material = step["block_material"]
-        for m in np.unique(kind[templated]):
-            rows = templated & (kind == m)
-            origin = np.argwhere(rows) * (unit * _THIRDS)
+        # the templated cells by kind, each kind's in C order
+        rows = np.flatnonzero(templated)
+        by_kind = np.argsort(kinds.reshape(-1)[rows], kind="stable")
+        rows = rows[by_kind]
+        kind_of = kinds.reshape(-1)[rows]
+        starts = np.flatnonzero(np.diff(kind_of, prepend=kind_of[:1] - 1)) if rows.size else rows
+        index = np.stack(np.unravel_index(rows, templated.shape), axis=1)
+        row_material = material.reshape(-1)[rows]
+        for start, stop in zip(starts, list(starts[1:]) + [rows.size]):
+            m = int(kind_of[start])
             if m < 0:
-                shape = (corners * unit * _THIRDS)[None]
+                offsets = (corners * unit * _THIRDS)[None]
             else:
-                local = np.rint(table[int(m)] * _THIRDS).astype(np.int64)  # thirds of cells of the step below
-                shape = np.empty_like(local)
-                shape[..., frame] = local * prior[frame]
-            emit(origin, shape, material[rows], step["level"])
+                local = np.rint(table[m] * _THIRDS).astype(np.int64)  # thirds of cells of the step below
+                offsets = np.empty_like(local)
+                offsets[..., frame] = local * prior[frame]
+            emit(index[start:stop], unit, offsets, row_material[start:stop], step["level"])
     return np.concatenate(parts), np.concatenate(materials), np.concatenate(levels)
 
 
@@ -401,11 +484,15 @@ def coarsen_mesh(mesh: Mesh, *, levels: int, min_distance: int, keep_fine) -> tu
     if isinstance(min_distance, bool) or not isinstance(min_distance, (int, np.integer)) or min_distance < 1:
         raise DicerError(f"merge.templates.min_distance={min_distance!r}: give a whole number of voxels >= 1")
     t0 = time.perf_counter()
-    labels, first = _voxels_of(mesh)
+    labels, first, key = _voxels_of(mesh)
     decomposition = coarsen_labels(labels, levels=int(levels), min_distance=int(min_distance), keep_fine=keep_fine)
-    keep = decomposition["voxels"][tuple(first.T)]
-    corner_thirds, material, level = _new_elements(decomposition, mesh.dim)
-    out = _assemble(mesh, keep, corner_thirds, material.astype(np.int32), level)
+    # the kept voxels on the point grid, read at each element's first corner
+    voxels = np.zeros(tuple(s + 1 for s in labels.shape), bool)
+    voxels[tuple(slice(0, s) for s in labels.shape)] = decomposition["voxels"]
+    keep = voxels.reshape(-1)[first]
+    del voxels, first
+    code, material, level = _new_elements(decomposition, labels.shape)
+    out = _assemble(mesh, keep, code, material.astype(np.int32), level, key)
     report = _report(mesh, out, keep, level, time.perf_counter() - t0, int(levels), int(min_distance), keep_fine)
     log.info("merge: templates, %d levels: %d -> %d elements (%.1f s)", levels, mesh.n_cells, out.n_cells,
              report["seconds"])
@@ -431,51 +518,69 @@ def _node_lookup(key: np.ndarray, n_grid: int):
     return find
 
 
-def _assemble(mesh: Mesh, keep: np.ndarray, corner_thirds: np.ndarray, material: np.ndarray,
-              level: np.ndarray) -> Mesh:
+def _compress_into(mask: np.ndarray, a: np.ndarray, out: np.ndarray) -> None:
+    """out[:] = the rows of ``a`` where ``mask`` (no temporary where the types agree)."""
+    if a.dtype == out.dtype:
+        np.compress(mask, a, axis=0, out=out)
+    else:
+        out[:] = np.compress(mask, a, axis=0)
+
+
+def _assemble(mesh: Mesh, keep: np.ndarray, code: np.ndarray, material: np.ndarray, level: np.ndarray,
+              key: np.ndarray) -> Mesh:
     """The graded mesh: the kept voxel elements of ``mesh`` and the new elements given by
-    their corners (thirds of a voxel). A new corner on a voxel corner is the voxel mesh's
-    node there (every such corner lies inside a solid cell, so the node exists); the others
-    are new nodes, shared by position."""
+    their corners' codes (``_new_elements``); ``key``: each node's key in the point grid. A
+    new corner on a voxel corner is the voxel mesh's node there (every such corner lies
+    inside a solid cell, so the node exists); the others are new nodes, shared by position."""
     dim = mesh.dim
-    n_new, per = corner_thirds.shape[:2]
+    n_new, per = code.shape
     shape = tuple(int(s) for s in mesh.grid_shape[:dim])
-    key, stride = _lattice_keys(mesh.lattice, shape)
-    flat = corner_thirds.reshape(-1, dim)
-    whole = np.ones(flat.shape[0], bool)
-    wanted = np.zeros(flat.shape[0], np.int64)  # the voxel corner's key, where whole
-    fine = np.zeros(flat.shape[0], np.int64)  # the key on the grid of thirds
-    fine_stride = [int(np.prod([_THIRDS * s + 1 for s in shape[d + 1:]])) for d in range(dim)]
-    for d in range(dim):
-        q, r = np.divmod(flat[:, d], _THIRDS)
-        whole &= r == 0
-        wanted += q.astype(np.int64) * stride[d]
-        fine += flat[:, d].astype(np.int64) * fine_stride[d]
-    ids = np.empty(flat.shape[0], np.int64)
-    found = _node_lookup(key, int(np.prod([s + 1 for s in shape])))(wanted[whole])
-    if np.any(found < 0):
-        raise DicerError("a coarse element's corner has no node in the voxel mesh; the mesh is not a full voxel mesh")
-    ids[whole] = found
-    off, inverse = np.unique(fine[~whole], return_inverse=True)
-    ids[~whole] = mesh.n_points + inverse.ravel()
-    del wanted, fine, found
-    cells = np.concatenate([np.compress(keep, mesh.cells, axis=0), ids.reshape(n_new, per)])
+    flat = code.reshape(-1)
+    lookup = _node_lookup(key, int(np.prod([s + 1 for s in shape])))
+    rows = _ROWS * per
+    n_keep = int(np.count_nonzero(keep))
+    cells = np.empty((n_keep + n_new, per), np.int64)
+    new = cells[n_keep:].reshape(-1)
+    # the voxel mesh's nodes on the new corners (their numbers in the voxel mesh for now),
+    # in blocks: the temporaries stay small
+    used = np.zeros(mesh.n_points, bool)
+    for part in pieces(flat.size, rows):
+        block, out = flat[part], new[part]
+        whole = block >= 0
+        found = lookup(block[whole])
+        if np.any(found < 0):
+            raise DicerError("a coarse element's corner has no node in the voxel mesh; the mesh is not a full voxel "
+                             "mesh")
+        used[found] = True
+        out[whole] = found
+    # the new nodes by their keys on the grid of thirds, ascending
+    off, inverse = np.unique(-1 - flat[flat < 0].astype(np.int64), return_inverse=True)
     # nodes still used, in the voxel mesh's order, then the new ones
-    used = np.zeros(mesh.n_points + off.shape[0], bool)
-    used[cells.ravel()] = True
+    kept = np.compress(keep, mesh.cells, axis=0)
+    used[kept] = True
     number = np.cumsum(used) - 1
-    cells = number[cells]
-    n_old = int(used[: mesh.n_points].sum())
+    n_old = int(number[-1]) + 1
     n_off = off.shape[0]
+    np.take(number, kept, out=cells[:n_keep])
+    del kept
+    inverse = n_old + inverse.ravel()
+    done = 0
+    for part in pieces(flat.size, rows):
+        whole, out = flat[part] >= 0, new[part]
+        out[whole] = number[out[whole]]
+        k = done + whole.size - int(np.count_nonzero(whole))
+        out[~whole] = inverse[done:k]
+        done = k
+    del number, inverse
     points = np.empty((n_old + n_off, 3))
-    points[:n_old] = np.compress(used[: mesh.n_points], mesh.points, axis=0)
+    _compress_into(used, mesh.points, points[:n_old])
     lattice = np.full((n_old + n_off, 3), -1, np.int64)
-    lattice[:n_old] = np.compress(used[: mesh.n_points], mesh.lattice, axis=0)
+    _compress_into(used, mesh.lattice, lattice[:n_old])
     lattice[n_old:, dim:] = 0
     position = np.zeros((n_off, 3))
     rest = off
-    for d in range(dim):
-        position[:, d], rest = np.divmod(rest, fine_stride[d])
+    for d, f in enumerate(_strides([_THIRDS * s + 1 for s in shape])):
+        position[:, d], rest = np.divmod(rest, int(f))
     position[:, :dim] /= _THIRDS
     points[n_old:] = mesh.origin + position * mesh.spacing
     if dim == 2:
@@ -494,6 +599,8 @@ def _report(mesh: Mesh, out: Mesh, keep: np.ndarray, level: np.ndarray, seconds:
     after = np.bincount(out.material, minlength=top)
     voxel = float(np.prod(mesh.spacing[: mesh.dim]))
     coarse = np.flatnonzero(out.cell_data[LEVEL_DATA] > 0)
+    if coarse.size and coarse[-1] - coarse[0] == coarse.size - 1:
+        coarse = slice(int(coarse[0]), int(coarse[-1]) + 1)  # the new elements follow the kept voxels: no copies
     vol = np.bincount(out.material[coarse], weights=element_volumes(out.points, out.cells[coarse]),
                       minlength=top).astype(float)
     vol += np.bincount(mesh.material[keep], minlength=top) * voxel

@@ -223,9 +223,12 @@ def _write_vtu(mesh: Mesh, path: Path, compress: bool = False) -> None:
         f.write(_TAIL)
 
 
-def check_mesh(mesh: Mesh, source: str, allow_inverted: bool = False) -> np.ndarray | None:
-    """Raise DicerError unless ``mesh`` is a sound linear hex/quad mesh; returns the
-    elements' scaled Jacobians when it computed them (not with ``allow_inverted``)."""
+def check_mesh(mesh: Mesh, source: str, allow_inverted: bool = False, quality: bool = False) -> dict | None:
+    """Raise DicerError unless ``mesh`` is a sound linear hex/quad mesh.
+
+    Returns the elements' :data:`QUALITY_DATA` arrays with ``quality`` (computed in one
+    pass), else their scaled Jacobians when it computed them (not with ``allow_inverted``),
+    else None."""
     if mesh.n_cells == 0:
         raise DicerError(f"{source}: mesh has no elements")
     if not np.all(np.isfinite(mesh.points)):
@@ -234,16 +237,20 @@ def check_mesh(mesh: Mesh, source: str, allow_inverted: bool = False) -> np.ndar
         raise DicerError(f"{source}: element connectivity refers to nodes that do not exist")
     if mesh.material.shape != (mesh.n_cells,) or mesh.lattice.shape != (mesh.n_points, 3):
         raise DicerError(f"{source}: material or lattice data do not match the element and node counts")
-    if not allow_inverted:
-        sj = scaled_jacobian(mesh.points, mesh.cells)
-        bad = np.flatnonzero(sj <= 0)
-        if bad.size:
-            raise DicerError(
-                f"{source}: {bad.size} degenerate or inverted element(s), e.g. element {bad[0] + 1} "
-                f"(scaled Jacobian {sj[bad[0]]:.3f})"
-            )
-        return sj
-    return None
+    if quality:
+        arrays = quality_arrays(mesh.points, mesh.cells)
+        sj = arrays["scaled_jacobian"]
+    elif not allow_inverted:
+        sj = arrays = scaled_jacobian(mesh.points, mesh.cells)
+    else:
+        return None
+    bad = np.flatnonzero(sj <= 0)
+    if bad.size and not allow_inverted:
+        raise DicerError(
+            f"{source}: {bad.size} degenerate or inverted element(s), e.g. element {bad[0] + 1} "
+            f"(scaled Jacobian {sj[bad[0]]:.3f})"
+        )
+    return arrays
 
 
 def _bitwise_equal(a: np.ndarray, b: np.ndarray) -> bool:
@@ -281,8 +288,8 @@ def write_mesh(mesh: Mesh, path: str | os.PathLike, allow_inverted: bool = False
     path = Path(path)
     if path.suffix.lower() != ".vtu":
         raise DicerError(f"{path}: intermediate meshes are VTU files; name the output *.vtu")
-    sj = check_mesh(mesh, str(path), allow_inverted)
-    mesh = with_quality(mesh, sj)
+    # the metrics in one pass: the check of inverted elements and the file's quality data
+    mesh = with_quality(mesh, check_mesh(mesh, str(path), allow_inverted, quality=True))
     with atomic_path(path) as tmp:
         _write_vtu(mesh, tmp)
         # the file must hold exactly the mesh that passed check_mesh above (so the
@@ -297,10 +304,12 @@ def write_mesh(mesh: Mesh, path: str | os.PathLike, allow_inverted: bool = False
                                  "check the disk and write again")
 
 
-def with_quality(mesh: Mesh, sj: np.ndarray | None = None) -> Mesh:
-    """``mesh`` (not copied) with the quality cell data of its nodes as they are, after ``material``."""
+def with_quality(mesh: Mesh, arrays: dict[str, np.ndarray] | None = None) -> Mesh:
+    """``mesh`` (not copied) with the quality cell data of its nodes as they are, after
+    ``material``: ``arrays`` when given (from :func:`check_mesh`), else computed."""
     cell_data = {k: v for k, v in mesh.cell_data.items() if k not in QUALITY_DATA}
-    return replace(mesh, cell_data=quality_arrays(mesh.points, mesh.cells, sj) | cell_data)
+    arrays = quality_arrays(mesh.points, mesh.cells) if arrays is None else arrays
+    return replace(mesh, cell_data=arrays | cell_data)
 
 
 def _unreadable(name: str):

@@ -205,13 +205,14 @@ def face_neighbours(cells: np.ndarray, dim: int, n_points: int) -> np.ndarray:
     for part in pieces(m):
         block = cells[part]
         for f, face in enumerate(table):
-            c = block[:, face]
-            if dim == 3:
-                pos = np.argmin(c, axis=1)
-                lo = np.take_along_axis(c, pos[:, None], 1)[:, 0]
-                hi = np.take_along_axis(c, ((pos + 2) % 4)[:, None], 1)[:, 0]
+            if dim == 3:  # the diagonal holding the smallest node, by elementwise minima
+                a, b, c, d = (block[:, i] for i in face)
+                ac, bd = np.minimum(a, c), np.minimum(b, d)
+                first = ac < bd
+                lo = np.where(first, ac, bd)
+                hi = np.where(first, np.maximum(a, c), np.maximum(b, d))
             else:
-                lo, hi = np.minimum(c[:, 0], c[:, 1]), np.maximum(c[:, 0], c[:, 1])
+                lo, hi = np.minimum(block[:, face[0]], block[:, face[1]]), np.maximum(block[:, face[0]], block[:, face[1]])
             keys[part, f] = lo * np.int64(n_points) + hi
     flat = keys.ravel()
     order = np.argsort(flat, kind="stable")

@@ -200,8 +200,17 @@ def estimate(stage: str, voxels: int, voxels_ds: int | None = None, elements: in
 
 
 def voxel_reduction(factor) -> int:
-    """How many voxels become one at downsampling ``factor`` (one, applied on three axes,
-    or one per axis)."""
+    """How many voxels become one at a downsampling factor.
+
+    Parameters
+    ----------
+    factor : int or sequence of int
+        One factor for all three axes, or one per axis.
+
+    Returns
+    -------
+    int
+    """
     factor = np.asarray(factor, dtype=np.int64)
     return max(1, int(factor ** 3 if factor.ndim == 0 else np.prod(factor)))
 

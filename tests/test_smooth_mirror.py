@@ -1,5 +1,5 @@
 """Bounding planes as mirrors: smoothing a cut model gives what smoothing the whole model
-gives, restricted to the part (issue #17)."""
+gives, restricted to the part."""
 
 import numpy as np
 import pytest

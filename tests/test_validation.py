@@ -5,7 +5,7 @@ the image's iso-line), solved with CalculiX; stresses from its .frd output again
 closed-form values.
 
 Each assertion pins the figure the current code measures (docs/validation.md's tables)
-within a small margin; the accuracy targets of issue #17 are the strict xfail tests at the
+within a small margin; the accuracy targets (docs/validation.md) are the strict xfail tests at the
 end, which fail (and so must be turned into plain tests) once the targets are met.
 """
 
@@ -233,7 +233,7 @@ def test_kirsch_plate_from_a_noise_free_image(kirsch_scan_clean):
 
 @pytest.mark.slow
 def test_target_kirsch_cps8_from_a_noise_free_image(kirsch_scan_clean):
-    """Issue #17's Kirsch target holds for CPS8 from the grey-value image without noise, at
+    """The Kirsch target holds for CPS8 from the grey-value image without noise, at
     smooth.min_scaled_jacobian 0.3 (measured: 3.055 at 90 deg, largest 3.069 at 82 deg, min SJ
     0.364, quarter and full within 0.02 %)."""
     q, f = kirsch_scan_clean["quarter"], kirsch_scan_clean["full"]
@@ -263,7 +263,7 @@ def test_lame_from_a_grey_value_image(tmp_path, a, c3d8, c3d20):
     assert abs(r[1]["error_wall_fit"]) < 0.01 and abs(r[2]["error_wall_fit"]) < 0.01
 
 
-# --- issue #17's targets, not met by the current defaults (numbers in docs/validation.md) ---
+# --- the accuracy targets, not met by the current defaults (numbers in docs/validation.md) ---
 
 
 @pytest.mark.slow

@@ -223,7 +223,7 @@ def test_workflow_heading_equals_the_stage_commands(cohort, tmp_path):
 
 
 def test_model_heading_is_the_same_from_the_workflow_dicer_run_and_the_stage(cohort, tmp_path):
-    # issue #14: one settings path. The workflow (export sections as --settings JSON), dicer run
+    # one settings path. The workflow (export sections as --settings JSON), dicer run
     # (the whole config) and the stage command (--config) all reach export_mesh through
     # dicer.config.stage_kwargs, so the same settings give the same heading, byte for byte
     from dicer.config import load_config

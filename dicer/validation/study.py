@@ -33,7 +33,7 @@ OFFSET = (0.35, 0.2)  # the full plate's hole centre off the lattice (voxels)
 OFFSET_SETTINGS = ("k=0", "k=0.8", "defaults", "defaults+merge")
 LAME_RADII = (7.0, 14.0, 28.0)  # inner radius a; outer 2 a
 LAME_SCAN_RADII = (7.0, 14.0)
-MIN_SJ_03 = "smooth.min_scaled_jacobian=0.3"  # issue #17's quality target as the guard's floor
+MIN_SJ_03 = "smooth.min_scaled_jacobian=0.3"  # the validation targets' quality floor as the guard's floor
 SCAN_NOISE = 30.0  # the grey-value images' noise on a contrast of 1000 (the ``-clean`` parts: none)
 ORDER_NAMES = {"kirsch": {1: "CPS4", 2: "CPS8"}, "lame": {1: "C3D8", 2: "C3D20"}}
 

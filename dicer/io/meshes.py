@@ -129,7 +129,25 @@ def splice_field_data(raw: Path, path: Path, block: bytes) -> None:
         shutil.copyfileobj(src, dst, 1 << 22)
 
 
+class _Later:
+    """An array the writer reaches last, computed meanwhile: its type and shape are known
+    up front (the file's header gives them), ``get()`` returns it when the writer gets there."""
+
+    def __init__(self, get, dtype, shape: tuple[int, ...]):
+        self.get, self.dtype, self.shape = get, np.dtype(dtype).newbyteorder("<"), tuple(shape)
+        self.ndim = len(self.shape)
+        self.nbytes = self.dtype.itemsize * int(np.prod(self.shape))
+
+    def data(self) -> memoryview:
+        a = self.get()
+        if a.dtype.newbyteorder("<") != self.dtype or a.shape != self.shape:
+            raise ValueError(f"an array of {a.dtype} {a.shape} came where {self.dtype} {self.shape} was announced")
+        return np.ascontiguousarray(a, self.dtype).reshape(-1).view(np.uint8).data
+
+
 def _extra_array(path: Path, kind: str, key: str, values, count: int) -> np.ndarray:
+    if isinstance(values, _Later):
+        return values
     a = np.asarray(values)
     if a.dtype.newbyteorder("=") not in _VTK_TYPES:
         raise DicerError(f"{path}: {kind} data {key!r} has type {a.dtype}, which VTU cannot hold; "
@@ -158,7 +176,8 @@ def _vtu_arrays(mesh: Mesh, path: Path) -> dict[str, list[tuple[str, np.ndarray]
            if key != "material"],
     }
     return {
-        s: [(n, np.ascontiguousarray(a, a.dtype.newbyteorder("<"))) for n, a in arrays]
+        s: [(n, a if isinstance(a, _Later) else np.ascontiguousarray(a, a.dtype.newbyteorder("<")))
+            for n, a in arrays]
         for s, arrays in sections.items()
     }
 
@@ -205,9 +224,13 @@ def _write_vtu(mesh: Mesh, path: Path, compress: bool = False) -> None:
             ncomp = f' NumberOfComponents="{a.shape[1]}"' if a.ndim == 2 and name != "connectivity" else ""
             tags.append(f'<DataArray type="{_VTK_TYPES[a.dtype.newbyteorder("=")]}" Name={quoteattr(name)}'
                         f'{ncomp} format="appended" offset="{offset}"/>\n')
-            # the array's own memory, no copy, or its compressed blocks
+            # the array's own memory, no copy (an array to come: when the writer gets there),
+            # or its compressed blocks
+            if compress and isinstance(a, _Later):
+                a = np.frombuffer(a.data(), a.dtype).reshape(a.shape)
             parts = (_zlib_blocks(a, offset) if compress
-                     else [np.uint64(a.nbytes).astype("<u8").tobytes(), a.reshape(-1).view(np.uint8).data])
+                     else [np.uint64(a.nbytes).astype("<u8").tobytes(),
+                           a if isinstance(a, _Later) else a.reshape(-1).view(np.uint8).data])
             blocks.extend(parts)
             offset += sum(len(p) if isinstance(p, bytes) else p.nbytes for p in parts)
         tags.append(f"</{section}>\n")
@@ -219,16 +242,13 @@ def _write_vtu(mesh: Mesh, path: Path, compress: bool = False) -> None:
     with open(path, "wb") as f:
         f.write(head)
         for part in blocks:
-            f.write(part)
+            f.write(part.data() if isinstance(part, _Later) else part)
         f.write(_TAIL)
 
 
-def check_mesh(mesh: Mesh, source: str, allow_inverted: bool = False, quality: bool = False) -> dict | None:
-    """Raise DicerError unless ``mesh`` is a sound linear hex/quad mesh.
-
-    Returns the elements' :data:`QUALITY_DATA` arrays with ``quality`` (computed in one
-    pass), else their scaled Jacobians when it computed them (not with ``allow_inverted``),
-    else None."""
+def check_mesh(mesh: Mesh, source: str, allow_inverted: bool = False) -> np.ndarray | None:
+    """Raise DicerError unless ``mesh`` is a sound linear hex/quad mesh; returns the
+    elements' scaled Jacobians when it computed them (not with ``allow_inverted``)."""
     if mesh.n_cells == 0:
         raise DicerError(f"{source}: mesh has no elements")
     if not np.all(np.isfinite(mesh.points)):
@@ -237,20 +257,20 @@ def check_mesh(mesh: Mesh, source: str, allow_inverted: bool = False, quality: b
         raise DicerError(f"{source}: element connectivity refers to nodes that do not exist")
     if mesh.material.shape != (mesh.n_cells,) or mesh.lattice.shape != (mesh.n_points, 3):
         raise DicerError(f"{source}: material or lattice data do not match the element and node counts")
-    if quality:
-        arrays = quality_arrays(mesh.points, mesh.cells)
-        sj = arrays["scaled_jacobian"]
-    elif not allow_inverted:
-        sj = arrays = scaled_jacobian(mesh.points, mesh.cells)
-    else:
+    if allow_inverted:
         return None
+    sj = scaled_jacobian(mesh.points, mesh.cells)
+    _refuse_inverted(sj, source)
+    return sj
+
+
+def _refuse_inverted(sj: np.ndarray, source: str) -> None:
     bad = np.flatnonzero(sj <= 0)
-    if bad.size and not allow_inverted:
+    if bad.size:
         raise DicerError(
             f"{source}: {bad.size} degenerate or inverted element(s), e.g. element {bad[0] + 1} "
             f"(scaled Jacobian {sj[bad[0]]:.3f})"
         )
-    return arrays
 
 
 def _bitwise_equal(a: np.ndarray, b: np.ndarray) -> bool:
@@ -288,25 +308,41 @@ def write_mesh(mesh: Mesh, path: str | os.PathLike, allow_inverted: bool = False
     path = Path(path)
     if path.suffix.lower() != ".vtu":
         raise DicerError(f"{path}: intermediate meshes are VTU files; name the output *.vtu")
-    # the metrics in one pass: the check of inverted elements and the file's quality data
-    mesh = with_quality(mesh, check_mesh(mesh, str(path), allow_inverted, quality=True))
-    with atomic_path(path) as tmp:
-        _write_vtu(mesh, tmp)
-        # the file must hold exactly the mesh that passed check_mesh above (so the
-        # element metrics need not be computed a second time)
-        # dicer's reader maps the file and compares its arrays in place: the read-back
-        # allocates no second copy of the mesh
-        readers = [_read_mapped_vtu] + ([_read_meshio] if mesh.n_cells <= MESHIO_CHECK_CELLS else [])
-        for reader in readers:
-            back = _assemble(str(path), *(reader(tmp, str(path)) or _unreadable(str(path))))
-            if not _same_mesh(mesh, back):
-                raise DicerError(f"{path}: read-back check failed: the file does not hold the mesh written; "
-                                 "check the disk and write again")
+    check_mesh(mesh, str(path), allow_inverted=True)
+    # the metrics (one pass: the check of inverted elements and the file's quality data, the
+    # last arrays of the file) are computed in a second thread while the first arrays are
+    # written; an inverted element still stops the write before the rename
+    with ThreadPoolExecutor(1) as pool:
+        metrics = pool.submit(quality_arrays, mesh.points, mesh.cells)
+
+        def quality(name: str) -> np.ndarray:
+            arrays = metrics.result()
+            if name == QUALITY_DATA[0] and not allow_inverted:  # the first of them the writer reaches
+                _refuse_inverted(arrays["scaled_jacobian"], str(path))
+            return arrays[name]
+
+        later = {k: _Later(lambda k=k: quality(k), np.float64, (mesh.n_cells,)) for k in QUALITY_DATA}
+        with atomic_path(path) as tmp:
+            _write_vtu(with_quality(mesh, later), tmp)
+            mesh = with_quality(mesh, metrics.result())
+            _check_written(mesh, tmp, path)
+
+
+def _check_written(mesh: Mesh, tmp: Path, path: Path) -> None:
+    """Read the file ``tmp`` back (to become ``path``) and compare it with ``mesh``, array
+    for array: dicer's reader maps the file and compares in place (no second copy of the
+    mesh); small meshes are also read with meshio."""
+    readers = [_read_mapped_vtu] + ([_read_meshio] if mesh.n_cells <= MESHIO_CHECK_CELLS else [])
+    for reader in readers:
+        back = _assemble(str(path), *(reader(tmp, str(path)) or _unreadable(str(path))))
+        if not _same_mesh(mesh, back):
+            raise DicerError(f"{path}: read-back check failed: the file does not hold the mesh written; "
+                             "check the disk and write again")
 
 
 def with_quality(mesh: Mesh, arrays: dict[str, np.ndarray] | None = None) -> Mesh:
     """``mesh`` (not copied) with the quality cell data of its nodes as they are, after
-    ``material``: ``arrays`` when given (from :func:`check_mesh`), else computed."""
+    ``material``: ``arrays`` when given, else computed."""
     cell_data = {k: v for k, v in mesh.cell_data.items() if k not in QUALITY_DATA}
     arrays = quality_arrays(mesh.points, mesh.cells) if arrays is None else arrays
     return replace(mesh, cell_data=arrays | cell_data)

@@ -91,24 +91,31 @@ def test_full_disk_through_the_command(small_disk, tmp_path):
     assert list(small_disk.iterdir()) == []
 
 
-def test_sigterm_keeps_no_partial_output(tmp_path):
-    labels = tmp_path / "labels.npy"
-    np.save(labels, np.ones((150, 150, 150), np.uint8))
-    out = tmp_path / "mesh.vtu"
-    proc = subprocess.Popen([sys.executable, "-m", "dicer", "mesh", str(labels), "-o", str(out)],
-                            stderr=subprocess.PIPE, text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
-    # signal while the mesh is being written: its temporary file exists from the start of
-    # the write to the rename after the read-back check
-    deadline = time.monotonic() + 120
-    while not list(tmp_path.glob(".mesh.vtu.*.tmp*")):
+def _terminate_while_writing(args: list[str], folder: Path, pattern: str, seconds: float) -> str:
+    """Start ``dicer ARGS``, send SIGTERM once a temporary file ``pattern`` shows in
+    ``folder``, check the one error line and exit status 143; returns its stderr."""
+    proc = subprocess.Popen([sys.executable, "-m", "dicer", *args], stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)})
+    deadline = time.monotonic() + seconds
+    while not list(folder.glob(pattern)):
         assert proc.poll() is None, "the command ended before it began writing"
         assert time.monotonic() < deadline
         time.sleep(0.005)
     proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=120)
+    _, err = proc.communicate(timeout=seconds)
     assert proc.returncode == 143, err
     assert [line for line in err.splitlines() if line.startswith("error:")] == [
         "error: terminated (SIGTERM, e.g. a cluster time limit); no output of the unfinished step was kept"]
+    return err
+
+
+def test_sigterm_keeps_no_partial_output(tmp_path):
+    labels = tmp_path / "labels.npy"
+    np.save(labels, np.ones((150, 150, 150), np.uint8))
+    out = tmp_path / "mesh.vtu"
+    # signal while the mesh is being written: its temporary file exists from the start of
+    # the write to the rename after the read-back check
+    _terminate_while_writing(["mesh", str(labels), "-o", str(out)], tmp_path, ".mesh.vtu.*.tmp*", 120)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy"]
 
 
@@ -275,21 +282,11 @@ def test_sigterm_while_the_report_is_made_beside_the_exports(tmp_path):
     image = tmp_path / "head.nii.gz"
     assert main(["phantom", "head", "-o", str(image), "-q"]) == 0
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "dicer", "run", str(image), "-o", str(out), "--set",
-                             "downsample.factor=2"], stderr=subprocess.PIPE, text=True, cwd=ROOT,
-                            env={**os.environ, "PYTHONPATH": str(ROOT)})
     staging = tmp_path / ".out.partial"
-    deadline = time.monotonic() + 300
-    while not list(staging.glob(".model.inp.*.tmp*")):  # the exports began, the report beside them
-        assert proc.poll() is None, "the run ended before it began its exports"
-        assert time.monotonic() < deadline
-        time.sleep(0.005)
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=300)
-    assert proc.returncode == 143, err
+    # once the exports began, the report beside them
+    err = _terminate_while_writing(["run", str(image), "-o", str(out), "--set", "downsample.factor=2"], staging,
+                                   ".model.inp.*.tmp*", 300)
     assert "dicer run: the quality report is made beside the exports" in err
-    assert [line for line in err.splitlines() if line.startswith("error:")] == [
-        "error: terminated (SIGTERM, e.g. a cluster time limit); no output of the unfinished step was kept"]
     assert not out.exists() and not staging.exists()
     failed = tmp_path / "out.failed"
     assert not list(failed.glob(".*tmp*")) and not (failed / "model.inp").exists()

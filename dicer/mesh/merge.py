@@ -35,9 +35,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from dicer.config import section_defaults, takes_settings
 from dicer.errors import DicerError
@@ -166,6 +163,8 @@ def thick_elements(mesh: Mesh, min_thickness: float) -> np.ndarray:
         for off in np.ndindex(*[max(int(v), 1) for v in size]):
             idx = tuple(lo[rows, d] + min(off[d], max(int(size[d]) - 1, 0)) for d in range(dim))
             labels[idx] = mesh.material[rows]
+    from scipy import ndimage  # here: a merge without min_thickness or regions need not load it
+
     radius = 0.5 * float(min_thickness)
     thick_vox = np.zeros(shape, dtype=bool)
     # each material inside its bounding box (one pass finds them all): the distance
@@ -247,12 +246,13 @@ def _merge_regions(faces: np.ndarray, box: np.ndarray, cand_idx: np.ndarray, cma
         whole = rows.size == box.size
         first = (faces[:, 0] if whole else faces[rows, 0]).astype(np.intp)
         last = (faces[:, far] if whole else faces[rows, far]).astype(np.intp)
-        # one lattice column at a time: 1-D gathers of int32, not rows of the (n, 3) int64 array
-        column = [np.ascontiguousarray(lattice[:, d], dtype=np.int32) for d in range(dim)]
-        plane = np.take(column[axis], first)
-        start = [np.take(column[d], first) for d in other]
-        size = [np.take(column[d], last) - x for d, x in zip(other, start)]
-        del first, last, column
+        # the faces' rows of the lattice only (far fewer than its nodes), then their columns as int32
+        low = np.take(lattice, first, axis=0)
+        high = np.take(lattice, last, axis=0)
+        plane = low[:, axis].astype(np.int32)
+        start = [low[:, d].astype(np.int32) for d in other]
+        size = [high[:, d].astype(np.int32) - x for d, x in zip(other, start)]
+        del first, last, low, high
         for x in start:
             x -= int(x.min())
         plane -= int(plane.min())
@@ -278,6 +278,8 @@ def _merge_regions(faces: np.ndarray, box: np.ndarray, cand_idx: np.ndarray, cma
                 flat[cell[sel] + shift if shift else cell[sel]] = True
         structure = np.zeros((3,) * dim, dtype=bool)
         structure[1] = True  # neighbours within a plane only, diagonals included
+        from scipy import ndimage
+
         labels, n_labels = ndimage.label(grid, structure)
         found = np.take(labels.reshape(-1), cell)
         found -= 1
@@ -288,6 +290,11 @@ def _merge_regions(faces: np.ndarray, box: np.ndarray, cand_idx: np.ndarray, cma
     f = vid[cmap[faces[~box]]]
     k = f.shape[1] - 1
     n_vertices = n_labels + rest.size
+    if f.shape[0] == 0:  # no edges: every vertex is its own component, numbered in order
+        return int(n_vertices), vid.astype(np.int32)
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     graph = coo_matrix((np.ones(f.shape[0] * k, dtype=np.int8), (np.repeat(f[:, 0], k), f[:, 1:].ravel())),
                        shape=(n_vertices, n_vertices))
     n_comp, comp = connected_components(graph, directed=True, connection="weak")
@@ -446,20 +453,24 @@ def _replace_face_nodes(face, hit, far, snapped, snap):
     return rows, nodes
 
 
-def _gather_corners(cells: np.ndarray, rows: np.ndarray, first: np.ndarray, second: np.ndarray
+def _gather_corners(cells: np.ndarray, select: np.ndarray, count: int, first: np.ndarray, second: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Columns ``first`` and ``second`` of ``cells`` (M, c) at ``rows`` (K,): two (K, len) arrays.
+    """Columns ``first`` and ``second`` of the rows of ``cells`` (M, c) flagged in ``select``
+    ((M,) bool, ``count`` of them): two (count, len) arrays, rows in order.
 
-    Gathered in pieces of rows: the rows are copied once into a small block that stays in
-    cache, and no (K, c) copy of them is made.
+    Selected in pieces of rows: each piece is compressed into a small block that stays in
+    cache (np.compress: several times faster than a gather of row numbers), and no
+    (count, c) copy of the rows is made.
     """
-    a = np.empty((rows.size, first.size), dtype=cells.dtype)
-    b = np.empty((rows.size, second.size), dtype=cells.dtype)
-    step = _rows_per_piece(cells)
-    for part in pieces(rows.size, step):
-        block = np.take(cells, rows[part], axis=0)  # np.take: about twice as fast as fancy indexing
-        np.take(block, first, axis=1, out=a[part], mode="clip")  # valid columns: no buffered copy
-        np.take(block, second, axis=1, out=b[part], mode="clip")
+    a = np.empty((count, first.size), dtype=cells.dtype)
+    b = np.empty((count, second.size), dtype=cells.dtype)
+    out = 0
+    for part in pieces(cells.shape[0], _rows_per_piece(cells)):
+        block = np.compress(select[part], cells[part], axis=0)
+        k = block.shape[0]
+        np.take(block, first, axis=1, out=a[out:out + k], mode="clip")  # valid columns: no buffered copy
+        np.take(block, second, axis=1, out=b[out:out + k], mode="clip")
+        out += k
     return a, b
 
 
@@ -792,28 +803,29 @@ def _find_merge_nodes(work: _Work, dim: int, axis: int, g: int, s: int) -> _Plan
     n = int(lattice.shape[0])
     bc, tc = (HEX_AXIS_CORNERS if dim == 3 else QUAD_AXIS_CORNERS)[axis]
     in_group = work.layer % g
-    lo = np.flatnonzero(in_group < s)
-    up = np.flatnonzero(in_group == s)
+    below, above = in_group < s, in_group == s
+    lo = np.flatnonzero(below)
+    up = np.flatnonzero(above)
     if lo.size == 0 or up.size == 0:
         return None
     # the two layers' corners, split into the faces on the plane and the far faces: only
     # the face columns change in this step, so these four are all it needs of the rows
-    l_top, l_bot = _gather_corners(cells, lo, tc, bc)
-    u_bot, u_top = _gather_corners(cells, up, bc, tc)
-    # Steps 5-6: nodes at the top of an axis edge (of a lower element) and the bottom of
-    # another (of an upper element) are the candidates for deletion.
-    is_top = np.zeros(n, dtype=bool)
-    _put(is_top, l_top, True)
-    is_bot = np.zeros(n, dtype=bool)
-    _put(is_bot, u_bot, True)
-    cand = is_top & is_bot
-    if not cand.any():
-        return None
-    # Step 8: the far ends of those edges replace them (one each way, checked consistent).
+    l_top, l_bot = _gather_corners(cells, below, lo.size, tc, bc)
+    u_bot, u_top = _gather_corners(cells, above, up.size, bc, tc)
+    del below, above
+    # Step 8: the far ends of the axis edges (one each way, checked consistent below).
     down = np.full(n, -1, dtype=cells.dtype)
     _put(down, l_top, l_bot)
     upn = np.full(n, -1, dtype=cells.dtype)
     _put(upn, u_bot, u_top)
+    # Steps 5-6: nodes at the top of an axis edge (of a lower element) and the bottom of
+    # another (of an upper element) are the candidates for deletion: the nodes with a far
+    # end each way.
+    is_top = down >= 0
+    is_bot = upn >= 0
+    cand = is_top & is_bot
+    if not cand.any():
+        return None
     inconsistent = np.zeros(n, dtype=bool)
     inconsistent[l_top[_take(down, l_top) != l_bot]] = True
     inconsistent[u_bot[_take(upn, u_bot) != u_top]] = True

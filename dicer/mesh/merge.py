@@ -453,25 +453,36 @@ def _replace_face_nodes(face, hit, far, snapped, snap):
     return rows, nodes
 
 
-def _gather_corners(cells: np.ndarray, select: np.ndarray, count: int, first: np.ndarray, second: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Columns ``first`` and ``second`` of the rows of ``cells`` (M, c) flagged in ``select``
-    ((M,) bool, ``count`` of them): two (count, len) arrays, rows in order.
+def _gather_corners(cells: np.ndarray, layers: list[tuple[np.ndarray, int, np.ndarray, np.ndarray]]
+                    ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per entry ``(select, count, first, second)`` of ``layers``: columns ``first`` and
+    ``second`` of the rows of ``cells`` (M, c) flagged in ``select`` ((M,) bool, ``count``
+    of them), as two (count, len) arrays, rows in order.
 
-    Selected in pieces of rows: each piece is compressed into a small block that stays in
-    cache (np.compress: several times faster than a gather of row numbers), and no
-    (count, c) copy of the rows is made.
+    One pass over ``cells`` in pieces of rows: each piece is read once and compressed into
+    small blocks that stay in cache (np.compress: several times faster than a gather of
+    row numbers), and no (count, c) copy of the rows is made.
     """
-    a = np.empty((count, first.size), dtype=cells.dtype)
-    b = np.empty((count, second.size), dtype=cells.dtype)
-    out = 0
+    outs = [(np.empty((count, first.size), dtype=cells.dtype), np.empty((count, second.size), dtype=cells.dtype))
+            for _, count, first, second in layers]
+    at = [0] * len(layers)
     for part in pieces(cells.shape[0], _rows_per_piece(cells)):
-        block = np.compress(select[part], cells[part], axis=0)
-        k = block.shape[0]
-        np.take(block, first, axis=1, out=a[out:out + k], mode="clip")  # valid columns: no buffered copy
-        np.take(block, second, axis=1, out=b[out:out + k], mode="clip")
-        out += k
-    return a, b
+        rows = cells[part]
+        for i, ((select, _, first, second), (a, b)) in enumerate(zip(layers, outs)):
+            block = np.compress(select[part], rows, axis=0)
+            k = block.shape[0]
+            np.take(block, first, axis=1, out=a[at[i]:at[i] + k], mode="clip")  # valid columns: no buffered copy
+            np.take(block, second, axis=1, out=b[at[i]:at[i] + k], mode="clip")
+            at[i] += k
+    return outs
+
+
+def _far_ends_disagree(far: np.ndarray, face: np.ndarray, other: np.ndarray, out: np.ndarray) -> None:
+    """Flag in ``out`` ((N,) bool) the nodes of ``face`` (K, c) whose entry in ``far`` is not
+    the node at the same place in ``other`` (K, c), in pieces of rows that stay in cache."""
+    for part in pieces(face.shape[0], _rows_per_piece(face)):
+        f = face[part]
+        out[f[far[f] != other[part]]] = True
 
 
 def _compact(cells: np.ndarray, keep: np.ndarray, new_id: np.ndarray) -> np.ndarray:
@@ -810,8 +821,7 @@ def _find_merge_nodes(work: _Work, dim: int, axis: int, g: int, s: int) -> _Plan
         return None
     # the two layers' corners, split into the faces on the plane and the far faces: only
     # the face columns change in this step, so these four are all it needs of the rows
-    l_top, l_bot = _gather_corners(cells, below, lo.size, tc, bc)
-    u_bot, u_top = _gather_corners(cells, above, up.size, bc, tc)
+    (l_top, l_bot), (u_bot, u_top) = _gather_corners(cells, [(below, lo.size, tc, bc), (above, up.size, bc, tc)])
     del below, above
     # Step 8: the far ends of the axis edges (one each way, checked consistent below).
     down = np.full(n, -1, dtype=cells.dtype)
@@ -827,8 +837,8 @@ def _find_merge_nodes(work: _Work, dim: int, axis: int, g: int, s: int) -> _Plan
     if not cand.any():
         return None
     inconsistent = np.zeros(n, dtype=bool)
-    inconsistent[l_top[_take(down, l_top) != l_bot]] = True
-    inconsistent[u_bot[_take(upn, u_bot) != u_top]] = True
+    _far_ends_disagree(down, l_top, l_bot, inconsistent)
+    _far_ends_disagree(upn, u_bot, u_top, inconsistent)
     # Replacements that are not straight along the axis (edges of earlier chamfers).
     other = [d for d in range(3) if d != axis]
     near = np.zeros(n, dtype=bool)  # only edges of irregular elements can be bent
@@ -1190,11 +1200,7 @@ def _apply_step(work: _Work, keep: np.ndarray, delete: np.ndarray, shift: np.nda
     step_mm : float
         Voxel size along ``axis``, mm.
     """
-    if shift.any():
-        work.lattice = work.lattice.copy()
-        work.lattice[:, axis] += shift
-        work.points = work.points.copy()
-        work.points[:, axis] += shift * step_mm
+    moved = bool(shift.any())
     if delete.any():
         kept_nodes = ~delete
         new_id = np.cumsum(kept_nodes, dtype=work.cells.dtype)
@@ -1202,10 +1208,19 @@ def _apply_step(work: _Work, keep: np.ndarray, delete: np.ndarray, shift: np.nda
         work.cells = _compact(work.cells, keep, new_id)
         work.material, work.thick, work.layer, work.irregular, work.size = (
             np.compress(keep, a, axis=0) for a in (work.material, work.thick, work.layer, work.irregular, work.size))
+        # the kept nodes are copied once and moved in the copy (not copied whole, moved, then copied again)
         work.lattice = np.compress(kept_nodes, work.lattice, axis=0)
         work.points = np.compress(kept_nodes, work.points, axis=0)
         work.point_data = {k: np.compress(kept_nodes, v, axis=0) for k, v in work.point_data.items()}
         work.cell_data = {k: np.compress(keep, v, axis=0) for k, v in work.cell_data.items()}
+        if moved:
+            shift = np.compress(kept_nodes, shift)
+    elif moved:
+        work.lattice = work.lattice.copy()
+        work.points = work.points.copy()
+    if moved:
+        work.lattice[:, axis] += shift
+        work.points[:, axis] += shift * step_mm
 
 
 def _volume_report(before: dict[int, float], after: dict[int, float]) -> dict[str, dict]:

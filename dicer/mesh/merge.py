@@ -191,25 +191,35 @@ def _match_faces(a: np.ndarray, b: np.ndarray, n: int) -> tuple[np.ndarray, np.n
     """
     if a.shape[0] == 0 or b.shape[0] == 0:
         return np.empty(0, np.int64), np.empty(0, np.int64)
-    a0, b0 = a[:, 0].astype(np.intp), b[:, 0].astype(np.intp)
+    b0 = b[:, 0]
     owner = np.full(n, -1, dtype=np.int32 if b.shape[0] < 2**31 - 1 else np.int64)
     rows_b = np.arange(b.shape[0], dtype=owner.dtype)
-    owner[b0] = rows_b
+    _put(owner, b0, rows_b)
     # a first node held by several rows of b: its owner is the last of them, not the others
     shared = np.zeros(n, dtype=bool)
-    shared[b0[np.take(owner, b0) != rows_b]] = True
+    for part in pieces(b.shape[0]):
+        f = b0[part]
+        shared[f[owner[f] != rows_b[part]]] = True
     del rows_b
-    j = np.take(owner, a0)
-    on_shared = np.take(shared, a0)
-    i = np.flatnonzero((j >= 0) & ~on_shared)
-    j = j[i].astype(np.intp)
-    same = np.empty(i.size, dtype=bool)
-    for part in pieces(i.size):  # the gathered rows stay in cache
-        same[part] = _all(np.take(a, i[part], axis=0) == np.take(b, j[part], axis=0))
-    i, j = i[same], j[same]
-    hard_a = np.flatnonzero(on_shared)
+    # the rows of a, in pieces that stay in cache: its first node's owner, checked whole
+    found_i, found_j, hard = [], [], []
+    for part in pieces(a.shape[0]):
+        f = a[part, 0]
+        j = owner[f]
+        on_shared = shared[f]
+        ok = j >= 0
+        ok &= ~on_shared
+        i = np.flatnonzero(ok)
+        j = j[i].astype(np.intp)
+        i += part.start
+        same = _all(np.take(a, i, axis=0) == np.take(b, j, axis=0))
+        found_i.append(i[same])
+        found_j.append(j[same])
+        hard.append(np.flatnonzero(on_shared) + part.start)
+    i, j = np.concatenate(found_i), np.concatenate(found_j)
+    hard_a = np.concatenate(hard)
     if hard_a.size:
-        hard_b = np.flatnonzero(np.take(shared, b0))
+        hard_b = np.flatnonzero(_take(shared, b0))
         fa, fb = a[hard_a], b[hard_b]
         both = np.concatenate([fa, fb])
         src = np.r_[np.zeros(len(fa), np.int8), np.ones(len(fb), np.int8)]
@@ -244,15 +254,20 @@ def _merge_regions(faces: np.ndarray, box: np.ndarray, cand_idx: np.ndarray, cma
     on_box = np.full(lattice.shape[0], -1, dtype=np.int32)  # node -> its rectangles' component
     if rows.size:
         whole = rows.size == box.size
-        first = (faces[:, 0] if whole else faces[rows, 0]).astype(np.intp)
-        last = (faces[:, far] if whole else faces[rows, far]).astype(np.intp)
-        # the faces' rows of the lattice only (far fewer than its nodes), then their columns as int32
-        low = np.take(lattice, first, axis=0)
-        high = np.take(lattice, last, axis=0)
-        plane = low[:, axis].astype(np.int32)
-        start = [low[:, d].astype(np.int32) for d in other]
-        size = [high[:, d].astype(np.int32) - x for d, x in zip(other, start)]
-        del first, last, low, high
+        # the lattice rows of the faces' first and far corners only (far fewer than the
+        # nodes), gathered in pieces that stay in cache, kept as int32 columns
+        plane = np.empty(rows.size, dtype=np.int32)
+        start = [np.empty(rows.size, dtype=np.int32) for _ in other]
+        size = [np.empty(rows.size, dtype=np.int32) for _ in other]
+        for part in pieces(rows.size):
+            sel = faces[part] if whole else np.take(faces, rows[part], axis=0)
+            low = np.take(lattice, sel[:, 0], axis=0)
+            high = np.take(lattice, sel[:, far], axis=0)
+            plane[part] = low[:, axis]
+            for x, w, d in zip(start, size, other):
+                x[part] = low[:, d]
+                np.subtract(high[:, d], low[:, d], out=w[part], casting="unsafe")
+        del sel, low, high
         for x in start:
             x -= int(x.min())
         plane -= int(plane.min())
@@ -554,7 +569,7 @@ class _Work:
         Elements that are not lattice boxes (chamfers of earlier steps).
     size : (M,) int64 ndarray
         Volume of every lattice box in lattice units (0 for other elements).
-    layer : (M,) int64 ndarray or None
+    layer : (M,) int32 ndarray or None
         Element layer along the axis being merged, counted from 0.
     lattice : (N, 3) int64 ndarray
         Lattice index of every node.
@@ -586,7 +601,7 @@ class _Plane:
     ----------
     axis, s, n : int
         Merge axis (0, 1, 2), the layer merged within its group, number of nodes N.
-    in_group : (M,) int64 ndarray
+    in_group : (M,) int32 ndarray
         Layer of every element within its group.
     lo, up : (L,), (U,) int64 ndarray
         Rows of the elements below and above the merge planes, ascending.
@@ -615,7 +630,7 @@ class _Plane:
         The shared face of every stacked pair.
     cand_idx : (C,) int64 ndarray
         The candidate nodes, ascending.
-    cmap : (N,) int64 ndarray
+    cmap : (N,) int32 ndarray (int64 from 2**31 - 1 nodes on)
         Candidate number of every node, -1 for others.
     comp : (C,) int64 ndarray
         Merge region of every candidate.
@@ -723,7 +738,12 @@ def _merge_axis(work: _Work, settings: _Settings, axis: int, g: int, step_mm: fl
         The report of every step: element and node counts before and after, the step's
         figures and its time in seconds.
     """
-    layer = _take(np.ascontiguousarray(work.lattice[:, axis]), work.cells[:, 0]).astype(np.int64)
+    column = work.lattice[:, axis]
+    low = int(column.min())
+    # the layer fits int32 (a lattice index span): half the memory of int64, the same values
+    layer = np.empty(work.cells.shape[0], dtype=np.int32)
+    for part in pieces(layer.size):
+        np.subtract(column[work.cells[part, 0]], low, out=layer[part], casting="unsafe")
     work.layer = layer - layer.min()
     steps = []
     for s in range(1, g):
@@ -863,8 +883,8 @@ def _find_merge_pairs(plane: _Plane, work: _Work, settings: _Settings) -> None:
     li, ui = _match_faces(plane.l_top, plane.u_bot, plane.n)
     faces = np.take(plane.l_top, li, axis=0)
     cand_idx = np.flatnonzero(plane.cand)
-    cmap = np.full(plane.n, -1, dtype=np.int64)
-    cmap[cand_idx] = np.arange(cand_idx.size)
+    cmap = np.full(plane.n, -1, dtype=np.int32 if plane.n < 2**31 - 1 else np.int64)  # half the memory
+    cmap[cand_idx] = np.arange(cand_idx.size, dtype=cmap.dtype)
     if settings.granularity == "plane":
         lattice_a = work.lattice[:, plane.axis]
         planes = _unique(lattice_a[cand_idx])

@@ -445,11 +445,13 @@ def _degrees(sub: np.ndarray, nodes_mask: np.ndarray, edges: np.ndarray):
     k = np.int64(ids.size)
     inside = nodes_mask[ids]
     count = np.bincount(local[inside[local]], minlength=ids.size)
+    # the distinct edges, each once (lower end first): half the keys to sort of listing
+    # both directions; a node's degree is the number of them it ends
     e = local[:, edges].reshape(-1, 2)
-    e = np.concatenate([e, e[:, ::-1]])
-    e = e[inside[e[:, 0]]]
-    key = _unique(e[:, 0].astype(np.int64) * k + e[:, 1])
-    degree = np.bincount(key // k, minlength=ids.size)
+    key = _unique(np.minimum(e[:, 0], e[:, 1]).astype(np.int64) * k + np.maximum(e[:, 0], e[:, 1]))
+    a, b = key // k, key % k
+    degree = np.bincount(a, minlength=ids.size) + np.bincount(b[b != a], minlength=ids.size)
+    degree[~inside] = 0  # counted for the nodes of nodes_mask only
     return local, degree, count
 
 

@@ -623,3 +623,43 @@ def test_stacked_pairs_touching_at_one_corner_share_a_region():
     with regions_checked_against_the_face_graph() as irregular_faces:
         _, report = merge_planes(voxel_mesh(labels), passes=(0, 0, 1))
     assert irregular_faces == [0] and report["steps"][0]["regions"] == 1
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 40), st.integers(2, 30), st.booleans(), st.data())
+def test_degrees_and_corner_gathers_equal_their_plain_forms(rows, n, hexa, data):
+    """_degrees counts each node's distinct neighbours (repeated corners, i.e. self-loops,
+    included) as sorting both directions of every edge does; _gather_corners and
+    _match_faces equal plain row gathers and a brute-force face comparison."""
+    from dicer.mesh import merge
+
+    c = 8 if hexa else 4
+    edges = HEX_EDGES if hexa else QUAD_EDGES
+    sub = data.draw(arrays(np.int32, (rows, c), elements=st.integers(0, n - 1)))
+    mask = data.draw(arrays(bool, n))
+    local, degree, count = merge._degrees(sub, mask, edges)
+    ids = np.unique(sub)
+    k = np.int64(ids.size)
+    e = local[:, edges].reshape(-1, 2)
+    e = np.concatenate([e, e[:, ::-1]])
+    e = e[mask[ids][e[:, 0]]]
+    key = np.unique(e[:, 0].astype(np.int64) * k + e[:, 1])
+    assert np.array_equal(local, np.searchsorted(ids, sub))
+    assert np.array_equal(degree, np.bincount(key // k, minlength=ids.size))
+    inside = mask[ids]
+    assert np.array_equal(count, np.bincount(local[inside[local]], minlength=ids.size))
+
+    select = data.draw(arrays(bool, rows))
+    first, second = np.array([0, 2]), np.array([3, 1])
+    [(a, b)] = merge._gather_corners(sub, [(select, int(select.sum()), first, second)])
+    assert np.array_equal(a, sub[select][:, first]) and np.array_equal(b, sub[select][:, second])
+
+    # faces of a conforming mesh: each at most once per side
+    fa = np.unique(data.draw(arrays(np.int32, (rows, 2), elements=st.integers(0, 3))), axis=0)
+    fb = np.unique(data.draw(arrays(np.int32, (rows, 2), elements=st.integers(0, 3))), axis=0)
+    fb = fb[data.draw(st.permutations(range(len(fb))))]
+    i, j = merge._match_faces(fa, fb, 4)
+    assert np.array_equal(fa[i], fb[j])
+    # every row of fa whose face occurs in fb is matched once, to the row holding that face
+    expected = [r for r in range(len(fa)) if (fb == fa[r]).all(axis=1).any()]
+    assert sorted(i.tolist()) == expected

@@ -35,9 +35,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from dicer.config import section_defaults, takes_settings
 from dicer.errors import DicerError
@@ -89,7 +86,7 @@ def _take(table: np.ndarray, index: np.ndarray) -> np.ndarray:
     out = np.empty(index.shape, dtype=table.dtype)
     step = _rows_per_piece(index)
     for part in pieces(index.shape[0], step):
-        out[part] = table[index[part]]
+        out[part] = np.take(table, index[part])  # np.take: about twice as fast as fancy indexing
     return out
 
 
@@ -112,7 +109,7 @@ def _any_at(mask: np.ndarray, index: np.ndarray) -> np.ndarray:
     out = np.empty(index.shape[0], dtype=bool)
     step = _rows_per_piece(index)
     for part in pieces(index.shape[0], step):
-        out[part] = _any(mask[index[part]])
+        out[part] = _any(np.take(mask, index[part]))  # np.take: about twice as fast as fancy indexing
     return out
 
 
@@ -166,6 +163,8 @@ def thick_elements(mesh: Mesh, min_thickness: float) -> np.ndarray:
         for off in np.ndindex(*[max(int(v), 1) for v in size]):
             idx = tuple(lo[rows, d] + min(off[d], max(int(size[d]) - 1, 0)) for d in range(dim))
             labels[idx] = mesh.material[rows]
+    from scipy import ndimage  # here: a merge without min_thickness or regions need not load it
+
     radius = 0.5 * float(min_thickness)
     thick_vox = np.zeros(shape, dtype=bool)
     # each material inside its bounding box (one pass finds them all): the distance
@@ -192,25 +191,35 @@ def _match_faces(a: np.ndarray, b: np.ndarray, n: int) -> tuple[np.ndarray, np.n
     """
     if a.shape[0] == 0 or b.shape[0] == 0:
         return np.empty(0, np.int64), np.empty(0, np.int64)
-    a0, b0 = a[:, 0].astype(np.intp), b[:, 0].astype(np.intp)
+    b0 = b[:, 0]
     owner = np.full(n, -1, dtype=np.int32 if b.shape[0] < 2**31 - 1 else np.int64)
     rows_b = np.arange(b.shape[0], dtype=owner.dtype)
-    owner[b0] = rows_b
+    _put(owner, b0, rows_b)
     # a first node held by several rows of b: its owner is the last of them, not the others
     shared = np.zeros(n, dtype=bool)
-    shared[b0[np.take(owner, b0) != rows_b]] = True
+    for part in pieces(b.shape[0]):
+        f = b0[part]
+        shared[f[np.take(owner, f) != rows_b[part]]] = True
     del rows_b
-    j = np.take(owner, a0)
-    on_shared = np.take(shared, a0)
-    i = np.flatnonzero((j >= 0) & ~on_shared)
-    j = j[i].astype(np.intp)
-    same = np.empty(i.size, dtype=bool)
-    for part in pieces(i.size):  # the gathered rows stay in cache
-        same[part] = _all(np.take(a, i[part], axis=0) == np.take(b, j[part], axis=0))
-    i, j = i[same], j[same]
-    hard_a = np.flatnonzero(on_shared)
+    # the rows of a, in pieces that stay in cache: its first node's owner, checked whole
+    found_i, found_j, hard = [], [], []
+    for part in pieces(a.shape[0]):
+        f = a[part, 0]
+        j = np.take(owner, f)
+        on_shared = np.take(shared, f)
+        ok = j >= 0
+        ok &= ~on_shared
+        i = np.flatnonzero(ok)
+        j = j[i].astype(np.intp)
+        i += part.start
+        same = _all(np.take(a, i, axis=0) == np.take(b, j, axis=0))
+        found_i.append(i[same])
+        found_j.append(j[same])
+        hard.append(np.flatnonzero(on_shared) + part.start)
+    i, j = np.concatenate(found_i), np.concatenate(found_j)
+    hard_a = np.concatenate(hard)
     if hard_a.size:
-        hard_b = np.flatnonzero(np.take(shared, b0))
+        hard_b = np.flatnonzero(_take(shared, b0))
         fa, fb = a[hard_a], b[hard_b]
         both = np.concatenate([fa, fb])
         src = np.r_[np.zeros(len(fa), np.int8), np.ones(len(fb), np.int8)]
@@ -245,14 +254,20 @@ def _merge_regions(faces: np.ndarray, box: np.ndarray, cand_idx: np.ndarray, cma
     on_box = np.full(lattice.shape[0], -1, dtype=np.int32)  # node -> its rectangles' component
     if rows.size:
         whole = rows.size == box.size
-        first = (faces[:, 0] if whole else faces[rows, 0]).astype(np.intp)
-        last = (faces[:, far] if whole else faces[rows, far]).astype(np.intp)
-        # one lattice column at a time: 1-D gathers of int32, not rows of the (n, 3) int64 array
-        column = [np.ascontiguousarray(lattice[:, d], dtype=np.int32) for d in range(dim)]
-        plane = np.take(column[axis], first)
-        start = [np.take(column[d], first) for d in other]
-        size = [np.take(column[d], last) - x for d, x in zip(other, start)]
-        del first, last, column
+        # the lattice rows of the faces' first and far corners only (far fewer than the
+        # nodes), gathered in pieces that stay in cache, kept as int32 columns
+        plane = np.empty(rows.size, dtype=np.int32)
+        start = [np.empty(rows.size, dtype=np.int32) for _ in other]
+        size = [np.empty(rows.size, dtype=np.int32) for _ in other]
+        for part in pieces(rows.size):
+            sel = faces[part] if whole else np.take(faces, rows[part], axis=0)
+            low = np.take(lattice, sel[:, 0], axis=0)
+            high = np.take(lattice, sel[:, far], axis=0)
+            plane[part] = low[:, axis]
+            for x, w, d in zip(start, size, other):
+                x[part] = low[:, d]
+                np.subtract(high[:, d], low[:, d], out=w[part], casting="unsafe")
+        del sel, low, high
         for x in start:
             x -= int(x.min())
         plane -= int(plane.min())
@@ -278,6 +293,8 @@ def _merge_regions(faces: np.ndarray, box: np.ndarray, cand_idx: np.ndarray, cma
                 flat[cell[sel] + shift if shift else cell[sel]] = True
         structure = np.zeros((3,) * dim, dtype=bool)
         structure[1] = True  # neighbours within a plane only, diagonals included
+        from scipy import ndimage
+
         labels, n_labels = ndimage.label(grid, structure)
         found = np.take(labels.reshape(-1), cell)
         found -= 1
@@ -288,6 +305,11 @@ def _merge_regions(faces: np.ndarray, box: np.ndarray, cand_idx: np.ndarray, cma
     f = vid[cmap[faces[~box]]]
     k = f.shape[1] - 1
     n_vertices = n_labels + rest.size
+    if f.shape[0] == 0:  # no edges: every vertex is its own component, numbered in order
+        return int(n_vertices), vid.astype(np.int32)
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     graph = coo_matrix((np.ones(f.shape[0] * k, dtype=np.int8), (np.repeat(f[:, 0], k), f[:, 1:].ravel())),
                        shape=(n_vertices, n_vertices))
     n_comp, comp = connected_components(graph, directed=True, connection="weak")
@@ -363,7 +385,7 @@ def _plane_edges(face: np.ndarray, near: np.ndarray, pairs: np.ndarray
     (int64) and its ends ((., 2) int64, ascending).
     """
     n64 = np.int64(near.shape[0])
-    rows = np.flatnonzero(_any(near[face]))
+    rows = np.flatnonzero(_any_at(near, face))
     e = face[rows][:, pairs]  # (K, E, 2)
     ok = _all(near[e].reshape(-1, 2)).reshape(e.shape[:2])
     row = np.broadcast_to(rows[:, None], ok.shape)[ok]
@@ -423,11 +445,13 @@ def _degrees(sub: np.ndarray, nodes_mask: np.ndarray, edges: np.ndarray):
     k = np.int64(ids.size)
     inside = nodes_mask[ids]
     count = np.bincount(local[inside[local]], minlength=ids.size)
+    # the distinct edges, each once (lower end first): half the keys to sort of listing
+    # both directions; a node's degree is the number of them it ends
     e = local[:, edges].reshape(-1, 2)
-    e = np.concatenate([e, e[:, ::-1]])
-    e = e[inside[e[:, 0]]]
-    key = _unique(e[:, 0].astype(np.int64) * k + e[:, 1])
-    degree = np.bincount(key // k, minlength=ids.size)
+    key = _unique(np.minimum(e[:, 0], e[:, 1]).astype(np.int64) * k + np.maximum(e[:, 0], e[:, 1]))
+    a, b = key // k, key % k
+    degree = np.bincount(a, minlength=ids.size) + np.bincount(b[b != a], minlength=ids.size)
+    degree[~inside] = 0  # counted for the nodes of nodes_mask only
     return local, degree, count
 
 
@@ -446,21 +470,36 @@ def _replace_face_nodes(face, hit, far, snapped, snap):
     return rows, nodes
 
 
-def _gather_corners(cells: np.ndarray, rows: np.ndarray, first: np.ndarray, second: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Columns ``first`` and ``second`` of ``cells`` (M, c) at ``rows`` (K,): two (K, len) arrays.
+def _gather_corners(cells: np.ndarray, layers: list[tuple[np.ndarray, int, np.ndarray, np.ndarray]]
+                    ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per entry ``(select, count, first, second)`` of ``layers``: columns ``first`` and
+    ``second`` of the rows of ``cells`` (M, c) flagged in ``select`` ((M,) bool, ``count``
+    of them), as two (count, len) arrays, rows in order.
 
-    Gathered in pieces of rows: the rows are copied once into a small block that stays in
-    cache, and no (K, c) copy of them is made.
+    One pass over ``cells`` in pieces of rows: each piece is read once and compressed into
+    small blocks that stay in cache (np.compress: several times faster than a gather of
+    row numbers), and no (count, c) copy of the rows is made.
     """
-    a = np.empty((rows.size, first.size), dtype=cells.dtype)
-    b = np.empty((rows.size, second.size), dtype=cells.dtype)
-    step = _rows_per_piece(cells)
-    for part in pieces(rows.size, step):
-        block = np.take(cells, rows[part], axis=0)  # np.take: about twice as fast as fancy indexing
-        np.take(block, first, axis=1, out=a[part], mode="clip")  # valid columns: no buffered copy
-        np.take(block, second, axis=1, out=b[part], mode="clip")
-    return a, b
+    outs = [(np.empty((count, first.size), dtype=cells.dtype), np.empty((count, second.size), dtype=cells.dtype))
+            for _, count, first, second in layers]
+    at = [0] * len(layers)
+    for part in pieces(cells.shape[0], _rows_per_piece(cells)):
+        rows = cells[part]
+        for i, ((select, _, first, second), (a, b)) in enumerate(zip(layers, outs)):
+            block = np.compress(select[part], rows, axis=0)
+            k = block.shape[0]
+            np.take(block, first, axis=1, out=a[at[i]:at[i] + k], mode="clip")  # valid columns: no buffered copy
+            np.take(block, second, axis=1, out=b[at[i]:at[i] + k], mode="clip")
+            at[i] += k
+    return outs
+
+
+def _far_ends_disagree(far: np.ndarray, face: np.ndarray, other: np.ndarray, out: np.ndarray) -> None:
+    """Flag in ``out`` ((N,) bool) the nodes of ``face`` (K, c) whose entry in ``far`` is not
+    the node at the same place in ``other`` (K, c), in pieces of rows that stay in cache."""
+    for part in pieces(face.shape[0], _rows_per_piece(face)):
+        f = face[part]
+        out[f[far[f] != other[part]]] = True
 
 
 def _compact(cells: np.ndarray, keep: np.ndarray, new_id: np.ndarray) -> np.ndarray:
@@ -473,7 +512,7 @@ def _compact(cells: np.ndarray, keep: np.ndarray, new_id: np.ndarray) -> np.ndar
     step = _rows_per_piece(cells)
     for part in pieces(cells.shape[0], step):
         # np.compress: a boolean selection several times faster than a[mask]
-        piece = new_id[np.compress(keep[part], cells[part], axis=0)]
+        piece = np.take(new_id, np.compress(keep[part], cells[part], axis=0))  # np.take: faster than new_id[...]
         cells[out:out + piece.shape[0]] = piece
         out += piece.shape[0]
     return cells[:out]
@@ -532,7 +571,7 @@ class _Work:
         Elements that are not lattice boxes (chamfers of earlier steps).
     size : (M,) int64 ndarray
         Volume of every lattice box in lattice units (0 for other elements).
-    layer : (M,) int64 ndarray or None
+    layer : (M,) int32 ndarray or None
         Element layer along the axis being merged, counted from 0.
     lattice : (N, 3) int64 ndarray
         Lattice index of every node.
@@ -564,7 +603,7 @@ class _Plane:
     ----------
     axis, s, n : int
         Merge axis (0, 1, 2), the layer merged within its group, number of nodes N.
-    in_group : (M,) int64 ndarray
+    in_group : (M,) int32 ndarray
         Layer of every element within its group.
     lo, up : (L,), (U,) int64 ndarray
         Rows of the elements below and above the merge planes, ascending.
@@ -593,7 +632,7 @@ class _Plane:
         The shared face of every stacked pair.
     cand_idx : (C,) int64 ndarray
         The candidate nodes, ascending.
-    cmap : (N,) int64 ndarray
+    cmap : (N,) int32 ndarray (int64 from 2**31 - 1 nodes on)
         Candidate number of every node, -1 for others.
     comp : (C,) int64 ndarray
         Merge region of every candidate.
@@ -701,7 +740,12 @@ def _merge_axis(work: _Work, settings: _Settings, axis: int, g: int, step_mm: fl
         The report of every step: element and node counts before and after, the step's
         figures and its time in seconds.
     """
-    layer = _take(np.ascontiguousarray(work.lattice[:, axis]), work.cells[:, 0]).astype(np.int64)
+    column = work.lattice[:, axis]
+    low = int(column.min())
+    # the layer fits int32 (a lattice index span): half the memory of int64, the same values
+    layer = np.empty(work.cells.shape[0], dtype=np.int32)
+    for part in pieces(layer.size):
+        np.subtract(column[work.cells[part, 0]], low, out=layer[part], casting="unsafe")
     work.layer = layer - layer.min()
     steps = []
     for s in range(1, g):
@@ -792,31 +836,31 @@ def _find_merge_nodes(work: _Work, dim: int, axis: int, g: int, s: int) -> _Plan
     n = int(lattice.shape[0])
     bc, tc = (HEX_AXIS_CORNERS if dim == 3 else QUAD_AXIS_CORNERS)[axis]
     in_group = work.layer % g
-    lo = np.flatnonzero(in_group < s)
-    up = np.flatnonzero(in_group == s)
+    below, above = in_group < s, in_group == s
+    lo = np.flatnonzero(below)
+    up = np.flatnonzero(above)
     if lo.size == 0 or up.size == 0:
         return None
     # the two layers' corners, split into the faces on the plane and the far faces: only
     # the face columns change in this step, so these four are all it needs of the rows
-    l_top, l_bot = _gather_corners(cells, lo, tc, bc)
-    u_bot, u_top = _gather_corners(cells, up, bc, tc)
-    # Steps 5-6: nodes at the top of an axis edge (of a lower element) and the bottom of
-    # another (of an upper element) are the candidates for deletion.
-    is_top = np.zeros(n, dtype=bool)
-    _put(is_top, l_top, True)
-    is_bot = np.zeros(n, dtype=bool)
-    _put(is_bot, u_bot, True)
-    cand = is_top & is_bot
-    if not cand.any():
-        return None
-    # Step 8: the far ends of those edges replace them (one each way, checked consistent).
+    (l_top, l_bot), (u_bot, u_top) = _gather_corners(cells, [(below, lo.size, tc, bc), (above, up.size, bc, tc)])
+    del below, above
+    # Step 8: the far ends of the axis edges (one each way, checked consistent below).
     down = np.full(n, -1, dtype=cells.dtype)
     _put(down, l_top, l_bot)
     upn = np.full(n, -1, dtype=cells.dtype)
     _put(upn, u_bot, u_top)
+    # Steps 5-6: nodes at the top of an axis edge (of a lower element) and the bottom of
+    # another (of an upper element) are the candidates for deletion: the nodes with a far
+    # end each way.
+    is_top = down >= 0
+    is_bot = upn >= 0
+    cand = is_top & is_bot
+    if not cand.any():
+        return None
     inconsistent = np.zeros(n, dtype=bool)
-    inconsistent[l_top[_take(down, l_top) != l_bot]] = True
-    inconsistent[u_bot[_take(upn, u_bot) != u_top]] = True
+    _far_ends_disagree(down, l_top, l_bot, inconsistent)
+    _far_ends_disagree(upn, u_bot, u_top, inconsistent)
     # Replacements that are not straight along the axis (edges of earlier chamfers).
     other = [d for d in range(3) if d != axis]
     near = np.zeros(n, dtype=bool)  # only edges of irregular elements can be bent
@@ -841,8 +885,8 @@ def _find_merge_pairs(plane: _Plane, work: _Work, settings: _Settings) -> None:
     li, ui = _match_faces(plane.l_top, plane.u_bot, plane.n)
     faces = np.take(plane.l_top, li, axis=0)
     cand_idx = np.flatnonzero(plane.cand)
-    cmap = np.full(plane.n, -1, dtype=np.int64)
-    cmap[cand_idx] = np.arange(cand_idx.size)
+    cmap = np.full(plane.n, -1, dtype=np.int32 if plane.n < 2**31 - 1 else np.int64)  # half the memory
+    cmap[cand_idx] = np.arange(cand_idx.size, dtype=cmap.dtype)
     if settings.granularity == "plane":
         lattice_a = work.lattice[:, plane.axis]
         planes = _unique(lattice_a[cand_idx])
@@ -1178,11 +1222,7 @@ def _apply_step(work: _Work, keep: np.ndarray, delete: np.ndarray, shift: np.nda
     step_mm : float
         Voxel size along ``axis``, mm.
     """
-    if shift.any():
-        work.lattice = work.lattice.copy()
-        work.lattice[:, axis] += shift
-        work.points = work.points.copy()
-        work.points[:, axis] += shift * step_mm
+    moved = bool(shift.any())
     if delete.any():
         kept_nodes = ~delete
         new_id = np.cumsum(kept_nodes, dtype=work.cells.dtype)
@@ -1190,10 +1230,19 @@ def _apply_step(work: _Work, keep: np.ndarray, delete: np.ndarray, shift: np.nda
         work.cells = _compact(work.cells, keep, new_id)
         work.material, work.thick, work.layer, work.irregular, work.size = (
             np.compress(keep, a, axis=0) for a in (work.material, work.thick, work.layer, work.irregular, work.size))
+        # the kept nodes are copied once and moved in the copy (not copied whole, moved, then copied again)
         work.lattice = np.compress(kept_nodes, work.lattice, axis=0)
         work.points = np.compress(kept_nodes, work.points, axis=0)
         work.point_data = {k: np.compress(kept_nodes, v, axis=0) for k, v in work.point_data.items()}
         work.cell_data = {k: np.compress(keep, v, axis=0) for k, v in work.cell_data.items()}
+        if moved:
+            shift = np.compress(kept_nodes, shift)
+    elif moved:
+        work.lattice = work.lattice.copy()
+        work.points = work.points.copy()
+    if moved:
+        work.lattice[:, axis] += shift
+        work.points[:, axis] += shift * step_mm
 
 
 def _volume_report(before: dict[int, float], after: dict[int, float]) -> dict[str, dict]:
@@ -1314,7 +1363,7 @@ def merge_mesh(mesh: Mesh, *, method: str, templates: dict, passes, min_thicknes
                                     min_scaled_jacobian=float(min_scaled_jacobian), rim_moves=rim_moves)
 
 
-def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int = 1 << 20
+def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int = 1 << 15
                    ) -> tuple[np.ndarray, np.ndarray]:
     """(M,) bool: elements whose corners sit on the corners of a lattice box, in VTK order;
     and (M,) int64: each box's volume in lattice units (0 for others).
@@ -1374,9 +1423,8 @@ def _material_volumes(mesh: Mesh, box: np.ndarray, on_lattice: bool, size: np.nd
     its corners (``element_volumes``)."""
     cells = mesh.cells
     box = box if on_lattice else np.zeros(cells.shape[0], dtype=bool)
-    vol = np.empty(cells.shape[0])
-    rows = np.flatnonzero(box)
-    vol[rows] = size[rows] * float(np.prod(mesh.spacing[:mesh.dim]))
+    # every row from its size first (no gather); the other elements' rows are written over below
+    vol = size * float(np.prod(mesh.spacing[:mesh.dim]))
     other = np.flatnonzero(~box)
     if other.size:
         vol[other] = element_volumes(mesh.points, cells[other])

@@ -323,11 +323,16 @@ class _InputError(DicerError):
     """A stage's error about another input than the mesh (it names that file)."""
 
 
+def _now(job) -> None:
+    job()
+
+
 def _mesh_to_mesh(stage: str, func, mesh_path: str, out: Path, report_path: Path | None, mesh=None,
-                  mapped: bool = False):
+                  mapped: bool = False, write=_now):
     """Read a mesh (unless the caller has it: ``mesh``, what the file at ``mesh_path`` holds),
     apply ``func(mesh) -> (mesh, report)``, write the mesh (checked) and report. ``mapped``:
-    ``func`` only reads the mesh, so its arrays may stay in the page cache (read-only views)."""
+    ``func`` only reads the mesh, so its arrays may stay in the page cache (read-only views).
+    ``write(job)`` runs the mesh file's writing (dicer run: beside the next stage)."""
     from dicer.io.meshes import read_mesh, write_mesh
 
     with _Stage(stage):
@@ -340,12 +345,12 @@ def _mesh_to_mesh(stage: str, func, mesh_path: str, out: Path, report_path: Path
             raise DicerError(f"{mesh_path}: {exc}") from None
         result.names = list(mesh.names)  # the stages move nodes and elements, not materials
         result.direction = mesh.direction  # nor the image's orientation (applied on export)
-        write_mesh(result, out)
+        write(lambda: write_mesh(result, out))
         _write_report(report_path, report)
     return result, report
 
 
-def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None = None, mesh=None):
+def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None = None, mesh=None, write=_now):
     from dicer.config import stage_kwargs
     from dicer.mesh.merge import merge_mesh
 
@@ -353,7 +358,7 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
     # both methods build a new mesh and only read the input (a copy of 0.9 GB at 256^3
     # cost more than coarsening it)
     merged, report = _mesh_to_mesh("merge", lambda m: merge_mesh(m, **settings), mesh_path, out, report_path,
-                                   mesh, mapped=True)
+                                   mesh, mapped=True, write=write)
     log.info("merge: wrote %s (%d -> %d elements, %d -> %d nodes; volume %s)", out,
              report["elements_before"], report["elements_after"], report["nodes_before"],
              report["nodes_after"], json.dumps(_stable(report["volume"]), sort_keys=True))
@@ -382,7 +387,7 @@ def _read_thresholds(path: str | None, config: dict, image_path: str) -> list:
 
 
 def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None = None,
-              image_path: str | None = None, thresholds_path: str | None = None, mesh=None):
+              image_path: str | None = None, thresholds_path: str | None = None, mesh=None, write=_now):
     from dicer.config import stage_kwargs
     from dicer.mesh.smooth import smooth_mesh
 
@@ -405,12 +410,12 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
             raise
 
     # smoothing only reads its input mesh (new points; cells and data shared)
-    smoothed, report = _mesh_to_mesh("smooth", run, mesh_path, out, report_path, mesh, mapped=True)
+    smoothed, report = _mesh_to_mesh("smooth", run, mesh_path, out, report_path, mesh, mapped=True, write=write)
     log.info("smooth: wrote %s (%s)", out, json.dumps(_stable(report), sort_keys=True)[:600])
     return smoothed
 
 
-def do_mesh(labels_path: str, out: Path, config: dict):
+def do_mesh(labels_path: str, out: Path, config: dict, write=_now):
     from dicer.config import stage_kwargs
     from dicer.io.images import read_labels
     from dicer.io.meshes import write_mesh
@@ -423,7 +428,7 @@ def do_mesh(labels_path: str, out: Path, config: dict):
             mesh = mesh_labels(labels, **stage_kwargs(config, "mesh"))
         except DicerError as exc:
             raise DicerError(f"{labels_path}: {exc}") from None
-        write_mesh(mesh, out)
+        write(lambda: write_mesh(mesh, out))
         log.info("mesh: wrote %s (%d nodes, %d elements)", out, mesh.n_points, mesh.n_cells)
     return mesh
 
@@ -826,16 +831,32 @@ def cmd_run(args):
         del fixed
         if not args.skip_memory_check:  # the mesh's size is known now
             _check_memory(source, config, elements)
-        # each stage hands its mesh to the next in memory: the mesh its file was checked to
-        # hold, so the next stage need not read it again
-        mesh = do_mesh(str(path("labels_fixed.nii.gz")), path("mesh.vtu"), config)
-        step("merge")
-        mesh = do_merge(str(path("mesh.vtu")), path("merged.vtu"), config, path("merge.json"), mesh=mesh)
-        step("smooth")
-        # a segmented scan lends its grey values: the surface goes onto its iso-surfaces
-        scan = (args.image, str(path("segmentation.json"))) if args.labels is None else (None, None)
-        mesh = do_smooth(str(path("merged.vtu")), path("smoothed.vtu"), config, path("smooth.json"),
-                         image_path=scan[0], thresholds_path=scan[1], mesh=mesh)
+        # each stage hands its mesh to the next in memory, so the next stage need not read
+        # the file again; with a second core (and memory), the file is written and checked
+        # in a second thread meanwhile (the stages only read their input mesh)
+        beside = _side_by_side(source, elements)
+        with ThreadPoolExecutor(1) as files:
+            written = []
+
+            def write(job):
+                if beside:
+                    written.append((stage, files.submit(job)))
+                else:
+                    job()
+
+            mesh = do_mesh(str(path("labels_fixed.nii.gz")), path("mesh.vtu"), config, write=write)
+            step("merge")
+            mesh = do_merge(str(path("mesh.vtu")), path("merged.vtu"), config, path("merge.json"), mesh=mesh,
+                            write=write)
+            step("smooth")
+            # a segmented scan lends its grey values: the surface goes onto its iso-surfaces
+            scan = (args.image, str(path("segmentation.json"))) if args.labels is None else (None, None)
+            mesh = do_smooth(str(path("merged.vtu")), path("smoothed.vtu"), config, path("smooth.json"),
+                             image_path=scan[0], thresholds_path=scan[1], mesh=mesh, write=write)
+            # every file checked before the exports (they hash smoothed.vtu); a failed write
+            # names the stage that made its file (``stage``, as the error handler reads it)
+            for stage, job in written:
+                job.result()
         pictures = [str(path(n)) for n in ("segmentation.png", "thresholds.png") if path(n).exists()]
 
         def quality():
@@ -848,15 +869,15 @@ def cmd_run(args):
         # the exports and the quality report only read the smoothed mesh: with a second core
         # and memory for both, the report is made beside the exports
         with ThreadPoolExecutor(1) as pool:
-            beside = None
-            if _side_by_side(source, elements):
+            report = None
+            if beside:
                 log.info("run: the quality report is made beside the exports (a second core)")
-                beside = pool.submit(quality)
+                report = pool.submit(quality)
             step("export")
             for name in ("model.inp", "model.vtu"):
                 do_export(str(path("smoothed.vtu")), path(name), config, mesh=mesh)
             step("quality")
-            beside.result() if beside is not None else quality()
+            report.result() if report is not None else quality()
     except _MemoryError:
         shutil.rmtree(staging, ignore_errors=True)
         raise

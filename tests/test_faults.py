@@ -290,3 +290,29 @@ def test_sigterm_while_the_report_is_made_beside_the_exports(tmp_path):
     assert not out.exists() and not staging.exists()
     failed = tmp_path / "out.failed"
     assert not list(failed.glob(".*tmp*")) and not (failed / "model.inp").exists()
+
+
+def test_a_stage_file_written_beside_the_next_stage_names_its_stage_when_it_fails(tmp_path, monkeypatch, capsys):
+    import dicer.cli as cli
+    import dicer.io.meshes as meshes
+
+    main, args = _head_run(tmp_path)
+    monkeypatch.setattr(cli, "_side_by_side", lambda source, elements: True)
+    real = meshes.write_mesh
+
+    def failing(mesh, path, *a, **k):
+        if Path(path).name == "merged.vtu":
+            time.sleep(0.5)  # the smooth stage runs meanwhile
+            raise DicerError(f"{path}: the disk is full (No space left on device); free space or write elsewhere, "
+                             "nothing was written")
+        return real(mesh, path, *a, **k)
+
+    monkeypatch.setattr(meshes, "write_mesh", failing)
+    out = tmp_path / "out"
+    assert main(args + ["-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "merged.vtu: the disk is full" in err[0] and "stopped at the merge stage" in err[0]
+    failed = tmp_path / "out.failed"
+    kept = {p.name for p in failed.iterdir()}
+    assert {"mesh.vtu", "merge.json"} <= kept and "merged.vtu" not in kept and "model.inp" not in kept
+    assert not out.exists() and not list(failed.glob(".*tmp*"))

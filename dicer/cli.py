@@ -756,10 +756,10 @@ def _check_memory(source: str, config: dict, elements: int | None = None) -> Non
 def _side_by_side(source: str, elements: int) -> bool:
     """Whether ``dicer run`` may make its quality report beside the exports: a second core
     for it, and memory for twice the run's fitted peak (dicer/resources.py)."""
+    from dicer.parallel import cores
     from dicer.resources import machine_memory_mb, run_peak_mb, scan_header
 
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    if cores < 2:
+    if cores() < 2:
         return False
     have = machine_memory_mb()
     try:

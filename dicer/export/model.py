@@ -22,6 +22,7 @@ from dicer.mesh.frame import mirrored, to_scanner
 from dicer.mesh.model import Mesh, Sized, pieces
 from dicer.mesh.topology import (HEX20_FACES, HEX20_MIRROR, HEX_FACE_MIRROR, HEX_FACES, HEX_MIRROR, QUAD8_SIDES,
                                  QUAD_EDGES)
+from dicer.parallel import ordered_map
 
 # element type -> (dimension, order); the node order of every type is VTK's (= Abaqus's)
 ELEMENT_TYPES = {
@@ -208,26 +209,40 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> No
     exterior = np.zeros(n, bool)
     ext_e, ext_f = [], []
     bound_code, bound_nodes, pair_code, pair_nodes, pair_face = [], [], [], [], []
-    for part in pieces(model.n_cells):
+
+    def one(part: slice) -> tuple:
+        """(exterior faces, boundary faces, interface faces) of one piece, None for kinds not asked."""
         start = part.start
         mat = model.material[part].astype(np.int64)
         nbm = nb_mat[part]
         cells = model.cells[part]
+        ext = bound = pair = None
         if "exterior" in kinds:
             f_idx, e_idx = np.nonzero((nbm == 0).T)  # grouped by face number
-            ext_e.append(e_idx + start)
-            ext_f.append(f_idx)
-            exterior[cells[e_idx[:, None], table[f_idx]]] = True
+            ext = (e_idx + start, f_idx)
+            exterior[cells[e_idx[:, None], table[f_idx]]] = True  # only True is written: any order will do
         if "materials" in kinds:  # faces of a material with another (or none) behind them
             e_idx, nodes = _face_nodes(cells, table, nbm != mat[:, None])
-            bound_code.append(mat[e_idx])
-            bound_nodes.append(nodes)
+            bound = (mat[e_idx], nodes)
         if "interfaces" in kinds:  # faces of material a with material b > a behind them
             later = nbm > mat[:, None]
             e_idx, nodes = _face_nodes(cells, table, later)
-            pair_code.append(mat[e_idx] << 16 | nbm[later].astype(np.int64))  # labels <= MAX_LABEL < 2**16
-            pair_nodes.append(nodes)
-            pair_face.append(np.column_stack(np.nonzero(later)) + [start, 1])  # (element, face number)
+            pair = (mat[e_idx] << 16 | nbm[later].astype(np.int64),  # labels <= MAX_LABEL < 2**16
+                    nodes, np.column_stack(np.nonzero(later)) + [start, 1])  # (element, face number)
+        return ext, bound, pair
+
+    # pieces side by side (numpy leaves the interpreter lock), their faces joined in order
+    for ext, bound, pair in ordered_map(one, pieces(model.n_cells)):
+        if ext is not None:
+            ext_e.append(ext[0])
+            ext_f.append(ext[1])
+        if bound is not None:
+            bound_code.append(bound[0])
+            bound_nodes.append(bound[1])
+        if pair is not None:
+            pair_code.append(pair[0])
+            pair_nodes.append(pair[1])
+            pair_face.append(pair[2])
     if "exterior" in kinds:
         e, f = np.concatenate(ext_e), np.concatenate(ext_f)
         order = np.lexsort((e, f))  # grouped by face number, elements ascending

@@ -25,6 +25,8 @@ from typing import BinaryIO, Iterator
 
 import numpy as np
 
+from dicer.parallel import ordered_map
+
 CHUNK_ROWS = 1 << 16
 """Rows formatted per chunk: bounds the temporary memory of a writer."""
 
@@ -433,19 +435,24 @@ def write_chunks(stream: BinaryIO, n: int, fields_of, compact: bool = False, chu
     fields_of : callable
         ``fields_of(start, stop)`` -> the fields of rows ``start .. stop - 1`` (arrays of
         ``stop - start`` values): temporaries such as 1-based ids stay one chunk large.
+        Called from worker threads (:func:`dicer.parallel.ordered_map`): it only reads.
     compact : bool, optional
         Drop the blank padding of number fields (:func:`compact_rows`).
     chunk : int, optional
         Rows per chunk.
     """
-    for start in range(0, n, chunk):
+
+    def render(start: int) -> list:
         stop = min(n, start + chunk)
         fields = fields_of(start, stop)
         if compact:
-            for part in compact_rows(fields, stop - start, chunk):
-                stream.write(part)
-        else:
-            write_rows(stream, fields, stop - start, chunk)
+            return list(compact_rows(fields, stop - start, chunk))
+        return [memoryview(buf).cast("B") for buf in format_rows(fields, stop - start, chunk)]
+
+    # chunks are formatted side by side (numpy leaves the interpreter lock), written in order
+    for parts in ordered_map(render, range(0, n, chunk)):
+        for part in parts:
+            stream.write(part)
 
 
 def row_ids(start: int, stop: int) -> np.ndarray:

@@ -30,6 +30,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.lib.stride_tricks import as_strided
 
+from dicer.parallel import ordered_map
+
 CHUNK_ROWS = 1 << 15
 """Records checked and converted per pass: temporaries stay a few MB (cache-sized)."""
 
@@ -291,10 +293,12 @@ def parse_records(buf: np.ndarray, layout: Layout, chunk: int = CHUNK_ROWS, sink
         Records per pass.
     sink : callable, optional
         ``sink(start, ints, reals)`` takes the values of records ``start, start + 1, ...``
-        chunk by chunk ((r, ·) arrays, reused: valid during the call only): a caller that
-        compares the values with what it expects holds no array of the whole block. A
-        FormatError the sink raises (offset into its chunk's rows) is moved to the offset
-        in ``buf``.
+        chunk by chunk ((r, ·) arrays): a caller that compares the values with what it
+        expects holds no array of the whole block. Chunks are parsed in worker threads
+        (:func:`dicer.parallel.ordered_map`), so the sink may be called from several at
+        once and out of order: it should only read. A FormatError the sink raises (offset
+        into its chunk's rows) is moved to the offset in ``buf``; of several, the first in
+        the buffer is raised.
 
     Returns
     -------
@@ -313,21 +317,27 @@ def parse_records(buf: np.ndarray, layout: Layout, chunk: int = CHUNK_ROWS, sink
     n, rest = divmod(buf.size, layout.length)
     rows = buf[: n * layout.length].reshape(n, layout.length)
     wide = any(run.kind == "i" and run.width > 9 for run in layout.runs)
-    size = n if sink is None else min(n, chunk)
+    size = n if sink is None else 0
     ints = np.empty((size, layout.kinds.count("i")), np.int64 if wide else np.int32)  # 9 digits fit int32
     reals = np.empty((size, layout.kinds.count("f")), np.float64)
-    for start in range(0, n, chunk):
+
+    def one(start: int) -> None:
         u = rows[start : start + chunk]
         try:
             d, _ = _check(u, layout)
             if sink is None:
                 _values(layout, d, u, ints[start : start + chunk], reals[start : start + chunk])
-            else:
+            else:  # each thread its own buffers
                 r = u.shape[0]
-                _values(layout, d, u, ints[:r], reals[:r])
-                sink(start, ints[:r], reals[:r])
+                i, f = np.empty((r, ints.shape[1]), ints.dtype), np.empty((r, reals.shape[1]), np.float64)
+                _values(layout, d, u, i, f)
+                sink(start, i, f)
         except FormatError as exc:
             raise FormatError(start * layout.length + exc.offset, exc.message) from None
+
+    # chunks are checked side by side; in order, so the first bad record is the one reported
+    for _ in ordered_map(one, range(0, n, chunk)):
+        pass
     if rest:
         raise FormatError(n * layout.length, f"a record of {rest} bytes where {layout.length} belong "
                                              "(a line cut short or run on)")

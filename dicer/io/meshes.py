@@ -37,6 +37,7 @@ from dicer.mesh.frame import check_direction, mirrored, to_lattice
 from dicer.mesh.metrics import QUALITY_DATA, quality_arrays, scaled_jacobian
 from dicer.mesh.model import LEVEL_DATA, Mesh
 from dicer.mesh.topology import HEX_MIRROR
+from dicer.parallel import ordered_map
 
 _FIELDS = ("spacing", "origin", "grid_shape", "direction", "scanner_coordinates")
 
@@ -202,8 +203,7 @@ def _zlib_blocks(a: np.ndarray, start: int) -> list:
     raw = memoryview(a.reshape(-1).view(np.uint8))
     n = len(raw)
     starts = list(range(0, n, _ZLIB_BLOCK))
-    with ThreadPoolExecutor(max(1, min(2, os.cpu_count() or 1))) as pool:  # zlib frees the GIL
-        blocks = list(pool.map(lambda i: _deflate(raw[i:i + _ZLIB_BLOCK]), starts))
+    blocks = list(ordered_map(lambda i: _deflate(raw[i:i + _ZLIB_BLOCK]), starts))  # zlib frees the GIL
     for flushes in range(1, 9):
         end = start + 8 * (3 + len(blocks)) + sum(map(len, blocks))
         if not blocks or end % 4:
@@ -503,9 +503,9 @@ def _inflate(fetch, start: int, file_size: int, name: str, label: str) -> tuple[
             return False
         out[i * size:i * size + want] = np.frombuffer(got, np.uint8) if len(got) == want else 0
         return len(got) == want
-    with ThreadPoolExecutor(max(1, min(2, os.cpu_count() or 1))) as pool:
-        if not all(pool.map(unpack, range(n))):
-            raise _damaged(name, f"{label} has a damaged compressed block")
+
+    if not all(ordered_map(unpack, range(n))):
+        raise _damaged(name, f"{label} has a damaged compressed block")
     return out, data_at + int(bounds[-1])
 
 

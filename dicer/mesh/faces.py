@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from dicer.mesh.model import Mesh, pieces
+from dicer.parallel import ordered_map
 from dicer.mesh.topology import HEX_CORNERS, HEX_FACE_PLANES, HEX_FACES, QUAD_CORNERS, QUAD_EDGES, QUAD_SIDE_PLANES
 
 def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
@@ -34,8 +35,8 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
     nstrides = np.array([int(np.prod(shape[i + 1 :] + 1)) for i in range(dim)], np.int64)
     node_lin = lattice @ nstrides
     grid = np.zeros(int(np.prod(shape)), kind)
-    covered = 0
-    for part in pieces(m):
+
+    def fill(part: slice) -> int | None:  # the boxes' voxels of one piece: their count, None if not boxes
         c = cells[part]
         lo = lattice[c[:, 0]]
         ext = lattice[c[:, far]] - lo
@@ -49,6 +50,7 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
         base = lo @ strides
         code = ext @ (64 ** np.arange(dim))
         mat = material[part].astype(kind)
+        covered = 0
         for cc in np.unique(code):  # a few distinct box sizes (1 x 1 x 1 before plane merging)
             sel = code == cc
             e = [(int(cc) // 64**i) % 64 for i in range(dim)]
@@ -56,11 +58,17 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
             for off in np.ndindex(*e):
                 grid[b + int(np.dot(off, strides))] = v
             covered += b.size * int(np.prod(e))
-    if np.count_nonzero(grid) != covered:  # overlapping boxes
+        return covered
+
+    # pieces side by side (numpy leaves the interpreter lock); boxes of different pieces
+    # that overlap write the same voxels, which the count below finds whatever the order
+    counts = list(ordered_map(fill, pieces(m)))
+    if any(c is None for c in counts) or np.count_nonzero(grid) != sum(counts):  # overlapping boxes
         return None
     axes = HEX_FACE_PLANES if dim == 3 else QUAD_SIDE_PLANES
     nb = np.empty((m, len(axes)), kind)
-    for part in pieces(m):
+
+    def across(part: slice) -> None:
         c = cells[part]
         lo = lattice[c[:, 0]]
         ext = lattice[c[:, far]] - lo
@@ -76,6 +84,9 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
             got = grid[idx]
             got[~inside] = 0
             nb[part, f] = got
+
+    for _ in ordered_map(across, pieces(m)):
+        pass
     return nb
 
 

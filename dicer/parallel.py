@@ -1,0 +1,61 @@
+"""Chunked array work on the cores the process may use, results in order.
+
+numpy runs its loops over large arrays without holding the interpreter lock, so the
+chunks of a text deck (formatting rows, checking them when read back) run side by side
+in threads; the caller consumes them in order, so files and errors are the same as one
+thread gives.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+
+MAX_WORKERS = 2
+"""Threads at most: the formats' chunk work scales to two, then the single writer limits."""
+
+
+def cores() -> int:
+    """Cores this process may run on (its CPU affinity: a SLURM job's allocation), at least 1."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return max(1, os.cpu_count() or 1)
+
+
+def ordered_map(fn: Callable, items: Iterable, workers: int | None = None) -> Iterator:
+    """``fn(item)`` for each item, yielded in the items' order.
+
+    Parameters
+    ----------
+    fn : callable
+        Must be safe to call from several threads at once (reads shared arrays, writes
+        only its own).
+    items : iterable
+    workers : int, optional
+        Threads; default ``min(MAX_WORKERS, cores())``. With one, ``fn`` runs in the
+        caller's thread, item by item.
+
+    Yields
+    ------
+    The results in order. An exception raised by ``fn`` is raised when its item's turn
+    comes, so the first failing item in order is the one reported; at most ``2 * workers``
+    items are in flight (memory stays a few chunks).
+    """
+    workers = min(MAX_WORKERS, cores()) if workers is None else workers
+    if workers <= 1:
+        yield from map(fn, items)
+        return
+    with ThreadPoolExecutor(workers) as pool:
+        flight: deque = deque()
+        try:
+            for item in items:
+                flight.append(pool.submit(fn, item))
+                if len(flight) >= 2 * workers:
+                    yield flight.popleft().result()
+            while flight:
+                yield flight.popleft().result()
+        finally:
+            for future in flight:  # an error or an abandoned generator: drop the work not started
+                future.cancel()

@@ -1,0 +1,121 @@
+"""Chunk work side by side (dicer.parallel): same results and the same first error as one thread."""
+
+import io
+import threading
+import time
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import dicer.parallel as parallel
+from dicer.export.textfmt import Float, Int, Sci, row_ids, write_chunks
+from dicer.export.textparse import FormatError, layout_of, parse_records
+from dicer.parallel import ordered_map
+
+
+@pytest.mark.parametrize("workers", [1, 2, 3])
+def test_ordered_map_keeps_order_whatever_finishes_first(workers):
+    def slow_first(i):
+        time.sleep(0.02 if i % 3 == 0 else 0.0)  # early items finish last
+        return i * i
+
+    assert list(ordered_map(slow_first, range(25), workers)) == [i * i for i in range(25)]
+
+
+def test_ordered_map_raises_the_first_failing_item_in_order():
+    def fail(i):
+        if i in (7, 3, 12):
+            time.sleep(0.05 if i == 3 else 0.0)  # item 3 fails last in time, first in order
+            raise ValueError(i)
+        return i
+
+    got = []
+    with pytest.raises(ValueError) as exc:
+        for v in ordered_map(fail, range(20), 2):
+            got.append(v)
+    assert exc.value.args == (3,)
+    assert got == [0, 1, 2]
+
+
+def test_ordered_map_holds_few_items_in_flight():
+    running, most = [0], [0]
+    lock = threading.Lock()
+
+    def work(i):
+        with lock:
+            running[0] += 1
+            most[0] = max(most[0], running[0])
+        time.sleep(0.005)
+        with lock:
+            running[0] -= 1
+        return i
+
+    started = []
+
+    def items():
+        for i in range(40):
+            started.append(i)
+            yield i
+
+    for v in ordered_map(work, items(), 2):
+        assert len(started) - v <= 2 * 2 + 1  # the consumer is never far behind the producer
+    assert most[0] <= 2
+
+
+def test_one_core_runs_in_the_callers_thread(monkeypatch):
+    monkeypatch.setattr(parallel, "cores", lambda: 1)
+    threads = set(ordered_map(lambda i: threading.get_ident(), range(5)))
+    assert threads == {threading.get_ident()}
+
+
+def _deck(points, chunk):
+    stream = io.BytesIO()
+    fmt = Sci(9)
+    write_chunks(stream, points.shape[0], lambda a, b: [Int(row_ids(a, b), 8, b"\n")]
+                 + [Float(points[a:b, j], fmt, b",") for j in range(3)], chunk=chunk)
+    return stream.getvalue()
+
+
+@settings(max_examples=30, deadline=None)
+@given(n=st.integers(1, 400), chunk=st.integers(1, 64), seed=st.integers(0, 2**16))
+def test_text_chunks_written_and_read_side_by_side_match_one_thread(n, chunk, seed):
+    points = np.random.default_rng(seed).normal(scale=100.0, size=(n, 3))
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(parallel, "cores", lambda: 1)
+        one = _deck(points, chunk)
+        text = one[1:] + b"\n"  # records "<id>,x,y,z\n"
+        body, layout = np.frombuffer(text, np.uint8), layout_of(text[: text.index(b"\n") + 1])
+        ints1, reals1 = parse_records(body, layout, chunk=chunk)
+    two = _deck(points, chunk)
+    assert two == one
+    ints2, reals2 = parse_records(body, layout, chunk=chunk)
+    assert np.array_equal(ints1, ints2) and np.array_equal(reals1, reals2)
+    want = np.array([[float(v) for v in line.split(b",")[1:]] for line in one.split(b"\n")[1:]])
+    assert np.array_equal(reals2, want) and np.array_equal(ints2[:, 0], np.arange(1, n + 1))
+    seen = []
+    assert parse_records(body, layout, chunk=chunk,
+                         sink=lambda start, i, r: seen.append((start, i[:, 0].copy()))) == n
+    seen.sort(key=lambda s: s[0])
+    assert np.array_equal(np.concatenate([ids for _, ids in seen]), np.arange(1, n + 1))
+
+
+def test_parse_reports_the_first_bad_record_when_several_chunks_are_bad():
+    record = b"       1, 1.00000000e+00, 2.50000000e-01,-3.00000000e+00\n"
+    n, chunk = 5000, 64
+    buf = bytearray(record * n)
+    for row, col in ((4321, 12), (1234, 30), (77, 5)):  # chunks 67, 19 and 1
+        buf[row * len(record) + col] = ord("x")
+    with pytest.raises(FormatError) as exc:
+        parse_records(np.frombuffer(bytes(buf), np.uint8), layout_of(record), chunk=chunk)
+    assert exc.value.offset == 77 * len(record) + 5
+
+    def sink(start, ints, reals):
+        if start <= 3000 < start + ints.shape[0]:
+            raise FormatError((3000 - start) * len(record), "sink")
+    buf[77 * len(record) + 5] = record[5]
+    buf[1234 * len(record) + 30] = record[30]
+    with pytest.raises(FormatError) as exc:  # the sink's error at record 3000 comes before the byte at 4321
+        parse_records(np.frombuffer(bytes(buf), np.uint8), layout_of(record), chunk=chunk, sink=sink)
+    assert exc.value.offset == 3000 * len(record)

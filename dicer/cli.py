@@ -461,10 +461,8 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
                pictures: list[str] = (), stage_reports: list[str] = (), csv: Path | None = None,
                original_path: str | None = None, histogram: Path | None = None, model_picture: Path | None = None,
                node_classes: Path | None = None, mesh=None):
-    from dicer.config import material_names, stage_kwargs
-    from dicer.io.atomic import pending, write_bytes_atomic
+    from dicer.io.atomic import in_this_block, write_bytes_atomic
     from dicer.io.meshes import read_mesh
-    from dicer.quality import quality_report, render_html
 
     with _Stage("quality"):
         # the report only reads the mesh: its arrays stay in the page cache, mapped, not copied
@@ -485,43 +483,59 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
                                      "made from with --labels (the original segmentation goes to --original)")
         # every element metric once: the report's, the figures' and the CSV's with skew
         from dicer.mesh.metrics import element_metrics
-        from dicer.quality import REPORT_METRICS, element_neighbours
+        from dicer.quality import REPORT_METRICS
 
         names = REPORT_METRICS + (("skew",) if csv else ())
         metrics = element_metrics(mesh.points, mesh.cells, names)
         sj = metrics["scaled_jacobian"]
-        # the model picture's faces, shared with the report's parts; without the picture the
-        # parts of a voxel mesh come from its voxel grid and need no neighbour array
-        neighbours = element_neighbours(mesh) if model_picture else None
-        report = quality_report(mesh, **stage_kwargs(config, "quality"), labels=labels, original=original,
-                                metrics=metrics, neighbours=neighbours)
-        stages = {}
-        for path in stage_reports:
-            try:
-                stages[Path(path).name.split(".")[0]] = json.loads(Path(path).read_text())
-            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-                raise DicerError(f"{path}: cannot read the stage report ({exc}); rerun that stage") from None
-        if stages:
-            report["stages"] = stages
-        figures = _quality_figures(mesh, report, sj, material_names(config), histogram, model_picture, node_classes,
-                                   neighbours)
-        text = json.dumps(report, indent=2, sort_keys=True) + "\n"
-        if html:
-            shown = []
-            for path in list(pictures) + figures:
-                try:
-                    shown.append((_PICTURE_CAPTIONS.get(Path(path).name, Path(path).name), pending(path).read_bytes()))
-                except OSError as exc:
-                    raise DicerError(f"{path}: cannot read the picture ({exc.strerror}); give an existing PNG "
-                                     "with --picture") from None
-            write_bytes_atomic(html, render_html(report, shown))
-        if csv:
-            from dicer.io.metrics_csv import write_metrics_csv
+        with ThreadPoolExecutor(1) as pool:
+            table = None
+            if csv:  # the table is written and read back beside the report (part of its all-or-nothing)
+                from dicer.io.metrics_csv import write_metrics_csv
 
-            write_metrics_csv(mesh, csv, metrics)
-        write_bytes_atomic(out, text)
+                table = pool.submit(in_this_block(write_metrics_csv), mesh, csv, metrics)
+            # on an error the pool waits for the table, whose file the block then deletes
+            report = _report_of(mesh, config, labels, original, metrics, sj, stage_reports, html, pictures,
+                                histogram, model_picture, node_classes)
+            if table is not None:
+                table.result()
+        write_bytes_atomic(out, json.dumps(report, indent=2, sort_keys=True) + "\n")
         log.info("quality: wrote %s (min scaled Jacobian %.3f, %d inverted, %d part(s))", out,
                  report["scaled_jacobian"]["min"], report["inverted_elements"], report["parts"]["model"]["parts"])
+    return report
+
+
+def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_reports, html, pictures, histogram,
+               model_picture, node_classes) -> dict:
+    """The quality report of ``mesh`` with the stage reports; its pictures and HTML page written."""
+    from dicer.config import material_names, stage_kwargs
+    from dicer.io.atomic import pending, write_bytes_atomic
+    from dicer.quality import element_neighbours, quality_report, render_html
+
+    # the model picture's faces, shared with the report's parts; without the picture the
+    # parts of a voxel mesh come from its voxel grid and need no neighbour array
+    neighbours = element_neighbours(mesh) if model_picture else None
+    report = quality_report(mesh, **stage_kwargs(config, "quality"), labels=labels, original=original,
+                            metrics=metrics, neighbours=neighbours)
+    stages = {}
+    for path in stage_reports:
+        try:
+            stages[Path(path).name.split(".")[0]] = json.loads(Path(path).read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise DicerError(f"{path}: cannot read the stage report ({exc}); rerun that stage") from None
+    if stages:
+        report["stages"] = stages
+    figures = _quality_figures(mesh, report, sj, material_names(config), histogram, model_picture, node_classes,
+                               neighbours)
+    if html:
+        shown = []
+        for path in list(pictures) + figures:
+            try:
+                shown.append((_PICTURE_CAPTIONS.get(Path(path).name, Path(path).name), pending(path).read_bytes()))
+            except OSError as exc:
+                raise DicerError(f"{path}: cannot read the picture ({exc.strerror}); give an existing PNG "
+                                 "with --picture") from None
+        write_bytes_atomic(html, render_html(report, shown))
     return report
 
 

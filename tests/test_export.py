@@ -477,3 +477,25 @@ def test_write_vtu_takes_the_siblings_call_and_the_older_one(tmp_path, mesh, con
     write_vtu(model, scanner_mesh(mesh, model), tmp_path / "c.vtu")
     want = (tmp_path / "a.vtu").read_bytes()
     assert (tmp_path / "b.vtu").read_bytes() == want == (tmp_path / "c.vtu").read_bytes()
+
+
+@pytest.mark.parametrize("what", ["scaled_jacobian", "edge_ratio", "lattice"])
+def test_vtu_check_compares_quality_and_lattice_exactly(tmp_path, mesh, config, what):
+    from dicer.export.vtu import check_vtu, write_vtu
+    from dicer.io.meshes import read_raw_vtu
+
+    model = prepare_model(mesh, config)
+    path = tmp_path / "m.vtu"
+    write_vtu(model, path)
+    check_vtu(path, model)  # as written: passes
+    parts = read_raw_vtu(path, str(path))
+    assert np.array_equal(parts[4]["scaled_jacobian"], model.cell_data["scaled_jacobian"])
+    if what == "lattice":
+        model.mesh = model.mesh.copy()
+        model.mesh.lattice = model.mesh.lattice.copy()
+        model.mesh.lattice[3, 0] += 1
+    else:
+        model.cell_data[what] = model.cell_data[what].copy()
+        model.cell_data[what][5] = np.nextafter(model.cell_data[what][5], 2.0)  # one ulp
+    with pytest.raises(DicerError, match="lattice" if what == "lattice" else what):
+        check_vtu(path, model)

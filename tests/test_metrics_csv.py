@@ -1,5 +1,7 @@
 """`dicer quality --csv`: per-element metrics in automesh's columns, read back exactly."""
 
+import io
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -7,8 +9,9 @@ from hypothesis import strategies as st
 
 from dicer.cli import main
 from dicer.errors import DicerError
+from dicer.export.textfmt import write_chunks
 from dicer.io.meshes import write_mesh
-from dicer.io.metrics_csv import HEADER, _lines, parse_metrics_csv, read_metrics_csv, write_metrics_csv
+from dicer.io.metrics_csv import HEADER, _fields_of, parse_metrics_csv, read_metrics_csv, write_metrics_csv
 from dicer.mesh.metrics import edge_ratio, element_volumes, scaled_jacobian, skew
 from dicer.mesh.voxel import voxel_mesh
 
@@ -20,6 +23,13 @@ def mesh():
     labels[3, 1:, 1] = 2
     return voxel_mesh(labels, spacing=(2.0, 3.0, 4.0), origin=(-10.0, 5.0, 0.5))
 
+
+
+def _lines(values: np.ndarray) -> bytes:
+    """The value lines of a metrics CSV of ``values`` (M, 4), as the writer writes them."""
+    stream = io.BytesIO()
+    write_chunks(stream, values.shape[0], _fields_of(values), compact=True)
+    return stream.getvalue()
 
 def test_header_and_values_of_boxes(tmp_path, mesh):
     path = tmp_path / "m.csv"
@@ -52,7 +62,7 @@ def test_values_follow_the_metrics_module(tmp_path, mesh):
                 min_size=4, max_size=40).filter(lambda v: len(v) % 4 == 0))
 def test_print_and_parse_round_trip(values):
     v = np.array(values).reshape(-1, 4)
-    data = HEADER + b"".join(_lines(v))
+    data = HEADER + _lines(v)
     back = parse_metrics_csv(data)
     assert back.shape == v.shape
     assert np.all(np.abs(back - v) <= 5.000001e-7 * np.abs(v))
@@ -90,7 +100,7 @@ def test_parse_in_blocks_of_lines(monkeypatch):
 
     rng = np.random.default_rng(1)
     values = np.abs(rng.normal(1, 0.5, (50, 4)))
-    data = HEADER + b"".join(_lines(values))
+    data = HEADER + _lines(values)
     whole = parse_metrics_csv(data)
     monkeypatch.setattr(mc, "_CHUNK", 100)  # about two lines per block
     assert parse_metrics_csv(data).tobytes() == whole.tobytes()
@@ -100,3 +110,30 @@ def test_parse_in_blocks_of_lines(monkeypatch):
         parse_metrics_csv(b"\n".join(lines))
     monkeypatch.setattr(mc, "_CHUNK", 10)  # blocks shorter than one line
     assert parse_metrics_csv(data).tobytes() == whole.tobytes()
+
+
+@pytest.mark.parametrize("fails", ["report", "table"])
+def test_quality_csv_beside_the_report_is_all_or_nothing(tmp_path, capsys, mesh, monkeypatch, fails):
+    """The table is written in a second thread beside the report: either failing leaves
+    neither file, the old ones as they were, and no temporaries."""
+    import dicer.cli as cli
+    import dicer.io.metrics_csv as mc
+
+    vtu = tmp_path / "mesh.vtu"
+    write_mesh(mesh, vtu)
+    (tmp_path / "q.json").write_text("old")
+    (tmp_path / "q.csv").write_text("old")
+
+    def boom(*args, **kwargs):
+        raise cli.DicerError(f"{fails}: broken on purpose")
+
+    if fails == "report":
+        monkeypatch.setattr(cli, "_report_of", boom)
+    else:
+        monkeypatch.setattr(mc, "element_metrics", boom)
+    code = main(["quality", str(vtu), "-o", str(tmp_path / "q.json"), "--csv", str(tmp_path / "q.csv"), "-q",
+                 "--set", "materials=[{name: a}, {name: b}]"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and f"{fails}: broken on purpose" in err
+    assert (tmp_path / "q.json").read_text() == "old" and (tmp_path / "q.csv").read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mesh.vtu", "q.csv", "q.json"]

@@ -19,7 +19,8 @@ import numpy as np
 from dicer.export.format import Format
 from dicer.export.model import scanner_mesh
 from dicer.errors import DicerError
-from dicer.io.meshes import MESHIO_CHECK_CELLS, names_from_field_data, names_xml, read_raw_vtu, splice_field_data, write_raw_vtu
+from dicer.io.meshes import (MESHIO_CHECK_CELLS, names_from_field_data, names_xml, quality_meanwhile, read_raw_vtu,
+                             splice_field_data, write_raw_vtu)
 from dicer.mesh.metrics import quality_arrays
 from dicer.mesh.model import Mesh
 from dicer.mesh.topology import MESHIO_TYPES
@@ -55,10 +56,11 @@ def write_vtu(model, path: str | Path, mesh: Mesh | None = None) -> None:
             if model.mesh is None:
                 raise ValueError("a linear model is written to VTU with its mesh; pass mesh=")
             mesh = scanner_mesh(model.mesh, model)
-        # the config's names, whatever the mesh carried; arrays shared, not copied
-        out = replace(mesh, names=model.name_list(),
-                      cell_data=quality_arrays(mesh.points, mesh.cells) | mesh.cell_data)
-        _write_vtu(out, Path(path))
+        # the config's names, whatever the mesh carried; arrays shared, not copied; the quality
+        # data (the last arrays) computed while the first are compressed, kept for the check
+        with quality_meanwhile(mesh) as (later, result):
+            _write_vtu(replace(mesh, names=model.name_list(), cell_data=later | mesh.cell_data), Path(path))
+            model.cell_data.update(result())
         return
     m = meshio.Mesh(model.points, [(MESHIO_TYPES[(model.dim, model.order)], model.cells)],
                     cell_data={"material": [model.material],
@@ -100,7 +102,7 @@ def _check_raw(parts, model) -> None:
     """The arrays dicer's reader got from an order-1 file against the model, exactly."""
     from dicer.mesh.metrics import QUALITY_DATA
 
-    _, points, cells, _, cell_data, fields = parts
+    _, points, cells, point_data, cell_data, fields = parts
     if points.shape[0] != model.n_points or not np.array_equal(points[:, :model.dim], model.points[:, :model.dim]):
         raise DicerError("the node coordinates read back differ from those written")
     if not np.array_equal(cells, model.cells):
@@ -108,8 +110,13 @@ def _check_raw(parts, model) -> None:
     if not np.array_equal(cell_data.get("material"), model.material):
         raise DicerError("the element materials read back differ from those written")
     for name in QUALITY_DATA:
-        if np.shape(cell_data.get(name)) != (model.n_cells,):
+        got = cell_data.get(name)
+        if np.shape(got) != (model.n_cells,):
             raise DicerError(f"cell data {name} read back with the wrong length")
+        if name in model.cell_data and not np.array_equal(got, model.cell_data[name], equal_nan=True):
+            raise DicerError(f"cell data {name} read back differs from that written")
+    if model.mesh is not None and not np.array_equal(point_data.get("lattice"), model.mesh.lattice):
+        raise DicerError("the lattice indices read back differ from those written")
     names = names_from_field_data(fields)
     if names != model.name_list():
         raise DicerError(f"material names {names} read back, expected {model.name_list()}")

@@ -147,6 +147,23 @@ def all_or_nothing():
         _block.pending, _block.made = None, []
 
 
+def in_this_block(fn):
+    """``fn`` to run in another thread as part of the caller's all_or_nothing() block: its
+    writes are held back and renamed (or deleted) with the block's. The caller must wait for
+    the thread before its block ends."""
+    pending, made = _pending(), getattr(_block, "made", [])
+
+    def run(*args, **kwargs):
+        if pending is None:
+            return fn(*args, **kwargs)
+        _block.pending, _block.made = pending, made  # the caller's lists: appends are atomic
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            _block.pending, _block.made = None, []
+    return run
+
+
 def _new_temporary(path: Path, parent: Path, names: list) -> Path:
     """Create an empty temporary file for ``path`` in ``parent``; its name goes into
     ``names`` before the file exists, so a SIGTERM arriving at any moment (its handler runs

@@ -146,6 +146,24 @@ class _Later:
         return np.ascontiguousarray(a, self.dtype).reshape(-1).view(np.uint8).data
 
 
+@contextlib.contextmanager
+def quality_meanwhile(mesh: Mesh):
+    """The :data:`~dicer.mesh.metrics.QUALITY_DATA` arrays of ``mesh``, computed in a second
+    thread while a writer (:func:`write_raw_vtu`) writes the arrays before them.
+
+    Yields
+    ------
+    later : dict of str to array-like
+        Cell data for the writer (the arrays it reaches when it gets there).
+    result : callable
+        ``result()`` -> dict of str to (M,) float64 ndarray, the computed arrays.
+    """
+    with ThreadPoolExecutor(1) as pool:
+        metrics = pool.submit(quality_arrays, mesh.points, mesh.cells)
+        yield ({k: _Later(lambda k=k: metrics.result()[k], np.float64, (mesh.n_cells,)) for k in QUALITY_DATA},
+               metrics.result)
+
+
 def _extra_array(path: Path, kind: str, key: str, values, count: int) -> np.ndarray:
     if isinstance(values, _Later):
         return values

@@ -22,10 +22,11 @@ from pathlib import Path
 import numpy as np
 
 from dicer.errors import DicerError
-from dicer.export.textfmt import Float, Sci, compact_rows
+from dicer.export.textfmt import Float, Sci, write_chunks
 from dicer.io.atomic import atomic_path
 from dicer.mesh import metrics as _metrics
 from dicer.mesh.model import Mesh
+from dicer.parallel import ordered_map
 
 HEADER = b"maximum edge ratio,minimum scaled jacobian,maximum skew,element volume\n"
 """automesh's header line, byte for byte."""
@@ -48,9 +49,10 @@ def element_metrics(mesh: Mesh, metrics: dict | None = None) -> np.ndarray:
     return np.column_stack([have[k] for k in COLUMNS])
 
 
-def _lines(values: np.ndarray):
-    fields = [Float(values[:, 0], _FMT)] + [Float(values[:, j], _FMT, b",") for j in (1, 2, 3)] + [b"\n"]
-    return compact_rows(fields, values.shape[0])
+def _fields_of(values: np.ndarray):
+    """The fields of rows ``start .. stop - 1`` of ``values`` (M, 4), as write_chunks takes them."""
+    return lambda start, stop: ([Float(values[start:stop, 0], _FMT)]
+                                + [Float(values[start:stop, j], _FMT, b",") for j in (1, 2, 3)] + [b"\n"])
 
 
 _CHUNK = 1 << 20
@@ -71,21 +73,26 @@ def parse_metrics_csv(data: bytes, name: str = "metrics CSV") -> np.ndarray:
         return np.empty((0, 4))
     if data[-1] != 10:
         raise DicerError(f"{name}: the last line is cut short")
-    parts, line = [], 0
+    blocks = []  # (start, stop): whole lines
     while start < end:
         stop = data.rfind(b"\n", start, min(start + _CHUNK, end)) + 1
         if stop <= start:  # one line longer than a block
             stop = data.find(b"\n", start) + 1
-        part = _parse_lines(np.frombuffer(data, np.uint8, stop - start, start), name, line)
-        parts.append(part)
-        line += part.shape[0]
+        blocks.append((start, stop))
         start = stop
-    return np.concatenate(parts)
+
+    def parse(block: tuple[int, int]) -> np.ndarray:  # lines before it counted only for a message
+        a, b = block
+        return _parse_lines(np.frombuffer(data, np.uint8, b - a, a), name,
+                            lambda: data.count(b"\n", len(HEADER), a))
+
+    # blocks side by side; in order, so the first bad line is the one named
+    return np.concatenate(list(ordered_map(parse, blocks)))
 
 
-def _parse_lines(body: np.ndarray, name: str, first: int) -> np.ndarray:
-    """(m, 4) float64 from whole lines ``body`` (bytes ending in a newline), the first of
-    them line ``first`` of the values (0-based, after the header)."""
+def _parse_lines(body: np.ndarray, name: str, first) -> np.ndarray:
+    """(m, 4) float64 from whole lines ``body`` (bytes ending in a newline); ``first()`` is
+    the number of value lines before them (for messages)."""
     sep = np.flatnonzero((body == 44) | (body == 10))
     if sep.size % 4 or np.any(body[sep[3::4]] != 10) or np.any(body[sep[np.arange(sep.size) % 4 != 3]] != 44):
         raise DicerError(f"{name}: a line does not hold 4 comma-separated values")
@@ -103,7 +110,7 @@ def _parse_lines(body: np.ndarray, name: str, first: int) -> np.ndarray:
     ok &= (chars[:, 1] == 46) & (chars[:, _DIGITS + 1] == 101) & np.isin(chars[:, _DIGITS + 2], (43, 45))
     if not ok.all():
         bad = int(np.flatnonzero(~ok)[0])
-        raise DicerError(f"{name}: line {first + bad // 4 + 2} holds a value that is not [-]d.dddddde[+-]XX")
+        raise DicerError(f"{name}: line {first() + bad // 4 + 2} holds a value that is not [-]d.dddddde[+-]XX")
     mantissa = digits[:, :_DIGITS] @ (10 ** np.arange(_DIGITS - 1, -1, -1, dtype=np.int64))
     exponent = (digits[:, _DIGITS] * 10 + digits[:, _DIGITS + 1]) * np.where(chars[:, _DIGITS + 2] == 45, -1, 1)
     k = exponent - (_DIGITS - 1)
@@ -137,8 +144,7 @@ def write_metrics_csv(mesh: Mesh, path: str | os.PathLike, metrics: dict | None 
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             f.write(HEADER)
-            for chunk in _lines(values):
-                f.write(chunk)
+            write_chunks(f, values.shape[0], _fields_of(values), compact=True)
         back = read_metrics_csv(tmp)
         # a printed value is within half a unit of its 7th digit; the parse adds a rounding or two
         same = back.shape == values.shape

@@ -499,3 +499,24 @@ def test_vtu_check_compares_quality_and_lattice_exactly(tmp_path, mesh, config, 
         model.cell_data[what][5] = np.nextafter(model.cell_data[what][5], 2.0)  # one ulp
     with pytest.raises(DicerError, match="lattice" if what == "lattice" else what):
         check_vtu(path, model)
+
+
+def test_source_digest_is_computed_once_per_unchanged_file(tmp_path, monkeypatch):
+    """dicer run exports one mesh twice: the second heading reuses the digest, and a file
+    changed since (same size) is hashed again."""
+    import hashlib
+    import importlib
+    import os
+
+    prov = importlib.import_module("dicer.export.provenance")  # dicer.export.provenance is also a function
+    path = tmp_path / "mesh.vtu"
+    path.write_bytes(b"a" * 1000)
+    passes = []
+    real = prov._sha256_of
+    monkeypatch.setattr(prov, "_sha256_of", lambda p, files: passes.append(p) or real(p, files))
+    first = prov.file_sha256(path)
+    assert prov.file_sha256(path) == first == hashlib.sha256(b"a" * 1000).hexdigest() and len(passes) == 1
+    path.write_bytes(b"b" * 1000)
+    st = path.stat()
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 1))
+    assert prov.file_sha256(path) == hashlib.sha256(b"b" * 1000).hexdigest() and len(passes) == 2

@@ -29,13 +29,28 @@ def file_sha256(path: str | os.PathLike | None) -> str | None:
     if path is None:
         return None
     p = Path(path)
-    h = hashlib.sha256()
     if p.is_file():
-        files = [p]
-    elif p.is_dir():
+        # a file hashed before in this process and unchanged since (dicer run exports one
+        # mesh twice): the same digest, not a second pass over GBs
+        st = p.stat()
+        key = (str(p.resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+        if key not in _DIGESTS:
+            _DIGESTS[key] = _sha256_of(p, [p])
+        return _DIGESTS[key]
+    if p.is_dir():
         files = sorted(f for f in p.rglob("*") if f.is_file())
     else:
         return None
+    return _sha256_of(p, files)
+
+
+_DIGESTS: dict[tuple, str] = {}
+"""Digests of files by (path, device, inode, size, modification and change times)."""
+
+
+def _sha256_of(p: Path, files: list[Path]) -> str:
+    """SHA-256 of ``files`` in turn (of a folder ``p``: each preceded by its relative name)."""
+    h = hashlib.sha256()
     block = bytearray(1 << 24)  # one buffer, refilled: no fresh memory per block
     view = memoryview(block)
     for f in files:

@@ -41,20 +41,28 @@ def ordered_map(fn: Callable, items: Iterable, workers: int | None = None) -> It
     ------
     The results in order. An exception raised by ``fn`` is raised when its item's turn
     comes, so the first failing item in order is the one reported; at most ``2 * workers``
-    items are in flight (memory stays a few chunks).
+    items are in flight (memory stays a few chunks). After a stop signal
+    (:func:`dicer.io.atomic.check_stop`) its exception is raised before the next item, also
+    in a thread other than the main one (a table written beside a report).
     """
+    from dicer.io.atomic import check_stop  # a stop signal ends the work between items, in any thread
+
     workers = min(MAX_WORKERS, cores()) if workers is None else workers
     if workers <= 1:
-        yield from map(fn, items)
+        for item in items:
+            check_stop()
+            yield fn(item)
         return
     with ThreadPoolExecutor(workers) as pool:
         flight: deque = deque()
         try:
             for item in items:
+                check_stop()
                 flight.append(pool.submit(fn, item))
                 if len(flight) >= 2 * workers:
                     yield flight.popleft().result()
             while flight:
+                check_stop()
                 yield flight.popleft().result()
         finally:
             for future in flight:  # an error or an abandoned generator: drop the work not started

@@ -119,3 +119,45 @@ def test_parse_reports_the_first_bad_record_when_several_chunks_are_bad():
     with pytest.raises(FormatError) as exc:  # the sink's error at record 3000 comes before the byte at 4321
         parse_records(np.frombuffer(bytes(buf), np.uint8), layout_of(record), chunk=chunk, sink=sink)
     assert exc.value.offset == 3000 * len(record)
+
+
+def test_a_stop_signal_ends_the_work_between_items_in_any_thread(monkeypatch):
+    """After SIGTERM (its handler leaves the exception in atomic.stop_requested) chunked work
+    stops before its next item, also in a thread other than the main one, which the
+    handler's own raise does not reach (a table written beside a report)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from dicer.io import atomic
+
+    class Stop(Exception):
+        pass
+
+    done = []
+
+    def consume(workers):
+        for v in ordered_map(lambda i: i, range(100), workers):
+            done.append(v)
+            if v == 9:
+                atomic.stop_requested.append(Stop)
+
+    for workers in (1, 2):
+        done.clear()
+        try:
+            with ThreadPoolExecutor(1) as other, pytest.raises(Stop):
+                other.submit(consume, workers).result()
+        finally:
+            atomic.stop_requested.clear()
+        assert done == list(range(10))
+
+
+def test_sigterm_while_the_metrics_table_is_written_beside_the_report(tmp_path):
+    from test_faults import _terminate_while_writing
+
+    from dicer.io.meshes import write_mesh
+    from dicer.mesh.voxel import voxel_mesh
+
+    vtu = tmp_path / "m.vtu"
+    write_mesh(voxel_mesh(np.ones((120, 120, 120), np.uint8)), vtu)
+    _terminate_while_writing(["quality", str(vtu), "-o", str(tmp_path / "q.json"), "--csv", str(tmp_path / "t.csv")],
+                             tmp_path, ".t.csv.*.tmp*", 120)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.vtu"]

@@ -8,20 +8,35 @@ thread gives.
 
 from __future__ import annotations
 
+import math
 import os
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 MAX_WORKERS = 2
 """Threads at most: the formats' chunk work scales to two, then the single writer limits."""
 
 
 def cores() -> int:
-    """Cores this process may run on (its CPU affinity: a SLURM job's allocation), at least 1."""
+    """Cores this process may use, at least 1: the fewest of its CPU affinity, a cgroup's CPU
+    quota (a container) and the CPUs a SLURM job gave each task (``SLURM_CPUS_PER_TASK``),
+    so a one-core job works in one thread even where its allocation is not pinned."""
     if hasattr(os, "sched_getaffinity"):
-        return max(1, len(os.sched_getaffinity(0)))
-    return max(1, os.cpu_count() or 1)
+        limits = [len(os.sched_getaffinity(0))]
+    else:
+        limits = [os.cpu_count() or 1]
+    try:  # cgroup v2: "<quota> <period>" in microseconds, or "max <period>"
+        quota, period = Path("/sys/fs/cgroup/cpu.max").read_text().split()[:2]
+        if quota != "max" and int(period) > 0:
+            limits.append(math.ceil(int(quota) / int(period)))
+    except (OSError, ValueError):
+        pass
+    per_task = os.environ.get("SLURM_CPUS_PER_TASK", "")
+    if per_task.isdigit() and int(per_task) > 0:
+        limits.append(int(per_task))
+    return max(1, min(limits))
 
 
 def ordered_map(fn: Callable, items: Iterable, workers: int | None = None) -> Iterator:

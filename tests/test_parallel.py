@@ -161,3 +161,20 @@ def test_sigterm_while_the_metrics_table_is_written_beside_the_report(tmp_path):
     _terminate_while_writing(["quality", str(vtu), "-o", str(tmp_path / "q.json"), "--csv", str(tmp_path / "t.csv")],
                              tmp_path, ".t.csv.*.tmp*", 120)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.vtu"]
+
+
+def test_cores_follow_a_slurm_task_and_a_cgroup_quota(monkeypatch, tmp_path):
+    import dicer.parallel as par
+
+    monkeypatch.setattr(par.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3}, raising=False)
+    monkeypatch.setattr(par, "Path", lambda name: tmp_path / "cpu.max")  # no cgroup file
+    monkeypatch.delenv("SLURM_CPUS_PER_TASK", raising=False)
+    assert par.cores() == 4
+    monkeypatch.setenv("SLURM_CPUS_PER_TASK", "1")
+    assert par.cores() == 1
+    monkeypatch.setenv("SLURM_CPUS_PER_TASK", "x")  # not a count: ignored
+    assert par.cores() == 4
+    (tmp_path / "cpu.max").write_text("150000 100000\n")  # 1.5 CPUs of quota
+    assert par.cores() == 2
+    (tmp_path / "cpu.max").write_text("max 100000\n")
+    assert par.cores() == 4

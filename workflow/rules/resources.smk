@@ -1,7 +1,7 @@
 # Cluster resources per rule: memory (mem_mb) and time limit (runtime, minutes) from the size
 # of the patient's input, by the formula in dicer/resources.py (docs/cluster.md gives the
-# measured peaks it was fitted to). Every dicer stage is single-threaded numpy/scipy code:
-# threads 1. A job that fails (out of memory, out of time) and is retried (--retries, on in
+# measured peaks it was fitted to). Each stage asks for threads 1: dicer then works in one
+# thread (SLURM_CPUS_PER_TASK=1), in two only where its process may use a second core. A job that fails (out of memory, out of time) and is retried (--retries, on in
 # the SLURM profile) asks for `attempt` times as much.
 
 from functools import lru_cache

@@ -232,10 +232,16 @@ def test_mapped_read_back_agrees_and_refuses_damage(tmp_path, mesh, cut):
     write_mesh(_with_extra_data(mesh), path)
     copied, mapped = _read_raw_vtu(path, "m.vtu"), _read_mapped_vtu(path, "m.vtu")
     assert copied[0] == mapped[0]
+    # the file holds indices as Int32: read into memory they are widened to int64, mapped
+    # they stay the file's
+    assert copied[2].dtype == copied[3]["lattice"].dtype == np.int64
+    assert mapped[2].dtype == mapped[3]["lattice"].dtype == np.dtype("<i4")
     for a, b in zip(copied[1:3], mapped[1:3]):
-        assert a.dtype == b.dtype and np.array_equal(a, b)
+        assert a.dtype.kind == b.dtype.kind and np.array_equal(a, b)
     for a, b in zip(copied[3:5], mapped[3:5]):
-        assert list(a) == list(b) and all(a[k].tobytes() == b[k].tobytes() for k in a)  # NaN too
+        assert list(a) == list(b)
+        assert all(np.array_equal(a[k], b[k]) if a[k].dtype.kind == "i" else a[k].tobytes() == b[k].tobytes()
+                   for k in a)  # NaN too
     data = path.read_bytes()
     path.write_bytes(data[:cut] if isinstance(cut, int) else data[:int(len(data) * cut)])
     with pytest.raises(DicerError, match=r"m\.vtu: cannot read mesh .*is the file complete\?"):
@@ -310,3 +316,46 @@ def test_compressed_vtu_refuses_damage(tmp_path, mesh):
         bad.write_bytes(damaged)
         with pytest.raises(DicerError, match="cannot read mesh"):
             read_mesh(bad)
+
+
+def test_indices_written_as_int32_unless_they_do_not_fit(tmp_path):
+    # connectivity, offsets and lattice are Int32 in the file (half the bytes) when their
+    # values fit, Int64 when not; either way they read back exactly, as int64
+    from dataclasses import replace
+
+    mesh = voxel_mesh(np.ones((3, 3, 3), np.uint8))
+    path = tmp_path / "small.vtu"
+    write_mesh(mesh, path)
+    head = path.read_bytes()[:4000].decode("latin-1")
+    for name in ("connectivity", "offsets", "lattice"):
+        assert f'type="Int32" Name="{name}"' in head
+    far = replace(mesh, lattice=mesh.lattice + 2**31, grid_shape=np.asarray(mesh.grid_shape) + 2**31 + 1)
+    write_mesh(far, tmp_path / "far.vtu")
+    head = (tmp_path / "far.vtu").read_bytes()[:4000].decode("latin-1")
+    assert 'type="Int64" Name="lattice"' in head and 'type="Int32" Name="connectivity"' in head
+    for m, p in ((mesh, path), (far, tmp_path / "far.vtu")):
+        back = read_mesh(p)
+        assert back.cells.dtype == back.lattice.dtype == np.int64
+        assert np.array_equal(back.cells, m.cells) and np.array_equal(back.lattice, m.lattice)
+
+
+def test_index_types_chosen_so_that_meshio_finds_every_array(tmp_path):
+    # meshio's raw-data reader finds arrays by offsets it rewrites as it goes; for some
+    # array sizes (a 2 x 2 x 2 voxel mesh's, with Int32 indices) it would take an earlier
+    # array's tag again and drop the lattice. The writer then widens an index array.
+    import meshio
+
+    from dicer.io.meshes import _meshio_walk_ok
+
+    assert not _meshio_walk_ok([648, 256, 32, 8, 324, 32, 64, 64])  # 2 x 2 x 2, all Int32
+    assert _meshio_walk_ok([648, 256, 64, 8, 324, 32, 64, 64])  # offsets Int64
+    for shape in [(2, 2, 2), (3, 3, 3), (2, 2, 1), (1, 7, 3), (4, 4, 4)]:
+        mesh = voxel_mesh(np.ones(shape, np.uint8))
+        path = tmp_path / "m.vtu"
+        write_mesh(mesh, path)
+        m = meshio.read(path)
+        assert list(m.point_data) == ["lattice"] and list(m.cell_data) == ["material", "scaled_jacobian", "edge_ratio"]
+        assert np.array_equal(m.point_data["lattice"], mesh.lattice)
+        assert np.array_equal(m.cells[0].data, mesh.cells)
+    head = (tmp_path / "m.vtu").read_bytes()[:3000]
+    assert b'type="Int32" Name="connectivity"' in head

@@ -3,9 +3,11 @@ exactly before every rename.
 
 The files are VTK XML UnstructuredGrid (ParaView and meshio open them): the XML header
 lists the arrays, then one ``<AppendedData encoding="raw">`` block holds each array as
-an 8-byte size (header_type UInt64) followed by its little-endian bytes. Writing is one
-file write per array and reading one ``np.fromfile`` per array, so both run at disk
-speed; meshio's VTU writer and reader (base64 or zlib) took 5-20 s each on a 6.4 M
+an 8-byte size (header_type UInt64) followed by its little-endian bytes. Index arrays
+(connectivity, offsets, lattice) are Int32 whenever their values fit (a third less to
+write and read at 6.4 M elements: 0.60 GB, not 0.91 GB); readers widen them to the
+Mesh's int64. Writing is one file write per array (a piece at a time for the narrowed
+ones) and reading one ``np.fromfile`` per array, so both run at disk speed; meshio's VTU writer and reader (base64 or zlib) took 5-20 s each on a 6.4 M
 element mesh (see docs/benchmark.md). meshio reads these files too, and checks the
 small ones after writing (MESHIO_CHECK_CELLS). Other VTU files (older dicer files,
 ParaView's) are read with meshio. The read-back check maps the file and compares its
@@ -164,6 +166,62 @@ def quality_meanwhile(mesh: Mesh):
                metrics.result)
 
 
+class _Narrow:
+    """An int64 array written as int32 (its values known to fit), converted a piece at a
+    time as the writer writes it: half the bytes on disk and no second copy in memory."""
+
+    def __init__(self, a: np.ndarray):
+        self.a = np.ascontiguousarray(a)
+        self.dtype, self.shape, self.ndim = np.dtype("<i4"), self.a.shape, self.a.ndim
+        self.nbytes = 4 * self.a.size
+
+    def array(self) -> np.ndarray:
+        return self.a.astype(self.dtype)
+
+    def write(self, f) -> None:
+        flat = self.a.reshape(-1)
+        buf = np.empty(min(flat.size, 1 << 21), self.dtype)
+        for start in range(0, flat.size, buf.size):
+            n = min(buf.size, flat.size - start)
+            buf[:n] = flat[start:start + n]
+            f.write(buf[:n].data)
+
+
+_INT32_MAX = np.iinfo(np.int32).max
+
+
+def _index_array(a: np.ndarray, largest: int, wide: bool = False):
+    """Indices (connectivity, offsets, lattice) as Int32 when ``largest`` (a bound on their
+    values) allows and not ``wide``, else Int64: the indices of any mesh that fits in memory
+    fit in Int32, and half the bytes make the files quicker to write and read. Readers
+    widen them again."""
+    return _Narrow(a) if largest <= _INT32_MAX and not wide else np.asarray(a, np.int64)
+
+
+_WIDENINGS = ((), ("offsets",), ("lattice",), ("offsets", "lattice"), ("connectivity",),
+              ("connectivity", "offsets"), ("connectivity", "lattice"), ("connectivity", "offsets", "lattice"))
+"""Index arrays written as Int64 although they fit in Int32, tried in this order until
+meshio can read the file (see :func:`_meshio_walk_ok`)."""
+
+
+def _meshio_walk_ok(sizes: list[int]) -> bool:
+    """True if meshio's reader of raw appended data finds every array of these byte sizes.
+
+    It walks the arrays in order, finds each one's tag by its offset in the file and
+    rewrites that offset to where the array will sit in a base64 copy (a multiple of 4);
+    when an array's offset equals such a rewritten offset of an earlier one, it takes that
+    earlier tag again and drops or misreads arrays. Whether that happens depends only on
+    the sizes, so the writer picks index types for which it does not."""
+    rewritten, offset, base64_at = set(), 0, 0
+    for size in sizes:
+        if offset in rewritten:
+            return False
+        rewritten.add(base64_at)
+        offset += 8 + size
+        base64_at += 4 * -(-(8 + size) // 3)
+    return True
+
+
 def _extra_array(path: Path, kind: str, key: str, values, count: int) -> np.ndarray:
     if isinstance(values, _Later):
         return values
@@ -177,17 +235,21 @@ def _extra_array(path: Path, kind: str, key: str, values, count: int) -> np.ndar
     return a
 
 
-def _vtu_arrays(mesh: Mesh, path: Path) -> dict[str, list[tuple[str, np.ndarray]]]:
-    """The arrays of the file by XML section, each C-contiguous and little-endian."""
+def _vtu_arrays(mesh: Mesh, path: Path, wide=()) -> dict[str, list[tuple[str, np.ndarray]]]:
+    """The arrays of the file by XML section, each C-contiguous and little-endian; the
+    index arrays named in ``wide`` as Int64 (see :func:`_index_array`)."""
     k = mesh.cells.shape[1]
+    offsets_type = np.int32 if k * mesh.n_cells <= _INT32_MAX and "offsets" not in wide else np.int64
     sections = {
         "Points": [("Points", np.asarray(mesh.points, np.float64))],
         "Cells": [
-            ("connectivity", np.asarray(mesh.cells, np.int64)),
-            ("offsets", np.arange(k, k * mesh.n_cells + 1, k, dtype=np.int64)),
+            ("connectivity", _index_array(np.asarray(mesh.cells, np.int64), mesh.n_points, "connectivity" in wide)),
+            ("offsets", np.arange(k, k * mesh.n_cells + 1, k, dtype=offsets_type)),
             ("types", np.full(mesh.n_cells, _VTK_CELL_TYPES[k], np.uint8)),
         ],
-        "PointData": [("lattice", np.asarray(mesh.lattice, np.int64))]
+        # a lattice index lies between -1 (a node between lattice points) and the grid's size
+        "PointData": [("lattice", _index_array(np.asarray(mesh.lattice, np.int64),
+                                               int(np.max(mesh.grid_shape, initial=0)) + 1, "lattice" in wide))]
         + [(key, _extra_array(path, "point", key, v, mesh.n_points)) for key, v in mesh.point_data.items()
            if key != "lattice"],
         "CellData": [("material", np.asarray(mesh.material, np.int32))]
@@ -195,7 +257,7 @@ def _vtu_arrays(mesh: Mesh, path: Path) -> dict[str, list[tuple[str, np.ndarray]
            if key != "material"],
     }
     return {
-        s: [(n, a if isinstance(a, _Later) else np.ascontiguousarray(a, a.dtype.newbyteorder("<")))
+        s: [(n, a if isinstance(a, (_Later, _Narrow)) else np.ascontiguousarray(a, a.dtype.newbyteorder("<")))
             for n, a in arrays]
         for s, arrays in sections.items()
     }
@@ -234,7 +296,10 @@ def _zlib_blocks(a: np.ndarray, start: int) -> list:
 
 def _write_vtu(mesh: Mesh, path: Path, compress: bool = False) -> None:
     """Write ``mesh`` at ``path``: raw appended data, zlib blocks with ``compress``."""
-    sections = _vtu_arrays(mesh, path)
+    for wide in _WIDENINGS if not compress else ((),):
+        sections = _vtu_arrays(mesh, path, wide)
+        if _meshio_walk_ok([a.nbytes for arrays in sections.values() for _, a in arrays]):
+            break
     offset, tags, blocks = 0, [], []
     for section, arrays in sections.items():
         tags.append(f"<{section}>\n")
@@ -246,9 +311,11 @@ def _write_vtu(mesh: Mesh, path: Path, compress: bool = False) -> None:
             # or its compressed blocks
             if compress and isinstance(a, _Later):
                 a = np.frombuffer(a.data(), a.dtype).reshape(a.shape)
+            elif compress and isinstance(a, _Narrow):
+                a = a.array()
             parts = (_zlib_blocks(a, offset) if compress
                      else [np.uint64(a.nbytes).astype("<u8").tobytes(),
-                           a if isinstance(a, _Later) else a.reshape(-1).view(np.uint8).data])
+                           a if isinstance(a, (_Later, _Narrow)) else a.reshape(-1).view(np.uint8).data])
             blocks.extend(parts)
             offset += sum(len(p) if isinstance(p, bytes) else p.nbytes for p in parts)
         tags.append(f"</{section}>\n")
@@ -260,7 +327,10 @@ def _write_vtu(mesh: Mesh, path: Path, compress: bool = False) -> None:
     with open(path, "wb") as f:
         f.write(head)
         for part in blocks:
-            f.write(part.data() if isinstance(part, _Later) else part)
+            if isinstance(part, _Narrow):
+                part.write(f)
+            else:
+                f.write(part.data() if isinstance(part, _Later) else part)
         f.write(_TAIL)
 
 
@@ -352,7 +422,7 @@ def _check_written(mesh: Mesh, tmp: Path, path: Path) -> None:
     mesh); small meshes are also read with meshio."""
     readers = [_read_mapped_vtu] + ([_read_meshio] if mesh.n_cells <= MESHIO_CHECK_CELLS else [])
     for reader in readers:
-        back = _assemble(str(path), *(reader(tmp, str(path)) or _unreadable(str(path))))
+        back = _assemble(str(path), *(reader(tmp, str(path)) or _unreadable(str(path))), widen=False)
         if not _same_mesh(mesh, back):
             raise DicerError(f"{path}: read-back check failed: the file does not hold the mesh written; "
                              "check the disk and write again")
@@ -373,6 +443,9 @@ def _unreadable(name: str):
 def _damaged(name: str, what: str) -> DicerError:
     return DicerError(f"{name}: cannot read mesh ({what}); is the file complete?")
 
+
+_INDICES = ("connectivity", "lattice")
+"""Index arrays a reader widens to int64 (the Mesh's type) as it reads them."""
 
 _CHECKED = {("Cells", "offsets"), ("Cells", "types")} | {("CellData", k) for k in QUALITY_DATA}
 """Arrays a reader only checks or drops (the quality data describe the nodes as written):
@@ -412,6 +485,19 @@ def _read_raw_vtu(path: Path, name: str, mapped: bool = False):
             stop = min(start + count * dtype.itemsize, whole.size) if start >= 0 else 0
             stop -= (stop - start) % dtype.itemsize if stop > start else 0
             return whole[start:stop].view(dtype) if stop > start else np.empty(0, dtype)
+        def widened(start: int, dtype: np.dtype, count: int) -> np.ndarray:
+            """Up to ``count`` integers of ``dtype`` at byte ``start``, read a piece at a time
+            into int64 (the Mesh's index type): no narrow copy of the whole array."""
+            out = np.empty(count, np.int64)
+            f.seek(start)
+            for at_item in range(0, count, 1 << 21):
+                want = min(1 << 21, count - at_item)
+                got = np.fromfile(f, dtype, want)
+                out[at_item:at_item + got.size] = got
+                if got.size < want:
+                    return out[:at_item + got.size]
+            return out
+
         try:
             root = ET.fromstring(head[:at] + b"</VTKFile>")
         except ET.ParseError as exc:
@@ -458,11 +544,14 @@ def _read_raw_vtu(path: Path, name: str, mapped: bool = False):
                                      "short or damaged")
             if rest or (rows is not None and count != rows * ncomp) or offset < 0:
                 raise _damaged(name, f"{label} has {int(size[0])} bytes, which does not match the header")
-            a = fetch(data_start + offset + 8, dtype, count, view)
+            if not view and dtype.kind == "i" and dtype.itemsize < 8 and da.get("Name") in _INDICES:
+                a = widened(data_start + offset + 8, dtype, count)
+            else:
+                a = fetch(data_start + offset + 8, dtype, count, view).astype(dtype.newbyteorder("="), copy=False)
             if a.size != count:
                 raise _damaged(name, f"{label} is cut short")
-            ends.append(offset + 8 + a.nbytes)
-            return a.astype(dtype.newbyteorder("="), copy=False) if ncomp == 1 else a.reshape(-1, ncomp)
+            ends.append(offset + 8 + count * dtype.itemsize)
+            return a if ncomp == 1 else a.reshape(-1, ncomp)
 
         def section(tag: str, rows: int | None) -> dict[str, np.ndarray]:
             node = piece.find(tag)
@@ -604,15 +693,18 @@ def _check_arrays(name, points, cells, material, lattice, level=None) -> None:
             raise DicerError(f"{name}: {int(np.count_nonzero(bad))} node(s) have a negative lattice index; {fix}")
 
 
-def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data) -> Mesh:
-    """A Mesh from the arrays of a file, with dicer's checks of its data."""
-    cells = np.asarray(cells).astype(np.int64, copy=False)
+def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data, widen: bool = True) -> Mesh:
+    """A Mesh from the arrays of a file, with dicer's checks of its data. ``widen=False``
+    keeps the file's integer types (a read-back compared with the mesh written: no copy)."""
+    cells, lattice = np.asarray(cells), np.asarray(point_data.get("lattice", ()))
+    if widen:
+        cells, lattice = cells.astype(np.int64, copy=False), lattice.astype(np.int64, copy=False)
     if "material" not in cell_data:
         raise DicerError(f"{name}: mesh has no 'material' cell data; make it with 'dicer mesh'")
     if "lattice" not in point_data:
         raise DicerError(f"{name}: mesh has no 'lattice' point data (not made by 'dicer mesh'); remesh from labels with 'dicer mesh'")
     material = np.asarray(cell_data["material"]).astype(np.int32, copy=False).reshape(-1)
-    lattice = np.asarray(point_data["lattice"]).astype(np.int64, copy=False).reshape(len(points), -1)
+    lattice = lattice.reshape(len(points), -1)
     if lattice.shape[1] == 2:
         lattice = np.column_stack([lattice, np.zeros(len(lattice), np.int64)])
     points = np.asarray(points).astype(np.float64, copy=False)
@@ -664,6 +756,10 @@ def read_mesh(path: str | os.PathLike, source: str | None = None, mapped: bool =
         raise DicerError(f"{name}: mesh file not found; check the path")
     parts = _read_raw_vtu(path, name, mapped) if path.suffix.lower() == ".vtu" and path.is_file() else None
     mesh = _assemble(name, *(parts or _read_meshio(path, name)))
+    if mapped and parts:
+        # the index arrays widened from the file's Int32 are copies: read-only too, as the
+        # mapped arrays are, so that no stage writes into its input
+        mesh.cells.flags.writeable = mesh.lattice.flags.writeable = False
     # the quality arrays describe the nodes as they were written: a stage that moves them
     # would carry stale values on, so every writer computes them afresh
     for key in QUALITY_DATA:

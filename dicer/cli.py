@@ -1156,6 +1156,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         print("error: interrupted; no output was kept", file=sys.stderr)
+        # CPython marks the process interrupted when a KeyboardInterrupt leaves an exec()
+        # or eval() of a string (a namedtuple or dataclass made while a module is
+        # imported), caught or not, and under "python -m" then ends it by SIGINT instead
+        # of exiting 130; the next exec of a string clears the mark
+        exec("None")
         return 130
     except MemoryError:
         print("error: out of memory; downsample the labels (downsample.factor) or use a larger machine", file=sys.stderr)

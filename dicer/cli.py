@@ -23,6 +23,7 @@ from pathlib import Path
 from dicer import __version__
 from dicer.errors import DicerError
 from dicer.io.atomic import all_or_nothing, check_stop, stop_requested
+from dicer.pages import ordinary_pages
 
 log = logging.getLogger("dicer")
 
@@ -1144,7 +1145,7 @@ def main(argv: list[str] | None = None) -> int:
                              "another path") from None
         # a command's several outputs replace the old files together, or none does
         # ('run' publishes its folder itself: its stages read each other's files)
-        with contextlib.nullcontext() if args.command == "run" else all_or_nothing():
+        with contextlib.nullcontext() if args.command == "run" else all_or_nothing(), ordinary_pages(unless_set=True):
             args.func(args)
         check_stop()
     except Terminated:

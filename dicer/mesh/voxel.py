@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from contextlib import contextmanager
-
 import numpy as np
 
 from dicer.config import takes_settings
@@ -11,6 +9,7 @@ from dicer.errors import DicerError
 from dicer.mesh.frame import check_direction
 from dicer.mesh.model import Mesh
 from dicer.mesh.topology import HEX_CORNERS, QUAD_CORNERS
+from dicer.pages import ordinary_pages
 
 _BLOCK = 1 << 16
 """Grid points per slab of x planes: a slab's temporaries stay in cache."""
@@ -54,7 +53,7 @@ def voxel_mesh(labels: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.
     solid = vol != 0
     if not solid.any():
         raise DicerError("the label image has no non-background voxel; nothing to mesh")
-    with _small_pages():
+    with ordinary_pages():  # fresh huge pages are slow to come by on virtual machines (dicer.pages)
         points, cells, lattice = _hexahedra(solid, corners, spacing3, origin3)
         material = vol[solid].astype(np.int32)
     return Mesh(points, cells, material, lattice, spacing3, origin3, grid_shape, direction=direction)
@@ -112,32 +111,6 @@ def _hexahedra(solid: np.ndarray, corners: np.ndarray, spacing3: np.ndarray, ori
             np.add(index[axis], x0 if axis == 0 else 0, out=lattice[rows, axis])
             np.take(coordinate[axis], lattice[rows, axis], out=points[rows, axis], mode="clip")
     return points, cells, lattice
-
-
-@contextmanager
-def _small_pages():
-    """Allocate the arrays made inside the block in ordinary (4 KiB) pages.
-
-    numpy asks the kernel for transparent huge pages for every array of 4 MiB or more.
-    On virtual machines that hand freed memory back to the host (free page reporting),
-    every fresh huge page is first faulted in by the host: writing a new 0.75 GB mesh
-    then took about three times as long as with ordinary pages.
-    """
-    try:
-        from numpy._core.multiarray import _set_madvise_hugepage
-    except ImportError:  # numpy < 2
-        try:
-            from numpy.core.multiarray import _set_madvise_hugepage
-        except ImportError:
-            _set_madvise_hugepage = None
-    if _set_madvise_hugepage is None:
-        yield
-        return
-    previous = _set_madvise_hugepage(False)
-    try:
-        yield
-    finally:
-        _set_madvise_hugepage(previous)
 
 
 @takes_settings("mesh")

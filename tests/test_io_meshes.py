@@ -118,15 +118,19 @@ def test_raw_vtu_round_trip_exact_and_meshio_reads_it(tmp_path, mesh, dim):
     _assert_same(read_mesh(path), mesh)
     # meshio (the reference reader) gets the same arrays
     # (with the quality arrays the file adds, which read_mesh leaves out)
-    from dicer.io.meshes import _assemble, _read_meshio, with_quality
-    _assert_same(_assemble("m", *_read_meshio(path, "m")), with_quality(mesh))
+    # (Float32 in stage files: STAGE_QUALITY_TYPE)
+    from dicer.io.meshes import STAGE_QUALITY_TYPE, _assemble, _read_meshio, with_quality
+    stage_quality = {k: v.astype(STAGE_QUALITY_TYPE) for k, v in with_quality(mesh).cell_data.items()
+                     if k in ("scaled_jacobian", "edge_ratio")}
+    _assert_same(_assemble("m", *_read_meshio(path, "m")), with_quality(mesh, stage_quality))
     m = meshio.read(path)
     assert m.cells[0].type == ("quad" if dim == 2 else "hexahedron")
     assert np.array_equal(m.point_data["lattice"], mesh.lattice)
     assert np.array_equal(m.cell_data["material"][0], mesh.material)
     assert list(m.cell_data)[:3] == ["material", "scaled_jacobian", "edge_ratio"]
-    assert np.array_equal(m.cell_data["scaled_jacobian"][0], scaled_jacobian(mesh.points, mesh.cells))
-    assert np.array_equal(m.cell_data["edge_ratio"][0], edge_ratio(mesh.points, mesh.cells))
+    assert m.cell_data["scaled_jacobian"][0].dtype == m.cell_data["edge_ratio"][0].dtype == np.float32
+    assert np.array_equal(m.cell_data["scaled_jacobian"][0], scaled_jacobian(mesh.points, mesh.cells).astype(np.float32))
+    assert np.array_equal(m.cell_data["edge_ratio"][0], edge_ratio(mesh.points, mesh.cells).astype(np.float32))
 
 
 def test_quality_arrays_follow_the_nodes(tmp_path, mesh):
@@ -175,7 +179,7 @@ def test_truncated_raw_vtu_names_the_file(tmp_path, mesh, cut):
 @pytest.mark.parametrize("old, new", [
     (b'offset="0"', b'offset="8"'),  # an array points at the wrong place
     (b'NumberOfPoints="', b'NumberOfPoints="1'),  # counts do not match the data
-    (b'type="Int32" Name="material"', b'type="Int42" Name="material"'),
+    (b'type="UInt8" Name="material"', b'type="Int42" Name="material"'),
     (b"</Points>", b"</Pointz>"),  # not XML any more
 ])
 def test_corrupted_raw_vtu_header_names_the_file(tmp_path, mesh, old, new):
@@ -232,10 +236,10 @@ def test_mapped_read_back_agrees_and_refuses_damage(tmp_path, mesh, cut):
     write_mesh(_with_extra_data(mesh), path)
     copied, mapped = _read_raw_vtu(path, "m.vtu"), _read_mapped_vtu(path, "m.vtu")
     assert copied[0] == mapped[0]
-    # the file holds indices as Int32: read into memory they are widened to int64, mapped
-    # they stay the file's
+    # the file holds connectivity as Int32 and the lattice as Int16: read into memory they
+    # are widened to int64, mapped they stay the file's
     assert copied[2].dtype == copied[3]["lattice"].dtype == np.int64
-    assert mapped[2].dtype == mapped[3]["lattice"].dtype == np.dtype("<i4")
+    assert mapped[2].dtype == np.dtype("<i4") and mapped[3]["lattice"].dtype == np.dtype("<i2")
     for a, b in zip(copied[1:3], mapped[1:3]):
         assert a.dtype.kind == b.dtype.kind and np.array_equal(a, b)
     for a, b in zip(copied[3:5], mapped[3:5]):
@@ -318,25 +322,37 @@ def test_compressed_vtu_refuses_damage(tmp_path, mesh):
             read_mesh(bad)
 
 
-def test_indices_written_as_int32_unless_they_do_not_fit(tmp_path):
-    # connectivity, offsets and lattice are Int32 in the file (half the bytes) when their
-    # values fit, Int64 when not; either way they read back exactly, as int64
+def test_integer_arrays_written_narrow_unless_they_do_not_fit(tmp_path):
+    # connectivity and offsets Int32, the lattice Int16 and the material UInt8 in the file
+    # when their values fit, wider when not; either way they read back exactly, as the
+    # Mesh's int64 (int32 for the material)
     from dataclasses import replace
 
     mesh = voxel_mesh(np.ones((3, 3, 3), np.uint8))
     path = tmp_path / "small.vtu"
     write_mesh(mesh, path)
     head = path.read_bytes()[:4000].decode("latin-1")
-    for name in ("connectivity", "offsets", "lattice"):
-        assert f'type="Int32" Name="{name}"' in head
-    far = replace(mesh, lattice=mesh.lattice + 2**31, grid_shape=np.asarray(mesh.grid_shape) + 2**31 + 1)
-    write_mesh(far, tmp_path / "far.vtu")
-    head = (tmp_path / "far.vtu").read_bytes()[:4000].decode("latin-1")
-    assert 'type="Int64" Name="lattice"' in head and 'type="Int32" Name="connectivity"' in head
-    for m, p in ((mesh, path), (far, tmp_path / "far.vtu")):
+    for name, kind in (("connectivity", "Int32"), ("offsets", "Int32"), ("lattice", "Int16"), ("material", "UInt8"),
+                       ("scaled_jacobian", "Float32"), ("edge_ratio", "Float32")):
+        assert f'type="{kind}" Name="{name}"' in head
+    cases = {
+        "far.vtu": (replace(mesh, lattice=mesh.lattice + 2**31, grid_shape=np.asarray(mesh.grid_shape) + 2**31 + 1),
+                    "Int64", "UInt8"),
+        "wide.vtu": (replace(mesh, lattice=mesh.lattice + 40_000, grid_shape=np.asarray(mesh.grid_shape) + 40_001,
+                             material=np.arange(300, 300 + mesh.n_cells, dtype=np.int32)), "Int32", "Int16"),
+        "atlas.vtu": (replace(mesh, material=np.arange(1, 1 + mesh.n_cells, dtype=np.int32) * 70_000), "Int16",
+                      "Int32"),
+    }
+    for name, (m, lattice_type, material_type) in cases.items():
+        write_mesh(m, tmp_path / name)
+        head = (tmp_path / name).read_bytes()[:4000].decode("latin-1")
+        assert f'type="{lattice_type}" Name="lattice"' in head and 'type="Int32" Name="connectivity"' in head
+        assert f'type="{material_type}" Name="material"' in head
+    for m, p in [(mesh, path)] + [(m, tmp_path / name) for name, (m, _, _) in cases.items()]:
         back = read_mesh(p)
-        assert back.cells.dtype == back.lattice.dtype == np.int64
+        assert back.cells.dtype == back.lattice.dtype == np.int64 and back.material.dtype == np.int32
         assert np.array_equal(back.cells, m.cells) and np.array_equal(back.lattice, m.lattice)
+        assert np.array_equal(back.material, m.material)
 
 
 def test_index_types_chosen_so_that_meshio_finds_every_array(tmp_path):
@@ -359,3 +375,27 @@ def test_index_types_chosen_so_that_meshio_finds_every_array(tmp_path):
         assert np.array_equal(m.cells[0].data, mesh.cells)
     head = (tmp_path / "m.vtu").read_bytes()[:3000]
     assert b'type="Int32" Name="connectivity"' in head
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 10_000), dim=st.sampled_from([2, 3]), labels=st.sampled_from([2, 255, 256, 40_000]))
+def test_stage_vtu_reads_as_meshio_reads_it(tmp_path, seed, dim, labels):
+    # whatever narrow types the writer picks (and widens for meshio's reader), meshio and
+    # dicer's reader get the same arrays, and dicer's the mesh written
+    rng = np.random.default_rng(seed)
+    shape = tuple(rng.integers(1, 6, dim))
+    image = rng.integers(0, 3, shape).astype(np.int32)
+    image.flat[0] = 1
+    image[image > 0] = rng.integers(1, labels + 1, int(np.count_nonzero(image)))
+    m = voxel_mesh(image)
+    m.points[:, :dim] += rng.uniform(-0.2, 0.2, (m.n_points, dim))
+    path = tmp_path / f"s{seed}_{dim}_{labels}.vtu"
+    write_mesh(m, path)
+    ref = meshio.read(path)
+    back = read_mesh(path)
+    assert meshes_io._same_mesh(m, back)
+    assert np.array_equal(ref.points, m.points) and np.array_equal(ref.cells[0].data, m.cells)
+    assert np.array_equal(ref.point_data["lattice"], m.lattice)
+    assert np.array_equal(ref.cell_data["material"][0], m.material)
+    assert list(ref.cell_data) == ["material", "scaled_jacobian", "edge_ratio"]
+    assert np.array_equal(ref.cell_data["scaled_jacobian"][0], scaled_jacobian(m.points, m.cells).astype(np.float32))

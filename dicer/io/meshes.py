@@ -3,10 +3,12 @@ exactly before every rename.
 
 The files are VTK XML UnstructuredGrid (ParaView and meshio open them): the XML header
 lists the arrays, then one ``<AppendedData encoding="raw">`` block holds each array as
-an 8-byte size (header_type UInt64) followed by its little-endian bytes. Index arrays
-(connectivity, offsets, lattice) are Int32 whenever their values fit (a third less to
-write and read at 6.4 M elements: 0.60 GB, not 0.91 GB); readers widen them to the
-Mesh's int64. Writing is one file write per array (a piece at a time for the narrowed
+an 8-byte size (header_type UInt64) followed by its little-endian bytes. Integer arrays
+are as narrow as their values allow: connectivity and offsets Int32, the lattice Int16
+(images under 32767 voxels a side), the material UInt8 (up to 255 materials); the quality
+arrays are Float32 (:data:`STAGE_QUALITY_TYPE`). At 6.4 M elements that is 0.49 GB, where
+Int64 indices and Float64 quality took 0.91 GB; readers widen the arrays to the Mesh's
+types again. Writing is one file write per array (a piece at a time for the narrowed
 ones) and reading one ``np.fromfile`` per array, so both run at disk speed; meshio's VTU writer and reader (base64 or zlib) took 5-20 s each on a 6.4 M
 element mesh (see docs/benchmark.md). meshio reads these files too, and checks the
 small ones after writing (MESHIO_CHECK_CELLS). Other VTU files (older dicer files,
@@ -168,13 +170,13 @@ def quality_meanwhile(mesh: Mesh):
 
 
 class _Narrow:
-    """An int64 array written as int32 (its values known to fit), converted a piece at a
-    time as the writer writes it: half the bytes on disk and no second copy in memory."""
+    """An integer array written in a narrower type (its values known to fit), converted a
+    piece at a time as the writer writes it: fewer bytes on disk and no second copy in memory."""
 
-    def __init__(self, a: np.ndarray):
+    def __init__(self, a: np.ndarray, dtype=np.int32):
         self.a = np.ascontiguousarray(a)
-        self.dtype, self.shape, self.ndim = np.dtype("<i4"), self.a.shape, self.a.ndim
-        self.nbytes = 4 * self.a.size
+        self.dtype, self.shape, self.ndim = np.dtype(dtype).newbyteorder("<"), self.a.shape, self.a.ndim
+        self.nbytes = self.dtype.itemsize * self.a.size
 
     def array(self) -> np.ndarray:
         return self.a.astype(self.dtype)
@@ -191,17 +193,29 @@ class _Narrow:
 _INT32_MAX = np.iinfo(np.int32).max
 
 
-def _index_array(a: np.ndarray, largest: int, wide: bool = False):
-    """Indices (connectivity, offsets, lattice) as Int32 when ``largest`` (a bound on their
-    values) allows and not ``wide``, else Int64: the indices of any mesh that fits in memory
-    fit in Int32, and half the bytes make the files quicker to write and read. Readers
-    widen them again."""
-    return _Narrow(a) if largest <= _INT32_MAX and not wide else np.asarray(a, np.int64)
+def _narrowest(smallest: int, largest: int, wide: bool = False, types=(np.uint8, np.int16, np.int32)):
+    """The first of ``types`` that holds every value from ``smallest`` to ``largest`` (not
+    ``wide``), else int64."""
+    for t in types if not wide else ():
+        info = np.iinfo(t)
+        if info.min <= smallest and largest <= info.max:
+            return np.dtype(t)
+    return np.dtype(np.int64)
 
 
-_WIDENINGS = ((), ("offsets",), ("lattice",), ("offsets", "lattice"), ("connectivity",),
-              ("connectivity", "offsets"), ("connectivity", "lattice"), ("connectivity", "offsets", "lattice"))
-"""Index arrays written as Int64 although they fit in Int32, tried in this order until
+def _index_array(a: np.ndarray, smallest: int, largest: int, wide: bool = False, types=(np.int32,)):
+    """An integer array (connectivity, lattice, material) in the narrowest of ``types`` that
+    holds ``smallest`` .. ``largest`` (bounds on its values), else Int64 (also with ``wide``):
+    the indices of any mesh that fits in memory fit in Int32, a lattice index in Int16 for
+    images under 32767 voxels a side, and fewer bytes make the files quicker to write and
+    read. Readers widen them again."""
+    dtype = _narrowest(smallest, largest, wide, types)
+    return np.asarray(a, np.int64) if dtype == np.int64 else _Narrow(a, dtype)
+
+
+_WIDENABLE = ("offsets", "lattice", "material", "connectivity")
+_WIDENINGS = tuple(tuple(n for i, n in enumerate(_WIDENABLE) if mask >> i & 1) for mask in range(1 << len(_WIDENABLE)))
+"""Arrays written as Int64 although they fit a narrower type, tried in this order until
 meshio can read the file (see :func:`_meshio_walk_ok`)."""
 
 
@@ -236,24 +250,28 @@ def _extra_array(path: Path, kind: str, key: str, values, count: int) -> np.ndar
     return a
 
 
-def _vtu_arrays(mesh: Mesh, path: Path, wide=()) -> dict[str, list[tuple[str, np.ndarray]]]:
+def _vtu_arrays(mesh: Mesh, path: Path, wide=(), stage: bool = True) -> dict[str, list[tuple[str, np.ndarray]]]:
     """The arrays of the file by XML section, each C-contiguous and little-endian; the
-    index arrays named in ``wide`` as Int64 (see :func:`_index_array`)."""
+    integer arrays named in ``wide`` as Int64 (see :func:`_index_array`). ``stage``: a
+    stage file, its lattice and material as narrow as they fit; else (model.vtu) Int32."""
     k = mesh.cells.shape[1]
     offsets_type = np.int32 if k * mesh.n_cells <= _INT32_MAX and "offsets" not in wide else np.int64
     sections = {
         "Points": [("Points", np.asarray(mesh.points, np.float64))],
         "Cells": [
-            ("connectivity", _index_array(np.asarray(mesh.cells, np.int64), mesh.n_points, "connectivity" in wide)),
+            ("connectivity", _index_array(mesh.cells, 0, mesh.n_points, "connectivity" in wide)),
             ("offsets", np.arange(k, k * mesh.n_cells + 1, k, dtype=offsets_type)),
             ("types", np.full(mesh.n_cells, _VTK_CELL_TYPES[k], np.uint8)),
         ],
         # a lattice index lies between -1 (a node between lattice points) and the grid's size
-        "PointData": [("lattice", _index_array(np.asarray(mesh.lattice, np.int64),
-                                               int(np.max(mesh.grid_shape, initial=0)) + 1, "lattice" in wide))]
+        "PointData": [("lattice", _index_array(mesh.lattice, -1, int(np.max(mesh.grid_shape, initial=0)) + 1,
+                                               "lattice" in wide, (np.int16, np.int32) if stage else (np.int32,)))]
         + [(key, _extra_array(path, "point", key, v, mesh.n_points)) for key, v in mesh.point_data.items()
            if key != "lattice"],
-        "CellData": [("material", np.asarray(mesh.material, np.int32))]
+        # labels are 1..K: one byte for up to 255 materials (an atlas of more takes two)
+        "CellData": [("material", _index_array(mesh.material, int(np.min(mesh.material, initial=0)),
+                                               int(np.max(mesh.material, initial=0)), "material" in wide,
+                                               (np.uint8, np.int16, np.int32) if stage else (np.int32,)))]
         + [(key, _extra_array(path, "cell", key, v, mesh.n_cells)) for key, v in mesh.cell_data.items()
            if key != "material"],
     }
@@ -298,7 +316,7 @@ def _zlib_blocks(a: np.ndarray, start: int) -> list:
 def _write_vtu(mesh: Mesh, path: Path, compress: bool = False) -> None:
     """Write ``mesh`` at ``path``: raw appended data, zlib blocks with ``compress``."""
     for wide in _WIDENINGS if not compress else ((),):
-        sections = _vtu_arrays(mesh, path, wide)
+        sections = _vtu_arrays(mesh, path, wide, stage=not compress)
         if _meshio_walk_ok([a.nbytes for arrays in sections.values() for _, a in arrays]):
             break
     offset, tags, blocks = 0, [], []
@@ -402,19 +420,28 @@ def write_mesh(mesh: Mesh, path: str | os.PathLike, allow_inverted: bool = False
     # last arrays of the file) are computed in a second thread while the first arrays are
     # written; an inverted element still stops the write before the rename
     with ThreadPoolExecutor(1) as pool:
-        metrics = pool.submit(quality_arrays, mesh.points, mesh.cells)
-
-        def quality(name: str) -> np.ndarray:
-            arrays = metrics.result()
-            if name == QUALITY_DATA[0] and not allow_inverted:  # the first of them the writer reaches
-                _refuse_inverted(arrays["scaled_jacobian"], str(path))
-            return arrays[name]
-
-        later = {k: _Later(lambda k=k: quality(k), np.float64, (mesh.n_cells,)) for k in QUALITY_DATA}
+        metrics = pool.submit(_stage_quality, mesh.points, mesh.cells, str(path), allow_inverted)
+        later = {k: _Later(lambda k=k: metrics.result()[k], STAGE_QUALITY_TYPE, (mesh.n_cells,)) for k in QUALITY_DATA}
         with atomic_path(path) as tmp:
             _write_vtu(with_quality(mesh, later), tmp)
             mesh = with_quality(mesh, metrics.result())
             _check_written(mesh, tmp, path)
+
+
+STAGE_QUALITY_TYPE = np.dtype(np.float32)
+"""The type of the quality arrays in stage files: they are there to be looked at (ParaView
+colours elements by them), every stage computes its own, and Float32 holds them to seven
+digits in half the bytes."""
+
+
+def _stage_quality(points: np.ndarray, cells: np.ndarray, name: str, allow_inverted: bool) -> dict[str, np.ndarray]:
+    """The quality arrays of a stage file (:data:`STAGE_QUALITY_TYPE`); raises DicerError on
+    an inverted element unless ``allow_inverted`` (before the writer reaches them, so before
+    the rename)."""
+    arrays = quality_arrays(points, cells)
+    if not allow_inverted:
+        _refuse_inverted(arrays["scaled_jacobian"], name)
+    return {k: v.astype(STAGE_QUALITY_TYPE) for k, v in arrays.items()}
 
 
 def _check_written(mesh: Mesh, tmp: Path, path: Path) -> None:
@@ -625,7 +652,9 @@ def write_raw_vtu(mesh: Mesh, path: str | os.PathLike, compress: bool = False) -
     mesh : Mesh
     path : str or os.PathLike
     compress : bool, optional
-        Each array in zlib blocks (level 1, VTK's layout), about a sixth of the size.
+        Each array in zlib blocks (level 1, VTK's layout), about a sixth of the size, the
+        lattice and material as Int32 (the exported model.vtu); without it, a stage file
+        with every integer array as narrow as it fits.
     """
     _write_vtu(mesh, Path(path), compress)
 

@@ -181,12 +181,23 @@ def _grouped_nodes(code: np.ndarray, nodes: np.ndarray, n_points: int) -> tuple[
 
     code : (F,) int64, one code per row of ``nodes``; nodes : (F, c) node indices.
     """
-    key = np.unique((code[:, None] * n_points + nodes).ravel())  # int64: codes < 2**32, nodes < 2**31
-    if not key.size:
-        return key, []
-    group, node = np.divmod(key, n_points)
-    cut = np.flatnonzero(group[1:] != group[:-1]) + 1
-    return group[np.r_[0, cut]], np.split(node, cut)
+    distinct, which = np.unique(code, return_inverse=True)
+    if distinct.size * n_points > 32 * nodes.size:
+        # many codes (an atlas's pairs of labels): one sort of (code, node) keys
+        key = np.unique((code[:, None] * n_points + nodes).ravel())  # int64: codes < 2**32, nodes < 2**31
+        if not key.size:
+            return key, []
+        group, node = np.divmod(key, n_points)
+        cut = np.flatnonzero(group[1:] != group[:-1]) + 1
+        return group[np.r_[0, cut]], np.split(node, cut)
+    # a few codes: a flag per node for each (a tenth of the sort's time for two materials)
+    flags = np.zeros(n_points, bool)
+    groups = []
+    for g in range(distinct.size):
+        flags[nodes[which == g]] = True
+        groups.append(np.flatnonzero(flags))
+        flags[groups[-1]] = False
+    return distinct, groups
 
 
 def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> None:

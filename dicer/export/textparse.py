@@ -230,11 +230,12 @@ def _check(u: np.ndarray, layout: Layout) -> tuple[np.ndarray, np.ndarray]:
         if cols.size:
             s = u[:, cols]
             bad[:, cols] = (s != allowed[0]) & (s != allowed[1])
-    # a digit followed by a blank inside an integer: not right-aligned
-    shifted = np.zeros_like(bad)
-    if layout.pairs.size:
-        shifted[:, :-1] = dig[:, :-1] & ~dig[:, 1:] & layout.pairs
-    if bad.any() or shifted.any():
+    # a digit followed by a blank inside an integer: not right-aligned (column c: c and c + 1)
+    step = dig[:, :-1] > dig[:, 1:]
+    step &= layout.pairs
+    if bad.any() or step.any():
+        shifted = np.zeros_like(bad)
+        shifted[:, :-1] = step
         row = int(np.argmax((bad | shifted).any(axis=1)))
         if bad[row].any():  # a wrong character says more than the alignment it upsets
             col = int(np.argmax(bad[row]))

@@ -124,7 +124,7 @@ def _edge_ratio_of_lengths(sq: np.ndarray) -> np.ndarray:
 
 
 # elements per block of the hexahedron loops: the block's temporaries stay in the cache
-_BLOCK = 8192
+_BLOCK = 16384
 
 
 def _columns(points: np.ndarray) -> list[np.ndarray]:

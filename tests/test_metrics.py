@@ -164,3 +164,72 @@ def test_quality_arrays_in_one_pass_equal_the_single_metrics(corners):
     assert np.array_equal(got["edge_ratio"], edge_ratio(mesh.points, mesh.cells))
     sj = got["scaled_jacobian"]
     assert quality_arrays(mesh.points, mesh.cells, sj)["scaled_jacobian"] is sj
+
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), dim=st.sampled_from([2, 3]), merged=st.booleans())
+def test_lattice_boxes_get_the_element_loops_values(seed, dim, merged):
+    # voxel meshes and merged ones of boxes only (nodes at their lattice points): the closed
+    # form gives what the element loop gives, to its rounding (Float32 alike)
+    from dicer.mesh.merge import merge_mesh
+    from dicer.mesh.metrics import lattice_box_quality, quality_arrays
+    from dicer.mesh.voxel import voxel_mesh
+
+    rng = np.random.default_rng(seed)
+    labels = rng.integers(0, 3, tuple(rng.integers(2, 9, dim))).astype(np.uint8)
+    labels.flat[0] = 1
+    spacing = rng.choice([1.0, 0.957, 1.5, 0.3125], dim)
+    origin = rng.uniform(-50, 50, dim)
+    mesh = voxel_mesh(labels, spacing=spacing, origin=origin)
+    if merged:  # merged layers end in elements that are not boxes: most merged meshes go to the loop
+        mesh, _ = merge_mesh(mesh, {})
+    box = lattice_box_quality(mesh.points, mesh.cells, mesh.lattice, mesh.spacing, mesh.origin)
+    loop = quality_arrays(mesh.points, mesh.cells)
+    if merged and box is None:
+        return
+    assert box is not None and list(box) == list(loop)
+    assert np.array_equal(box["scaled_jacobian"], np.ones(mesh.n_cells))
+    for key in box:
+        assert np.allclose(box[key], loop[key], rtol=1e-12, atol=0)
+        assert np.all(np.abs(box[key].astype(np.float32) - loop[key].astype(np.float32))
+                      <= np.spacing(box[key].astype(np.float32)))
+
+
+def test_lattice_box_quality_only_for_lattice_boxes():
+    from dataclasses import replace
+
+    from dicer.mesh.coarsen import coarsen_mesh
+    from dicer.mesh.metrics import lattice_box_quality
+    from dicer.mesh.voxel import voxel_mesh
+
+    mesh = voxel_mesh(np.ones((4, 3, 2), np.uint8), spacing=(0.5, 1.0, 2.0))
+    box = lattice_box_quality(mesh.points, mesh.cells, mesh.lattice, mesh.spacing, mesh.origin)
+    assert np.array_equal(box["edge_ratio"], np.full(mesh.n_cells, 4.0))
+
+    def quality(m):
+        return lattice_box_quality(m.points, m.cells, m.lattice, m.spacing, m.origin)
+
+    moved = mesh.copy()
+    moved.points[5, 0] += 1e-9  # a node off its lattice point (smoothed)
+    assert quality(moved) is None
+    # corners in another order: the same nodes, not a box in VTK order (an inverted element)
+    assert quality(replace(mesh, cells=mesh.cells[:, [4, 5, 6, 7, 0, 1, 2, 3]])) is None
+    # an element whose corners are two voxels' nodes (a twisted element)
+    twisted = mesh.cells.copy()
+    twisted[0, 1] = mesh.cells[1, 1]
+    assert quality(replace(mesh, cells=twisted)) is None
+    # graded meshes have nodes between lattice points (lattice -1): the element loop
+    graded, _ = coarsen_mesh(voxel_mesh(np.ones((12, 12, 12), np.uint8)), levels=1, min_distance=1, keep_fine=())
+    assert quality(graded) is None
+    # merged layers end in trapezoids: the element loop
+    from dicer.mesh.merge import merge_mesh
+
+    rng = np.random.default_rng(0)
+    labels = rng.integers(0, 3, (4, 8)).astype(np.uint8)
+    labels.flat[0] = 1
+    merged, _ = merge_mesh(voxel_mesh(labels, spacing=(1.0, 1.5)), {})
+    assert quality(merged) is None

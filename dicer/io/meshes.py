@@ -37,7 +37,7 @@ import numpy as np
 from dicer.errors import DicerError
 from dicer.io.atomic import atomic_path
 from dicer.mesh.frame import check_direction, mirrored, to_lattice
-from dicer.mesh.metrics import QUALITY_DATA, quality_arrays, scaled_jacobian
+from dicer.mesh.metrics import QUALITY_DATA, lattice_box_quality, quality_arrays, scaled_jacobian
 from dicer.mesh.model import LEVEL_DATA, Mesh
 from dicer.mesh.topology import HEX_MIRROR
 from dicer.parallel import ordered_map
@@ -420,7 +420,7 @@ def write_mesh(mesh: Mesh, path: str | os.PathLike, allow_inverted: bool = False
     # last arrays of the file) are computed in a second thread while the first arrays are
     # written; an inverted element still stops the write before the rename
     with ThreadPoolExecutor(1) as pool:
-        metrics = pool.submit(_stage_quality, mesh.points, mesh.cells, str(path), allow_inverted)
+        metrics = pool.submit(_stage_quality, mesh, str(path), allow_inverted)
         later = {k: _Later(lambda k=k: metrics.result()[k], STAGE_QUALITY_TYPE, (mesh.n_cells,)) for k in QUALITY_DATA}
         with atomic_path(path) as tmp:
             _write_vtu(with_quality(mesh, later), tmp)
@@ -434,11 +434,14 @@ colours elements by them), every stage computes its own, and Float32 holds them 
 digits in half the bytes."""
 
 
-def _stage_quality(points: np.ndarray, cells: np.ndarray, name: str, allow_inverted: bool) -> dict[str, np.ndarray]:
+def _stage_quality(mesh: Mesh, name: str, allow_inverted: bool) -> dict[str, np.ndarray]:
     """The quality arrays of a stage file (:data:`STAGE_QUALITY_TYPE`); raises DicerError on
     an inverted element unless ``allow_inverted`` (before the writer reaches them, so before
-    the rename)."""
-    arrays = quality_arrays(points, cells)
+    the rename). A mesh of lattice boxes (the voxel mesh) gets them in closed form
+    (:func:`~dicer.mesh.metrics.lattice_box_quality`, two thirds of the element loop's
+    time): the same values in Float32."""
+    arrays = (lattice_box_quality(mesh.points, mesh.cells, mesh.lattice, mesh.spacing, mesh.origin)
+              or quality_arrays(mesh.points, mesh.cells))
     if not allow_inverted:
         _refuse_inverted(arrays["scaled_jacobian"], name)
     return {k: v.astype(STAGE_QUALITY_TYPE) for k, v in arrays.items()}

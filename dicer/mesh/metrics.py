@@ -12,8 +12,8 @@ import numpy as np
 
 from dicer.mesh.model import pieces
 from dicer.parallel import ordered_map
-from dicer.mesh.topology import (HEX_AXIS_CORNERS, HEX_CORNER_NEIGHBOURS, HEX_EDGES, QUAD_AXIS_CORNERS,
-                                 QUAD_CORNER_NEIGHBOURS, QUAD_EDGES)
+from dicer.mesh.topology import (HEX_AXIS_CORNERS, HEX_CORNER_NEIGHBOURS, HEX_CORNERS, HEX_EDGES, QUAD_AXIS_CORNERS,
+                                 QUAD_CORNER_NEIGHBOURS, QUAD_CORNERS, QUAD_EDGES)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -438,3 +438,87 @@ def quality_arrays(points: np.ndarray, cells: np.ndarray, sj: np.ndarray | None 
     if sj is None:  # both in one pass over the elements, each block's corners gathered once
         return element_metrics(points, cells, QUALITY_DATA)
     return {"scaled_jacobian": sj, "edge_ratio": edge_ratio(points, cells)}
+
+
+def lattice_box_quality(points: np.ndarray, cells: np.ndarray, lattice: np.ndarray, spacing, origin
+                        ) -> dict[str, np.ndarray] | None:
+    """The :data:`QUALITY_DATA` arrays in closed form when every element is an axis-aligned
+    box of the lattice (a voxel mesh), else None (plane-merged meshes end their merged
+    layers in elements that are not boxes: found in the first piece or two, 0.1-0.2 s at
+    5 M elements).
+
+    Such a mesh has every node exactly where the voxel mesher puts its lattice point,
+    ``origin + spacing * lattice``, and every element's corners, in VTK order, at the
+    corners of a box of whole voxels. A box's scaled Jacobian is 1 and its edge ratio is
+    its longest side over its shortest; the element loop gives the same values but for
+    the rounding of the coordinates (below 1e-12 relative). Checking that the mesh is
+    such a mesh takes a third of the loop's time.
+
+    Parameters
+    ----------
+    points : (N, 3) float64 ndarray
+    cells : (M, 8) or (M, 4) int ndarray
+    lattice : (N, 3) int ndarray
+        Each node's lattice index.
+    spacing, origin : (3,) float64 ndarray
+        Voxel size and position of lattice (0, 0, 0), mm.
+
+    Returns
+    -------
+    dict of str to (M,) float64 ndarray, or None
+    """
+    dim = 3 if cells.shape[1] == 8 else 2
+    spacing, origin = np.asarray(spacing, np.float64), np.asarray(origin, np.float64)
+    n, m = points.shape[0], cells.shape[0]
+    if (m == 0 or lattice.shape != (n, 3) or spacing.shape != (3,) or origin.shape != (3,)
+            or not np.all(spacing[:dim] > 0) or lattice.min() < 0):
+        return None
+
+    def at_lattice(part: slice) -> np.ndarray | None:  # the piece's largest lattice index per axis
+        if not all(np.array_equal(points[part, a], origin[a] + spacing[a] * lattice[part, a]) for a in range(3)):
+            return None
+        return lattice[part].max(axis=0)
+
+    largest = list(ordered_map(at_lattice, pieces(n, 1 << 18)))
+    if any(v is None for v in largest):
+        return None
+    largest = np.max(largest, axis=0)
+    corners = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim]
+    far = 6 if dim == 3 else 2  # the corner across the box from corner 0
+    lat = lattice[:, :dim]
+    nstrides = np.ones(dim, np.int64)  # lattice index -> one integer, one per lattice point
+    for a in range(dim - 2, -1, -1):
+        nstrides[a] = nstrides[a + 1] * (int(largest[a + 1]) + 1)
+    node_lin = np.empty(n, np.int64)
+
+    def linear(part: slice) -> None:  # in pieces: no temporary of the whole size
+        out = node_lin[part]
+        np.multiply(lat[part, 0], nstrides[0], out=out)
+        for a in range(1, dim):
+            out += lat[part, a] * nstrides[a]
+
+    for _ in ordered_map(linear, pieces(n, 1 << 18)):
+        pass
+    ratio = np.empty(m)
+
+    def boxes(part: slice) -> bool:
+        c = cells[part]
+        lo = lat[c[:, 0]]
+        ext = lat[c[:, far]] - lo
+        if ext.min() < 1:
+            return False
+        step = ext * nstrides
+        lo_lin = node_lin[c[:, 0]]
+        for k in range(1, len(corners)):  # every corner where the box puts it
+            want = lo_lin.copy()
+            for a in np.flatnonzero(corners[k]):
+                want += step[:, a]
+            if not np.array_equal(node_lin[c[:, k]], want):
+                return False
+        sides = [ext[:, a] * spacing[a] for a in range(dim)]  # columns: a reduction along rows of 3 is slow
+        np.divide(np.maximum.reduce(sides), np.minimum.reduce(sides), out=ratio[part])
+        return True
+
+    if not all(ordered_map(boxes, pieces(m, 1 << 18))):
+        return None
+    return {"scaled_jacobian": np.ones(m), "edge_ratio": ratio}

@@ -28,9 +28,9 @@ import shutil
 import zlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
+from html import escape
 from pathlib import Path
 from xml.etree import ElementTree as ET
-from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
@@ -324,7 +324,7 @@ def _write_vtu(mesh: Mesh, path: Path, compress: bool = False) -> None:
         tags.append(f"<{section}>\n")
         for name, a in arrays:
             ncomp = f' NumberOfComponents="{a.shape[1]}"' if a.ndim == 2 and name != "connectivity" else ""
-            tags.append(f'<DataArray type="{_VTK_TYPES[a.dtype.newbyteorder("=")]}" Name={quoteattr(name)}'
+            tags.append(f'<DataArray type="{_VTK_TYPES[a.dtype.newbyteorder("=")]}" Name="{escape(name)}"'
                         f'{ncomp} format="appended" offset="{offset}"/>\n')
             # the array's own memory, no copy (an array to come: when the writer gets there),
             # or its compressed blocks

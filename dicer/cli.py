@@ -212,7 +212,6 @@ def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = 
     from dicer.config import material_names, stage_kwargs
     from dicer.io.atomic import write_bytes_atomic
     from dicer.io.images import read_image
-    from dicer.io.pictures import save_overlay_png, save_threshold_plot
     from dicer.labels import write_mapped_labels
     from dicer.segment import segment
 
@@ -226,6 +225,8 @@ def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = 
         # a NIfTI scan lends its header: the labels overlay it with exactly its affine
         write_mapped_labels(labels, image_path, out)
         names = list(material_names(config).values())
+        if overlay or plot:
+            from dicer.io.pictures import save_overlay_png, save_threshold_plot  # matplotlib: 0.3 s to import
         if overlay:
             title = f"{info['method']} thresholds " + ", ".join(f"{n} {t:g}" for n, t in zip(names, info["thresholds"]))
             save_overlay_png(image, labels, overlay, title, len(names), names)

@@ -177,8 +177,10 @@ def _write_nifti_like(header: bytes, endian: str, array: np.ndarray, path: Path)
     struct.pack_into(endian + "h", head, 68, 0)  # intent_code: plain values, whatever the input's was
     data = np.asarray(array, dtype=array.dtype.newbyteorder(endian)).tobytes(order="F")  # x fastest
     with atomic_path(path) as tmp:
-        with open(tmp, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0, filename="") as f:
-            # mtime 0 and no file name: the same bytes on every rerun
+        with open(tmp, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0, filename="",
+                                                   compresslevel=6) as f:
+            # mtime 0 and no file name: the same bytes on every rerun; level 6, not gzip's 9:
+            # a 256^3 label volume in 0.07 s instead of 0.5 s, 156 KB instead of 130 KB
             f.write(bytes(head) + b"\0\0\0\0" + data)
         from dicer.io.images import read_labels
 

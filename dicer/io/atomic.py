@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
-import secrets
 import sys
 import tempfile
 import threading
@@ -169,7 +168,7 @@ def _new_temporary(path: Path, parent: Path, names: list) -> Path:
     ``names`` before the file exists, so a SIGTERM arriving at any moment (its handler runs
     between any two steps) finds it to delete."""
     for _ in range(100):
-        tmp = parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp{_suffixes(path)}"
+        tmp = parent / f".{path.name}.{os.getpid()}.{os.urandom(4).hex()}.tmp{_suffixes(path)}"
         names.append(tmp)
         try:
             os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))

@@ -10,19 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from dicer.mesh.boxes import box_extents, linear_index
 from dicer.mesh.model import Mesh, pieces
 from dicer.parallel import ordered_map
 from dicer.mesh.topology import HEX_CORNERS, HEX_FACE_PLANES, HEX_FACES, QUAD_CORNERS, QUAD_EDGES, QUAD_SIDE_PLANES
-
-def _linear(index: np.ndarray, strides) -> np.ndarray:
-    """``index @ strides`` for an (n, d) integer array: int64, a column at a time (numpy's
-    integer matmul takes no BLAS and runs several times slower)."""
-    strides = [int(v) for v in strides]
-    out = index[:, 0] * np.int64(strides[0])
-    for axis in range(1, len(strides)):
-        if strides[axis]:
-            out += index[:, axis] * np.int64(strides[axis])
-    return out
 
 
 def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
@@ -38,31 +29,24 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
     if m == 0 or int(material.max()) > 65535:
         return None
     kind = np.uint8 if int(material.max()) < 256 else np.uint16
-    offsets = HEX_CORNERS if dim == 3 else QUAD_CORNERS[:, :2]
     far = 6 if dim == 3 else 2
     shape = np.asarray(mesh.grid_shape, np.int64)[:dim]
     lattice = mesh.lattice[:, :dim]
     strides = np.array([int(np.prod(shape[i + 1 :])) for i in range(dim)], np.int64)
     nstrides = np.array([int(np.prod(shape[i + 1 :] + 1)) for i in range(dim)], np.int64)
-    node_lin = _linear(lattice, nstrides)
+    node_lin = linear_index(lattice, nstrides)
     grid = np.zeros(int(np.prod(shape)), kind)
 
     def fill(part: slice) -> int | None:  # the boxes' voxels of one piece: their count, None if not boxes
         c = cells[part]
-        lo = lattice[c[:, 0]]
-        ext = lattice[c[:, far]] - lo
-        if ext.min() < 1 or lo.min() < 0 or np.any(lo + ext > shape) or ext.max() >= 64:
+        boxes = box_extents(c, lattice, node_lin, nstrides)  # every corner where the box puts it
+        if boxes is None:
             return None
-        lo_lin = node_lin[c[:, 0]]
-        step = [ext[:, a] * np.int64(nstrides[a]) for a in range(dim)]  # the box's extent along each axis
-        for k in range(1, offsets.shape[0]):  # every corner where the box puts it
-            want = lo_lin.copy()
-            for a in np.flatnonzero(offsets[k]):
-                want += step[a]
-            if not np.array_equal(node_lin[c[:, k]], want):
-                return None
-        base = _linear(lo, strides)
-        code = _linear(ext, 64 ** np.arange(dim))
+        lo, ext = boxes
+        if lo.min() < 0 or np.any(lo + ext > shape) or ext.max() >= 64:
+            return None
+        base = linear_index(lo, strides)
+        code = linear_index(ext, 64 ** np.arange(dim))
         mat = material[part].astype(kind)
         covered = 0
         # a few distinct box sizes (1 x 1 x 1 before plane merging: no sort needed)
@@ -87,7 +71,7 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
         c = cells[part]
         lo = lattice[c[:, 0]]
         ext = lattice[c[:, far]] - lo
-        base = _linear(lo, strides)
+        base = linear_index(lo, strides)
         for f, (axis, side) in enumerate(axes):
             if side == 0:
                 inside = lo[:, axis] > 0
@@ -145,7 +129,7 @@ def voxel_elements(mesh: Mesh) -> np.ndarray | None:
         return None
     nstrides = np.array([int(np.prod(shape[i + 1:] + 1)) for i in range(dim)], np.int64)
     strides = np.array([int(np.prod(shape[i + 1:])) for i in range(dim)], np.int64)
-    node_lin = _linear(lattice, nstrides)
+    node_lin = linear_index(lattice, nstrides)
     # one node per lattice point: two nodes at one point would let voxels that touch
     # hold different nodes on their common face, which is then no shared face
     if not _distinct(node_lin, int(np.prod(shape + 1))):
@@ -158,7 +142,7 @@ def voxel_elements(mesh: Mesh) -> np.ndarray | None:
         # corner 0 below the far lattice plane: else corner 0 + 1 would wrap into the next row
         if np.any(lo >= shape) or not np.array_equal(at - at[:, :1], np.broadcast_to(corner_step, at.shape)):
             return None
-        voxel[part] = _linear(lo, strides)
+        voxel[part] = linear_index(lo, strides)
     if not _distinct(voxel, int(np.prod(shape))):  # two elements in one voxel
         return None
     return voxel

@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from dicer.mesh.boxes import box_extents, linear_index
 from dicer.mesh.model import pieces
 from dicer.parallel import ordered_map
-from dicer.mesh.topology import (HEX_AXIS_CORNERS, HEX_CORNER_NEIGHBOURS, HEX_CORNERS, HEX_EDGES, QUAD_AXIS_CORNERS,
-                                 QUAD_CORNER_NEIGHBOURS, QUAD_CORNERS, QUAD_EDGES)
+from dicer.mesh.topology import (HEX_AXIS_CORNERS, HEX_CORNER_NEIGHBOURS, HEX_EDGES, QUAD_AXIS_CORNERS,
+                                 QUAD_CORNER_NEIGHBOURS, QUAD_EDGES)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -483,38 +484,18 @@ def lattice_box_quality(points: np.ndarray, cells: np.ndarray, lattice: np.ndarr
     if any(v is None for v in largest):
         return None
     largest = np.max(largest, axis=0)
-    corners = (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim]
-    far = 6 if dim == 3 else 2  # the corner across the box from corner 0
     lat = lattice[:, :dim]
     nstrides = np.ones(dim, np.int64)  # lattice index -> one integer, one per lattice point
     for a in range(dim - 2, -1, -1):
         nstrides[a] = nstrides[a + 1] * (int(largest[a + 1]) + 1)
-    node_lin = np.empty(n, np.int64)
-
-    def linear(part: slice) -> None:  # in pieces: no temporary of the whole size
-        out = node_lin[part]
-        np.multiply(lat[part, 0], nstrides[0], out=out)
-        for a in range(1, dim):
-            out += lat[part, a] * nstrides[a]
-
-    for _ in ordered_map(linear, pieces(n, 1 << 18)):
-        pass
+    node_lin = linear_index(lat, nstrides)
     ratio = np.empty(m)
 
     def boxes(part: slice) -> bool:
-        c = cells[part]
-        lo = lat[c[:, 0]]
-        ext = lat[c[:, far]] - lo
-        if ext.min() < 1:
+        found = box_extents(cells[part], lat, node_lin, nstrides)
+        if found is None:
             return False
-        step = ext * nstrides
-        lo_lin = node_lin[c[:, 0]]
-        for k in range(1, len(corners)):  # every corner where the box puts it
-            want = lo_lin.copy()
-            for a in np.flatnonzero(corners[k]):
-                want += step[:, a]
-            if not np.array_equal(node_lin[c[:, k]], want):
-                return False
+        ext = found[1]
         sides = [ext[:, a] * spacing[a] for a in range(dim)]  # columns: a reduction along rows of 3 is slow
         np.divide(np.maximum.reduce(sides), np.minimum.reduce(sides), out=ratio[part])
         return True

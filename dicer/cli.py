@@ -442,7 +442,7 @@ def do_export(mesh_path: str, out: Path, config: dict, mesh=None):
 
     with _Stage("export"):
         # the export only reads the mesh: its arrays stay in the page cache, mapped, not copied
-        mesh = read_mesh(mesh_path, mapped=True) if mesh is None else mesh
+        mesh = read_mesh(mesh_path, mapped=True, narrow_cells=True) if mesh is None else mesh
         info = export_mesh(mesh, out, **stage_kwargs(config, "export"), source=mesh_path)
         log.info("export: wrote %s (%s)", out, json.dumps(info, sort_keys=True))
 

@@ -82,3 +82,43 @@ def ordered_map(fn: Callable, items: Iterable, workers: int | None = None) -> It
         finally:
             for future in flight:  # an error or an abandoned generator: drop the work not started
                 future.cancel()
+
+
+def meanwhile(fn: Callable, *args) -> Callable:
+    """Start ``fn(*args)`` on a thread; return a function that waits for its result.
+
+    For work that leaves the interpreter lock (numpy, hashlib, file reads) and whose result
+    is needed later: the caller goes on with other work meanwhile.
+
+    Parameters
+    ----------
+    fn : callable
+    *args
+        Passed to ``fn``.
+
+    Returns
+    -------
+    callable
+        ``result()`` waits for ``fn`` and returns what it returned, or raises what it
+        raised, on the caller's thread; later calls return the same.
+    """
+    import threading
+
+    out: list = []
+
+    def run() -> None:
+        try:
+            out.append((True, fn(*args)))
+        except BaseException as exc:  # noqa: BLE001 -- handed back to the caller, which raises it
+            out.append((False, exc))
+
+    worker = threading.Thread(target=run, daemon=True)
+    worker.start()
+
+    def result():
+        worker.join()
+        ok, value = out[0]
+        if not ok:
+            raise value
+        return value
+    return result

@@ -252,6 +252,19 @@ def test_mapped_read_back_agrees_and_refuses_damage(tmp_path, mesh, cut):
         _read_mapped_vtu(path, "m.vtu")
 
 
+def test_narrow_cells_keep_the_files_int32_read_only(tmp_path, mesh):
+    """read_mesh(narrow_cells=True), as dicer export reads: the same mesh, its connectivity
+    the file's Int32 (not writable), the lattice widened as always."""
+    path = tmp_path / "m.vtu"
+    write_mesh(mesh, path)
+    wide, narrow = read_mesh(path, mapped=True), read_mesh(path, mapped=True, narrow_cells=True)
+    assert wide.cells.dtype == np.int64 and narrow.cells.dtype.kind == "i" and narrow.cells.dtype.itemsize == 4
+    assert not narrow.cells.flags.writeable
+    assert narrow.lattice.dtype == np.int64
+    assert np.array_equal(wide.cells, narrow.cells) and np.array_equal(wide.lattice, narrow.lattice)
+    assert np.array_equal(wide.points, narrow.points) and np.array_equal(wide.material, narrow.material)
+
+
 def test_lattice_minus_one_only_on_template_nodes_of_graded_meshes(tmp_path):
     # a graded mesh's template nodes lie between lattice points (lattice -1): written and
     # read back exactly; the same marker on a node of a voxel element is damage

@@ -178,3 +178,54 @@ def test_cores_follow_a_slurm_task_and_a_cgroup_quota(monkeypatch, tmp_path):
     assert par.cores() == 2
     (tmp_path / "cpu.max").write_text("max 100000\n")
     assert par.cores() == 4
+
+
+def test_meanwhile_returns_the_result_or_raises_on_the_callers_thread():
+    started = threading.Event()
+
+    def work(x):
+        started.set()
+        time.sleep(0.05)
+        return x * 2
+
+    result = parallel.meanwhile(work, 21)
+    assert started.wait(5)  # running before anyone waits
+    assert result() == 42 and result() == 42
+
+    def fail():
+        raise ValueError("bad input")
+
+    failed = parallel.meanwhile(fail)
+    with pytest.raises(ValueError, match="bad input"):
+        failed()
+
+
+def test_sets_built_meanwhile_are_the_sets_built_in_line():
+    """An export model's surface sets are built on a thread while the writer starts: read
+    from any thread they are the sets of the model built in line, and the first read waits."""
+    from dicer.config import load_config
+    from dicer.export.model import _surface_sets, neighbour_materials, prepare_model
+    from dicer.mesh.voxel import voxel_mesh
+
+    lab = np.zeros((6, 5, 4), np.uint8)
+    lab[:, :, :2] = 1
+    lab[1:5, 1:4, 2:] = 2
+    mesh = voxel_mesh(lab)
+    config = load_config(settings={"materials": [{"name": "a"}, {"name": "b"}]})
+    model = prepare_model(mesh, config)
+    node_sets, exterior, interfaces = _surface_sets(model, {"materials", "interfaces", "exterior"},
+                                                    neighbour_materials(mesh), mesh.cells)
+    seen = []
+    readers = [threading.Thread(target=lambda: seen.append(dict(model.node_sets))) for _ in range(3)]
+    for r in readers:
+        r.start()
+    for r in readers:
+        r.join()
+    want = {k: v for k, v in model.node_sets.items() if k not in node_sets} | node_sets
+    for got in seen:
+        assert list(got) == list(model.node_sets) and all(np.array_equal(got[k], want[k]) for k in want)
+    assert list(model.node_sets)[:6] == ["X0", "X1", "Y0", "Y1", "Z0", "Z1"]  # planes first, as written
+    solid = np.pad(lab > 0, 1)
+    faces = sum(int(np.count_nonzero(np.diff(solid.astype(int), axis=a) != 0)) for a in range(3))
+    assert np.array_equal(model.exterior, exterior) and exterior.shape[0] == faces == 132
+    assert list(model.interfaces) == ["a_b"] and np.array_equal(model.interfaces["a_b"], interfaces["a_b"])

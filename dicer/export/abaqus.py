@@ -87,7 +87,8 @@ def element_block(stream, cells: np.ndarray, elements: np.ndarray, width: int, w
 
     def fields(start, stop):
         e = elements[start:stop]
-        c = cells[e] + 1
+        c = np.take(cells, e, axis=0)  # rows by take: about twice as fast as indexing
+        c += 1
         # the 16th entry ends the first line
         return [Int(e + 1, width, b"\n")] + [Int(c[:, j], width_cont, b",\n") if j + 1 == PER_LINE
                                              else Int(c[:, j], width, b",") for j in range(c.shape[1])]
@@ -420,7 +421,7 @@ class _Expected:
             if not np.array_equal(ints[:, 0], e + 1):
                 raise FormatError(int(np.flatnonzero(ints[:, 0] != e + 1)[0]) * length,
                                   f"material set {name} does not hold its {elements.size} elements")
-            want = cells[e]
+            want = np.take(cells, e, axis=0)
             want += 1
             same = ints[:, 1:] == want
             if not same.all():

@@ -8,6 +8,7 @@ neighbours of :mod:`dicer.mesh.faces`.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -58,16 +59,6 @@ class SolverModel(Sized):
         Thickness of 2D plane elements, mm.
     digits : int
         Significant digits of the coordinates (``export.digits``).
-    node_sets : dict of str to ndarray, optional
-        Set name -> sorted 0-based node indices (bounding planes, material boundaries,
-        interfaces).
-    exterior : (F, 2) int64 ndarray, optional
-        Rows (element index, face number 1..6 / 1..4) of the element faces on the exterior
-        surface.
-    interfaces : dict of str to (F, 2) int64 ndarray, optional
-        Interface name ``<a>_<b>`` -> rows (element index, face number) of the faces of
-        material a with material b behind them (a < b), grouped by face number, elements
-        ascending; for formats with face sets (Exodus, FEBio).
     heading : list of str, optional
         Provenance lines (no date, no path).
     use_heading : bool, optional
@@ -76,6 +67,22 @@ class SolverModel(Sized):
         Further per-element arrays (VTU).
     mesh : Mesh, optional
         The linear mesh the model was made from (the VTU writer keeps its lattice data).
+
+    Attributes
+    ----------
+    node_sets : dict of str to ndarray
+        Set name -> sorted 0-based node indices (bounding planes, material boundaries,
+        interfaces).
+    exterior : (F, 2) int64 ndarray or None
+        Rows (element index, face number 1..6 / 1..4) of the element faces on the exterior
+        surface.
+    interfaces : dict of str to (F, 2) int64 ndarray
+        Interface name ``<a>_<b>`` -> rows (element index, face number) of the faces of
+        material a with material b behind them (a < b), grouped by face number, elements
+        ascending; for formats with face sets (Exodus, FEBio).
+
+    The surface sets may still be in the making on a thread (:meth:`sets_meanwhile`):
+    reading any of these three waits for them.
     """
 
     points: np.ndarray
@@ -88,13 +95,70 @@ class SolverModel(Sized):
     order: int
     thickness: float
     digits: int
-    node_sets: dict[str, np.ndarray] = field(default_factory=dict)
-    exterior: np.ndarray | None = None
-    interfaces: dict[str, np.ndarray] = field(default_factory=dict)
     heading: list[str] = field(default_factory=list)
     use_heading: bool = True
     cell_data: dict[str, np.ndarray] = field(default_factory=dict)
     mesh: Mesh | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        self._node_sets: dict[str, np.ndarray] = {}
+        self._exterior: np.ndarray | None = None
+        self._interfaces: dict[str, np.ndarray] = {}
+        self._pending = None
+        self._lock = threading.Lock()  # readers on several threads wait for one result
+
+    def sets_meanwhile(self, build) -> None:
+        """Build surface sets on a thread while the writer starts on nodes and elements.
+
+        ``build()`` returns (node sets, exterior, interfaces); the node sets follow those
+        the model holds. The first read of ``node_sets``, ``exterior`` or ``interfaces``
+        waits for them (and raises what ``build`` raised).
+        """
+        from dicer.parallel import meanwhile
+
+        self._pending = meanwhile(build)
+
+    def _wait(self) -> None:
+        if self._pending is None:
+            return
+        with self._lock:
+            if self._pending is not None:
+                node_sets, self._exterior, self._interfaces = self._pending()
+                self._node_sets.update(node_sets)
+                self._pending = None
+
+    @property
+    def node_sets(self) -> dict[str, np.ndarray]:
+        """Set name -> sorted 0-based node indices (waits for sets in the making)."""
+        self._wait()
+        return self._node_sets
+
+    @node_sets.setter
+    def node_sets(self, value: dict[str, np.ndarray]) -> None:
+        self._wait()
+        self._node_sets = value
+
+    @property
+    def exterior(self) -> np.ndarray | None:
+        """(F, 2) rows (element, face number) of the exterior faces, or None (waits for sets in the making)."""
+        self._wait()
+        return self._exterior
+
+    @exterior.setter
+    def exterior(self, value: np.ndarray | None) -> None:
+        self._wait()
+        self._exterior = value
+
+    @property
+    def interfaces(self) -> dict[str, np.ndarray]:
+        """Interface name -> (F, 2) rows (element, face number) (waits for sets in the making)."""
+        self._wait()
+        return self._interfaces
+
+    @interfaces.setter
+    def interfaces(self, value: dict[str, np.ndarray]) -> None:
+        self._wait()
+        self._interfaces = value
 
     def face_sets(self) -> dict[str, np.ndarray]:
         """Element-face set name -> (F, 2) rows (element index, face number): EXTERIOR, then
@@ -200,8 +264,10 @@ def _grouped_nodes(code: np.ndarray, nodes: np.ndarray, n_points: int) -> tuple[
     return distinct, groups
 
 
-def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> None:
-    """Exterior faces and surface, material boundary and interface node sets from neighbour materials.
+def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray,
+                  cells: np.ndarray) -> tuple[dict, np.ndarray | None, dict]:
+    """Exterior faces and surface, material boundary and interface node sets from neighbour materials:
+    (node sets, exterior faces or None, interfaces), as the SolverModel holds them.
 
     Sets come in the order EXTERIOR, <a>_BOUNDARY by label, <a>_<b> by label a then b
     (a < b); only sets with nodes are kept. Nodes are collected as (set, node) pairs
@@ -214,9 +280,7 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> No
     else:
         table = HEX_FACES if dim == 3 else QUAD_EDGES
     n = model.n_points
-    if n >= 2**31:
-        raise DicerError("node sets of models with 2**31 nodes or more are not supported; leave materials, "
-                         "interfaces and exterior out of export.sets")
+    node_sets, exterior_faces, interfaces = {}, None, {}
     exterior = np.zeros(n, bool)
     ext_e, ext_f = [], []
     bound_code, bound_nodes, pair_code, pair_nodes, pair_face = [], [], [], [], []
@@ -226,18 +290,18 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> No
         start = part.start
         mat = model.material[part].astype(np.int64)
         nbm = nb_mat[part]
-        cells = model.cells[part]
+        corners = cells[part]
         ext = bound = pair = None
         if "exterior" in kinds:
             f_idx, e_idx = np.nonzero((nbm == 0).T)  # grouped by face number
             ext = (e_idx + start, f_idx)
-            exterior[cells[e_idx[:, None], table[f_idx]]] = True  # only True is written: any order will do
+            exterior[corners[e_idx[:, None], table[f_idx]]] = True  # only True is written: any order will do
         if "materials" in kinds:  # faces of a material with another (or none) behind them
-            e_idx, nodes = _face_nodes(cells, table, nbm != mat[:, None])
+            e_idx, nodes = _face_nodes(corners, table, nbm != mat[:, None])
             bound = (mat[e_idx], nodes)
         if "interfaces" in kinds:  # faces of material a with material b > a behind them
             later = nbm > mat[:, None]
-            e_idx, nodes = _face_nodes(cells, table, later)
+            e_idx, nodes = _face_nodes(corners, table, later)
             pair = (mat[e_idx] << 16 | nbm[later].astype(np.int64),  # labels <= MAX_LABEL < 2**16
                     nodes, np.column_stack(np.nonzero(later)) + [start, 1])  # (element, face number)
         return ext, bound, pair
@@ -257,26 +321,27 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray) -> No
     if "exterior" in kinds:
         e, f = np.concatenate(ext_e), np.concatenate(ext_f)
         order = np.lexsort((e, f))  # grouped by face number, elements ascending
-        model.exterior = np.column_stack([e[order], f[order] + 1]).astype(np.int64)
+        exterior_faces = np.column_stack([e[order], f[order] + 1]).astype(np.int64)
         if exterior.any():
-            model.node_sets["EXTERIOR"] = np.flatnonzero(exterior)
+            node_sets["EXTERIOR"] = np.flatnonzero(exterior)
     width = table.shape[1]
     if "materials" in kinds:
         codes, groups = _grouped_nodes(np.concatenate(bound_code), np.concatenate(bound_nodes).reshape(-1, width), n)
         for k, ids in zip(codes.tolist(), groups):
-            model.node_sets[f"{model.names[k]}_BOUNDARY"] = ids
+            node_sets[f"{model.names[k]}_BOUNDARY"] = ids
     if "interfaces" in kinds:
         code = np.concatenate(pair_code)
         codes, groups = _grouped_nodes(code, np.concatenate(pair_nodes).reshape(-1, width), n)
         for c, ids in zip(codes.tolist(), groups):
-            model.node_sets[f"{model.names[c >> 16]}_{model.names[c & 0xFFFF]}"] = ids
+            node_sets[f"{model.names[c >> 16]}_{model.names[c & 0xFFFF]}"] = ids
         # the same faces as (element, face number) rows per pair: by face number, elements ascending
         faces = np.concatenate(pair_face).astype(np.int64).reshape(-1, 2)
         order = np.lexsort((faces[:, 0], faces[:, 1], code))
         code, faces = code[order], faces[order]
         cut = np.flatnonzero(code[1:] != code[:-1]) + 1
         for c, rows in zip(code[np.r_[0, cut]].tolist() if code.size else [], np.split(faces, cut)):
-            model.interfaces[f"{model.names[c >> 16]}_{model.names[c & 0xFFFF]}"] = rows
+            interfaces[f"{model.names[c >> 16]}_{model.names[c & 0xFFFF]}"] = rows
+    return node_sets, exterior_faces, interfaces
 
 
 def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "model",
@@ -331,11 +396,13 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
     digest = sha256_in_background(source)
     names = {i + 1: m["name"] for i, m in enumerate(materials)}
     props = {i + 1: dict(m) for i, m in enumerate(materials)}  # every property: the schema fills them
-    cells = np.asarray(mesh.cells, dtype=np.int64)
+    cells = np.asarray(mesh.cells)
+    if cells.dtype.kind not in "iu" or cells.dtype.itemsize < 4:
+        cells = cells.astype(np.int64)
     lattice2 = None  # twice the lattice index (order 2: mid-edge nodes at half-integers)
     points = mesh.points
     nb_mat = None
-    if kinds & {"materials", "interfaces", "exterior"} or (order == 2 and ex["midside_nodes"] == "curved"):
+    if order == 2 and ex["midside_nodes"] == "curved":
         nb_mat = neighbour_materials(mesh)
     if order == 2:
         from dicer.mesh.quadratic import quadratic_mesh
@@ -359,7 +426,20 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
                 if ids.size:
                     model.node_sets["XYZ"[axis] + side] = ids
     if kinds & {"materials", "interfaces", "exterior"}:
-        _surface_sets(model, kinds, nb_mat)
+        if model.n_points >= 2**31:
+            raise DicerError(f"{path}: node sets of models with 2**31 nodes or more are not supported; leave "
+                             "materials, interfaces and exterior out of export.sets")
+        flip = mesh.direction is not None and mirrored(mesh.direction)
+
+        def build(cells=model.cells, nb_mat=nb_mat):  # the cells of the lattice frame
+            nb = neighbour_materials(mesh) if nb_mat is None else nb_mat
+            node_sets, exterior, interfaces = _surface_sets(model, kinds, nb, cells)
+            if flip:
+                _mirror_faces([exterior, *interfaces.values()])
+            return node_sets, exterior, interfaces
+
+        # on a thread: the writer starts on the nodes and elements, which need no sets
+        model.sets_meanwhile(build)
     model.heading = provenance(source, config, etype, order, digest())  # the digest was computed meanwhile
     if mesh.direction is not None:
         _to_scanner_frame(model, mesh)
@@ -374,12 +454,17 @@ def _to_scanner_frame(model: SolverModel, mesh: Mesh) -> None:
     and the bottom and top face numbers of the face sets swap with them.
     """
     model.points = to_scanner(model.points, mesh.spacing, mesh.origin, mesh.direction)
-    if mirrored(mesh.direction):
+    if mirrored(mesh.direction):  # the face sets are mirrored where they are built
         model.cells = model.cells[:, HEX_MIRROR if model.order == 1 else HEX20_MIRROR]
-        for rows in [model.exterior, *model.interfaces.values()]:
-            if rows is not None and rows.size:
-                rows[:, 1] = HEX_FACE_MIRROR[rows[:, 1]]
-                rows[:] = rows[np.lexsort((rows[:, 0], rows[:, 1]))]  # grouped by face number again
+
+
+def _mirror_faces(face_sets: list) -> None:
+    """Swap the face numbers of (element, face number) rows as a reflection does, in place,
+    and sort the rows by face number again."""
+    for rows in face_sets:
+        if rows is not None and rows.size:
+            rows[:, 1] = HEX_FACE_MIRROR[rows[:, 1]]
+            rows[:] = rows[np.lexsort((rows[:, 0], rows[:, 1]))]  # grouped by face number again
 
 
 def scanner_mesh(mesh: Mesh, model: SolverModel) -> Mesh:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from dicer import __version__
 from dicer.config import config_hash, stage_kwargs
+from dicer.parallel import meanwhile
 
 
 def file_sha256(path: str | os.PathLike | None) -> str | None:
@@ -77,27 +78,7 @@ def sha256_in_background(path: str | os.PathLike | None):
     callable
         Waits for the digest and returns it.
     """
-    import threading
-
-    out: list = []
-    worker = threading.Thread(target=lambda: out.append(_catch(file_sha256, path)), daemon=True)
-    worker.start()
-
-    def result() -> str | None:
-        worker.join()
-        value = out[0]
-        if isinstance(value, BaseException):
-            raise value
-        return value
-    return result
-
-
-def _catch(fn, *args):
-    """``fn(*args)``, or the exception it raised (to re-raise on the caller's thread)."""
-    try:
-        return fn(*args)
-    except BaseException as exc:  # noqa: BLE001 -- handed back to the caller, which raises it
-        return exc
+    return meanwhile(file_sha256, path)
 
 
 def provenance(source: str | os.PathLike | None, config: dict, element_type: str, order: int,

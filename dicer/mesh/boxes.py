@@ -58,8 +58,8 @@ def box_extents(cells: np.ndarray, lattice: np.ndarray, node_index: np.ndarray, 
     """
     dim = lattice.shape[1]
     corners = (HEX_CORNERS if cells.shape[1] == 8 else QUAD_CORNERS)[:, :dim]
-    lo = lattice[cells[:, 0]]
-    ext = lattice[cells[:, 6 if cells.shape[1] == 8 else 2]] - lo
+    lo = np.take(lattice, cells[:, 0], axis=0)  # take: about twice as fast as indexing for rows
+    ext = np.take(lattice, cells[:, 6 if cells.shape[1] == 8 else 2], axis=0) - lo
     if ext.size and ext.min() < 1:
         return None
     lo_index = node_index[cells[:, 0]]

@@ -69,8 +69,8 @@ def _neighbour_materials_by_lattice(mesh: Mesh) -> np.ndarray | None:
 
     def across(part: slice) -> None:
         c = cells[part]
-        lo = lattice[c[:, 0]]
-        ext = lattice[c[:, far]] - lo
+        lo = np.take(lattice, c[:, 0], axis=0)
+        ext = np.take(lattice, c[:, far], axis=0) - lo
         base = linear_index(lo, strides)
         for f, (axis, side) in enumerate(axes):
             if side == 0:

@@ -468,7 +468,7 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
 
     with _Stage("quality"):
         # the report only reads the mesh: its arrays stay in the page cache, mapped, not copied
-        mesh = read_mesh(mesh_path, mapped=True) if mesh is None else mesh
+        mesh = read_mesh(mesh_path, mapped=True, narrow_cells=True) if mesh is None else mesh
         labels = original = None
         if labels_path or original_path:
             from dicer.io.images import read_labels
@@ -487,9 +487,19 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
         from dicer.mesh.metrics import element_metrics
         from dicer.quality import REPORT_METRICS
 
+        from dicer.parallel import meanwhile
+        from dicer.quality import element_neighbours, floating_parts
+
+        def connectivity() -> tuple:  # the face neighbours (model picture) and the parts: no metric needed
+            neighbours = element_neighbours(mesh) if model_picture else None
+            return neighbours, floating_parts(mesh, neighbours)
+
+        # on a thread beside the metrics: labelling the parts runs much of its time on one core
+        parts_later = meanwhile(connectivity)
         names = REPORT_METRICS + (("skew",) if csv else ())
         metrics = element_metrics(mesh.points, mesh.cells, names)
         sj = metrics["scaled_jacobian"]
+        neighbours, parts = parts_later()
         with ThreadPoolExecutor(1) as pool:
             table = None
             if csv:  # the table is written and read back beside the report (part of its all-or-nothing)
@@ -498,7 +508,7 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
                 table = pool.submit(in_this_block(write_metrics_csv), mesh, csv, metrics)
             # on an error the pool waits for the table, whose file the block then deletes
             report = _report_of(mesh, config, labels, original, metrics, sj, stage_reports, html, pictures,
-                                histogram, model_picture, node_classes)
+                                histogram, model_picture, node_classes, neighbours, parts)
             if table is not None:
                 table.result()
         write_bytes_atomic(out, json.dumps(report, indent=2, sort_keys=True) + "\n")
@@ -508,17 +518,16 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
 
 
 def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_reports, html, pictures, histogram,
-               model_picture, node_classes) -> dict:
-    """The quality report of ``mesh`` with the stage reports; its pictures and HTML page written."""
+               model_picture, node_classes, neighbours, parts: dict) -> dict:
+    """The quality report of ``mesh`` with the stage reports; its pictures and HTML page written.
+    ``neighbours``: the model picture's faces (None without it: the parts of a voxel mesh come
+    from its voxel grid); ``parts``: the mesh's floating parts."""
     from dicer.config import material_names, stage_kwargs
     from dicer.io.atomic import pending, write_bytes_atomic
-    from dicer.quality import element_neighbours, quality_report, render_html
+    from dicer.quality import quality_report, render_html
 
-    # the model picture's faces, shared with the report's parts; without the picture the
-    # parts of a voxel mesh come from its voxel grid and need no neighbour array
-    neighbours = element_neighbours(mesh) if model_picture else None
     report = quality_report(mesh, **stage_kwargs(config, "quality"), labels=labels, original=original,
-                            metrics=metrics, neighbours=neighbours)
+                            metrics=metrics, neighbours=neighbours, parts=parts)
     stages = {}
     for path in stage_reports:
         try:

@@ -206,7 +206,8 @@ def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None) -> dict:
 
 @takes_settings("quality")
 def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, labels=None, original=None,
-                   metrics: dict | None = None, neighbours: np.ndarray | None = None) -> dict:
+                   metrics: dict | None = None, neighbours: np.ndarray | None = None,
+                   parts: dict | None = None) -> dict:
     """Quality figures of a mesh as a JSON-ready dict.
 
     Settings come as keywords (:func:`dicer.config.stage_kwargs` of ``quality``); a
@@ -232,6 +233,8 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, labe
         (:func:`dicer.mesh.metrics.element_metrics` with at least ``REPORT_METRICS``).
     neighbours : (M, F) int64 ndarray, optional
         The element across each face (:func:`element_neighbours`).
+    parts : dict, optional
+        :func:`floating_parts` of the mesh, already computed.
 
     Returns
     -------
@@ -288,7 +291,7 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, labe
         "poor_elements": int(np.count_nonzero(sj < poor)),
         "poor_threshold": poor,
     }
-    parts = floating_parts(mesh, neighbours)
+    parts = floating_parts(mesh, neighbours) if parts is None else parts
     report["parts"] = {"model": parts["model"],
                        "materials": {names.get(k, f"material_{k}"): v for k, v in parts["materials"].items()}}
     if "node_class" in mesh.point_data:

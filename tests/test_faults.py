@@ -335,3 +335,25 @@ def test_an_interrupt_that_left_an_exec_of_a_string_still_exits_130(tmp_path):
     assert proc.stderr.strip() == "error: interrupted; no output was kept"
     assert sorted(p.name for p in tmp_path.iterdir() if p.suffix != ".py" and p.name != "__pycache__") == [
         "labels.npy"]
+
+
+def test_a_flush_that_fails_while_the_deck_is_checked_is_one_error_and_no_file(tmp_path, monkeypatch):
+    """The export flushes its file on a thread while the check reads it: a full disk that
+    shows only in the flush is the same one error, and no file is left."""
+    import errno
+
+    import dicer.io.atomic as atomic
+    from dicer.config import load_config
+    from dicer.export import export_mesh
+    from dicer.mesh.voxel import voxel_mesh
+
+    def full(path):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(atomic, "_fsync", full)
+    lab = np.ones((3, 3, 3), np.uint8)
+    out = tmp_path / "m.inp"
+    with pytest.raises(DicerError) as info:
+        export_mesh(voxel_mesh(lab), out, load_config(settings={"materials": [{"name": "bone"}]}))
+    assert str(info.value).startswith(f"{out}: the disk is full") and ".tmp" not in str(info.value)
+    assert list(tmp_path.iterdir()) == []

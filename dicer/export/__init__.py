@@ -26,7 +26,7 @@ from dicer.export.model import (DEFAULT_TYPES, ELEMENT_TYPES, SolverModel, prepa
                                 scanner_mesh)
 from dicer.export.provenance import file_sha256, provenance, settings_hash
 from dicer.export.registry import EXPORT_SUFFIXES, FORMATS, format_of
-from dicer.io.atomic import atomic_path
+from dicer.io.atomic import write_error, atomic_path, flush_meanwhile
 from dicer.mesh.faces import face_neighbours, neighbour_materials
 from dicer.mesh.model import Mesh
 
@@ -64,11 +64,17 @@ def _write_and_check(fmt: Format, model: SolverModel, tmp: Path, path: Path, ex:
         raise DicerError(f"{path}: cannot write ({exc.strerror}); choose a writable output path") from None
     if not check:
         return
+    flushed = flush_meanwhile(tmp)  # the disk writes while the check reads
     try:
         fmt.check(tmp, model, **fmt.options("check", ex))
     except DicerError as exc:
         raise DicerError(f"{path}: read-back check failed: {exc}; the file was not written: check the disk "
                          "and export again") from None
+    finally:
+        try:
+            flushed()
+        except OSError as exc:
+            raise write_error(path, exc) from None
 
 
 @takes_settings("export")

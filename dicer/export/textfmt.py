@@ -195,12 +195,15 @@ def _mantissa(x: np.ndarray, p: int, fortran: bool):
     """Integer mantissa m (p digits) and decimal exponent e of x: |x| ~ m * 10**(e - p + 1)."""
     a = np.abs(x)
     zero = a < 1e-99
-    a = np.where(zero, 1.0, a)
+    a[zero] = 1.0
     e = np.floor(np.log10(a)).astype(np.int64)
     for _ in range(3):
         k = p - 1 - e  # m = a * 10**k, one correctly rounded operation
-        m = np.where(k >= 0, a * _POW10F[np.clip(k, 0, 308)], a / _POW10F[np.clip(-k, 0, 308)])
-        m = np.rint(m).astype(np.int64)
+        m = a * _POW10F[np.clip(k, 0, 308)]
+        below = np.flatnonzero(k < 0)  # numbers of more than p digits before the point: few
+        if below.size:
+            m[below] = a[below] / _POW10F[-k[below]]
+        m = np.rint(m, out=m).astype(np.int64)
         hi = m >= _POW10[p]
         lo = m < _POW10[p - 1]
         if not (hi.any() or lo.any()):
@@ -251,13 +254,14 @@ def sci_digits(values: np.ndarray, fmt: Sci, lead: bytes = b"") -> np.ndarray:
         # word-aligned: [lead sign d .] or [sign 0 . d], then [4 digits]..., then [e s x x]
         groups = (p - 1) // 4
         words = np.empty((n, groups + 2), "<u4")
-        first = (m // _POW10[p - 1]).astype(np.uint32) + np.uint32(_ZERO)
+        first, rest = np.divmod(m, _POW10[p - 1])
+        first = first.astype(np.uint32) + np.uint32(_ZERO)
         sign = np.where(neg, _MINUS, _SPACE).astype(np.uint32)
         if fmt.fortran:
             words[:, 0] = sign | np.uint32(_ZERO << 8 | _DOT << 16) | (first << 24)
         else:
             words[:, 0] = np.uint32(lead[0] | _DOT << 24) | (sign << 8) | (first << 16)
-        words[:, 1 : groups + 1] = _int_words(m % _POW10[p - 1], groups, zero_pad=True)
+        words[:, 1 : groups + 1] = _int_words(rest, groups, zero_pad=True)
         words[:, groups + 1] = expw
         return words.view(np.uint8).reshape(n, total)
     out = np.full((n, total), _SPACE, np.uint8)

@@ -57,7 +57,28 @@ def _fsync(path: Path) -> None:
         os.close(fd)
 
 
-def _os_error(path: Path, exc: OSError) -> DicerError:
+def flush_meanwhile(tmp: str | os.PathLike):
+    """Start flushing a written file to disk on a thread, so that its read-back check runs
+    while the disk writes; :func:`atomic_path` flushes it again before the rename (by then
+    a call with nothing left to write).
+
+    Parameters
+    ----------
+    tmp : str or os.PathLike
+        The temporary file :func:`atomic_path` yielded, closed.
+
+    Returns
+    -------
+    callable
+        Waits for the flush; raises its OSError (a full disk can show only then).
+    """
+    from dicer.parallel import meanwhile
+
+    return meanwhile(_fsync, Path(tmp))
+
+
+def write_error(path: Path, exc: OSError) -> DicerError:
+    """The one-line error of an OSError while writing ``path`` (a full disk said as such)."""
     if exc.errno in (errno.ENOSPC, errno.EDQUOT):
         return DicerError(f"{path}: the disk is full ({exc.strerror}); free space or write elsewhere, "
                           "nothing was written")
@@ -205,7 +226,7 @@ def atomic_path(path: str | os.PathLike):
             os.chmod(tmp, 0o644)
             _fsync(tmp)
         except OSError as exc:
-            raise _os_error(path, exc) from None
+            raise write_error(path, exc) from None
         if _pending() is not None:
             _block.pending.append((tmp, path))
             _block.made.extend(made)

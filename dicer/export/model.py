@@ -35,6 +35,24 @@ ELEMENT_TYPES = {
 DEFAULT_TYPES = {(3, 1): "C3D8", (3, 2): "C3D20", (2, 1): "CPS4", (2, 2): "CPS8"}
 
 
+class _AfterSets:
+    """An attribute of the surface sets: reading or setting it waits for sets in the making
+    (:meth:`SolverModel.sets_meanwhile`); the value lives in ``_<name>``."""
+
+    def __set_name__(self, owner, name: str) -> None:
+        self.slot = "_" + name
+
+    def __get__(self, obj, owner=None):
+        if obj is None:
+            return self
+        obj._wait()
+        return getattr(obj, self.slot)
+
+    def __set__(self, obj, value) -> None:
+        obj._wait()
+        setattr(obj, self.slot, value)
+
+
 @dataclass
 class SolverModel(Sized):
     """A mesh ready for a solver file: everything a writer needs, nothing format-specific.
@@ -127,38 +145,9 @@ class SolverModel(Sized):
                 self._node_sets.update(node_sets)
                 self._pending = None
 
-    @property
-    def node_sets(self) -> dict[str, np.ndarray]:
-        """Set name -> sorted 0-based node indices (waits for sets in the making)."""
-        self._wait()
-        return self._node_sets
-
-    @node_sets.setter
-    def node_sets(self, value: dict[str, np.ndarray]) -> None:
-        self._wait()
-        self._node_sets = value
-
-    @property
-    def exterior(self) -> np.ndarray | None:
-        """(F, 2) rows (element, face number) of the exterior faces, or None (waits for sets in the making)."""
-        self._wait()
-        return self._exterior
-
-    @exterior.setter
-    def exterior(self, value: np.ndarray | None) -> None:
-        self._wait()
-        self._exterior = value
-
-    @property
-    def interfaces(self) -> dict[str, np.ndarray]:
-        """Interface name -> (F, 2) rows (element, face number) (waits for sets in the making)."""
-        self._wait()
-        return self._interfaces
-
-    @interfaces.setter
-    def interfaces(self, value: dict[str, np.ndarray]) -> None:
-        self._wait()
-        self._interfaces = value
+    node_sets = _AfterSets()
+    exterior = _AfterSets()
+    interfaces = _AfterSets()
 
     def face_sets(self) -> dict[str, np.ndarray]:
         """Element-face set name -> (F, 2) rows (element index, face number): EXTERIOR, then

@@ -330,7 +330,7 @@ def _now(job) -> None:
 
 
 def _mesh_to_mesh(stage: str, func, mesh_path: str, out: Path, report_path: Path | None, mesh=None,
-                  mapped: bool = False, write=_now):
+                  mapped: bool = False, write=_now, narrow_cells: bool = False):
     """Read a mesh (unless the caller has it: ``mesh``, what the file at ``mesh_path`` holds),
     apply ``func(mesh) -> (mesh, report)``, write the mesh (checked) and report. ``mapped``:
     ``func`` only reads the mesh, so its arrays may stay in the page cache (read-only views).
@@ -338,7 +338,7 @@ def _mesh_to_mesh(stage: str, func, mesh_path: str, out: Path, report_path: Path
     from dicer.io.meshes import read_mesh, write_mesh
 
     with _Stage(stage):
-        mesh = read_mesh(mesh_path, mapped=mapped) if mesh is None else mesh
+        mesh = read_mesh(mesh_path, mapped=mapped, narrow_cells=narrow_cells) if mesh is None else mesh
         try:
             result, report = func(mesh)
         except _InputError as exc:  # names its own file
@@ -360,7 +360,7 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
     # both methods build a new mesh and only read the input (a copy of 0.9 GB at 256^3
     # cost more than coarsening it)
     merged, report = _mesh_to_mesh("merge", lambda m: merge_mesh(m, **settings), mesh_path, out, report_path,
-                                   mesh, mapped=True, write=write)
+                                   mesh, mapped=True, write=write, narrow_cells=True)
     log.info("merge: wrote %s (%d -> %d elements, %d -> %d nodes; volume %s)", out,
              report["elements_before"], report["elements_after"], report["nodes_before"],
              report["nodes_after"], json.dumps(_stable(report["volume"]), sort_keys=True))

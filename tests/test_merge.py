@@ -663,3 +663,29 @@ def test_degrees_and_corner_gathers_equal_their_plain_forms(rows, n, hexa, data)
     # every row of fa whose face occurs in fb is matched once, to the row holding that face
     expected = [r for r in range(len(fa)) if (fb == fa[r]).all(axis=1).any()]
     assert sorted(i.tolist()) == expected
+
+
+@pytest.mark.parametrize("method", ["planes", "templates"])
+def test_merge_of_int32_connectivity_is_the_merge_of_int64(method):
+    """`dicer merge` reads the stage file's Int32 connectivity read-only (narrow_cells); the
+    merged mesh is the one `dicer run` gets from int64 cells in memory."""
+    from dicer.mesh.merge import merge_mesh
+
+    if method == "templates":  # 2D: uniform blocks that coarsen
+        lab = np.ones((54, 45), np.uint8)
+        lab[18:36, 9:27] = 2
+    else:
+        lab = (np.random.default_rng(11).random((14, 12, 10)) < 0.9).astype(np.uint8)
+        lab[4:10, 3:9] = 2
+        lab = fixed(lab)
+    wide = voxel_mesh(lab)
+    narrow = voxel_mesh(lab)
+    narrow.cells = narrow.cells.astype(np.int32)
+    narrow.cells.flags.writeable = False
+    a, rep_a = merge_mesh(wide, method=method)
+    b, rep_b = merge_mesh(narrow, method=method)
+    assert a.n_cells < wide.n_cells
+    assert a.cells.dtype == b.cells.dtype == np.int64
+    assert np.array_equal(a.cells, b.cells) and np.array_equal(a.points, b.points)
+    assert np.array_equal(a.lattice, b.lattice) and np.array_equal(a.material, b.material)
+    assert rep_a["elements_after"] == rep_b["elements_after"] == a.n_cells

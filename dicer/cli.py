@@ -412,7 +412,8 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
             raise
 
     # smoothing only reads its input mesh (new points; cells and data shared)
-    smoothed, report = _mesh_to_mesh("smooth", run, mesh_path, out, report_path, mesh, mapped=True, write=write)
+    smoothed, report = _mesh_to_mesh("smooth", run, mesh_path, out, report_path, mesh, mapped=True, write=write,
+                                     narrow_cells=True)
     log.info("smooth: wrote %s (%s)", out, json.dumps(_stable(report), sort_keys=True)[:600])
     return smoothed
 

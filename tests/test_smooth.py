@@ -272,3 +272,27 @@ def test_head_ct_chain():
     sj = scaled_jacobian(out.points, out.cells)
     assert sj.min() >= 0.2 and np.count_nonzero(sj <= 0) == 0
     assert rep["node_classes"]["X"] == 0
+
+
+@pytest.mark.parametrize("merged", [False, True])
+def test_smoothing_of_int32_connectivity_is_the_smoothing_of_int64(merged):
+    """`dicer smooth` reads the stage file's Int32 connectivity read-only (narrow_cells); the
+    smoothed nodes are those `dicer run` gets from int64 cells in memory."""
+    from dicer.mesh.smooth import smooth_mesh
+
+    lab = np.zeros((12, 11, 10), np.uint8)
+    zz, yy, xx = np.mgrid[:12, :11, :10]
+    lab[(zz - 5.5) ** 2 + (yy - 5) ** 2 + (xx - 4.5) ** 2 < 16] = 1
+    lab[(zz - 5.5) ** 2 + (yy - 5) ** 2 + (xx - 4.5) ** 2 < 5] = 2
+    wide = voxel_mesh(lab)
+    if merged:
+        from dicer.mesh.merge import merge_planes
+
+        wide, _ = merge_planes(wide)
+    narrow = wide.copy()
+    narrow.cells = narrow.cells.astype(np.int32)
+    narrow.cells.flags.writeable = False
+    a, _ = smooth_mesh(wide)
+    b, _ = smooth_mesh(narrow)
+    assert not np.array_equal(a.points, wide.points)  # it moved nodes
+    assert np.array_equal(a.points, b.points) and np.array_equal(a.cells, b.cells)

@@ -330,7 +330,7 @@ def _now(job) -> None:
 
 
 def _mesh_to_mesh(stage: str, func, mesh_path: str, out: Path, report_path: Path | None, mesh=None,
-                  mapped: bool = False, write=_now, narrow_cells: bool = False):
+                  mapped: bool = False, write=_now):
     """Read a mesh (unless the caller has it: ``mesh``, what the file at ``mesh_path`` holds),
     apply ``func(mesh) -> (mesh, report)``, write the mesh (checked) and report. ``mapped``:
     ``func`` only reads the mesh, so its arrays may stay in the page cache (read-only views).
@@ -338,7 +338,7 @@ def _mesh_to_mesh(stage: str, func, mesh_path: str, out: Path, report_path: Path
     from dicer.io.meshes import read_mesh, write_mesh
 
     with _Stage(stage):
-        mesh = read_mesh(mesh_path, mapped=mapped, narrow_cells=narrow_cells) if mesh is None else mesh
+        mesh = read_mesh(mesh_path, mapped=mapped) if mesh is None else mesh
         try:
             result, report = func(mesh)
         except _InputError as exc:  # names its own file
@@ -360,7 +360,7 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
     # both methods build a new mesh and only read the input (a copy of 0.9 GB at 256^3
     # cost more than coarsening it)
     merged, report = _mesh_to_mesh("merge", lambda m: merge_mesh(m, **settings), mesh_path, out, report_path,
-                                   mesh, mapped=True, write=write, narrow_cells=True)
+                                   mesh, mapped=True, write=write)
     log.info("merge: wrote %s (%d -> %d elements, %d -> %d nodes; volume %s)", out,
              report["elements_before"], report["elements_after"], report["nodes_before"],
              report["nodes_after"], json.dumps(_stable(report["volume"]), sort_keys=True))
@@ -412,8 +412,7 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
             raise
 
     # smoothing only reads its input mesh (new points; cells and data shared)
-    smoothed, report = _mesh_to_mesh("smooth", run, mesh_path, out, report_path, mesh, mapped=True, write=write,
-                                     narrow_cells=True)
+    smoothed, report = _mesh_to_mesh("smooth", run, mesh_path, out, report_path, mesh, mapped=True, write=write)
     log.info("smooth: wrote %s (%s)", out, json.dumps(_stable(report), sort_keys=True)[:600])
     return smoothed
 
@@ -443,7 +442,7 @@ def do_export(mesh_path: str, out: Path, config: dict, mesh=None):
 
     with _Stage("export"):
         # the export only reads the mesh: its arrays stay in the page cache, mapped, not copied
-        mesh = read_mesh(mesh_path, mapped=True, narrow_cells=True) if mesh is None else mesh
+        mesh = read_mesh(mesh_path, mapped=True) if mesh is None else mesh
         info = export_mesh(mesh, out, **stage_kwargs(config, "export"), source=mesh_path)
         log.info("export: wrote %s (%s)", out, json.dumps(info, sort_keys=True))
 
@@ -469,7 +468,7 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
 
     with _Stage("quality"):
         # the report only reads the mesh: its arrays stay in the page cache, mapped, not copied
-        mesh = read_mesh(mesh_path, mapped=True, narrow_cells=True) if mesh is None else mesh
+        mesh = read_mesh(mesh_path, mapped=True) if mesh is None else mesh
         labels = original = None
         if labels_path or original_path:
             from dicer.io.images import read_labels
@@ -486,10 +485,8 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
                                      "made from with --labels (the original segmentation goes to --original)")
         # every element metric once: the report's, the figures' and the CSV's with skew
         from dicer.mesh.metrics import element_metrics
-        from dicer.quality import REPORT_METRICS
-
         from dicer.parallel import meanwhile
-        from dicer.quality import element_neighbours, floating_parts
+        from dicer.quality import REPORT_METRICS, element_neighbours, floating_parts
 
         def connectivity() -> tuple:  # the face neighbours (model picture) and the parts: no metric needed
             neighbours = element_neighbours(mesh) if model_picture else None

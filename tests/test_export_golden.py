@@ -130,7 +130,7 @@ def test_export_bytes_unchanged(tmp_path):
 
 @pytest.mark.skipif(__version__ != GOLDEN_VERSION, reason="the headings name another dicer version")
 def test_export_bytes_the_same_from_int32_connectivity(tmp_path):
-    """`dicer export` keeps the stage file's Int32 connectivity (read_mesh narrow_cells): every
+    """`dicer export` keeps the stage file's Int32 connectivity (read_mesh mapped): every
     format writes the same bytes as from int64."""
     pytest.importorskip("netCDF4")
     got = _digests(tmp_path, narrow=True)

@@ -252,12 +252,12 @@ def test_mapped_read_back_agrees_and_refuses_damage(tmp_path, mesh, cut):
         _read_mapped_vtu(path, "m.vtu")
 
 
-def test_narrow_cells_keep_the_files_int32_read_only(tmp_path, mesh):
-    """read_mesh(narrow_cells=True), as dicer export reads: the same mesh, its connectivity
-    the file's Int32 (not writable), the lattice widened as always."""
+def test_mapped_read_keeps_the_files_int32_connectivity_read_only(tmp_path, mesh):
+    """read_mesh(mapped=True), as the stages that only read their mesh do: the same mesh as
+    read into memory, its connectivity the file's Int32 (not writable), the lattice widened."""
     path = tmp_path / "m.vtu"
     write_mesh(mesh, path)
-    wide, narrow = read_mesh(path, mapped=True), read_mesh(path, mapped=True, narrow_cells=True)
+    wide, narrow = read_mesh(path), read_mesh(path, mapped=True)
     assert wide.cells.dtype == np.int64 and narrow.cells.dtype.kind == "i" and narrow.cells.dtype.itemsize == 4
     assert not narrow.cells.flags.writeable
     assert narrow.lattice.dtype == np.int64

@@ -667,7 +667,7 @@ def test_degrees_and_corner_gathers_equal_their_plain_forms(rows, n, hexa, data)
 
 @pytest.mark.parametrize("method", ["planes", "templates"])
 def test_merge_of_int32_connectivity_is_the_merge_of_int64(method):
-    """`dicer merge` reads the stage file's Int32 connectivity read-only (narrow_cells); the
+    """`dicer merge` reads the stage file's Int32 connectivity read-only (read_mesh mapped); the
     merged mesh is the one `dicer run` gets from int64 cells in memory."""
     from dicer.mesh.merge import merge_mesh
 

@@ -276,7 +276,7 @@ def test_head_ct_chain():
 
 @pytest.mark.parametrize("merged", [False, True])
 def test_smoothing_of_int32_connectivity_is_the_smoothing_of_int64(merged):
-    """`dicer smooth` reads the stage file's Int32 connectivity read-only (narrow_cells); the
+    """`dicer smooth` reads the stage file's Int32 connectivity read-only (read_mesh mapped); the
     smoothed nodes are those `dicer run` gets from int64 cells in memory."""
     from dicer.mesh.smooth import smooth_mesh
 

@@ -26,7 +26,7 @@ from dicer.export.model import (DEFAULT_TYPES, ELEMENT_TYPES, SolverModel, prepa
                                 scanner_mesh)
 from dicer.export.provenance import file_sha256, provenance, settings_hash
 from dicer.export.registry import EXPORT_SUFFIXES, FORMATS, format_of
-from dicer.io.atomic import write_error, atomic_path, flush_meanwhile
+from dicer.io.atomic import atomic_path, flush_meanwhile, write_error
 from dicer.mesh.faces import face_neighbours, neighbour_materials
 from dicer.mesh.model import Mesh
 

@@ -731,10 +731,10 @@ def _check_arrays(name, points, cells, material, lattice, level=None) -> None:
 def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data, widen: bool | str = True) -> Mesh:
     """A Mesh from the arrays of a file, with dicer's checks of its data. ``widen=False``
     keeps the file's integer types (a read-back compared with the mesh written: no copy);
-    ``"lattice"`` widens the lattice only."""
+    ``"lattice"`` widens the lattice and leaves an Int32 connectivity as it is."""
     cells, lattice = np.asarray(cells), np.asarray(point_data.get("lattice", ()))
     if widen:
-        if widen != "lattice":
+        if widen != "lattice" or cells.dtype not in (np.int32, np.int64):
             cells = cells.astype(np.int64, copy=False)
         lattice = lattice.astype(np.int64, copy=False)
     if "material" not in cell_data:
@@ -779,23 +779,22 @@ def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data,
     return mesh
 
 
-def read_mesh(path: str | os.PathLike, source: str | None = None, mapped: bool = False,
-              narrow_cells: bool = False) -> Mesh:
+def read_mesh(path: str | os.PathLike, source: str | None = None, mapped: bool = False) -> Mesh:
     """Read a dicer VTU (or any meshio format holding one hex or quad block with dicer's data).
 
     dicer's own VTU files (raw appended data) are read with numpy at disk speed; any
     other file with meshio. ``mapped``: a dicer VTU's arrays are read-only views of the
-    file mapped into memory (pages from the page cache, no copy), for callers that only
-    read the mesh (``dicer export``); arrays of another dtype than a Mesh holds are still
-    converted, but with ``narrow_cells`` the connectivity keeps the file's Int32 (a caller
-    that only indexes with it is spared an int64 copy: 0.4 GB at 6.4 M hexahedra).
+    file mapped into memory (pages from the page cache, no copy), for stages that only
+    read the mesh and index with its connectivity (export, quality, merge, smooth): the
+    connectivity keeps the file's Int32 (an int64 copy is 0.4 GB at 6.4 M hexahedra);
+    other arrays of another dtype than a Mesh holds are still converted.
     """
     path = Path(path)
     name = source or str(path)
     if not path.exists():
         raise DicerError(f"{name}: mesh file not found; check the path")
     parts = _read_raw_vtu(path, name, mapped) if path.suffix.lower() == ".vtu" and path.is_file() else None
-    mesh = _assemble(name, *(parts or _read_meshio(path, name)), widen="lattice" if narrow_cells else True)
+    mesh = _assemble(name, *(parts or _read_meshio(path, name)), widen="lattice" if mapped else True)
     if mapped and parts:
         # the index arrays widened from the file's Int32 are copies: read-only too, as the
         # mapped arrays are, so that no stage writes into its input

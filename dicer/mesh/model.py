@@ -73,8 +73,8 @@ class Mesh(Sized):
     points : (N, 3) float64 ndarray
         Node coordinates, mm (z = 0 in 2D).
     cells : (M, 8) or (M, 4) int64 ndarray
-        Hexahedra or quads, VTK corner order, 0-based (read-only int32 when read for an
-        export: :func:`dicer.io.meshes.read_mesh` ``narrow_cells``).
+        Hexahedra or quads, VTK corner order, 0-based (read-only int32 when read mapped
+        from a dicer VTU: :func:`dicer.io.meshes.read_mesh`).
     material : (M,) int32 ndarray
         Class label 1..K of each element.
     lattice : (N, 3) int64 ndarray

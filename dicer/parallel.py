@@ -122,3 +122,27 @@ def meanwhile(fn: Callable, *args) -> Callable:
             raise value
         return value
     return result
+
+
+def import_meanwhile(*names: str) -> None:
+    """Import the modules ``names`` on a thread, for a stage that needs them only later.
+
+    Loading scipy's compiled modules reads and maps files for a few tenths of a second;
+    the caller's array work goes on meanwhile. A later ``import`` of the same module
+    waits for this one (Python's import lock) and an import error is raised there, by
+    that import, as without this call.
+    """
+    import importlib
+    import sys
+
+    missing = [name for name in names if name not in sys.modules]
+    if missing:
+        meanwhile(lambda: [_try_import(importlib, name) for name in missing])
+
+
+def _try_import(importlib, name: str) -> None:
+    try:
+        importlib.import_module(name)
+    except ImportError:  # the caller's own import reports it
+        pass
+

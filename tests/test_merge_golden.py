@@ -188,6 +188,21 @@ def test_merge_is_byte_identical_to_the_recorded_output(name):
     assert report == expected[2], "the merge report changed"
 
 
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_merge_in_small_pieces_on_threads_gives_the_recorded_output(name, monkeypatch):
+    """Large meshes are worked in pieces of rows, several at a time on threads: pieces of 64
+    values here make every piece loop of these small meshes run that way."""
+    import dicer.mesh.merge as merge
+
+    monkeypatch.setattr(merge, "CHUNK", 64)
+    calls = []
+    ordered_map = merge.ordered_map
+    monkeypatch.setattr(merge, "ordered_map", lambda fn, items: calls.append(1) or ordered_map(fn, items))
+    _, mesh, report = _run(name)
+    assert len(calls) >= 3, "the piece loops did not run in pieces"
+    assert (mesh, report) == GOLDEN[name][1:]
+
+
 if __name__ == "__main__":  # print the table of recorded values
     for case in CASES:
         print(f'    "{case}": {_run(case)!r},')

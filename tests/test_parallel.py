@@ -229,3 +229,25 @@ def test_sets_built_meanwhile_are_the_sets_built_in_line():
     faces = sum(int(np.count_nonzero(np.diff(solid.astype(int), axis=a) != 0)) for a in range(3))
     assert np.array_equal(model.exterior, exterior) and exterior.shape[0] == faces == 132
     assert list(model.interfaces) == ["a_b"] and np.array_equal(model.interfaces["a_b"], interfaces["a_b"])
+
+
+def test_import_meanwhile_loads_the_modules_and_leaves_errors_to_the_importer(tmp_path, monkeypatch):
+    import sys
+    import types
+
+    gate = types.SimpleNamespace(release=threading.Event(), done=False)
+    monkeypatch.setitem(sys.modules, "dicer_probe_gate", gate)
+    (tmp_path / "dicer_probe_slow.py").write_text(
+        "import dicer_probe_gate as gate\ngate.release.wait(10)\nVALUE = 7\ngate.done = True\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "dicer_probe_slow", raising=False)
+    parallel.import_meanwhile("dicer_probe_slow", "dicer_probe_missing")
+    assert not gate.done  # returned while the module is still loading
+    gate.release.set()
+    import dicer_probe_slow  # waits for the thread's import (the import lock), then has it
+
+    assert gate.done and dicer_probe_slow.VALUE == 7
+    assert "dicer_probe_missing" not in sys.modules
+    with pytest.raises(ImportError):
+        import dicer_probe_missing  # noqa: F401 -- the error comes from the caller's own import
+    monkeypatch.delitem(sys.modules, "dicer_probe_slow")

@@ -38,6 +38,7 @@ import numpy as np
 
 from dicer.config import section_defaults, takes_settings
 from dicer.errors import DicerError
+from dicer.parallel import import_meanwhile, meanwhile, ordered_map
 from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes
 from dicer.mesh.model import CHUNK, Mesh, pieces
 from dicer.mesh.topology import (HEX_AXIS_CORNERS, HEX_CORNERS, HEX_EDGES, HEX_FACES, QUAD_AXIS_CORNERS,
@@ -74,6 +75,19 @@ def _rows_per_piece(index: np.ndarray) -> int:
     return max(1, CHUNK // max(1, int(np.prod(index.shape[1:], dtype=np.int64))))
 
 
+def _each_piece(fn, n: int, step: int | None = None) -> None:
+    """``fn(part)`` for every piece of ``range(n)`` (``step`` rows, default ``CHUNK``), on two
+    threads when there are several (``fn`` writes only its own rows; numpy leaves the
+    interpreter lock in each)."""
+    step = CHUNK if step is None else step
+    if n <= step:
+        if n:
+            fn(slice(0, n))
+        return
+    for _ in ordered_map(fn, pieces(n, step)):
+        pass
+
+
 def _take(table: np.ndarray, index: np.ndarray) -> np.ndarray:
     """``table[index]`` for a 1-D ``table`` and an integer ``index`` of any shape, in pieces of rows.
 
@@ -84,9 +98,10 @@ def _take(table: np.ndarray, index: np.ndarray) -> np.ndarray:
     if index.dtype == np.intp or index.size <= CHUNK:
         return table[index]
     out = np.empty(index.shape, dtype=table.dtype)
-    step = _rows_per_piece(index)
-    for part in pieces(index.shape[0], step):
-        out[part] = np.take(table, index[part])  # np.take: about twice as fast as fancy indexing
+
+    def gather(part: slice) -> None:
+        np.take(table, index[part], out=out[part])  # np.take: about twice as fast as fancy indexing
+    _each_piece(gather, index.shape[0], _rows_per_piece(index))
     return out
 
 
@@ -107,9 +122,10 @@ def _any_at(mask: np.ndarray, index: np.ndarray) -> np.ndarray:
     if index.size <= CHUNK:
         return _any(mask[index])
     out = np.empty(index.shape[0], dtype=bool)
-    step = _rows_per_piece(index)
-    for part in pieces(index.shape[0], step):
+
+    def flag(part: slice) -> None:
         out[part] = _any(np.take(mask, index[part]))  # np.take: about twice as fast as fancy indexing
+    _each_piece(flag, index.shape[0], _rows_per_piece(index))
     return out
 
 
@@ -197,13 +213,15 @@ def _match_faces(a: np.ndarray, b: np.ndarray, n: int) -> tuple[np.ndarray, np.n
     _put(owner, b0, rows_b)
     # a first node held by several rows of b: its owner is the last of them, not the others
     shared = np.zeros(n, dtype=bool)
-    for part in pieces(b.shape[0]):
+
+    def flag(part: slice) -> None:
         f = b0[part]
-        shared[f[np.take(owner, f) != rows_b[part]]] = True
+        shared[f[np.take(owner, f) != rows_b[part]]] = True  # both threads write True only
+    _each_piece(flag, b.shape[0])
     del rows_b
-    # the rows of a, in pieces that stay in cache: its first node's owner, checked whole
-    found_i, found_j, hard = [], [], []
-    for part in pieces(a.shape[0]):
+
+    def find(part: slice) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The rows of ``a`` in ``part`` (a piece that stays in cache): its first node's owner, checked whole."""
         f = a[part, 0]
         j = np.take(owner, f)
         on_shared = np.take(shared, f)
@@ -213,9 +231,8 @@ def _match_faces(a: np.ndarray, b: np.ndarray, n: int) -> tuple[np.ndarray, np.n
         j = j[i].astype(np.intp)
         i += part.start
         same = _all(np.take(a, i, axis=0) == np.take(b, j, axis=0))
-        found_i.append(i[same])
-        found_j.append(j[same])
-        hard.append(np.flatnonzero(on_shared) + part.start)
+        return i[same], j[same], np.flatnonzero(on_shared) + part.start
+    found_i, found_j, hard = zip(*ordered_map(find, pieces(a.shape[0], CHUNK)))
     i, j = np.concatenate(found_i), np.concatenate(found_j)
     hard_a = np.concatenate(hard)
     if hard_a.size:
@@ -259,7 +276,8 @@ def _merge_regions(faces: np.ndarray, box: np.ndarray, cand_idx: np.ndarray, cma
         plane = np.empty(rows.size, dtype=np.int32)
         start = [np.empty(rows.size, dtype=np.int32) for _ in other]
         size = [np.empty(rows.size, dtype=np.int32) for _ in other]
-        for part in pieces(rows.size):
+
+        def corners(part: slice) -> None:
             sel = faces[part] if whole else np.take(faces, rows[part], axis=0)
             low = np.take(lattice, sel[:, 0], axis=0)
             high = np.take(lattice, sel[:, far], axis=0)
@@ -267,7 +285,7 @@ def _merge_regions(faces: np.ndarray, box: np.ndarray, cand_idx: np.ndarray, cma
             for x, w, d in zip(start, size, other):
                 x[part] = low[:, d]
                 np.subtract(high[:, d], low[:, d], out=w[part], casting="unsafe")
-        del sel, low, high
+        _each_piece(corners, rows.size)
         for x in start:
             x -= int(x.min())
         plane -= int(plane.min())
@@ -282,12 +300,15 @@ def _merge_regions(faces: np.ndarray, box: np.ndarray, cand_idx: np.ndarray, cma
             cell += x
         del pid, plane
         flat = grid.reshape(-1)
-        packed = size[0].astype(np.int64) if dim == 2 else size[0] * np.int64(int(size[1].max()) + 1) + size[1]
-        kinds = np.flatnonzero(np.bincount(packed))
-        for kind in kinds:  # faces of one size at a time (unit squares in a voxel mesh)
-            pick = packed == kind
-            sel = slice(None) if kinds.size == 1 else np.flatnonzero(pick)
-            one = int(np.argmax(pick))
+        if all(int(w.min()) == int(w.max()) for w in size):  # one size (unit squares in a voxel mesh)
+            packed, kinds = None, [None]
+        else:
+            packed = size[0].astype(np.int64) if dim == 2 else size[0] * np.int64(int(size[1].max()) + 1) + size[1]
+            kinds = np.flatnonzero(np.bincount(packed))
+        for kind in kinds:  # faces of one size at a time
+            pick = None if packed is None else packed == kind
+            sel = slice(None) if len(kinds) == 1 else np.flatnonzero(pick)
+            one = 0 if pick is None else int(np.argmax(pick))
             for off in np.ndindex(*[int(w[one]) for w in size]):
                 shift = int(np.ravel_multi_index((0, *off), shape)) if off else 0
                 flat[cell[sel] + shift if shift else cell[sel]] = True
@@ -482,40 +503,48 @@ def _gather_corners(cells: np.ndarray, layers: list[tuple[np.ndarray, int, np.nd
     """
     outs = [(np.empty((count, first.size), dtype=cells.dtype), np.empty((count, second.size), dtype=cells.dtype))
             for _, count, first, second in layers]
-    at = [0] * len(layers)
-    for part in pieces(cells.shape[0], _rows_per_piece(cells)):
+    step = _rows_per_piece(cells)
+    # where each piece's rows go: the selected rows before it, per layer
+    starts = [np.r_[0, np.cumsum(np.add.reduceat(select, np.arange(0, cells.shape[0], step), dtype=np.int64))]
+              for select, *_ in layers]
+
+    def gather(part: slice) -> None:
         rows = cells[part]
-        for i, ((select, _, first, second), (a, b)) in enumerate(zip(layers, outs)):
+        for (select, _, first, second), (a, b), start in zip(layers, outs, starts):
             block = np.compress(select[part], rows, axis=0)
+            at = int(start[part.start // step])
             k = block.shape[0]
-            np.take(block, first, axis=1, out=a[at[i]:at[i] + k], mode="clip")  # valid columns: no buffered copy
-            np.take(block, second, axis=1, out=b[at[i]:at[i] + k], mode="clip")
-            at[i] += k
+            np.take(block, first, axis=1, out=a[at:at + k], mode="clip")  # valid columns: no buffered copy
+            np.take(block, second, axis=1, out=b[at:at + k], mode="clip")
+    _each_piece(gather, cells.shape[0], step)
     return outs
 
 
 def _far_ends_disagree(far: np.ndarray, face: np.ndarray, other: np.ndarray, out: np.ndarray) -> None:
     """Flag in ``out`` ((N,) bool) the nodes of ``face`` (K, c) whose entry in ``far`` is not
     the node at the same place in ``other`` (K, c), in pieces of rows that stay in cache."""
-    for part in pieces(face.shape[0], _rows_per_piece(face)):
+    def flag(part: slice) -> None:
         f = face[part]
-        out[f[far[f] != other[part]]] = True
+        out[f[far[f] != other[part]]] = True  # both threads write True only
+    _each_piece(flag, face.shape[0], _rows_per_piece(face))
 
 
-def _compact(cells: np.ndarray, keep: np.ndarray, new_id: np.ndarray) -> np.ndarray:
-    """``new_id[cells[keep]]``, written over the front of ``cells`` (M, c) itself: (K, c), a view.
+def _compact(rows: np.ndarray, keep: np.ndarray, new_id: np.ndarray | None = None) -> np.ndarray:
+    """``rows[keep]`` (mapped through ``new_id`` when given), written over the front of
+    ``rows`` (M, ...) itself: (K, ...), a view.
 
     Rows only move forward, and each piece is read before anything is written over it, so
-    the step needs no second copy of the elements.
+    the step needs no second copy (fresh memory costs more than the copy itself).
     """
     out = 0
-    step = _rows_per_piece(cells)
-    for part in pieces(cells.shape[0], step):
+    for part in pieces(rows.shape[0], _rows_per_piece(rows)):
         # np.compress: a boolean selection several times faster than a[mask]
-        piece = np.take(new_id, np.compress(keep[part], cells[part], axis=0))  # np.take: faster than new_id[...]
-        cells[out:out + piece.shape[0]] = piece
+        piece = np.compress(keep[part], rows[part], axis=0)
+        if new_id is not None:
+            piece = np.take(new_id, piece)  # np.take: faster than new_id[...]
+        rows[out:out + piece.shape[0]] = piece
         out += piece.shape[0]
-    return cells[:out]
+    return rows[:out]
 
 
 _STEP_FIGURES = ("merged_pairs", "chamfered_elements", "regions", "regions_merged", "blocked_material",
@@ -575,10 +604,16 @@ class _Work:
         Element layer along the axis being merged, counted from 0.
     lattice : (N, 3) int64 ndarray
         Lattice index of every node.
-    points : (N, 3) float64 ndarray
-        Node coordinates, mm.
-    point_data, cell_data : dict of str to ndarray
-        Arrays of N and of M rows; they follow the nodes and elements kept.
+    n_input : int
+        Nodes of the input mesh, N0.
+    node_id : (N,) int ndarray or None
+        The input node every node is (None: the same numbering); coordinates and point
+        data are gathered once, at the end (``_final_points``), not copied every step.
+    moves : list of (int, float, (N0,) int8 ndarray)
+        Per step that moved rim nodes: its axis, voxel size along it (mm) and the move of
+        every input node, lattice units.
+    cell_data : dict of str to ndarray
+        Arrays of M rows; they follow the elements kept.
     """
 
     cells: np.ndarray
@@ -588,8 +623,9 @@ class _Work:
     size: np.ndarray
     layer: np.ndarray | None
     lattice: np.ndarray
-    points: np.ndarray
-    point_data: dict
+    n_input: int
+    node_id: np.ndarray | None
+    moves: list
     cell_data: dict
 
 
@@ -603,7 +639,7 @@ class _Plane:
     ----------
     axis, s, n : int
         Merge axis (0, 1, 2), the layer merged within its group, number of nodes N.
-    in_group : (M,) int32 ndarray
+    in_group : (M,) int8 ndarray (int32 for groups of 128 layers or more)
         Layer of every element within its group.
     lo, up : (L,), (U,) int64 ndarray
         Rows of the elements below and above the merge planes, ascending.
@@ -624,6 +660,8 @@ class _Plane:
         Nodes with two different far ends one way.
     bent : (N,) bool ndarray
         Candidates whose axis edge is not straight along the axis (edges of chamfers).
+    any_bent : bool
+        Whether any candidate is bent.
     unit : (3,) int64 ndarray
         One lattice step along the axis.
     li, ui : (P,) int64 ndarray
@@ -659,6 +697,7 @@ class _Plane:
     upn: np.ndarray
     inconsistent: np.ndarray
     bent: np.ndarray
+    any_bent: bool
     unit: np.ndarray
     li: np.ndarray | None = None
     ui: np.ndarray | None = None
@@ -686,9 +725,9 @@ class _Trial:
     flags : list of two (3, L) and (3, U) bool ndarrays
         Per side (lower, upper): whether any, all, or a bent one of an element's face
         corners went.
-    shift : (N,) int64 ndarray
+    shift : (N,) int8 ndarray
         Move of every rim node along the axis, lattice units (-1, 0, 1).
-    snap : (N,) int64 ndarray
+    snap : (N,) int32 ndarray (int64 from 2**31 - 1 nodes on)
         The node every rim node joins, -1 for none.
     tried : (N,) bool ndarray
         Rim nodes moved once (and maybe put back): never again.
@@ -744,9 +783,10 @@ def _merge_axis(work: _Work, settings: _Settings, axis: int, g: int, step_mm: fl
     low = int(column.min())
     # the layer fits int32 (a lattice index span): half the memory of int64, the same values
     layer = np.empty(work.cells.shape[0], dtype=np.int32)
-    for part in pieces(layer.size):
+    for part in pieces(layer.size, CHUNK):
         np.subtract(column[work.cells[part, 0]], low, out=layer[part], casting="unsafe")
-    work.layer = layer - layer.min()
+    layer -= layer.min()
+    work.layer = layer
     steps = []
     for s in range(1, g):
         t0 = time.perf_counter()
@@ -784,7 +824,7 @@ def _merge_step(work: _Work, settings: _Settings, axis: int, g: int, s: int
         Rows of ``work.cells`` kept.
     delete : (N,) bool ndarray
         Nodes deleted.
-    shift : (N,) int64 ndarray
+    shift : (N,) int8 ndarray
         Move of every node along the axis, lattice units (-1, 0, 1).
     info : dict
         The step's figures for the report.
@@ -794,14 +834,14 @@ def _merge_step(work: _Work, settings: _Settings, axis: int, g: int, s: int
     keep = np.ones(work.cells.shape[0], dtype=bool)
     plane = _find_merge_nodes(work, settings.dim, axis, g, s)
     if plane is None:
-        return keep, np.zeros(n, dtype=bool), np.zeros(n, dtype=np.int64), info
+        return keep, np.zeros(n, dtype=bool), np.zeros(n, dtype=np.int8), info
     _find_merge_pairs(plane, work, settings)
     info["regions"] = int(plane.region_of.sum())
     blocked = _refuse_unmergeable(plane, work, settings.dim, info)
     trial = _Trial(blocked=blocked, base_blocked=blocked.copy(), keep=keep,
                    delete=np.zeros(n, dtype=bool), snapped=np.zeros(n, dtype=bool),
                    flags=[np.zeros((3, face.shape[0]), dtype=bool) for face in (plane.l_top, plane.u_bot)],
-                   shift=np.zeros(n, dtype=np.int64), snap=np.full(n, -1, dtype=np.int64),
+                   shift=np.zeros(n, dtype=np.int8), snap=np.full(n, -1, dtype=work.cells.dtype),
                    tried=np.zeros(n, dtype=bool))
     while True:
         info["retry_rounds"] += 1
@@ -835,7 +875,8 @@ def _find_merge_nodes(work: _Work, dim: int, axis: int, g: int, s: int) -> _Plan
     lattice, cells = work.lattice, work.cells
     n = int(lattice.shape[0])
     bc, tc = (HEX_AXIS_CORNERS if dim == 3 else QUAD_AXIS_CORNERS)[axis]
-    in_group = work.layer % g
+    in_group = np.empty(work.layer.shape, dtype=np.int8 if g < 128 else np.int32)  # g - 1 merges
+    np.remainder(work.layer, g, out=in_group, casting="unsafe")
     below, above = in_group < s, in_group == s
     lo = np.flatnonzero(below)
     up = np.flatnonzero(above)
@@ -846,10 +887,13 @@ def _find_merge_nodes(work: _Work, dim: int, axis: int, g: int, s: int) -> _Plan
     (l_top, l_bot), (u_bot, u_top) = _gather_corners(cells, [(below, lo.size, tc, bc), (above, up.size, bc, tc)])
     del below, above
     # Step 8: the far ends of the axis edges (one each way, checked consistent below).
-    down = np.full(n, -1, dtype=cells.dtype)
-    _put(down, l_top, l_bot)
-    upn = np.full(n, -1, dtype=cells.dtype)
-    _put(upn, u_bot, u_top)
+    def far_ends(face: np.ndarray, other: np.ndarray) -> np.ndarray:
+        far = np.full(n, -1, dtype=cells.dtype)
+        _put(far, face, other)
+        return far
+    down = meanwhile(far_ends, l_top, l_bot)  # the two on two threads
+    upn = far_ends(u_bot, u_top)
+    down = down()
     # Steps 5-6: nodes at the top of an axis edge (of a lower element) and the bottom of
     # another (of an upper element) are the candidates for deletion: the nodes with a far
     # end each way.
@@ -874,7 +918,7 @@ def _find_merge_nodes(work: _Work, dim: int, axis: int, g: int, s: int) -> _Plan
     unit[axis] = 1
     return _Plane(axis, s, n, in_group, lo, up, tc, bc, l_top, l_bot, u_bot, u_top, cand,
                   rim_lo=is_top & ~is_bot, rim_up=is_bot & ~is_top, down=down, upn=upn,
-                  inconsistent=inconsistent, bent=bent, unit=unit)
+                  inconsistent=inconsistent, bent=bent, any_bent=bool(bent.any()), unit=unit)
 
 
 def _find_merge_pairs(plane: _Plane, work: _Work, settings: _Settings) -> None:
@@ -963,7 +1007,7 @@ def _build_trial(plane: _Plane, trial: _Trial, cells: np.ndarray) -> None:
         h = _take(now, f)
         flags[0, rows] = _any(h)
         flags[1, rows] = _all(h)
-        flags[2, rows] = _any(h & _take(plane.bent, f))
+        flags[2, rows] = _any(h & _take(plane.bent, f)) if plane.any_bent else False
         done, nodes = _replace_face_nodes(f, h, far, snapped_now, trial.snap)
         cells[idx[rows][done][:, None], cols] = nodes
     trial.merged = now[plane.faces[:, 0]]
@@ -1021,9 +1065,10 @@ def _check_trial(plane: _Plane, trial: _Trial, work: _Work, settings: _Settings,
     in_s[cells[checked]] = True
     rows = np.flatnonzero(trial.keep & _any_at(in_s, cells))
     sub = cells[rows]
+    crowded = meanwhile(_crowded_faces, sub, n, dim)  # faces of three or more elements
     local, degree, count = _degrees(sub, in_s, HEX_EDGES if dim == 3 else QUAD_EDGES)
     bad_node = (degree > max_neighbours) | (count > max_elements)
-    crowded = _crowded_faces(sub, n, dim)  # faces of three or more elements
+    crowded = crowded()
     info["crowded_faces"] += int(crowded.size)
     if crowded.size:
         bad_rows = rows[crowded]
@@ -1215,7 +1260,7 @@ def _apply_step(work: _Work, keep: np.ndarray, delete: np.ndarray, shift: np.nda
         Elements kept.
     delete : (N,) bool ndarray
         Nodes deleted; the others are renumbered in order.
-    shift : (N,) int64 ndarray
+    shift : (N,) int8 ndarray
         Move of every node along ``axis``, lattice units.
     axis : int
         Merge axis.
@@ -1223,26 +1268,47 @@ def _apply_step(work: _Work, keep: np.ndarray, delete: np.ndarray, shift: np.nda
         Voxel size along ``axis``, mm.
     """
     moved = bool(shift.any())
+    if moved:  # recorded by input node: the coordinates move once, at the end, in step order
+        by_input = np.zeros(work.n_input, dtype=np.int8)
+        by_input[slice(None) if work.node_id is None else work.node_id] = shift
+        work.moves.append((axis, step_mm, by_input))
     if delete.any():
         kept_nodes = ~delete
         new_id = np.cumsum(kept_nodes, dtype=work.cells.dtype)
         new_id -= 1
         work.cells = _compact(work.cells, keep, new_id)
+        # the work's own arrays, in place; the input mesh's are copied (the first step)
         work.material, work.thick, work.layer, work.irregular, work.size = (
-            np.compress(keep, a, axis=0) for a in (work.material, work.thick, work.layer, work.irregular, work.size))
-        # the kept nodes are copied once and moved in the copy (not copied whole, moved, then copied again)
-        work.lattice = np.compress(kept_nodes, work.lattice, axis=0)
-        work.points = np.compress(kept_nodes, work.points, axis=0)
-        work.point_data = {k: np.compress(kept_nodes, v, axis=0) for k, v in work.point_data.items()}
+            _compact(a, keep) for a in (work.material, work.thick, work.layer, work.irregular, work.size))
+        if work.node_id is None:
+            work.lattice = np.compress(kept_nodes, work.lattice, axis=0)
+            work.node_id = np.flatnonzero(kept_nodes).astype(work.cells.dtype)
+        else:
+            work.lattice = _compact(work.lattice, kept_nodes)
+            work.node_id = _compact(work.node_id, kept_nodes)
         work.cell_data = {k: np.compress(keep, v, axis=0) for k, v in work.cell_data.items()}
         if moved:
             shift = np.compress(kept_nodes, shift)
-    elif moved:
+    elif moved and work.node_id is None:  # still the input's
         work.lattice = work.lattice.copy()
-        work.points = work.points.copy()
     if moved:
         work.lattice[:, axis] += shift
-        work.points[:, axis] += shift * step_mm
+
+
+def _final_points(mesh: Mesh, work: _Work) -> tuple[np.ndarray, dict]:
+    """The coordinates (N, 3) float64, mm, and point data of the merged mesh's nodes: the
+    input's rows of the nodes kept, each step's rim moves added in step order (the same
+    sums as moving every step's copy)."""
+    if work.node_id is None:
+        points = mesh.points.copy() if work.moves else mesh.points
+        point_data = dict(mesh.point_data)
+    else:
+        points = np.take(mesh.points, work.node_id, axis=0)
+        point_data = {k: np.take(v, work.node_id, axis=0) for k, v in mesh.point_data.items()}
+    for axis, step_mm, by_input in work.moves:
+        shift = by_input if work.node_id is None else np.take(by_input, work.node_id)
+        points[:, axis] += shift * step_mm
+    return points, point_data
 
 
 def _volume_report(before: dict[int, float], after: dict[int, float]) -> dict[str, dict]:
@@ -1302,6 +1368,8 @@ def merge_planes(mesh: Mesh, *, passes, min_thickness: float, granularity: str, 
     """
     counts, settings = _check_settings(mesh, passes, granularity, min_scaled_jacobian, rim_moves, axes)
     t_start = time.perf_counter()
+    if granularity == "region" or min_thickness > 0:  # loaded while the mesh is prepared
+        import_meanwhile("scipy.ndimage", "scipy.sparse.csgraph")
     index = np.int32 if mesh.n_points < 2**31 - 1 else np.int64  # halves memory traffic
     cells = mesh.cells.astype(index)
     box0, size = _lattice_boxes(cells, mesh.lattice, settings.dim)
@@ -1310,13 +1378,14 @@ def merge_planes(mesh: Mesh, *, passes, min_thickness: float, granularity: str, 
     report = {"passes": list(counts), "granularity": granularity, "min_thickness": float(min_thickness),
               "min_scaled_jacobian": settings.min_scaled_jacobian, "rim_moves": settings.rim_moves,
               "elements_before": mesh.n_cells, "nodes_before": mesh.n_points, "steps": []}
-    work = _Work(cells, mesh.material, thick_elements(mesh, min_thickness), ~box0, size, None, mesh.lattice,
-                 mesh.points, dict(mesh.point_data), dict(mesh.cell_data))
+    work = _Work(cells, mesh.material.copy(), thick_elements(mesh, min_thickness), ~box0, size, None, mesh.lattice,
+                 mesh.n_points, None, [], dict(mesh.cell_data))
     for axis in axes:
         if counts[axis]:
             report["steps"] += _merge_axis(work, settings, axis, counts[axis] + 1, mesh.spacing[axis])
-    out = Mesh(work.points, work.cells.astype(np.int64), work.material, work.lattice, mesh.spacing.copy(),
-               mesh.origin.copy(), mesh.grid_shape.copy(), work.point_data, work.cell_data, list(mesh.names))
+    points, point_data = _final_points(mesh, work)
+    out = Mesh(points, work.cells.astype(np.int64), work.material, work.lattice, mesh.spacing.copy(),
+               mesh.origin.copy(), mesh.grid_shape.copy(), point_data, work.cell_data, list(mesh.names))
     report["elements_after"] = out.n_cells
     report["nodes_after"] = out.n_points
     report["element_ratio"] = round(mesh.n_cells / max(out.n_cells, 1), 4)
@@ -1363,8 +1432,7 @@ def merge_mesh(mesh: Mesh, *, method: str, templates: dict, passes, min_thicknes
                                     min_scaled_jacobian=float(min_scaled_jacobian), rim_moves=rim_moves)
 
 
-def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int = 1 << 15
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
     """(M,) bool: elements whose corners sit on the corners of a lattice box, in VTK order;
     and (M,) int64: each box's volume in lattice units (0 for others).
 
@@ -1395,7 +1463,8 @@ def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int 
     del part
     # corner -> the axes it is offset along (VTK order): corner = corner 0 + those steps
     steps = [[d for d in range(dim) if off[d]] for off in (HEX_CORNERS if dim == 3 else QUAD_CORNERS)[:, :dim]]
-    for part in pieces(cells.shape[0], chunk):
+
+    def check(part: slice) -> None:
         c = cells[part]
         first, last = c[:, 0], c[:, far]
         span = [x[last] - x[first] for x in lat]
@@ -1414,6 +1483,7 @@ def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int, chunk: int 
         for d in range(1, dim):
             volume *= span[d]
         size[part] = np.where(ok, volume, 0)
+    _each_piece(check, cells.shape[0], _rows_per_piece(cells))
     return out, size
 
 
@@ -1434,11 +1504,13 @@ def _material_volumes(mesh: Mesh, box: np.ndarray, on_lattice: bool, size: np.nd
 
 def _on_lattice(mesh: Mesh) -> bool:
     """True when every node sits at origin + lattice * spacing."""
-    scale = 1e-9 * max(1.0, float(np.abs(mesh.points).max(initial=0.0)))
-    for part in pieces(mesh.points.shape[0]):  # in pieces that stay in cache
+    largest = np.zeros((2, -(-mesh.points.shape[0] // CHUNK)))  # per piece: largest |x| and largest offset
+
+    def measure(part: slice) -> None:  # in pieces that stay in cache
+        p = mesh.points[part]
         x = mesh.lattice[part] * mesh.spacing
         x += mesh.origin
-        x -= mesh.points[part]
-        if np.abs(x).max(initial=0.0) > scale:
-            return False
-    return True
+        x -= p
+        largest[:, part.start // CHUNK] = np.abs(p).max(initial=0.0), np.abs(x).max(initial=0.0)
+    _each_piece(measure, mesh.points.shape[0], CHUNK)
+    return bool(largest[1].max(initial=0.0) <= 1e-9 * max(1.0, float(largest[0].max(initial=0.0))))

@@ -437,9 +437,10 @@ digits in half the bytes."""
 def _stage_quality(mesh: Mesh, name: str, allow_inverted: bool) -> dict[str, np.ndarray]:
     """The quality arrays of a stage file (:data:`STAGE_QUALITY_TYPE`); raises DicerError on
     an inverted element unless ``allow_inverted`` (before the writer reaches them, so before
-    the rename). A mesh of lattice boxes (the voxel mesh) gets them in closed form
-    (:func:`~dicer.mesh.metrics.lattice_box_quality`, two thirds of the element loop's
-    time): the same values in Float32."""
+    the rename). The lattice boxes of a mesh whose nodes sit on the lattice (all of a voxel
+    mesh, most of a plane-merged one) get them in closed form
+    (:func:`~dicer.mesh.metrics.lattice_box_quality`: a third of the element loop's time
+    for those), the same values in Float32 to the last digit."""
     arrays = (lattice_box_quality(mesh.points, mesh.cells, mesh.lattice, mesh.spacing, mesh.origin)
               or quality_arrays(mesh.points, mesh.cells))
     if not allow_inverted:

@@ -71,3 +71,35 @@ def box_extents(cells: np.ndarray, lattice: np.ndarray, node_index: np.ndarray, 
         if not np.array_equal(node_index[cells[:, k]], want):
             return None
     return lo, ext
+
+
+def box_flags(cells: np.ndarray, lattice: np.ndarray, node_index: np.ndarray, strides
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Which elements are boxes of the lattice (as :func:`box_extents` tests them), each one's
+    answer: for a mesh of mostly boxes (a plane-merged one).
+
+    Parameters
+    ----------
+    cells, lattice, node_index, strides
+        As :func:`box_extents` takes them.
+
+    Returns
+    -------
+    ok : (p,) bool ndarray
+    ext : (p, d) int ndarray
+        The extent of each element that is a box (the others' rows mean nothing).
+    """
+    dim = lattice.shape[1]
+    corners = (HEX_CORNERS if cells.shape[1] == 8 else QUAD_CORNERS)[:, :dim]
+    lo = np.take(lattice, cells[:, 0], axis=0)
+    ext = np.take(lattice, cells[:, 6 if cells.shape[1] == 8 else 2], axis=0) - lo
+    ok = np.all(ext >= 1, axis=1)
+    lo_index = node_index[cells[:, 0]]
+    step = [ext[:, a] * np.int64(strides[a]) for a in range(dim)]
+    for k in range(1, len(corners)):
+        want = lo_index.copy()
+        for a in np.flatnonzero(corners[k]):
+            want += step[a]
+        ok &= node_index[cells[:, k]] == want
+    return ok, ext
+

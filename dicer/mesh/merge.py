@@ -117,6 +117,14 @@ def _put(table: np.ndarray, index: np.ndarray, values) -> None:
         table[index[part]] = values if scalar else values[part]
 
 
+def _put_same(table: np.ndarray, index: np.ndarray, values: np.ndarray) -> None:
+    """``table[index] = values`` (``values`` (R, 1) or shaped like ``index`` (R, k)) where every
+    entry for one position writes the same value: in any order, so in pieces on threads."""
+    def put(part: slice) -> None:
+        table[index[part]] = values[part]
+    _each_piece(put, index.shape[0], _rows_per_piece(index))
+
+
 def _any_at(mask: np.ndarray, index: np.ndarray) -> np.ndarray:
     """(R,) bool: rows of ``index`` (R, k) holding a node flagged in ``mask``, in pieces of rows."""
     if index.size <= CHUNK:
@@ -319,7 +327,8 @@ def _merge_regions(faces: np.ndarray, box: np.ndarray, cand_idx: np.ndarray, cma
         labels, n_labels = ndimage.label(grid, structure)
         found = np.take(labels.reshape(-1), cell)
         found -= 1
-        _put(on_box, faces if whole else faces[rows], found[:, None])
+        # every node of a rectangle gets its component: the same from each rectangle at the node
+        _put_same(on_box, faces if whole else faces[rows], found[:, None])
     vid = on_box[cand_idx].astype(np.int64)
     rest = np.flatnonzero(vid < 0)
     vid[rest] = n_labels + np.arange(rest.size)

@@ -117,6 +117,16 @@ def _put(table: np.ndarray, index: np.ndarray, values) -> None:
         table[index[part]] = values if scalar else values[part]
 
 
+def _copy_as(a: np.ndarray, dtype) -> np.ndarray:
+    """A copy of ``a`` in ``dtype``, made in pieces on threads (fresh memory is the cost here)."""
+    out = np.empty(a.shape, dtype=dtype)
+
+    def copy(part: slice) -> None:
+        out[part] = a[part]
+    _each_piece(copy, a.shape[0], _rows_per_piece(a))
+    return out
+
+
 def _put_same(table: np.ndarray, index: np.ndarray, values: np.ndarray) -> None:
     """``table[index] = values`` (``values`` (R, 1) or shaped like ``index`` (R, k)) where every
     entry for one position writes the same value: in any order, so in pieces on threads."""
@@ -1380,7 +1390,7 @@ def merge_planes(mesh: Mesh, *, passes, min_thickness: float, granularity: str, 
     if granularity == "region" or min_thickness > 0:  # loaded while the mesh is prepared
         import_meanwhile("scipy.ndimage", "scipy.sparse.csgraph")
     index = np.int32 if mesh.n_points < 2**31 - 1 else np.int64  # halves memory traffic
-    cells = mesh.cells.astype(index)
+    cells = _copy_as(mesh.cells, index)
     box0, size = _lattice_boxes(cells, mesh.lattice, settings.dim)
     on_lattice = _on_lattice(mesh)
     vol_before = _material_volumes(mesh, box0, on_lattice, size)
@@ -1393,7 +1403,7 @@ def merge_planes(mesh: Mesh, *, passes, min_thickness: float, granularity: str, 
         if counts[axis]:
             report["steps"] += _merge_axis(work, settings, axis, counts[axis] + 1, mesh.spacing[axis])
     points, point_data = _final_points(mesh, work)
-    out = Mesh(points, work.cells.astype(np.int64), work.material, work.lattice, mesh.spacing.copy(),
+    out = Mesh(points, _copy_as(work.cells, np.int64), work.material, work.lattice, mesh.spacing.copy(),
                mesh.origin.copy(), mesh.grid_shape.copy(), point_data, work.cell_data, list(mesh.names))
     report["elements_after"] = out.n_cells
     report["nodes_after"] = out.n_points

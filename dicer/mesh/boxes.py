@@ -93,7 +93,9 @@ def box_flags(cells: np.ndarray, lattice: np.ndarray, node_index: np.ndarray, st
     corners = (HEX_CORNERS if cells.shape[1] == 8 else QUAD_CORNERS)[:, :dim]
     lo = np.take(lattice, cells[:, 0], axis=0)
     ext = np.take(lattice, cells[:, 6 if cells.shape[1] == 8 else 2], axis=0) - lo
-    ok = np.all(ext >= 1, axis=1)
+    ok = ext[:, 0] >= 1  # column by column: a reduction along rows of 3 is slow
+    for a in range(1, dim):
+        ok &= ext[:, a] >= 1
     lo_index = node_index[cells[:, 0]]
     step = [ext[:, a] * np.int64(strides[a]) for a in range(dim)]
     for k in range(1, len(corners)):

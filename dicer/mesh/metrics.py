@@ -477,17 +477,17 @@ def lattice_box_quality(points: np.ndarray, cells: np.ndarray, lattice: np.ndarr
     if (m == 0 or lattice.shape != (n, 3) or spacing.shape != (3,) or origin.shape != (3,)
             or not np.all(spacing[:dim] > 0) or lattice.min() < 0):
         return None
-    on_lattice = np.empty(n, dtype=bool)
+    on_lattice = np.ones(n, dtype=bool)
 
-    def at_lattice(part: slice) -> np.ndarray:  # the piece's nodes on the lattice, its largest index per axis
-        ok = points[part, 0] == origin[0] + spacing[0] * lattice[part, 0]
-        for a in range(1, 3):
-            ok &= points[part, a] == origin[a] + spacing[a] * lattice[part, a]
-        on_lattice[part] = ok
-        return lattice[part].max(axis=0)
+    def at_lattice(part: slice) -> tuple[np.ndarray, int]:  # the piece's largest index per axis, nodes off
+        exact = [points[part, a] == origin[a] + spacing[a] * lattice[part, a] for a in range(3)]
+        if not all(e.all() for e in exact):
+            on_lattice[part] = exact[0] & exact[1] & exact[2]
+        return lattice[part].max(axis=0), int(on_lattice[part].size - np.count_nonzero(on_lattice[part]))
 
-    largest = np.max(list(ordered_map(at_lattice, pieces(n, 1 << 18))), axis=0)
-    off = n - int(np.count_nonzero(on_lattice))
+    found = list(ordered_map(at_lattice, pieces(n, 1 << 18)))
+    largest = np.max([most for most, _ in found], axis=0)
+    off = sum(k for _, k in found)
     if off > n // 100:  # a smoothed mesh: the loop for all is quicker
         return None
     lat = lattice[:, :dim]
@@ -498,20 +498,23 @@ def lattice_box_quality(points: np.ndarray, cells: np.ndarray, lattice: np.ndarr
     ratio = np.empty(m)
     box = np.empty(m, dtype=bool)
 
-    def boxes(part: slice) -> None:
+    def boxes(part: slice) -> bool:
         c = cells[part]
         ok, ext = box_flags(c, lat, node_lin, nstrides)
         if off:  # rows of c's flags read as one integer: all set
             ok &= np.take(on_lattice, c).view(np.uint64 if dim == 3 else np.uint32)[:, 0] == _ALL_SET[dim]
         box[part] = ok
         sides = [ext[:, a] * spacing[a] for a in range(dim)]  # columns: a reduction along rows of 3 is slow
+        if ok.all():
+            np.divide(np.maximum.reduce(sides), np.minimum.reduce(sides), out=ratio[part])
+            return True
         with np.errstate(divide="ignore", invalid="ignore"):  # the rows of other elements are replaced below
             np.divide(np.maximum.reduce(sides), np.minimum.reduce(sides), out=ratio[part])
+        return False
 
-    for _ in ordered_map(boxes, pieces(m, 1 << 18)):
-        pass
+    all_boxes = all(list(ordered_map(boxes, pieces(m, 1 << 18))))
     sj = np.ones(m)
-    others = np.flatnonzero(~box)
+    others = np.empty(0, dtype=np.intp) if all_boxes else np.flatnonzero(~box)
     if others.size:
         loop = element_metrics(points, cells[others], QUALITY_DATA)
         sj[others] = loop["scaled_jacobian"]

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -510,18 +510,25 @@ def _replace_face_nodes(face, hit, far, snapped, snap):
     return rows, nodes
 
 
-def _gather_corners(cells: np.ndarray, layers: list[tuple[np.ndarray, int, np.ndarray, np.ndarray]]
-                    ) -> list[tuple[np.ndarray, np.ndarray]]:
+def _gather_corners(cells: np.ndarray, layers: list[tuple[np.ndarray, int, np.ndarray, np.ndarray]],
+                    spare: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per entry ``(select, count, first, second)`` of ``layers``: columns ``first`` and
     ``second`` of the rows of ``cells`` (M, c) flagged in ``select`` ((M,) bool, ``count``
-    of them), as two (count, len) arrays, rows in order.
+    of them), as two (count, len) arrays, rows in order, in buffers taken from ``spare``
+    where they fit (an earlier step's, every row written again).
 
     One pass over ``cells`` in pieces of rows: each piece is read once and compressed into
     small blocks that stay in cache (np.compress: several times faster than a gather of
     row numbers), and no (count, c) copy of the rows is made.
     """
-    outs = [(np.empty((count, first.size), dtype=cells.dtype), np.empty((count, second.size), dtype=cells.dtype))
-            for _, count, first, second in layers]
+    def buffer(shape: tuple[int, int]) -> np.ndarray:
+        size = shape[0] * shape[1]
+        fits = [i for i, b in enumerate(spare) if b.dtype == cells.dtype and b.size >= size]
+        if not fits:
+            return np.empty(shape, dtype=cells.dtype)
+        return spare.pop(fits[0])[:size].reshape(shape)
+
+    outs = [(buffer((count, first.size)), buffer((count, second.size))) for _, count, first, second in layers]
     step = _rows_per_piece(cells)
     # where each piece's rows go: the selected rows before it, per layer
     starts = [np.r_[0, np.cumsum(np.add.reduceat(select, np.arange(0, cells.shape[0], step), dtype=np.int64))]
@@ -633,6 +640,8 @@ class _Work:
         every input node, lattice units.
     cell_data : dict of str to ndarray
         Arrays of M rows; they follow the elements kept.
+    spare : list of 1-D ndarray
+        The last step's face tables, to hold the next step's (``_gather_corners``).
     """
 
     cells: np.ndarray
@@ -646,6 +655,7 @@ class _Work:
     node_id: np.ndarray | None
     moves: list
     cell_data: dict
+    spare: list = field(default_factory=list)
 
 
 @dataclass
@@ -872,7 +882,11 @@ def _merge_step(work: _Work, settings: _Settings, axis: int, g: int, s: int
         if bad_rows.size == 0:  # step 13 (applied by the caller)
             break
         _drop_offending_regions(plane, trial, work, bad_rows)  # step 14, then try again
-    return _finish_step(plane, trial, work, info)
+    outcome = _finish_step(plane, trial, work, info)
+    # the four face tables' memory, for the next step's (fresh pages cost more than the copy)
+    work.spare = [(a if a.base is None else a.base).reshape(-1)
+                  for a in (plane.l_top, plane.l_bot, plane.u_bot, plane.u_top)]
+    return outcome
 
 
 def _find_merge_nodes(work: _Work, dim: int, axis: int, g: int, s: int) -> _Plane | None:
@@ -903,7 +917,8 @@ def _find_merge_nodes(work: _Work, dim: int, axis: int, g: int, s: int) -> _Plan
         return None
     # the two layers' corners, split into the faces on the plane and the far faces: only
     # the face columns change in this step, so these four are all it needs of the rows
-    (l_top, l_bot), (u_bot, u_top) = _gather_corners(cells, [(below, lo.size, tc, bc), (above, up.size, bc, tc)])
+    (l_top, l_bot), (u_bot, u_top) = _gather_corners(cells, [(below, lo.size, tc, bc), (above, up.size, bc, tc)],
+                                                     work.spare)
     del below, above
     # Step 8: the far ends of the axis edges (one each way, checked consistent below).
     def far_ends(face: np.ndarray, other: np.ndarray) -> np.ndarray:
@@ -1402,6 +1417,7 @@ def merge_planes(mesh: Mesh, *, passes, min_thickness: float, granularity: str, 
     for axis in axes:
         if counts[axis]:
             report["steps"] += _merge_axis(work, settings, axis, counts[axis] + 1, mesh.spacing[axis])
+    work.spare = []  # not held while the result is made
     points, point_data = _final_points(mesh, work)
     out = Mesh(points, _copy_as(work.cells, np.int64), work.material, work.lattice, mesh.spacing.copy(),
                mesh.origin.copy(), mesh.grid_shape.copy(), point_data, work.cell_data, list(mesh.names))

@@ -653,6 +653,11 @@ def test_degrees_and_corner_gathers_equal_their_plain_forms(rows, n, hexa, data)
     first, second = np.array([0, 2]), np.array([3, 1])
     [(a, b)] = merge._gather_corners(sub, [(select, int(select.sum()), first, second)])
     assert np.array_equal(a, sub[select][:, first]) and np.array_equal(b, sub[select][:, second])
+    # the same into an earlier step's buffers (larger, full of other values), which it takes
+    spare = [np.full(2 * rows + 3, -7, sub.dtype), np.full(2 * rows + 1, -9, sub.dtype)]
+    [(a, b)] = merge._gather_corners(sub, [(select, int(select.sum()), first, second)], spare)
+    assert np.array_equal(a, sub[select][:, first]) and np.array_equal(b, sub[select][:, second])
+    assert spare == []
 
     # faces of a conforming mesh: each at most once per side
     fa = np.unique(data.draw(arrays(np.int32, (rows, 2), elements=st.integers(0, 3))), axis=0)

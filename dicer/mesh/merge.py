@@ -511,7 +511,7 @@ def _replace_face_nodes(face, hit, far, snapped, snap):
 
 
 def _gather_corners(cells: np.ndarray, layers: list[tuple[np.ndarray, int, np.ndarray, np.ndarray]],
-                    spare: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+                    spare: list[np.ndarray] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per entry ``(select, count, first, second)`` of ``layers``: columns ``first`` and
     ``second`` of the rows of ``cells`` (M, c) flagged in ``select`` ((M,) bool, ``count``
     of them), as two (count, len) arrays, rows in order, in buffers taken from ``spare``
@@ -521,6 +521,8 @@ def _gather_corners(cells: np.ndarray, layers: list[tuple[np.ndarray, int, np.nd
     small blocks that stay in cache (np.compress: several times faster than a gather of
     row numbers), and no (count, c) copy of the rows is made.
     """
+    spare = [] if spare is None else spare
+
     def buffer(shape: tuple[int, int]) -> np.ndarray:
         size = shape[0] * shape[1]
         fits = [i for i, b in enumerate(spare) if b.dtype == cells.dtype and b.size >= size]

@@ -35,6 +35,26 @@ def linear_index(index: np.ndarray, strides) -> np.ndarray:
     return out
 
 
+def _corner_extents(cells: np.ndarray, lattice: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Corner 0 of each element and its far corner's offset from it, (p, d) each."""
+    lo = np.take(lattice, cells[:, 0], axis=0)  # take: about twice as fast as indexing for rows
+    return lo, np.take(lattice, cells[:, 6 if cells.shape[1] == 8 else 2], axis=0) - lo
+
+
+def _corners_placed(cells: np.ndarray, ext: np.ndarray, node_index: np.ndarray, strides):
+    """Per corner k = 1 .. c-1: (where the box puts it, where it is), both as (p,) lattice
+    point integers, one corner at a time (a caller may stop at the first mismatch)."""
+    dim = ext.shape[1]
+    corners = (HEX_CORNERS if cells.shape[1] == 8 else QUAD_CORNERS)[:, :dim]
+    lo_index = node_index[cells[:, 0]]
+    step = [ext[:, a] * np.int64(strides[a]) for a in range(dim)]
+    for k in range(1, len(corners)):
+        want = lo_index.copy()
+        for a in np.flatnonzero(corners[k]):
+            want += step[a]
+        yield want, node_index[cells[:, k]]
+
+
 def box_extents(cells: np.ndarray, lattice: np.ndarray, node_index: np.ndarray, strides) -> tuple | None:
     """Corner 0 and extent of each element when every one is a box of the lattice, else None.
 
@@ -56,19 +76,11 @@ def box_extents(cells: np.ndarray, lattice: np.ndarray, node_index: np.ndarray, 
     -------
     (lo, ext) : two (p, d) int ndarrays, or None
     """
-    dim = lattice.shape[1]
-    corners = (HEX_CORNERS if cells.shape[1] == 8 else QUAD_CORNERS)[:, :dim]
-    lo = np.take(lattice, cells[:, 0], axis=0)  # take: about twice as fast as indexing for rows
-    ext = np.take(lattice, cells[:, 6 if cells.shape[1] == 8 else 2], axis=0) - lo
+    lo, ext = _corner_extents(cells, lattice)
     if ext.size and ext.min() < 1:
         return None
-    lo_index = node_index[cells[:, 0]]
-    step = [ext[:, a] * np.int64(strides[a]) for a in range(dim)]
-    for k in range(1, len(corners)):
-        want = lo_index.copy()
-        for a in np.flatnonzero(corners[k]):
-            want += step[a]
-        if not np.array_equal(node_index[cells[:, k]], want):
+    for want, got in _corners_placed(cells, ext, node_index, strides):
+        if not np.array_equal(got, want):
             return None
     return lo, ext
 
@@ -89,19 +101,10 @@ def box_flags(cells: np.ndarray, lattice: np.ndarray, node_index: np.ndarray, st
     ext : (p, d) int ndarray
         The extent of each element that is a box (the others' rows mean nothing).
     """
-    dim = lattice.shape[1]
-    corners = (HEX_CORNERS if cells.shape[1] == 8 else QUAD_CORNERS)[:, :dim]
-    lo = np.take(lattice, cells[:, 0], axis=0)
-    ext = np.take(lattice, cells[:, 6 if cells.shape[1] == 8 else 2], axis=0) - lo
+    _, ext = _corner_extents(cells, lattice)
     ok = ext[:, 0] >= 1  # column by column: a reduction along rows of 3 is slow
-    for a in range(1, dim):
+    for a in range(1, ext.shape[1]):
         ok &= ext[:, a] >= 1
-    lo_index = node_index[cells[:, 0]]
-    step = [ext[:, a] * np.int64(strides[a]) for a in range(dim)]
-    for k in range(1, len(corners)):
-        want = lo_index.copy()
-        for a in np.flatnonzero(corners[k]):
-            want += step[a]
-        ok &= node_index[cells[:, k]] == want
+    for want, got in _corners_placed(cells, ext, node_index, strides):
+        ok &= got == want
     return ok, ext
-

@@ -115,7 +115,8 @@ def mesh_of(name):
 
 
 def mesh_hash(m) -> str:
-    return sha(np.asarray(m.points), np.asarray(m.cells), np.asarray(m.material), np.asarray(m.lattice),
+    # connectivity by value: int32 or int64 in memory (the voxel mesher's, a merge's) alike
+    return sha(np.asarray(m.points), np.asarray(m.cells, np.int64), np.asarray(m.material), np.asarray(m.lattice),
                *(np.asarray(m.cell_data[k]) for k in sorted(m.cell_data)))
 
 

@@ -34,6 +34,7 @@ def voxel_mesh(labels: np.ndarray, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.
     Returns
     -------
     Mesh
+        Its ``cells`` int32 while the node numbers fit (below 2**31 - 1 nodes), else int64.
     """
     labels = np.asarray(labels)
     if labels.ndim not in (2, 3):

@@ -132,17 +132,18 @@ def import_meanwhile(*names: str) -> None:
     waits for this one (Python's import lock) and an import error is raised there, by
     that import, as without this call.
     """
-    import importlib
     import sys
 
     missing = [name for name in names if name not in sys.modules]
     if missing:
-        meanwhile(lambda: [_try_import(importlib, name) for name in missing])
+        meanwhile(_import_quietly, missing)
 
 
-def _try_import(importlib, name: str) -> None:
-    try:
-        importlib.import_module(name)
-    except ImportError:  # the caller's own import reports it
-        pass
+def _import_quietly(names: list[str]) -> None:
+    import importlib
 
+    for name in names:
+        try:
+            importlib.import_module(name)
+        except ImportError:  # the caller's own import reports it
+            pass

@@ -55,7 +55,7 @@ import scipy.sparse as sp
 from dicer.config import section_defaults, takes_settings
 from dicer.errors import DicerError
 from dicer.mesh.boundary import (NODE_CLASSES, BoundaryGraph, boundary_graph, bounding_planes, class_counts,
-                                 mirror_share, mirror_weights, plane_axes)
+                                 mirror_share, mirror_weights, plane_axes, plane_bits)
 from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes, hex_scaled_jacobian_t, hex_volumes_t, scaled_jacobian
 from dicer.mesh.model import LEVEL_DATA, Mesh
 from dicer.mesh.topology import HEX_CORNERS, HEX_EDGES, QUAD_CORNERS, QUAD_EDGES
@@ -71,7 +71,7 @@ _PULL_ROUNDS = 5  # guard rounds per solve that back off the pull onto the image
 @takes_settings("smooth", section=True)
 def smoothing_settings(*, surface_from_image, image_sigma, coefficient, coefficients, bounding_planes,
                        keep_bounding_planes, interior, shrink_compensation, interior_band, min_scaled_jacobian,
-                       backoff_factor, max_backoff_rounds, tolerance) -> dict:
+                       backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance) -> dict:
     """The ``smooth:`` settings as the solves read them: a coefficient per node class.
 
     Types and ranges are the schema's to check (:func:`dicer.config.stage_kwargs`, through
@@ -80,7 +80,8 @@ def smoothing_settings(*, surface_from_image, image_sigma, coefficient, coeffici
     Parameters
     ----------
     surface_from_image, image_sigma, coefficient, coefficients, bounding_planes, keep_bounding_planes, \
-interior, shrink_compensation, interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, tolerance
+interior, shrink_compensation, interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow, \
+pillow_thickness, tolerance
         The ``smooth:`` config section (see the schema).
 
     Returns
@@ -103,7 +104,8 @@ interior, shrink_compensation, interior_band, min_scaled_jacobian, backoff_facto
             "keep_bounding_planes": keep_bounding_planes, "interior": interior,
             "shrink_compensation": shrink_compensation, "interior_band": interior_band,
             "min_scaled_jacobian": min_scaled_jacobian, "backoff_factor": backoff_factor,
-            "max_backoff_rounds": max_backoff_rounds, "tolerance": tolerance}
+            "max_backoff_rounds": max_backoff_rounds, "pillow": pillow, "pillow_thickness": pillow_thickness,
+            "tolerance": tolerance}
 
 
 # --- solvers -------------------------------------------------------------------------------
@@ -626,6 +628,8 @@ class _Smoothing:
     it_i: int = 0
     t_solve: float = 0.0
     t_guard: float = 0.0
+    surface: np.ndarray | None = None  # (B, 3) with pillow and the scan: its iso-surface before lift, mm
+    layer: "_Layer | None" = None  # with pillow: the layer made (``_add_pillow``)
 
     def boundary_position(self) -> np.ndarray:
         """(N,) int64: a node's number among the boundary nodes (-1: none), made once."""
@@ -804,10 +808,12 @@ def _boundary_solve(st: _Smoothing) -> np.ndarray:
 def _pull_onto_image(st: _Smoothing, xb_labels: np.ndarray) -> None:
     """Targets on the scan's iso-surfaces (``dicer.mesh.subvoxel.project``) for the boundary
     positions ``xb_labels`` (B, 3) mm; the guard backs this move off first."""
-    from dicer.mesh.subvoxel import project
+    from dicer.mesh.subvoxel import lift, project
 
-    st.pull.target, st.pull.info = project(st.pull.surface, st.pull.sides, st.adj, st.degree, st.x0, st.bnodes,
-                                           xb_labels, float(st.s["min_scaled_jacobian"]))
+    on_surface, st.pull.info = project(st.pull.surface, st.pull.sides, st.adj, st.degree, st.x0, st.bnodes, xb_labels)
+    if st.surface is None and st.s["pillow"]:
+        st.surface = on_surface
+    st.pull.target = lift(st.pull.sides, on_surface, float(st.s["min_scaled_jacobian"]))
 
 
 def _interior_solve(st: _Smoothing, xb_labels: np.ndarray) -> None:
@@ -942,12 +948,140 @@ def _solve_with_guard(st: _Smoothing) -> None:
         _back_off(st)
 
 
+# --- the pillow layer --------------------------------------------------------------------------
+
+_PILLOW_ROUNDS = 20  # guard rounds of the layer, each halving moves onto the surface or the depth
+
+
+@dataclass
+class _Layer:
+    """The pillow layer's result: the mesh with it and the report's figures."""
+
+    mesh: Mesh
+    info: dict
+
+
+def _layer_mesh(st: _Smoothing, nodes: np.ndarray, outer: np.ndarray, cells: np.ndarray, owner: np.ndarray) -> Mesh:
+    """The smoothed mesh with the layer: the surface nodes' copies (positions ``outer``) after
+    the nodes, the layer's ``cells`` after the elements, each copy and new element carrying
+    the data (lattice, node class, point and cell data, material) of its original."""
+    mesh = st.mesh
+    n = mesh.n_points
+    point_data = {k: np.concatenate([v, v[nodes]]) for k, v in mesh.point_data.items()}
+    point_data["node_class"] = np.concatenate([st.g.node_class, st.g.node_class[nodes]])
+    cell_data = {k: np.concatenate([v, v[owner]]) for k, v in mesh.cell_data.items()}
+    dtype = np.int32 if mesh.cells.dtype == np.int32 and n + nodes.size < 2**31 else np.int64
+    return Mesh(np.concatenate([st.x, outer]), np.concatenate([np.asarray(mesh.cells, dtype), cells.astype(dtype)]),
+                np.concatenate([mesh.material, mesh.material[owner]]),
+                np.concatenate([mesh.lattice, mesh.lattice[nodes]]), mesh.spacing.copy(), mesh.origin.copy(),
+                mesh.grid_shape.copy(), point_data, cell_data, list(mesh.names))
+
+
+def _add_pillow(st: _Smoothing) -> None:
+    """Put a pillow layer over the smoothed mesh's exterior surface (``dicer.mesh.pillow``).
+
+    The surface nodes are copied: the copies become the surface, on the scan's iso-surface
+    before ``lift`` (``st.surface``) or, without the scan, where the smoothing put the nodes; the nodes under them move inward along the surface normal by
+    ``pillow_thickness`` voxels, and the interior band is solved again for that move. The
+    guard checks the elements the move touches and the new ones: where a new element fails,
+    its nodes' copies go halfway back towards the smoothed surface (all the way below a
+    tenth); where an element under the layer fails, or a new one whose copies are back, the
+    depth is halved everywhere (a depth that varies from node to node shears the elements
+    under the layer). Sets ``st.layer``, and ``st.x``, ``st.xb``, ``st.x_band``, ``st.sj`` (the
+    checked elements, then the new ones) for the report.
+
+    Raises
+    ------
+    DicerError
+        An element still fails at a sixteenth of the depth or after ``_PILLOW_ROUNDS`` rounds.
+    """
+    from dicer.mesh.pillow import outward_normals, pillow_cells, surface_faces
+
+    t0 = time.perf_counter()
+    mesh, s = st.mesh, st.s
+    dim, n = mesh.dim, mesh.n_points
+    faces, owner = surface_faces(mesh.cells, dim, n, plane_bits(mesh, st.x0))
+    nodes = np.unique(faces)
+    b = st.boundary_position()[nodes]  # every exterior node is a boundary node
+    held = bounding_planes(mesh, st.x0[nodes])  # the layer meets a bounding plane at right angles
+    held[:, 2] |= dim == 2
+    normal = outward_normals(st.x, faces, nodes, held)
+    spacing = np.asarray(mesh.spacing, float)
+    # mm: voxels along the normal, the same everywhere in isotropic voxels
+    depth = float(s["pillow_thickness"]) * np.linalg.norm(normal * spacing, axis=1)
+    scale = 1.0  # of depth
+    share = np.ones(nodes.size)  # of the move from the smoothed surface onto st.surface
+    new_id = np.full(n, -1, np.int64)
+    new_id[nodes] = n + np.arange(nodes.size)
+    cells = pillow_cells(faces, new_id)
+    number = np.full(n + nodes.size, -1, np.int64)  # the row in nodes of a surface node and of its copy
+    number[nodes] = number[n:] = np.arange(nodes.size)
+    x, xb, sj_accepted = st.x, st.xb, st.sj
+    floor = float(s["min_scaled_jacobian"])
+    goal = st.xb[b] if st.surface is None else st.surface[b]  # without the scan: the smoothed surface
+    solved = None
+    for rounds in range(_PILLOW_ROUNDS + 1):
+        if solved != scale:  # the nodes under the layer, and the interior band with them
+            inner = xb.copy()
+            inner[b] -= (scale * depth)[:, None] * normal
+            st.x = x.copy()
+            st.x[st.bnodes] = st.xb = inner
+            if st.interior is not None and st.band_nodes.size:
+                u, it = st.interior.solve(inner - st.xb0, s["tolerance"])
+                st.it_i += it
+                st.x_band = st.x_band0 + u
+                st.x[st.band_nodes] = st.x_band
+            sj_under = st.checked.scaled_jacobian(st.x)
+            solved = scale
+        outer = xb[b] + share[:, None] * (goal - xb[b])
+        sj_layer = scaled_jacobian(np.concatenate([st.x, outer]), cells)
+        # an element under the layer may stay below the floor where the smoothing left it so
+        bad_under = ((sj_under < floor) | (sj_under <= 0)) & (sj_under < sj_accepted - 1e-12)
+        bad_layer = (sj_layer < floor) | (sj_layer <= 0)
+        if not (bad_under.any() or bad_layer.any()):
+            break
+        if rounds == _PILLOW_ROUNDS or scale < 1 / 16:
+            raise _pillow_failure(st, sj_under, bad_under, sj_layer, bad_layer)
+        failing = number[np.unique(cells[bad_layer])]
+        failing = np.unique(failing[failing >= 0])
+        pulled = failing[share[failing] > 0]
+        share[pulled] *= 0.5
+        share[pulled[share[pulled] < 0.1]] = 0.0
+        if bad_under.any() or (failing.size and pulled.size == 0):
+            scale *= 0.5
+    st.sj = np.concatenate([sj_under, sj_layer])
+    info = {"surface": "image" if st.pull is not None else "labels", "elements_added": int(cells.shape[0]),
+            "nodes_added": int(nodes.size), "thickness_voxels": float(s["pillow_thickness"]),
+            "guard_rounds": rounds, "thickness_scale": scale,
+            "nodes_held_off_the_surface": int(np.count_nonzero(share < 1.0)),
+            "min_scaled_jacobian": float(sj_layer.min()) if sj_layer.size else 1.0}
+    st.layer = _Layer(_layer_mesh(st, nodes, outer if nodes.size else np.zeros((0, 3)), cells, owner), info)
+    st.timings["pillow"] = time.perf_counter() - t0
+
+
+def _pillow_failure(st: _Smoothing, sj_under: np.ndarray, bad_under: np.ndarray, sj_layer: np.ndarray,
+                    bad_layer: np.ndarray) -> DicerError:
+    """The error naming the worst failing element (numbered as in the mesh with the layer)."""
+    under = np.where(bad_under, sj_under, np.inf)
+    layer = np.where(bad_layer, sj_layer, np.inf)
+    if under.size and (not layer.size or under.min() <= layer.min()):
+        worst, number, what = float(under.min()), int(st.touched[np.argmin(under)]) + 1, "under the layer"
+    else:
+        worst, number, what = float(layer.min()), st.mesh.n_cells + int(np.argmin(layer)) + 1, "of the layer"
+    return DicerError(
+        f"the pillow layer cannot keep element {number} ({what}) at a scaled Jacobian of at least "
+        f"{float(st.s['min_scaled_jacobian']):g} (it reaches {worst:.3f}, {int(bad_under.sum() + bad_layer.sum())} "
+        "element(s) fail); set smooth.pillow: false, or lower smooth.pillow_thickness or smooth.min_scaled_jacobian")
+
+
 # --- the result and the report ------------------------------------------------------------------
 
 
 def _smoothed_mesh(st: _Smoothing) -> Mesh:
     """The smoothed mesh: the input's topology arrays (cells, material, lattice) shared, point
-    data ``node_class`` added."""
+    data ``node_class`` added (or the mesh with its pillow layer)."""
+    if st.layer is not None:
+        return st.layer.mesh
     mesh = st.mesh
     point_data = dict(mesh.point_data)
     point_data["node_class"] = st.g.node_class
@@ -955,20 +1089,29 @@ def _smoothed_mesh(st: _Smoothing) -> Mesh:
                 mesh.grid_shape.copy(), point_data, dict(mesh.cell_data), list(mesh.names))
 
 
-def _volume_change(st: _Smoothing) -> tuple[np.ndarray, np.ndarray]:
-    """The volume change of the elements holding a boundary node, and each material's volume.
+def _volume_change(st: _Smoothing) -> tuple[np.ndarray, float, np.ndarray]:
+    """Each material's volume change and its volume before smoothing.
 
     The volume a mesh (and each material) encloses depends on its boundary nodes only: it is
-    measured on those elements with only the boundary nodes moved.
+    measured on the elements holding a boundary node with only the boundary nodes moved.
+    With a pillow layer the surface is its outer nodes': every element of the result counts.
 
     Returns
     -------
-    dv : (len(boundary_cells),) float64
-        Change of each element's volume, mm^3 (2D: area, mm^2).
+    change : (max material + 1,) float64
+        Change of each material's volume, mm^3 (2D: area, mm^2).
+    total : float
+        The whole mesh's change, mm^3 (mm^2).
     base : (max material + 1,) float64
         Each material's volume before smoothing, mm^3 (mm^2).
     """
     mesh, g, checked, x0 = st.mesh, st.g, st.checked, st.x0
+    base = np.bincount(mesh.material, weights=element_volumes(x0, mesh.cells) if st.graded else _lattice_volumes(mesh))
+    if st.layer is not None:
+        out = st.layer.mesh
+        after = np.bincount(out.material, weights=element_volumes(out.points, out.cells), minlength=base.size)
+        change = after[: base.size] - base
+        return change, float(change.sum()), base
     bc = g.boundary_cells
     if checked.hex:
         local = checked.local[:, np.searchsorted(st.touched, bc)]  # bc is a subset of touched
@@ -982,8 +1125,7 @@ def _volume_change(st: _Smoothing) -> tuple[np.ndarray, np.ndarray]:
         xb_only[st.bnodes] = st.x[st.bnodes]
         dv = element_volumes(xb_only, mesh.cells[bc]) - element_volumes(x0, mesh.cells[bc])
         del xb_only
-    base = np.bincount(mesh.material, weights=element_volumes(x0, mesh.cells) if st.graded else _lattice_volumes(mesh))
-    return dv, base
+    return np.bincount(mesh.material[bc], weights=dv, minlength=base.size), float(dv.sum()), base
 
 
 def _pull_report(st: _Smoothing) -> dict:
@@ -999,8 +1141,7 @@ def _pull_report(st: _Smoothing) -> dict:
 def _report(st: _Smoothing, t0: float) -> dict:
     """The stage's report (see docs/smoothing.md); ``t0``: the stage's start, for the timings."""
     mesh, g, s, sj = st.mesh, st.g, st.s, st.sj
-    dv, base = _volume_change(st)
-    change = np.bincount(mesh.material[g.boundary_cells], weights=dv, minlength=base.size)
+    change, total, base = _volume_change(st)
     volume_change = {str(kind): float(change[kind] / base[kind]) for kind in np.flatnonzero(base)}
     bdisp = np.linalg.norm(st.xb - st.xb0, axis=1)
     idisp = np.linalg.norm(st.x_band - st.x_band0, axis=1) if st.band_nodes.size else np.zeros(0)
@@ -1022,11 +1163,13 @@ def _report(st: _Smoothing, t0: float) -> dict:
         "min_scaled_jacobian": float(sj.min()) if sj.size else 1.0,
         "checked_elements": int(st.touched.size),
         "inverted_elements": int(np.count_nonzero(sj <= 0)),
-        "volume_change": float(dv.sum() / base.sum()),
+        "volume_change": total / float(base.sum()),
         "volume_change_by_material": volume_change,
         "max_displacement_mm": max_disp,
         "mean_boundary_displacement_mm": float(bdisp.mean()) if bdisp.size else 0.0,
         **_pull_report(st),
+        **({"pillow": {**st.layer.info, "nodes": st.layer.mesh.n_points, "elements": st.layer.mesh.n_cells}}
+           if st.layer is not None else {}),
         "seconds": {**{k_: round(v, 3) for k_, v in st.timings.items()}, "solve": round(st.t_solve, 3),
                     "guard": round(st.t_guard, 3), "total": round(time.perf_counter() - t0, 3)},
     }
@@ -1035,7 +1178,7 @@ def _report(st: _Smoothing, t0: float) -> dict:
 @takes_settings("smooth", section=True)
 def smooth_mesh(mesh: Mesh, *, surface_from_image, image_sigma, coefficient, coefficients, bounding_planes,
                 keep_bounding_planes, interior, shrink_compensation, interior_band, min_scaled_jacobian,
-                backoff_factor, max_backoff_rounds, tolerance, image=None, thresholds=None,
+                backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance, image=None, thresholds=None,
                 image_source: str = "image") -> tuple[Mesh, dict]:
     """Smooth ``mesh``: node classes, boundary solve, pull onto the image, interior solve, guard.
 
@@ -1049,7 +1192,8 @@ def smooth_mesh(mesh: Mesh, *, surface_from_image, image_sigma, coefficient, coe
     mesh : Mesh
         A mesh made by 'dicer mesh' (voxel, plane-merged or graded), with ``lattice`` point data.
     surface_from_image, image_sigma, coefficient, coefficients, bounding_planes, keep_bounding_planes, \
-interior, shrink_compensation, interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, tolerance
+interior, shrink_compensation, interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow, \
+pillow_thickness, tolerance
         The ``smooth:`` config section (see the schema and :func:`smoothing_settings`).
     image : dicer.image.Volume, optional
         The scan the labels were segmented from; with ``surface_from_image`` the boundary nodes
@@ -1077,10 +1221,12 @@ interior, shrink_compensation, interior_band, min_scaled_jacobian, backoff_facto
         coefficients=coefficients, bounding_planes=bounding_planes, keep_bounding_planes=keep_bounding_planes,
         interior=interior, shrink_compensation=shrink_compensation, interior_band=interior_band,
         min_scaled_jacobian=min_scaled_jacobian, backoff_factor=backoff_factor,
-        max_backoff_rounds=max_backoff_rounds, tolerance=tolerance)
+        max_backoff_rounds=max_backoff_rounds, pillow=pillow, pillow_thickness=pillow_thickness, tolerance=tolerance)
     _check_input(mesh)
     surface, t_img = _image_surface(mesh, s, image, thresholds, image_source)
     t0 = time.perf_counter()
     st = _set_up(mesh, s, surface, t0, t_img)
     _solve_with_guard(st)
+    if s["pillow"]:
+        _add_pillow(st)
     return _smoothed_mesh(st), _report(st, t0)

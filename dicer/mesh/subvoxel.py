@@ -340,8 +340,8 @@ def lift(sides: NodeSides, y: np.ndarray, floor: float) -> np.ndarray:
 
 
 def project(surface: ImageSurface, sides: NodeSides, adj: sp.csr_matrix, degree: np.ndarray, x: np.ndarray,
-            bnodes: np.ndarray, xb: np.ndarray, floor: float) -> tuple[np.ndarray, dict]:
-    """The boundary positions moved onto the image's iso-surfaces.
+            bnodes: np.ndarray, xb: np.ndarray) -> tuple[np.ndarray, dict]:
+    """The boundary positions moved onto the image's iso-surfaces (before :func:`lift`).
 
     Parameters
     ----------
@@ -357,13 +357,11 @@ def project(surface: ImageSurface, sides: NodeSides, adj: sp.csr_matrix, degree:
         The boundary nodes.
     xb : (B, 3) float64 ndarray
         Their positions, mm.
-    floor : float
-        Lowest corner scaled Jacobian kept (``smooth.min_scaled_jacobian``).
 
     Returns
     -------
     positions : (B, 3) float64 ndarray
-        Nodes without a crossing, or not between two kinds, unchanged.
+        On the iso-surfaces; nodes without a crossing, or not between two kinds, unchanged.
     report : dict
         Nodes moved, edge widths per pair.
     """
@@ -435,4 +433,4 @@ def project(surface: ImageSurface, sides: NodeSides, adj: sp.csr_matrix, degree:
     limit = np.abs(nrm[:, :dim]) @ surface.mesh_spacing
     scale = np.where(length > limit, limit / np.maximum(length, 1e-30), 1.0)
     y = xb + d * scale[:, None]
-    return lift(sides, y, floor), info
+    return y, info

@@ -1,0 +1,132 @@
+"""A pillow layer: one layer of new elements over a mesh's exterior surface.
+
+On a voxel staircase the elements at convex corners have two or three faces on the
+surface. Placed on a smooth surface such an element goes flat at its corner, so the
+smoothing keeps a kink there (the quality guard, the sub-voxel pull's ``lift``). With one
+new element on every exterior face, every element at the surface has exactly one face on
+it: the surface nodes can lie on the smooth surface while the elements under the layer
+keep the shape the smoothing gave them. The layer is the pillowing of hexahedral meshing
+(docs/smoothing.md §3b).
+
+Faces in a bounding plane of the image (a cut or symmetry plane) get no element: the layer
+meets such a plane at right angles, its nodes there stay in the plane.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dicer.mesh.faces import face_neighbours
+from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
+
+__all__ = ["surface_faces", "outward_normals", "pillow_cells"]
+
+
+def surface_faces(cells: np.ndarray, dim: int, n_points: int, planes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The exterior faces that lie in no bounding plane, wound outward.
+
+    Parameters
+    ----------
+    cells : (M, 8) or (M, 4) int ndarray
+        Hexahedra or quads, VTK corner order.
+    dim : int
+        3 or 2.
+    n_points : int
+        Number of nodes.
+    planes : (N,) uint8 ndarray
+        Bounding planes of every node (:func:`dicer.mesh.boundary.plane_bits`).
+
+    Returns
+    -------
+    faces : (F, 4) or (F, 2) int64 ndarray
+        Node ids of each face (2D: edge), counter-clockwise seen from outside (2D: the
+        element on the left), in element order, then face order.
+    owner : (F,) int64 ndarray
+        The element each face belongs to.
+    """
+    cells = np.asarray(cells, np.int64)
+    table = HEX_FACES if dim == 3 else QUAD_EDGES
+    owner, slot = np.nonzero(face_neighbours(cells, dim, n_points) < 0)
+    faces = cells[owner[:, None], table[slot]]
+    in_plane = np.bitwise_and.reduce(planes[faces], axis=1) != 0
+    return faces[~in_plane], owner[~in_plane]
+
+
+_SEEN_FROM = 0.5  # cosine of the angle a direction keeps from every face normal at its node, where it can
+_DIRECTION_ROUNDS = 10
+
+
+def outward_normals(points: np.ndarray, faces: np.ndarray, nodes: np.ndarray, held: np.ndarray) -> np.ndarray:
+    """Unit outward directions at surface nodes, along which the layer grows.
+
+    The faces' area vectors summed at their nodes, then turned towards the unit normal of
+    every face at the node that the direction makes an angle of more than 60 degrees with
+    (a few rounds): at a sharp or folded part of the surface the plain sum can point
+    almost along a face, and an element grown from that face along it is flat.
+
+    Parameters
+    ----------
+    points : (N, 3) float64 ndarray
+        Node positions, mm.
+    faces : (F, 4) or (F, 2) int ndarray
+        From :func:`surface_faces`.
+    nodes : (P,) int64 ndarray
+        The faces' nodes, ascending.
+    held : (P, 3) bool ndarray
+        Coordinates a node keeps (its bounding planes' axes, z in 2D): the normal has no
+        component along them, so a node on a plane moves in the plane.
+
+    Returns
+    -------
+    (P, 3) float64 ndarray
+        Rows of length 1 (0 where the faces' vectors cancel).
+    """
+    p = points
+    if faces.shape[1] == 4:  # the cross product of the diagonals: twice the area vector
+        a, b, c, d = (p[faces[:, i]] for i in range(4))
+        area = np.cross(c - a, d - b)
+    else:  # an edge with the element on its left: outward is to its right
+        e = p[faces[:, 1]] - p[faces[:, 0]]
+        area = np.column_stack([e[:, 1], -e[:, 0], np.zeros(len(e))])
+    at = np.searchsorted(nodes, faces)
+
+    def at_nodes(weights):  # (F, k) weights of the faces' unit vectors, summed at their nodes
+        return np.stack([np.bincount(at.ravel(), weights=(weights * unit[:, None, k]).ravel(), minlength=nodes.size)
+                         for k in range(3)], axis=1)
+
+    def normalised(v):
+        v[held] = 0.0
+        length = np.linalg.norm(v, axis=1, keepdims=True)
+        return np.divide(v, length, out=np.zeros_like(v), where=length > 0)
+
+    size = np.linalg.norm(area, axis=1)
+    unit = area / np.maximum(size, 1e-300)[:, None]
+    normal = normalised(at_nodes(np.repeat(size[:, None], faces.shape[1], axis=1)))
+    for _ in range(_DIRECTION_ROUNDS):
+        shortfall = np.maximum(_SEEN_FROM - np.einsum("fk,fjk->fj", unit, normal[at]), 0.0)
+        if not shortfall.any():
+            break
+        normal = normalised(normal + at_nodes(shortfall))
+    return normal
+
+
+def pillow_cells(faces: np.ndarray, new_id: np.ndarray) -> np.ndarray:
+    """The layer's elements: each face joined to its nodes' copies.
+
+    Parameters
+    ----------
+    faces : (F, 4) or (F, 2) int64 ndarray
+        From :func:`surface_faces`.
+    new_id : (N,) int64 ndarray
+        The copy of every surface node (the new surface node), -1 for others.
+
+    Returns
+    -------
+    (F, 8) or (F, 4) int64 ndarray
+        Hexahedra (the face as the bottom, wound towards its copy above) or quads
+        (edge a-b: b, a, a', b'), VTK order, positive when the copies lie outside.
+    """
+    if faces.shape[1] == 4:
+        return np.concatenate([faces, new_id[faces]], axis=1)
+    a, b = faces[:, 0], faces[:, 1]
+    return np.column_stack([b, a, new_id[a], new_id[b]])

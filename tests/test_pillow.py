@@ -1,0 +1,192 @@
+"""The pillow layer (smooth.pillow): one new element on every exterior face, surface nodes
+on the smooth surface, the elements under the layer moved inward."""
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from dicer.connectivity import fix_connectivity
+from dicer.errors import DicerError
+from dicer.mesh.boundary import bounding_planes, plane_bits
+from dicer.mesh.faces import face_neighbours
+from dicer.mesh.metrics import element_volumes, scaled_jacobian
+from dicer.mesh.pillow import outward_normals, pillow_cells, surface_faces
+from dicer.mesh.smooth import smooth_mesh
+from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
+from dicer.mesh.voxel import voxel_mesh
+
+from test_smooth_mirror import shells
+
+ON = {"pillow": True}
+
+
+def layer_nodes(mesh):
+    """The input mesh's surface nodes (faces in no bounding plane), ascending: the layer's
+    copies follow the input's nodes in this order."""
+    faces, owner = surface_faces(mesh.cells, mesh.dim, mesh.n_points, plane_bits(mesh))
+    return faces, owner, np.unique(faces)
+
+
+def original(mesh):
+    """(N_out,) the input node of every output node, and whether it is a copy."""
+    _, _, nodes = layer_nodes(mesh)
+    return np.concatenate([np.arange(mesh.n_points), nodes]), np.r_[np.zeros(mesh.n_points, bool),
+                                                                    np.ones(nodes.size, bool)]
+
+
+def faces_shared(cells, dim, n):
+    """Exterior faces of a mesh, and whether every other face has two elements on opposite sides."""
+    nb = face_neighbours(np.asarray(cells, np.int64), dim, n)
+    return int(np.count_nonzero(nb < 0))
+
+
+def test_tables_of_a_voxel_and_a_square():
+    # one voxel: six faces, none in a bounding plane of a 3-voxel image around it
+    lab = np.zeros((3, 3, 3), np.uint8)
+    lab[1, 1, 1] = 1
+    mesh = voxel_mesh(lab)
+    faces, owner, nodes = layer_nodes(mesh)
+    assert faces.shape == (6, 4) and np.all(owner == 0) and nodes.size == 8
+    normal = outward_normals(mesh.points, faces, nodes, np.zeros((8, 3), bool))
+    centre = mesh.points.mean(axis=0)
+    # a cube's corner normals point along its diagonals, outward
+    assert np.allclose(np.abs(normal), 1 / np.sqrt(3))
+    assert np.all(np.einsum("ij,ij->i", normal, mesh.points - centre) > 0)
+    new_id = np.full(8, -1)
+    new_id[nodes] = 8 + np.arange(8)
+    cells = pillow_cells(faces, new_id)
+    points = np.concatenate([mesh.points, mesh.points + 0.5 * normal])
+    assert np.all(scaled_jacobian(points, cells) > 0.5)
+    # the layer is conforming: its faces meet each other and the voxel in pairs; the outer
+    # six faces are the new exterior
+    all_cells = np.concatenate([mesh.cells, cells])
+    assert faces_shared(all_cells, 3, 16) == 6
+    # 2D: a square's edges, the quads outside them
+    sq = voxel_mesh(np.pad(np.ones((1, 1), np.uint8), 1))
+    edges, _, corners = layer_nodes(sq)
+    assert edges.shape == (4, 2)
+    n2 = outward_normals(sq.points, edges, corners, np.tile([False, False, True], (4, 1)))
+    new_id = np.full(4, -1)
+    new_id[corners] = 4 + np.arange(4)
+    quads = pillow_cells(edges, new_id)
+    assert np.all(scaled_jacobian(np.concatenate([sq.points, sq.points + 0.3 * n2]), quads) > 0.5)
+    assert faces_shared(np.concatenate([sq.cells, quads]), 2, 8) == 4
+
+
+def test_faces_in_bounding_planes_get_no_element():
+    lab = np.ones((4, 3, 2), np.uint8)
+    lab[3, :, :] = 0  # exterior faces at x = 3 only; the rest lie in the image's planes
+    mesh = voxel_mesh(lab)
+    faces, _, nodes = layer_nodes(mesh)
+    assert faces.shape[0] == 3 * 2
+    assert np.all(mesh.lattice[faces, 0] == 3)
+    out, rep = smooth_mesh(mesh, ON)
+    assert rep["pillow"]["elements_added"] == 6 and rep["pillow"]["nodes_added"] == nodes.size == 12
+    # every node of the layer on a bounding plane stays in it, the copies too
+    on = bounding_planes(mesh)
+    src, _ = original(mesh)
+    for axis in range(3):
+        rows = np.flatnonzero(on[src, axis])
+        assert np.array_equal(out.points[rows, axis], mesh.points[src[rows], axis])
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_labels_only_layer_under_the_smoothed_surface(dim):
+    n = 24 if dim == 3 else 40
+    lab = shells(n, dim, [(0.0, 0.37 * n, 1)])
+    mesh = voxel_mesh(lab)
+    plain, rep0 = smooth_mesh(mesh, {})
+    out, rep = smooth_mesh(mesh, ON)
+    faces, owner, nodes = layer_nodes(mesh)
+    n0, m0 = mesh.n_points, mesh.n_cells
+    info = rep["pillow"]
+    assert out.n_points == n0 + nodes.size and out.n_cells == m0 + faces.shape[0]
+    assert info["elements_added"] == faces.shape[0] and info["nodes"] == out.n_points
+    assert info["surface"] == "labels" and info["thickness_voxels"] == 0.25
+    # without a back-off the labels' surface is the smoothing's: the copies sit where the
+    # smoothing put the surface nodes, the originals 0.25 voxel inward along the normal
+    assert info["nodes_held_off_the_surface"] == 0 and info["thickness_scale"] == 1.0
+    assert np.abs(out.points[n0:] - plain.points[nodes]).max() < 1e-12
+    depth = np.linalg.norm(out.points[n0:] - out.points[nodes], axis=1)
+    assert np.allclose(depth, 0.25, atol=1e-9)
+    r_in = np.linalg.norm(out.points[nodes, :dim] - n / 2, axis=1)
+    r_out = np.linalg.norm(out.points[n0:, :dim] - n / 2, axis=1)
+    assert np.all(r_in < r_out)
+    # the layer's elements carry their owners' material, the copies their originals' lattice
+    assert np.array_equal(out.material[m0:], mesh.material[owner])
+    assert np.array_equal(out.lattice[n0:], mesh.lattice[nodes])
+    assert np.array_equal(out.point_data["node_class"][n0:], out.point_data["node_class"][nodes])
+    sj = scaled_jacobian(out.points, out.cells)
+    assert sj.min() >= 0.2 and rep["inverted_elements"] == 0
+    assert rep["min_scaled_jacobian"] == pytest.approx(sj.min())
+    # conforming, the exterior the layer's outer faces (no bounding plane is touched)
+    assert faces_shared(out.cells, dim, out.n_points) == faces.shape[0]
+    # the volume is the smoothed surface's: the layer adds what the originals lost
+    assert rep["volume_change"] == pytest.approx(rep0["volume_change"], abs=1e-9)
+
+
+def test_cut_model_layer_mirrors_the_whole():
+    lab = shells(24, 3, [(4.2, 9.3, 1)])  # a ball with a cavity, centred on a voxel corner
+    fixed, _ = fix_connectivity(lab)
+    assert np.array_equal(fixed, lab)
+    full_mesh, part_mesh = voxel_mesh(lab), voxel_mesh(lab[12:, 12:, 12:])
+    full, _ = smooth_mesh(full_mesh, ON)
+    part, _ = smooth_mesh(part_mesh, ON)
+
+    def keyed(mesh, out, offset):  # (lattice of the input node, copy) -> position
+        src, copy = original(mesh)
+        lat = mesh.lattice[src] + offset
+        return {(*row, c): p for row, c, p in zip(lat.tolist(), copy.tolist(), out.points)}
+
+    whole = keyed(full_mesh, full, 0)
+    cut = keyed(part_mesh, part, 12)
+    assert len(cut) > 0.1 * len(whole)
+    diff = max(float(np.abs(p + 12.0 - whole[k]).max()) for k, p in cut.items())
+    assert diff < 1e-6
+
+
+def test_layer_that_cannot_keep_the_floor_is_an_error():
+    # no smoothing (every element a unit cube) and a floor of 0.99: a layer 0.9 voxel deep
+    # shears the corner voxels below it
+    lab = shells(12, 3, [(0.0, 4.6, 1)])
+    mesh = voxel_mesh(lab)
+    with pytest.raises(DicerError, match=r"pillow layer cannot keep element \d+ .* smooth.pillow: false"):
+        smooth_mesh(mesh, {"pillow": True, "pillow_thickness": 0.9, "coefficient": 0.0,
+                           "min_scaled_jacobian": 0.99})
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31 - 1), dim=st.sampled_from([2, 3]), kinds=st.integers(1, 3))
+def test_random_volumes_get_a_valid_conforming_layer(seed, dim, kinds):
+    rng = np.random.default_rng(seed)
+    shape = (9, 8, 7)[:dim] if dim == 3 else (14, 12)
+    lab = (rng.random(shape) < 0.6) * rng.integers(1, kinds + 1, shape)
+    lab, _ = fix_connectivity(lab.astype(np.uint8))
+    if not lab.any():
+        return
+    mesh = voxel_mesh(lab)
+    faces, owner, nodes = layer_nodes(mesh)
+    try:
+        out, rep = smooth_mesh(mesh, ON)
+    except DicerError as err:  # the smoothing's guard or the layer's: named, never a bad mesh
+        assert "scaled Jacobian" in str(err)
+        return
+    assert out.n_cells == mesh.n_cells + faces.shape[0] and out.n_points == mesh.n_points + nodes.size
+    sj = scaled_jacobian(out.points, out.cells)
+    assert sj.min() > 0 and rep["inverted_elements"] == 0
+    assert np.all(sj[mesh.n_cells:] >= 0.2)
+    # every material gained exactly its exterior faces' elements, and volume
+    assert np.array_equal(np.bincount(out.material, minlength=kinds + 1),
+                          np.bincount(mesh.material, minlength=kinds + 1)
+                          + np.bincount(mesh.material[owner], minlength=kinds + 1))
+    assert np.all(element_volumes(out.points, out.cells[mesh.n_cells:]) > 0)
+    # conforming: the exterior is the layer's outer faces, the faces left in bounding planes
+    # and the layer's sides there
+    table = HEX_FACES if dim == 3 else QUAD_EDGES
+    nb = face_neighbours(np.asarray(mesh.cells, np.int64), dim, mesh.n_points)
+    in_plane = int(np.count_nonzero(nb < 0)) - faces.shape[0]
+    nb_out = face_neighbours(np.asarray(out.cells, np.int64), dim, out.n_points)
+    sides = nb_out[mesh.n_cells:, 2:] if dim == 3 else nb_out[mesh.n_cells:, [1, 3]]  # S3-S6; 2D: a-a', b'-b
+    assert table.shape[0] > 0
+    assert int(np.count_nonzero(nb_out < 0)) == faces.shape[0] + in_plane + int(np.count_nonzero(sides < 0))

@@ -13,7 +13,9 @@ the same bytes):
   from a CT-like grey-value image (``geometry.kirsch_scan``, ``geometry.lame_scan``) by
   ``dicer run`` on the image with ``smooth.surface_from_image`` (the rim pulled onto the
   image's iso-line), at the settings ``scan_settings(part)`` and ``LAME_SCAN_RADII``; parts
-  ``quarter-scan-clean`` and ``full-scan-clean``: the plate's image without noise.
+  ``quarter-scan-clean`` and ``full-scan-clean``: the plate's image without noise. The
+  settings ``pillow`` (and ``lame`` ``a=7+pillow``, ``lame-scan`` ``a=<inner>+pillow``) add
+  the pillow layer over the surface (``smooth.pillow``, docs/smoothing.md §3b).
 * ``kirsch-reference``: {"CPS4": {...}, "CPS8": {...}}, the ideal O-grid mesh of dicer's
   element size (``reference.kirsch_ogrid``).
 """
@@ -34,6 +36,7 @@ OFFSET_SETTINGS = ("k=0", "k=0.8", "defaults", "defaults+merge")
 LAME_RADII = (7.0, 14.0, 28.0)  # inner radius a; outer 2 a
 LAME_SCAN_RADII = (7.0, 14.0)
 MIN_SJ_03 = "smooth.min_scaled_jacobian=0.3"  # the validation targets' quality floor as the guard's floor
+PILLOW = "smooth.pillow=true"  # a layer of elements over the surface (docs/smoothing.md §3b)
 SCAN_NOISE = 30.0  # the grey-value images' noise on a contrast of 1000 (the ``-clean`` parts: none)
 ORDER_NAMES = {"kirsch": {1: "CPS4", 2: "CPS8"}, "lame": {1: "C3D8", 2: "C3D20"}}
 
@@ -85,6 +88,8 @@ def scan_settings(part: str = "quarter") -> dict[str, list[str]]:
         out["k=0.8"] = [NO_MERGE, "smooth.coefficient=0.8"]
         out["image_sigma=1"] = [NO_MERGE, "smooth.image_sigma=1.0"]
     out["defaults+merge"] = []
+    out["pillow"] = [NO_MERGE, PILLOW]
+    out["pillow, min SJ 0.3"] = [NO_MERGE, PILLOW, MIN_SJ_03]
     return out
 
 
@@ -124,6 +129,8 @@ def run_study(work: str | os.PathLike, log=print) -> dict:
         log(f"lame a={a:g}: C3D8 {r[1]['error_mean']:+.4f} C3D20 {r[2]['error_mean']:+.4f}")
     r = cases.lame(work / "lame_7_merge", "quarter", [], inner=LAME_RADII[0], outer=2 * LAME_RADII[0])
     results["lame"][f"a={LAME_RADII[0]:g}+merge"] = _named(r, "lame")
+    r = cases.lame(work / "lame_7_pillow", "quarter", [NO_MERGE, PILLOW], inner=LAME_RADII[0], outer=2 * LAME_RADII[0])
+    results["lame"][f"a={LAME_RADII[0]:g}+pillow"] = _named(r, "lame")
     log(f"lame: {time.perf_counter() - t0:.0f} s")
     _run_scans(work, results, log)
     return _rounded(results)
@@ -146,19 +153,23 @@ def _run_scans(work: Path, results: dict, log) -> None:
     t0 = time.perf_counter()
     results["kirsch-reference"] = {ORDER_NAMES["kirsch"][o]: reference.kirsch_ogrid(work / "kirsch_ogrid", o)
                                    for o in (1, 2)}
-    clean = {name: sets for name, sets in scan_settings("quarter").items() if name in ("defaults", "min SJ 0.3")}
+    clean = {name: sets for name, sets in scan_settings("quarter").items()
+             if name in ("defaults", "min SJ 0.3", "pillow", "pillow, min SJ 0.3")}
+    full_clean = {name: clean[name] for name in ("min SJ 0.3", "pillow, min SJ 0.3")}
     for key, part, noise, settings in (("quarter-scan", "quarter", SCAN_NOISE, scan_settings("quarter")),
                                        ("full-scan", "full", SCAN_NOISE, scan_settings("full")),
                                        ("quarter-scan-clean", "quarter", 0.0, clean),
-                                       ("full-scan-clean", "full", 0.0, {"min SJ 0.3": clean["min SJ 0.3"]})):
+                                       ("full-scan-clean", "full", 0.0, full_clean)):
         results["kirsch"][key] = _kirsch_rows(work, key, part, settings, log, scan=True, noise=noise)
     log(f"kirsch scans: {time.perf_counter() - t0:.0f} s")
     t0 = time.perf_counter()
     rows = {}
     for a in LAME_SCAN_RADII:
-        r = cases.lame(work / f"lame_scan_{a:g}", "quarter", [NO_MERGE], inner=a, outer=2 * a, scan=True)
-        rows[f"a={a:g}"] = _named(r, "lame")
-        log(f"lame scan a={a:g}: C3D8 {r[1]['error_mean']:+.4f} C3D20 {r[2]['error_mean']:+.4f}")
+        for suffix, sets in (("", [NO_MERGE]), ("+pillow", [NO_MERGE, PILLOW])):
+            r = cases.lame(work / f"lame_scan_{a:g}{suffix.replace('+', '_')}", "quarter", sets, inner=a, outer=2 * a,
+                           scan=True)
+            rows[f"a={a:g}{suffix}"] = _named(r, "lame")
+            log(f"lame scan a={a:g}{suffix}: C3D8 {r[1]['error_mean']:+.4f} C3D20 {r[2]['error_mean']:+.4f}")
     r = cases.lame(work / "lame_scan_7_merge", "quarter", [], inner=LAME_SCAN_RADII[0], outer=2 * LAME_SCAN_RADII[0],
                    scan=True)
     rows[f"a={LAME_SCAN_RADII[0]:g}+merge"] = _named(r, "lame")

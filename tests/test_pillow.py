@@ -106,7 +106,7 @@ def test_labels_only_layer_under_the_smoothed_surface(dim):
     assert info["surface"] == "labels" and info["thickness_voxels"] == 0.25
     # without a back-off the labels' surface is the smoothing's: the copies sit where the
     # smoothing put the surface nodes, the originals 0.25 voxel inward along the normal
-    assert info["nodes_held_off_the_surface"] == 0 and info["thickness_scale"] == 1.0
+    assert info["nodes_held_off_the_surface"] == 0 and info["faces_without_layer"] == 0
     assert np.abs(out.points[n0:] - plain.points[nodes]).max() < 1e-12
     depth = np.linalg.norm(out.points[n0:] - out.points[nodes], axis=1)
     assert np.allclose(depth, 0.25, atol=1e-9)
@@ -146,14 +146,34 @@ def test_cut_model_layer_mirrors_the_whole():
     assert diff < 1e-6
 
 
-def test_layer_that_cannot_keep_the_floor_is_an_error():
-    # no smoothing (every element a unit cube) and a floor of 0.99: a layer 0.9 voxel deep
-    # shears the corner voxels below it
+def test_layer_leaves_gaps_where_it_cannot_keep_the_floor():
+    # no smoothing (every element a unit cube) and a floor of 0.5: grown along the surface's
+    # diagonal directions at the staircase's corners, the layer's elements there shear below
+    # it, so the layer leaves those faces out (measured 96 of 408); elsewhere it stays
     lab = shells(12, 3, [(0.0, 4.6, 1)])
     mesh = voxel_mesh(lab)
-    with pytest.raises(DicerError, match=r"pillow layer cannot keep element \d+ .* smooth.pillow: false"):
-        smooth_mesh(mesh, {"pillow": True, "pillow_thickness": 0.9, "coefficient": 0.0,
-                           "min_scaled_jacobian": 0.99})
+    faces, _, _ = layer_nodes(mesh)
+    settings = {"pillow": True, "pillow_thickness": 0.3, "coefficient": 0.0, "min_scaled_jacobian": 0.5}
+    out, rep = smooth_mesh(mesh, settings)
+    info = rep["pillow"]
+    assert 0 < info["faces_without_layer"] < 0.5 * faces.shape[0]
+    assert info["elements_added"] + info["faces_without_layer"] == faces.shape[0]
+    assert out.n_cells == mesh.n_cells + info["elements_added"]
+    assert scaled_jacobian(out.points, out.cells).min() >= 0.5
+    # the gaps' faces and the layer's sides there are exterior: still conforming
+    nb = face_neighbours(np.asarray(out.cells, np.int64), 3, out.n_points)
+    sides = nb[mesh.n_cells:, 2:]
+    assert int(np.count_nonzero(nb < 0)) == faces.shape[0] + int(np.count_nonzero(sides < 0))
+    # the pillow's guard rounds are bounded: a layer that still fails after them is an error
+    from dicer.mesh import smooth as smooth_module
+
+    original_rounds = smooth_module._PILLOW_ROUNDS
+    try:
+        smooth_module._PILLOW_ROUNDS = 0
+        with pytest.raises(DicerError, match=r"pillow layer cannot keep element \d+ .* smooth.pillow: false"):
+            smooth_mesh(mesh, settings)
+    finally:
+        smooth_module._PILLOW_ROUNDS = original_rounds
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -167,19 +187,15 @@ def test_random_volumes_get_a_valid_conforming_layer(seed, dim, kinds):
         return
     mesh = voxel_mesh(lab)
     faces, owner, nodes = layer_nodes(mesh)
-    try:
-        out, rep = smooth_mesh(mesh, ON)
-    except DicerError as err:  # the smoothing's guard or the layer's: named, never a bad mesh
-        assert "scaled Jacobian" in str(err)
-        return
-    assert out.n_cells == mesh.n_cells + faces.shape[0] and out.n_points == mesh.n_points + nodes.size
+    out, rep = smooth_mesh(mesh, ON)  # gaps in the layer where it cannot keep the floor, never an error here
+    info = rep["pillow"]
+    added = out.n_cells - mesh.n_cells
+    assert added == info["elements_added"] and added + info["faces_without_layer"] == faces.shape[0]
+    assert mesh.n_points + info["nodes_added"] == out.n_points and info["nodes_added"] <= nodes.size
     sj = scaled_jacobian(out.points, out.cells)
-    assert sj.min() > 0 and rep["inverted_elements"] == 0
-    assert np.all(sj[mesh.n_cells:] >= 0.2)
-    # every material gained exactly its exterior faces' elements, and volume
-    assert np.array_equal(np.bincount(out.material, minlength=kinds + 1),
-                          np.bincount(mesh.material, minlength=kinds + 1)
-                          + np.bincount(mesh.material[owner], minlength=kinds + 1))
+    assert sj.min() >= 0.2 and rep["inverted_elements"] == 0  # every voxel starts at 1: no exemption
+    # every new element has the material of an element with an exterior face, and volume
+    assert np.all(np.isin(out.material[mesh.n_cells:], mesh.material[owner]))
     assert np.all(element_volumes(out.points, out.cells[mesh.n_cells:]) > 0)
     # conforming: the exterior is the layer's outer faces, the faces left in bounding planes
     # and the layer's sides there

@@ -950,7 +950,8 @@ def _solve_with_guard(st: _Smoothing) -> None:
 
 # --- the pillow layer --------------------------------------------------------------------------
 
-_PILLOW_ROUNDS = 20  # guard rounds of the layer, each halving moves onto the surface or the depth
+_PILLOW_ROUNDS = 40  # guard rounds of the layer
+_PILLOW_ROOM = 0.02  # with the layer the smoothing keeps its elements this far above the floor: room for the move
 
 
 @dataclass
@@ -977,23 +978,63 @@ def _layer_mesh(st: _Smoothing, nodes: np.ndarray, outer: np.ndarray, cells: np.
                 mesh.grid_shape.copy(), point_data, cell_data, list(mesh.names))
 
 
+def _move_under_layer(st: _Smoothing, x: np.ndarray, xb: np.ndarray, b: np.ndarray, move: np.ndarray) -> np.ndarray:
+    """Move the boundary nodes ``b`` (numbers among the boundary nodes) by ``move`` (mm) from the
+    smoothed positions ``x``, ``xb``, solve the interior band for it; sets ``st.x``, ``st.xb``,
+    ``st.x_band`` and returns the checked elements' scaled Jacobian."""
+    inner = xb.copy()
+    inner[b] += move
+    st.x = x.copy()
+    st.x[st.bnodes] = st.xb = inner
+    if st.interior is not None and st.band_nodes.size:
+        u, it = st.interior.solve(inner - st.xb0, st.s["tolerance"])
+        st.it_i += it
+        st.x_band = st.x_band0 + u
+        st.x[st.band_nodes] = st.x_band
+    return st.checked.scaled_jacobian(st.x)
+
+
+_TAPER = 3  # surface edges over which the depth of the nodes under the layer grows from a gap in it
+
+
+def _taper(layered: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """(P,) the share of the full depth each surface node moves inward: 0 off the layer (a node
+    of faces without it), k / _TAPER at k edges from such a node, 1 from _TAPER edges on. A
+    depth that jumps between neighbours would shear the elements under them.
+
+    ``layered``: (P,) bool, nodes of faces with the layer; ``at``: (F, k) the faces' nodes."""
+    share = np.ones(layered.size)
+    near = ~layered
+    share[near] = 0.0
+    for step in range(1, _TAPER):
+        ring = np.zeros(layered.size, bool)
+        ring[at[near[at].any(axis=1)]] = True
+        ring &= ~near
+        share[ring] = step / _TAPER
+        near |= ring
+    return share
+
+
 def _add_pillow(st: _Smoothing) -> None:
     """Put a pillow layer over the smoothed mesh's exterior surface (``dicer.mesh.pillow``).
 
     The surface nodes are copied: the copies become the surface, on the scan's iso-surface
-    before ``lift`` (``st.surface``) or, without the scan, where the smoothing put the nodes; the nodes under them move inward along the surface normal by
-    ``pillow_thickness`` voxels, and the interior band is solved again for that move. The
-    guard checks the elements the move touches and the new ones: where a new element fails,
-    its nodes' copies go halfway back towards the smoothed surface (all the way below a
-    tenth); where an element under the layer fails, or a new one whose copies are back, the
-    depth is halved everywhere (a depth that varies from node to node shears the elements
-    under the layer). Sets ``st.layer``, and ``st.x``, ``st.xb``, ``st.x_band``, ``st.sj`` (the
-    checked elements, then the new ones) for the report.
+    before ``lift`` (``st.surface``) or, without the scan, where the smoothing put the nodes;
+    the nodes under them move inward along the surface direction by ``pillow_thickness``
+    voxels (less within ``_TAPER`` edges of a gap in the layer), and the interior band is
+    solved again for that move. The guard checks the elements the move touches and the new
+    ones: a failing new element's nodes take half their move onto the iso-surface (none
+    below a tenth); a new element that fails with its nodes back on the smoothed surface
+    loses its place in the layer, and so do the layer's faces around a failing element under
+    it (their nodes then stay where the smoothing put them: on thin or sharply folded parts
+    the layer leaves gaps, its sides there part of the surface). The smoothing before it kept
+    its elements ``_PILLOW_ROOM`` above the floor. Sets ``st.layer``, and ``st.x``, ``st.xb``,
+    ``st.x_band``, ``st.sj`` (the checked elements, then the new ones) for the report.
 
     Raises
     ------
     DicerError
-        An element still fails at a sixteenth of the depth or after ``_PILLOW_ROUNDS`` rounds.
+        An element still fails after ``_PILLOW_ROUNDS`` rounds.
     """
     from dicer.mesh.pillow import outward_normals, pillow_cells, surface_faces
 
@@ -1002,60 +1043,61 @@ def _add_pillow(st: _Smoothing) -> None:
     dim, n = mesh.dim, mesh.n_points
     faces, owner = surface_faces(mesh.cells, dim, n, plane_bits(mesh, st.x0))
     nodes = np.unique(faces)
+    at = np.searchsorted(nodes, faces)  # the faces' nodes as rows of nodes
     b = st.boundary_position()[nodes]  # every exterior node is a boundary node
     held = bounding_planes(mesh, st.x0[nodes])  # the layer meets a bounding plane at right angles
     held[:, 2] |= dim == 2
     normal = outward_normals(st.x, faces, nodes, held)
     spacing = np.asarray(mesh.spacing, float)
     # mm: voxels along the normal, the same everywhere in isotropic voxels
-    depth = float(s["pillow_thickness"]) * np.linalg.norm(normal * spacing, axis=1)
-    scale = 1.0  # of depth
-    share = np.ones(nodes.size)  # of the move from the smoothed surface onto st.surface
-    new_id = np.full(n, -1, np.int64)
-    new_id[nodes] = n + np.arange(nodes.size)
-    cells = pillow_cells(faces, new_id)
-    number = np.full(n + nodes.size, -1, np.int64)  # the row in nodes of a surface node and of its copy
-    number[nodes] = number[n:] = np.arange(nodes.size)
+    move = -(float(s["pillow_thickness"]) * np.linalg.norm(normal * spacing, axis=1))[:, None] * normal
+    # the share of its move onto st.surface a copy makes (without the scan: no move)
+    share = np.zeros(nodes.size) if st.surface is None else np.ones(nodes.size)
+    kept = np.ones(faces.shape[0], bool)  # faces with an element of the layer
     x, xb, sj_accepted = st.x, st.xb, st.sj
     floor = float(s["min_scaled_jacobian"])
     goal = st.xb[b] if st.surface is None else st.surface[b]  # without the scan: the smoothed surface
     solved = None
     for rounds in range(_PILLOW_ROUNDS + 1):
-        if solved != scale:  # the nodes under the layer, and the interior band with them
-            inner = xb.copy()
-            inner[b] -= (scale * depth)[:, None] * normal
-            st.x = x.copy()
-            st.x[st.bnodes] = st.xb = inner
-            if st.interior is not None and st.band_nodes.size:
-                u, it = st.interior.solve(inner - st.xb0, s["tolerance"])
-                st.it_i += it
-                st.x_band = st.x_band0 + u
-                st.x[st.band_nodes] = st.x_band
-            sj_under = st.checked.scaled_jacobian(st.x)
-            solved = scale
-        outer = xb[b] + share[:, None] * (goal - xb[b])
+        layered = np.zeros(nodes.size, bool)
+        layered[at[kept]] = True
+        rows = np.flatnonzero(layered)
+        if solved is None or not np.array_equal(solved, layered):
+            sj_under = _move_under_layer(st, x, xb, b[rows], _taper(layered, at)[rows, None] * move[rows])
+            solved = layered
+        new_id = np.full(n, -1, np.int64)
+        new_id[nodes[rows]] = n + np.arange(rows.size)
+        cells = pillow_cells(faces[kept], new_id)
+        outer = xb[b[rows]] + share[rows, None] * (goal[rows] - xb[b[rows]])
         sj_layer = scaled_jacobian(np.concatenate([st.x, outer]), cells)
         # an element under the layer may stay below the floor where the smoothing left it so
         bad_under = ((sj_under < floor) | (sj_under <= 0)) & (sj_under < sj_accepted - 1e-12)
         bad_layer = (sj_layer < floor) | (sj_layer <= 0)
         if not (bad_under.any() or bad_layer.any()):
             break
-        if rounds == _PILLOW_ROUNDS or scale < 1 / 16:
+        if rounds == _PILLOW_ROUNDS:
             raise _pillow_failure(st, sj_under, bad_under, sj_layer, bad_layer)
-        failing = number[np.unique(cells[bad_layer])]
-        failing = np.unique(failing[failing >= 0])
-        pulled = failing[share[failing] > 0]
+        failing = np.flatnonzero(kept)[bad_layer]
+        pulled = np.unique(at[failing])
+        pulled = pulled[share[pulled] > 0]
         share[pulled] *= 0.5
         share[pulled[share[pulled] < 0.1]] = 0.0
-        if bad_under.any() or (failing.size and pulled.size == 0):
-            scale *= 0.5
+        drop = failing[(share[at[failing]] == 0).all(axis=1)]
+        if bad_under.any():
+            # the layer's faces near the failing elements: at their nodes and those of the
+            # elements around them (the band's nodes move with the surface's)
+            under = np.zeros(n, bool)
+            under[mesh.cells[st.touched[bad_under]]] = True
+            under[mesh.cells[_touching(mesh.cells, under)]] = True
+            drop = np.union1d(drop, np.flatnonzero(kept & under[faces].any(axis=1)))
+        kept[drop] = False
     st.sj = np.concatenate([sj_under, sj_layer])
     info = {"surface": "image" if st.pull is not None else "labels", "elements_added": int(cells.shape[0]),
-            "nodes_added": int(nodes.size), "thickness_voxels": float(s["pillow_thickness"]),
-            "guard_rounds": rounds, "thickness_scale": scale,
-            "nodes_held_off_the_surface": int(np.count_nonzero(share < 1.0)),
+            "nodes_added": int(rows.size), "faces_without_layer": int(np.count_nonzero(~kept)),
+            "thickness_voxels": float(s["pillow_thickness"]), "guard_rounds": rounds,
+            "nodes_held_off_the_surface": 0 if st.surface is None else int(np.count_nonzero(share[rows] < 1.0)),
             "min_scaled_jacobian": float(sj_layer.min()) if sj_layer.size else 1.0}
-    st.layer = _Layer(_layer_mesh(st, nodes, outer if nodes.size else np.zeros((0, 3)), cells, owner), info)
+    st.layer = _Layer(_layer_mesh(st, nodes[rows], outer, cells, owner[kept]), info)
     st.timings["pillow"] = time.perf_counter() - t0
 
 
@@ -1225,8 +1267,13 @@ pillow_thickness, tolerance
     _check_input(mesh)
     surface, t_img = _image_surface(mesh, s, image, thresholds, image_source)
     t0 = time.perf_counter()
-    st = _set_up(mesh, s, surface, t0, t_img)
-    _solve_with_guard(st)
-    if s["pillow"]:
+    if s["pillow"]:  # the smoothing leaves room above the floor for the layer's move inward
+        st = _set_up(mesh, {**s, "min_scaled_jacobian": min(s["min_scaled_jacobian"] + _PILLOW_ROOM, 0.99)}, surface,
+                     t0, t_img)
+        _solve_with_guard(st)
+        st.s = s
         _add_pillow(st)
+    else:
+        st = _set_up(mesh, s, surface, t0, t_img)
+        _solve_with_guard(st)
     return _smoothed_mesh(st), _report(st, t0)

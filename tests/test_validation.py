@@ -68,7 +68,7 @@ def test_lame_quarter_tube_from_a_grey_value_image_with_a_pillow_layer(tmp_path)
     """Fast: the pillow layer over the bore (smooth.pillow, a = 7 voxels, C3D8): the bore's mean
     hoop stress within 3 % (without the layer -4.8 %)."""
     r = cases.lame(tmp_path, "quarter", [NO_MERGE, PILLOW], inner=7.0, outer=14.0, orders=(1,), scan=True)
-    assert r["inverted"] == 0 and r["min_sj"] == pytest.approx(0.223, abs=0.005)
+    assert r["inverted"] == 0 and r["min_sj"] == pytest.approx(0.244, abs=0.005)
     e = r[1]
     assert e["elements"] == 312  # 228 and a layer of 84
     assert e["error_mean"] == pytest.approx(0.004, abs=0.01) and abs(e["error_mean"]) <= 0.03
@@ -276,7 +276,7 @@ def kirsch_scan_clean_pillow(tmp_path_factory):
 def test_target_kirsch_with_a_pillow_layer_from_a_noise_free_image(kirsch_scan_clean_pillow):
     """The Kirsch target, CPS4 and CPS8, from the partial-volume image with the pillow layer at
     smooth.min_scaled_jacobian 0.3 (measured: CPS4 3.077 at 90 deg, the largest there; CPS8
-    3.034, largest 3.082 at 82 deg; min SJ 0.357; quarter and full within 0.03 %)."""
+    3.034, largest 3.082 at 82 deg; min SJ 0.377; quarter and full within 0.03 %)."""
     q, f = kirsch_scan_clean_pillow["quarter"], kirsch_scan_clean_pillow["full"]
     for r in (q, f):
         assert r["min_sj"] >= 0.3 and r["inverted"] == 0
@@ -285,7 +285,7 @@ def test_target_kirsch_with_a_pillow_layer_from_a_noise_free_image(kirsch_scan_c
             assert r[order]["peak"] == pytest.approx(3.0, rel=0.03)
             assert abs(r[order]["peak_angle_deg"] - 90.0) <= 10.0
         # the figures measured (docs/validation.md §4)
-        assert r["min_sj"] == pytest.approx(0.357, abs=0.005)
+        assert r["min_sj"] == pytest.approx(0.377, abs=0.005)
         assert r[1]["sigma_x_90"] == pytest.approx(3.077, abs=0.01)
         assert r[2]["sigma_x_90"] == pytest.approx(3.034, abs=0.01)
         assert r[2]["peak"] == pytest.approx(3.082, abs=0.01)

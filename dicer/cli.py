@@ -21,6 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from dicer import __version__
+from dicer.brief import brief_json
 from dicer.errors import DicerError
 from dicer.io.atomic import all_or_nothing, check_stop, stop_requested
 from dicer.pages import ordinary_pages
@@ -257,7 +258,7 @@ def do_labels(labels_path: str, out: Path, config: dict, materials_path: Path | 
             text = json.dumps({"materials": materials, "values": info["values"]}, indent=1, sort_keys=True)
             write_bytes_atomic(materials_path, text + "\n")
         log.info("labels: wrote %s (%d material(s): %s; values %s)", out, len(materials),
-                 json.dumps(info["voxels"]), json.dumps(info["values"]))
+                 brief_json(info["voxels"]), brief_json(info["values"]))
     return materials
 
 
@@ -304,7 +305,7 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
         if report["islands"]["removed_parts"]:
             log.info("fix: removed %d floating part(s) below %d voxels (%d voxels: %s)",
                      report["islands"]["removed_parts"], settings["min_component_voxels"],
-                     report["islands"]["removed_voxels"], removed)
+                     report["islands"]["removed_voxels"], brief_json(removed))
         if not fixed.any():
             raise DicerError(f"{labels_path}: every part of the model is smaller than fix.min_component_voxels="
                              f"{settings['min_component_voxels']}; lower it (0 keeps every part)")
@@ -315,8 +316,8 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
         write_mapped_labels(Volume(fixed, labels.spacing, labels.origin, labels.direction), labels_path, out)
         _write_report(report_path, report)
         log.info("fix: wrote %s (%d voxels changed; type A %s, type B %s, type C %s; A/B sweeps %s; "
-                 "Type C rounds %d + %d, sites per round %s)", out, report["changed_voxels"], report["type_a"], report["type_b"],
-                 report["type_c"], report["iterations"], report["majority_rounds"],
+                 "Type C rounds %d + %d, sites per round %s)", out, report["changed_voxels"], brief_json(report["type_a"]),
+                 brief_json(report["type_b"]), brief_json(report["type_c"]), report["iterations"], report["majority_rounds"],
                  report["type_c_rounds"], report["type_c_sites"])
     return fixed
 
@@ -363,7 +364,7 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
                                    mesh, mapped=True, write=write)
     log.info("merge: wrote %s (%d -> %d elements, %d -> %d nodes; volume %s)", out,
              report["elements_before"], report["elements_after"], report["nodes_before"],
-             report["nodes_after"], json.dumps(_stable(report["volume"]), sort_keys=True))
+             report["nodes_after"], brief_json(_stable(report["volume"]), sort_keys=True))
     return merged
 
 
@@ -444,7 +445,7 @@ def do_export(mesh_path: str, out: Path, config: dict, mesh=None):
         # the export only reads the mesh: its arrays stay in the page cache, mapped, not copied
         mesh = read_mesh(mesh_path, mapped=True) if mesh is None else mesh
         info = export_mesh(mesh, out, **stage_kwargs(config, "export"), source=mesh_path)
-        log.info("export: wrote %s (%s)", out, json.dumps(info, sort_keys=True))
+        log.info("export: wrote %s (%s)", out, brief_json(info, sort_keys=True, whole_top=True))
 
 
 def do_surface(mesh_path: str, outdir: Path, config: dict, only: list[str] | None = None) -> dict:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dicer.brief import brief_names
 from dicer.config import material_defaults, takes_settings, validate
 from dicer.errors import DicerError
 from dicer.image import MAX_LABEL, Volume
@@ -88,7 +89,7 @@ def resolve_materials(values, *, materials: list[dict], map: dict, drop: list,  
                  "(label_<value>, numbered 1..%d in increasing value order)", len(number), len(number))
     if defaulted:
         log.info("labels: no materials entry for %s: default properties (E %g MPa, nu %g, density %g t/mm^3); "
-                 "add materials entries of these names to set them", ", ".join(defaulted),
+                 "add materials entries of these names to set them", brief_names(defaulted),
                  DEFAULT_PROPERTIES["youngs_modulus"], DEFAULT_PROPERTIES["poissons_ratio"],
                  DEFAULT_PROPERTIES["density"])
     if len(materials) > MAX_LABEL:

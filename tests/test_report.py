@@ -232,3 +232,48 @@ def test_cohort_command_and_its_errors(tmp_path):
     proc = _dicer("cohort", tmp_path / "results/a/quality.json", "-o", tmp_path / "c3.html",
                   "--benchmarks", tmp_path / "benchmarks")
     assert proc.returncode == 2 and "not a Snakemake benchmark file" in proc.stderr
+
+
+def _atlas(parcels=30, n=24, seed=3):
+    """A ball cut into ``parcels`` Voronoi parcels (labels 1..parcels), as an atlas."""
+    rng = np.random.default_rng(seed)
+    g = np.indices((n, n, n)).reshape(3, -1).T + 0.5
+    seeds = rng.uniform(0, n, (parcels, 3))
+    nearest = np.argmin(((g[:, None, :] - seeds[None]) ** 2).sum(-1), axis=1) + 1
+    inside = ((g - n / 2) ** 2).sum(1) < (0.45 * n) ** 2
+    return np.where(inside, nearest, 0).reshape(n, n, n).astype(np.uint16)
+
+
+def test_an_atlas_legend_names_its_largest_materials_and_counts_the_rest(tmp_path):
+    import warnings
+
+    from dicer.io.pictures import legend_materials, worst_materials
+    from dicer.mesh.metrics import scaled_jacobian
+
+    mesh = voxel_mesh(_atlas())
+    labels, sizes = np.unique(mesh.material, return_counts=True)
+    assert labels.size > 20
+    shown, more = legend_materials(mesh.material)
+    assert shown.size == 8 and more == labels.size - 8
+    assert np.all(np.diff(shown) > 0)
+    assert sizes[np.isin(labels, shown)].min() >= np.sort(sizes)[-8]  # the eight largest
+    few, none = legend_materials(mesh.material[mesh.material <= 3])
+    assert few.tolist() == [1, 2, 3] and none == 0
+    mesh.points += np.random.default_rng(2).normal(0, 0.08, mesh.points.shape)
+    sj = scaled_jacobian(mesh.points, mesh.cells)
+    worst = worst_materials(sj, mesh.material, 6)
+    lowest = np.array([sj[mesh.material == k].min() for k in worst])
+    assert worst.size == 6 and np.all(np.diff(lowest) >= 0)
+    assert lowest[-1] <= min(sj[mesh.material == k].min() for k in labels if k not in worst)
+    names = {int(k): f"parcel_{k}" for k in labels}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a legend too large for the figure warns
+        model = save_model_picture(mesh, names, tmp_path / "model.png")
+        save_jacobian_histogram(sj, mesh.material, names, tmp_path / "sj.png", poor=0.2)
+    assert imread(model).shape[:2] == (500, 1000)
+
+
+def test_the_palette_tells_an_atlas_s_neighbours_apart():
+    colours = [material_colour(k) for k in range(1, 21)]
+    assert len(set(colours)) == 20
+    assert material_colour(1) == "#e6550d" and material_colour(21) == material_colour(1)

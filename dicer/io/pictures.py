@@ -20,12 +20,16 @@ from dicer.image import Volume
 from dicer.io.atomic import atomic_path
 from dicer.mesh.topology import HEX_FACES
 
-__all__ = ["save_jacobian_histogram", "save_model_picture", "save_node_class_chart", "save_overlay_png",
-           "save_threshold_plot", "slice_centre", "visible_faces", "zbuffer"]
+__all__ = ["legend_materials", "save_jacobian_histogram", "save_model_picture", "save_node_class_chart",
+           "save_overlay_png", "save_threshold_plot", "slice_centre", "visible_faces", "worst_materials", "zbuffer"]
 
-# background transparent, then one colour per class (cycled)
-_COLOURS = ["#e6550d", "#fdd835", "#31a354", "#3182bd", "#9e4ac0", "#e377c2"]
+# background transparent, then one colour per class (cycled); the first six are those of
+# the few classes a scan's segmentation has, the rest tell an atlas's neighbours apart
+_COLOURS = ["#e6550d", "#fdd835", "#31a354", "#3182bd", "#9e4ac0", "#e377c2",
+            "#8c564b", "#17becf", "#bcbd22", "#7f7f7f", "#ff9896", "#98df8a", "#aec7e8", "#c5b0d5",
+            "#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#fdae6b"]
 _DPI = 100
+_LEGEND_ENTRIES = 8  # materials a legend names; an atlas's others are counted
 
 
 def _save(fig: Figure, path) -> None:
@@ -171,6 +175,30 @@ def _name(names: dict, label: int) -> str:
     return names.get(int(label), f"material_{int(label)}")
 
 
+def legend_materials(material: np.ndarray, limit: int = _LEGEND_ENTRIES) -> tuple[np.ndarray, int]:
+    """The materials a legend names: all of them, or an atlas's ``limit`` largest.
+
+    material : (M,) int label per element. Returns the labels named, ascending, and how
+    many others there are.
+    """
+    labels, sizes = np.unique(np.asarray(material), return_counts=True)
+    if labels.size <= limit:
+        return labels, 0
+    return np.sort(labels[np.argsort(-sizes, kind="stable")[:limit]]), int(labels.size - limit)
+
+
+def worst_materials(sj: np.ndarray, material: np.ndarray, count: int) -> np.ndarray:
+    """The ``count`` materials whose lowest scaled Jacobian is lowest, worst first (ties: lower label).
+
+    sj : (M,) float scaled Jacobian per element; material : (M,) int label per element.
+    """
+    material = np.asarray(material, np.int64)
+    labels = np.unique(material)
+    worst = np.full(int(labels.max(initial=0)) + 1, np.inf)
+    np.minimum.at(worst, material, np.asarray(sj, np.float64))
+    return labels[np.argsort(worst[labels], kind="stable")[:count]]
+
+
 def save_jacobian_histogram(sj: np.ndarray, material: np.ndarray, names: dict, path, poor: float | None = None) -> Path:
     """Histogram of the elements' scaled Jacobian, one outline per material (log count axis).
 
@@ -183,7 +211,17 @@ def save_jacobian_histogram(sj: np.ndarray, material: np.ndarray, names: dict, p
     edges = np.linspace(lo, 1.0, int(round((1.0 - lo) / 0.025)) + 1)
     fig = Figure(figsize=(6.4, 3.6))
     ax = fig.add_subplot()
-    for label in np.unique(material).tolist():
+    labels = np.unique(material)
+    if labels.size > _LEGEND_ENTRIES:
+        # an atlas: every element in one outline, and the materials with the worst elements
+        counts, _ = np.histogram(np.clip(sj, lo, 1.0), bins=edges)
+        ax.stairs(counts, edges, color="#252525", lw=1.6,
+                  label=f"all {labels.size} materials ({sj.size} elements, min {sj.min():.3f})")
+        labels = worst_materials(sj, material, _LEGEND_ENTRIES - 2)
+        ax.set_title(f"Scaled Jacobian: all elements and the {labels.size} materials with the lowest", fontsize=10)
+    else:
+        ax.set_title("Scaled Jacobian per material", fontsize=10)
+    for label in labels.tolist():
         values = sj[material == label]
         counts, _ = np.histogram(np.clip(values, lo, 1.0), bins=edges)
         ax.stairs(counts, edges, color=material_colour(label), lw=1.6,
@@ -195,7 +233,6 @@ def save_jacobian_histogram(sj: np.ndarray, material: np.ndarray, names: dict, p
     ax.set_xlim(lo, 1.0)
     ax.set_xlabel("scaled Jacobian (1: a perfect box; 0 or less: inverted)", fontsize=8)
     ax.set_ylabel("elements", fontsize=8)
-    ax.set_title("Scaled Jacobian per material", fontsize=10)
     ax.tick_params(labelsize=7)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="upper left", frameon=False)
@@ -412,8 +449,10 @@ def save_model_picture(mesh, names: dict, path, max_edges: int = 20000, neighbou
     from dicer.quality import element_neighbours
 
     material = np.asarray(mesh.material, np.int64)
-    labels = np.unique(material).tolist()
-    legend = [Patch(color=material_colour(k), label=_name(names, k)) for k in labels]
+    shown, more = legend_materials(material)
+    legend = [Patch(color=material_colour(k), label=_name(names, k)) for k in shown.tolist()]
+    if more:
+        legend.append(Patch(color="none", label=f"and {more} more materials"))
     if mesh.dim == 2 or mesh.n_cells == 0:
         fig = Figure(figsize=(5.0, 5.0), dpi=_DPI)
         ax = fig.add_subplot()
@@ -447,7 +486,8 @@ def save_model_picture(mesh, names: dict, path, max_edges: int = 20000, neighbou
             xy = np.stack([p @ right, p @ up], axis=-1)
             panels.append((ax, xy, -(p @ towards), _shaded(material[e_idx], lambert), quads.shape[0] <= max_edges))
             ax.set_title(title, fontsize=9)
-    fig.legend(handles=legend, loc="lower center", ncol=len(legend), fontsize=8, frameon=False)
+    rows = -(-len(legend) // 6)
+    fig.legend(handles=legend, loc="lower center", ncol=min(len(legend), 6), fontsize=8, frameon=False)
     FigureCanvasAgg(fig)
     for ax, xy, depth, colours, edges in panels:  # the limits first: they set the layout
         lo, hi = xy.reshape(-1, 2).min(axis=0), xy.reshape(-1, 2).max(axis=0)
@@ -456,7 +496,7 @@ def save_model_picture(mesh, names: dict, path, max_edges: int = 20000, neighbou
         ax.set_ylim(lo[1] - pad, hi[1] + pad)
         ax.set_aspect("equal")
         ax.set_axis_off()
-    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    fig.tight_layout(rect=(0, 0.06 * rows, 1, 1))
     for ax, xy, depth, colours, edges in panels:
         _draw_faces(ax, xy, depth, colours, edges)
     _save(fig, path)

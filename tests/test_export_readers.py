@@ -333,3 +333,20 @@ def test_patran_names_the_materials_in_packet_21(tmp_path):
             assert np.array_equal(pairs[:, 1], np.flatnonzero(mesh.material == label) + 1)
             assert set(pairs[:, 0].tolist()) == {12 if order == 1 else 112}
         assert sum(len(v[1]) for v in got.values()) == mesh.n_cells == 31
+
+
+@pytest.mark.parametrize("records, star_at", [(10, 3), (5000, 4097), (40000, 21000), (40000, None), (1, 0)])
+def test_block_end_finds_the_next_keyword_in_doubling_windows(records, star_at):
+    from dicer.export.abaqus import _block_end
+
+    stride = 12
+    lines = [b"%11d\n" % i for i in range(records)]
+    head = b"*NODE\n"
+    if star_at is not None:
+        lines[star_at] = b"*ELSET, X\n1\n"[:stride - 1] + b"\n"
+    data = head + b"".join(lines)
+    arr = np.frombuffer(data, np.uint8)
+    a = len(head)
+    expected = a + star_at * stride if star_at is not None else len(data)
+    assert _block_end(data, arr, a, stride) == expected
+    assert _block_end(data, arr, a, 0) == expected  # the byte scan agrees

@@ -365,9 +365,20 @@ def _block_end(data, arr: np.ndarray, a: int, stride: int = 0) -> int:
     parse then fails at the first broken record, which is the error to report anyway.
     """
     if stride > 0:
-        starts = arr[a::stride]
-        hit = int(np.argmax(starts == ord("*"))) if starts.size else 0
-        if not starts.size or starts[hit] != ord("*"):
+        # in windows that double: a deck of many short blocks (an atlas's sets) must not
+        # scan the rest of the file for each of them
+        window, lo = 4096, 0
+        count = (arr.size - a + stride - 1) // stride  # records to the file's end
+        hit = -1
+        while lo < count:
+            hi = min(count, lo + window)
+            starts = arr[a + lo * stride : a + hi * stride : stride]
+            found = np.flatnonzero(starts == ord("*"))
+            if found.size:
+                hit = lo + int(found[0])
+                break
+            lo, window = hi, 2 * window
+        if hit < 0:
             return arr.size
         if arr[a + hit * stride - 1] == 10:
             return a + hit * stride

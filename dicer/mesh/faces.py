@@ -231,10 +231,13 @@ def face_neighbours(cells: np.ndarray, dim: int, n_points: int) -> np.ndarray:
         i = order[part.start:part.stop + 1]
         sk = flat[i]
         np.equal(sk[1:], sk[:-1], out=same[part])
+    # the keys' memory holds the answer: fresh pages cost more than the work on them
+    nb = flat
+    nb.fill(-1)
     del keys, flat
-    first = np.flatnonzero(same)
-    nb = np.full(m * nf, -1, np.int64)
-    a, b = order[first], order[first + 1]
+    a = np.compress(same, order[:-1])  # the first face of each pair, as sorted
+    b = np.compress(same, order[1:])
+    del order, same
     nb[a] = b // nf
     nb[b] = a // nf
     return nb.reshape(m, nf)

@@ -43,6 +43,26 @@ def shell_labels(n: int):
     return phantom(n).array
 
 
+def atlas_labels(n: int, parcels: int = 200, seed: int = 0):
+    """(n, n, n) uint16 labels of an atlas: the Voronoi regions of ``parcels`` random seeds
+    in a ball of radius 0.45 n (as a brain atlas's parcels), labelled 1..parcels."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    seeds = np.zeros((n, n, n), np.uint16)
+    # seeds uniform in the ball, on distinct voxels
+    at = rng.uniform(0, 1, (4 * parcels, 3)) * (0.9 * n) + 0.05 * n
+    at = at[np.linalg.norm(at - n / 2, axis=1) < 0.45 * n].astype(np.int64)
+    _, first = np.unique(at[:, 0] * n * n + at[:, 1] * n + at[:, 2], return_index=True)
+    at = at[np.sort(first)[:parcels]]
+    seeds[tuple(at.T)] = np.arange(1, at.shape[0] + 1)
+    _, index = ndimage.distance_transform_edt(seeds == 0, return_indices=True)
+    labels = seeds[tuple(index)]
+    grid = np.indices((n, n, n), sparse=True)
+    labels[sum((g + 0.5 - n / 2) ** 2 for g in grid) >= (0.45 * n) ** 2] = 0
+    return labels
+
+
 def _mesh(n):
     from dicer.mesh.voxel import voxel_mesh
 
@@ -251,6 +271,8 @@ PROCESS_JOBS = [
      lambda d: ["quality", d / "smoothed.vtu", "-o", d / "q.json", "--csv", d / "metrics.csv"]),
     ("automesh metrics", "its .inp -> metrics CSV", "metrics"),
     ("run", "dicer run ct.nii.gz -o out/ (segment ... quality)", lambda d: ["run", d / "ct.nii.gz", "-o", d / "out"]),
+    ("run atlas", "dicer run --labels atlas.npy -o atlas/ (200 Voronoi parcels in a ball, default materials)",
+     lambda d: ["run", "--labels", d / "atlas.npy", "-o", d / "atlas"]),
 ]
 
 # each dicer process next to the automesh process doing the same job
@@ -304,6 +326,7 @@ def _prepare(n: int, work: Path) -> None:
 
     work.mkdir(parents=True, exist_ok=True)
     np.save(work / "ball.npy", shell_labels(n))
+    np.save(work / "atlas.npy", atlas_labels(n))
     write_image(make_phantom("shell", size=n), work / "ct.nii.gz")
 
 

@@ -35,3 +35,18 @@ def test_every_dicer_job_is_a_dicer_command():
         cmd = _job_command(job, Path("/w"))
         assert cmd[0] == sys.executable
         assert ("dicer.cli" in cmd) != ("automesh" in job[0])
+
+
+def test_the_atlas_has_its_parcels_inside_a_ball():
+    import numpy as np
+
+    from bench import atlas_labels
+
+    n = 48
+    lab = atlas_labels(n, parcels=60)
+    values = np.unique(lab)
+    assert values[0] == 0 and values[1:].tolist() == list(range(1, 61))  # every parcel holds voxels
+    g = np.indices(lab.shape) + 0.5 - n / 2
+    r = np.sqrt((g ** 2).sum(axis=0))
+    assert not lab[r >= 0.45 * n].any() and lab[r < 0.44 * n].all()
+    assert np.array_equal(lab, atlas_labels(n, parcels=60))  # seeded: the same labels every run

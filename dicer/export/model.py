@@ -388,11 +388,12 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
     cells = np.asarray(mesh.cells)
     if cells.dtype.kind not in "iu" or cells.dtype.itemsize < 4:
         cells = cells.astype(np.int64)
-    elif not cells.flags.writeable:
-        # a file mapping (dicer export reads its mesh mapped): the writer and its check
+    elif build_sets and not cells.flags.writeable:
+        # a file mapping (dicer export reads its mesh mapped): a deck's writer and check
         # gather the rows of each material, and a gather of scattered rows from a mapping
         # walks the page tables for each row; an atlas's hundreds of interleaved materials
-        # took 10x longer than from memory. The copy costs about 0.1 s per 5 M elements.
+        # took 10x longer than from memory. The copy costs about 0.1 s per 5 M elements
+        # (VTU, which holds no sets, writes the cells in order and is spared it).
         cells = np.array(cells)
     lattice2 = None  # twice the lattice index (order 2: mid-edge nodes at half-integers)
     points = mesh.points

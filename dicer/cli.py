@@ -436,7 +436,7 @@ def do_mesh(labels_path: str, out: Path, config: dict, write=_now):
     return mesh
 
 
-def do_export(mesh_path: str, out: Path, config: dict, mesh=None):
+def do_export(mesh_path: str, out: Path, config: dict, mesh=None, neighbours=None):
     from dicer.config import stage_kwargs
     from dicer.export import export_mesh
     from dicer.io.meshes import read_mesh
@@ -444,7 +444,7 @@ def do_export(mesh_path: str, out: Path, config: dict, mesh=None):
     with _Stage("export"):
         # the export only reads the mesh: its arrays stay in the page cache, mapped, not copied
         mesh = read_mesh(mesh_path, mapped=True) if mesh is None else mesh
-        info = export_mesh(mesh, out, **stage_kwargs(config, "export"), source=mesh_path)
+        info = export_mesh(mesh, out, **stage_kwargs(config, "export"), source=mesh_path, neighbours=neighbours)
         log.info("export: wrote %s (%s)", out, brief_json(info, sort_keys=True, whole_top=True))
 
 
@@ -463,7 +463,7 @@ def do_surface(mesh_path: str, outdir: Path, config: dict, only: list[str] | Non
 def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None = None, html: str | None = None,
                pictures: list[str] = (), stage_reports: list[str] = (), csv: Path | None = None,
                original_path: str | None = None, histogram: Path | None = None, model_picture: Path | None = None,
-               node_classes: Path | None = None, mesh=None):
+               node_classes: Path | None = None, mesh=None, neighbours=None):
     from dicer.io.atomic import in_this_block, write_bytes_atomic
     from dicer.io.meshes import read_mesh
 
@@ -490,15 +490,15 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
         from dicer.quality import REPORT_METRICS, element_neighbours, floating_parts
 
         def connectivity() -> tuple:  # the face neighbours (model picture) and the parts: no metric needed
-            neighbours = element_neighbours(mesh) if model_picture else None
-            return neighbours, floating_parts(mesh, neighbours)
+            nb = neighbours() if neighbours is not None else element_neighbours(mesh) if model_picture else None
+            return nb, floating_parts(mesh, nb)
 
         # on a thread beside the metrics: labelling the parts runs much of its time on one core
         parts_later = meanwhile(connectivity)
         names = REPORT_METRICS + (("skew",) if csv else ())
         metrics = element_metrics(mesh.points, mesh.cells, names)
         sj = metrics["scaled_jacobian"]
-        neighbours, parts = parts_later()
+        across, parts = parts_later()
         with ThreadPoolExecutor(1) as pool:
             table = None
             if csv:  # the table is written and read back beside the report (part of its all-or-nothing)
@@ -507,7 +507,7 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
                 table = pool.submit(in_this_block(write_metrics_csv), mesh, csv, metrics)
             # on an error the pool waits for the table, whose file the block then deletes
             report = _report_of(mesh, config, labels, original, metrics, sj, stage_reports, html, pictures,
-                                histogram, model_picture, node_classes, neighbours, parts)
+                                histogram, model_picture, node_classes, across, parts)
             if table is not None:
                 table.result()
         write_bytes_atomic(out, json.dumps(report, indent=2, sort_keys=True) + "\n")
@@ -891,13 +891,19 @@ def cmd_run(args):
             for stage, job in written:
                 job.result()
         pictures = [str(path(n)) for n in ("segmentation.png", "thresholds.png") if path(n).exists()]
+        # the face neighbours once, for the deck's sets and the report's parts and picture
+        from dicer.parallel import meanwhile
+        from dicer.quality import element_neighbours
+
+        neighbours = meanwhile(element_neighbours, mesh)
 
         def quality():
             do_quality(str(path("smoothed.vtu")), path("quality.json"), config,
                        labels_path=str(path("labels_fixed.nii.gz")), html=str(path("report.html")), pictures=pictures,
                        stage_reports=[str(path(n)) for n in ("fix.json", "merge.json", "smooth.json")],
                        original_path=str(path("labels.nii.gz")), histogram=path("jacobian.png"),
-                       model_picture=path("model.png"), node_classes=path("node_classes.png"), mesh=mesh)
+                       model_picture=path("model.png"), node_classes=path("node_classes.png"), mesh=mesh,
+                       neighbours=neighbours)
 
         # the exports and the quality report only read the smoothed mesh: with a second core
         # and memory for both, the report is made beside the exports
@@ -908,7 +914,7 @@ def cmd_run(args):
                 report = pool.submit(quality)
             step("export")
             for name in ("model.inp", "model.vtu"):
-                do_export(str(path("smoothed.vtu")), path(name), config, mesh=mesh)
+                do_export(str(path("smoothed.vtu")), path(name), config, mesh=mesh, neighbours=neighbours)
             step("quality")
             report.result() if report is not None else quality()
     except _MemoryError:

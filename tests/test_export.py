@@ -520,3 +520,32 @@ def test_source_digest_is_computed_once_per_unchanged_file(tmp_path, monkeypatch
     st = path.stat()
     os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 1))
     assert prov.file_sha256(path) == hashlib.sha256(b"b" * 1000).hexdigest() and len(passes) == 2
+
+
+@pytest.mark.parametrize("suffix", [".inp", ".vtu", ".feb"])
+def test_neighbours_handed_in_give_the_same_file(tmp_path, suffix):
+    """dicer run finds the face neighbours once for the deck's sets and the quality report:
+    the file is the same bytes as when the export finds what it needs itself."""
+    from dicer.mesh.faces import materials_across
+    from dicer.mesh.merge import merge_mesh
+    from dicer.quality import element_neighbours
+
+    lab = np.zeros((12, 10, 9), np.uint8)
+    lab[1:11, 1:9, 1:8] = 1
+    lab[4:8, 3:7, 2:6] = 2
+    lab[2, 2, 1] = 0  # a notch: rim moves
+    merged, _ = merge_mesh(voxel_mesh(lab), {})  # the config's defaults: plane merging
+    assert merged.n_cells < np.count_nonzero(lab)
+    calls = []
+
+    def neighbours():
+        calls.append(1)
+        return element_neighbours(merged)
+
+    assert np.array_equal(materials_across(merged.material, neighbours()), neighbour_materials(merged))
+    config = load_config(settings={"export": {"order": 2, "midside_nodes": "curved"}} if suffix == ".feb" else {})
+    export_mesh(merged, tmp_path / f"a{suffix}", config, source="scan.nii")
+    calls.clear()
+    export_mesh(merged, tmp_path / f"b{suffix}", config, source="scan.nii", neighbours=neighbours)
+    assert (tmp_path / f"a{suffix}").read_bytes() == (tmp_path / f"b{suffix}").read_bytes()
+    assert len(calls) == (0 if suffix == ".vtu" else 1)  # VTU holds no sets and needs none

@@ -81,7 +81,7 @@ def _write_and_check(fmt: Format, model: SolverModel, tmp: Path, path: Path, ex:
 def export_mesh(mesh: Mesh, path: str | os.PathLike, *, materials: list[dict], order: int, element_type: str | None,
                 midside_nodes: str, thickness: float, digits: int, sets: list[str], heading: bool,
                 febio_material: str, verify: str, source: str | os.PathLike | None = None,
-                check: bool = True) -> dict:
+                check: bool = True, neighbours=None) -> dict:
     """Write a mesh in the format its file extension names.
 
     The settings are keyword-only with no defaults here: the command line passes
@@ -104,6 +104,8 @@ def export_mesh(mesh: Mesh, path: str | os.PathLike, *, materials: list[dict], o
         The input the model was made from (its SHA-256 goes into the provenance).
     check : bool, optional
         Read the file back and check it before renaming it into place (default).
+    neighbours : callable, optional
+        Returns the element across each face of ``mesh`` (see :func:`prepare_model`).
 
     Returns
     -------
@@ -120,7 +122,8 @@ def export_mesh(mesh: Mesh, path: str | os.PathLike, *, materials: list[dict], o
           "digits": digits, "sets": sets, "heading": heading, "febio_material": febio_material, "verify": verify}
     path = Path(path)
     fmt = _format_for(mesh, path)
-    model = prepare_model(mesh, {"materials": materials, "export": ex}, source, path, build_sets=fmt.holds_sets)
+    model = prepare_model(mesh, {"materials": materials, "export": ex}, source, path, build_sets=fmt.holds_sets,
+                          neighbours=neighbours)
     if model.order not in fmt.orders:
         raise DicerError(f"{path}: {fmt.limits.format(dim=model.dim, order=model.order)}")
     with atomic_path(path) as tmp:

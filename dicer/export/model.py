@@ -18,7 +18,7 @@ from dicer.config import name_clash, stage_kwargs
 from dicer.errors import DicerError
 from dicer.export.provenance import provenance, sha256_in_background
 from dicer.image import MAX_LABEL
-from dicer.mesh.faces import neighbour_materials
+from dicer.mesh.faces import materials_across, neighbour_materials
 from dicer.mesh.frame import mirrored, to_scanner
 from dicer.mesh.model import Mesh, Sized, pieces
 from dicer.mesh.topology import (HEX20_FACES, HEX20_MIRROR, HEX_FACE_MIRROR, HEX_FACES, HEX_MIRROR, QUAD8_SIDES,
@@ -334,7 +334,7 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray,
 
 
 def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "model",
-                  build_sets: bool = True) -> SolverModel:
+                  build_sets: bool = True, neighbours=None) -> SolverModel:
     """Validate a mesh against the configuration and build the SolverModel the writers share.
 
     Parameters
@@ -350,6 +350,10 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
     build_sets : bool, optional
         Build the node sets and surfaces ``export.sets`` asks for (False for a format
         that holds none).
+    neighbours : callable, optional
+        Returns the (M, F) element across each face of ``mesh`` (-1 for none), as
+        :func:`dicer.quality.element_neighbours` gives it: a run that needs them elsewhere
+        too (the quality report) finds them once. Without it the sets find what they need.
 
     Returns
     -------
@@ -398,8 +402,11 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
     lattice2 = None  # twice the lattice index (order 2: mid-edge nodes at half-integers)
     points = mesh.points
     nb_mat = None
+
+    def across() -> np.ndarray:
+        return neighbour_materials(mesh) if neighbours is None else materials_across(mesh.material, neighbours())
     if order == 2 and ex["midside_nodes"] == "curved":
-        nb_mat = neighbour_materials(mesh)
+        nb_mat = across()
     if order == 2:
         from dicer.mesh.quadratic import quadratic_mesh
 
@@ -428,7 +435,7 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
         flip = mesh.direction is not None and mirrored(mesh.direction)
 
         def build(cells=model.cells, nb_mat=nb_mat):  # the cells of the lattice frame
-            nb = neighbour_materials(mesh) if nb_mat is None else nb_mat
+            nb = across() if nb_mat is None else nb_mat
             node_sets, exterior, interfaces = _surface_sets(model, kinds, nb, cells)
             if flip:
                 _mirror_faces([exterior, *interfaces.values()])

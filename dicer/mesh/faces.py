@@ -258,7 +258,26 @@ def neighbour_materials(mesh: Mesh) -> np.ndarray:
     """
     nb = _neighbour_materials_by_lattice(mesh)
     if nb is None:
-        idx = face_neighbours(np.asarray(mesh.cells, np.int64), mesh.dim, mesh.n_points)
-        nb = np.where(idx >= 0, mesh.material[np.maximum(idx, 0)], 0)
+        nb = materials_across(mesh.material, face_neighbours(np.asarray(mesh.cells, np.int64), mesh.dim,
+                                                             mesh.n_points))
     return nb
+
+
+def materials_across(material: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+    """The material label across each face, from the element across it.
+
+    Parameters
+    ----------
+    material : (M,) int ndarray
+        Label of every element.
+    neighbours : (M, F) int ndarray
+        Element across each face, -1 for none (:func:`face_neighbours`).
+
+    Returns
+    -------
+    (M, F) ndarray of ``material``'s dtype
+        Label across each face, 0 for none.
+    """
+    material = np.asarray(material)
+    return np.where(neighbours >= 0, material[np.maximum(neighbours, 0)], 0).astype(material.dtype, copy=False)
 

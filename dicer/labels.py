@@ -170,6 +170,12 @@ def _write_nifti_like(header: bytes, endian: str, array: np.ndarray, path: Path)
     from dicer.io.atomic import atomic_path
 
     head = bytearray(header)
+    # stored as write_labels stores them: uint8, or uint16 above 255 (the volumes read from
+    # files come as int16 above 255, and label values are checked to lie in 0..MAX_LABEL)
+    top = int(array.max(initial=0))
+    if int(array.min(initial=0)) < 0 or top > MAX_LABEL:
+        raise DicerError(f"{path}: labels range {int(array.min(initial=0))}..{top}; they must lie in 0..{MAX_LABEL}")
+    array = array.astype(np.uint8 if top < 256 else np.uint16, copy=False)
     datatype, bitpix = _NIFTI_TYPES[array.dtype]
     struct.pack_into(endian + "2h", head, 70, datatype, bitpix)
     struct.pack_into(endian + "f", head, 108, 352.0)  # vox_offset: data right after the header

@@ -141,3 +141,30 @@ def test_unnamed_labels_stop_before_the_fix(tmp_path, capsys):
     assert code == 2 and len(err) == 1
     assert err[0].startswith("error: ") and "label 20 found" in err[0] and "names only 2" in err[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["atlas.nii.gz"]
+
+
+@pytest.mark.parametrize("stage", ["fix", "labels"])
+def test_more_than_255_labels_are_written_as_uint16(tmp_path, stage):
+    """Label files read with more than 255 values come as int16; the stages that write them
+    on their input's NIfTI header store them as uint16, the values unchanged."""
+    import gzip
+    import struct
+
+    from dicer.io.images import read_labels
+
+    lab = atlas_labels(24, 300, seed=2)
+    present = np.unique(lab[lab > 0])
+    assert present.size > 255
+    write_labels(Volume(lab, (1.0, 1.0, 1.0)), tmp_path / "atlas.nii.gz")
+    out = tmp_path / "out.nii.gz"
+    materials = [{"name": n, "youngs_modulus": 1.0} for n in _names(int(lab.max()))]
+    (tmp_path / "atlas.yaml").write_text(yaml.safe_dump({"materials": materials, "fix": {"min_component_voxels": 0}}))
+    settings = ["--config", str(tmp_path / "atlas.yaml")] if stage == "fix" else []
+    assert main([stage, str(tmp_path / "atlas.nii.gz"), "-o", str(out), *settings, "-q"]) == 0
+    with gzip.open(out) as f:
+        assert struct.unpack("<h", f.read(72)[70:72])[0] == 512  # NIfTI datatype: uint16
+    written = read_labels(out).array
+    if stage == "labels":  # values 1..K in increasing order: here the same values
+        assert np.array_equal(written, np.searchsorted(np.r_[0, present], lab))
+    else:
+        assert np.unique(written[written > 0]).size > 255 and np.count_nonzero(written != lab) < 0.05 * lab.size

@@ -8,6 +8,7 @@ thread gives.
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 from collections import deque
@@ -62,6 +63,16 @@ def ordered_map(fn: Callable, items: Iterable, workers: int | None = None) -> It
     """
     from dicer.io.atomic import check_stop  # a stop signal ends the work between items, in any thread
 
+    # one item (a small block of a deck: an atlas's thousands of sets) runs here, without
+    # a pool's threads or the look at the cores
+    items = iter(items)
+    head = list(itertools.islice(items, 2))
+    if len(head) < 2:
+        for item in head:
+            check_stop()
+            yield fn(item)
+        return
+    items = itertools.chain(head, items)
     workers = min(MAX_WORKERS, cores()) if workers is None else workers
     if workers <= 1:
         for item in items:

@@ -9,6 +9,8 @@ import re
 import meshio
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from dicer.config import load_config
 from dicer.errors import DicerError
@@ -20,7 +22,7 @@ from dicer.export import (
     prepare_model,
     settings_hash,
 )
-from dicer.export.textfmt import Sci, aligned_width, int_digits, int_lines, sci_digits
+from dicer.export.textfmt import Sci, aligned_width, int_digits, int_line_blocks, int_lines, sci_digits
 from dicer.io.meshes import read_mesh
 from dicer.mesh.voxel import voxel_mesh
 
@@ -45,6 +47,17 @@ def config():
 
 
 # --- formatter ----------------------------------------------------------------------------
+
+
+@settings(max_examples=60, deadline=None)
+@given(sizes=st.lists(st.integers(0, 40), max_size=6), per_line=st.integers(1, 16), width=st.integers(7, 11),
+       sep=st.sampled_from([b",", b"", b", "]), seed=st.integers(0, 2**16))
+def test_many_blocks_at_once_are_the_blocks_one_by_one(sizes, per_line, width, sep, seed):
+    rng = np.random.default_rng(seed)
+    blocks = [rng.integers(0, 10 ** 6, size) for size in sizes]
+    headers = [f"*NSET, NSET=set_{i}\n".encode() for i in range(len(sizes))]
+    expected = b"".join(h + int_lines(v, per_line, width, sep) for h, v in zip(headers, blocks))
+    assert int_line_blocks(headers, blocks, per_line, width, sep) == expected
 
 
 def test_integers_match_python_formatting():

@@ -70,6 +70,17 @@ def test_one_core_runs_in_the_callers_thread(monkeypatch):
     assert threads == {threading.get_ident()}
 
 
+def test_a_single_item_runs_in_the_callers_thread_without_a_pool(monkeypatch):
+    # an atlas's deck has thousands of one-piece blocks: no threads for them
+    monkeypatch.setattr(parallel, "cores", lambda: pytest.fail("looked at the cores"))
+    assert list(ordered_map(lambda i: (i, threading.get_ident()), [7])) == [(7, threading.get_ident())]
+    assert list(ordered_map(lambda i: i, iter([]))) == []
+    with pytest.raises(ZeroDivisionError):
+        list(ordered_map(lambda i: 1 / i, [0]))
+    monkeypatch.setattr(parallel, "cores", lambda: 2)
+    assert list(ordered_map(lambda i: i * i, iter(range(6)))) == [0, 1, 4, 9, 16, 25]  # two and more: as before
+
+
 def _deck(points, chunk):
     stream = io.BytesIO()
     fmt = Sci(9)

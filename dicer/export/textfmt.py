@@ -507,6 +507,58 @@ def int_lines(values: np.ndarray, per_line: int, width: int, sep: bytes = b",") 
     return b"".join(parts)
 
 
+def int_line_blocks(headers: list[bytes], blocks: list[np.ndarray], per_line: int, width: int,
+                    sep: bytes = b",") -> bytes:
+    """``b"".join(h + int_lines(v, per_line, width, sep) for h, v in zip(headers, blocks))``
+    in one pass: for the thousands of node sets of an atlas, where a call per set costs
+    more than its numbers.
+
+    Every field has ``width`` columns, so each number's place in the output follows from
+    its set and its position in the set; the numbers are formatted together and the
+    headers, separators and newlines put around them.
+
+    Parameters
+    ----------
+    headers : list of bytes
+        The line(s) before each block (its keyword line).
+    blocks : list of (n_i,) int ndarray
+    per_line, width, sep
+        As :func:`int_lines`.
+
+    Returns
+    -------
+    bytes
+    """
+    if not blocks:
+        return b""
+    sizes = np.array([b.size for b in blocks], np.int64)
+    head_len = np.array([len(h) for h in headers], np.int64)
+    values = np.concatenate([np.asarray(b, np.int64).ravel() for b in blocks]) if sizes.sum() else np.zeros(0, np.int64)
+    step = width + len(sep)  # a field after the first of its line
+    lines = -(-sizes // per_line)
+    body = sizes * width + (sizes - lines) * len(sep) + lines  # fields, separators, newlines
+    start = np.cumsum(np.r_[0, head_len + body])  # where each block's header starts
+    out = np.full(int(start[-1]), ord(" "), np.uint8)
+    # the headers
+    heads = np.frombuffer(b"".join(headers), np.uint8)
+    out[np.repeat(start[:-1] - np.r_[0, np.cumsum(head_len)[:-1]], head_len) + np.arange(heads.size)] = heads
+    if values.size:
+        # the numbers, right-aligned in their fields: formatted as one column
+        digits = np.frombuffer(int_lines(values, 1, width), np.uint8).reshape(values.size, width + 1)[:, :width]
+        block = np.repeat(np.arange(len(blocks)), sizes)
+        pos = np.arange(values.size) - np.repeat(np.cumsum(sizes) - sizes, sizes)  # place in its block
+        line, col = np.divmod(pos, per_line)
+        line_len = per_line * step - len(sep) + 1
+        at = start[:-1][block] + head_len[block] + line * line_len + col * step  # first column of the field
+        out[at[:, None] + np.arange(width)] = digits
+        if sep:
+            later = col > 0
+            out[(at[later] - len(sep))[:, None] + np.arange(len(sep))] = np.frombuffer(sep, np.uint8)
+        last = (col == per_line - 1) | (pos == np.repeat(sizes, sizes) - 1)  # a line's last field
+        out[at[last] + width] = ord("\n")
+    return out.tobytes()
+
+
 def compact_rows(fields: list[Field], n: int, chunk: int = CHUNK_ROWS) -> Iterator[bytes]:
     """Like :func:`format_rows`, but numbers take only the characters they need.
 

@@ -297,3 +297,19 @@ def test_febio_example_of_the_docs(tmp_path):
     for load in root.iter("surface_load"):
         assert load.get("surface") in surfaces
     assert [c.tag for c in root][:2] == ["Module", "Material"] and root.find("Control") is not None
+
+
+def test_an_exodus_file_of_too_many_blocks_and_sets_is_refused_before_any_work(tmp_path, mesh, monkeypatch):
+    # an atlas of thousands of labels: netCDF's time to define the variables grows faster
+    # than their count (hours), so the export stops at once and says what to do
+    import dicer.export.exodus as exodus
+
+    model = prepare_model(mesh, cfg())
+    arrays = len(model.blocks()) + len(model.node_sets) + 2 * len(model.face_sets())
+    monkeypatch.setattr(exodus, "_MAX_ARRAYS", arrays - 1)
+    with pytest.raises(DicerError, match=rf"make {arrays} netCDF variables.*export.sets=\[exterior\]"):
+        export_mesh(mesh, tmp_path / "m.e", cfg())
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.setattr(exodus, "_MAX_ARRAYS", arrays)
+    export_mesh(mesh, tmp_path / "m.e", cfg())
+    assert (tmp_path / "m.e").stat().st_size > 0

@@ -825,6 +825,12 @@ def _interior_solve(st: _Smoothing, xb_labels: np.ndarray) -> None:
         xb = xb_labels + st.pull.share[:, None] * (st.pull.target - xb_labels)
     if st.x is None:
         st.x = st.x0.copy()
+    _solve_band(st, xb)
+
+
+def _solve_band(st: _Smoothing, xb: np.ndarray) -> None:
+    """Put the boundary nodes at ``xb`` (B, 3) mm in ``st.x`` and solve the interior band for
+    them: sets ``st.xb`` and ``st.x_band``."""
     st.x[st.bnodes] = st.xb = xb
     if st.interior is not None and st.band_nodes.size:
         u, it = st.interior.solve(xb - st.xb0, st.s["tolerance"])
@@ -985,12 +991,7 @@ def _move_under_layer(st: _Smoothing, x: np.ndarray, xb: np.ndarray, b: np.ndarr
     inner = xb.copy()
     inner[b] += move
     st.x = x.copy()
-    st.x[st.bnodes] = st.xb = inner
-    if st.interior is not None and st.band_nodes.size:
-        u, it = st.interior.solve(inner - st.xb0, st.s["tolerance"])
-        st.it_i += it
-        st.x_band = st.x_band0 + u
-        st.x[st.band_nodes] = st.x_band
+    _solve_band(st, inner)
     return st.checked.scaled_jacobian(st.x)
 
 

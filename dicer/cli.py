@@ -24,7 +24,7 @@ from dicer import __version__
 from dicer.brief import brief_json
 from dicer.errors import DicerError
 from dicer.io.atomic import all_or_nothing, check_stop, stop_requested
-from dicer.pages import ordinary_pages
+from dicer.pages import ordinary_pages, reuse_freed_memory
 
 log = logging.getLogger("dicer")
 
@@ -1144,9 +1144,17 @@ def _add_report_commands(command) -> None:
     p.add_argument("-q", "--quiet", action="store_true", help="log warnings and errors only")
 
 
+_REUSES_MEMORY = {"run", "merge"}
+"""Commands that keep freed memory for their next arrays (dicer.pages.reuse_freed_memory):
+at 256³ 'run' 37-38 -> 31-34 s, 'merge' 10-11 -> 7-9 s; the other stages measured
+neither quicker nor slower, 'smooth' with a peak 0.4 GB higher."""
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.command in _REUSES_MEMORY:
+        reuse_freed_memory()  # before any thread allocates
     logging.basicConfig(
         level=logging.WARNING if getattr(args, "quiet", False) else logging.INFO,
         format="%(name)s %(message)s", stream=sys.stderr,

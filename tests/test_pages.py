@@ -38,3 +38,39 @@ def test_the_users_setting_stands(monkeypatch):
             assert current() is False
     finally:
         switch(before)
+
+
+_SECOND_ARRAY_FAULTS = """
+import resource, sys
+from dicer.pages import reuse_freed_memory
+applied = reuse_freed_memory() if sys.argv[1] == "reuse" else False
+import numpy as np
+a = np.ones(1 << 23)  # 64 MiB, above glibc's largest mmap threshold
+del a
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+b = np.ones(1 << 23)
+print(applied, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+def _second_array_faults(mode: str, **env) -> tuple[str, int]:
+    import os
+    import subprocess
+    import sys
+
+    clean = {k: v for k, v in os.environ.items() if not k.startswith(("MALLOC_", "GLIBC_TUNABLES"))}
+    clean["NUMPY_MADVISE_HUGEPAGE"] = "0"  # 4 KiB pages: one fault each
+    out = subprocess.run([sys.executable, "-c", _SECOND_ARRAY_FAULTS, mode], env={**clean, **env},
+                         capture_output=True, text=True, check=True).stdout.split()
+    return out[0], int(out[1])
+
+
+@pytest.mark.skipif(not __import__("platform").libc_ver()[0] == "glibc", reason="glibc's malloc only")
+def test_freed_arrays_memory_is_reused_by_the_next_array():
+    applied, faults = _second_array_faults("reuse")
+    assert applied == "True"
+    assert faults < 500  # the freed 64 MiB served again: no fresh pages
+    _, fresh = _second_array_faults("plain")
+    assert fresh > 10_000  # glibc's default: 16,384 fresh pages, each faulted in
+    applied, faults = _second_array_faults("reuse", MALLOC_ARENA_MAX="4")  # the user's own tuning stands
+    assert applied == "False" and faults > 10_000

@@ -141,7 +141,8 @@ def _digest(parts) -> str:
 
 
 def _mesh_digest(mesh) -> str:
-    parts = [("points", mesh.points), ("cells", mesh.cells), ("material", mesh.material),
+    # the node numbers, whatever their index type (int32 while they fit, int64 when recorded)
+    parts = [("points", mesh.points), ("cells", mesh.cells.astype(np.int64)), ("material", mesh.material),
              ("lattice", mesh.lattice), ("spacing", mesh.spacing), ("origin", mesh.origin),
              ("grid_shape", mesh.grid_shape)]
     parts += [(f"point_data.{k}", mesh.point_data[k]) for k in sorted(mesh.point_data)]

@@ -1421,7 +1421,7 @@ def merge_planes(mesh: Mesh, *, passes, min_thickness: float, granularity: str, 
             report["steps"] += _merge_axis(work, settings, axis, counts[axis] + 1, mesh.spacing[axis])
     work.spare = []  # not held while the result is made
     points, point_data = _final_points(mesh, work)
-    out = Mesh(points, _copy_as(work.cells, np.int64), work.material, work.lattice, mesh.spacing.copy(),
+    out = Mesh(points, work.cells, work.material, work.lattice, mesh.spacing.copy(),
                mesh.origin.copy(), mesh.grid_shape.copy(), point_data, work.cell_data, list(mesh.names))
     report["elements_after"] = out.n_cells
     report["nodes_after"] = out.n_points

@@ -73,9 +73,10 @@ class Mesh(Sized):
     points : (N, 3) float64 ndarray
         Node coordinates, mm (z = 0 in 2D).
     cells : (M, 8) or (M, 4) int64 or int32 ndarray
-        Hexahedra or quads, VTK corner order, 0-based: int32 from the voxel mesher while
-        the node numbers fit (:func:`dicer.mesh.voxel.voxel_mesh`) and, read-only, when
-        read mapped from a dicer VTU (:func:`dicer.io.meshes.read_mesh`); int64 otherwise.
+        Hexahedra or quads, VTK corner order, 0-based: int32 from the voxel mesher and
+        plane merging while the node numbers fit (:func:`dicer.mesh.voxel.voxel_mesh`,
+        :func:`dicer.mesh.merge.merge_planes`) and, read-only, when read mapped from a
+        dicer VTU (:func:`dicer.io.meshes.read_mesh`); int64 otherwise.
     material : (M,) int32 ndarray
         Class label 1..K of each element.
     lattice : (N, 3) int64 ndarray

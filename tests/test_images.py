@@ -164,7 +164,7 @@ SECRET_ID = "PID-88231577"
 
 
 def _write_dicom_series(folder, nslices, series_uid, stored, z0=-20.0, dz=2.5, prefix="im", order=None,
-                        positions=None):
+                        positions=None, shift_y=0.0):
     """Write a CT series built on pydicom's CT_small.dcm: stored values, slope 2, intercept -1024.
 
     Slice k lies at z = ``positions[k]`` (default ``z0 + dz * k``); its SliceThickness is
@@ -189,7 +189,7 @@ def _write_dicom_series(folder, nslices, series_uid, stored, z0=-20.0, dz=2.5, p
         z = z0 + dz * k if positions is None else positions[k]
         ds.SliceThickness = 5.0
         ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
-        ds.ImagePositionPatient = [-50.0, -60.0, z]
+        ds.ImagePositionPatient = [-50.0, -60.0 + shift_y * k, z]  # shift_y: a gantry tilt
         ds.SliceLocation = z
         ds.InstanceNumber = nslices - k  # misleading on purpose: position must decide
         ds.RescaleSlope = 2
@@ -611,3 +611,19 @@ def test_slice_folder_errors(tmp_path):
     sitk.WriteImage(sitk.GetImageFromArray(np.zeros((4, 5), np.uint8)), str(tmp_path / "both" / "b.png"))
     with pytest.raises(DicerError, match="mixes TIFF and PNG"):
         read_image(tmp_path / "both")
+
+
+@pytest.mark.parametrize("shift,refused", [(0.0, False), (0.01, False), (0.91, True)])
+def test_dicom_series_with_gantry_tilt_refused(tmp_path, shift, refused):
+    """Slices that shift within their plane along the series (gantry tilt) would make a
+    sheared grid: refused, naming the tilt; rounding of written positions is not a tilt."""
+    folder = tmp_path / "tilted"
+    folder.mkdir()
+    stored = np.zeros((10, 8, 6), np.int16)
+    _write_dicom_series(folder, 6, "1.2.826.0.1.3680043.8.498.12", stored, shift_y=shift)
+    if not refused:
+        assert read_image(folder).array.shape == (10, 8, 6)
+        return
+    with pytest.raises(DicerError, match=r"gantry tilt of about 20\.0 degrees: 4\.55 mm over 12\.5 mm") as err:
+        read_image(folder)
+    assert str(err.value).startswith(f"{folder}: ") and "dcm2niix" in str(err.value)

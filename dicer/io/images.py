@@ -745,6 +745,28 @@ def _uniform_slices(array, depth, names, folder, allow_irregular: bool):
     return resampled.astype(np.float32, copy=False), median
 
 
+def _refuse_tilt(positions: np.ndarray, depth: np.ndarray, normal: np.ndarray, pixel_spacing, folder: Path) -> None:
+    """Raise DicerError when the slices of a series shift within their plane from one to the next.
+
+    A series acquired with gantry tilt has its slice positions along the table, not along
+    the slice normal: a grid of boxes built on the first slice and the normal would shear
+    the anatomy (by the tilt's tangent times the depth). ``positions`` (n, 3) and ``depth``
+    (n,) are sorted by depth, mm; ``normal`` (3,) is the unit slice normal.
+    """
+    drift = (positions - positions[0]) - np.outer(depth - depth[0], normal)
+    shift = np.linalg.norm(drift, axis=1)
+    # a tenth of a pixel: positions are written to a few decimals, a tilt moves slices by millimetres
+    if shift.size < 2 or float(shift.max()) <= 0.1 * float(min(pixel_spacing)):
+        return
+    k = int(np.argmax(shift))
+    angle = float(np.degrees(np.arctan2(shift[k], depth[k] - depth[0])))
+    raise DicerError(
+        f"{folder}: the slices of the DICOM series shift within their plane along the series (gantry tilt of "
+        f"about {angle:.1f} degrees: {shift[k]:.2f} mm over {depth[k] - depth[0]:.1f} mm); a grid of voxels would "
+        "shear the anatomy. Correct the tilt first (e.g. dcm2niix writes a tilt-corrected NIfTI) and give that file"
+    )
+
+
 def _read_dicom_series(folder: Path, required: bool = True, allow_irregular: bool = False) -> Volume | None:
     """Read the DICOM series with the most slices; None if there is none and not ``required``.
 
@@ -784,6 +806,7 @@ def _read_dicom_series(folder: Path, required: bool = True, allow_irregular: boo
     order = np.argsort(depth, kind="stable")
     array, depth, positions = array[:, :, order], depth[order], positions[order]
     names = [names[i] for i in order]
+    _refuse_tilt(positions, depth, normal, pixel_spacing, folder)
     dz = 1.0  # a single slice becomes a 2D image; its spacing along z is dropped
     if len(names) > 1:
         array, dz = _uniform_slices(array, depth, names, folder, allow_irregular)

@@ -21,7 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from dicer import __version__
-from dicer.brief import brief_json
+from dicer.brief import brief_json, brief_names
 from dicer.errors import DicerError
 from dicer.io.atomic import all_or_nothing, check_stop, stop_requested
 from dicer.pages import ordinary_pages, reuse_freed_memory
@@ -309,6 +309,12 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
         if not fixed.any():
             raise DicerError(f"{labels_path}: every part of the model is smaller than fix.min_component_voxels="
                              f"{settings['min_component_voxels']}; lower it (0 keeps every part)")
+        if report["lost_materials"]:  # the deck would have no element set for them
+            log.warning("fix: %d material(s) have no voxels left and no elements in the model: %s (removed as "
+                        "floating parts below fix.min_component_voxels=%d, or too small to keep through the "
+                        "connectivity fixes); lower fix.min_component_voxels, or merge them into a neighbour",
+                        len(report["lost_materials"]), brief_names(report["lost_materials"]),
+                        settings["min_component_voxels"])
         if not report["converged"]:
             log.warning("fix: stopped at a round cap with %s left; raise fix.max_iterations or "
                         "fix.max_type_c_rounds", report["remaining"])

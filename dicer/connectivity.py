@@ -749,8 +749,9 @@ def fix_stage(labels: np.ndarray, *, names: dict[str, str], min_component_voxels
     fixed : ndarray
         The repaired labels, same shape and dtype.
     report : dict
-        ``fix_connectivity``'s report with voxel changes per named material and an
-        ``islands`` entry (floating parts removed before and after the fixes).
+        ``fix_connectivity``'s report with voxel changes per named material, an
+        ``islands`` entry (floating parts removed before and after the fixes) and
+        ``lost_materials``: the materials of the input that have no voxel left.
     """
     # floating parts go first (the fixes need not work on them) and again after the fixes
     # (which can cut a thin bridge)
@@ -769,4 +770,13 @@ def fix_stage(labels: np.ndarray, *, names: dict[str, str], min_component_voxels
     named = names | {"0": "background"}
     for kind in ("type_a", "type_b", "type_c"):
         report[kind] = {named.get(k, k): v for k, v in report[kind].items()}
+    gone = np.setdiff1d(_present(labels), _present(fixed))
+    report["lost_materials"] = [names.get(str(int(k)), str(int(k))) for k in gone[gone > 0]]
     return fixed, report
+
+
+def _present(labels: np.ndarray) -> np.ndarray:
+    """The distinct values of a label volume, ascending (a count per value where they are small)."""
+    if labels.size and 0 <= int(labels.min()) and int(labels.max()) < 1 << 20:
+        return np.flatnonzero(np.bincount(labels.ravel()))
+    return np.unique(labels)

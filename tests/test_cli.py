@@ -163,3 +163,30 @@ def test_model_heading_is_the_same_from_run_and_from_the_stage(tmp_path):
     head = (out / "model.inp").read_text().split("*NODE")[0]
     assert head == (tmp_path / "again.inp").read_text().split("*NODE")[0]
     assert "mesh sha256 " in head and "head.nii" not in head
+
+
+def test_fix_warns_of_a_material_it_leaves_without_voxels(tmp_path, capsys, caplog):
+    """A material that the fixes or the floating-part filter remove whole would be missing from
+    the model and the deck: a warning names it (shown with -q), fix.json lists it."""
+    from dicer.image import Volume
+    from dicer.io.images import write_image
+
+    lab = np.ones((16, 16, 16), np.uint8)
+    lab[8, 8, 8] = 2  # the only voxel of material 2 (bone), inside the block: taken over by its neighbour
+    write_image(Volume(lab, (1.0, 1.0, 1.0)), tmp_path / "l.nii.gz")
+    code, err = run_cli(capsys, "fix", tmp_path / "l.nii.gz", "-o", tmp_path / "f.nii.gz", "--report",
+                        tmp_path / "fix.json", "-q")
+    assert code == 0
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert any("1 material(s) have no voxels left and no elements in the model: bone (" in m for m in warned)
+    assert json.loads((tmp_path / "fix.json").read_text())["lost_materials"] == ["bone"]
+    fixed = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "f.nii.gz")))
+    assert np.unique(fixed).tolist() == [1]
+    # nothing lost, nothing said
+    lab[6:10, 6:10, 6:10] = 2
+    caplog.clear()
+    write_image(Volume(lab, (1.0, 1.0, 1.0)), tmp_path / "l.nii.gz")
+    code, err = run_cli(capsys, "fix", tmp_path / "l.nii.gz", "-o", tmp_path / "f.nii.gz", "--report",
+                        tmp_path / "fix.json", "-q")
+    assert code == 0 and not any("no voxels left" in r.getMessage() for r in caplog.records)
+    assert json.loads((tmp_path / "fix.json").read_text())["lost_materials"] == []

@@ -223,6 +223,8 @@ def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = 
         labels, info = segment(image, **stage_kwargs(config, "segment"), source=image_path)
         if cropped:
             info["crop"] = cropped
+        for warning in info.get("warnings", []):
+            log.warning("segment: %s", warning)
         # a NIfTI scan lends its header: the labels overlay it with exactly its affine
         write_mapped_labels(labels, image_path, out)
         names = list(material_names(config).values())

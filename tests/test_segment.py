@@ -472,3 +472,29 @@ def test_real_head_ct():
     assert bone_sizes.max() > 0.99 * bone_sizes.sum()    # the skull is one component (plus specks < 1000)
     assert 0.05 < info["classes"]["bone"]["fraction"] < 0.08
     assert 0.23 < info["classes"]["soft_tissue"]["fraction"] < 0.28
+
+
+def test_keep_body_warns_when_it_drops_a_part_like_the_one_kept():
+    """keep: body drops a headrest quietly (a small part), but a second leg scanned beside the
+    first is anatomy: dropping it is said, with its size against the part kept."""
+    shape = (60, 40, 20)
+    g = np.indices(shape)
+    image = np.full(shape, AIR, np.float32)
+    for cx, r in ((16, 12), (44, 11)):  # two legs, 12 and 11 voxels in radius
+        leg = np.hypot(g[0] - cx, g[1] - 20) <= r
+        image[leg] = SOFT
+        image[leg & (np.hypot(g[0] - cx, g[1] - 20) <= 4)] = BONE
+    labels, info = segment(Volume(image, (1.0, 1.0, 1.0)), config(method="manual", keep="body"), "legs.nii.gz")
+    part = info["removed_parts"]["soft_tissue"]
+    kept = int(np.count_nonzero(labels.array))
+    assert part["parts"] == 1 and part["largest_kept"] == kept and 0.8 < part["largest"] / kept < 0.9
+    assert len(info["warnings"]) == 1 and "set segment.keep: all" in info["warnings"][0]
+    assert not labels.array[35:, :, :].any()
+    labels, info = segment(Volume(image, (1.0, 1.0, 1.0)), config(method="manual", keep="all"), "legs.nii.gz")
+    assert "warnings" not in info and info["removed_parts"] == {} and labels.array[35:, :, :].any()
+    # a headrest-sized part: dropped without a warning, but counted
+    image[32:, :, :] = AIR
+    image[48:58, 36:39, :] = SOFT  # 600 voxels, 7 % of the leg
+    labels, info = segment(Volume(image, (1.0, 1.0, 1.0)), config(method="manual", keep="body"), "rest.nii.gz")
+    part = info["removed_parts"]["soft_tissue"]
+    assert "warnings" not in info and part["parts"] == 1 and 500 <= part["voxels"] <= 700

@@ -27,6 +27,10 @@ from dicer.segment.thresholds import (
 
 __all__ = ["segment", "class_priority", "morphology_options", "label_counts"]
 
+LARGE_DROPPED_PART = 0.25
+"""A part that segment.keep drops is warned of when it holds at least this fraction of the
+voxels of the part kept (a CT table or headrest holds far less than a body)."""
+
 
 def class_priority(names: list[str], priority, source: str = "") -> list[int]:
     """Class labels in priority order, highest first, from ``segment.priority``.
@@ -232,8 +236,17 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
                          "voxels, keep/min_component_size drop small parts); lower segment.opening_radius "
                          "or segment.min_component_size")
     info["removed_by_opening"] = {names[c - 1]: n for c, n in minfo["removed_by_opening"].items()}
-    if minfo["emptied"]:
-        info["warnings"] = [f"morphology emptied class '{names[c - 1]}'" for c in minfo["emptied"]]
+    info["removed_parts"] = {names[c - 1]: p for c, p in minfo["removed_parts"].items() if p["parts"]}
+    warnings = [f"morphology emptied class '{names[c - 1]}'" for c in minfo["emptied"]]
+    for c, p in minfo["removed_parts"].items():
+        # keep 'largest' (keep: body) drops the headrest and the table; a part of a size like
+        # the one kept is more likely a second leg or hand scanned beside the first
+        if p["largest"] >= LARGE_DROPPED_PART * p["largest_kept"] > 0:
+            warnings.append(f"segment.keep dropped {p['parts']} part(s) of '{names[c - 1]}' and what lies inside "
+                            f"them, the largest {p['largest']} voxels, {100 * p['largest'] / p['largest_kept']:.0f} % "
+                            "of the part kept; if it is anatomy (a second limb), set segment.keep: all")
+    if warnings:
+        info["warnings"] = warnings
     info["classes"] = label_counts(labels, names)
     info["seconds"] = {"thresholds": round(t_threshold - t0, 3),
                        "total": round(time.perf_counter() - t0, 3)}

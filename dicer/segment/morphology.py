@@ -129,7 +129,8 @@ def closing(mask: np.ndarray, radius: int) -> np.ndarray:
     return closed[tuple(slice(radius, -radius) for _ in range(mask.ndim))]
 
 
-def filter_components(mask: np.ndarray, keep: str = "all", min_size: int = 0) -> np.ndarray:
+def filter_components(mask: np.ndarray, keep: str = "all", min_size: int = 0, dropped: list | None = None
+                      ) -> np.ndarray:
     """Drop face-connected components by size.
 
     Parameters
@@ -139,6 +140,9 @@ def filter_components(mask: np.ndarray, keep: str = "all", min_size: int = 0) ->
         'largest' keeps only the largest component (the lowest label among equals).
     min_size : int
         Components with fewer voxels are dropped.
+    dropped : list, optional
+        Receives the voxel counts of the components dropped, largest first, and then
+        (as its last entry) that of the largest component kept (0 if none).
 
     Returns
     -------
@@ -146,6 +150,8 @@ def filter_components(mask: np.ndarray, keep: str = "all", min_size: int = 0) ->
     """
     mask = np.asarray(mask, dtype=bool)
     if (keep == "all" and min_size <= 1) or not mask.any():
+        if dropped is not None:
+            dropped.append(0)
         return mask.copy()
     comp, n = ndi.label(mask, structure=_face_structure(mask.ndim))
     sizes = np.bincount(comp.ravel(), minlength=n + 1)
@@ -155,6 +161,10 @@ def filter_components(mask: np.ndarray, keep: str = "all", min_size: int = 0) ->
         flags[:] = False
         flags[int(np.argmax(sizes))] = True
     flags[0] = False
+    if dropped is not None:
+        gone = sizes[1:][~flags[1:]]
+        dropped.extend(int(v) for v in np.sort(gone)[::-1])
+        dropped.append(int(sizes[flags].max(initial=0)))
     return flags[comp]
 
 
@@ -211,7 +221,9 @@ def clean_labels(labels: np.ndarray, n_classes: int, opening_radius: int, closin
     cleaned : ndarray, same shape and dtype as ``labels``
     info : dict
         ``removed_by_opening``: per class (1..K) the voxels the opening removed from its
-        cumulative mask; ``emptied``: classes whose cumulative mask the morphology emptied.
+        cumulative mask; ``removed_parts``: per class, the parts ``keep``/``min_size``
+        dropped from it (count, voxels, the largest, and the largest kept);
+        ``emptied``: classes whose cumulative mask the morphology emptied.
     """
     k = int(n_classes)
     keeps = _per_class(keep, k, "keep")
@@ -219,6 +231,7 @@ def clean_labels(labels: np.ndarray, n_classes: int, opening_radius: int, closin
     prio = list(priority) if priority is not None else list(range(k, 0, -1))
     masks = []
     removed = {}
+    parts = {}
     emptied = []
     outer = None
     for c in range(1, k + 1):
@@ -228,7 +241,10 @@ def clean_labels(labels: np.ndarray, n_classes: int, opening_radius: int, closin
         before = int(np.count_nonzero(m))
         opened = opening_by_reconstruction(m, opening_radius)
         removed[c] = before - int(np.count_nonzero(opened))
-        m = filter_components(closing(opened, closing_radius), keeps[c - 1], sizes[c - 1])
+        dropped: list[int] = []
+        m = filter_components(closing(opened, closing_radius), keeps[c - 1], sizes[c - 1], dropped)
+        parts[c] = {"parts": len(dropped) - 1, "voxels": sum(dropped[:-1]),
+                    "largest": dropped[0] if len(dropped) > 1 else 0, "largest_kept": dropped[-1]}
         if before and not m.any():
             emptied.append(c)
         masks.append(m)
@@ -240,4 +256,4 @@ def clean_labels(labels: np.ndarray, n_classes: int, opening_radius: int, closin
         claim &= ~assigned
         out[claim] = c
         assigned |= claim
-    return out, {"removed_by_opening": removed, "emptied": emptied}
+    return out, {"removed_by_opening": removed, "removed_parts": parts, "emptied": emptied}

@@ -87,7 +87,13 @@ def resolve_materials(values, *, materials: list[dict], map: dict, drop: list,  
     if not names:
         log.info("labels: no labels.map in the config: each of the %d label value(s) is its own material "
                  "(label_<value>, numbered 1..%d in increasing value order)", len(number), len(number))
-    if defaulted:
+    mapped = [n for n in defaulted if n in set(names.values())]
+    unused = [m["name"] for m in given.values() if m["name"] not in number]
+    if mapped and unused:  # a name of labels.map and a materials entry that were meant to be one
+        log.warning("labels: labels.map names %s, which no materials entry has (default properties: E %g MPa), "
+                    "while the materials entries %s are used by no label; check the spelling of the names",
+                    brief_names(mapped), DEFAULT_PROPERTIES["youngs_modulus"], brief_names(unused))
+    elif defaulted:
         log.info("labels: no materials entry for %s: default properties (E %g MPa, nu %g, density %g t/mm^3); "
                  "add materials entries of these names to set them", brief_names(defaulted),
                  DEFAULT_PROPERTIES["youngs_modulus"], DEFAULT_PROPERTIES["poissons_ratio"],

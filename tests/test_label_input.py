@@ -107,6 +107,25 @@ def test_resolve_materials_map_drop_merge():
     assert materials[2] == {"name": "label_4", "youngs_modulus": 1000.0, "poissons_ratio": 0.3, "density": 1.0e-9}
 
 
+def test_a_map_name_without_materials_entry_beside_an_unused_entry_is_warned_of(caplog):
+    """labels.map: marrow, materials: bone_marrow -- a typo that would give marrow E 1000 MPa."""
+    settings = {"labels": {"map": {"3": "cortical_bone", "17": "marrow"}},
+                "materials": [{"name": "cortical_bone", "youngs_modulus": 17000.0},
+                              {"name": "bone_marrow", "youngs_modulus": 0.5}]}
+    with caplog.at_level("INFO", logger="dicer"):
+        _, materials = resolve_materials([0, 3, 17], load_config(settings=settings))
+    assert materials[1] == {"name": "marrow", "youngs_modulus": 1000.0, "poissons_ratio": 0.3, "density": 1.0e-9}
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warned) == 1 and "names marrow, which no materials entry has" in warned[0]
+    assert "entries bone_marrow are used by no label" in warned[0]
+    caplog.clear()
+    settings["materials"][1]["name"] = "marrow"  # spelt alike: no warning
+    with caplog.at_level("INFO", logger="dicer"):
+        _, materials = resolve_materials([0, 3, 17], load_config(settings=settings))
+    assert materials[1]["youngs_modulus"] == 0.5
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+
+
 def test_yaml_and_settings_keys_give_one_config(tmp_path):
     path = tmp_path / "c.yaml"
     path.write_text("labels:\n  map: {3: brain}\n")

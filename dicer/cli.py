@@ -370,10 +370,37 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
     # cost more than coarsening it)
     merged, report = _mesh_to_mesh("merge", lambda m: merge_mesh(m, **settings), mesh_path, out, report_path,
                                    mesh, mapped=True, write=write)
+    _warn_of_volume_change(report, merged, settings)
     log.info("merge: wrote %s (%d -> %d elements, %d -> %d nodes; volume %s)", out,
              report["elements_before"], report["elements_after"], report["nodes_before"],
              report["nodes_after"], brief_json(_stable(report["volume"]), sort_keys=True))
     return merged
+
+
+MERGE_VOLUME_WARNING = 5.0
+"""Percent change of a material's volume through merging above which the stage warns."""
+
+
+def _warn_of_volume_change(report: dict, mesh, settings: dict) -> None:
+    """Warn when merging changed a material's volume by more than MERGE_VOLUME_WARNING percent:
+    chamfers fill whole voxel steps, and across a coarse axis of anisotropic voxels (thick
+    slices) a step is several times the in-plane size."""
+    import numpy as np
+
+    grown = {k: v["change_percent"] for k, v in report.get("volume", {}).items()
+             if abs(v["change_percent"]) > MERGE_VOLUME_WARNING}
+    if not grown:
+        return
+    names = {str(i): n for i, n in enumerate(mesh.names, start=1)}
+    changes = ", ".join(f"{names.get(k, k)} {v:+.1f} %" for k, v in list(grown.items())[:8])
+    spacing = np.asarray(mesh.spacing[:mesh.dim], float)
+    coarse = spacing >= 2 * spacing.min()
+    hint = "set merge.passes to 0 for the axes that must keep their surface, or merge.min_thickness"
+    if coarse.any() and settings.get("method") == "planes":
+        passes = [0 if c else int(p) for c, p in zip(coarse, list(settings["passes"]) + [0] * 3)]
+        hint = (f"the voxels are {' x '.join(f'{v:g}' for v in spacing)} mm: merging across the coarse axis fills "
+                f"steps of a whole slice; set merge.passes={passes} to merge in-plane only")
+    log.warning("merge: material volume changed by more than %g %% (%s); %s", MERGE_VOLUME_WARNING, changes, hint)
 
 
 def _read_thresholds(path: str | None, config: dict, image_path: str) -> list:

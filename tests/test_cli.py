@@ -190,3 +190,26 @@ def test_fix_warns_of_a_material_it_leaves_without_voxels(tmp_path, capsys, capl
                         tmp_path / "fix.json", "-q")
     assert code == 0 and not any("no voxels left" in r.getMessage() for r in caplog.records)
     assert json.loads((tmp_path / "fix.json").read_text())["lost_materials"] == []
+
+
+def test_merge_warns_when_it_grows_a_material_across_thick_slices(tmp_path, capsys, caplog):
+    """Chamfers fill whole voxel steps: across 3 mm slices of 0.5 mm pixels a ball grows by
+    far more than its in-plane merging would; the stage says so and which passes avoid it."""
+    from dicer.image import Volume
+    from dicer.io.images import write_image
+
+    g = np.indices((14, 60, 60)) + 0.5
+    ball = ((g[0] * 3 - 21) / 18) ** 2 + ((g[1] * 0.5 - 15) / 12) ** 2 + ((g[2] * 0.5 - 15) / 12) ** 2 < 1
+    write_image(Volume(ball.astype(np.uint8), (3.0, 0.5, 0.5)), tmp_path / "l.nii.gz")
+    assert run_cli(capsys, "mesh", tmp_path / "l.nii.gz", "-o", tmp_path / "m.vtu")[0] == 0
+    code, _ = run_cli(capsys, "merge", tmp_path / "m.vtu", "-o", tmp_path / "g.vtu", "--report", tmp_path / "g.json")
+    assert code == 0
+    change = json.loads((tmp_path / "g.json").read_text())["volume"]["1"]["change_percent"]
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert change > 5 and len(warned) == 1
+    assert f"soft_tissue {change:+.1f} %" in warned[0] and "set merge.passes=[0, 1, 1] to merge in-plane only" in warned[0]
+    caplog.clear()
+    code, _ = run_cli(capsys, "merge", tmp_path / "m.vtu", "-o", tmp_path / "g.vtu", "--report", tmp_path / "g.json",
+                      "--set", "merge.passes=[0,1,1]")
+    assert code == 0 and json.loads((tmp_path / "g.json").read_text())["volume"]["1"]["change_percent"] < 5
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]

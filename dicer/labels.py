@@ -198,14 +198,17 @@ def _write_nifti_like(header: bytes, endian: str, array: np.ndarray, path: Path)
         from dicer.io.images import read_labels
 
         back = read_labels(tmp)
-        if not np.array_equal(back.array, array):
+        # a single slice reads back as a 2D image
+        if back.array.size != array.size or not np.array_equal(back.array, array.reshape(back.array.shape)):
             raise DicerError(f"{path}: read-back check failed: the file does not hold the labels written; "
                              "check the disk and write again")
 
 
-def _same_placement(volume: Volume, source: Path) -> bool:
+def _same_placement(volume: Volume, source: Path, axes: tuple[int, ...] | None = None) -> bool:
     """Whether ``source``'s header places its voxels as ``volume`` does (not so when
-    image.spacing replaced a broken header spacing): only then may it lend its header."""
+    image.spacing replaced a broken header spacing): only then may it lend its header.
+    ``axes``: the source's axes that ``volume`` keeps (a single slice read as a 2D image,
+    its direction dropped); default all."""
     import SimpleITK as sitk
 
     reader = sitk.ImageFileReader()
@@ -215,14 +218,17 @@ def _same_placement(volume: Volume, source: Path) -> bool:
     except RuntimeError:
         return False
     n = volume.array.ndim
-    spacing = np.asarray(reader.GetSpacing()[:n], float)
+    kept = list(range(n)) if axes is None else list(axes)
+    spacing = np.asarray(reader.GetSpacing(), float)[kept]
     centre = np.asarray(volume.origin, float) + np.asarray(volume.spacing, float) / 2
+    # NIfTI keeps spacing and offsets in float32: compare at that precision
+    same = (np.allclose(spacing, volume.spacing, rtol=1e-6, atol=0)
+            and np.allclose(np.asarray(reader.GetOrigin(), float)[kept], centre, rtol=1e-6, atol=1e-5))
+    if axes is not None:
+        return bool(same)
     direction = np.eye(n).ravel() if volume.direction is None else np.asarray(volume.direction, float)
     header_direction = np.asarray(reader.GetDirection(), float).reshape(reader.GetDimension(), -1)[:n, :n]
-    # NIfTI keeps spacing and offsets in float32: compare at that precision
-    return bool(np.allclose(spacing, volume.spacing, rtol=1e-6, atol=0)
-                and np.allclose(reader.GetOrigin()[:n], centre, rtol=1e-6, atol=1e-5)
-                and np.allclose(header_direction.ravel(), direction, atol=1e-6))
+    return bool(same and np.allclose(header_direction.ravel(), direction, atol=1e-6))
 
 
 def write_mapped_labels(volume: Volume, source: str | Path, path: str | Path) -> None:
@@ -250,11 +256,15 @@ def write_mapped_labels(volume: Volume, source: str | Path, path: str | Path) ->
     source, path = Path(source), Path(path)
     found = _nifti1_header(source) if source.name.lower().endswith((".nii", ".nii.gz")) else None
     dims = struct.unpack(found[1] + "8h", found[0][40:56]) if found else None
-    if (found and path.name.lower().endswith(".nii.gz") and volume.array.ndim == 3
-            and dims[0] in (3, 4) and tuple(dims[1:4]) == volume.array.shape and (dims[0] == 3 or dims[4] == 1)
-            and _same_placement(volume, source)):
+    grid = tuple(dims[1:4]) if found and dims[0] in (3, 4) and (dims[0] == 3 or dims[4] == 1) else None
+    # a single slice of a 3D file is read as a 2D image: written back on the file's 3D grid
+    kept = tuple(a for a in range(3) if grid[a] != 1) if grid and volume.array.ndim == 2 else None
+    if (found and path.name.lower().endswith(".nii.gz") and grid is not None
+            and ((volume.array.ndim == 3 and grid == volume.array.shape and _same_placement(volume, source))
+                 or (kept is not None and len(kept) == 2 and tuple(grid[a] for a in kept) == volume.array.shape
+                     and _same_placement(volume, source, kept)))):
         head = bytearray(found[0])
-        struct.pack_into(found[1] + "8h", head, 40, 3, *volume.array.shape, 1, 1, 1, 1)
-        _write_nifti_like(bytes(head), found[1], volume.array, path)
+        struct.pack_into(found[1] + "8h", head, 40, 3, *grid, 1, 1, 1, 1)
+        _write_nifti_like(bytes(head), found[1], volume.array.reshape(grid), path)
         return
     write_labels(volume, path)

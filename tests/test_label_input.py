@@ -260,3 +260,25 @@ def test_order2_vtu_has_names(labelled, tmp_path):
     m = meshio.read(tmp_path / "q.vtu")
     assert {k: v.tolist() for k, v in m.field_data.items()} == {
         "white_matter": [1, 3], "grey_matter": [2, 3], "label_4": [3, 3], "cerebellum": [4, 3]}
+
+
+@pytest.mark.parametrize("shape", [(1, 20, 24), (20, 24, 1)])
+def test_a_single_slice_keeps_its_3d_grid_in_the_label_files(tmp_path, shape):
+    """A one-slice 3D label file is meshed as a 2D image, but its label files stay on the
+    input's 3D grid: the slice's position and axes are kept for viewers."""
+    import SimpleITK as sitk
+
+    lab = np.zeros(shape, np.uint8)
+    lab[(slice(None),) * 3] = 1
+    lab.reshape(-1)[:40] = 0
+    img = sitk.GetImageFromArray(np.ascontiguousarray(lab.transpose(2, 1, 0)))  # [z, y, x]
+    img.SetSpacing((3.0, 0.5, 2.0))
+    img.SetOrigin((75.0, 100.0, -50.0))
+    sitk.WriteImage(img, str(tmp_path / "slice.nii.gz"))
+    assert main(["labels", str(tmp_path / "slice.nii.gz"), "-o", str(tmp_path / "l.nii.gz"), "-q"]) == 0
+    assert main(["fix", str(tmp_path / "l.nii.gz"), "-o", str(tmp_path / "f.nii.gz"), "-q"]) == 0
+    for name in ("l.nii.gz", "f.nii.gz"):
+        out = sitk.ReadImage(str(tmp_path / name))
+        assert out.GetSize() == shape and out.GetOrigin() == (75.0, 100.0, -50.0)
+        assert out.GetSpacing() == (3.0, 0.5, 2.0)
+        assert np.array_equal(sitk.GetArrayFromImage(out).transpose(2, 1, 0), lab)

@@ -285,7 +285,21 @@ def do_downsample(labels_path: str, out: Path, config: dict):
         # factor 1 keeps the grid, and then the input's header (exactly its affine)
         write_mapped_labels(reduced, labels_path, out)
         log.info("downsample: wrote %s (%s)", out, json.dumps(info, sort_keys=True))
+        changed = {n: v for n, v in info.get("volume_change_percent", {}).items()
+                   if abs(v) > DOWNSAMPLE_VOLUME_WARNING}
+        if changed:  # thin parts lost to the vote and the opening, or a label outvoted by its neighbours
+            log.warning("downsample: material volume changed by more than %g %% (%s): a class filling "
+                        "downsample.min_fraction of a block takes it (higher labels first), and parts thinner than "
+                        "about two coarse voxels are removed; lower the factor (or voxel_size), raise "
+                        "downsample.min_fraction toward 0.5 to keep volumes, or set downsample.morphology=false "
+                        "to keep thin parts",
+                        DOWNSAMPLE_VOLUME_WARNING, brief_json({n: f"{v:+.1f} %" for n, v in changed.items()}))
     return reduced
+
+
+DOWNSAMPLE_VOLUME_WARNING = 20.0
+"""Percent change of a material's volume through downsampling above which the stage warns
+(a coarse voxel at a surface adds or drops up to a block of fine ones)."""
 
 
 def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None = None):

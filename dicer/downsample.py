@@ -222,7 +222,10 @@ def downsample(labels: Volume, *, names: list[str], factor, voxel_size, min_frac
                              "segment.opening_radius or the downsample factor, or set downsample.morphology=false")
         coarse = cleaned
     spacing = tuple(s * f for s, f in zip(labels.spacing, factor))
+    voxels_after = {n: v["voxels"] for n, v in label_counts(coarse, names).items()}
+    block = int(np.prod(factor))  # fine voxels per coarse voxel
     info.update(shape_after=list(coarse.shape), spacing_after=[round(s, 6) for s in spacing],
-                voxels_before=before,
-                voxels_after={n: v["voxels"] for n, v in label_counts(coarse, names).items()})
+                voxels_before=before, voxels_after=voxels_after,
+                volume_change_percent={n: round(100.0 * (voxels_after.get(n, 0) * block - v) / v, 2)
+                                       for n, v in before.items() if v})
     return Volume(coarse, spacing, regridded_origin(labels, spacing), labels.direction), info

@@ -176,3 +176,24 @@ def test_errors(ds, arr, words):
         downsample(Volume(arr, (1.0,) * arr.ndim), config(**ds), "lab.nii")
     for w in words:
         assert w in str(err.value)
+
+
+def test_volume_change_reported_and_a_lost_plate_warned_of(tmp_path, caplog):
+    """An isolated 3-voxel bone plate does not survive factor 2 with the opening after the vote:
+    info gives every material's volume change, and the command warns of it."""
+    from dicer.cli import main
+    from dicer.io.images import write_image
+
+    lab = np.zeros((32, 32, 32), np.uint8)
+    lab[2:30, 2:30, 2:30] = 1
+    lab[6:26, 6:26, 14:17] = 2  # 3 voxels thick
+    _, info = downsample(Volume(lab, (1.0, 1.0, 1.0)), config(factor=2), "plate.nii")
+    assert info["volume_change_percent"]["bone"] == -100.0
+    assert abs(info["volume_change_percent"]["soft_tissue"]) < 25
+    _, info = downsample(Volume(lab, (1.0, 1.0, 1.0)), config(factor=2, morphology=False), "plate.nii")
+    assert info["volume_change_percent"]["bone"] == pytest.approx(100 * (10 * 10 * 2 * 8 - 1200) / 1200, abs=0.01)  # 2 coarse layers
+    write_image(Volume(lab, (1.0, 1.0, 1.0)), tmp_path / "l.nii.gz")
+    assert main(["downsample", str(tmp_path / "l.nii.gz"), "-o", str(tmp_path / "d.nii.gz"),
+                 "--set", "downsample.factor=2", "-q"]) == 0
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warned) == 1 and '{"bone": "-100.0 %"}' in warned[0] and "downsample.morphology=false" in warned[0]

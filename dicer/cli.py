@@ -391,22 +391,31 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
     return merged
 
 
-MERGE_VOLUME_WARNING = 5.0
-"""Percent change of a material's volume through merging above which the stage warns."""
+STAGE_VOLUME_WARNING = 5.0
+"""Percent change of a material's volume through merging or smoothing above which the stage warns."""
+
+
+def _volume_changes(stage: str, percent: dict, mesh) -> str | None:
+    """"name +x.x %" of the materials (label strings in ``percent``) whose volume the stage
+    changed by more than STAGE_VOLUME_WARNING percent, or None."""
+    names = {str(i): n for i, n in enumerate(mesh.names, start=1)}
+    big = [(k, v) for k, v in percent.items() if abs(v) > STAGE_VOLUME_WARNING]
+    if not big:
+        return None
+    text = ", ".join(f"{names.get(k, k)} {v:+.1f} %" for k, v in big[:8])
+    return f"{stage}: material volume changed by more than {STAGE_VOLUME_WARNING:g} % ({text}" + (
+        f" and {len(big) - 8} more)" if len(big) > 8 else ")")
 
 
 def _warn_of_volume_change(report: dict, mesh, settings: dict) -> None:
-    """Warn when merging changed a material's volume by more than MERGE_VOLUME_WARNING percent:
+    """Warn when merging changed a material's volume by more than STAGE_VOLUME_WARNING percent:
     chamfers fill whole voxel steps, and across a coarse axis of anisotropic voxels (thick
     slices) a step is several times the in-plane size."""
     import numpy as np
 
-    grown = {k: v["change_percent"] for k, v in report.get("volume", {}).items()
-             if abs(v["change_percent"]) > MERGE_VOLUME_WARNING}
-    if not grown:
+    said = _volume_changes("merge", {k: v["change_percent"] for k, v in report.get("volume", {}).items()}, mesh)
+    if said is None:
         return
-    names = {str(i): n for i, n in enumerate(mesh.names, start=1)}
-    changes = ", ".join(f"{names.get(k, k)} {v:+.1f} %" for k, v in list(grown.items())[:8])
     spacing = np.asarray(mesh.spacing[:mesh.dim], float)
     coarse = spacing >= 2 * spacing.min()
     hint = "set merge.passes to 0 for the axes that must keep their surface, or merge.min_thickness"
@@ -414,7 +423,7 @@ def _warn_of_volume_change(report: dict, mesh, settings: dict) -> None:
         passes = [0 if c else int(p) for c, p in zip(coarse, list(settings["passes"]) + [0] * 3)]
         hint = (f"the voxels are {' x '.join(f'{v:g}' for v in spacing)} mm: merging across the coarse axis fills "
                 f"steps of a whole slice; set merge.passes={passes} to merge in-plane only")
-    log.warning("merge: material volume changed by more than %g %% (%s); %s", MERGE_VOLUME_WARNING, changes, hint)
+    log.warning("%s; %s", said, hint)
 
 
 def _read_thresholds(path: str | None, config: dict, image_path: str) -> list:
@@ -464,6 +473,11 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
     # smoothing only reads its input mesh (new points; cells and data shared)
     smoothed, report = _mesh_to_mesh("smooth", run, mesh_path, out, report_path, mesh, mapped=True, write=write)
     log.info("smooth: wrote %s (%s)", out, json.dumps(_stable(report), sort_keys=True)[:600])
+    said = _volume_changes("smooth", {k: 100 * v for k, v in report.get("volume_change_by_material", {}).items()},
+                           smoothed)
+    if said:  # a part a few voxels across loses its corners: a large share of it
+        log.warning("%s; parts a few voxels across (after merging: a few merged elements) shrink most: lower "
+                    "smooth.coefficient, or merge less (merge.passes, merge.min_thickness)", said)
     return smoothed
 
 

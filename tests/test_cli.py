@@ -213,3 +213,27 @@ def test_merge_warns_when_it_grows_a_material_across_thick_slices(tmp_path, caps
                       "--set", "merge.passes=[0,1,1]")
     assert code == 0 and json.loads((tmp_path / "g.json").read_text())["volume"]["1"]["change_percent"] < 5
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
+
+
+def test_smooth_warns_when_it_shrinks_a_small_part(tmp_path, capsys, caplog):
+    """A 6-voxel bone box merged into 3-voxel elements and smoothed loses almost half its
+    volume; the stage says so (and nothing for a part it keeps)."""
+    from dicer.image import Volume
+    from dicer.io.images import write_image
+
+    lab = np.ones((24, 24, 24), np.uint8)
+    lab[9:15, 9:15, 9:15] = 2
+    write_image(Volume(lab, (1.0, 1.0, 1.0)), tmp_path / "l.nii.gz")
+    for argv in (["mesh", tmp_path / "l.nii.gz", "-o", tmp_path / "m.vtu"],
+                 ["merge", tmp_path / "m.vtu", "-o", tmp_path / "g.vtu"],
+                 ["smooth", tmp_path / "g.vtu", "-o", tmp_path / "s.vtu", "--report", tmp_path / "s.json"]):
+        assert run_cli(capsys, *argv)[0] == 0
+    change = 100 * json.loads((tmp_path / "s.json").read_text())["volume_change_by_material"]["2"]
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert change < -20 and len(warned) == 1
+    assert warned[0].startswith(f"smooth: material volume changed by more than 5 % (bone {change:+.1f} %)")
+    caplog.clear()
+    assert run_cli(capsys, "smooth", tmp_path / "m.vtu", "-o", tmp_path / "s.vtu", "--report", tmp_path / "s.json",
+                   "--set", "smooth.coefficient=0.5")[0] == 0
+    assert abs(json.loads((tmp_path / "s.json").read_text())["volume_change_by_material"]["2"]) < 0.05
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]

@@ -507,6 +507,13 @@ def do_export(mesh_path: str, out: Path, config: dict, mesh=None, neighbours=Non
     with _Stage("export"):
         # the export only reads the mesh: its arrays stay in the page cache, mapped, not copied
         mesh = read_mesh(mesh_path, mapped=True) if mesh is None else mesh
+        named = [m["name"] for m in config["materials"]]
+        differ = [(a, b) for a, b in zip(mesh.names, named) if a != b]
+        if differ:  # properties go by material number: the mesh's own names say which were meant
+            log.warning("export: the mesh names its materials %s, the config %s; the deck takes the config's names "
+                        "and properties by material number: give --materials materials.json (written by dicer "
+                        "labels / dicer run --labels) or a config with these materials",
+                        brief_names(mesh.names), brief_names(named[:len(mesh.names)]))
         info = export_mesh(mesh, out, **stage_kwargs(config, "export"), source=mesh_path, neighbours=neighbours)
         log.info("export: wrote %s (%s)", out, brief_json(info, sort_keys=True, whole_top=True))
 

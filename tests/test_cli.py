@@ -237,3 +237,26 @@ def test_smooth_warns_when_it_shrinks_a_small_part(tmp_path, capsys, caplog):
                    "--set", "smooth.coefficient=0.5")[0] == 0
     assert abs(json.loads((tmp_path / "s.json").read_text())["volume_change_by_material"]["2"]) < 0.05
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
+
+
+def test_export_warns_when_the_mesh_names_other_materials_than_the_config(tmp_path, capsys, caplog):
+    """A mesh of label_1/label_2 (dicer run --labels) exported with the default config would get
+    soft tissue's and bone's names and properties: said, and --materials gives its own."""
+    from dicer.io.meshes import write_mesh
+    from dicer.mesh.voxel import voxel_mesh
+
+    lab = np.ones((6, 6, 6), np.uint8)
+    lab[2:4, 2:4, 2:4] = 2
+    mesh = voxel_mesh(lab)
+    mesh.names = ["label_1", "label_2"]
+    write_mesh(mesh, tmp_path / "m.vtu")
+    assert run_cli(capsys, "export", tmp_path / "m.vtu", "-o", tmp_path / "m.inp")[0] == 0
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warned) == 1 and "names its materials label_1, label_2, the config soft_tissue, bone" in warned[0]
+    materials = {"materials": [{"name": "label_1"}, {"name": "label_2"}]}
+    (tmp_path / "materials.json").write_text(json.dumps(materials))
+    caplog.clear()
+    assert run_cli(capsys, "export", tmp_path / "m.vtu", "-o", tmp_path / "m.inp", "--materials",
+                   tmp_path / "materials.json")[0] == 0
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+    assert "ELSET=label_2" in (tmp_path / "m.inp").read_text()

@@ -21,6 +21,8 @@ files back strictly and :func:`check_lsdyna` compares one with the model.
 
 from __future__ import annotations
 
+import contextlib
+import os
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +31,7 @@ from dicer.errors import DicerError
 from dicer.export.format import Format
 from dicer.export.readers import Lines, compare, named
 from dicer.export.textfmt import Float, Int, Sci, int_lines, row_ids, write_chunks
+from dicer.export.textparse import CHUNK_ROWS, FormatError, layout_of_columns, parse_records
 
 E16 = Sci(9, b"e", width=16)
 ELFORM = {"C3D8": 2, "C3D8R": 1, "C3D8I": -2}
@@ -106,82 +109,507 @@ def read_lsdyna(path: str | Path) -> dict:
     return named(_read_lsdyna, path)
 
 
+# cards checked and converted many at once: columns per field, kinds, what each field is (messages)
+_NODE_CARD = ((8, 16, 16, 16), "ifff", ("*NODE id",) + ("*NODE coordinate",) * 3)
+_ELEMENT_CARD = ((8,) * 10, "i" * 10, ("*ELEMENT_SOLID id", "*ELEMENT_SOLID part") + ("*ELEMENT_SOLID node",) * 8)
+_BIG = {"*NODE": _NODE_CARD, "*ELEMENT_SOLID": _ELEMENT_CARD}
+_SET_FIELD = 10  # I10 node ids, 8 to a full card
+_BATCHED = ("*PART", "*SECTION_SOLID", "*MAT_ELASTIC", "*SET_NODE_LIST_TITLE")  # many small blocks
+
+
 def _read_lsdyna(path: str | Path) -> dict:
-    """:func:`read_lsdyna` with messages that start at the line."""
-    lines = Lines(path)
+    """:func:`read_lsdyna` with messages that start at the line.
+
+    A file laid out as dicer writes it is read from a memory map: the *NODE and
+    *ELEMENT_SOLID cards are checked and converted in place, a block at a time, and only
+    the rest of the file (keywords, parts, node sets) is split into lines. Any deviation
+    there, and every error, sends the whole file through the line-by-line reading, which
+    names the line.
+    """
+    plain = _cut_large_blocks(Path(path))
+    if plain is not None:
+        text, parsed = plain
+        try:
+            return _parse(_TextLines(text), parsed)
+        except DicerError:
+            pass  # its line numbers count the shortened text: read the whole file to name the line
+    return _parse(Lines(path), {})
+
+
+class _TextLines(Lines):
+    """:class:`Lines` of text in memory (a keyword file with its large blocks' cards cut out).
+
+    Parameters
+    ----------
+    data : bytes
+        Whole lines, the last one ended by a newline.
+    """
+
+    def __init__(self, data: bytes):
+        self.data = data
+        self.arr = np.frombuffer(data, np.uint8)
+        self.ends = np.flatnonzero(self.arr == 10)
+        self.starts = np.concatenate([[0], self.ends[:-1] + 1])
+        self.lengths = self.ends - self.starts
+
+
+def _cut_large_blocks(path: Path):
+    """Parse the *NODE and *ELEMENT_SOLID cards of a keyword file in place, and cut them out of its text.
+
+    A block qualifies when its data cards follow its keyword and comment lines as one run
+    of whole cards of the first card's layout up to the next keyword (and element ids run
+    1..M): that is, they are exactly the non-comment lines a line-by-line reading of the
+    block finds, and they parse as they would there (:func:`_cards`).
+
+    Parameters
+    ----------
+    path : Path
+
+    Returns
+    -------
+    (bytes, dict) or None
+        The file without those cards, and {index of the block's keyword among the
+        file's keywords: arrays}: a *NODE block's (ints (N, 1) int32, points (N, 3)
+        float64) as :func:`parse_records` gives them, an *ELEMENT_SOLID block's
+        (material, cells) as :func:`_elements_in_place` does; None for a file of another
+        layout, or a flaw in these cards (the caller reads it line by line).
+    """
+    import mmap
+
+    try:
+        with open(path, "rb") as f:
+            if os.fstat(f.fileno()).st_size == 0:
+                return None
+            # no copy of a file of GBs; its pages mapped at once where the system can (Linux):
+            # faster than a fault per page
+            populate = getattr(mmap, "MAP_POPULATE", 0)
+            data = (mmap.mmap(f.fileno(), 0, flags=mmap.MAP_SHARED | populate, prot=mmap.PROT_READ) if populate
+                    else mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ))
+    except (OSError, ValueError):
+        return None
+    try:
+        return _cut(data)
+    finally:
+        with contextlib.suppress(BufferError):  # a view still alive (an error's traceback): the GC unmaps
+            data.close()  # now, not when collected: the file may be renamed next (Windows)
+
+
+def _cut(data) -> tuple[bytes, dict] | None:
+    """:func:`_cut_large_blocks` on the file's memory map ``data``."""
+    size = len(data)
+    if data[size - 1 :] != b"\n":
+        return None
+    arr = np.frombuffer(data, np.uint8)
+
+    def next_key(at: int) -> int:  # the first keyword line from the line start ``at`` on
+        # a search for one byte runs at memory speed (for b"\n*", it stops at every line end);
+        # a '*' that does not start a line (in a title) is passed over
+        while True:
+            hit = data.find(b"*", at)
+            if hit < 0:
+                return size
+            if hit == 0 or data[hit - 1] == 10:
+                return hit
+            at = hit + 1
+
+    pieces, parsed, kept, i = [], {}, 0, 0
+    key = next_key(0)
+    while key < size:  # one pass per keyword: dicer's files have a few, an atlas's some 10,000
+        eol = data.find(b"\n", key)
+        after = next_key(eol + 1)
+        card = _BIG.get(data[key:eol].decode("ascii", "replace").strip().upper())
+        if card is not None:
+            body = eol + 1
+            while data[body : body + 1] == b"$":  # the comment lines heading the cards
+                body = data.find(b"\n", body) + 1
+            length = sum(card[0]) + 1
+            if after == body or (after - body) % length:
+                return None
+            buf = arr[body:after]
+            try:
+                layout = layout_of_columns(bytes(buf[:length]), card[0])
+                if layout.kinds != card[1]:
+                    return None
+                parsed[i] = (_elements_in_place(buf, layout) if card is _ELEMENT_CARD
+                             else parse_records(buf, layout))
+            except FormatError:
+                return None
+            pieces.append(data[kept:body])
+            kept = after
+            _release(data, body, after)
+        i += 1
+        key = after
+    pieces.append(data[kept:])
+    return b"".join(pieces), parsed
+
+
+def _elements_in_place(buf: np.ndarray, layout) -> tuple[np.ndarray, np.ndarray]:
+    """Parse *ELEMENT_SOLID cards (EID PID N1..N8) straight into the arrays the reader returns.
+
+    Parameters
+    ----------
+    buf : (m * 81,) uint8 ndarray
+        Whole cards.
+    layout : Layout
+        Ten integer fields.
+
+    Returns
+    -------
+    material : (m,) int32 ndarray
+        The part ids.
+    cells : (m, 8) int64 ndarray
+        0-based node ids (range checked by the caller, who knows the node count).
+
+    Raises
+    ------
+    FormatError
+        A character out of place, or an element id that is not its card's place.
+    """
+    m = buf.size // layout.length
+    material = np.empty(m, np.int32)
+    cells = np.empty((m, 8), np.int64)
+
+    def sink(start: int, ints: np.ndarray, reals: np.ndarray) -> None:
+        # chunks arrive from worker threads: each writes its own rows only; no (m, 10) array of
+        # the whole block, and no second pass over the cells
+        r = ints.shape[0]
+        wrong = ints[:, 0] != np.arange(start + 1, start + r + 1, dtype=ints.dtype)
+        if wrong.any():
+            raise FormatError(int(np.flatnonzero(wrong)[0]) * layout.length, "element ids do not run 1..M")
+        material[start : start + r] = ints[:, 1]
+        np.subtract(ints[:, 2:], 1, out=cells[start : start + r])
+
+    parse_records(buf, layout, sink=sink)
+    return material, cells
+
+
+def _release(data, a: int, b: int) -> None:
+    """Drop the mapped pages of data[a:b] once parsed (they stay in the page cache): a mapped
+    page counts in the process's memory until the mapping ends."""
+    import mmap
+
+    if hasattr(mmap, "MADV_DONTNEED"):
+        first = a // mmap.PAGESIZE * mmap.PAGESIZE
+        if b > first:
+            data.madvise(mmap.MADV_DONTNEED, first, b - first)
+
+
+def _parse(lines: Lines, parsed: dict) -> dict:
+    """The dict :func:`read_lsdyna` returns, from the lines of a keyword file.
+
+    Parameters
+    ----------
+    lines : Lines
+        The file, or the file with the cards of the blocks ``parsed`` cut out.
+    parsed : dict
+        {keyword index: arrays}: the cards of those blocks, parsed
+        (:func:`_cut_large_blocks`).
+
+    Returns
+    -------
+    dict
+
+    Raises
+    ------
+    DicerError
+        Naming the line (of ``lines``).
+    """
     n = len(lines)
-    is_key = lines.arr[lines.starts[lines.lengths > 0]] == ord("*")
-    key_rows = np.flatnonzero(lines.lengths > 0)[is_key]
-    comment = np.zeros(n, bool)
     nonempty = np.flatnonzero(lines.lengths > 0)
-    comment[nonempty[lines.arr[lines.starts[nonempty]] == ord("$")]] = True
+    lead = lines.arr[lines.starts[nonempty]]
+    key_rows = nonempty[lead == ord("*")]
+    comment = np.zeros(n, bool)
+    comment[nonempty[lead == ord("$")]] = True
     keys = [lines.text(i).strip().upper() for i in key_rows]
     if not keys or keys[0] != "*KEYWORD" or keys[-1] != "*END":
-        raise DicerError("an LS-DYNA keyword file starts with *KEYWORD and ends with *END")
-    bounds = list(key_rows) + [n]
+        cut = f" (this one ends after line {n} without *END: truncated?)" if keys and keys[-1] != "*END" else ""
+        raise DicerError(f"an LS-DYNA keyword file starts with *KEYWORD and ends with *END{cut}")
+    bounds = np.append(key_rows, n)
     out = {"parts": {}, "materials": {}, "node_sets": {}, "title": ""}
-    points = cells = pids = None
+    points = cells = pids = element_rows = None
+    batched: dict[str, list[int]] = {key: [] for key in _BATCHED}
     for i, key in enumerate(keys):
+        if key in batched:  # all blocks of the kind together, below
+            batched[key].append(i)
+            continue
         rows = np.arange(bounds[i] + 1, bounds[i + 1])
         rows = rows[~comment[rows]]
         if key == "*TITLE":
             out["title"] = lines.text(rows[0]) if rows.size else ""
-        elif key == "*NODE":
-            lines.lengths_are(rows, 56, "*NODE")
-            ids = lines.ints(rows, 0, 8, "*NODE id")
-            if not np.array_equal(ids, np.arange(1, rows.size + 1)):
-                raise DicerError("*NODE ids must run 1..N in order")
-            points = np.column_stack([lines.floats(rows, 8 + 16 * j, 16, "*NODE coordinate") for j in range(3)])
-        elif key == "*PART":
-            if rows.size != 2:
-                raise DicerError("*PART needs a title card and one data card")
-            vals = [lines.ints(rows[1:], 10 * k, 10, "*PART")[0] for k in range(3)]
-            pid, secid, mid = (int(v) for v in vals)
-            out["parts"][pid] = {"title": lines.text(rows[0]).strip(), "secid": secid, "mid": mid}
-        elif key == "*SECTION_SOLID":
-            if rows.size != 1:
-                raise DicerError("*SECTION_SOLID needs one data card")
-            out.setdefault("sections", {})[int(lines.ints(rows, 0, 10, "*SECTION_SOLID")[0])] = int(
-                lines.ints(rows, 10, 10, "*SECTION_SOLID ELFORM")[0])
-        elif key == "*MAT_ELASTIC":
-            if rows.size != 1:
-                raise DicerError("*MAT_ELASTIC needs one data card")
-            mid = int(lines.ints(rows, 0, 10, "*MAT_ELASTIC")[0])
-            out["materials"][mid] = tuple(float(lines.floats(rows, 10 * k, 10, "*MAT_ELASTIC")[0]) for k in (1, 2, 3))
+        elif key == "*NODE":  # cut out of ``lines`` (its cards parsed in place) or read here
+            (ints, points), rows = (parsed[i], None) if i in parsed else _cards(lines, rows, _NODE_CARD)
+            _run_one_to_n(ints[:, 0], rows, "*NODE ids must run 1..N in order")
         elif key == "*ELEMENT_SOLID":
-            lines.lengths_are(rows, 80, "*ELEMENT_SOLID")
-            ids = lines.ints(rows, 0, 8, "*ELEMENT_SOLID id")
-            if not np.array_equal(ids, np.arange(1, rows.size + 1)):
-                raise DicerError("*ELEMENT_SOLID ids must run 1..M in order")
-            pids = lines.ints(rows, 8, 8, "*ELEMENT_SOLID part").astype(np.int32)
-            cells = np.column_stack([lines.ints(rows, 16 + 8 * j, 8, "*ELEMENT_SOLID node") for j in range(8)])
-        elif key == "*SET_NODE_LIST_TITLE":
-            if rows.size < 2:
-                raise DicerError("*SET_NODE_LIST_TITLE needs a title and a data card")
-            name = lines.text(rows[0]).strip()
-            data = rows[2:]
-            if data.size and np.any(lines.lengths[data] % 10):
-                raise DicerError(f"node set {name}: cards must be whole 10-column fields")
-            full = data[lines.lengths[data] == 80]
-            ids = [lines.ints(full, 10 * k, 10, "node set")[:, None] for k in range(8)]
-            ids = np.concatenate(ids, axis=1).ravel() if full.size else np.zeros(0, np.int64)
-            tail = data[lines.lengths[data] < 80]
-            if tail.size > 1 or (tail.size == 1 and tail[0] != data[-1]):
-                raise DicerError(f"node set {name}: only the last card may be short")
-            if tail.size:
-                k = int(lines.lengths[tail[0]]) // 10
-                ids = np.concatenate([ids] + [lines.ints(tail, 10 * j, 10, "node set") for j in range(k)])
-            out["node_sets"][name] = ids - 1
+            if i in parsed:  # ids checked, parts and 0-based nodes filled in as parsed
+                (pids, cells), element_rows = parsed[i], None
+            else:
+                (ints, _), element_rows = _cards(lines, rows, _ELEMENT_CARD)
+                _run_one_to_n(ints[:, 0], element_rows, "*ELEMENT_SOLID ids must run 1..M in order")
+                pids, cells = ints[:, 1].astype(np.int32), np.subtract(ints[:, 2:], 1, dtype=np.int64)
         elif key in ("*KEYWORD", "*END"):
             if rows.size:
-                raise DicerError(f"{key} takes no data cards")
+                raise DicerError(f"line {rows[0] + 1}: {key} takes no data cards")
         else:
-            raise DicerError(f"unexpected keyword {key}")
+            raise DicerError(f"line {key_rows[i] + 1}: unexpected keyword {key}")
+    blocks = {key: np.array(batched[key], np.intp) for key in _BATCHED}
+    _parts(lines, key_rows, bounds, comment, blocks, out)
+    out["node_sets"] = _node_sets(lines, key_rows, bounds, blocks["*SET_NODE_LIST_TITLE"], comment)
     if points is None or cells is None:
         raise DicerError("no *NODE or *ELEMENT_SOLID block")
-    if cells.min() < 1 or cells.max() > points.shape[0]:
-        raise DicerError("elements refer to nodes that do not exist")
-    out.update(points=points, cells=cells - 1, material=pids)
+    if cells.size and (cells.min() < 0 or cells.max() >= points.shape[0]):
+        bad = int(np.flatnonzero(((cells < 0) | (cells >= points.shape[0])).any(axis=1))[0])
+        raise DicerError(f"{_line(element_rows, bad)}elements refer to nodes that do not exist (element {bad + 1}; "
+                         f"the file has {points.shape[0]} nodes)")
+    out.update(points=points, cells=cells, material=pids)
+    return out
+
+
+def _line(rows: np.ndarray | None, i: int) -> str:
+    """``line L: `` of the i-th card of a block (nothing for cards cut out of the text)."""
+    return "" if rows is None else f"line {rows[i] + 1}: "
+
+
+def _run_one_to_n(ids: np.ndarray, rows: np.ndarray | None, message: str) -> None:
+    """Raise DicerError naming the first card whose id is not its place (1, 2, ...)."""
+    wrong = ids != np.arange(1, ids.size + 1, dtype=ids.dtype)
+    if wrong.any():
+        i = int(np.flatnonzero(wrong)[0])
+        raise DicerError(f"{_line(rows, i)}{message} (id {ids[i]} on card {i + 1})")
+
+
+def _cards(lines: Lines, rows: np.ndarray, card: tuple):
+    """The data cards of a *NODE or *ELEMENT_SOLID block, from its lines.
+
+    Parameters
+    ----------
+    lines : Lines
+    rows : (n,) int ndarray
+        The block's non-comment lines.
+    card : tuple
+        ``(widths, kinds, names)``: columns, ``i``/``f`` and the name of each field.
+
+    Returns
+    -------
+    (ints, reals)
+        (n, fields) arrays: integers int32 when parsed at once, int64 when read column by
+        column (comment lines among the cards), reals float64.
+    rows : (n,) int ndarray
+        The cards' lines.
+
+    Raises
+    ------
+    DicerError
+        Naming the line.
+    """
+    widths, kinds, names = card
+    lines.lengths_are(rows, sum(widths), names[0].split()[0])
+    if rows.size and int(rows[-1]) - int(rows[0]) + 1 == rows.size:  # one run of lines: at once
+        buf = lines.arr[int(lines.starts[rows[0]]) : int(lines.ends[rows[-1]]) + 1]
+        return _parse_cards(lines, rows, buf, card), rows
+    # comment lines between the cards: column by column, as the lines come
+    edges = np.cumsum((0,) + tuple(widths))
+    cols = {k: [(lines.ints if k == "i" else lines.floats)(rows, int(edges[j]), widths[j], names[j])
+                for j in range(len(widths)) if kinds[j] == k] for k in "if"}
+    return tuple(np.column_stack(cols[k]) if cols[k] else np.zeros((rows.size, 0)) for k in "if"), rows
+
+
+def _card_error(lines: Lines, row: int, col: int, card: tuple, reason: str) -> DicerError:
+    """The error for a bad character at column ``col`` (0-based) of line ``row``, a card of ``card``'s fields."""
+    widths, kinds, names = card
+    edges = np.cumsum((0,) + tuple(widths))
+    j = int(np.searchsorted(edges, col, side="right")) - 1
+    if j >= len(widths):
+        return DicerError(f"line {row + 1}: {reason} in column {col + 1}")
+    a, b = int(edges[j]), int(edges[j + 1])
+    text = lines.text(row)[a:b]
+    return DicerError(f"line {row + 1}: {names[j]}: {text!r} in columns {a + 1}-{b} is not "
+                      f"{'an integer' if kinds[j] == 'i' else 'a number'} as dicer writes it ({reason} in "
+                      f"column {col + 1})")
+
+
+def _parse_cards(lines: Lines, rows: np.ndarray, buf: np.ndarray, card: tuple):
+    """Check and convert cards of one layout at once (:func:`parse_records`).
+
+    Parameters
+    ----------
+    lines : Lines
+    rows : (n,) int ndarray
+        The cards' lines, each ``sum(widths)`` columns long (checked by the caller).
+    buf : (n * (sum(widths) + 1),) uint8 ndarray
+        Those lines back to back, newlines included.
+    card : tuple
+        ``(widths, kinds, names)``.
+
+    Returns
+    -------
+    ints : (n, kinds.count("i")) ndarray
+        int32 for fields of up to 9 columns, else int64.
+    reals : (n, kinds.count("f")) float64 ndarray
+
+    Raises
+    ------
+    DicerError
+        At the first character that does not fit the first card's layout, naming its line
+        and column.
+    """
+    widths, kinds, _ = card
+    length = sum(widths) + 1
+    try:
+        layout = layout_of_columns(bytes(buf[:length]), widths)
+        if layout.kinds != kinds:  # a real where an integer belongs, or the other way round
+            j = next(j for j in range(len(kinds)) if layout.kinds[j] != kinds[j])
+            raise FormatError(sum(widths[:j]), f"{'a real' if layout.kinds[j] == 'f' else 'an integer'} field")
+        return parse_records(buf, layout)
+    except FormatError as exc:
+        i, col = divmod(exc.offset, length)  # whole cards: the offset gives the card and column
+        raise _card_error(lines, int(rows[min(i, rows.size - 1)]), col, card, exc.message) from None
+
+
+def _block_rows(key_rows: np.ndarray, bounds: np.ndarray, blocks: np.ndarray, comment: np.ndarray):
+    """The non-comment lines of many blocks.
+
+    Parameters
+    ----------
+    key_rows : (K,) int ndarray
+        The keyword lines.
+    bounds : (K + 1,) int ndarray
+        ``key_rows``, then the line count.
+    blocks : (S,) int ndarray
+        Indices into ``key_rows``, increasing.
+    comment : (n,) bool ndarray
+
+    Returns
+    -------
+    rows : (r,) int64 ndarray
+        The lines, in file order.
+    owner : (r,) int ndarray
+        The index into ``blocks`` of each line's block.
+    first, count : (S,) int ndarray
+        Where each block's lines start in ``rows``, and how many there are.
+    """
+    lo, hi = key_rows[blocks] + 1, bounds[blocks + 1]
+    size = hi - lo
+    rows = np.arange(int(size.sum()), dtype=np.int64) + np.repeat(lo - (np.cumsum(size) - size), size)
+    owner = np.repeat(np.arange(blocks.size), size)
+    keep = ~comment[rows]
+    rows, owner = rows[keep], owner[keep]
+    count = np.bincount(owner, minlength=blocks.size)
+    return rows, owner, np.cumsum(count) - count, count
+
+
+def _cards_per_block(lines: Lines, key_rows, bounds, comment, blocks, want: int, message: str, columns: int):
+    """``(rows, first)`` (see :func:`_block_rows`) of blocks that must hold ``want`` non-comment lines
+    each, the last one (the data card) at least ``columns`` long; DicerError naming the line."""
+    rows, _, first, count = _block_rows(key_rows, bounds, blocks, comment)
+    if np.any(count != want):
+        raise DicerError(f"line {key_rows[blocks[int(np.flatnonzero(count != want)[0])]] + 1}: {message}")
+    data = rows[first + want - 1]
+    short = lines.lengths[data] < columns
+    if short.any():
+        row = int(data[np.flatnonzero(short)[0]])
+        raise DicerError(f"line {row + 1}: {message.split()[0]} card has {lines.lengths[row]} columns, "
+                         f"expected at least {columns}")
+    return rows, first
+
+
+def _parts(lines: Lines, key_rows, bounds, comment, blocks: dict, out: dict) -> None:
+    """The *PART, *SECTION_SOLID and *MAT_ELASTIC blocks (one per material: thousands for an atlas),
+    each field converted for all blocks of a kind at once, into ``out``."""
+    if blocks["*PART"].size:
+        rows, first = _cards_per_block(lines, key_rows, bounds, comment, blocks["*PART"], 2,
+                                       "*PART needs a title card and one data card", 30)
+        pid, secid, mid = (lines.ints(rows[first + 1], 10 * k, 10, "*PART") for k in range(3))
+        for t, p, s, m in zip(rows[first], pid.tolist(), secid.tolist(), mid.tolist()):
+            out["parts"][p] = {"title": lines.text(t).strip(), "secid": s, "mid": m}
+    if blocks["*SECTION_SOLID"].size:
+        rows, first = _cards_per_block(lines, key_rows, bounds, comment, blocks["*SECTION_SOLID"], 1,
+                                       "*SECTION_SOLID needs one data card", 20)
+        secid = lines.ints(rows, 0, 10, "*SECTION_SOLID")
+        elform = lines.ints(rows, 10, 10, "*SECTION_SOLID ELFORM")
+        out["sections"] = sections = {}
+        for s, e in zip(secid.tolist(), elform.tolist()):
+            sections[s] = e
+    if blocks["*MAT_ELASTIC"].size:
+        rows, first = _cards_per_block(lines, key_rows, bounds, comment, blocks["*MAT_ELASTIC"], 1,
+                                       "*MAT_ELASTIC needs one data card", 40)
+        mid = lines.ints(rows, 0, 10, "*MAT_ELASTIC")
+        ro, e, pr = (lines.floats(rows, 10 * k, 10, "*MAT_ELASTIC") for k in (1, 2, 3))
+        for m, values in zip(mid.tolist(), zip(ro.tolist(), e.tolist(), pr.tolist())):
+            out["materials"][m] = values
+
+
+def _gather(lines: Lines, rows: np.ndarray, length: int) -> np.ndarray:
+    """(len(rows) * length,) uint8: the first ``length`` bytes of each line ``rows``, back to back."""
+    out = np.empty((rows.size, length), np.uint8)
+    for a in range(0, rows.size, CHUNK_ROWS):  # a chunk at a time: the index array stays a few MB
+        r = rows[a : a + CHUNK_ROWS]
+        out[a : a + r.size] = lines.arr[lines.starts[r][:, None] + np.arange(length)]
+    return out.ravel()
+
+
+def _node_sets(lines: Lines, key_rows: np.ndarray, bounds: np.ndarray, blocks: np.ndarray,
+               comment: np.ndarray) -> dict:
+    """The *SET_NODE_LIST_TITLE blocks, all sets' cards checked and converted together.
+
+    Each block holds a title card, a SID card and data cards of 8 x I10 node ids, all
+    full but the last.
+
+    Parameters
+    ----------
+    lines : Lines
+    key_rows : (K,) int ndarray
+        The keyword lines.
+    bounds : (K + 1,) int ndarray
+        ``key_rows``, then the line count.
+    blocks : (S,) int ndarray
+        The indices (into ``key_rows``) of the node set blocks, in file order.
+    comment : (n,) bool ndarray
+        Comment lines (``$``), left out.
+
+    Returns
+    -------
+    dict
+        title -> (m,) int64 0-based node ids, in file order (a later set of a title
+        replaces an earlier one).
+
+    Raises
+    ------
+    DicerError
+        Naming the line.
+    """
+    if blocks.size == 0:
+        return {}
+    rows, sid, first, count = _block_rows(key_rows, bounds, blocks, comment)
+    if np.any(count < 2):
+        s = int(np.flatnonzero(count < 2)[0])
+        raise DicerError(f"line {key_rows[blocks[s]] + 1}: *SET_NODE_LIST_TITLE needs a title and a data card")
+    names = [lines.text(r).strip() for r in rows[first]]
+    data = np.arange(rows.size) - np.repeat(first, count) >= 2  # after the title and SID cards
+    rows, sid = rows[data], sid[data]
+    length = lines.lengths[rows]
+    last = np.ones(rows.size, bool)  # the last card of its set
+    last[:-1] = sid[1:] != sid[:-1]
+    full = _SET_FIELD * 8
+    for bad, why in ((length % _SET_FIELD != 0, "cards must be whole 10-column fields"),
+                     (length > full, f"a card of more than {full} columns"),
+                     ((length < full) & ~last, "only the last card may be short")):
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise DicerError(f"line {rows[i] + 1}: node set {names[sid[i]]}: {why}")
+    per = length // _SET_FIELD  # ids per card
+    at = np.cumsum(per) - per  # where each card's ids go
+    flat = np.empty(int(per.sum()), np.int64)
+    # the full cards together, then the short last cards a length at a time (at most 7 lengths)
+    for k in np.unique(per[per > 0]).tolist():
+        pick = np.flatnonzero(per == k)
+        card = ((_SET_FIELD,) * k, "i" * k, ("node set",) * k)
+        ints, _ = _parse_cards(lines, rows[pick], _gather(lines, rows[pick], _SET_FIELD * k + 1), card)
+        flat[at[pick][:, None] + np.arange(k)] = ints
+    flat -= 1
+    ends = np.cumsum(np.bincount(sid, weights=per, minlength=blocks.size).astype(np.int64))
+    out: dict = {}
+    for name, ids in zip(names, np.split(flat, ends[:-1])):
+        out[name] = ids
     return out
 
 

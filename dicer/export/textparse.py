@@ -210,6 +210,62 @@ def layout_of(record: bytes, terminated: bool = True) -> Layout:
                   signs=np.array(signs, np.intp), esigns=np.array(esigns, np.intp), runs=_runs(fields))
 
 
+def layout_of_columns(record: bytes, widths, terminated: bool = True) -> Layout:
+    """The layout of a record of fixed columns without separators (LS-DYNA cards).
+
+    Each field fills its columns: a blank-padded integer or a blank-padded real
+    ``[ -]d.ddd[eE][+-]XX``, read off the field as :func:`layout_of` reads one.
+
+    Parameters
+    ----------
+    record : bytes
+        ``sum(widths)`` columns, then a newline when ``terminated``.
+    widths : sequence of int
+        Columns per field, in order from column 0.
+    terminated : bool, optional
+        The record ends with a newline.
+
+    Returns
+    -------
+    Layout
+
+    Raises
+    ------
+    FormatError
+        A field that is not one number filling its columns (offset of its first column or
+        its bad character), or a record of another length.
+    """
+    n = sum(widths) + bool(terminated)
+    if len(record) != n or (terminated and record[-1:] != b"\n"):
+        raise FormatError(min(len(record), n - 1), f"a record of {len(record)} bytes where {n} belong")
+    parts, fields, kinds, a = [], [], [], 0
+    for w in widths:
+        try:
+            one = layout_of(record[a : a + w], terminated=False)
+        except FormatError as exc:
+            raise FormatError(a + exc.offset, exc.message) from None
+        if len(one.kinds) != 1 or one.runs[0].start != 0 or one.runs[0].width != w:
+            raise FormatError(a, f"{record[a : a + w].decode('ascii', 'replace')!r} is not one number "
+                                 f"filling columns {a + 1}-{a + w}")
+        parts.append(one)
+        fields.append(dataclasses.replace(one.runs[0], start=a))
+        kinds.append(one.kinds)
+        a += w
+    # the fields' layouts side by side, then the newline (a separator column)
+    tail = (np.array([10], np.uint8),) if terminated else ()
+    template = np.concatenate([p.template for p in parts] + list(tail))
+    ormask = np.concatenate([p.ormask for p in parts] + [np.zeros(len(tail), np.uint8)])
+    klass = np.concatenate([p.klass for p in parts] + [np.full(len(tail), _C_SEP, np.uint8)])
+    pairs = np.zeros(max(n - 1, 0), bool)  # never across fields: each is right-aligned in its own
+    starts = np.cumsum([0] + list(widths))
+    for p, s in zip(parts, starts):
+        pairs[s : s + p.pairs.size] = p.pairs
+    signs = np.concatenate([p.signs + s for p, s in zip(parts, starts)] + [np.zeros(0, np.intp)]).astype(np.intp)
+    esigns = np.concatenate([p.esigns + s for p, s in zip(parts, starts)] + [np.zeros(0, np.intp)]).astype(np.intp)
+    return Layout(length=n, kinds="".join(kinds), template=template, ormask=ormask, klass=klass, pairs=pairs,
+                  signs=signs, esigns=esigns, runs=_runs(fields))
+
+
 def _describe(layout: Layout, col: int, byte: int) -> str:
     sep = "a line end" if layout.template[col] == 10 else repr(chr(layout.template[col]))
     want = _EXPECTED[int(layout.klass[col])].format(sep=sep)

@@ -33,13 +33,12 @@ import numpy as np
 from dicer.errors import DicerError
 from dicer.export.format import Format
 from dicer.export.readers import compare, named, tolerance
-from dicer.export.textfmt import (Float, Int, Sci, aligned_width, int_line_blocks, int_lines, int_width, row_ids,
-                                  write_chunks)
+from dicer.export.textfmt import (Float, Int, Sci, aligned_width, int_lines, int_width, row_ids, write_chunks,
+                                  write_int_blocks)
 from dicer.export.textparse import FormatError, layout_of, parse_int_list, parse_records, record_length
 from dicer.mesh.topology import MESHIO_TYPES
 
 PER_LINE = 16  # CalculiX and Abaqus: at most 16 entries on a data line
-_SET_GROUP = 1 << 21  # node set entries formatted together (an atlas has thousands of small sets)
 
 
 def _num(v: float) -> str:
@@ -130,15 +129,9 @@ def write_abaqus(model, path: str | Path) -> None:
             w(f"*ELEMENT, TYPE={model.element_type}, ELSET={model.names[k]}".encode())
             element_block(f, model.cells, elements, wid, wid_cont)
             w(b"\n")
-        # many sets at once (an atlas has thousands), in groups of a bounded size
-        group, held = [], 0
-        for name, ids in [*model.node_sets.items(), (None, None)]:
-            if group and (name is None or held + ids.size > _SET_GROUP):
-                w(int_line_blocks([h for h, _ in group], [v for _, v in group], PER_LINE, wid))
-                group, held = [], 0
-            if name is not None:
-                group.append((f"*NSET, NSET={name}\n".encode(), ids + 1))
-                held += ids.size
+        # many sets at once (an atlas has thousands)
+        write_int_blocks(w, ((f"*NSET, NSET={name}\n".encode(), ids + 1) for name, ids in model.node_sets.items()),
+                         PER_LINE, wid)
         if model.exterior is not None and model.exterior.size:
             faces = model.exterior
             present = []

@@ -30,7 +30,7 @@ import numpy as np
 from dicer.errors import DicerError
 from dicer.export.format import Format
 from dicer.export.readers import Lines, compare, named
-from dicer.export.textfmt import Float, Int, Sci, int_lines, row_ids, write_chunks
+from dicer.export.textfmt import Float, Int, Sci, row_ids, write_chunks, write_int_blocks
 from dicer.export.textparse import CHUNK_ROWS, FormatError, layout_of_columns, parse_records
 
 E16 = Sci(9, b"e", width=16)
@@ -77,9 +77,9 @@ def write_lsdyna(model, path: str | Path) -> None:
         w(b"*ELEMENT_SOLID\n$#   eid     pid      n1      n2      n3      n4      n5      n6      n7      n8\n")
         write_chunks(f, model.n_cells, lambda a, b: [Int(row_ids(a, b), 8), Int(model.material[a:b], 8)]
                      + [Int(model.cells[a:b, j] + 1, 8) for j in range(8)] + [b"\n"])
-        for sid, (name, ids) in enumerate(model.node_sets.items(), start=1):
-            w(f"*SET_NODE_LIST_TITLE\n{name}\n$#     sid\n{sid:10d}\n".encode())
-            w(int_lines(ids + 1, 8, 10, sep=b""))  # 8 x I10
+        write_int_blocks(w, ((f"*SET_NODE_LIST_TITLE\n{name}\n$#     sid\n{sid:10d}\n".encode(), ids + 1)
+                             for sid, (name, ids) in enumerate(model.node_sets.items(), start=1)),
+                         8, 10, sep=b"")  # 8 x I10
         w(b"*END\n")
 
 

@@ -559,6 +559,36 @@ def int_line_blocks(headers: list[bytes], blocks: list[np.ndarray], per_line: in
     return out.tobytes()
 
 
+SET_GROUP = 1 << 21
+"""Set entries formatted together by :func:`write_int_blocks` (an atlas has thousands of small sets)."""
+
+
+def write_int_blocks(write, blocks, per_line: int, width: int, sep: bytes = b",", group: int = SET_GROUP) -> None:
+    """``write(header + int_lines(values, ...))`` for every ``(header, values)`` of ``blocks``,
+    formatted by :func:`int_line_blocks` in groups of at most ``group`` values (a bounded
+    buffer; one call per set costs more than its numbers).
+
+    Parameters
+    ----------
+    write : callable
+        Takes bytes.
+    blocks : iterable of (bytes, (n_i,) int ndarray)
+    per_line, width, sep
+        As :func:`int_lines`.
+    group : int, optional
+    """
+    batch: list = []
+    held = 0
+    for header, values in blocks:
+        if batch and held + values.size > group:
+            write(int_line_blocks([h for h, _ in batch], [v for _, v in batch], per_line, width, sep))
+            batch, held = [], 0
+        batch.append((header, values))
+        held += values.size
+    if batch:
+        write(int_line_blocks([h for h, _ in batch], [v for _, v in batch], per_line, width, sep))
+
+
 def compact_rows(fields: list[Field], n: int, chunk: int = CHUNK_ROWS) -> Iterator[bytes]:
     """Like :func:`format_rows`, but numbers take only the characters they need.
 

@@ -15,7 +15,7 @@ import pytest
 from dicer.config import load_config
 from dicer.errors import DicerError
 from dicer.export import export_mesh, prepare_model
-from dicer.export.febio import FACET_TYPES, FEBIO_TYPES, SPEC_VERSION, read_febio
+from dicer.export.febio import FACET_TYPES, FEBIO_TYPES, SPEC_VERSION, _complete, read_febio
 from dicer.mesh.voxel import voxel_mesh
 from test_export_formats import labels, mesh  # noqa: F401  (the same two-material model)
 
@@ -405,23 +405,8 @@ def _read_febio_tree(path: str | Path) -> dict:
             _tree_end_element(path_, el, stack, parents, out, got)
     except ET.ParseError as exc:
         raise DicerError(f"not well-formed XML ({exc})") from None
-    _tree_complete(out, sections)
+    _complete(out, sections)  # the closing checks are the same function as the bulk reader's
     return out
-
-
-def _tree_complete(out: dict, sections: list[str]) -> None:
-    """Raise DicerError unless the file read into ``out`` has every section and valid node references."""
-    if out.get("version") != SPEC_VERSION:
-        raise DicerError(f"febio_spec version {out.get('version')!r}, expected {SPEC_VERSION!r}")
-    for need in ("Module", "Material", "Mesh", "MeshDomains"):
-        if need not in sections:
-            raise DicerError(f"no <{need}> section")
-    if "points" not in out or not out["blocks"]:
-        raise DicerError("no <Nodes> or <Elements> in <Mesh>")
-    n = out["points"].shape[0]
-    for etype, name, _, conn in out["blocks"]:
-        if conn.size and (conn.min() < 0 or conn.max() >= n):
-            raise DicerError(f"elements of {name} refer to nodes that do not exist")
 
 
 def _tree_end_element(path_: str, el, stack: list[str], parents: list, out: dict, got: dict) -> None:

@@ -508,8 +508,7 @@ def do_export(mesh_path: str, out: Path, config: dict, mesh=None, neighbours=Non
         # the export only reads the mesh: its arrays stay in the page cache, mapped, not copied
         mesh = read_mesh(mesh_path, mapped=True) if mesh is None else mesh
         named = [m["name"] for m in config["materials"]]
-        differ = [(a, b) for a, b in zip(mesh.names, named) if a != b]
-        if differ:  # properties go by material number: the mesh's own names say which were meant
+        if any(a != b for a, b in zip(mesh.names, named)):  # properties go by material number: the mesh's own names say which were meant
             log.warning("export: the mesh names its materials %s, the config %s; the deck takes the config's names "
                         "and properties by material number: give --materials materials.json (written by dicer "
                         "labels / dicer run --labels) or a config with these materials",

@@ -24,6 +24,7 @@ Measured at 256³: ``dicer run`` 37-38 s with 16-17 s in the kernel -> 31-34 s w
 from __future__ import annotations
 
 import ctypes
+import mmap
 import os
 import platform
 from collections.abc import Iterator
@@ -90,3 +91,23 @@ def reuse_freed_memory() -> bool:
         return False
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
     return bool(mallopt(_M_ARENA_MAX, 1) & mallopt(_M_MMAP_MAX, 0) & mallopt(_M_TRIM_THRESHOLD, 2**31 - 1))
+
+
+def map_readonly(fileno: int) -> mmap.mmap:
+    """A whole open file mapped read-only, its pages mapped at once where the system can
+    (Linux ``MAP_POPULATE``): one call instead of a page fault per 64 KiB when a reader then
+    goes through all of it (490 MB: 0.08-0.11 s -> 0.02 s).
+
+    Parameters
+    ----------
+    fileno : int
+        A file descriptor open for reading, of a file that is not empty.
+
+    Returns
+    -------
+    mmap.mmap
+    """
+    populate = getattr(mmap, "MAP_POPULATE", 0)
+    if populate:
+        return mmap.mmap(fileno, 0, flags=mmap.MAP_SHARED | populate, prot=mmap.PROT_READ)
+    return mmap.mmap(fileno, 0, access=mmap.ACCESS_READ)

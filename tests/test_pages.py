@@ -74,3 +74,19 @@ def test_freed_arrays_memory_is_reused_by_the_next_array():
     assert fresh > 10_000  # glibc's default: 16,384 fresh pages, each faulted in
     applied, faults = _second_array_faults("reuse", MALLOC_ARENA_MAX="4")  # the user's own tuning stands
     assert applied == "False" and faults > 10_000
+
+
+def test_map_readonly_gives_the_whole_file_and_refuses_writes(tmp_path):
+    import numpy as np
+
+    from dicer.pages import map_readonly
+
+    data = np.random.default_rng(0).integers(0, 256, 3 * 4096 + 17, dtype=np.uint8).tobytes()
+    path = tmp_path / "f.bin"
+    path.write_bytes(data)
+    with open(path, "rb") as f:
+        mapped = map_readonly(f.fileno())
+    assert len(mapped) == len(data) and mapped[:] == data
+    with pytest.raises(TypeError):
+        mapped[0] = 1
+    mapped.close()

@@ -32,6 +32,7 @@ from dicer.export.format import Format
 from dicer.export.readers import Lines, compare, named
 from dicer.export.textfmt import Float, Int, Sci, row_ids, write_chunks, write_int_blocks
 from dicer.export.textparse import CHUNK_ROWS, FormatError, layout_of_columns, parse_records
+from dicer.pages import map_readonly
 
 E16 = Sci(9, b"e", width=16)
 ELFORM = {"C3D8": 2, "C3D8R": 1, "C3D8I": -2}
@@ -174,17 +175,11 @@ def _cut_large_blocks(path: Path):
         (material, cells) as :func:`_elements_in_place` does; None for a file of another
         layout, or a flaw in these cards (the caller reads it line by line).
     """
-    import mmap
-
     try:
         with open(path, "rb") as f:
             if os.fstat(f.fileno()).st_size == 0:
                 return None
-            # no copy of a file of GBs; its pages mapped at once where the system can (Linux):
-            # faster than a fault per page
-            populate = getattr(mmap, "MAP_POPULATE", 0)
-            data = (mmap.mmap(f.fileno(), 0, flags=mmap.MAP_SHARED | populate, prot=mmap.PROT_READ) if populate
-                    else mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ))
+            data = map_readonly(f.fileno())  # no copy of a file of GBs
     except (OSError, ValueError):
         return None
     try:

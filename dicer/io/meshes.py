@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import mmap
 import os
 import shutil
 import zlib
@@ -40,6 +39,7 @@ from dicer.mesh.frame import check_direction, mirrored, to_lattice
 from dicer.mesh.metrics import QUALITY_DATA, lattice_box_quality, quality_arrays, scaled_jacobian
 from dicer.mesh.model import LEVEL_DATA, Mesh
 from dicer.mesh.topology import HEX_MIRROR
+from dicer.pages import map_readonly
 from dicer.parallel import ordered_map
 
 _FIELDS = ("spacing", "origin", "grid_shape", "direction", "scanner_coordinates")
@@ -512,7 +512,7 @@ def _read_raw_vtu(path: Path, name: str, mapped: bool = False):
                 f.seek(start)
                 return np.fromfile(f, dtype, count)
             if not maps:
-                maps.append(np.frombuffer(mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ), np.uint8))
+                maps.append(np.frombuffer(map_readonly(f.fileno()), np.uint8))
             whole = maps[0]
             stop = min(start + count * dtype.itemsize, whole.size) if start >= 0 else 0
             stop -= (stop - start) % dtype.itemsize if stop > start else 0

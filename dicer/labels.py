@@ -197,7 +197,14 @@ def _write_nifti_like(header: bytes, endian: str, array: np.ndarray, path: Path)
             f.write(bytes(head) + b"\0\0\0\0" + data)
         from dicer.io.images import read_labels
 
-        back = read_labels(tmp)
+        # the source's header was judged (and any warning about it given) when it was read
+        images_log = logging.getLogger("dicer.io.images")
+        level = images_log.level
+        images_log.setLevel(logging.ERROR)
+        try:
+            back = read_labels(tmp)
+        finally:
+            images_log.setLevel(level)
         # a single slice reads back as a 2D image
         if back.array.size != array.size or not np.array_equal(back.array, array.reshape(back.array.shape)):
             raise DicerError(f"{path}: read-back check failed: the file does not hold the labels written; "
@@ -211,10 +218,13 @@ def _same_placement(volume: Volume, source: Path, axes: tuple[int, ...] | None =
     its direction dropped); default all."""
     import SimpleITK as sitk
 
+    from dicer.io.images import quiet_itk
+
     reader = sitk.ImageFileReader()
     reader.SetFileName(str(source))
     try:
-        reader.ReadImageInformation()
+        with quiet_itk():
+            reader.ReadImageInformation()
     except RuntimeError:
         return False
     n = volume.array.ndim

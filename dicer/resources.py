@@ -42,10 +42,13 @@ def scan_header(path: str | os.PathLike) -> tuple[int, tuple[float, ...] | None]
             return max(1, path.stat().st_size // 2), None
     import SimpleITK as sitk
 
+    from dicer.io.images import quiet_itk
+
     reader = sitk.ImageFileReader()
     reader.SetFileName(str(path))
     try:
-        reader.ReadImageInformation()
+        with quiet_itk():
+            reader.ReadImageInformation()
     except RuntimeError:  # not an image SimpleITK reads (the stage will say why)
         return max(1, path.stat().st_size // 2), None
     return int(np.prod(reader.GetSize())), tuple(reader.GetSpacing())

@@ -16,6 +16,7 @@ import SimpleITK as sitk
 
 from dicer.cli import main
 from dicer.config import load_config
+from dicer.errors import DicerError
 from dicer.export import prepare_model
 from dicer.io.images import read_image, read_labels
 from dicer.io.meshes import read_mesh
@@ -152,6 +153,54 @@ def test_sform_only_nifti_matches_its_ras_affine(tmp_path):
     err = np.abs(model.points @ LPS_TO_RAS - corners @ ras[:3].T).max()
     assert err < 1e-5
     assert np.abs(model.points - itk_points(sitk.ReadImage(str(path)), mesh.lattice - 0.5)).max() < 1e-9
+
+
+def write_two_placement_nifti(path: Path, array: np.ndarray, sform: np.ndarray, qform_angle: float | None):
+    """A NIfTI-1 with the given RAS sform (3, 4) and, unless None, a qform rotating by
+    ``qform_angle`` about z, at offset (5, 6, 7) mm, voxels of SPACING (pixdim)."""
+    head = bytearray(348)
+    struct.pack_into("<i", head, 0, 348)
+    struct.pack_into("<8h", head, 40, 3, *array.shape, 1, 1, 1, 1)
+    struct.pack_into("<2h", head, 70, 2, 8)  # uint8
+    struct.pack_into("<8f", head, 76, 1.0, *SPACING, 1, 1, 1, 1)
+    struct.pack_into("<f", head, 108, 352.0)
+    struct.pack_into("<f", head, 112, 1.0)
+    head[123] = 2
+    struct.pack_into("<2h", head, 252, 0 if qform_angle is None else 1, 2)
+    if qform_angle is not None:
+        struct.pack_into("<6f", head, 256, 0.0, 0.0, np.sin(qform_angle / 2), 5.0, 6.0, 7.0)
+    struct.pack_into("<12f", head, 280, *np.asarray(sform, float).ravel())
+    head[344:348] = b"n+1\0"
+    with gzip.open(path, "wb") as f:
+        f.write(bytes(head) + b"\0" * 4 + array.astype(np.uint8).tobytes(order="F"))
+
+
+@pytest.mark.parametrize("distortion", ["scaled", "sheared"])
+def test_an_sform_that_is_not_rigid_gives_way_to_the_qform(tmp_path, caplog, distortion):
+    # e.g. a registration to a template stored in the sform: ITK would apply a scaled sform
+    # without its scale, and a sheared one not at all; the qform is the scan's own geometry
+    sform = np.zeros((3, 4))
+    sform[:3, :3] = LPS_TO_RAS @ OBLIQUE * np.asarray(SPACING)
+    sform[:, 3] = (-40.0, -50.0, -30.0)
+    if distortion == "scaled":
+        sform[:, 2] *= 1.2
+    else:
+        sform[0, 2] += 0.3
+    path = tmp_path / "two.nii.gz"
+    angle = 0.4
+    write_two_placement_nifti(path, labels_array(), sform, angle)
+    volume = read_labels(path)
+    assert "meshing in the qform's scanner geometry" in caplog.text
+    rz = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    assert np.allclose(np.reshape(volume.direction, (3, 3)), LPS_TO_RAS @ rz, atol=1e-6)
+    assert np.allclose(volume.spacing, SPACING)
+    # Volume.origin: ITK's origin (voxel 0's centre) less half a voxel per index axis
+    centre = np.asarray(volume.origin) + np.asarray(SPACING) / 2
+    assert np.allclose(centre, LPS_TO_RAS @ np.array([5.0, 6.0, 7.0]), atol=1e-5)
+    # without a qform there is no rigid placement to use: refused with the fix
+    write_two_placement_nifti(path, labels_array(), sform, None)
+    with pytest.raises(DicerError, match="no qform to use instead; resample the image"):
+        read_labels(path)
 
 
 def _run(*argv) -> None:

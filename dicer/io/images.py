@@ -82,7 +82,7 @@ def _natural_key(name: str):
 
 
 @contextlib.contextmanager
-def _quiet_itk():
+def quiet_itk():
     # ITK/GDCM print warnings straight to stderr; dicer reports problems itself
     previous = sitk.ProcessObject.GetGlobalWarningDisplay()
     sitk.ProcessObject.SetGlobalWarningDisplay(False)
@@ -331,6 +331,78 @@ def _check_nifti_complete(path: Path) -> tuple[float, ...] | None:
     return spatial
 
 
+def _nifti_placement(path: Path, spatial: tuple[float, ...]):
+    """The qform placement to use instead of a NIfTI file's sform, or None when ITK's own is right.
+
+    ITK places voxels by the sform when its code is set, keeping pixdim as the spacing: an
+    sform whose columns are not pixdim long (a scaling, e.g. a transform to a template
+    space) is then applied without its scale, and a sheared one falls back to the qform
+    or fails. The qform is always a rigid placement of pixdim-sized voxels (the scanner
+    geometry), so it is used whenever the sform is not one; without a qform such a file
+    has no rigid placement and is refused.
+
+    Returns
+    -------
+    tuple or None
+        ``(direction, origin)`` for ITK's LPS frame: direction (n, n) row-major tuple,
+        origin of voxel 0's centre in mm (n,), n = len(spatial).
+    """
+    opener = gzip.open if path.name.lower().endswith(".gz") else open
+    with opener(path, "rb") as f:
+        head = f.read(540)
+    found = False
+    for e in "<>":
+        (sizeof_hdr,) = struct.unpack(e + "i", head[:4])
+        if sizeof_hdr == 348:  # NIfTI-1
+            (qfac,) = struct.unpack(e + "f", head[76:80])
+            qcode, scode = struct.unpack(e + "2h", head[252:256])
+            quat = struct.unpack(e + "6f", head[256:280])
+            srow = struct.unpack(e + "12f", head[280:328])
+            found = True
+        elif sizeof_hdr == 540 and len(head) >= 540:  # NIfTI-2
+            (qfac,) = struct.unpack(e + "d", head[104:112])
+            qcode, scode = struct.unpack(e + "2i", head[344:352])
+            quat = struct.unpack(e + "6d", head[352:400])
+            srow = struct.unpack(e + "12d", head[400:496])
+            found = True
+    n = len(spatial)
+    if not found or scode <= 0 or n < 2:
+        return None
+    affine = np.asarray(srow, float).reshape(3, 4)
+    lengths = np.linalg.norm(affine[:, :n], axis=0)
+    if not np.all(np.isfinite(affine)) or np.any(lengths == 0):
+        scale_error, shear = np.inf, np.inf
+    else:
+        scale_error = float(np.max(np.abs(lengths - np.abs(spatial)) / np.abs(spatial)))
+        unit = affine[:, :n] / lengths
+        shear = float(np.max(np.abs(unit.T @ unit - np.eye(n))))
+    # float32 headers round at 1e-7; ITK's own tolerances are 1e-3 mm and 1e-4
+    if scale_error <= 1e-4 and shear <= 1e-4:
+        return None
+    sizes = ", ".join(f"{v:.4g}" for v in lengths)
+    stored = ", ".join(f"{v:.4g}" for v in spatial)
+    problem = (f"the header's sform (code {scode}) does not place voxels of the pixdim size rigidly "
+               f"(column lengths {sizes} mm against pixdim {stored} mm, largest angle error {shear:.2g})")
+    if qcode <= 0:
+        raise DicerError(
+            f"{path}: {problem} and there is no qform to use instead; resample the image onto its sform "
+            "grid, or write pixdim and an orthonormal sform that agree (e.g. with nibabel)"
+        )
+    log.warning("%s: %s, so it maps to another space; meshing in the qform's scanner geometry", path.name,
+                problem.replace("the header's ", "its "))
+    b, c, d, qx, qy, qz = quat
+    a = np.sqrt(max(0.0, 1.0 - (b * b + c * c + d * d)))
+    rotation = np.array([[a * a + b * b - c * c - d * d, 2 * (b * c - a * d), 2 * (b * d + a * c)],
+                         [2 * (b * c + a * d), a * a + c * c - b * b - d * d, 2 * (c * d - a * b)],
+                         [2 * (b * d - a * c), 2 * (c * d + a * b), a * a + d * d - c * c - b * b]])
+    if qfac < 0:
+        rotation[:, 2] = -rotation[:, 2]
+    lps = np.diag([-1.0, -1.0, 1.0])  # NIfTI is RAS, ITK LPS
+    direction = (lps @ rotation)[:n, :n]
+    origin = (lps @ np.array([qx, qy, qz]))[:n]
+    return tuple(direction.ravel()), tuple(origin)
+
+
 #: bytes per element of the MetaImage element types
 _MET_SIZES = {"MET_CHAR": 1, "MET_UCHAR": 1, "MET_SHORT": 2, "MET_USHORT": 2, "MET_INT": 4, "MET_UINT": 4,
               "MET_LONG": 4, "MET_ULONG": 4, "MET_LONG_LONG": 8, "MET_ULONG_LONG": 8, "MET_FLOAT": 4,
@@ -471,8 +543,10 @@ def _read_file(path: Path, spacing_arg, dtype=np.float32, keep_direction=False) 
     if suffix not in IMAGE_SUFFIXES:
         raise DicerError(f"{path}: unknown image format {suffix or '(no extension)'!r}; {_SUPPORTED}")
     bad_header_spacing = False
+    placement = None
     if suffix in (".nii", ".nii.gz"):
         pixdim = _check_nifti_complete(path)
+        placement = _nifti_placement(path, pixdim) if pixdim is not None and not _bad_spacing(pixdim) else None
         # ITK reads a zero or NaN pixdim as 1 mm: judge the stored values instead
         if pixdim is not None and _bad_spacing(pixdim):
             if spacing_arg is None:
@@ -483,7 +557,7 @@ def _read_file(path: Path, spacing_arg, dtype=np.float32, keep_direction=False) 
     reader = sitk.ImageFileReader()
     reader.SetFileName(str(path))
     try:
-        with _quiet_itk():
+        with quiet_itk():
             reader.ReadImageInformation()
             if reader.GetNumberOfComponents() != 1:
                 raise DicerError(
@@ -504,6 +578,12 @@ def _read_file(path: Path, spacing_arg, dtype=np.float32, keep_direction=False) 
             ) from None
         raise DicerError(f"{path}: cannot read the image ({msg}); check that the file is complete and in a "
                          f"supported format ({_SUPPORTED})") from None
+    if placement is not None and image.GetDimension() >= len(placement[1]):
+        n = len(placement[1])
+        direction = np.eye(image.GetDimension())
+        direction[:n, :n] = np.reshape(placement[0], (n, n))
+        image.SetDirection(tuple(direction.ravel()))
+        image.SetOrigin(tuple(placement[1]) + tuple(image.GetOrigin()[n:]))
     if bad_header_spacing:
         # the user's image.spacing replaces a header spacing that cannot be right; the
         # header's origin is dropped with it (it was placed with that spacing)
@@ -582,7 +662,7 @@ def _read_slices(folder: Path, files: list[Path], spacing_arg) -> Volume:
     reader = sitk.ImageSeriesReader()
     reader.SetFileNames([str(p) for p in files])
     try:
-        with _quiet_itk():
+        with quiet_itk():
             image = reader.Execute()
     except RuntimeError as exc:
         raise DicerError(f"{folder}: cannot stack the {len(files)} slices ({_itk_message(exc)}); every slice "
@@ -775,7 +855,7 @@ def _read_dicom_series(folder: Path, required: bool = True, allow_irregular: boo
     ``allow_irregular`` (then resampled, duplicates still refused). A file in the folder
     that looks like a slice but cannot be parsed is refused by name.
     """
-    with _quiet_itk():
+    with quiet_itk():
         try:
             series = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder))
         except RuntimeError:
@@ -948,7 +1028,7 @@ def _write(image: sitk.Image, path: Path, compress: bool) -> None:
         writer.SetUseCompression(compress)
         try:
             # the NIfTI and MetaImage writers print a short write straight to stderr
-            with _quiet_itk(), captured_stderr() as printed:
+            with quiet_itk(), captured_stderr() as printed:
                 writer.Execute(image)
                 # ITK only warns when a write comes up short (a full disk): read the file
                 # back and compare it with what was to be written

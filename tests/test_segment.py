@@ -498,3 +498,44 @@ def test_keep_body_warns_when_it_drops_a_part_like_the_one_kept():
     labels, info = segment(Volume(image, (1.0, 1.0, 1.0)), config(method="manual", keep="body"), "rest.nii.gz")
     part = info["removed_parts"]["soft_tissue"]
     assert "warnings" not in info and part["parts"] == 1 and 500 <= part["voxels"] <= 700
+
+
+def test_a_class_left_without_voxels_is_warned_of():
+    """A material with no voxel gets no elements and no element set: said, with the cause."""
+    g = np.indices((24, 24, 24))
+    image = np.full((24, 24, 24), AIR, np.float32)
+    image[(np.abs(g - 12) <= 6).all(axis=0)] = BONE  # a bone block in air: no soft tissue
+    labels, info = segment(Volume(image, (1.0, 1.0, 1.0)), config(method="manual"), "block.nii.gz")
+    assert info["classes"]["soft_tissue"]["voxels"] == 0 and info["classes"]["bone"]["voxels"] == 13 ** 3
+    assert len(info["warnings"]) == 1
+    assert info["warnings"][0].startswith("class 'soft_tissue' holds no voxel: no image value lies at or above -140")
+    # no value reaches the bone threshold: bone is empty
+    image[image == BONE] = SOFT
+    labels, info = segment(Volume(image, (1.0, 1.0, 1.0)), config(method="manual"), "soft.nii.gz")
+    assert info["classes"]["bone"]["voxels"] == 0 and len(info["warnings"]) == 1
+    assert "class 'bone' holds no voxel" in info["warnings"][0] and "no image value lies at or above 226" in \
+        info["warnings"][0]
+    # bone thresholded, then opened away (a 1-voxel bone speck): emptied by the morphology
+    image[12, 12, 12] = BONE
+    labels, info = segment(Volume(image, (1.0, 1.0, 1.0)), config(method="manual"), "speck.nii.gz")
+    assert info["thresholded"]["bone"] == 1 and info["classes"]["bone"]["voxels"] == 0
+    assert info["warnings"] == [info["warnings"][0]] and "after the morphology (1 thresholded" in info["warnings"][0]
+
+
+def test_thresholds_at_the_end_of_their_range_are_warned_of():
+    """An MR-like image (values 0..~1000, slightly negative noise) under the CT defaults: the
+    soft-tissue threshold runs to the end of its range and the whole box becomes body."""
+    rng = np.random.default_rng(3)
+    g = np.indices((32, 32, 32)) - 15.5
+    r = np.sqrt((g ** 2).sum(0))
+    image = np.where(r < 12, 600.0, 250.0) + rng.normal(0, 20, r.shape) - 20
+    image[r >= 14] = rng.normal(8, 3, np.count_nonzero(r >= 14))  # dark surround, a few below 0
+    labels, info = segment(Volume(image.astype(np.float32), (1.0, 1.0, 1.0)), config(), "mr.nii.gz")
+    assert info["thresholds"][0] == 0.0  # the soft-tissue range is [-400, 0]: its end
+    assert any("threshold of 'soft_tissue' (0) lies at an end of its search range [-400, 0]" in w
+               for w in info["warnings"])
+    assert any(w.startswith("only ") and "% of the image is background" in w for w in info["warnings"])
+    # ranges that fit the image: no warning
+    labels, info = segment(Volume(image.astype(np.float32), (1.0, 1.0, 1.0)),
+                           config(ranges=[[40, 240], [300, 550]]), "mr.nii.gz")
+    assert "warnings" not in info, info.get("warnings")

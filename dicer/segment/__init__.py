@@ -162,6 +162,45 @@ def _check_image(image: Volume, source: str) -> tuple[float, float]:
     return lo, hi
 
 
+def _empty_class_warnings(info: dict, names: list[str], thresholds) -> list[str]:
+    """A warning for each class left without a voxel: its material gets no elements."""
+    warnings = []
+    for i, name in enumerate(names):
+        if info["classes"][name]["voxels"]:
+            continue
+        if not info["thresholded"][name]:
+            upper = f" and below {thresholds[i + 1]:g}" if i + 1 < len(names) else ""
+            warnings.append(f"class '{name}' holds no voxel: no image value lies at or above {thresholds[i]:g}"
+                            f"{upper}, so material '{name}' gets no elements; check segment.thresholds "
+                            "(or segment.ranges), or remove the material")
+        else:
+            warnings.append(f"class '{name}' holds no voxel after the morphology ({info['thresholded'][name]} "
+                            "thresholded, removed by the opening or segment.keep, or covered by the class "
+                            f"inside it), so material '{name}' gets no elements; lower segment.opening_radius "
+                            "or set segment.keep: all")
+    return warnings
+
+
+def _range_warnings(info: dict, names: list[str], lo: float, hi: float) -> list[str]:
+    """Warnings for thresholds that suggest the image is not in the units the settings
+    assume (an MR or a rescaled image under the CT defaults)."""
+    warnings = []
+    for name in names if "criterion" in info else ():
+        candidates = info["criterion"][name]["thresholds"]
+        t = info["thresholds"][names.index(name)]
+        if len(candidates) > 2 and t in (candidates[0], candidates[-1]):
+            low, high = info["ranges"][names.index(name)]
+            warnings.append(f"the threshold of '{name}' ({t:g}) lies at an end of its search range [{low:g}, "
+                            f"{high:g}]: the best split may lie outside it; the image spans {lo:g} .. {hi:g}; "
+                            "if it is not CT in HU, set segment.ranges (or segment.thresholds) for its values")
+    background = info["classes"]["background"]["fraction"]
+    if background < 0.01:
+        warnings.append(f"only {100 * background:.2f} % of the image is background: the whole box is taken for "
+                        "the body; if the scan has air or fluid around it (an MR or a rescaled image under the "
+                        "CT defaults), set segment.ranges (or segment.thresholds) for the image's values")
+    return warnings
+
+
 @takes_settings("segment")
 def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges, bins: int, opening_radius: int,
             closing_radius: int, keep, min_component_size, priority, source: str = "") -> tuple[Volume, dict]:
@@ -237,7 +276,8 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
                          "or segment.min_component_size")
     info["removed_by_opening"] = {names[c - 1]: n for c, n in minfo["removed_by_opening"].items()}
     info["removed_parts"] = {names[c - 1]: p for c, p in minfo["removed_parts"].items() if p["parts"]}
-    warnings = [f"morphology emptied class '{names[c - 1]}'" for c in minfo["emptied"]]
+    info["classes"] = label_counts(labels, names)
+    warnings = _empty_class_warnings(info, names, thresholds) + _range_warnings(info, names, lo, hi)
     for c, p in minfo["removed_parts"].items():
         # keep 'largest' (keep: body) drops the headrest and the table; a part of a size like
         # the one kept is more likely a second leg or hand scanned beside the first
@@ -247,7 +287,6 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
                             "of the part kept; if it is anatomy (a second limb), set segment.keep: all")
     if warnings:
         info["warnings"] = warnings
-    info["classes"] = label_counts(labels, names)
     info["seconds"] = {"thresholds": round(t_threshold - t0, 3),
                        "total": round(time.perf_counter() - t0, 3)}
     return Volume(labels, image.spacing, image.origin, image.direction), info

@@ -143,14 +143,16 @@ def deep_merge(base: dict, override: dict) -> dict:
 
 
 class _Loader(yaml.SafeLoader):
-    """PyYAML's safe loader with two fixes: a key given twice in one mapping is an error
-    (not a silent last-one-wins), and floats in exponent form without a dot (``1e-9``,
+    """PyYAML's safe loader with three fixes: a key given twice in one mapping is an error
+    (not a silent last-one-wins), integers are read as YAML 1.2 reads them, and floats in exponent form without a dot (``1e-9``,
     ``2E+5``) are numbers as in YAML 1.2 (YAML 1.1 reads them as strings)."""
 
     def construct_mapping(self, node, deep=False):
         seen = {}
         for key_node, _ in node.value:
             key = self.construct_object(key_node, deep=deep)
+            # 8 and "8" are one key once the config is JSON (labels.map keys become strings)
+            key = str(key) if isinstance(key, int) and not isinstance(key, bool) else key
             if key in seen:
                 raise DuplicateKey(key, key_node.start_mark.line + 1, seen[key])
             seen[key] = key_node.start_mark.line + 1
@@ -175,6 +177,24 @@ _Loader.add_implicit_resolver(
     "tag:yaml.org,2002:float",
     re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
     list("-+0123456789"))
+
+# integers as YAML 1.2 reads them: 010 is ten (YAML 1.1: octal eight, so a labels.map key
+# 010 named label 8), 1:30 is a string (YAML 1.1: sexagesimal 90); 0o17 and 0x1F stay
+_Loader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers if tag != "tag:yaml.org,2002:int"]
+    for first, resolvers in _Loader.yaml_implicit_resolvers.items()}
+_Loader.add_implicit_resolver("tag:yaml.org,2002:int", re.compile(r"^(?:[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+)$"),
+                              list("-+0123456789"))
+
+
+def _construct_int(loader, node) -> int:
+    text = loader.construct_scalar(node)
+    if text.startswith(("0o", "0x")):
+        return int(text[2:], 8 if text[1] == "o" else 16)
+    return int(text, 10)
+
+
+_Loader.add_constructor("tag:yaml.org,2002:int", _construct_int)
 
 
 def _yaml(text: str, source: str):
@@ -308,7 +328,16 @@ def _explain(err: jsonschema.ValidationError) -> str:
         return f"{value} is out of range; give {_range(err.schema)}"
     if err.validator == "enum":
         return f"{value} is not one of {', '.join(map(str, err.validator_value))}"
+    if err.validator == "pattern" and err.validator_value in _PATTERNS:
+        return f"{value} is not {_PATTERNS[err.validator_value]}"
     return err.message
+
+
+#: the schema's patterns in words
+_PATTERNS = {
+    "^(0|[1-9][0-9]*)$": "a label value: give a whole number without leading zeros (8, not 08)",
+    "^[A-Za-z][A-Za-z0-9_]{0,31}$": "a name: give a letter, then at most 31 letters, digits or _",
+}
 
 
 def _numbers(value, where: str = ""):
@@ -366,7 +395,9 @@ def validate(config: dict, source: str = "config") -> dict:
     if len(set(names)) != len(names):
         twice = sorted(n for n, count in Counter(names).items() if count > 1)
         raise DicerError(f"{source}: key 'materials': class names must be unique; {', '.join(twice)} repeat")
-    taken = sorted(set(names) & {"spacing", "origin", "grid_shape"})
+    from dicer.mesh.model import GRID_FIELDS
+
+    taken = sorted(set(names) & set(GRID_FIELDS))
     if taken:
         raise DicerError(f"{source}: key 'materials': the name {taken[0]} is taken by the grid data of dicer's "
                          "mesh files; rename the material")

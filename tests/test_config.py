@@ -164,6 +164,33 @@ def test_exponent_floats_without_a_dot_are_numbers(tmp_path):
     assert load_config(sets=["segment.method=otsu"])["segment"]["method"] == "otsu"
 
 
+def test_label_values_read_as_decimal_and_once(tmp_path):
+    # YAML 1.1 reads 010 as octal 8: labels.map would name label 8 and leave 10 unnamed
+    path = tmp_path / "c.yaml"
+    path.write_text("labels:\n  map: {010: bone, 9: marrow, 0x1F: skin}\n  drop: [012]\n")
+    config = load_config(path)
+    assert config["labels"]["map"] == {"10": "bone", "9": "marrow", "31": "skin"}
+    assert config["labels"]["drop"] == [12]
+    # one label value written two ways is one key given twice
+    path.write_text("labels:\n  map: {8: bone, '8': marrow}\n")
+    with pytest.raises(DicerError, match="key '8' is given twice"):
+        load_config(path)
+    # a string key with a leading zero would name the same label as another: refused
+    path.write_text("labels:\n  map: {'08': bone, 9: marrow}\n")
+    with pytest.raises(DicerError, match=r"key 'labels.map': \"08\" is not a label value: give a whole number "
+                                         r"without leading zeros \(8, not 08\)$"):
+        load_config(path)
+    # --set still overrides the file's entry for a value (a string key over an integer one)
+    path.write_text("labels:\n  map: {8: bone}\n")
+    assert load_config(path, sets=["labels.map.8=marrow"])["labels"]["map"] == {"8": "marrow"}
+
+
+@pytest.mark.parametrize("name", ["direction", "scanner_coordinates", "grid_shape"])
+def test_material_names_of_mesh_grid_fields_are_refused(name):
+    with pytest.raises(DicerError, match=f"the name {name} is taken by the grid data"):
+        load_config(settings={"materials": [{"name": name}]})
+
+
 def test_config_that_is_not_utf8_names_the_byte(tmp_path):
     path = tmp_path / "c.yaml"
     path.write_bytes(b"materials:\n  - {name: b\xe9}\n")

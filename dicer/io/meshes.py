@@ -37,12 +37,11 @@ from dicer.errors import DicerError
 from dicer.io.atomic import atomic_path
 from dicer.mesh.frame import check_direction, mirrored, to_lattice
 from dicer.mesh.metrics import QUALITY_DATA, lattice_box_quality, quality_arrays, scaled_jacobian
-from dicer.mesh.model import LEVEL_DATA, Mesh
+from dicer.mesh.model import GRID_FIELDS, LEVEL_DATA, Mesh
 from dicer.mesh.topology import HEX_MIRROR
 from dicer.pages import map_readonly
 from dicer.parallel import ordered_map
 
-_FIELDS = ("spacing", "origin", "grid_shape", "direction", "scanner_coordinates")
 
 _VTK_TYPES = {
     np.dtype(t): n
@@ -100,7 +99,7 @@ def names_from_field_data(field_data: dict) -> list[str]:
     found = {}
     for name, value in field_data.items():
         value = np.asarray(value).ravel()
-        if name not in _FIELDS and value.size == 2 and value.dtype.kind in "iu":
+        if name not in GRID_FIELDS and value.size == 2 and value.dtype.kind in "iu":
             found[int(value[0])] = name
     return [found[k] for k in range(1, len(found) + 1)] if set(found) == set(range(1, len(found) + 1)) else []
 

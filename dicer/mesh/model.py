@@ -17,6 +17,8 @@ import numpy as np
 from dicer.mesh.topology import HEX_CORNERS, MESHIO_TYPES, QUAD_CORNERS  # noqa: F401  (corners re-exported)
 
 LEVEL_DATA = "coarsening_level"
+#: field data names of dicer's mesh files that hold the grid, not a material's name
+GRID_FIELDS = ("spacing", "origin", "grid_shape", "direction", "scanner_coordinates")
 """Cell data of graded meshes ('dicer merge' with merge.method=templates): 0 for an element
 of one voxel, l for an element made at level l (a coarse cell or part of a transition
 template: 2D cells of 3**l voxels a side; 3D cells grow by three along one axis per step,

@@ -335,6 +335,25 @@ def test_patran_names_the_materials_in_packet_21(tmp_path):
         assert sum(len(v[1]) for v in got.values()) == mesh.n_cells == 31
 
 
+@pytest.mark.parametrize("names, want", [
+    # a suffixed name meeting a plain one: the plain one is suffixed too
+    (["white_matter_a", "white_matter_b", "white_matt_1"], ["white_matt_1", "white_matt_2", "white_matt_3"]),
+    # a plain name that already ends in its own label keeps it
+    (["abcdefghij_1x", "abcdefghij_1y"], ["abcdefghij_1", "abcdefghij_2"]),
+    (["a" * 20] * 1 + ["a" * 13 + str(i) for i in range(11)], None),
+])
+def test_patran_component_names_are_unique(names, want):
+    from types import SimpleNamespace
+
+    from dicer.export.patran import component_names
+
+    model = SimpleNamespace(names=dict(enumerate(names, start=1)), labels=lambda: range(1, len(names) + 1))
+    got = component_names(model)
+    assert len(set(got.values())) == len(names) and all(len(v) <= 12 for v in got.values())
+    if want is not None:
+        assert [got[k] for k in range(1, len(names) + 1)] == want
+
+
 @pytest.mark.parametrize("records, star_at", [(10, 3), (5000, 4097), (40000, 21000), (40000, None), (1, 0)])
 def test_block_end_finds_the_next_keyword_in_doubling_windows(records, star_at):
     from dicer.export.abaqus import _block_end

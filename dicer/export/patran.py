@@ -28,6 +28,7 @@ such files back strictly and :func:`check_patran` compares one with the model.
 
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -69,7 +70,7 @@ def component_names(model) -> dict[int, str]:
     """Packet 21 name of each material present.
 
     Its name cut to the 12 columns of the card, ended by ``_<label>`` where two cut names
-    would be the same.
+    would be the same (so the names are unique).
 
     Parameters
     ----------
@@ -80,9 +81,16 @@ def component_names(model) -> dict[int, str]:
     dict of int to str
         Label -> name.
     """
-    cut = {k: model.names[k][:12] for k in model.labels()}
-    seen = [v for v in cut.values()]
-    return {k: v if seen.count(v) == 1 else f"{model.names[k][:11 - len(str(k))]}_{k}" for k, v in cut.items()}
+    names = {k: model.names[k][:12] for k in model.labels()}
+    # names ended by distinct labels never meet each other (a digit, not "_", precedes
+    # the shorter label); a suffixed name may meet a plain one ("tissue_lon_1"): repeat
+    while True:
+        count = Counter(names.values())
+        repeated = [k for k, v in names.items() if count[v] > 1 and not v.endswith(f"_{k}")]
+        if not repeated:
+            return names
+        for k in repeated:
+            names[k] = f"{model.names[k][:11 - len(str(k))]}_{k}"
 
 
 def _components(f, model) -> None:

@@ -391,6 +391,14 @@ def validate(config: dict, source: str = "config") -> dict:
             known = ", ".join(sorted(err.schema.get("properties", {}))) or "none"
             raise DicerError(f"{source}: unknown key '{name}'; known keys here: {known}")
         raise DicerError(f"{source}: key '{_key_path(err)}': {_explain(err)}")
+    for i, material in enumerate(config.get("materials", [])):
+        nu = material.get("poissons_ratio")
+        # decks print at least 7 significant digits (LS-DYNA's 10 columns); solvers divide
+        # by 1 - 2 nu and 1 + nu, so a printed 0.5 or -1 stops them
+        if isinstance(nu, (int, float)) and not -1 < float(f"{nu:.7g}") < 0.5:
+            raise DicerError(f"{source}: key 'materials.{i}.poissons_ratio': {nu!r} is {float(f'{nu:.7g}'):g} "
+                             "at the 7 significant digits a solver deck holds, where solvers divide by 1 - 2 nu "
+                             "and 1 + nu; give a value from -0.9999999 to 0.4999999")
     names = [m["name"] for m in config.get("materials", [])]
     if len(set(names)) != len(names):
         twice = sorted(n for n, count in Counter(names).items() if count > 1)

@@ -203,3 +203,19 @@ def test_range_errors_state_the_allowed_range():
         load_config(sets=["smooth.interior_band=-2"])
     with pytest.raises(DicerError, match=r"'smooth.coefficient': 1.5 is not allowed; give null or a number >= 0 and < 1"):
         load_config(sets=["smooth.coefficient=1.5"])
+
+
+@pytest.mark.parametrize("nu, ok", [(0.4999999, True), (0.49999999, False), (0.4999999999999, False),
+                                    (-0.9999999, True), (-0.99999999, False), (0.45, True)])
+def test_poissons_ratio_that_a_deck_prints_as_a_limit_is_refused(nu, ok):
+    from dicer.export.abaqus import _num
+    from dicer.export.lsdyna import _e10
+
+    settings = {"materials": [{"name": "rubber", "poissons_ratio": nu}]}
+    if ok:  # and every deck prints it inside the limits
+        load_config(settings=settings)
+        assert all(-1 < float(text) < 0.5 for text in (_num(nu), _e10(nu)))
+    else:
+        with pytest.raises(DicerError, match=r"'materials.0.poissons_ratio': .* at the 7 significant digits a "
+                                             "solver deck holds"):
+            load_config(settings=settings)

@@ -87,6 +87,14 @@ def resolve_materials(values, *, materials: list[dict], map: dict, drop: list,  
     if not names:
         log.info("labels: no labels.map in the config: each of the %d label value(s) is its own material "
                  "(label_<value>, numbered 1..%d in increasing value order)", len(number), len(number))
+    present = set(lut)
+    absent = sorted(set(names) - present)
+    unnamed = sorted(v for v in present if v and v not in names and v not in drop)
+    if absent and unnamed:  # a typo in a label value: the meant one falls to default properties
+        log.warning("labels: labels.map names value(s) %s that the volume does not hold, while value(s) %s have "
+                    "no labels.map entry (materials %s, default properties); check the label values",
+                    brief_names(absent), brief_names(unnamed),
+                    brief_names([f"label_{v}" for v in unnamed]))
     mapped = [n for n in defaulted if n in set(names.values())]
     unused = [m["name"] for m in given.values() if m["name"] not in number]
     if mapped and unused:  # a name of labels.map and a materials entry that were meant to be one

@@ -126,6 +126,22 @@ def test_a_map_name_without_materials_entry_beside_an_unused_entry_is_warned_of(
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
 
 
+def test_a_map_value_the_volume_lacks_beside_an_unnamed_value_is_warned_of(caplog):
+    """labels.map: 12 where the volume holds 21: label 21 would fall to default properties."""
+    settings = {"labels": {"map": {"3": "bone", "12": "brain"}}}
+    with caplog.at_level("INFO", logger="dicer"):
+        lut, materials = resolve_materials([0, 3, 21], load_config(settings=settings))
+    assert [m["name"] for m in materials] == ["bone", "label_21"]
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warned == ["labels: labels.map names value(s) 12 that the volume does not hold, while value(s) 21 "
+                      "have no labels.map entry (materials label_21, default properties); check the label values"]
+    caplog.clear()
+    # a map value absent from this volume (a cohort config), every value present named: quiet
+    with caplog.at_level("INFO", logger="dicer"):
+        resolve_materials([0, 3], load_config(settings=settings))
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+
+
 def test_yaml_and_settings_keys_give_one_config(tmp_path):
     path = tmp_path / "c.yaml"
     path.write_text("labels:\n  map: {3: brain}\n")

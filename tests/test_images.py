@@ -93,7 +93,7 @@ def test_image_round_trip_property(tmp_path_factory, shape, spacing, seed):
     np.testing.assert_allclose(v.origin, [-s for s in sp], atol=1e-9)
 
 
-def test_2d_nifti_and_singleton_axis(tmp_path):
+def test_2d_nifti_and_singleton_axis(tmp_path, caplog):
     img2d = HU[:, :, 0]
     write_image(Volume(img2d, (0.5, 0.25), (1.0, 2.0)), tmp_path / "slice.nii")
     v = read_image(tmp_path / "slice.nii")
@@ -102,7 +102,9 @@ def test_2d_nifti_and_singleton_axis(tmp_path):
     np.testing.assert_allclose(v.origin, (1.0, 2.0))
     # a 3D file with a single slice becomes 2D; the remaining axes keep their spacing
     write_image(Volume(HU[:, :, :1], SPACING, CORNER), tmp_path / "one.nrrd")
-    v = read_image(tmp_path / "one.nrrd")
+    with caplog.at_level(logging.INFO, logger="dicer"):
+        v = read_image(tmp_path / "one.nrrd")
+    assert f"one.nrrd: one voxel along z ({SPACING[2]:g} mm): read as a 2D image" in caplog.text
     assert v.array.shape == (7, 6) and v.spacing == SPACING[:2]
     np.testing.assert_allclose(v.origin, CORNER[:2])
 

@@ -145,6 +145,8 @@ def _finish(array: np.ndarray, spacing, origin, path, dtype=np.float32, directio
     singles = [ax for ax, n in enumerate(array.shape) if n == 1]
     if array.ndim == 3 and len(singles) == 1:
         ax = singles[0]
+        log.info("%s: one voxel along %s (%g mm): read as a 2D image, meshed with quadrilaterals; the deck's "
+                 "section thickness is export.thickness, not this", Path(path).name, "xyz"[ax], spacing[ax])
         array = np.squeeze(array, axis=ax)
         del spacing[ax], origin[ax]
         direction = None  # a 3D orientation has no 2D counterpart in general

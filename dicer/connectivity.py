@@ -35,6 +35,7 @@ from scipy.sparse.csgraph import connected_components
 
 from dicer.config import takes_settings
 from dicer.errors import DicerError
+from dicer.image import count_labels
 
 __all__ = ["fix_connectivity", "fix_stage", "connectivity_defects", "boundary_edge_counts", "remove_islands"]
 
@@ -778,5 +779,5 @@ def fix_stage(labels: np.ndarray, *, names: dict[str, str], min_component_voxels
 def _present(labels: np.ndarray) -> np.ndarray:
     """The distinct values of a label volume, ascending (a count per value where they are small)."""
     if labels.size and 0 <= int(labels.min()) and int(labels.max()) < 1 << 20:
-        return np.flatnonzero(np.bincount(labels.ravel()))
+        return np.flatnonzero(count_labels(labels))
     return np.unique(labels)

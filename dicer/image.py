@@ -75,3 +75,36 @@ def regridded_origin(volume: Volume, spacing) -> tuple[float, ...]:
         return tuple(volume.origin)
     d = np.asarray(volume.direction, float).reshape(volume.ndim, volume.ndim)
     return tuple(float(v) for v in np.asarray(volume.origin, float) + half - d @ half)
+
+
+def count_labels(array: np.ndarray, minlength: int = 0) -> np.ndarray:
+    """Voxels per label value: ``np.bincount`` of a whole volume, in slices.
+
+    numpy casts what it counts to 64-bit integers first: 1 GB of fresh memory for a 512³
+    uint8 volume. Slices of 2 M voxels, counted on the process's cores, keep that copy
+    small and in cache.
+
+    Parameters
+    ----------
+    array : ndarray of non-negative int
+        Any shape.
+    minlength : int, optional
+        At least this many counts.
+
+    Returns
+    -------
+    ndarray of int64
+        ``counts[v]`` voxels of value v, length ``max(array.max() + 1, minlength)``.
+    """
+    from dicer.parallel import ordered_map
+
+    flat = np.asarray(array).reshape(-1)
+    step = 1 << 21
+    counts = np.zeros(minlength, np.int64)
+    for part in ordered_map(lambda start: np.bincount(flat[start:start + step]), range(0, flat.size, step)):
+        if part.size > counts.size:
+            part[:counts.size] += counts
+            counts = part
+        else:
+            counts[:part.size] += part
+    return counts

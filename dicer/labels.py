@@ -19,6 +19,7 @@ from dicer.brief import brief_names
 from dicer.config import material_defaults, takes_settings, validate
 from dicer.errors import DicerError
 from dicer.image import MAX_LABEL, Volume
+from dicer.parallel import contiguous
 
 log = logging.getLogger("dicer")
 
@@ -196,13 +197,14 @@ def _write_nifti_like(header: bytes, endian: str, array: np.ndarray, path: Path)
     struct.pack_into(endian + "2f", head, 112, 1.0, 0.0)  # scl_slope, scl_inter: the values as stored
     struct.pack_into(endian + "2f", head, 124, float(array.max(initial=0)), 0.0)  # cal_max, cal_min
     struct.pack_into(endian + "h", head, 68, 0)  # intent_code: plain values, whatever the input's was
-    data = np.asarray(array, dtype=array.dtype.newbyteorder(endian)).tobytes(order="F")  # x fastest
+    data = contiguous(array.T, array.dtype.newbyteorder(endian))  # x fastest
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0, filename="",
                                                    compresslevel=6) as f:
             # mtime 0 and no file name: the same bytes on every rerun; level 6, not gzip's 9:
             # a 256^3 label volume in 0.07 s instead of 0.5 s, 156 KB instead of 130 KB
-            f.write(bytes(head) + b"\0\0\0\0" + data)
+            f.write(bytes(head) + b"\0\0\0\0")
+            f.write(data)
         from dicer.io.images import read_labels
 
         # the source's header was judged (and any warning about it given) when it was read

@@ -14,6 +14,7 @@ import numpy as np
 
 from dicer import __version__
 from dicer.config import takes_settings
+from dicer.image import count_labels
 from dicer.mesh.metrics import element_metrics
 from dicer.mesh.model import Mesh
 
@@ -250,10 +251,10 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, labe
     materials = {}
     per = _material_counts(mesh, sj, vol)
     if labels is not None:
-        in_volume = np.bincount(np.asarray(labels.array).ravel(), minlength=int(per["label"].max()) + 1)
+        in_volume = count_labels(labels.array, int(per["label"].max()) + 1)
         voxel_volume = float(np.prod(labels.spacing))
     if original is not None:
-        orig_count = np.bincount(np.asarray(original.array).ravel(), minlength=int(per["label"].max()) + 1)
+        orig_count = count_labels(original.array, int(per["label"].max()) + 1)
         orig_voxel_volume = float(np.prod(original.spacing))
     for i, label in enumerate(per["label"].tolist()):
         entry = {

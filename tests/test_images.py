@@ -8,6 +8,7 @@ import pytest
 import SimpleITK as sitk
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
 from dicer.errors import DicerError
 from dicer.image import Volume
@@ -629,3 +630,33 @@ def test_dicom_series_with_gantry_tilt_refused(tmp_path, shift, refused):
     with pytest.raises(DicerError, match=r"gantry tilt of about 20\.0 degrees: 4\.55 mm over 12\.5 mm") as err:
         read_image(folder)
     assert str(err.value).startswith(f"{folder}: ") and "dcm2niix" in str(err.value)
+
+
+@settings(max_examples=60, deadline=None)
+@given(arrays(np.uint16, st.tuples(st.integers(1, 140), st.integers(1, 140), st.integers(1, 140)),
+              elements=st.integers(0, 300)), st.integers(0, 400), st.sampled_from(["C", "T"]))
+def test_contiguous_copy_and_label_counts_match_numpy(a, minlength, layout):
+    """The tiled copy (cut for volumes of a million voxels or more) and the sliced count
+    agree with numpy's own on any shape and layout."""
+    from dicer.image import count_labels
+    from dicer.parallel import contiguous
+
+    view = a.T if layout == "T" else a
+    copy = contiguous(view, np.float32)
+    assert copy.flags.c_contiguous and copy.dtype == np.float32 and np.array_equal(copy, view)
+    assert np.array_equal(count_labels(view, minlength), np.bincount(view.ravel(), minlength=minlength))
+
+
+@pytest.mark.parametrize("shape", [(130, 90, 100), (17, 300, 260), (260, 65, 70)])
+def test_contiguous_copy_of_a_large_transposed_volume(shape):
+    from dicer.image import count_labels
+    from dicer.parallel import contiguous
+
+    a = np.random.default_rng(1).integers(0, 700, shape).astype(np.int16)
+    for view in (a.T, a.transpose(1, 0, 2), a[::2, :, ::-1]):
+        assert view.size >= (1 << 20) // 2
+        for dtype in (None, np.float32):
+            copy = contiguous(view, dtype)
+            assert copy.flags.c_contiguous and np.array_equal(copy, view)
+            assert copy.dtype == (dtype or view.dtype)
+    assert np.array_equal(count_labels(a, 3), np.bincount(a.ravel()))

@@ -31,6 +31,7 @@ import numpy as np
 from dicer.errors import DicerError
 from dicer.image import MAX_LABEL, Volume
 from dicer.io.atomic import atomic_path, captured_stderr, disk_full
+from dicer.parallel import contiguous
 
 log = logging.getLogger(__name__)
 
@@ -156,7 +157,7 @@ def _finish(array: np.ndarray, spacing, origin, path, dtype=np.float32, directio
             "images with at least 2 voxels along each axis; give a 2D slice or a 3D volume"
         )
     _check_finite(array, path)
-    return Volume(np.ascontiguousarray(array, dtype=dtype), tuple(spacing), tuple(origin), direction)
+    return Volume(contiguous(array, dtype), tuple(spacing), tuple(origin), direction)
 
 
 def _from_sitk(image: sitk.Image, path, spacing_arg=None, own_spacing=True, nifti=False,
@@ -993,7 +994,7 @@ def read_labels(path: str | os.PathLike) -> Volume:
 
 
 def _to_sitk(volume: Volume, array: np.ndarray) -> sitk.Image:
-    image = sitk.GetImageFromArray(np.ascontiguousarray(array.T))  # [x,y,z] -> [z,y,x]
+    image = sitk.GetImageFromArray(contiguous(array.T))  # [x,y,z] -> [z,y,x]
     spacing = [float(s) for s in volume.spacing]
     corner = [float(o) for o in volume.origin]
     image.SetSpacing(spacing)

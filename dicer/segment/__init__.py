@@ -14,7 +14,7 @@ import numpy as np
 
 from dicer.config import takes_settings
 from dicer.errors import DicerError
-from dicer.image import Volume
+from dicer.image import Volume, count_labels
 from dicer.segment.morphology import clean_labels
 from dicer.segment.thresholds import (
     check_thresholds,
@@ -136,7 +136,7 @@ def label_counts(labels: np.ndarray, names: list[str]) -> dict:
         ``{name: {"label": c, "voxels": n, "fraction": f}}`` for background and each class.
     """
     k = len(names)
-    counts = np.bincount(labels.ravel().astype(np.int64), minlength=k + 1)
+    counts = count_labels(labels, k + 1)
     total = max(int(labels.size), 1)
     out = {}
     for c, name in enumerate(["background"] + list(names)):

@@ -76,6 +76,38 @@ def _as_work(labels: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(labels, dtype=dtype)
 
 
+def _mixed_blocks(w: np.ndarray, axes: tuple[int, ...]) -> tuple[np.ndarray, ...]:
+    """Index arrays of the low corner of every 2^len(axes) block along ``axes`` that holds
+    more than one class: only those can be poorly connected. The blocks' maxima and minima
+    come axis by axis (three passes each in 3D, not seven); a scan is mostly uniform
+    blocks, so the rules then run on a few per cent of the volume."""
+    hi = lo = w
+    for ax in axes:
+        s_lo, s_hi = _sl(w.ndim, ax, _LO), _sl(w.ndim, ax, _HI)
+        hi = np.maximum(hi[s_lo], hi[s_hi])
+        lo = np.minimum(lo[s_lo], lo[s_hi])
+    return np.nonzero(hi != lo)
+
+
+def _corners(origins: tuple[np.ndarray, ...], axes: tuple[int, ...]) -> list[tuple[np.ndarray, ...]]:
+    """Index arrays of each corner of the blocks at ``origins``, in :func:`_corner_views` order."""
+    out = []
+    for code in range(1 << len(axes)):
+        index = list(origins)
+        for b, ax in enumerate(axes):
+            if (code >> b) & 1:
+                index[ax] = index[ax] + 1
+        out.append(tuple(index))
+    return out
+
+
+def _raise_to(prop: np.ndarray, index: tuple[np.ndarray, ...], mask: np.ndarray, value: np.ndarray) -> None:
+    """``prop`` at ``index[mask]`` raised to ``value[mask]`` (a voxel at most once per call)."""
+    if mask.any():
+        at = tuple(i[mask] for i in index)
+        prop[at] = np.maximum(prop[at], value[mask])
+
+
 # --- Type A ------------------------------------------------------------------------------
 
 
@@ -87,30 +119,26 @@ def _type_a_pass(w: np.ndarray, axes: tuple[int, int]) -> np.ndarray:
     on ties) becomes p (the connecting voxel); otherwise the first P voxel becomes the
     higher Q class. Returns the array of proposed classes (>= w everywhere).
     """
-    sa, sb, sc, sd = _corner_views(w, axes)
-    a, b, c, d = w[sa], w[sb], w[sc], w[sd]
+    ia, ib, ic, id_ = _corners(_mixed_blocks(w, axes), axes)
+    a, b, c, d = w[ia], w[ib], w[ic], w[id_]
     prop = w.copy()
-    for (p1, p2, q1, q2, s_p1, s_q1, s_q2) in ((a, d, b, c, sa, sb, sc), (b, c, a, d, sb, sa, sd)):
+    for (p1, p2, q1, q2, s_p1, s_q1, s_q2) in ((a, d, b, c, ia, ib, ic), (b, c, a, d, ib, ia, id_)):
         bad = (p1 == p2) & (q1 != p1) & (q2 != p1)
         if not bad.any():
             continue
-        qmin = np.minimum(q1, q2)
-        grow = bad & (p1 > qmin)
+        grow = bad & (p1 > np.minimum(q1, q2))
         # p above the lower Q class: the lower Q voxel (q1 on ties) becomes p
-        first = grow & (q1 <= q2)
-        second = grow & (q1 > q2)
-        np.maximum(prop[s_q1], np.where(first, p1, 0).astype(w.dtype), out=prop[s_q1])
-        np.maximum(prop[s_q2], np.where(second, p1, 0).astype(w.dtype), out=prop[s_q2])
+        _raise_to(prop, s_q1, grow & (q1 <= q2), p1)
+        _raise_to(prop, s_q2, grow & (q1 > q2), p1)
         # p below both Q classes: the first P voxel takes the higher Q class
-        lift = bad & ~grow
-        np.maximum(prop[s_p1], np.where(lift, np.maximum(q1, q2), 0).astype(w.dtype), out=prop[s_p1])
+        _raise_to(prop, s_p1, bad & ~grow, np.maximum(q1, q2))
     return prop
 
 
-def _type_a_defects(w: np.ndarray, axes: tuple[int, int]) -> np.ndarray:
-    sa, sb, sc, sd = _corner_views(w, axes)
-    a, b, c, d = w[sa], w[sb], w[sc], w[sd]
-    return ((a == d) & (b != a) & (c != a)) | ((b == c) & (a != b) & (d != b))
+def _type_a_defects(w: np.ndarray, axes: tuple[int, int]) -> int:
+    """Number of Type A blocks spanning ``axes``."""
+    a, b, c, d = (w[i] for i in _corners(_mixed_blocks(w, axes), axes))
+    return int(np.count_nonzero(((a == d) & (b != a) & (c != a)) | ((b == c) & (a != b) & (d != b))))
 
 
 # --- Type B ------------------------------------------------------------------------------
@@ -138,15 +166,9 @@ def _type_b_masks(v: list[np.ndarray], p: int):
 
 def _type_b_pass(w: np.ndarray) -> np.ndarray:
     """One simultaneous Type B sweep over all 2x2x2 blocks; returns proposals (>= w)."""
-    views = _corner_views(w, (0, 1, 2))
-    v = [w[s] for s in views]
+    index = _corners(_mixed_blocks(w, (0, 1, 2)), (0, 1, 2))
+    v = [w[i] for i in index]
     prop = w.copy()
-
-    def propose(corner, mask, value):
-        if mask.any():
-            s = views[corner]
-            np.maximum(prop[s], np.where(mask, value, 0).astype(w.dtype), out=prop[s])
-
     for p in _DIAG:
         q = p ^ 7
         pair, six, rest = _type_b_masks(v, p)
@@ -154,34 +176,35 @@ def _type_b_pass(w: np.ndarray) -> np.ndarray:
         if six.any():
             c = rest[0]
             # the six-class fills each diagonal voxel it is above (the paper's fill) ...
-            propose(p, six & (c > vp), c)
-            propose(q, six & (c > vq), c)
+            _raise_to(prop, index[p], six & (c > vp), c)
+            _raise_to(prop, index[q], six & (c > vq), c)
             # ... and where it is below both, one of its voxels next to the higher diagonal
             # voxel takes that voxel's class
             low = six & (c < vp) & (c < vq)
             hi_p = vp >= vq
-            propose(p ^ 1, low & hi_p, vp)
-            propose(q ^ 1, low & ~hi_p, vq)
+            _raise_to(prop, index[p ^ 1], low & hi_p, vp)
+            _raise_to(prop, index[q ^ 1], low & ~hi_p, vq)
         if pair.any():
             rmax = rest[0]
             for r in rest[1:]:
                 rmax = np.maximum(rmax, r)
             # the pair's class is above all others: join the pair by a face path p, p^1, p^3, q
             top = pair & (vp > rmax)
-            propose(p ^ 1, top, vp)
-            propose(p ^ 3, top, vp)
+            _raise_to(prop, index[p ^ 1], top, vp)
+            _raise_to(prop, index[p ^ 3], top, vp)
             # otherwise the first voxel of the pair takes the highest other class
-            propose(p, pair & ~top, rmax)
+            _raise_to(prop, index[p], pair & ~top, rmax)
     return prop
 
 
-def _type_b_defects(w: np.ndarray) -> np.ndarray:
-    v = [w[s] for s in _corner_views(w, (0, 1, 2))]
+def _type_b_defects(w: np.ndarray) -> int:
+    """Number of Type B blocks."""
+    v = [w[i] for i in _corners(_mixed_blocks(w, (0, 1, 2)), (0, 1, 2))]
     bad = np.zeros(v[0].shape, bool)
     for p in _DIAG:
         pair, six, _ = _type_b_masks(v, p)
         bad |= pair | six
-    return bad
+    return int(np.count_nonzero(bad))
 
 
 # --- node classification in voxel space (Type C) ------------------------------------------
@@ -671,10 +694,10 @@ def connectivity_defects(labels: np.ndarray, type_c: bool = True) -> dict:
     """
     w = _as_work(np.asarray(labels))
     planes = [(0, 1)] if w.ndim == 2 else [(1, 2), (0, 2), (0, 1)]
-    out = {"type_a": int(sum(np.count_nonzero(_type_a_defects(w, p)) for p in planes)),
+    out = {"type_a": sum(_type_a_defects(w, p) for p in planes),
            "type_b": 0, "type_c": 0}
     if w.ndim == 3:
-        out["type_b"] = int(np.count_nonzero(_type_b_defects(w)))
+        out["type_b"] = _type_b_defects(w)
         if type_c:
             out["type_c"] = _type_c_sites(w)
     return out

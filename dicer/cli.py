@@ -582,6 +582,12 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
         write_bytes_atomic(out, json.dumps(report, indent=2, sort_keys=True) + "\n")
         log.info("quality: wrote %s (min scaled Jacobian %.3f, %d inverted, %d part(s))", out,
                  report["scaled_jacobian"]["min"], report["inverted_elements"], report["parts"]["model"]["parts"])
+        whole = report["parts"]["model"]
+        if whole["parts"] > 1:  # each part needs supports of its own, else a static solve is singular
+            log.warning("quality: the model is %d parts joined by no face: %d element(s) float free of the largest "
+                        "part (the smallest part %d); hold each part in the solver, or drop the parts below a "
+                        "size with fix.min_component_voxels", whole["parts"], whole["floating_elements"],
+                        whole["smallest"])
     return report
 
 

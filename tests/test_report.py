@@ -41,6 +41,19 @@ def test_floating_parts_count_face_connected_parts():
     assert "<h2>Floating parts</h2>" in page and "3 parts: 3 element(s) float" in page
 
 
+def test_quality_command_warns_of_a_model_in_parts(tmp_path, caplog):
+    from dicer.cli import main
+    from dicer.io.meshes import write_mesh
+
+    write_mesh(voxel_mesh(_islands()), tmp_path / "m.vtu")
+    with caplog.at_level("INFO", logger="dicer"):
+        assert main(["quality", str(tmp_path / "m.vtu"), "-o", str(tmp_path / "q.json")]) == 0
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warned == ["quality: the model is 3 parts joined by no face: 3 element(s) float free of the largest "
+                      "part (the smallest part 1); hold each part in the solver, or drop the parts below a size "
+                      "with fix.min_component_voxels"]
+
+
 def test_one_part_is_reported_as_nothing_floating():
     labels = np.ones((3, 3, 3), np.uint8)
     labels[1, 1, 1] = 2  # enclosed: one part of the model, one of each material

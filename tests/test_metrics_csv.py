@@ -68,6 +68,33 @@ def test_print_and_parse_round_trip(values):
     assert np.all(np.abs(back - v) <= 5.000001e-7 * np.abs(v))
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(min_value=0, max_value=1e90).filter(lambda x: x == 0 or x > 1e-90),
+                min_size=4, max_size=80).filter(lambda v: len(v) % 4 == 0))
+def test_the_fixed_width_parse_of_non_negative_lines_equals_the_general_one(values):
+    """Lines of four non-negative values are parsed as columns of fixed width: the same
+    values bit for bit as the parse that searches for the separators."""
+    import dicer.io.metrics_csv as mc
+
+    v = np.array(values).reshape(-1, 4)
+    body = np.frombuffer(_lines(v), np.uint8)
+    fast = mc._parse_non_negative(body)
+    assert fast is not None
+    assert fast.tobytes() == _general_parse(mc, body).tobytes()
+    # a negative value changes the line's width: the fixed-width parse declines it
+    negative = np.frombuffer(_lines(v * np.array([1, -1, 1, 1]) + np.array([0, -1, 0, 0])), np.uint8)
+    assert mc._parse_non_negative(negative) is None
+
+
+def _general_parse(mc, body):
+    original = mc._parse_non_negative
+    try:
+        mc._parse_non_negative = lambda b: None
+        return mc._parse_lines(body, "csv", lambda: 0)
+    finally:
+        mc._parse_non_negative = original
+
+
 def test_damaged_files_are_refused():
     good = HEADER + b"1.000000e+00,1.000000e+00,0.000000e+00,2.400000e+01\n"
     assert parse_metrics_csv(good).tolist() == [[1.0, 1.0, 0.0, 24.0]]

@@ -24,7 +24,7 @@ from dicer import __version__
 from dicer.brief import brief_json, brief_names
 from dicer.errors import DicerError
 from dicer.io.atomic import all_or_nothing, check_stop, stop_requested
-from dicer.pages import ordinary_pages, reuse_freed_memory
+from dicer.pages import LARGE_JOB, large_job, ordinary_pages, reuse_freed_memory
 
 log = logging.getLogger("dicer")
 
@@ -96,6 +96,17 @@ INPUT_OPTIONS = ("image", "labels", "mesh", "config", "picture", "stage_report",
                  "original", "reports")
 
 
+def _input_paths(args) -> list[Path]:
+    """The paths a command reads (its options of :data:`INPUT_OPTIONS`)."""
+    inputs = []
+    for dest in INPUT_OPTIONS:
+        value = getattr(args, dest, None)
+        for item in value if isinstance(value, list) else [value]:
+            if item:
+                inputs.append(Path(item))
+    return inputs
+
+
 def _same(a: Path, b: Path) -> bool:
     """Whether paths ``a`` (an input) and ``b`` (an output) name the same file or folder.
 
@@ -120,12 +131,7 @@ def _check_paths(args) -> None:
     output path names a folder. ``run`` writes into a folder: its fixed file names are
     checked instead.
     """
-    inputs = []
-    for dest in INPUT_OPTIONS:
-        value = getattr(args, dest, None)
-        for item in value if isinstance(value, list) else [value]:
-            if item:
-                inputs.append(Path(item))
+    inputs = _input_paths(args)
     if args.command == "surface":
         outdir = Path(args.output)
         if outdir.exists() and not outdir.is_dir():
@@ -953,7 +959,8 @@ def cmd_run(args):
             mesh = do_mesh(str(path("labels_fixed.nii.gz")), path("mesh.vtu"), config, write=write)
             step("merge")
             # the merge's many fresh tables come quicker in ordinary pages (dicer.pages): 1-2 s
-            with ordinary_pages(unless_set=True):
+            # at 256³; a large mesh's in huge pages (16 s of 57 at 512³)
+            with ordinary_pages(unless_set=True) if mesh.n_cells < LARGE_JOB else contextlib.nullcontext():
                 mesh = do_merge(str(path("mesh.vtu")), path("merged.vtu"), config, path("merge.json"), mesh=mesh,
                                 write=write)
             step("smooth")
@@ -1246,11 +1253,13 @@ def main(argv: list[str] | None = None) -> int:
                              "another path") from None
         # a command's several outputs replace the old files together, or none does
         # ('run' publishes its folder itself: its stages read each other's files)
-        # a stage's process takes nearly all its memory fresh: ordinary pages (dicer.pages);
-        # 'run' reuses what its stages free, where numpy's huge pages measured faster
+        # a stage's process takes nearly all its memory fresh: ordinary pages unless the job
+        # is large (dicer.pages); 'run' reuses what its stages free, where numpy's huge pages
+        # measured faster
         run = args.command == "run"
+        ordinary = not run and not large_job(_input_paths(args))
         with contextlib.nullcontext() if run else all_or_nothing(), \
-                contextlib.nullcontext() if run else ordinary_pages(unless_set=True):
+                ordinary_pages(unless_set=True) if ordinary else contextlib.nullcontext():
             args.func(args)
         check_stop()
     except Terminated:

@@ -90,3 +90,21 @@ def test_map_readonly_gives_the_whole_file_and_refuses_writes(tmp_path):
     with pytest.raises(TypeError):
         mapped[0] = 1
     mapped.close()
+
+
+def test_large_jobs_are_told_by_their_inputs_size(tmp_path):
+    import numpy as np
+
+    from dicer.pages import LARGE_JOB, large_job
+
+    small, large = tmp_path / "small.vtu", tmp_path / "large.vtu"
+    with open(small, "wb") as f:
+        f.truncate(76 * (LARGE_JOB - 1))  # sparse: no disk used
+    with open(large, "wb") as f:
+        f.truncate(76 * LARGE_JOB)
+    assert not large_job([small]) and large_job([large]) and large_job([tmp_path / "c.yaml", large])
+    # a label volume by its header's voxels, not its (compressed) bytes
+    np.lib.format.open_memmap(tmp_path / "big.npy", "w+", np.uint8, (400, 400, 400))
+    np.lib.format.open_memmap(tmp_path / "one.npy", "w+", np.uint8, (256, 256, 256))
+    assert large_job([tmp_path / "big.npy"]) and not large_job([tmp_path / "one.npy"])
+    assert not large_job([tmp_path / "missing.vtu", tmp_path])

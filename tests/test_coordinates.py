@@ -64,6 +64,14 @@ def write_sform_nifti(path: Path, array: np.ndarray, lps_direction: np.ndarray) 
     ras[:3, :3] = LPS_TO_RAS @ lps_direction * np.asarray(SPACING)
     ras[:3, 3] = LPS_TO_RAS @ np.asarray(ORIGIN)
     ras = ras.astype(np.float32).astype(np.float64)
+    write_raw_nifti(path, array, ras[:3])
+    return ras
+
+
+def write_raw_nifti(path: Path, array: np.ndarray, sform: np.ndarray, quatern=None) -> None:
+    """A NIfTI-1 of int16 voxels of SPACING (pixdim), written byte by byte: the RAS ``sform``
+    (3, 4) with code 2 (aligned) and, when ``quatern`` (b, c, d, qx, qy, qz) is given, a
+    qform with code 1 (scanner); else qform code 0."""
     head = bytearray(348)
     struct.pack_into("<i", head, 0, 348)
     struct.pack_into("<8h", head, 40, 3, *array.shape, 1, 1, 1, 1)
@@ -72,12 +80,13 @@ def write_sform_nifti(path: Path, array: np.ndarray, lps_direction: np.ndarray) 
     struct.pack_into("<f", head, 108, 352.0)
     struct.pack_into("<f", head, 112, 1.0)
     head[123] = 2  # xyzt_units: mm
-    struct.pack_into("<2h", head, 252, 0, 2)  # qform_code 0, sform_code 2 (aligned)
-    struct.pack_into("<12f", head, 280, *ras[:3].ravel())
+    struct.pack_into("<2h", head, 252, 0 if quatern is None else 1, 2)
+    if quatern is not None:
+        struct.pack_into("<6f", head, 256, *quatern)
+    struct.pack_into("<12f", head, 280, *np.asarray(sform, float).ravel())
     head[344:348] = b"n+1\0"
     with gzip.open(path, "wb") as f:
         f.write(bytes(head) + b"\0" * 4 + array.astype("<i2").tobytes(order="F"))
-    return ras
 
 
 def itk_points(image: sitk.Image, index: np.ndarray) -> np.ndarray:
@@ -155,26 +164,6 @@ def test_sform_only_nifti_matches_its_ras_affine(tmp_path):
     assert np.abs(model.points - itk_points(sitk.ReadImage(str(path)), mesh.lattice - 0.5)).max() < 1e-9
 
 
-def write_two_placement_nifti(path: Path, array: np.ndarray, sform: np.ndarray, qform_angle: float | None):
-    """A NIfTI-1 with the given RAS sform (3, 4) and, unless None, a qform rotating by
-    ``qform_angle`` about z, at offset (5, 6, 7) mm, voxels of SPACING (pixdim)."""
-    head = bytearray(348)
-    struct.pack_into("<i", head, 0, 348)
-    struct.pack_into("<8h", head, 40, 3, *array.shape, 1, 1, 1, 1)
-    struct.pack_into("<2h", head, 70, 2, 8)  # uint8
-    struct.pack_into("<8f", head, 76, 1.0, *SPACING, 1, 1, 1, 1)
-    struct.pack_into("<f", head, 108, 352.0)
-    struct.pack_into("<f", head, 112, 1.0)
-    head[123] = 2
-    struct.pack_into("<2h", head, 252, 0 if qform_angle is None else 1, 2)
-    if qform_angle is not None:
-        struct.pack_into("<6f", head, 256, 0.0, 0.0, np.sin(qform_angle / 2), 5.0, 6.0, 7.0)
-    struct.pack_into("<12f", head, 280, *np.asarray(sform, float).ravel())
-    head[344:348] = b"n+1\0"
-    with gzip.open(path, "wb") as f:
-        f.write(bytes(head) + b"\0" * 4 + array.astype(np.uint8).tobytes(order="F"))
-
-
 @pytest.mark.parametrize("distortion", ["scaled", "sheared"])
 def test_an_sform_that_is_not_rigid_gives_way_to_the_qform(tmp_path, caplog, distortion):
     # e.g. a registration to a template stored in the sform: ITK would apply a scaled sform
@@ -188,7 +177,7 @@ def test_an_sform_that_is_not_rigid_gives_way_to_the_qform(tmp_path, caplog, dis
         sform[0, 2] += 0.3
     path = tmp_path / "two.nii.gz"
     angle = 0.4
-    write_two_placement_nifti(path, labels_array(), sform, angle)
+    write_raw_nifti(path, labels_array(), sform, (0.0, 0.0, np.sin(angle / 2), 5.0, 6.0, 7.0))
     volume = read_labels(path)
     assert "meshing in the qform's scanner geometry" in caplog.text
     rz = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
@@ -198,7 +187,7 @@ def test_an_sform_that_is_not_rigid_gives_way_to_the_qform(tmp_path, caplog, dis
     centre = np.asarray(volume.origin) + np.asarray(SPACING) / 2
     assert np.allclose(centre, LPS_TO_RAS @ np.array([5.0, 6.0, 7.0]), atol=1e-5)
     # without a qform there is no rigid placement to use: refused with the fix
-    write_two_placement_nifti(path, labels_array(), sform, None)
+    write_raw_nifti(path, labels_array(), sform)
     with pytest.raises(DicerError, match="no qform to use instead; resample the image"):
         read_labels(path)
 

@@ -73,7 +73,7 @@ def large_job(paths) -> bool:
                 size = scan_voxels(path)
             else:
                 continue
-        except (OSError, ValueError):
+        except (OSError, ValueError, EOFError):
             continue  # the stage itself says what is wrong with it
         if size >= LARGE_JOB:
             return True

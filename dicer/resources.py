@@ -38,7 +38,7 @@ def scan_header(path: str | os.PathLike) -> tuple[int, tuple[float, ...] | None]
     if path.suffix == ".npy":
         try:
             return int(np.prod(np.load(path, mmap_mode="r").shape)), None
-        except (OSError, ValueError):
+        except (OSError, ValueError, EOFError):  # EOFError: an empty file
             return max(1, path.stat().st_size // 2), None
     import SimpleITK as sitk
 

@@ -107,4 +107,6 @@ def test_large_jobs_are_told_by_their_inputs_size(tmp_path):
     np.lib.format.open_memmap(tmp_path / "big.npy", "w+", np.uint8, (400, 400, 400))
     np.lib.format.open_memmap(tmp_path / "one.npy", "w+", np.uint8, (256, 256, 256))
     assert large_job([tmp_path / "big.npy"]) and not large_job([tmp_path / "one.npy"])
-    assert not large_job([tmp_path / "missing.vtu", tmp_path])
+    (tmp_path / "empty.npy").write_bytes(b"")
+    (tmp_path / "bad.nii.gz").write_bytes(b"not an image")
+    assert not large_job([tmp_path / "missing.vtu", tmp_path, tmp_path / "empty.npy", tmp_path / "bad.nii.gz"])

@@ -163,6 +163,19 @@ def nifti(path: Path, array: np.ndarray, pixdim=None) -> Path:
     return path
 
 
+def _scaled_sform_only(path: Path) -> Path:
+    """``path`` (a .nii.gz) with its qform code 0 and its sform's third column 1.5 times
+    pixdim: a transform to another space and no scanner placement."""
+    data = bytearray(gzip.decompress(path.read_bytes()))
+    struct.pack_into("<h", data, 252, 0)
+    column = [struct.unpack_from("<f", data, 280 + 16 * row + 8)[0] for row in range(3)]
+    for row, value in enumerate(column):
+        struct.pack_into("<f", data, 280 + 16 * row + 8, 1.5 * value)
+    struct.pack_into("<h", data, 254, 1)
+    path.write_bytes(gzip.compress(bytes(data)))
+    return path
+
+
 def npy(path: Path, array) -> Path:
     np.save(path, array, allow_pickle=True)
     return path
@@ -730,6 +743,18 @@ case("7-blame", "materials: poissons_ratio 0.5 in a config file",
          c.t / "c.yaml", "materials:\n  - {name: a, youngs_modulus: 1, poissons_ratio: 0.5, density: 1e-9}\n"
                          "  - {name: b, youngs_modulus: 1, poissons_ratio: 0.3, density: 1e-9}\n")]),
      "poissons_ratio")
+case("7-blame", "materials: poissons_ratio a deck prints as 0.5",
+     lambda c: argv_for(c, "mesh", extra=["--set", "materials=[{name: a, poissons_ratio: 0.4999999999}, {name: b}]"]),
+     "poissons_ratio", "0.4999999")
+case("7-blame", "labels.map: a label value with a leading zero",
+     lambda c: argv_for(c, "labels", extra=["--config", text(c.t / "c.yaml", "labels:\n  map: {'08': bone}\n")]),
+     "leading zeros")
+case("7-blame", "labels.map: one label value written two ways",
+     lambda c: argv_for(c, "labels", extra=["--config", text(c.t / "c.yaml", "labels:\n  map: {8: a, '8': b}\n")]),
+     "given twice")
+case("7-blame", "NIfTI: a scaled sform and no qform",
+     lambda c: argv_for(c, "segment", inp=_scaled_sform_only(nifti(c.t / "s.nii.gz", hu_volume()))),
+     "s.nii.gz", "no qform")
 case("7-blame", "materials: a negative Young's modulus",
      lambda c: argv_for(c, "mesh", extra=["--config", text(
          c.t / "c.yaml", "materials:\n  - {name: a, youngs_modulus: -1, poissons_ratio: 0.3, density: 1e-9}\n"

@@ -373,6 +373,25 @@ def test_nifti_bad_pixdim_refused_or_replaced(tmp_path, value):
     np.testing.assert_array_equal(v.array, HU)
 
 
+@pytest.mark.parametrize("slope, inter, refused", [(0.0, 5.0, True), (0.0, 0.0, False), (1.0, 5.0, False)])
+def test_nifti_zero_slope_with_an_intercept_is_refused(tmp_path, slope, inter, refused):
+    """A zero scl_slope means unscaled values (the NIfTI standard); ITK would add the
+    intercept to every voxel: a label volume's background would become label 5."""
+    import struct
+
+    path = tmp_path / "ct.nii"
+    write_image(Volume(HU, SPACING), path)
+    data = bytearray(path.read_bytes())
+    struct.pack_into("<2f", data, 112, slope, inter)
+    path.write_bytes(bytes(data))
+    if refused:
+        with pytest.raises(DicerError, match=r"ct[.]nii: the header's scl_slope is 0 and scl_inter 5: .* set "
+                                             r"scl_slope to 1 and scl_inter to 0"):
+            read_image(path)
+    else:
+        np.testing.assert_array_equal(read_image(path).array, HU + (inter if slope else 0))
+
+
 def test_metaimage_infinite_spacing_refused(tmp_path):
     path = tmp_path / "z.mha"
     header = "ObjectType = Image\nNDims = 3\nDimSize = 2 2 2\nElementSpacing = 1 inf 1\nElementType = MET_UCHAR\n"

@@ -317,9 +317,17 @@ def _check_nifti_complete(path: Path) -> tuple[float, ...] | None:
         raise DicerError(f"{path}: the file is too short for a NIfTI header; copy or export it again")
     if header is None:
         return None  # not a header we know; leave the judgement to ITK
-    dims, bitpix, _, pixdim, vox_offset, _ = header
+    dims, bitpix, _, pixdim, vox_offset, endian = header
     if not 1 <= dims[0] <= 7:
         return None
+    nifti1 = struct.unpack(endian + "i", head[:4])[0] == 348
+    slope, inter = struct.unpack(endian + ("2f" if nifti1 else "2d"), head[112:120] if nifti1 else head[176:192])
+    if slope == 0 and inter != 0 and np.isfinite(inter):
+        # the standard: a zero slope means the values are stored unscaled; ITK adds the intercept
+        raise DicerError(f"{path}: the header's scl_slope is 0 and scl_inter {inter:g}: by the NIfTI standard the "
+                         "voxels are stored unscaled, but the image reader would add the intercept to every voxel; "
+                         "set scl_slope to 1 and scl_inter to 0 in the header (values as stored), or to the "
+                         "scaling meant")
     spatial = tuple(float(v) for v in pixdim[1 : min(int(dims[0]), 3) + 1])
     if path.name.lower().endswith((".hdr", ".img")):
         return spatial

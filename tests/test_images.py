@@ -679,3 +679,70 @@ def test_contiguous_copy_of_a_large_transposed_volume(shape):
             assert copy.flags.c_contiguous and np.array_equal(copy, view)
             assert copy.dtype == (dtype or view.dtype)
     assert np.array_equal(count_labels(a, 3), np.bincount(a.ravel()))
+
+
+def test_sheared_or_scaled_header_axes_are_refused(tmp_path):
+    """NRRD space directions with a shear, a MetaImage TransformMatrix with a scale: every
+    file dicer writes would turn them into some rotation, so they are refused on reading."""
+    data = np.arange(4 * 5 * 6, dtype=np.int16).tobytes()
+    nrrd = tmp_path / "shear.nrrd"
+    nrrd.write_bytes(b"NRRD0004\ntype: short\ndimension: 3\nspace: left-posterior-superior\nsizes: 4 5 6\n"
+                     b"space directions: (1,0,0) (0,1,0) (0,0.3,1)\nkinds: domain domain domain\n"
+                     b"endian: little\nencoding: raw\nspace origin: (0,0,0)\n\n" + data)
+    mha = tmp_path / "scaled.mha"
+    mha.write_bytes(b"ObjectType = Image\nNDims = 3\nBinaryData = True\nBinaryDataByteOrderMSB = False\n"
+                    b"TransformMatrix = 2 0 0 0 2 0 0 0 2\nOffset = 0 0 0\nElementSpacing = 1 1 1\n"
+                    b"DimSize = 4 5 6\nElementType = MET_SHORT\nElementDataFile = LOCAL\n" + data)
+    for path, error in ((nrrd, "0.287"), (mha, "3")):
+        with pytest.raises(DicerError, match=rf"{path.name}: the header's direction cosines are not orthonormal "
+                                             rf"\(largest error of D\^T D - I: {error}: .*resample it onto an "
+                                             "orthogonal grid"):
+            read_image(path)
+
+
+@pytest.mark.parametrize("descending", [False, True])
+def test_multiframe_dicom_in_either_frame_order(tmp_path, descending):
+    """An enhanced CT in one file, its frames stored bottom to top or (as many scanners
+    write them) top to bottom: each frame lands at its own Image Position."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.sequence import Sequence
+    from pydicom.uid import EnhancedCTImageStorage, ExplicitVRLittleEndian, generate_uid
+
+    def item(**tags):
+        ds = Dataset()
+        for key, value in tags.items():
+            setattr(ds, key, value)
+        return ds
+
+    nx, ny, nz, dz = 6, 5, 4, 2.5
+    hu = np.full((nx, ny, nz), -1000.0)
+    hu[:, :, nz - 1] = 1000.0  # the top frame (largest z) is bone
+    z = [-20.0 + dz * (nz - 1 - k if descending else k) for k in range(nz)]  # frame k's position
+    frames = [hu[:, :, int(round((zk + 20.0) / dz))] for zk in z]
+    ds = item(SOPClassUID=EnhancedCTImageStorage, SOPInstanceUID=generate_uid(), Modality="CT",
+              StudyInstanceUID=generate_uid(), SeriesInstanceUID=generate_uid(), FrameOfReferenceUID=generate_uid(),
+              SamplesPerPixel=1, PhotometricInterpretation="MONOCHROME2", BitsAllocated=16, BitsStored=16,
+              HighBit=15, PixelRepresentation=1, Rows=ny, Columns=nx, NumberOfFrames=nz)
+    ds.file_meta = FileMetaDataset()
+    ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds.file_meta.MediaStorageSOPClassUID = EnhancedCTImageStorage
+    ds.file_meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID
+    ds.SharedFunctionalGroupsSequence = Sequence([item(
+        PixelMeasuresSequence=Sequence([item(PixelSpacing=["0.5", "0.75"], SliceThickness=f"{dz:g}")]),
+        PlaneOrientationSequence=Sequence([item(ImageOrientationPatient=["1", "0", "0", "0", "1", "0"])]),
+        PixelValueTransformationSequence=Sequence([item(RescaleIntercept="0", RescaleSlope="1", RescaleType="HU")]))])
+    ds.PerFrameFunctionalGroupsSequence = Sequence([
+        item(PlanePositionSequence=Sequence([item(ImagePositionPatient=["10", "20", f"{zk:g}"])])) for zk in z])
+    ds.PixelData = np.ascontiguousarray(np.stack(frames).astype(np.int16).transpose(0, 2, 1)).tobytes()
+    ds.save_as(tmp_path / "mf.dcm", enforce_file_format=True)
+
+    volume = read_image(tmp_path / "mf.dcm")
+    assert volume.spacing == pytest.approx((0.75, 0.5, dz))  # x: column spacing, y: row spacing
+    # the bone frame sits at z = -20 + 3 dz whatever the order it was stored in
+    from dicer.mesh.frame import image_affine
+
+    affine = image_affine(volume.spacing, volume.origin, volume.direction)
+    bone = np.argwhere(volume.array[0, 0, :] > 0).ravel()
+    assert bone.size == 1
+    centre = affine[:3, :3] @ np.array([0.0, 0.0, float(bone[0])]) + affine[:3, 3]
+    assert centre[2] == pytest.approx(-20.0 + dz * (nz - 1))

@@ -508,11 +508,13 @@ def do_mesh(labels_path: str, out: Path, config: dict, write=_now):
 def do_export(mesh_path: str, out: Path, config: dict, mesh=None, neighbours=None):
     from dicer.config import stage_kwargs
     from dicer.export import export_mesh
-    from dicer.io.meshes import read_mesh
+    from dicer.io.meshes import read_mesh, refuse_inverted
 
     with _Stage("export"):
         # the export only reads the mesh: its arrays stay in the page cache, mapped, not copied
-        mesh = read_mesh(mesh_path, mapped=True) if mesh is None else mesh
+        if mesh is None:  # (a mesh handed on by dicer run was checked by the stage that made it)
+            mesh = read_mesh(mesh_path, mapped=True)
+            refuse_inverted(mesh, mesh_path)
         named = [m["name"] for m in config["materials"]]
         if any(a != b for a, b in zip(mesh.names, named)):  # properties go by material number: the mesh's own names say which were meant
             log.warning("export: the mesh names its materials %s, the config %s; the deck takes the config's names "
@@ -525,10 +527,11 @@ def do_export(mesh_path: str, out: Path, config: dict, mesh=None, neighbours=Non
 
 def do_surface(mesh_path: str, outdir: Path, config: dict, only: list[str] | None = None) -> dict:
     from dicer.export.stl import write_surfaces
-    from dicer.io.meshes import read_mesh
+    from dicer.io.meshes import read_mesh, refuse_inverted
 
     with _Stage("surface"):
         mesh = read_mesh(mesh_path)
+        refuse_inverted(mesh, mesh_path)
         info = write_surfaces(mesh, outdir, [m["name"] for m in config["materials"]], only)
         log.info("surface: wrote %s", ", ".join(f"{outdir / v['file']} ({v['triangles']} triangles, "
                                                  f"{v['volume_mm3']:.6g} mm^3)" for v in info.values()))

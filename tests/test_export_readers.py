@@ -336,8 +336,10 @@ def test_patran_names_the_materials_in_packet_21(tmp_path):
 
 
 @pytest.mark.parametrize("names, want", [
-    # a suffixed name meeting a plain one: the plain one is suffixed too
-    (["white_matter_a", "white_matter_b", "white_matt_1"], ["white_matt_1", "white_matt_2", "white_matt_3"]),
+    # a suffixed name meeting a name that fits: the suffixed one is cut shorter
+    (["white_matter_a", "white_matter_b", "white_matt_1"], ["white_mat_1", "white_matt_2", "white_matt_1"]),
+    # a name that fits stays the user's own, not another material's
+    (["white_matt_2", "white_matter_a", "white_matter_b"], ["white_matt_2", "white_mat_2", "white_matt_3"]),
     # a plain name that already ends in its own label keeps it
     (["abcdefghij_1x", "abcdefghij_1y"], ["abcdefghij_1", "abcdefghij_2"]),
     (["a" * 20] * 1 + ["a" * 13 + str(i) for i in range(11)], None),

@@ -201,12 +201,19 @@ def test_data_vtu_cannot_hold_is_refused(tmp_path, mesh):
 
 
 def test_meshio_written_vtu_is_still_read(tmp_path, mesh):
-    # files of earlier dicer versions (meshio, zlib) and of other writers
-    from dicer.io.meshes import to_meshio
-    path = tmp_path / "old.vtu"
-    meshio.write(path, to_meshio(mesh), binary=True, compression="zlib")
+    # files of earlier dicer versions: meshio's VTU (zlib) with the grid's field data put in
+    from dicer.errors import DicerError
+    from dicer.io.meshes import _field_data_xml, splice_field_data, to_meshio
+    raw, path = tmp_path / "raw.vtu", tmp_path / "old.vtu"
+    meshio.write(raw, to_meshio(mesh), binary=True, compression="zlib")
+    splice_field_data(raw, path, _field_data_xml(mesh).encode())
     back = read_mesh(path)
     assert np.array_equal(back.cells, mesh.cells) and np.array_equal(back.lattice, mesh.lattice)
+    assert np.array_equal(back.spacing, mesh.spacing) and np.array_equal(back.grid_shape, mesh.grid_shape)
+    # saved again by meshio, the grid is gone: the image border would be guessed from the mesh
+    with pytest.raises(DicerError, match="raw.vtu: the mesh file has no grid data .* use the file the dicer stage "
+                                         "wrote"):
+        read_mesh(raw)
 
 
 def test_a_damaged_size_word_is_refused_before_reading(tmp_path):

@@ -223,6 +223,21 @@ CASES = {
            ("negative connectivity", hostile._set_first(-3), "bad.vtu: 1 element corner(s) refer to nodes"),
            ("a NaN coordinate", hostile._nan_point, "bad.vtu: 1 node(s) have NaN or infinite coordinates"),
            ("a negative lattice index", hostile._negative_lattice, "bad.vtu: 1 node(s) have a negative lattice index"))},
+    # 5. found by probing meshes made or edited elsewhere
+    **{f"{command}: a mesh with an inverted element": (
+        (lambda command, out: lambda t, b: [command, _inverted_vtu(t / "inv.vtu"), "-o", t / out])(command, out),
+        "inv.vtu: 1 degenerate or inverted element(s), e.g. element 1")
+       for command, out in (("export", "model.inp"), ("surface", "surf"))},
+    **{f"{command}: a mesh saved again by meshio (no grid data)": (
+        (lambda command, out: lambda t, b: [command, _resaved_vtu(b / "mesh.vtu", t / "re.vtu"), "-o", t / out])(
+            command, out), "re.vtu: the mesh file has no grid data")
+       for command, out in (("export", "model.inp"), ("smooth", "s.vtu"))},
+    "export: material 0 in a mesh": (
+        lambda t, b: ["export", _material_vtu(t / "m0.vtu", 0), "-o", t / "model.inp"],
+        "m0.vtu: 1 element(s) have material 0; material numbers are labels 1..K"),
+    "quality: a fractional material number": (
+        lambda t, b: ["quality", _material_vtu(t / "mf.vtu", 1.5), "-o", t / "q.json"],
+        "mf.vtu: the 'material' cell data hold values that are not whole numbers"),
     "downsample: voxel_size=.inf": (
         lambda t, b: ["downsample", _copy(b, t, "labels.nii.gz"), "-o", t / "d.nii.gz",
                       "--set", "downsample.voxel_size=.inf"],
@@ -270,6 +285,44 @@ CASES = {
         lambda t, b: ["quality", _copy(b, t, "mesh.vtu"), "-o", t / "q.json", "--html", t / "q.json"],
         "q.json: given as the output of both -o and --html"),
 }
+
+
+def _inverted_vtu(path: Path) -> Path:
+    """A dicer mesh file (all its data) whose first element is turned inside out."""
+    from dicer.io.meshes import write_mesh
+    from dicer.mesh.topology import HEX_MIRROR
+    from dicer.mesh.voxel import voxel_mesh
+
+    mesh = voxel_mesh(np.pad(np.ones((3, 3, 3), np.uint8), ((0, 0), (0, 0), (0, 1))) + 0)
+    mesh.cells[0] = mesh.cells[0, HEX_MIRROR]
+    write_mesh(mesh, path, allow_inverted=True)
+    return path
+
+
+def _resaved_vtu(src: Path, path: Path) -> Path:
+    import meshio
+
+    meshio.write(path, meshio.read(src))
+    return path
+
+
+def _material_vtu(path: Path, value) -> Path:
+    """A meshio VTU of a dicer mesh's data with its grid, element 1's material ``value``."""
+    import meshio
+
+    from dicer.io.meshes import _field_data_xml, splice_field_data, to_meshio
+    from dicer.mesh.voxel import voxel_mesh
+
+    mesh = voxel_mesh(np.ones((2, 2, 2), np.uint8))
+    m = to_meshio(mesh)
+    material = m.cell_data["material"][0].astype(np.float64)
+    material[0] = value
+    m.cell_data["material"] = [material]
+    raw = path.with_suffix(".raw.vtu")
+    meshio.write(raw, m)
+    splice_field_data(raw, path, _field_data_xml(mesh).encode())
+    raw.unlink()
+    return path
 
 
 def _snapshot(root):

@@ -69,8 +69,10 @@ COMPONENT_TYPES = {(3, 1): 12, (3, 2): 112, (2, 1): 8, (2, 2): 108}
 def component_names(model) -> dict[int, str]:
     """Packet 21 name of each material present.
 
-    Its name cut to the 12 columns of the card, ended by ``_<label>`` where two cut names
-    would be the same (so the names are unique).
+    Its name when it fits the 12 columns of the card and no other name cut to 12 is the
+    same; else the name cut and ended by ``_<label>``, cut shorter where that would be
+    another material's name (so the names are unique and a name that fits stays the
+    user's own).
 
     Parameters
     ----------
@@ -81,16 +83,22 @@ def component_names(model) -> dict[int, str]:
     dict of int to str
         Label -> name.
     """
-    names = {k: model.names[k][:12] for k in model.labels()}
-    # names ended by distinct labels never meet each other (a digit, not "_", precedes
-    # the shorter label); a suffixed name may meet a plain one ("tissue_lon_1"): repeat
-    while True:
-        count = Counter(names.values())
-        repeated = [k for k, v in names.items() if count[v] > 1 and not v.endswith(f"_{k}")]
-        if not repeated:
-            return names
-        for k in repeated:
-            names[k] = f"{model.names[k][:11 - len(str(k))]}_{k}"
+    labels = list(model.labels())
+    cut = {k: model.names[k][:12] for k in labels}
+    count = Counter(cut.values())
+    out = {k: v for k, v in cut.items() if count[v] == 1}
+    taken = set(out.values())
+    for k in labels:
+        if k in out:
+            continue
+        # names start with a letter, so "_<label>" alone is never another material's name
+        for width in range(11 - len(str(k)), -1, -1):
+            name = f"{model.names[k][:width]}_{k}"
+            if name not in taken:
+                break
+        out[k] = name
+        taken.add(name)
+    return {k: out[k] for k in labels}
 
 
 def _components(f, model) -> None:

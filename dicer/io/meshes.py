@@ -370,6 +370,19 @@ def check_mesh(mesh: Mesh, source: str, allow_inverted: bool = False) -> np.ndar
     return sj
 
 
+def refuse_inverted(mesh: Mesh, source: str) -> None:
+    """Raise DicerError when an element of ``mesh`` is degenerate or inverted (scaled
+    Jacobian <= 0), its blocks measured on the process's cores: for the stages that only
+    read a mesh (export, surface), whose outputs a solver or CAD tool would refuse or
+    turn inside out."""
+    from dicer.mesh.model import pieces
+
+    parts = list(pieces(mesh.n_cells, 1 << 18))
+    sj = np.concatenate([np.empty(0)] + list(ordered_map(lambda part: scaled_jacobian(mesh.points, mesh.cells[part]),
+                                                         parts)))
+    _refuse_inverted(sj, source)
+
+
 def _refuse_inverted(sj: np.ndarray, source: str) -> None:
     bad = np.flatnonzero(sj <= 0)
     if bad.size:
@@ -741,7 +754,16 @@ def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data,
         raise DicerError(f"{name}: mesh has no 'material' cell data; make it with 'dicer mesh'")
     if "lattice" not in point_data:
         raise DicerError(f"{name}: mesh has no 'lattice' point data (not made by 'dicer mesh'); remesh from labels with 'dicer mesh'")
-    material = np.asarray(cell_data["material"]).astype(np.int32, copy=False).reshape(-1)
+    material = np.asarray(cell_data["material"]).reshape(-1)
+    if material.dtype.kind not in "iu":
+        if material.dtype.kind != "f" or not np.all(np.isfinite(material)) or np.any(material != np.round(material)):
+            raise DicerError(f"{name}: the 'material' cell data hold values that are not whole numbers; material "
+                             "numbers are labels 1..K: write the mesh again with the dicer stage that made it")
+    if material.size and material.min() < 1:
+        raise DicerError(f"{name}: {int(np.count_nonzero(material < 1))} element(s) have material {int(material.min())}"
+                         "; material numbers are labels 1..K (0 is background, which has no elements): write the "
+                         "mesh again with the dicer stage that made it")
+    material = material.astype(np.int32, copy=False)
     lattice = lattice.reshape(len(points), -1)
     if lattice.shape[1] == 2:
         lattice = np.column_stack([lattice, np.zeros(len(lattice), np.int64)])
@@ -750,6 +772,13 @@ def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data,
         points = np.column_stack([points, np.zeros(len(points))])
     _check_arrays(name, points, cells, material, lattice, cell_data.get(LEVEL_DATA))
     fd = field_data
+    missing = [k for k in ("spacing", "origin", "grid_shape") if k not in fd]
+    if missing:
+        # without them the image border (plane sets, mirror planes) would be guessed from the
+        # mesh's own extent: a free surface taken for a cut plane
+        raise DicerError(f"{name}: the mesh file has no grid data ({', '.join(missing)} field data, which dicer's "
+                         "stages write and tools such as meshio drop when they save a mesh again); use the "
+                         "file the dicer stage wrote")
     spacing = np.asarray(fd.get("spacing", np.ones(3)), float).ravel()
     origin = np.asarray(fd.get("origin", np.zeros(3)), float).ravel()
     if "grid_shape" in fd:

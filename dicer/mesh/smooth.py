@@ -1206,7 +1206,7 @@ def _report(st: _Smoothing, t0: float) -> dict:
         "min_scaled_jacobian": float(sj.min()) if sj.size else 1.0,
         "checked_elements": int(st.touched.size),
         "inverted_elements": int(np.count_nonzero(sj <= 0)),
-        "volume_change": total / float(base.sum()),
+        "volume_change": total / float(base.sum()) if base.sum() else 0.0,  # 0: a mesh of no volume
         "volume_change_by_material": volume_change,
         "max_displacement_mm": max_disp,
         "mean_boundary_displacement_mm": float(bdisp.mean()) if bdisp.size else 0.0,

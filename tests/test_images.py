@@ -167,7 +167,7 @@ SECRET_ID = "PID-88231577"
 
 
 def _write_dicom_series(folder, nslices, series_uid, stored, z0=-20.0, dz=2.5, prefix="im", order=None,
-                        positions=None, shift_y=0.0):
+                        positions=None, shift_y=0.0, pixel_spacing=True):
     """Write a CT series built on pydicom's CT_small.dcm: stored values, slope 2, intercept -1024.
 
     Slice k lies at z = ``positions[k]`` (default ``z0 + dz * k``); its SliceThickness is
@@ -189,6 +189,8 @@ def _write_dicom_series(folder, nslices, series_uid, stored, z0=-20.0, dz=2.5, p
         ny, nx = stored.shape[1], stored.shape[0]
         ds.Rows, ds.Columns = ny, nx
         ds.PixelSpacing = [0.6, 0.8]  # row spacing (y), column spacing (x)
+        if not pixel_spacing:
+            del ds.PixelSpacing
         z = z0 + dz * k if positions is None else positions[k]
         ds.SliceThickness = 5.0
         ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
@@ -746,3 +748,23 @@ def test_multiframe_dicom_in_either_frame_order(tmp_path, descending):
     assert bone.size == 1
     centre = affine[:3, :3] @ np.array([0.0, 0.0, float(bone[0])]) + affine[:3, 3]
     assert centre[2] == pytest.approx(-20.0 + dz * (nz - 1))
+
+
+def test_dicom_series_of_equal_length_or_without_pixel_spacing_are_refused(tmp_path):
+    """Two series of as many slices in one folder: no way to tell the scan (it took the one
+    whose identifier sorts first); slices without Pixel Spacing: GDCM took 1 mm in-plane."""
+    stored = np.zeros((6, 5, 4), np.int16)
+    both = tmp_path / "both"
+    both.mkdir()
+    _write_dicom_series(both, 4, "1.2.826.0.1.3680043.8.498.11", stored, prefix="a")
+    _write_dicom_series(both, 4, "1.2.826.0.1.3680043.8.498.12", stored + 250, prefix="b")
+    with pytest.raises(DicerError, match=r"both: the folder holds 2 DICOM series, 2 of them of 4 slices \(the most\); "
+                                         "dicer cannot tell which one is the scan: put each series in a folder"):
+        read_image(both)
+    _write_dicom_series(both, 5, "1.2.826.0.1.3680043.8.498.13", stored[:, :, [0, 1, 2, 3, 3]], prefix="c")
+    assert read_image(both).array.shape == (6, 5, 5)  # a longer series is the scan
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    _write_dicom_series(bare, 4, "1.2.826.0.1.3680043.8.498.14", stored, pixel_spacing=False)
+    with pytest.raises(DicerError, match=r"bare: the DICOM slices carry no Pixel Spacing \(0028,0030\)"):
+        read_image(bare)

@@ -755,6 +755,13 @@ def _read_dicom_slices(names: list[str]):
             reader.ReadImageInformation()
         except RuntimeError as exc:
             raise _slice_error(name, _itk_message(exc)) from None
+        for tag, what, unknown in (("0028|0030", "Pixel Spacing (0028,0030)", "in-plane voxel size is unknown "
+                                    "(GDCM would take 1 mm)"),
+                                   ("0020|0032", "Image Position (Patient) (0020,0032)", "order and spacing are "
+                                    "unknown")):
+            if len(names) > 1 and not reader.HasMetaDataKey(tag):
+                raise DicerError(f"{Path(name).parent}: the DICOM slices carry no {what}, so their {unknown}; export "
+                                 "the series with it, or convert it to NIfTI with the geometry set there")
         positions.append(reader.GetOrigin()[:3])
         directions.append(reader.GetDirection())
         sizes.append(reader.GetSize()[:2])
@@ -897,10 +904,15 @@ def _read_dicom_series(folder: Path, required: bool = True, allow_irregular: boo
             raise DicerError(
                 f"{folder}: the folder holds no DICOM series, TIFF or PNG slices; {_SUPPORTED}"
             )
-        # the series with the most slices; ties go to the first series ID in sorted order
+        # the series with the most slices; a tie is refused
         members = {sid: sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), sid) for sid in sorted(series)}
         candidates = [(len(names), sid) for sid, names in members.items()]
-        count, chosen = max(candidates, key=lambda c: c[0])  # max keeps the first of equal counts
+        count, chosen = max(candidates, key=lambda c: c[0])
+        tied = sum(c == count for c, _ in candidates)
+        if tied > 1:  # no way to tell which is the scan (CT and its reformat, two echoes)
+            raise DicerError(f"{folder}: the folder holds {len(series)} DICOM series, {tied} of them of {count} slices "
+                             "(the most); dicer cannot tell which one is the scan: put each series in a folder of "
+                             "its own and give that folder")
         known = {Path(name).name for names in members.values() for name in names}
         for path in sorted(folder.iterdir(), key=lambda p: _natural_key(p.name)):
             if (path.is_file() and not path.name.startswith(".") and path.name not in known
@@ -936,7 +948,8 @@ def read_image(path: str | os.PathLike, spacing=None, allow_irregular_slices: bo
     ----------
     path : str or path-like
         A file (.nii, .nii.gz, .nrrd, .mha/.mhd, .npy, .tif/.tiff, .png, .dcm) or a folder
-        holding one DICOM series (the series with the most slices if several), TIFF
+        holding one DICOM series (the series with the most slices if several; a tie is
+        refused), TIFF
         slices or PNG slices (stacked along z in natural file-name order).
     spacing : None, float or sequence of float, optional
         Voxel size in mm (x, y[, z]) for inputs that carry none: .npy, TIFF and PNG.

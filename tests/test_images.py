@@ -702,10 +702,9 @@ def test_sheared_or_scaled_header_axes_are_refused(tmp_path):
             read_image(path)
 
 
-@pytest.mark.parametrize("descending", [False, True])
-def test_multiframe_dicom_in_either_frame_order(tmp_path, descending):
-    """An enhanced CT in one file, its frames stored bottom to top or (as many scanners
-    write them) top to bottom: each frame lands at its own Image Position."""
+def _write_enhanced_ct(path, frames, z):
+    """An enhanced CT in one file: ``frames`` (n, nx, ny) HU, frame k at z = ``z[k]`` mm
+    (x 10, y 20), pixels 0.75 (x) by 0.5 mm (y)."""
     from pydicom.dataset import Dataset, FileMetaDataset
     from pydicom.sequence import Sequence
     from pydicom.uid import EnhancedCTImageStorage, ExplicitVRLittleEndian, generate_uid
@@ -716,29 +715,36 @@ def test_multiframe_dicom_in_either_frame_order(tmp_path, descending):
             setattr(ds, key, value)
         return ds
 
-    nx, ny, nz, dz = 6, 5, 4, 2.5
-    hu = np.full((nx, ny, nz), -1000.0)
-    hu[:, :, nz - 1] = 1000.0  # the top frame (largest z) is bone
-    z = [-20.0 + dz * (nz - 1 - k if descending else k) for k in range(nz)]  # frame k's position
-    frames = [hu[:, :, int(round((zk + 20.0) / dz))] for zk in z]
+    n, nx, ny = frames.shape
     ds = item(SOPClassUID=EnhancedCTImageStorage, SOPInstanceUID=generate_uid(), Modality="CT",
               StudyInstanceUID=generate_uid(), SeriesInstanceUID=generate_uid(), FrameOfReferenceUID=generate_uid(),
               SamplesPerPixel=1, PhotometricInterpretation="MONOCHROME2", BitsAllocated=16, BitsStored=16,
-              HighBit=15, PixelRepresentation=1, Rows=ny, Columns=nx, NumberOfFrames=nz)
+              HighBit=15, PixelRepresentation=1, Rows=ny, Columns=nx, NumberOfFrames=n)
     ds.file_meta = FileMetaDataset()
     ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
     ds.file_meta.MediaStorageSOPClassUID = EnhancedCTImageStorage
     ds.file_meta.MediaStorageSOPInstanceUID = ds.SOPInstanceUID
     ds.SharedFunctionalGroupsSequence = Sequence([item(
-        PixelMeasuresSequence=Sequence([item(PixelSpacing=["0.5", "0.75"], SliceThickness=f"{dz:g}")]),
+        PixelMeasuresSequence=Sequence([item(PixelSpacing=["0.5", "0.75"], SliceThickness="2.5")]),
         PlaneOrientationSequence=Sequence([item(ImageOrientationPatient=["1", "0", "0", "0", "1", "0"])]),
         PixelValueTransformationSequence=Sequence([item(RescaleIntercept="0", RescaleSlope="1", RescaleType="HU")]))])
     ds.PerFrameFunctionalGroupsSequence = Sequence([
         item(PlanePositionSequence=Sequence([item(ImagePositionPatient=["10", "20", f"{zk:g}"])])) for zk in z])
-    ds.PixelData = np.ascontiguousarray(np.stack(frames).astype(np.int16).transpose(0, 2, 1)).tobytes()
-    ds.save_as(tmp_path / "mf.dcm", enforce_file_format=True)
+    ds.PixelData = np.ascontiguousarray(frames.astype(np.int16).transpose(0, 2, 1)).tobytes()
+    ds.save_as(path, enforce_file_format=True)
+    return path
 
-    volume = read_image(tmp_path / "mf.dcm")
+
+@pytest.mark.parametrize("descending", [False, True])
+def test_multiframe_dicom_in_either_frame_order(tmp_path, descending):
+    """An enhanced CT in one file, its frames stored bottom to top or (as many scanners
+    write them) top to bottom: each frame lands at its own Image Position."""
+    nx, ny, nz, dz = 6, 5, 4, 2.5
+    hu = np.full((nx, ny, nz), -1000.0)
+    hu[:, :, nz - 1] = 1000.0  # the top frame (largest z) is bone
+    z = [-20.0 + dz * (nz - 1 - k if descending else k) for k in range(nz)]  # frame k's position
+    frames = np.stack([hu[:, :, int(round((zk + 20.0) / dz))] for zk in z])
+    volume = read_image(_write_enhanced_ct(tmp_path / "mf.dcm", frames, z))
     assert volume.spacing == pytest.approx((0.75, 0.5, dz))  # x: column spacing, y: row spacing
     # the bone frame sits at z = -20 + 3 dz whatever the order it was stored in
     from dicer.mesh.frame import image_affine
@@ -748,6 +754,16 @@ def test_multiframe_dicom_in_either_frame_order(tmp_path, descending):
     assert bone.size == 1
     centre = affine[:3, :3] @ np.array([0.0, 0.0, float(bone[0])]) + affine[:3, 3]
     assert centre[2] == pytest.approx(-20.0 + dz * (nz - 1))
+
+
+@pytest.mark.parametrize("z, where", [([0.0, 2.5, 7.5, 10.0], "2.5 and 7.5 mm"), ([0.0, 2.5, 2.5, 5.0], "2.5 and 2.5 mm"),
+                                      ([0.0, 2.5, 4.0, 6.5], "2.5 and 4 mm")])
+def test_multiframe_dicom_with_missing_doubled_or_uneven_frames_is_refused(tmp_path, z, where):
+    """GDCM read such a file at 1 mm voxels, in-plane too, without a word."""
+    frames = np.zeros((4, 6, 5))
+    with pytest.raises(DicerError, match=rf"mf.dcm: the frames of the multi-frame DICOM file are not evenly spaced "
+                                         rf"along their normal \(between positions {where}"):
+        read_image(_write_enhanced_ct(tmp_path / "mf.dcm", frames, z))
 
 
 def test_dicom_series_of_equal_length_or_without_pixel_spacing_are_refused(tmp_path):

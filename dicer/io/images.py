@@ -565,6 +565,8 @@ def _read_file(path: Path, spacing_arg, dtype=np.float32, keep_direction=False) 
             bad_header_spacing = True
     elif suffix in (".mha", ".mhd", ".nrrd", ".nhdr"):
         _check_raw_size(path, suffix)
+    elif suffix == ".dcm":
+        _check_frames(path)
     reader = sitk.ImageFileReader()
     reader.SetFileName(str(path))
     try:
@@ -609,6 +611,55 @@ def _read_file(path: Path, spacing_arg, dtype=np.float32, keep_direction=False) 
     own = suffix not in _TIFF + _PNG and not bad_header_spacing
     return _from_sitk(image, path, spacing_arg, own_spacing=own, nifti=suffix in (".nii", ".nii.gz"),
                       dtype=dtype, keep_direction=keep_direction)
+
+
+def _check_frames(path: Path) -> None:
+    """Refuse a multi-frame DICOM file whose frames are not evenly spaced along their normal.
+
+    GDCM reads such a file without a word at 1 mm voxels (in-plane too: a model 5.6 times
+    too small), so the frames' positions are judged here, from the per-frame functional
+    groups (pydicom, header only): missing frames, uneven steps and two frames at one
+    position are refused, as they are in a series of single-slice files.
+    """
+    import pydicom
+
+    try:
+        ds = pydicom.dcmread(path, stop_before_pixels=True)
+    except Exception:  # noqa: BLE001 -- not for pydicom to judge: GDCM reads the file or says why
+        return
+    if int(ds.get("NumberOfFrames", 1) or 1) < 2 or "PerFrameFunctionalGroupsSequence" not in ds:
+        return
+
+    def first(groups, sequence, tag):
+        for group in groups:
+            inner = group.get(sequence)
+            if inner and tag in inner[0]:
+                return [float(v) for v in inner[0].get(tag)]
+        return None
+
+    shared = list(ds.get("SharedFunctionalGroupsSequence", []))
+    positions, orientation = [], first(shared, "PlaneOrientationSequence", "ImageOrientationPatient")
+    for frame in ds.PerFrameFunctionalGroupsSequence:
+        position = first([frame], "PlanePositionSequence", "ImagePositionPatient")
+        orientation = orientation or first([frame], "PlaneOrientationSequence", "ImageOrientationPatient")
+        if position is None:
+            raise DicerError(f"{path}: a frame of the multi-frame DICOM file carries no Image Position (Patient), "
+                             "so the frames' order and spacing are unknown; export it with the frame positions")
+        positions.append(position)
+    if orientation is None or len(orientation) != 6:
+        return  # GDCM places the frames along z as stored
+    normal = np.cross(orientation[:3], orientation[3:])
+    depth = np.sort(np.asarray(positions) @ normal)
+    steps = np.diff(depth)
+    median = float(np.median(steps))
+    tol = max(0.01 * abs(median), 1e-3)
+    odd = np.flatnonzero((np.abs(steps - median) > tol) | (steps <= tol))
+    if odd.size:
+        where = _positions_text([(depth[i], depth[i + 1]) for i in odd[:3]], odd.size - 3)
+        raise DicerError(f"{path}: the frames of the multi-frame DICOM file are not evenly spaced along their normal "
+                         f"(between positions {where}, where the median step is {median:g} mm): frames are missing, "
+                         "doubled or uneven, and the file would be read at 1 mm voxels; export the scan again with "
+                         "uniform frames, or as single-slice files (image.allow_irregular_slices can resample those)")
 
 
 def _check_orthonormal(image: sitk.Image, path: Path) -> None:

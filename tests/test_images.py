@@ -637,6 +637,22 @@ def test_slice_folder_errors(tmp_path):
         read_image(tmp_path / "both")
 
 
+@pytest.mark.parametrize("numbers, warned", [([0, 1, 2, 6, 7], "skip from 2 to 6"), ([0, 5, 10, 15], None),
+                                             ([1, 2, 3, 4], None)])
+def test_a_skip_in_the_slice_file_numbers_is_warned_of(tmp_path, caplog, numbers, warned):
+    folder = tmp_path / "slices"
+    folder.mkdir()
+    for n in numbers:
+        tifffile.imwrite(folder / f"s{n:03d}.tif", np.full((4, 5), n, np.uint8))
+    with caplog.at_level(logging.WARNING, logger="dicer"):
+        volume = read_image(folder, spacing=1.0)
+    assert volume.array.shape == (5, 4, len(numbers))
+    if warned:
+        assert f"slices: the slice files' numbers {warned} (s002.tif to s006.tif)" in caplog.text
+    else:
+        assert "numbers skip" not in caplog.text
+
+
 @pytest.mark.parametrize("shift,refused", [(0.0, False), (0.01, False), (0.91, True)])
 def test_dicom_series_with_gantry_tilt_refused(tmp_path, shift, refused):
     """Slices that shift within their plane along the series (gantry tilt) would make a

@@ -741,6 +741,16 @@ def _read_folder(folder: Path, spacing_arg, allow_irregular: bool = False) -> Vo
 
 def _read_slices(folder: Path, files: list[Path], spacing_arg) -> Volume:
     """Stack 2D TIFF or PNG slices (already in natural name order) along z."""
+    numbers = [re.findall(r"\d+", p.stem) for p in files]
+    if len(files) > 2 and all(numbers):
+        last = np.array([int(n[-1]) for n in numbers])
+        steps = np.diff(last)
+        if np.all(steps > 0) and np.any(steps != steps.min()):
+            # numbered files with a skip: slices left out of the folder (DICOM would show it by position)
+            k = int(np.flatnonzero(steps != steps.min())[0])
+            log.warning("%s: the slice files' numbers skip from %d to %d (%s to %s) where they step by %d elsewhere: "
+                        "slices may be missing, and the stack is made of the %d files as they are",
+                        folder.name, last[k], last[k + 1], files[k].name, files[k + 1].name, steps.min(), len(files))
     reader = sitk.ImageSeriesReader()
     reader.SetFileNames([str(p) for p in files])
     try:

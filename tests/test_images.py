@@ -800,3 +800,17 @@ def test_dicom_series_of_equal_length_or_without_pixel_spacing_are_refused(tmp_p
     _write_dicom_series(bare, 4, "1.2.826.0.1.3680043.8.498.14", stored, pixel_spacing=False)
     with pytest.raises(DicerError, match=r"bare: the DICOM slices carry no Pixel Spacing \(0028,0030\)"):
         read_image(bare)
+
+
+def test_a_folder_of_one_multiframe_file_or_a_dicom_medium(tmp_path):
+    folder = tmp_path / "mf"
+    folder.mkdir()
+    frames = np.arange(4 * 6 * 5, dtype=float).reshape(4, 6, 5)
+    _write_enhanced_ct(folder / "mf.dcm", frames, [0.0, 2.5, 5.0, 7.5])
+    whole, alone = read_image(folder), read_image(folder / "mf.dcm")
+    assert np.array_equal(whole.array, alone.array) and whole.spacing == alone.spacing
+    medium = tmp_path / "medium"
+    (medium / "PT000000").mkdir(parents=True)
+    (medium / "DICOMDIR").write_bytes(b"\0" * 132)
+    with pytest.raises(DicerError, match="medium: the folder holds a DICOMDIR index and subfolders"):
+        read_image(medium)

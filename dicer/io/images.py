@@ -723,6 +723,9 @@ def _read_npy(path: Path, spacing_arg, dtype) -> Volume:
 def _read_folder(folder: Path, spacing_arg, allow_irregular: bool = False) -> Volume:
     files = sorted((p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")),
                    key=lambda p: _natural_key(p.name))
+    if [p.name.upper() for p in files] == ["DICOMDIR"] and any(p.is_dir() for p in folder.iterdir()):
+        raise DicerError(f"{folder}: the folder holds a DICOMDIR index and subfolders (a DICOM medium); give the "
+                         "subfolder that directly holds the series' slices")
     if not files:
         where = "holds only subfolders" if any(p.is_dir() for p in folder.iterdir()) else "is empty"
         raise DicerError(f"{folder}: the folder {where}; give the folder that directly holds the DICOM "
@@ -946,6 +949,18 @@ def _refuse_tilt(positions: np.ndarray, depth: np.ndarray, normal: np.ndarray, p
     )
 
 
+def _frames(name: str) -> int:
+    """Number of Frames (0028,0008) of a DICOM file; 1 when not said."""
+    reader = sitk.ImageFileReader()
+    reader.SetImageIO("GDCMImageIO")
+    reader.SetFileName(name)
+    try:
+        reader.ReadImageInformation()
+        return int(reader.GetMetaData("0028|0008").strip() or 1) if reader.HasMetaDataKey("0028|0008") else 1
+    except (RuntimeError, ValueError):
+        return 1
+
+
 def _read_dicom_series(folder: Path, required: bool = True, allow_irregular: bool = False) -> Volume | None:
     """Read the DICOM series with the most slices; None if there is none and not ``required``.
 
@@ -984,6 +999,8 @@ def _read_dicom_series(folder: Path, required: bool = True, allow_irregular: boo
             log.info("%s: %d DICOM series found (slices: %s); reading the one with the most slices (%d)",
                      folder.name, len(series), ", ".join(str(c) for c, _ in candidates), count)
         names = list(members[chosen])
+        if len(names) == 1 and _frames(names[0]) > 1:  # one multi-frame file: read as the file it is
+            return _read_file(Path(names[0]), None, keep_direction=True)
         array, positions, direction, pixel_spacing = _read_dicom_slices(names)
     normal = direction[:, 2]
     depth = positions @ normal

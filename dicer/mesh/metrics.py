@@ -198,7 +198,18 @@ def hex_min_jacobian_t(columns: list[np.ndarray], cells_t: np.ndarray, chunk: in
                        out: np.ndarray | None = None) -> np.ndarray:
     """Smallest corner Jacobian determinant of hexahedra (the triple product of a corner's
     edges, not normalised): <= 0 exactly where the scaled Jacobian is, at two thirds of its
-    cost (no edge lengths). Arguments as in :func:`hex_scaled_jacobian_t`.
+    cost (no edge lengths).
+
+    Parameters
+    ----------
+    columns : list of three (N,) float64 ndarrays
+        x, y and z of the nodes.
+    cells_t : (8, M) int ndarray
+        The transposed cell array, any integer type.
+    chunk : int, optional
+        Elements per block.
+    out : (M,) float64 ndarray, optional
+        Written in place and returned.
 
     Returns
     -------

@@ -55,4 +55,4 @@ def check_gmsh(path: str | Path, model) -> None:
     check_meshio(path, model, "gmsh")
 
 
-FORMAT = Format("gmsh", (".msh",), write_gmsh, check_gmsh)
+FORMAT = Format("gmsh", (".msh",), write_gmsh, check_gmsh, holds_sets=False)  # materials as physical groups only

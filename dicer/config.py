@@ -328,6 +328,11 @@ def _explain(err: jsonschema.ValidationError) -> str:
         return f"{value} is out of range; give {_range(err.schema)}"
     if err.validator == "enum":
         return f"{value} is not one of {', '.join(map(str, err.validator_value))}"
+    if (err.validator == "type" and err.validator_value == "array" and isinstance(err.instance, dict)
+            and all(str(k).isdigit() for k in err.instance)):
+        # --set a.0.b=... makes a mapping of item numbers, not a list
+        return ("a list is set whole, not item by item: give all of it, e.g. --set 'materials=[{name: a}, "
+                "{name: b}]' (a YAML list)")
     if err.validator == "pattern" and err.validator_value in _PATTERNS:
         return f"{value} is not {_PATTERNS[err.validator_value]}"
     return err.message

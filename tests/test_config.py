@@ -219,3 +219,8 @@ def test_poissons_ratio_that_a_deck_prints_as_a_limit_is_refused(nu, ok):
         with pytest.raises(DicerError, match=r"'materials.0.poissons_ratio': .* at the 7 significant digits a "
                                              "solver deck holds"):
             load_config(settings=settings)
+
+
+def test_a_list_item_set_by_its_number_says_how_to_set_the_list():
+    with pytest.raises(DicerError, match=r"key 'materials': a list is set whole, not item by item: give all of it"):
+        load_config(sets=["materials.0.name=x"])

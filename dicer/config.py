@@ -144,7 +144,8 @@ def deep_merge(base: dict, override: dict) -> dict:
 
 class _Loader(yaml.SafeLoader):
     """PyYAML's safe loader with three fixes: a key given twice in one mapping is an error
-    (not a silent last-one-wins), integers are read as YAML 1.2 reads them, and floats in exponent form without a dot (``1e-9``,
+    (not a silent last-one-wins; 8 and "8" are one key), integers are read as YAML 1.2
+    reads them (010 is ten), and floats in exponent form without a dot (``1e-9``,
     ``2E+5``) are numbers as in YAML 1.2 (YAML 1.1 reads them as strings)."""
 
     def construct_mapping(self, node, deep=False):

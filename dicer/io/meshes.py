@@ -793,12 +793,9 @@ def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data,
         raise DicerError(f"{name}: the mesh file has no grid data ({', '.join(missing)} field data, which dicer's "
                          "stages write and tools such as meshio drop when they save a mesh again); use the "
                          "file the dicer stage wrote")
-    spacing = np.asarray(fd.get("spacing", np.ones(3)), float).ravel()
-    origin = np.asarray(fd.get("origin", np.zeros(3)), float).ravel()
-    if "grid_shape" in fd:
-        grid_shape = np.asarray(fd["grid_shape"], np.int64).ravel()
-    else:
-        grid_shape = lattice.max(axis=0) if len(lattice) else np.zeros(3, np.int64)
+    spacing = np.asarray(fd["spacing"], float).ravel()
+    origin = np.asarray(fd["origin"], float).ravel()
+    grid_shape = np.asarray(fd["grid_shape"], np.int64).ravel()
     point_data = {k: np.asarray(v) for k, v in point_data.items() if k != "lattice"}
     cell_data = {k: np.asarray(v) for k, v in cell_data.items() if k != "material"}
     names = names_from_field_data(fd)

@@ -123,7 +123,6 @@ def _min_corner_triple(u: list[np.ndarray]) -> np.ndarray:
     return best
 
 
-
 def _edge_ratio_of_lengths(sq: np.ndarray) -> np.ndarray:
     """Edge ratio from the (edges, m) squared edge lengths."""
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -17,13 +17,14 @@ import numpy as np
 from dicer.mesh.topology import HEX_CORNERS, MESHIO_TYPES, QUAD_CORNERS  # noqa: F401  (corners re-exported)
 
 LEVEL_DATA = "coarsening_level"
-#: field data names of dicer's mesh files that hold the grid, not a material's name
-GRID_FIELDS = ("spacing", "origin", "grid_shape", "direction", "scanner_coordinates")
 """Cell data of graded meshes ('dicer merge' with merge.method=templates): 0 for an element
 of one voxel, l for an element made at level l (a coarse cell or part of a transition
 template: 2D cells of 3**l voxels a side; 3D cells grow by three along one axis per step,
 3**l voxels a side once the level's three steps are done). Every node of an element with level > 0 is an interior node: such
 elements lie inside one material, away from every boundary and interface."""
+
+GRID_FIELDS = ("spacing", "origin", "grid_shape", "direction", "scanner_coordinates")
+"""Field data of dicer's mesh files that hold the grid, not a material's name."""
 
 CHUNK = 1 << 18
 """Rows (elements, nodes or index entries) per pass of the loops that work in pieces: the

@@ -222,8 +222,7 @@ def clean_labels(labels: np.ndarray, n_classes: int, opening_radius: int, closin
     info : dict
         ``removed_by_opening``: per class (1..K) the voxels the opening removed from its
         cumulative mask; ``removed_parts``: per class, the parts ``keep``/``min_size``
-        dropped from it (count, voxels, the largest, and the largest kept);
-        ``emptied``: classes whose cumulative mask the morphology emptied.
+        dropped from it (count, voxels, the largest, and the largest kept).
     """
     k = int(n_classes)
     keeps = _per_class(keep, k, "keep")
@@ -232,7 +231,6 @@ def clean_labels(labels: np.ndarray, n_classes: int, opening_radius: int, closin
     masks = []
     removed = {}
     parts = {}
-    emptied = []
     outer = None
     for c in range(1, k + 1):
         m = labels >= c
@@ -245,8 +243,6 @@ def clean_labels(labels: np.ndarray, n_classes: int, opening_radius: int, closin
         m = filter_components(closing(opened, closing_radius), keeps[c - 1], sizes[c - 1], dropped)
         parts[c] = {"parts": len(dropped) - 1, "voxels": sum(dropped[:-1]),
                     "largest": dropped[0] if len(dropped) > 1 else 0, "largest_kept": dropped[-1]}
-        if before and not m.any():
-            emptied.append(c)
         masks.append(m)
         outer = m
     out = np.zeros_like(labels)
@@ -256,4 +252,4 @@ def clean_labels(labels: np.ndarray, n_classes: int, opening_radius: int, closin
         claim &= ~assigned
         out[claim] = c
         assigned |= claim
-    return out, {"removed_by_opening": removed, "removed_parts": parts, "emptied": emptied}
+    return out, {"removed_by_opening": removed, "removed_parts": parts}

@@ -809,6 +809,16 @@ def test_a_folder_of_one_multiframe_file_or_a_dicom_medium(tmp_path):
     _write_enhanced_ct(folder / "mf.dcm", frames, [0.0, 2.5, 5.0, 7.5])
     whole, alone = read_image(folder), read_image(folder / "mf.dcm")
     assert np.array_equal(whole.array, alone.array) and whole.spacing == alone.spacing
+    # named as scanners and archives often name them, without an extension: read by content
+    named = tmp_path / "named"
+    named.mkdir()
+    (folder / "mf.dcm").rename(named / "IM0001")
+    for volume in (read_image(named), read_image(named / "IM0001")):
+        assert np.array_equal(volume.array, alone.array) and volume.spacing == alone.spacing
+        assert volume.origin == alone.origin
+    (named / "notes").write_text("not an image")
+    with pytest.raises(DicerError, match=r"notes: unknown image format '\(no extension\)'"):
+        read_image(named / "notes")
     medium = tmp_path / "medium"
     (medium / "PT000000").mkdir(parents=True)
     (medium / "DICOMDIR").write_bytes(b"\0" * 132)

@@ -547,8 +547,19 @@ def _spacing_error(path: Path, spacing, what: str) -> DicerError:
     )
 
 
+def _dicom_preamble(path: Path) -> bool:
+    """Whether the file starts as a DICOM file does: 128 bytes, then ``DICM``."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(132)[128:] == b"DICM"
+    except OSError:
+        return False
+
+
 def _read_file(path: Path, spacing_arg, dtype=np.float32, keep_direction=False) -> Volume:
     suffix = _suffix(path)
+    if suffix not in IMAGE_SUFFIXES and _dicom_preamble(path):
+        suffix = ".dcm"  # scanners and archives often name DICOM files without an extension (IM0001)
     if suffix == ".npy":
         return _read_npy(path, spacing_arg, dtype)
     if suffix not in IMAGE_SUFFIXES:
@@ -1025,9 +1036,9 @@ def read_image(path: str | os.PathLike, spacing=None, allow_irregular_slices: bo
     Parameters
     ----------
     path : str or path-like
-        A file (.nii, .nii.gz, .nrrd, .mha/.mhd, .npy, .tif/.tiff, .png, .dcm) or a folder
-        holding one DICOM series (the series with the most slices if several; a tie is
-        refused), TIFF
+        A file (.nii, .nii.gz, .nrrd, .mha/.mhd, .npy, .tif/.tiff, .png, .dcm, or a
+        DICOM file of any name, told by its preamble) or a folder holding one DICOM
+        series (the series with the most slices if several; a tie is refused), TIFF
         slices or PNG slices (stacked along z in natural file-name order).
     spacing : None, float or sequence of float, optional
         Voxel size in mm (x, y[, z]) for inputs that carry none: .npy, TIFF and PNG.

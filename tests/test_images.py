@@ -637,6 +637,26 @@ def test_slice_folder_errors(tmp_path):
         read_image(tmp_path / "both")
 
 
+@pytest.mark.parametrize("odd, kind, said", [
+    (3, np.zeros((6, 4), np.uint16), "s3.tif is 4x6, where the other 5 are 5x4 pixels"),
+    (0, np.zeros((6, 4), np.uint16), "s0.tif is 4x6, where the other 5 are 5x4 pixels"),
+    (5, np.zeros((2, 4, 5), np.uint16), "s5.tif is 5x4 with 2 pages, where the other 5 are 5x4 pixels"),
+    (2, np.zeros((4, 5, 3), np.uint8), "s2.tif is 5x4 with 3 channels, where the other 5 are 5x4 pixels"),
+    (4, None, "s4.tif cannot be read as an image"),
+])
+def test_an_odd_slice_in_a_stack_is_named(tmp_path, odd, kind, said):
+    """ITK named the first file of a stack, whichever slice was odd, and took a colour slice
+    among grey ones without a word."""
+    for k in range(6):
+        if k == odd and kind is None:
+            (tmp_path / f"s{k}.tif").write_bytes(b"not a TIFF")
+        else:
+            tifffile.imwrite(tmp_path / f"s{k}.tif", kind if k == odd else np.zeros((4, 5), np.uint16),
+                             photometric="rgb" if k == odd and kind.ndim == 3 and kind.shape[2] == 3 else None)
+    with pytest.raises(DicerError, match=rf"cannot stack the 6 slices \({said}\)"):
+        read_image(tmp_path, spacing=1.0)
+
+
 @pytest.mark.parametrize("numbers, warned", [([0, 1, 2, 6, 7], "skip from 2 to 6"), ([0, 5, 10, 15], None),
                                              ([1, 2, 3, 4], None)])
 def test_a_skip_in_the_slice_file_numbers_is_warned_of(tmp_path, caplog, numbers, warned):

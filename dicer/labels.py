@@ -226,16 +226,10 @@ def _same_placement(volume: Volume, source: Path, axes: tuple[int, ...] | None =
     image.spacing replaced a broken header spacing): only then may it lend its header.
     ``axes``: the source's axes that ``volume`` keeps (a single slice read as a 2D image,
     its direction dropped); default all."""
-    import SimpleITK as sitk
+    from dicer.io.images import image_header
 
-    from dicer.io.images import quiet_itk
-
-    reader = sitk.ImageFileReader()
-    reader.SetFileName(str(source))
-    try:
-        with quiet_itk():
-            reader.ReadImageInformation()
-    except RuntimeError:
+    reader = image_header(source)
+    if reader is None:
         return False
     n = volume.array.ndim
     kept = list(range(n)) if axes is None else list(axes)

@@ -40,16 +40,10 @@ def scan_header(path: str | os.PathLike) -> tuple[int, tuple[float, ...] | None]
             return int(np.prod(np.load(path, mmap_mode="r").shape)), None
         except (OSError, ValueError, EOFError):  # EOFError: an empty file
             return max(1, path.stat().st_size // 2), None
-    import SimpleITK as sitk
+    from dicer.io.images import image_header
 
-    from dicer.io.images import quiet_itk
-
-    reader = sitk.ImageFileReader()
-    reader.SetFileName(str(path))
-    try:
-        with quiet_itk():
-            reader.ReadImageInformation()
-    except RuntimeError:  # not an image SimpleITK reads (the stage will say why)
+    reader = image_header(path)
+    if reader is None:  # not an image SimpleITK reads (the stage will say why)
         return max(1, path.stat().st_size // 2), None
     return int(np.prod(reader.GetSize())), tuple(reader.GetSpacing())
 

@@ -93,6 +93,33 @@ def quiet_itk():
         sitk.ProcessObject.SetGlobalWarningDisplay(previous)
 
 
+def image_header(path: str | os.PathLike, io: str | None = None):
+    """The header of an image file as SimpleITK reads it (no pixels), or None when it
+    cannot read one; ITK's own warnings stay quiet.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    io : str, optional
+        The ImageIO to use (e.g. ``"GDCMImageIO"``); default: the one the file suits.
+
+    Returns
+    -------
+    SimpleITK.ImageFileReader or None
+        A reader whose information (size, spacing, origin, direction, metadata) is read.
+    """
+    reader = sitk.ImageFileReader()
+    if io:
+        reader.SetImageIO(io)
+    reader.SetFileName(str(path))
+    try:
+        with quiet_itk():
+            reader.ReadImageInformation()
+    except RuntimeError:
+        return None
+    return reader
+
+
 def _itk_message(exc: Exception) -> str:
     # ITK exceptions span many lines with source paths; keep the last meaningful one
     lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
@@ -758,12 +785,8 @@ def _odd_slices(files: list[Path]) -> str | None:
     named; None when each reads alike (a header each: about 0.7 ms a slice)."""
     kinds = []
     for path in files:
-        reader = sitk.ImageFileReader()
-        reader.SetFileName(str(path))
-        try:
-            with quiet_itk():
-                reader.ReadImageInformation()
-        except RuntimeError:
+        reader = image_header(path)
+        if reader is None:
             return f"{path.name} cannot be read as an image"
         size, channels = reader.GetSize(), reader.GetNumberOfComponents()
         pages = size[2] if len(size) > 2 else 1
@@ -994,13 +1017,10 @@ def _refuse_tilt(positions: np.ndarray, depth: np.ndarray, normal: np.ndarray, p
 
 def _frames(name: str) -> int:
     """Number of Frames (0028,0008) of a DICOM file; 1 when not said."""
-    reader = sitk.ImageFileReader()
-    reader.SetImageIO("GDCMImageIO")
-    reader.SetFileName(name)
+    reader = image_header(name, "GDCMImageIO")
     try:
-        reader.ReadImageInformation()
         return int(reader.GetMetaData("0028|0008").strip() or 1) if reader.HasMetaDataKey("0028|0008") else 1
-    except (RuntimeError, ValueError):
+    except (AttributeError, ValueError):  # no header (None), or a Number of Frames that is no number
         return 1
 
 

@@ -178,10 +178,15 @@ def _nifti1_header(path: Path) -> tuple[bytes, str] | None:
     return None
 
 
+_NIFTI_TEXT = ((4, 10), (14, 18), (148, 80), (228, 24), (328, 16))
+"""(offset, length) of the NIfTI-1 header's free-text fields: data_type, db_name, descrip,
+aux_file, intent_name."""
+
+
 def _write_nifti_like(header: bytes, endian: str, array: np.ndarray, path: Path) -> None:
-    """Write ``array`` ([x, y, z]) as a .nii.gz with ``header``: only the data type, the
-    intensity scaling and the display range change, so dims, pixdim, qform, sform, codes and
-    the description stay the input's, byte for byte."""
+    """Write ``array`` ([x, y, z]) as a .nii.gz with ``header``: the data type, the intensity
+    scaling and the display range change, and the free-text fields are blanked; dims,
+    pixdim, qform, sform and codes stay the input's, byte for byte."""
     from dicer.io.atomic import atomic_path
 
     head = bytearray(header)
@@ -197,6 +202,10 @@ def _write_nifti_like(header: bytes, endian: str, array: np.ndarray, path: Path)
     struct.pack_into(endian + "2f", head, 112, 1.0, 0.0)  # scl_slope, scl_inter: the values as stored
     struct.pack_into(endian + "2f", head, 124, float(array.max(initial=0)), 0.0)  # cal_max, cal_min
     struct.pack_into(endian + "h", head, 68, 0)  # intent_code: plain values, whatever the input's was
+    # free text (data_type, db_name, descrip, aux_file, intent_name) may hold a patient's name
+    # or record number: none of it is passed on
+    for start, length in _NIFTI_TEXT:
+        head[start:start + length] = bytes(length)
     data = contiguous(array.T, array.dtype.newbyteorder(endian))  # x fastest
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0, filename="",

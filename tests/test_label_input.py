@@ -38,7 +38,11 @@ def write_nifti(path: Path, array: np.ndarray, spacing=SPACING, offset=OFFSET, c
     struct.pack_into("<8f", head, 76, 1.0, spacing, spacing, spacing, 1, 1, 1, 1)
     struct.pack_into("<f", head, 108, 352.0)
     struct.pack_into("<f", head, 112, 1.0)
-    head[148:148 + 15] = b"made by a tool\0"
+    # free text as some tools fill it: a patient's name and record numbers (never passed on)
+    head[14:14 + 10] = b"MRN445566\0"  # db_name
+    head[148:148 + 26] = b"made by a tool: DOE^JANE\0"  # descrip
+    head[228:228 + 10] = b"ACC998877\0"  # aux_file
+    head[328:328 + 8] = b"DOEJANE\0"  # intent_name
     struct.pack_into("<2h", head, 252, code, code)
     struct.pack_into("<6f", head, 256, 0.0, 0.0, 0.0, *offset)
     struct.pack_into("<4f", head, 280, spacing, 0, 0, offset[0])
@@ -186,6 +190,10 @@ def test_run_labels_end_to_end(labelled, tmp_path, caplog):
     for name in ("mesh.vtu", "merged.vtu", "smoothed.vtu", "model.vtu"):
         assert read_mesh(out / name).names == names, name
     assert meshio.read(out / "model.vtu").field_data["cerebellum"].tolist() == [4, 3]  # meshio's [tag, dim]
+    # no free text of the input's header reaches an output
+    for path in out.iterdir():
+        data = gzip.decompress(path.read_bytes()) if path.name.endswith(".gz") else path.read_bytes()
+        assert not any(text in data for text in (b"DOE", b"JANE", b"MRN445566", b"ACC998877")), path.name
     # a rerun writes the same bytes
     first = {p.name: p.read_bytes() for p in out.iterdir()}
     assert _cli("run", "--labels", src, "-o", tmp_path / "again", "--config", config) == 0

@@ -2,6 +2,7 @@
 
 import gzip
 import logging
+import re
 
 import numpy as np
 import pytest
@@ -167,7 +168,7 @@ SECRET_ID = "PID-88231577"
 
 
 def _write_dicom_series(folder, nslices, series_uid, stored, z0=-20.0, dz=2.5, prefix="im", order=None,
-                        positions=None, shift_y=0.0, pixel_spacing=True):
+                        positions=None, shift_y=0.0, pixel_spacing=True, patient_id=None, study_uid=None):
     """Write a CT series built on pydicom's CT_small.dcm: stored values, slope 2, intercept -1024.
 
     Slice k lies at z = ``positions[k]`` (default ``z0 + dz * k``); its SliceThickness is
@@ -181,7 +182,9 @@ def _write_dicom_series(folder, nslices, series_uid, stored, z0=-20.0, dz=2.5, p
     for k in range(nslices):
         ds = template.copy()
         ds.PatientName = SECRET_NAME
-        ds.PatientID = SECRET_ID
+        ds.PatientID = SECRET_ID if patient_id is None else patient_id
+        if study_uid is not None:
+            ds.StudyInstanceUID = study_uid
         ds.SeriesInstanceUID = series_uid
         uid = generate_uid(entropy_srcs=[series_uid, str(k)])
         ds.SOPInstanceUID = uid
@@ -820,6 +823,20 @@ def test_dicom_series_of_equal_length_or_without_pixel_spacing_are_refused(tmp_p
     _write_dicom_series(bare, 4, "1.2.826.0.1.3680043.8.498.14", stored, pixel_spacing=False)
     with pytest.raises(DicerError, match=r"bare: the DICOM slices carry no Pixel Spacing \(0028,0030\)"):
         read_image(bare)
+
+
+@pytest.mark.parametrize("other", [{"patient_id": "MRN_OTHER_PATIENT"}, {"study_uid": "1.2.826.0.1.3680043.8.498.99"}])
+def test_series_of_other_patients_or_studies_in_one_folder_are_refused(tmp_path, capsys, other):
+    """The series of the most slices was read, whoever's it was: another patient's scan
+    exported into the same folder gave that patient's model."""
+    stored = np.zeros((6, 5, 5), np.int16)
+    _write_dicom_series(tmp_path, 5, "1.2.826.0.1.3680043.8.498.21", stored, prefix="a", **other)
+    _write_dicom_series(tmp_path, 4, "1.2.826.0.1.3680043.8.498.22", stored[:, :, :4], prefix="b")
+    what = "patients (Patient ID" if "patient_id" in other else "studies (Study Instance UID"
+    with pytest.raises(DicerError, match=rf"the folder holds DICOM series of 2 different {re.escape(what)} differs\), "
+                                         "and dicer would read one of them: put each one's series in a folder") as err:
+        read_image(tmp_path)
+    assert "MRN_OTHER" not in str(err.value) and SECRET_ID not in str(err.value)
 
 
 def test_a_folder_of_one_multiframe_file_or_a_dicom_medium(tmp_path):

@@ -1024,6 +1024,22 @@ def _frames(name: str) -> int:
         return 1
 
 
+_SESSION_TAGS = (("0010|0020", "patients", "Patient ID"), ("0020|000d", "studies", "Study Instance UID"))
+
+
+def _refuse_other_sessions(folder: Path, members: dict) -> None:
+    """Refuse a folder whose series belong to different patients or studies (scan sessions):
+    the series of the most slices could be another patient's scan. Their values are
+    compared, never shown."""
+    headers = [h for h in (image_header(names[0], "GDCMImageIO") for names in members.values()) if h is not None]
+    for tag, what, name in _SESSION_TAGS:
+        values = {h.GetMetaData(tag).strip() if h.HasMetaDataKey(tag) else "" for h in headers}
+        if len(values) > 1:
+            raise DicerError(f"{folder}: the folder holds DICOM series of {len(values)} different {what} ({name} "
+                             "differs), and dicer would read one of them: put each one's series in a folder of "
+                             "its own and give that folder")
+
+
 def _read_dicom_series(folder: Path, required: bool = True, allow_irregular: bool = False) -> Volume | None:
     """Read the DICOM series with the most slices; None if there is none and not ``required``.
 
@@ -1045,6 +1061,8 @@ def _read_dicom_series(folder: Path, required: bool = True, allow_irregular: boo
             )
         # the series with the most slices; a tie is refused
         members = {sid: sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), sid) for sid in sorted(series)}
+        if len(members) > 1:
+            _refuse_other_sessions(folder, members)
         candidates = [(len(names), sid) for sid, names in members.items()]
         count, chosen = max(candidates, key=lambda c: c[0])
         tied = sum(c == count for c, _ in candidates)

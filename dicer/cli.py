@@ -460,6 +460,9 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
 
     settings = stage_kwargs(config, "smooth")
     image = thresholds = None
+    if image_path is None and settings["surface_from_image"]:
+        log.warning("smooth: smooth.surface_from_image is set, but there is no scan to take the surface from (a label "
+                    "volume input, or dicer smooth without --image): the surface is smoothed from the labels alone")
     if image_path is not None and settings["surface_from_image"]:
         from dicer.io.images import read_image
 

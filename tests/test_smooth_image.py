@@ -105,7 +105,7 @@ def test_bad_image_or_thresholds():
         smooth_mesh(mesh, {"image_sigma": -1})
 
 
-def test_cli_smooth_with_image(tmp_path, capsys):
+def test_cli_smooth_with_image(tmp_path, capsys, caplog):
     image = ct_ball(2, supersample=4)
     labels, _ = fix_connectivity((image >= 500).astype(np.uint8))
     write_mesh(voxel_mesh(labels), tmp_path / "mesh.vtu")
@@ -123,6 +123,11 @@ def test_cli_smooth_with_image(tmp_path, capsys):
     assert main(["smooth", str(tmp_path / "mesh.vtu"), "-o", str(plain), "-q"]) == 0
     assert not np.array_equal(read_mesh(plain).points, read_mesh(tmp_path / "a.vtu").points)
     capsys.readouterr()
+    # asked for without a scan (a label volume's chain): said, and the labels' surface made
+    assert main(["smooth", str(tmp_path / "mesh.vtu"), "-o", str(tmp_path / "l.vtu"), "-q",
+                 "--set", "smooth.surface_from_image=true"]) == 0
+    assert "smooth.surface_from_image is set, but there is no scan" in caplog.text
+    assert (tmp_path / "l.vtu").read_bytes() == plain.read_bytes()
     # no thresholds (the default segmentation is not manual), a missing file, a bad file
     assert main(args + ["-o", str(tmp_path / "c.vtu")]) == 2
     err = capsys.readouterr().err

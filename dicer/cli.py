@@ -678,8 +678,25 @@ def _read_benchmark(path: Path) -> dict:
     return dict(zip(lines[0].split("\t"), lines[1].split("\t")))
 
 
-def do_cohort(reports: list[str], out: Path, tsv: Path | None = None, benchmarks: str | None = None):
-    from dicer.cohort import cohort_rows, cohort_tsv, render_cohort_html
+def _benchmark_files(paths, patients) -> dict[str, dict[str, Path]]:
+    """Patient -> stage -> benchmark file, from files named <patient>/<stage>.tsv or folders
+    holding such <patient> folders (every stage file there)."""
+    found: dict[str, dict[str, Path]] = {}
+    for path in map(Path, paths or ()):
+        if path.is_dir():
+            for patient in patients:
+                for f in sorted((path / patient).glob("*.tsv")):
+                    found.setdefault(patient, {})[f.name[:-4]] = f
+        elif path.is_file() and path.suffix == ".tsv":
+            found.setdefault(path.resolve().parent.name, {})[path.name[:-4]] = path
+        else:
+            raise DicerError(f"{path}: no such benchmark file or folder; give Snakemake's benchmark files "
+                             "(<patient>/<stage>.tsv) or the folder holding their patient folders")
+    return found
+
+
+def do_cohort(reports: list[str], out: Path, tsv: Path | None = None, benchmarks=None):
+    from dicer.cohort import cohort_rows, cohort_tsv, report_problem, render_cohort_html
     from dicer.io.atomic import write_bytes_atomic
 
     with _Stage("cohort"):
@@ -695,12 +712,13 @@ def do_cohort(reports: list[str], out: Path, tsv: Path | None = None, benchmarks
                 raise DicerError(f"{path}: quality report not found; run dicer quality first") from None
             except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
                 raise DicerError(f"{path}: cannot read the quality report ({exc}); run dicer quality again") from None
-            if not isinstance(quality[patient], dict) or "elements" not in quality[patient]:
-                raise DicerError(f"{path}: not a dicer quality report (no element count); give quality.json "
-                                 "files written by dicer quality")
-            folder = Path(benchmarks) / patient if benchmarks else None
-            if folder is not None and folder.is_dir():
-                bench[patient] = {f.name[:-4]: _read_benchmark(f) for f in sorted(folder.glob("*.tsv"))}
+            problem = report_problem(quality[patient])
+            if problem:
+                raise DicerError(f"{path}: not a dicer quality report ({problem}); give quality.json files written by "
+                                 "dicer quality")
+        for patient, stages in _benchmark_files(benchmarks, quality).items():
+            if patient in quality:
+                bench[patient] = {stage: _read_benchmark(f) for stage, f in stages.items()}
         columns, rows = cohort_rows(quality, bench)
         poor = next((r.get("poor_threshold") for r in quality.values()), None)
         write_bytes_atomic(out, render_cohort_html(columns, rows, poor))
@@ -1094,8 +1112,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"dicer {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    def command(name, func, help_text, description=None):
-        p = sub.add_parser(name, help=help_text, description=description or help_text)
+    def command(name, func, help_text, description=None, **options):
+        p = sub.add_parser(name, help=help_text, description=description or help_text, **options)
         p.set_defaults(func=func)
         return p
 
@@ -1214,13 +1232,17 @@ def _add_report_commands(command) -> None:
     _add_materials_option(p)
     _add_config_options(p)
 
-    p = command("cohort", cmd_cohort, "cohort overview: one table row per patient from its quality.json and benchmarks")
+    # @FILE: arguments read from a file, one a line (a cohort's hundreds of paths pass the
+    # length a shell command line may have)
+    p = command("cohort", cmd_cohort, "cohort overview: one table row per patient from its quality.json and benchmarks",
+                epilog="@FILE in place of arguments reads them from FILE, one a line.", fromfile_prefix_chars="@")
     p.add_argument("reports", metavar="QUALITY_JSON", nargs="+",
                    help="quality reports, one per patient; the patient is the report's folder name")
     p.add_argument("-o", "--output", required=True, metavar="HTML", help="cohort overview (.html)")
     p.add_argument("--tsv", metavar="TSV", help="also write the table as tab-separated values")
-    p.add_argument("--benchmarks", metavar="FOLDER",
-                   help="Snakemake benchmark folder: FOLDER/<patient>/<stage>.tsv give seconds and peak memory")
+    p.add_argument("--benchmarks", metavar="PATH", nargs="+",
+                   help="Snakemake benchmark files <patient>/<stage>.tsv (seconds and peak memory), or the folder "
+                        "holding their patient folders (every stage file there)")
     p.add_argument("-q", "--quiet", action="store_true", help="log warnings and errors only")
 
     p = command("phantom", cmd_phantom, "write a synthetic CT phantom (HU, with noise) for demos and tests")

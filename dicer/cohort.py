@@ -37,6 +37,43 @@ def _number(value) -> float | None:
     return out if out == out else None
 
 
+def report_problem(report) -> str | None:
+    """What keeps ``report`` from being read as a quality report, or None.
+
+    Parameters
+    ----------
+    report : object
+        A parsed ``quality.json``.
+
+    Returns
+    -------
+    str or None
+        e.g. ``"'materials' is a list, not an object"``.
+    """
+    if not isinstance(report, dict):
+        return f"the file holds a {type(report).__name__}, not an object"
+    if "elements" not in report:
+        return "no element count"
+    parts = report.get("parts", {})
+    sections = {"scaled_jacobian": report.get("scaled_jacobian", {}), "parts": parts, "materials": report.get("materials", {}),
+                "parts.model": parts.get("model", {}) if isinstance(parts, dict) else {}}
+    for name, value in sections.items():
+        if not isinstance(value, dict):
+            return f"{name!r} is a {type(value).__name__}, not an object"
+    numbers = {k: report.get(k) for k in ("elements", "nodes", "inverted_elements", "poor_elements")}
+    numbers |= {f"scaled_jacobian.{k}": sections["scaled_jacobian"].get(k) for k in ("min", "p1")}
+    numbers |= {f"parts.model.{k}": sections["parts.model"].get(k) for k in ("parts", "floating_elements")}
+    for name, material in sections["materials"].items():
+        if not isinstance(material, dict):
+            return f"'materials.{name}' is a {type(material).__name__}, not an object"
+        numbers |= {f"materials.{name}.{k}": material.get(k)
+                    for k in ("volume_change_percent", "original_volume_change_percent")}
+    for name, value in numbers.items():
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+            return f"{name!r} is {value!r}, not a number"
+    return None
+
+
 def cohort_rows(reports: dict[str, dict], benchmarks: dict[str, dict[str, dict]] | None = None) -> tuple[list[str], list[list]]:
     """The cohort table: column names, one row per patient in the order of ``reports``.
 

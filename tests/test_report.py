@@ -247,6 +247,47 @@ def test_cohort_command_and_its_errors(tmp_path):
     assert proc.returncode == 2 and "not a Snakemake benchmark file" in proc.stderr
 
 
+@pytest.mark.parametrize("report, said", [
+    ({"elements": 5, "materials": ["bone"]}, "'materials' is a list, not an object"),
+    ({"elements": 5, "scaled_jacobian": 0.5}, "'scaled_jacobian' is a float, not an object"),
+    ({"elements": 5, "parts": {"model": {"parts": "2"}}}, "'parts.model.parts' is '2', not a number"),
+    ({"elements": 5, "materials": {"bone": {"volume_change_percent": True}}},
+     "'materials.bone.volume_change_percent' is True, not a number"),
+    ([1, 2], "the file holds a list, not an object"),
+])
+def test_cohort_refuses_a_report_of_other_types(tmp_path, report, said):
+    """Valid JSON of other types gave a traceback."""
+    (tmp_path / "p").mkdir()
+    (tmp_path / "p" / "quality.json").write_text(json.dumps(report))
+    proc = _dicer("cohort", tmp_path / "p" / "quality.json", "-o", tmp_path / "c.html")
+    assert proc.returncode == 2 and len(proc.stderr.splitlines()) == 1, proc.stderr
+    assert f"quality.json: not a dicer quality report ({said})" in proc.stderr
+    assert not (tmp_path / "c.html").exists()
+
+
+def test_cohort_takes_the_benchmark_files_given_and_arguments_from_a_file(tmp_path):
+    """The workflow names the benchmark files of the stages a model now goes through: an
+    earlier run's file of a stage since dropped (downsample) stays out of the table. A
+    folder that does not exist is an error (it was ignored)."""
+    for patient, n in (("a", 10), ("b", 20)):
+        (tmp_path / "results" / patient).mkdir(parents=True)
+        (tmp_path / "results" / patient / "quality.json").write_text(json.dumps(_report(n)))
+        (tmp_path / "benchmarks" / patient).mkdir(parents=True)
+        for stage, seconds in (("fix", 2.5), ("downsample", 9.0)):
+            (tmp_path / "benchmarks" / patient / f"{stage}.tsv").write_text(f"s\tmax_rss\n{seconds}\t150\n")
+    reports = [tmp_path / "results" / p / "quality.json" for p in "ab"]
+    files = [tmp_path / "benchmarks" / "a" / "fix.tsv", tmp_path / "benchmarks" / "a" / "downsample.tsv",
+             tmp_path / "benchmarks" / "b" / "fix.tsv"]
+    (tmp_path / "args").write_text("".join(f"{x}\n" for x in [*reports, "--benchmarks", *files]))
+    assert _dicer("cohort", f"@{tmp_path / 'args'}", "-o", tmp_path / "c.html", "--tsv", tmp_path / "c.tsv").returncode == 0
+    head, a, b = [line.split("\t") for line in (tmp_path / "c.tsv").read_text().splitlines()]
+    assert head[-4:] == ["seconds:downsample", "peak_mb:downsample", "seconds:fix", "peak_mb:fix"]
+    assert a[-4:] == ["9.0", "150.0", "2.5", "150.0"] and b[-4:] == ["", "", "2.5", "150.0"]
+    proc = _dicer("cohort", *reports, "-o", tmp_path / "d.html", "--benchmarks", tmp_path / "nowhere")
+    assert proc.returncode == 2 and "nowhere: no such benchmark file or folder" in proc.stderr
+    assert not (tmp_path / "d.html").exists()
+
+
 def _atlas(parcels=30, n=24, seed=3):
     """A ball cut into ``parcels`` Voronoi parcels (labels 1..parcels), as an atlas."""
     rng = np.random.default_rng(seed)

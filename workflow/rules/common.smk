@@ -1,5 +1,4 @@
 # Config validation, the cohort sheet and per-stage settings. No algorithm here.
-import csv
 import functools
 import json
 import os
@@ -9,11 +8,12 @@ import sys
 from pathlib import Path
 
 from snakemake.exceptions import WorkflowError
-from snakemake.utils import validate
 
 from dicer.cli import downsample_applies
 from dicer.config import deep_merge, load_config, parse_set, stage_settings
 from dicer.errors import DicerError
+from dicer.phantoms import PHANTOMS
+from dicer.sheet import beside_sheet, read_sheet
 
 # the rules call the `dicer` installed beside this Snakemake
 os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", "")
@@ -37,70 +37,42 @@ def patient_file(name):
 
 
 def _read_patients(path):
-    if not Path(path).exists():
-        raise WorkflowError(f"{path}: cohort sheet not found; set workflow.patients in the config")
-    try:
-        # utf-8-sig: a byte-order mark (spreadsheet exports) is not part of the first column's name
-        with open(path, newline="", encoding="utf-8-sig") as handle:
-            rows = [
-                {k: (v or "").strip() for k, v in row.items() if k}
-                for row in csv.DictReader(handle, delimiter="\t")
-            ]
-    except UnicodeDecodeError as exc:
-        raise WorkflowError(f"{path}: not UTF-8 text (byte {exc.start + 1}); save the cohort sheet as UTF-8")
-    seen = set()
-    for number, row in enumerate(rows, start=2):
-        try:
-            validate(row, "../schemas/patients.schema.yaml")
-        except Exception as exc:
-            raise WorkflowError(f"{path}, line {number}: {_sheet_problem(row, exc)}")
-        if bool(row.get("image")) == bool(row.get("labels")):
-            raise WorkflowError(f"{path}, line {number}: patient {row['patient']!r}: give either an image or "
-                                "a labels file (a label volume to mesh), not both and not neither")
-        if row["patient"] in seen:
-            raise WorkflowError(f"{path}, line {number}: patient {row['patient']!r} appears twice")
-        seen.add(row["patient"])
-    return rows
-
-
-def _sheet_problem(row, exc):
-    """The cohort-sheet row's problem, naming the column (snakemake's validate says only
-    that the row is invalid)."""
-    import jsonschema
+    """The sheet's rows with their line numbers, checked (dicer.sheet)."""
     import yaml
 
     schema = yaml.safe_load((Path(workflow.basedir) / "workflow" / "schemas" / "patients.schema.yaml").read_text())
-    errors = sorted(jsonschema.Draft202012Validator(schema).iter_errors(row), key=lambda e: list(e.path))
-    if not errors:
-        return str(exc).splitlines()[0]
-    err = errors[0]
-    if err.validator == "additionalProperties":
-        extra = sorted(set(row) - set(schema["properties"]))
-        return (f"unknown column {', '.join(map(repr, extra))}; the columns are "
-                f"{', '.join(schema['properties'])}")
-    if err.validator == "required":
-        return f"{err.message}; every row needs a patient code"
-    column = ".".join(map(str, err.path)) or "row"
-    return f"column {column!r}: {err.message}"
+    try:
+        return read_sheet(path, schema)
+    except DicerError as exc:
+        raise WorkflowError(str(exc))
 
 
 def _available(row, number, sheet):
     """Phantoms are made by the workflow; other images must exist, unless workflow.skip_missing."""
     image = row.get("image") or row["labels"]
-    if Path(image).parent == Path(PHANTOM_DIR) or Path(image).exists():
+    where = f"{sheet}, line {number}: patient {row['patient']!r}"
+    if Path(image).parent == Path(PHANTOM_DIR):
+        name = Path(image).name
+        if not name.endswith(".nii.gz") or name[: -len(".nii.gz")] not in PHANTOMS:
+            raise WorkflowError(f"{where}: {image}: the workflow makes {PHANTOM_DIR}/<name>.nii.gz for the phantoms "
+                                f"{', '.join(sorted(PHANTOMS))}; name one of them")
         return True
+    other = beside_sheet(image, sheet)
+    if Path(image).exists():
+        if other is not None:
+            print(f"dicer workflow: {where}: reading {image} from the working folder, not {other} beside the sheet "
+                  "(paths in the sheet are taken from the working folder)", file=sys.stderr)
+        return True
+    hint = f" ({other} beside the sheet exists: paths in the sheet are taken from the working folder)" if other else ""
     if not CONFIG["workflow"]["skip_missing"]:
-        raise WorkflowError(f"{sheet}, line {number}: patient {row['patient']!r}: {image} not found; fix the "
-                            "path, or set workflow.skip_missing: true to skip such rows")
-    print(f"dicer workflow: skipping patient {row['patient']}: {image} not found", file=sys.stderr)
+        raise WorkflowError(f"{where}: {image} not found{hint}; fix the path, or set workflow.skip_missing: true to "
+                            "skip such rows")
+    print(f"dicer workflow: skipping patient {row['patient']}: {image} not found{hint}", file=sys.stderr)
     return False
 
 
-PATIENTS = {
-    row["patient"]: row
-    for number, row in enumerate(_read_patients(CONFIG["workflow"]["patients"]), start=2)
-    if _available(row, number, CONFIG["workflow"]["patients"])
-}
+SHEET = _read_patients(CONFIG["workflow"]["patients"])
+PATIENTS = {row["patient"]: row for number, row in SHEET if _available(row, number, CONFIG["workflow"]["patients"])}
 
 
 def _one_of(names):
@@ -133,7 +105,7 @@ def _check_overrides():
     naming its line of the sheet (found later, inside a rule's input function, it came with
     Snakemake's traceback)."""
     sheet = CONFIG["workflow"]["patients"]
-    lines = {row["patient"]: number for number, row in enumerate(_read_patients(sheet), start=2)}
+    lines = {row["patient"]: number for number, row in SHEET}
     for patient in PATIENTS:
         try:
             patient_config(patient)
@@ -218,6 +190,14 @@ def all_outputs():
     if PATIENTS:
         outputs.append(os.path.join(RESULTS, "cohort.html"))
     return outputs
+
+
+def argument_file(log, arguments):
+    """Write ``arguments`` one a line beside the ``log`` file, for a command's @FILE; its path."""
+    path = Path(log).with_suffix(".args")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("".join(f"{a}\n" for a in arguments))
+    return str(path)
 
 
 def patient_stages(patient):

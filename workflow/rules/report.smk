@@ -1,5 +1,6 @@
 # The cohort overview: one table row per patient (mesh size, quality, floating parts, volume
-# change per material, seconds and peak memory per stage from the benchmark files). A light
+# change per material, seconds and peak memory per stage from the benchmark files of the
+# stages the model now goes through: an earlier run's file of a dropped stage is left out). A light
 # job: it runs where Snakemake runs, not as a cluster job.
 
 
@@ -19,17 +20,13 @@ rule cohort:
             labels={"table": "cohort overview"},
         ),
         tsv=os.path.join(RESULTS, "cohort.tsv"),
-    params:
-        # the benchmark folder: benchmarks/<patient>/<stage>.tsv
-        benchmarks=lambda wildcards, input: os.path.dirname(os.path.dirname(input.benchmarks[0])),
-    conda:
-        CONDA_ENV
     threads: 1
     resources:
         mem_mb=300,
         runtime=5,
     log:
         "logs/cohort.log",
-    shell:
-        "dicer cohort {input.reports:q} -o {output.html:q} --tsv {output.tsv:q} --benchmarks {params.benchmarks:q}"
-        " > {log:q} 2>&1"
+    run:
+        # the paths through an argument file: a cohort's would pass a shell command's 128 KB
+        arguments = argument_file(log[0], [*input.reports, "--benchmarks", *input.benchmarks])
+        shell("dicer cohort @{arguments:q} -o {output.html:q} --tsv {output.tsv:q} > {log:q} 2>&1")

@@ -1,0 +1,157 @@
+"""The cohort sheet (``config/patients.tsv``): one row per patient, read and checked.
+
+Tab-separated UTF-8 text (a byte-order mark is allowed), a header line naming the columns,
+then a row per patient; blank rows are skipped. Every problem is a :class:`DicerError`
+naming the sheet, the line and the fix, found before any job runs: a cell that a quote
+opens and no quote closes (it would swallow the rows after it), more cells than columns
+(a tab inside a cell: the rest would be dropped), a patient twice (also when the two
+differ only in case: their result folders are one on a case-insensitive disk), a patient
+code the workflow uses for its own files, an override of the workflow's own settings or
+of one key twice.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+from pathlib import Path
+
+from dicer.errors import DicerError
+
+RESERVED_PATIENTS = ("phantoms", "cohort.html", "cohort.tsv", "cohort.log")
+"""Names the workflow gives its own files and folders beside the patients' folders."""
+
+
+def read_sheet(path: str | os.PathLike, schema: dict) -> list[tuple[int, dict[str, str]]]:
+    """The rows of a cohort sheet with the line each starts on, every row checked.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The sheet.
+    schema : dict
+        The JSON Schema of one row (``workflow/schemas/patients.schema.yaml``).
+
+    Returns
+    -------
+    list of (int, dict of str to str)
+        The line number (1 = the header) and the row, its cells stripped of spaces and
+        missing cells empty.
+
+    Raises
+    ------
+    DicerError
+        The first problem found, naming the line.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise DicerError(f"{path}: cohort sheet not found; set workflow.patients in the config")
+    if path.is_dir():
+        raise DicerError(f"{path}: is a folder; set workflow.patients to the cohort sheet, a tab-separated file")
+    try:
+        text = path.read_bytes().decode("utf-8-sig")  # a byte-order mark (spreadsheet exports) is not text
+    except UnicodeDecodeError as exc:
+        raise DicerError(f"{path}: not UTF-8 text (byte {exc.start + 1}); save the cohort sheet as UTF-8") from None
+    rows = _records(path, text)
+    if not rows:
+        raise DicerError(f"{path}: the sheet is empty; write a header line (patient, image or labels, overrides, "
+                         "separated by tabs) and a row per patient")
+    (_, header), rows = rows[0], rows[1:]
+    names = [name.strip() for name in header]
+    twice = sorted({n for n in names if n and names.count(n) > 1})
+    if twice:
+        raise DicerError(f"{path}, line 1: column {twice[0]!r} appears twice in the header; keep one")
+    if not rows:
+        raise DicerError(f"{path}: the sheet lists no patient; add a row per patient below the header")
+    checked, seen = [], {}
+    for number, cells in rows:
+        if len(cells) > len(names) and any(c.strip() for c in cells[len(names):]):
+            raise DicerError(f"{path}, line {number}: {len(cells)} cells where the header names {len(names)} columns "
+                             "(a tab inside a cell?); separate the overrides with ';' and give each column once")
+        row = {n: c.strip() for n, c in zip(names, cells) if n}
+        row.update({n: "" for n in names if n and n not in row})
+        where = f"{path}, line {number}"
+        _check_row(row, schema, where)
+        key = row["patient"].casefold()
+        if key in seen:
+            same = "appears twice" if seen[key][1] == row["patient"] else (
+                f"and {seen[key][1]!r} (line {seen[key][0]}) differ only in case, and their result folders are one "
+                "on a case-insensitive disk")
+            raise DicerError(f"{where}: patient {row['patient']!r} {same}; give each patient one row and one code")
+        seen[key] = (number, row["patient"])
+        checked.append((number, row))
+    return checked
+
+
+def _records(path: Path, text: str) -> list[tuple[int, list[str]]]:
+    """The sheet's non-blank records with the line each starts on."""
+    reader = csv.reader(io.StringIO(text, newline=""), delimiter="\t")
+    records, start = [], 1
+    while True:
+        try:
+            cells = next(reader)
+        except StopIteration:
+            return records
+        except csv.Error:  # a field over csv's size limit: an unclosed quote took in the rest of the file
+            cells = ['"\n']
+        if any("\n" in c or "\r" in c for c in cells):
+            raise DicerError(f"{path}, line {start}: a quote (\") opens a cell that no quote on that line closes, so "
+                             "the rows after it would be read as part of it; remove the quote or close it")
+        if any(c.strip() for c in cells):
+            records.append((start, cells))
+        start = reader.line_num + 1
+
+
+def _check_row(row: dict, schema: dict, where: str) -> None:
+    """One row against the schema and the rules a schema cannot say, naming the column."""
+    import jsonschema
+
+    errors = sorted(jsonschema.Draft202012Validator(schema).iter_errors(row), key=lambda e: list(e.path))
+    if errors:
+        err = errors[0]
+        if err.validator == "additionalProperties":
+            extra = sorted(set(row) - set(schema["properties"]))
+            raise DicerError(f"{where}: unknown column {', '.join(map(repr, extra))}; the columns are "
+                             f"{', '.join(schema['properties'])}")
+        if err.validator == "required":
+            raise DicerError(f"{where}: {err.message}; every row needs a patient code")
+        column = ".".join(map(str, err.path)) or "row"
+        raise DicerError(f"{where}: column {column!r}: {err.message}")
+    if row["patient"].casefold() in RESERVED_PATIENTS:
+        raise DicerError(f"{where}: patient code {row['patient']!r} is a name the workflow gives its own files "
+                         f"({', '.join(RESERVED_PATIENTS)}); choose another code")
+    if bool(row.get("image")) == bool(row.get("labels")):
+        raise DicerError(f"{where}: patient {row['patient']!r}: give either an image or a labels file (a label "
+                         "volume to mesh), not both and not neither")
+    keys = [item.split("=", 1)[0].strip() for item in row.get("overrides", "").split(";") if item.strip()]
+    for key in keys:
+        if key == "workflow" or key.startswith("workflow."):
+            raise DicerError(f"{where}: patient {row['patient']!r}: override {key!r}: the workflow settings are the "
+                             "whole cohort's; set them in the config, not per patient")
+        if keys.count(key) > 1:
+            raise DicerError(f"{where}: patient {row['patient']!r}: override {key!r} is given twice; keep one")
+
+
+def beside_sheet(path: str | os.PathLike, sheet: str | os.PathLike) -> Path | None:
+    """The file a relative input path of the sheet names from the sheet's folder, when
+    that is another file than the one it names from the working folder (the workflow's
+    paths are taken from the working folder): for a hint or a warning; else None.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The image or labels path as the sheet gives it.
+    sheet : str or os.PathLike
+        The sheet.
+
+    Returns
+    -------
+    pathlib.Path or None
+    """
+    here, beside = Path(path), Path(sheet).parent / path
+    if here.is_absolute() or not beside.exists():
+        return None
+    if here.exists() and os.path.samefile(here, beside):
+        return None
+    return beside

@@ -1,0 +1,84 @@
+"""The cohort sheet: rows read with their line numbers, and every way a sheet goes wrong
+named by its line before a job runs (dicer.sheet; the workflow's dry runs in hostile.py)."""
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from dicer.errors import DicerError
+from dicer.sheet import beside_sheet, read_sheet
+
+SCHEMA = yaml.safe_load((Path(__file__).resolve().parents[1] / "workflow" / "schemas" / "patients.schema.yaml")
+                        .read_text())
+HEAD = "patient\timage\toverrides\n"
+
+
+def _read(tmp_path, text: str | bytes):
+    sheet = tmp_path / "patients.tsv"
+    sheet.write_bytes(text if isinstance(text, bytes) else text.encode())
+    return read_sheet(sheet, SCHEMA)
+
+
+def test_rows_keep_their_line_numbers_across_blank_rows(tmp_path):
+    rows = _read(tmp_path, HEAD + "A\ta.nii.gz\t\n\n\t\t\nB\tb.nii.gz\tfix.type_c=false; downsample.factor=2\n")
+    assert [(n, r["patient"]) for n, r in rows] == [(2, "A"), (5, "B")]
+    assert rows[1][1] == {"patient": "B", "image": "b.nii.gz", "overrides": "fix.type_c=false; downsample.factor=2"}
+    # spreadsheet exports: a byte-order mark, CRLF, quoted cells with doubled quotes, short rows
+    rows = _read(tmp_path, b"\xef\xbb\xbfpatient\timage\toverrides\r\n\"A\"\t\"my \"\"scan\"\".nii.gz\"\r\nB\tb.nii.gz\r\n")
+    assert [r for _, r in rows] == [{"patient": "A", "image": 'my "scan".nii.gz', "overrides": ""},
+                                    {"patient": "B", "image": "b.nii.gz", "overrides": ""}]
+
+
+@pytest.mark.parametrize("text, said", [
+    # an unclosed quote swallowed the rows after it: B and C vanished without a word
+    (HEAD + 'A\t"a.nii.gz\t\nB\tb.nii.gz\t\nC\tc.nii.gz\t\n',
+     r"line 2: a quote \(\"\) opens a cell that no quote on that line closes"),
+    (HEAD + "A\ta.nii.gz\t\n" + 'B\tb.nii.gz\t"fix.type_c=false\n' + "C\tc.nii.gz\t\n" * 3000,
+     r"line 3: a quote"),  # past csv's field limit
+    # cells past the last column were dropped: an override lost
+    ("patient\timage\tlabels\nA\t\ta.nii.gz\tdownsample.factor=2\n", r"line 2: 4 cells where the header names 3"),
+    (HEAD + "A\ta.nii.gz\tfix.type_c=false\tdownsample.factor=2\n", r"line 2: 4 cells where the header names 3"),
+    # the workflow's settings per patient were checked, then ignored
+    (HEAD + "A\ta.nii.gz\tworkflow.exports=[inp,feb]\n",
+     r"line 2: patient 'A': override 'workflow.exports': the workflow settings are the whole cohort's"),
+    (HEAD + "A\ta.nii.gz\tdownsample.factor=2;downsample.factor=1\n",
+     r"line 2: patient 'A': override 'downsample.factor' is given twice"),
+    # the workflow's own names: Snakemake's ChildIOException, or a failure after every stage ran
+    (HEAD + "cohort.html\ta.nii.gz\t\n", r"line 2: patient code 'cohort.html' is a name the workflow gives its own"),
+    (HEAD + "Phantoms\ta.nii.gz\t\n", r"line 2: patient code 'Phantoms' is a name"),
+    (HEAD + "cohort.log\ta.nii.gz\t\n", r"line 2: patient code 'cohort.log'"),
+    (HEAD + "P1\ta.nii.gz\t\n\np1\tb.nii.gz\t\n",
+     r"line 4: patient 'p1' and 'P1' \(line 2\) differ only in case"),
+    (HEAD + "P1\ta.nii.gz\t\nP1\tb.nii.gz\t\n", r"line 3: patient 'P1' appears twice"),
+    ("", r"the sheet is empty; write a header line"),
+    (HEAD, r"the sheet lists no patient"),
+    ("patient\tlabels\tlabels\nA\ta\tb\n", r"line 1: column 'labels' appears twice in the header"),
+    ("patient\tscan\nA\ta.nii.gz\n", r"line 2: unknown column 'scan'"),
+    (HEAD + "A/B\ta.nii.gz\t\n", r"line 2: column 'patient'"),
+    (HEAD + "A\t\t\n", r"line 2: patient 'A': give either an image or a labels file"),
+])
+def test_bad_sheets_are_refused_naming_the_line(tmp_path, text, said):
+    with pytest.raises(DicerError, match=said):
+        _read(tmp_path, text)
+
+
+def test_a_sheet_that_is_a_folder_or_missing(tmp_path):
+    with pytest.raises(DicerError, match="is a folder; set workflow.patients to the cohort sheet"):
+        read_sheet(tmp_path, SCHEMA)
+    with pytest.raises(DicerError, match="cohort sheet not found"):
+        read_sheet(tmp_path / "none.tsv", SCHEMA)
+
+
+def test_paths_are_the_working_folders_and_the_sheets_folder_is_named_when_it_differs(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "study" / "scans").mkdir(parents=True)
+    (tmp_path / "study" / "scans" / "P1.nii.gz").write_bytes(b"beside")
+    sheet = Path("study") / "patients.tsv"
+    assert beside_sheet("scans/P1.nii.gz", sheet) == Path("study/scans/P1.nii.gz")  # not found here: a hint
+    (tmp_path / "scans").mkdir()
+    (tmp_path / "scans" / "P1.nii.gz").write_bytes(b"here")
+    assert beside_sheet("scans/P1.nii.gz", sheet) == Path("study/scans/P1.nii.gz")  # another file: a warning
+    assert beside_sheet("scans/P1.nii.gz", "patients.tsv") is None  # the sheet in the working folder
+    assert beside_sheet(str(tmp_path / "scans" / "P1.nii.gz"), sheet) is None
+    assert beside_sheet("scans/P2.nii.gz", sheet) is None

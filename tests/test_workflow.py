@@ -284,6 +284,22 @@ def test_benchmarks_and_resources_per_stage(cohort):
             assert bench["max_rss"] == "NA" or float(bench["max_rss"]) <= requests[patient, stage], (patient, stage)
 
 
+def test_the_cohort_table_leaves_out_a_stage_the_model_no_longer_goes_through(cohort):
+    """An earlier run's benchmark file of a stage since dropped (say downsample, after its
+    override went) showed in the table as if the model went through it."""
+    stale = cohort / "benchmarks" / "head" / "export_feb.tsv"
+    stale.write_text("s\tmax_rss\n7.5\t100\n")
+    try:
+        _snakemake(cohort, "--forcerun", "cohort")
+        header = (cohort / "results" / "cohort.tsv").read_text().splitlines()[0].split("\t")
+        assert "seconds:export_feb" not in header and "seconds:export_inp" in header and "seconds:mesh" in header
+        arguments = (cohort / "logs" / "cohort.args").read_text().splitlines()
+        assert arguments[:2] == ["results/head/quality.json", "results/bone/quality.json"]
+        assert "benchmarks/head/mesh.tsv" in arguments and "benchmarks/head/export_feb.tsv" not in arguments
+    finally:
+        stale.unlink()
+
+
 def _embedded(text: str) -> dict[str, list[bytes]]:
     """The files embedded in a page as data URIs: file name (or mime type) -> decoded contents."""
     import base64

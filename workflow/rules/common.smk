@@ -192,14 +192,6 @@ def all_outputs():
     return outputs
 
 
-def argument_file(log, arguments):
-    """Write ``arguments`` one a line beside the ``log`` file, for a command's @FILE; its path."""
-    path = Path(log).with_suffix(".args")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("".join(f"{a}\n" for a in arguments))
-    return str(path)
-
-
 def patient_stages(patient):
     """The stages a patient's model goes through, as named in benchmarks/<patient>/<stage>.tsv."""
     first = ["labels"] if patient in LABEL_PATIENTS else ["segment"]

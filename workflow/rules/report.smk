@@ -20,13 +20,15 @@ rule cohort:
             labels={"table": "cohort overview"},
         ),
         tsv=os.path.join(RESULTS, "cohort.tsv"),
+    conda:
+        CONDA_ENV
     threads: 1
     resources:
         mem_mb=300,
         runtime=5,
     log:
         "logs/cohort.log",
-    run:
-        # the paths through an argument file: a cohort's would pass a shell command's 128 KB
-        arguments = argument_file(log[0], [*input.reports, "--benchmarks", *input.benchmarks])
-        shell("dicer cohort @{arguments:q} -o {output.html:q} --tsv {output.tsv:q} > {log:q} 2>&1")
+    script:
+        # dicer cohort with the paths in an argument file: a cohort's would pass a shell
+        # command's 128 KB
+        "../scripts/cohort.py"

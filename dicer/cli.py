@@ -259,7 +259,7 @@ def do_labels(labels_path: str, out: Path, config: dict, materials_path: Path | 
     from dicer.labels import map_labels, write_mapped_labels
 
     with _Stage("labels"):
-        labels, _ = _crop(read_labels(labels_path), config, labels_path)
+        labels, _ = _crop(read_labels(labels_path, config["image"]["spacing"]), config, labels_path)
         mapped, materials, info = map_labels(labels, **stage_kwargs(config, "labels"), source=labels_path)
         write_mapped_labels(mapped, labels_path, out)
         if materials_path:

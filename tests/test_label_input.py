@@ -221,6 +221,23 @@ def test_run_labels_defaults_without_map(tmp_path, caplog):
     assert read_mesh(out / "model.vtu").names == ["label_5", "label_12"]
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_npy_label_volume_takes_image_spacing(tmp_path, dim):
+    """A .npy carries no voxel size: image.spacing gives it, as for a .npy scan (it was
+    ignored, and the model came out at 1 mm voxels)."""
+    a = np.zeros((20, 16, 6)[:dim], np.uint8)
+    a[2:18, 2:14] = 1
+    np.save(tmp_path / "seg.npy", a)
+    spacing = [0.5, 0.25, 3.0][:dim]
+    out = tmp_path / "out"
+    assert _cli("run", "--labels", tmp_path / "seg.npy", "-o", out, "--set", f"image.spacing={spacing}",
+                "--set", "smooth.coefficient=0", "--set", "merge.passes=[0,0,0]") == 0
+    assert read_labels(out / "labels.nii.gz").spacing == pytest.approx(spacing)
+    points = read_mesh(out / "model.vtu").points[:, :dim]
+    assert points.min(axis=0) == pytest.approx(np.multiply([2, 2], spacing[:2]).tolist() + [0.0] * (dim - 2))
+    assert points.max(axis=0) == pytest.approx(np.multiply([18, 14, 6][:dim], spacing).tolist())
+
+
 def test_run_labels_with_downsample_keeps_placement(labelled, tmp_path):
     src, config = labelled
     out = tmp_path / "out"

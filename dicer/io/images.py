@@ -1146,14 +1146,16 @@ def read_image(path: str | os.PathLike, spacing=None, allow_irregular_slices: bo
     return _read_file(path, spacing, keep_direction=True)
 
 
-def read_labels(path: str | os.PathLike) -> Volume:
+def read_labels(path: str | os.PathLike, spacing=None) -> Volume:
     """Read a label volume (0 = background, 1..K = material classes).
 
     Parameters
     ----------
     path : str or path-like
-        .nii, .nii.gz, .nrrd, .mha/.mhd or .npy (indexed [x, y(, z)], spacing 1 mm,
-        origin 0).
+        .nii, .nii.gz, .nrrd, .mha/.mhd or .npy (indexed [x, y(, z)], origin 0).
+    spacing : None, float or sequence of float, optional
+        Voxel size in mm (``image.spacing``): a .npy's (default 1 mm), or in place of
+        a header spacing that is zero, negative or not finite (else that is an error).
 
     Returns
     -------
@@ -1172,7 +1174,9 @@ def read_labels(path: str | os.PathLike) -> Volume:
     if path.is_dir() or not path.name.lower().endswith(LABEL_SUFFIXES):
         raise DicerError(f"{path}: label volumes must be one of {', '.join(LABEL_SUFFIXES)}; "
                          "convert the labels to NIfTI (.nii.gz)")
-    volume = _read_file(path, 1.0 if path.suffix.lower() == ".npy" else None, dtype=None, keep_direction=True)
+    if spacing is None and path.suffix.lower() == ".npy":
+        spacing = 1.0
+    volume = _read_file(path, spacing, dtype=None, keep_direction=True)
     array = volume.array
     if array.dtype.kind == "f":
         if not np.all(np.isfinite(array)) or not np.array_equal(array, np.round(array)):

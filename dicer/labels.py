@@ -67,12 +67,21 @@ def resolve_materials(values, *, materials: list[dict], map: dict, drop: list,  
     drop = set(drop)
     lut: dict[int, int] = {}
     number: dict[str, int] = {}
+    automatic: dict[str, int] = {}  # label_<v> of the values labels.map leaves unnamed
     for value in sorted(int(v) for v in values):
         if value == 0 or value in drop:
             lut[value] = 0
             continue
         name = names.get(value, f"label_{value}")
+        if value not in names:
+            automatic[name] = value
         lut[value] = number.setdefault(name, len(number) + 1)
+    taken = sorted((v, n) for v, n in names.items() if n in automatic and lut.get(v, 0))
+    if taken:  # two values would become one material without anybody asking for it
+        value, name = taken[0]
+        raise DicerError(f"{source}: labels.map names value {value} {name!r}, the name value {automatic[name]} "
+                         f"takes when it has no entry, so the two would become one material; map value "
+                         f"{automatic[name]} too (to {name!r} to join them), or choose another name")
     if not number:
         raise DicerError(f"{source}: no labelled voxels are left (values found: "
                          f"{', '.join(str(v) for v in sorted(lut)) or 'none'}, dropped: {sorted(drop)}); "

@@ -111,6 +111,17 @@ def test_resolve_materials_map_drop_merge():
     assert materials[2] == {"name": "label_4", "youngs_modulus": 1000.0, "poissons_ratio": 0.3, "density": 1.0e-9}
 
 
+def test_a_map_name_that_an_unmapped_value_takes_is_refused():
+    """{5: label_7} with 7 unmapped joined values 5 and 7 into one material in silence."""
+    with pytest.raises(DicerError, match=r"seg: labels.map names value 5 'label_7', the name value 7 takes when it "
+                                         r"has no entry, so the two would become one material; map value 7 too"):
+        resolve_materials([0, 5, 7], {"labels": {"map": {"5": "label_7"}}}, source="seg")
+    # asked for: both mapped to it, or the other value dropped or absent
+    assert resolve_materials([0, 5, 7], {"labels": {"map": {"5": "label_7", "7": "label_7"}}})[0] == {0: 0, 5: 1, 7: 1}
+    assert resolve_materials([0, 5, 7], {"labels": {"map": {"5": "label_7"}, "drop": [7]}})[0] == {0: 0, 5: 1, 7: 0}
+    assert resolve_materials([0, 5], {"labels": {"map": {"5": "label_7"}}})[0] == {0: 0, 5: 1}
+
+
 def test_a_map_name_without_materials_entry_beside_an_unused_entry_is_warned_of(caplog):
     """labels.map: marrow, materials: bone_marrow -- a typo that would give marrow E 1000 MPa."""
     settings = {"labels": {"map": {"3": "cortical_bone", "17": "marrow"}},

@@ -499,6 +499,10 @@ def do_mesh(labels_path: str, out: Path, config: dict, write=_now):
     with _Stage("mesh"):
         labels = read_labels(labels_path)
         _check_labels(labels, labels_path, config)
+        if labels.array.ndim == 2 and labels.direction is not None and config["mesh"]["coordinates"] == "scanner":
+            log.warning("mesh: the 2D image's direction cosines (%s) are not applied: a 2D model lies in the "
+                        "image's index frame, flipped or turned against the scanner's axes as they are "
+                        "(docs/coordinates.md)", " ".join(f"{v:g}" for v in labels.direction))
         try:
             mesh = mesh_labels(labels, **stage_kwargs(config, "mesh"))
         except DicerError as exc:

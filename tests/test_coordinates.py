@@ -392,3 +392,19 @@ def test_sheared_header_is_one_error_on_reading(tmp_path, capsys):
         "D^T D - I: 0.196: sheared or scaled axes)")
     # meshing in the index axes would not help: the slice spacing read is the sheared column's length
     assert main(argv + ["--set", "mesh.coordinates=index", "-q"]) == 2 and not out.exists()
+
+
+def test_a_flipped_2d_image_is_said_to_lie_in_its_index_frame(tmp_path, caplog):
+    """A 2D image's direction cosines are not applied (no 3D placement): the log says so,
+    once, instead of leaving a mirrored model unremarked."""
+    image = sitk.GetImageFromArray(np.pad(np.ones((6, 8), np.uint8), 2))
+    image.SetDirection((-1.0, 0.0, 0.0, 1.0))
+    sitk.WriteImage(image, str(tmp_path / "x.mha"))
+    caplog.set_level("INFO", logger="dicer")
+    assert main(["run", "--labels", str(tmp_path / "x.mha"), "-o", str(tmp_path / "out"),
+                 "--set", "fix.min_component_voxels=0"]) == 0
+    assert caplog.text.count("the 2D image's direction cosines (-1 0 0 1) are not applied") == 1
+    caplog.clear()
+    assert main(["run", "--labels", str(tmp_path / "x.mha"), "-o", str(tmp_path / "index"),
+                 "--set", "fix.min_component_voxels=0", "--set", "mesh.coordinates=index"]) == 0
+    assert "direction cosines" not in caplog.text

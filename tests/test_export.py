@@ -562,3 +562,36 @@ def test_neighbours_handed_in_give_the_same_file(tmp_path, suffix):
     export_mesh(merged, tmp_path / f"b{suffix}", config, source="scan.nii", neighbours=neighbours)
     assert (tmp_path / f"a{suffix}").read_bytes() == (tmp_path / f"b{suffix}").read_bytes()
     assert len(calls) == (0 if suffix == ".vtu" else 1)  # VTU holds no sets and needs none
+
+
+@pytest.mark.parametrize("suffix, digits, outcome", [
+    (".inp", 9, "refused"), (".inp", 13, "fine"), (".feb", 13, "fine"), (".k", 13, "refused"), (".out", 9, "refused"),
+    (".exo", 9, "fine"), (".vtu", 9, "fine"),
+])
+def test_coordinates_printed_too_coarse_for_the_voxels_are_refused(tmp_path, caplog, suffix, digits, outcome):
+    """0.1 um voxels 200 m from the origin: 9 digits moved nodes by ten voxels and CalculiX
+    stopped on inverted elements, while the deck's read-back (to printed precision) passed."""
+    if suffix == ".exo":
+        pytest.importorskip("netCDF4")
+    labels = np.zeros((6, 5, 4), np.uint8)
+    labels[1:5, 1:4, 1:3] = 1
+    mesh = voxel_mesh(labels, spacing=(1e-4, 1e-4, 1e-4), origin=(-1e5, 2e5, -3e4))
+    path = tmp_path / f"m{suffix}"
+    config = {"export": {"digits": digits}}
+    if outcome == "refused":
+        with pytest.raises(DicerError, match=r"printed with 9 significant digits, move nodes by up to 0\.001 mm, "
+                                             r"1e\+03 % of the smallest voxel edge \(0\.0001 mm\)"):
+            export_mesh(mesh, path, config)
+        assert not path.exists()
+    else:
+        export_mesh(mesh, path, config)
+        assert "significant digits" not in caplog.text
+    assert ("prints coordinates with 9 significant digits (its fixed columns)" in caplog.text) == (suffix == ".k")
+
+
+def test_coordinates_printed_near_the_voxel_size_are_warned_of(tmp_path, caplog):
+    labels = np.ones((3, 3, 3), np.uint8)
+    mesh = voxel_mesh(labels, spacing=(1e-3, 1e-3, 1e-3), origin=(-2e4, 0.0, 0.0))  # a shift of 10 % of a voxel
+    export_mesh(mesh, tmp_path / "m.inp")
+    assert "of the smallest voxel edge (0.001 mm): the model lies up to 20000 mm from the origin; set " \
+           "export.digits: 13" in caplog.text

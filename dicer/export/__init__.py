@@ -14,6 +14,7 @@ Formats: Abaqus/CalculiX ``.inp``, VTU ``.vtu`` (ParaView), PATRAN neutral
 from __future__ import annotations
 
 import importlib
+import logging
 import os
 from pathlib import Path
 
@@ -31,6 +32,7 @@ from dicer.mesh.faces import face_neighbours, neighbour_materials
 from dicer.mesh.model import Mesh
 
 _neighbours_by_sort = face_neighbours  # the former private name
+log = logging.getLogger("dicer")
 
 __all__ = ["DEFAULT_TYPES", "ELEMENT_TYPES", "EXPORT_SUFFIXES", "FORMATS", "Format", "SolverModel", "export_mesh",
            "file_sha256", "format_of", "neighbour_materials", "prepare_model", "provenance", "resolve_element_type",
@@ -75,6 +77,37 @@ def _write_and_check(fmt: Format, model: SolverModel, tmp: Path, path: Path, ex:
             flushed()
         except OSError as exc:
             raise write_error(path, exc) from None
+
+
+PRINTED_SHIFT_WARNING, PRINTED_SHIFT_ERROR = 0.01, 0.25
+"""Node shifts by the rounding of printed coordinates, as fractions of the smallest voxel
+edge, from which the export warns and from which it refuses (elements may turn inside out)."""
+
+
+def _check_printed_digits(fmt: Format, model: SolverModel, mesh: Mesh, digits: int, path: Path) -> None:
+    """Warn, or refuse, where printing the coordinates with the format's significant digits
+    moves nodes by a fair part of a voxel: a model far from the origin next to its voxel size
+    (micro-CT voxels with the scanner's origin metres away); and say when the format prints
+    other digits than ``export.digits`` asks."""
+    if not fmt.digits or not model.n_points:
+        return
+    printed = digits if digits in fmt.digits else fmt.digits[0]
+    if printed != digits:
+        log.warning("export: %s prints coordinates with %d significant digits (its fixed columns); export.digits %d "
+                    "applies to .inp and .feb", path.name, printed, digits)
+    reach = max(float(model.points.max()), -float(model.points.min()))
+    shift = reach * 10.0 ** (1 - printed) / 2  # half a unit in the last digit of the largest coordinate
+    voxel = float(np.min(np.asarray(mesh.spacing, float)[:mesh.dim]))
+    if shift <= PRINTED_SHIFT_WARNING * voxel:
+        return
+    fix = ("set export.digits: 13" if max(fmt.digits) > printed else
+           "export to .inp or .feb with export.digits: 13, or to .exo or .vtu (exact)")
+    text = (f"{path}: the coordinates, printed with {printed} significant digits, move nodes by up to {shift:.3g} mm, "
+            f"{100 * shift / voxel:.3g} % of the smallest voxel edge ({voxel:g} mm): the model lies up to {reach:.6g} "
+            f"mm from the origin; {fix}, or place the image's origin near the model")
+    if shift > PRINTED_SHIFT_ERROR * voxel:
+        raise DicerError(text + " (elements could turn inside out)")
+    log.warning("export: %s", text)
 
 
 @takes_settings("export")
@@ -126,6 +159,7 @@ def export_mesh(mesh: Mesh, path: str | os.PathLike, *, materials: list[dict], o
                           neighbours=neighbours)
     if model.order not in fmt.orders:
         raise DicerError(f"{path}: {fmt.limits.format(dim=model.dim, order=model.order)}")
+    _check_printed_digits(fmt, model, mesh, digits, path)
     with atomic_path(path) as tmp:
         _write_and_check(fmt, model, tmp, path, ex, check)
         size = tmp.stat().st_size

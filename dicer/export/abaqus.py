@@ -738,4 +738,4 @@ def check_deck(path: str | Path, model, *, verify: str) -> None:
         check_abaqus(path, model)
 
 
-FORMAT = Format("abaqus", (".inp",), write_abaqus, check_deck, check_options={"verify": "verify"})
+FORMAT = Format("abaqus", (".inp",), write_abaqus, check_deck, check_options={"verify": "verify"}, digits=(9, 13))

@@ -1023,4 +1023,4 @@ FORMAT = Format("febio", (".feb",), write_febio, check_febio, dims=(3,),
                 limits="FEBio has no plane (2D) elements; export this {dim}D mesh to .inp (CPS4/CPE4) or another "
                        "format, or mesh a 3D volume for .feb",
                 write_options={"material_type": "febio_material"},
-                check_options={"material_type": "febio_material"})
+                check_options={"material_type": "febio_material"}, digits=(9, 13))

@@ -35,6 +35,10 @@ class Format:
     holds_sets : bool
         Whether the file holds node sets and surfaces (``export.sets``); a format that
         does not is spared building them.
+    digits : tuple of int
+        The significant digits a text format prints coordinates with: the values of
+        ``export.digits`` it honours (the first when it honours none); empty where the
+        coordinates are stored exactly (binary, or printed in full).
     """
 
     name: str
@@ -48,6 +52,7 @@ class Format:
     check_options: dict[str, str] = field(default_factory=dict)
     requires: tuple[str, ...] = ()
     holds_sets: bool = True
+    digits: tuple[int, ...] = ()
 
     def options(self, which: str, export: dict) -> dict:
         """Keyword arguments of ``write`` or ``check`` from the ``export`` settings.

@@ -326,4 +326,4 @@ def check_patran(path: str | Path, model) -> None:
 
 
 
-FORMAT = Format("patran", (".out", ".neu"), write_patran, check_patran)
+FORMAT = Format("patran", (".out", ".neu"), write_patran, check_patran, digits=(9,))  # E16.9

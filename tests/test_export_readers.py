@@ -62,6 +62,7 @@ def meshes(draw):
     if dim == 2:
         noise[:, 2] = 0.0
     mesh.points = (mesh.points + noise) * scale
+    mesh.spacing, mesh.origin = np.multiply(mesh.spacing, scale), np.multiply(mesh.origin, scale)  # the same model
     return mesh, k
 
 

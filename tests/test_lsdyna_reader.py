@@ -129,6 +129,7 @@ def _write(path: Path, labels: np.ndarray, n_materials: int, spacing=(0.5, 0.75,
     mesh = voxel_mesh(labels, spacing=spacing, origin=origin)
     noise = np.random.default_rng(seed).normal(scale=0.2 * min(spacing), size=mesh.points.shape)
     mesh.points = (mesh.points + noise) * scale
+    mesh.spacing, mesh.origin = np.multiply(mesh.spacing, scale), np.multiply(mesh.origin, scale)  # the same model
     export_mesh(mesh, path, _config(n_materials))  # its own read-back check passes too
     return path
 

@@ -229,6 +229,9 @@ def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = 
         labels, info = segment(image, **stage_kwargs(config, "segment"), source=image_path)
         if cropped:
             info["crop"] = cropped
+        if "padding" in info:
+            log.info("segment: %d voxels hold the padding value %g outside the scan's field of view: air for the "
+                     "thresholds, background in the labels", info["padding"]["voxels"], info["padding"]["value"])
         for warning in info.get("warnings", []):
             log.warning("segment: %s", warning)
         # a NIfTI scan lends its header: the labels overlay it with exactly its affine

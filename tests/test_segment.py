@@ -539,3 +539,46 @@ def test_thresholds_at_the_end_of_their_range_are_warned_of():
     labels, info = segment(Volume(image.astype(np.float32), (1.0, 1.0, 1.0)),
                            config(ranges=[[40, 240], [300, 550]]), "mr.nii.gz")
     assert "warnings" not in info, info.get("warnings")
+
+
+def _padded_ct(pad: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A CT slab (HU) with ``pad`` outside its field-of-view circle, noisy air inside it, a
+    body of 40 HU with a 1000 HU ring; and the true labels."""
+    rng = np.random.default_rng(seed)
+    x, y = np.meshgrid(np.arange(48) - 23.5, np.arange(48) - 23.5, indexing="ij")
+    r = np.hypot(x, y)
+    truth = np.where(r < 14, np.where((r > 9) & (r < 12), 2, 1), 0)[:, :, None].repeat(12, axis=2)
+    hu = np.choose(truth, [-1000.0, 40.0, 1000.0]) + rng.normal(0, 15, truth.shape)
+    hu[r >= 22] = pad
+    return np.rint(hu).astype(np.int16), truth
+
+
+@pytest.mark.parametrize("pad", [-3024, -2000, -2048])
+@pytest.mark.parametrize("method", ["multiotsu", "otsu", "shape_connectivity", "wide ranges"])
+def test_padding_outside_the_field_of_view_is_air_for_the_thresholds(pad, method):
+    """Otsu and multi-Otsu split the padding from the scan (thresholds -3000 and -947: the
+    air in the field of view became soft tissue, the body bone), and so did search ranges
+    reaching below -1000."""
+    image, truth = _padded_ct(pad)
+    names = ["tissue"] if method == "otsu" else ["soft_tissue", "bone"]
+    settings = {"method": method, "opening_radius": 0, "closing_radius": 0}
+    if method == "wide ranges":
+        settings.update(method="shape_connectivity", ranges=[[-2900, 0], [100, 1000]])
+    labels, info = segment(Volume(image, (0.8, 0.8, 2.0)), {"materials": [{"name": n} for n in names],
+                                                            "segment": settings})
+    assert info["padding"] == {"value": float(pad), "voxels": int(np.count_nonzero(image == pad))}
+    want = (truth > 0).astype(np.uint8) if method == "otsu" else truth
+    assert np.count_nonzero(labels.array != want) <= 0.002 * want.size
+
+
+def test_air_at_its_lowest_values_is_no_padding():
+    """A CT stored down to -1024 (unsigned with intercept -1024), or noisy air reaching
+    below it, has no padding; nor has an MR."""
+    from dicer.segment import padding_value
+
+    image, _ = _padded_ct(-1024)
+    assert padding_value(image) is None
+    noisy = image.astype(float)
+    noisy[noisy == -1024] = np.random.default_rng(1).normal(-1040, 30, int(np.count_nonzero(noisy == -1024)))
+    assert padding_value(noisy) is None
+    assert padding_value(np.random.default_rng(2).normal(300, 100, (20, 20, 5))) is None

@@ -168,7 +168,8 @@ SECRET_ID = "PID-88231577"
 
 
 def _write_dicom_series(folder, nslices, series_uid, stored, z0=-20.0, dz=2.5, prefix="im", order=None,
-                        positions=None, shift_y=0.0, pixel_spacing=True, patient_id=None, study_uid=None):
+                        positions=None, shift_y=0.0, pixel_spacing=True, patient_id=None, study_uid=None,
+                        padding=None):
     """Write a CT series built on pydicom's CT_small.dcm: stored values, slope 2, intercept -1024.
 
     Slice k lies at z = ``positions[k]`` (default ``z0 + dz * k``); its SliceThickness is
@@ -202,6 +203,8 @@ def _write_dicom_series(folder, nslices, series_uid, stored, z0=-20.0, dz=2.5, p
         ds.InstanceNumber = nslices - k  # misleading on purpose: position must decide
         ds.RescaleSlope = 2
         ds.RescaleIntercept = -1024
+        if padding is not None:
+            ds.PixelPaddingValue = padding
         for tag in ("SmallestImagePixelValue", "LargestImagePixelValue"):
             if tag in ds:
                 delattr(ds, tag)
@@ -837,6 +840,24 @@ def test_series_of_other_patients_or_studies_in_one_folder_are_refused(tmp_path,
                                          "and dicer would read one of them: put each one's series in a folder") as err:
         read_image(tmp_path)
     assert "MRN_OTHER" not in str(err.value) and SECRET_ID not in str(err.value)
+
+
+def test_pixel_padding_value_marks_voxels_outside_the_image(tmp_path, caplog):
+    """Voxels holding the Pixel Padding Value (0028,0120) lie outside the field of view: read
+    as stored they rescaled to 59,000 HU here (62,512 for an unsigned CT), and became bone."""
+    stored = np.full((6, 5, 4), 12, np.int16)  # -1000 HU
+    stored[2:4, 1:4] = 532  # 40 HU
+    stored[0] = 30000  # outside the field of view
+    _write_dicom_series(tmp_path, 4, "1.2.826.0.1.3680043.8.498.31", stored, padding=30000)
+    caplog.set_level("INFO", logger="dicer")
+    volume = read_image(tmp_path)
+    assert volume.array.max() == 40.0 and np.all(volume.array[0] == -1000.0)
+    assert "20 voxels hold the series' Pixel Padding Value (outside the field of view): set to the lowest other " \
+           "value, -1000" in caplog.text
+    without = tmp_path / "plain"
+    without.mkdir()
+    _write_dicom_series(without, 4, "1.2.826.0.1.3680043.8.498.32", stored)
+    assert read_image(without).array.max() == 30000 * 2 - 1024  # no padding value said: the values as stored
 
 
 def test_a_folder_of_one_multiframe_file_or_a_dicom_medium(tmp_path):

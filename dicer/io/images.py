@@ -878,7 +878,7 @@ def _read_dicom_slices(names: list[str]):
     """
     reader = sitk.ImageFileReader()
     reader.SetImageIO("GDCMImageIO")
-    positions, directions, sizes, spacings = [], [], [], []
+    positions, directions, sizes, spacings, paddings = [], [], [], [], []
     for name in names:
         reader.SetFileName(name)
         try:
@@ -892,6 +892,7 @@ def _read_dicom_slices(names: list[str]):
             if len(names) > 1 and not reader.HasMetaDataKey(tag):
                 raise DicerError(f"{Path(name).parent}: the DICOM slices carry no {what}, so their {unknown}; export "
                                  "the series with it, or convert it to NIfTI with the geometry set there")
+        paddings.append(_padding_range(reader))
         positions.append(reader.GetOrigin()[:3])
         directions.append(reader.GetDirection())
         sizes.append(reader.GetSize()[:2])
@@ -921,7 +922,42 @@ def _read_dicom_slices(names: list[str]):
         if pixels.size != nx * ny or image.GetNumberOfComponentsPerPixel() != 1:
             raise _slice_error(name, f"{pixels.size} values where the header promises {nx}x{ny}")
         array[:, :, k] = pixels.reshape(ny, nx).T  # [y, x] -> [x, y]
+    _clear_padding(array, paddings, first)
     return array, positions, directions[0].reshape(3, 3), tuple(float(v) for v in spacings[0])
+
+
+def _padding_range(reader) -> tuple[float, float] | None:
+    """The rescaled values a slice's Pixel Padding Value (0028,0120) and Range Limit
+    (0028,0121) mark as outside the image, widened by half a stored step; None without."""
+    def number(tag: str, default=None):
+        try:
+            return float(reader.GetMetaData(tag).strip()) if reader.HasMetaDataKey(tag) else default
+        except ValueError:
+            return default
+
+    pad = number("0028|0120")
+    if pad is None:
+        return None
+    limit = number("0028|0121", pad)
+    slope, intercept = number("0028|1053", 1.0) or 1.0, number("0028|1052", 0.0)
+    lo, hi = sorted((min(pad, limit) * slope + intercept, max(pad, limit) * slope + intercept))
+    return lo - abs(slope) / 2, hi + abs(slope) / 2
+
+
+def _clear_padding(array: np.ndarray, paddings: list, folder: Path) -> None:
+    """Voxels a slice marks as padding (outside the scanned field of view) take the lowest
+    value of the others: unsigned CTs pad with values that rescale to 62,000 HU, which
+    segmentation took for bone."""
+    padded = np.zeros(array.shape, bool)
+    for k, band in enumerate(paddings):
+        if band is not None:
+            padded[:, :, k] = (array[:, :, k] >= band[0]) & (array[:, :, k] <= band[1])
+    count = int(np.count_nonzero(padded))
+    if count and count < array.size:
+        floor = array[~padded].min()
+        array[padded] = floor
+        log.info("%s: %d voxels hold the series' Pixel Padding Value (outside the field of view): set to the "
+                 "lowest other value, %g", folder.name, count, floor)
 
 
 def _positions_text(pairs, n_more: int) -> str:

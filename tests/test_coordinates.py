@@ -408,3 +408,24 @@ def test_a_flipped_2d_image_is_said_to_lie_in_its_index_frame(tmp_path, caplog):
     assert main(["run", "--labels", str(tmp_path / "x.mha"), "-o", str(tmp_path / "index"),
                  "--set", "fix.min_component_voxels=0", "--set", "mesh.coordinates=index"]) == 0
     assert "direction cosines" not in caplog.text
+
+
+@pytest.mark.parametrize("shape, direction, said", [
+    ((1, 12, 14), None, "the model's x and y are the image's j and k index axes, not"),
+    ((12, 14, 1), (-1.0, 0, 0, 0, -1.0, 0, 0, 0, 1.0), "i and j index axes (its direction cosines are dropped)"),
+])
+def test_a_one_slice_image_off_the_scanners_xy_plane_is_said_to_lie_in_its_index_plane(tmp_path, caplog, shape,
+                                                                                          direction, said):
+    """A sagittal slice, or one the scanner holds flipped (a RAS sform), was laid in the x-y
+    plane without a word: the model turned or mirrored against the scan."""
+    array = np.zeros(shape, np.uint8)
+    array[tuple(slice(None) if n == 1 else slice(2, n - 2) for n in shape)] = 1
+    image = sitk.GetImageFromArray(np.ascontiguousarray(array.T))
+    if direction:
+        image.SetDirection(direction)
+    sitk.WriteImage(image, str(tmp_path / "slice.nii.gz"))
+    caplog.set_level("INFO", logger="dicer")
+    assert main(["run", "--labels", str(tmp_path / "slice.nii.gz"), "-o", str(tmp_path / "out"),
+                 "--set", "fix.min_component_voxels=0"]) == 0
+    assert caplog.text.count("the one-slice image is meshed in its index plane") == 1  # not again at every stage
+    assert said in caplog.text

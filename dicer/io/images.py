@@ -167,6 +167,19 @@ def _check_finite(array: np.ndarray, path) -> None:
     raise _nonfinite_error(path, nan, array.size - finite - nan, array.size)
 
 
+_said: set[str] = set()
+
+
+def _warn_once(message: str, name: str, *args) -> None:
+    """A warning about how an image is taken (``message`` % (``name``, *``args``)), once per
+    process whatever the file's name: ``dicer run`` reads the label files it writes on the
+    input's header again at every stage."""
+    said = message % ("", *args)
+    if said not in _said:
+        _said.add(said)
+        log.warning(message, name, *args)
+
+
 def _finish(array: np.ndarray, spacing, origin, path, dtype=np.float32, direction=None) -> Volume:
     """Drop a singleton axis (3D -> 2D), refuse NaN/Inf voxels and build the Volume."""
     spacing, origin = list(spacing), list(origin)
@@ -175,6 +188,13 @@ def _finish(array: np.ndarray, spacing, origin, path, dtype=np.float32, directio
         ax = singles[0]
         log.info("%s: one voxel along %s (%g mm): read as a 2D image, meshed with quadrilaterals; the deck's "
                  "section thickness is export.thickness, not this", Path(path).name, "xyz"[ax], spacing[ax])
+        turned = direction is not None and not np.allclose(np.reshape(direction, (3, 3)), np.eye(3))
+        if ax != 2 or turned:  # a sagittal or coronal slice, or one the scanner holds flipped or oblique
+            kept = [a for a in "ijk" if a != "ijk"[ax]]
+            _warn_once("%s: the one-slice image is meshed in its index plane: the model's x and y are "
+                       "the image's %s and %s index axes%s, not the scanner's axes (a 2D model has no 3D "
+                       "placement; docs/coordinates.md)", Path(path).name, *kept,
+                       " (its direction cosines are dropped)" if turned else "")
         array = np.squeeze(array, axis=ax)
         del spacing[ax], origin[ax]
         direction = None  # a 3D orientation has no 2D counterpart in general
@@ -426,8 +446,8 @@ def _nifti_placement(path: Path, spatial: tuple[float, ...]):
             f"{path}: {problem} and there is no qform to use instead; resample the image onto its sform "
             "grid, or write pixdim and an orthonormal sform that agree (e.g. with nibabel)"
         )
-    log.warning("%s: %s, so it maps to another space; meshing in the qform's scanner geometry", path.name,
-                problem.replace("the header's ", "its "))
+    _warn_once("%s: %s, so it maps to another space; meshing in the qform's scanner geometry", path.name,
+               problem.replace("the header's ", "its "))
     b, c, d, qx, qy, qz = quat
     a = np.sqrt(max(0.0, 1.0 - (b * b + c * c + d * d)))
     rotation = np.array([[a * a + b * b - c * c - d * d, 2 * (b * c - a * d), 2 * (b * d + a * c)],

@@ -20,3 +20,12 @@ def shell_small():
 def head_small():
     """(image, labels) of the head phantom at 48 voxels along y: float32 HU and uint8 labels."""
     return _frozen(make_phantom("head", size=48, seed=0)), _frozen(phantom_labels("head", size=48))
+
+
+@pytest.fixture(autouse=True)
+def _warnings_said_afresh():
+    """Each test a fresh process as far as the once-a-run image warnings go."""
+    from dicer.io import images
+
+    images._said.clear()
+    yield

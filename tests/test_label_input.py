@@ -334,3 +334,14 @@ def test_a_single_slice_keeps_its_3d_grid_in_the_label_files(tmp_path, shape):
         assert out.GetSize() == shape and out.GetOrigin() == (75.0, 100.0, -50.0)
         assert out.GetSpacing() == (3.0, 0.5, 2.0)
         assert np.array_equal(sitk.GetArrayFromImage(out).transpose(2, 1, 0), lab)
+
+
+def test_image_spacing_beside_a_header_spacing_is_said_to_be_unused(tmp_path, caplog):
+    """A micro-CT exported with 1 mm in its header: image.spacing was dropped without a word."""
+    src = tmp_path / "seg.nii.gz"
+    write_nifti(src, seven_labels())
+    caplog.set_level("INFO", logger="dicer")
+    assert _cli("run", "--labels", src, "-o", tmp_path / "out", "--set", "image.spacing=[0.5,0.5,0.5]") == 0
+    assert caplog.text.count("image.spacing is set ([0.5, 0.5, 0.5]), but the file carries its own voxel size "
+                             "(1.5 x 1.5 x 1.5 mm), which is used") == 1
+    assert read_labels(tmp_path / "out" / "labels.nii.gz").spacing == (1.5, 1.5, 1.5)

@@ -667,6 +667,11 @@ def _read_file(path: Path, spacing_arg, dtype=np.float32, keep_direction=False) 
                     path.name, spacing_arg)
     # TIFF and PNG resolution tags are unreliable (dpi, not mm): use the given spacing
     own = suffix not in _TIFF + _PNG and not bad_header_spacing
+    if own and spacing_arg is not None:
+        _warn_once("%s: image.spacing is set (%s), but the file carries its own voxel size (%s mm), which is used: "
+                   "image.spacing applies to .npy, TIFF and PNG inputs and to header spacings that are zero, "
+                   "negative or not finite; to rescale the image, write its voxel size into the header", path.name,
+                   spacing_arg, " x ".join(f"{v:g}" for v in image.GetSpacing()))
     return _from_sitk(image, path, spacing_arg, own_spacing=own, nifti=suffix in (".nii", ".nii.gz"),
                       dtype=dtype, keep_direction=keep_direction)
 

@@ -535,6 +535,14 @@ def do_export(mesh_path: str, out: Path, config: dict, mesh=None, neighbours=Non
         log.info("export: wrote %s (%s)", out, brief_json(info, sort_keys=True, whole_top=True))
 
 
+def _mesh_names(mesh, config: dict) -> list[str]:
+    """The material names a mesh file carries (what its materials were called when it was
+    made: the config's then, or a label volume's materials.json), else the config's."""
+    names = list(mesh.names or ())
+    top = int(mesh.material.max(initial=0)) if mesh.n_cells else 0
+    return names if names and len(names) >= top else [m["name"] for m in config["materials"]]
+
+
 def do_surface(mesh_path: str, outdir: Path, config: dict, only: list[str] | None = None) -> dict:
     from dicer.export.stl import write_surfaces
     from dicer.io.meshes import read_mesh, refuse_inverted
@@ -542,7 +550,7 @@ def do_surface(mesh_path: str, outdir: Path, config: dict, only: list[str] | Non
     with _Stage("surface"):
         mesh = read_mesh(mesh_path)
         refuse_inverted(mesh, mesh_path)
-        info = write_surfaces(mesh, outdir, [m["name"] for m in config["materials"]], only)
+        info = write_surfaces(mesh, outdir, _mesh_names(mesh, config), only)
         log.info("surface: wrote %s", ", ".join(f"{outdir / v['file']} ({v['triangles']} triangles, "
                                                  f"{v['volume_mm3']:.6g} mm^3)" for v in info.values()))
     return info
@@ -560,6 +568,8 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
         mesh = read_mesh(mesh_path, mapped=True) if mesh is None else mesh
         labels = original = None
         if labels_path or original_path:
+            import numpy as np
+
             from dicer.io.images import read_labels
 
             labels = read_labels(labels_path) if labels_path else None
@@ -572,6 +582,12 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
                     raise DicerError(f"{labels_path}: the labels have {'x'.join(map(str, shape))} voxels but the mesh "
                                      f"was made from {'x'.join(map(str, grid))}; give the label volume the mesh was "
                                      "made from with --labels (the original segmentation goes to --original)")
+                size = np.asarray(labels.spacing, float)
+                if not np.allclose(size, np.asarray(mesh.spacing, float)[:size.size], rtol=1e-5, atol=0):
+                    raise DicerError(f"{labels_path}: the labels' voxels are {' x '.join(f'{v:g}' for v in size)} mm "
+                                     "but the mesh's "
+                                     f"{' x '.join(f'{v:g}' for v in np.asarray(mesh.spacing)[:size.size])} mm; give "
+                                     "the label volume the mesh was made from with --labels")
         # every element metric once: the report's, the figures' and the CSV's with skew
         from dicer.mesh.metrics import element_metrics
         from dicer.parallel import meanwhile
@@ -615,21 +631,26 @@ def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_re
     """The quality report of ``mesh`` with the stage reports; its pictures and HTML page written.
     ``neighbours``: the model picture's faces (None without it: the parts of a voxel mesh come
     from its voxel grid); ``parts``: the mesh's floating parts."""
-    from dicer.config import material_names, stage_kwargs
+    from dicer.config import stage_kwargs
     from dicer.io.atomic import pending, write_bytes_atomic
     from dicer.quality import quality_report, render_html
 
-    report = quality_report(mesh, **stage_kwargs(config, "quality"), labels=labels, original=original,
-                            metrics=metrics, neighbours=neighbours, parts=parts)
+    settings = {**stage_kwargs(config, "quality"), "names": _mesh_names(mesh, config)}
+    report = quality_report(mesh, **settings, labels=labels, original=original, metrics=metrics,
+                            neighbours=neighbours, parts=parts)
     stages = {}
     for path in stage_reports:
         try:
             stages[Path(path).name.split(".")[0]] = json.loads(Path(path).read_text())
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise DicerError(f"{path}: cannot read the stage report ({exc}); rerun that stage") from None
+        if not isinstance(stages[Path(path).name.split(".")[0]], dict):
+            raise DicerError(f"{path}: not a stage report (a JSON object, as dicer fix, merge and smooth write with "
+                             "--report); give those files")
     if stages:
         report["stages"] = stages
-    figures = _quality_figures(mesh, report, sj, material_names(config), histogram, model_picture, node_classes,
+    figures = _quality_figures(mesh, report, sj, dict(enumerate(settings["names"], start=1)), histogram,
+                               model_picture, node_classes,
                                neighbours)
     if html:
         shown = []

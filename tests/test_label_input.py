@@ -345,3 +345,26 @@ def test_image_spacing_beside_a_header_spacing_is_said_to_be_unused(tmp_path, ca
     assert caplog.text.count("image.spacing is set ([0.5, 0.5, 0.5]), but the file carries its own voxel size "
                              "(1.5 x 1.5 x 1.5 mm), which is used") == 1
     assert read_labels(tmp_path / "out" / "labels.nii.gz").spacing == (1.5, 1.5, 1.5)
+
+
+def test_quality_and_surface_name_materials_as_the_mesh_does(labelled, tmp_path, capsys):
+    """A label volume's mesh carries its materials' names: quality and surface took the
+    config's (soft_tissue, bone) for them, and surface wrote white matter to grey_matter.stl."""
+    src, config = labelled
+    out = tmp_path / "out"
+    assert _cli("run", "--labels", src, "-o", out, "--config", config) == 0
+    names = ["white_matter", "grey_matter", "label_4", "cerebellum"]
+    assert _cli("quality", out / "smoothed.vtu", "-o", tmp_path / "q.json") == 0  # the default config
+    assert set(json.loads((tmp_path / "q.json").read_text())["materials"]) == set(names)
+    assert _cli("surface", out / "smoothed.vtu", "-o", tmp_path / "stl") == 0
+    assert sorted(p.stem for p in (tmp_path / "stl").glob("*.stl")) == sorted(names)
+    # labels of another voxel size than the mesh's, and a stage report that is no object: one error line each
+    write_nifti(tmp_path / "other.nii.gz", seven_labels(), spacing=3.0)
+    capsys.readouterr()
+    assert _cli("quality", out / "smoothed.vtu", "-o", tmp_path / "q2.json", "--labels", tmp_path / "other.nii.gz") == 2
+    assert "other.nii.gz: the labels' voxels are 3 x 3 x 3 mm but the mesh's 1.5 x 1.5 x 1.5 mm" in capsys.readouterr().err
+    (tmp_path / "list.json").write_text("[1, 2, 3]")
+    assert _cli("quality", out / "smoothed.vtu", "-o", tmp_path / "q3.json", "--html", tmp_path / "q3.html",
+                "--stage-report", tmp_path / "list.json") == 2
+    assert "list.json: not a stage report (a JSON object" in capsys.readouterr().err
+    assert not (tmp_path / "q2.json").exists() and not (tmp_path / "q3.json").exists()

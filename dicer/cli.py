@@ -474,6 +474,14 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
                            allow_irregular_slices=config["image"]["allow_irregular_slices"])
 
     def run(m):
+        if m is not mesh:  # read from a file: a mesh dicer run hands on is never smoothed yet
+            from dicer.mesh.model import nodes_off_lattice
+
+            moved = nodes_off_lattice(m)
+            if moved:
+                log.warning("smooth: %d of the mesh's %d nodes lie off their lattice points already: it was smoothed "
+                            "before, and smoothing it again shrinks it further; smooth the mesh of dicer mesh or "
+                            "dicer merge", moved, m.n_points)
         try:
             return smooth_mesh(m, **settings, image=image, thresholds=thresholds, image_source=image_path or "image")
         except DicerError as exc:

@@ -40,7 +40,7 @@ from dicer.config import section_defaults, takes_settings
 from dicer.errors import DicerError
 from dicer.parallel import import_meanwhile, meanwhile, ordered_map
 from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes
-from dicer.mesh.model import CHUNK, Mesh, pieces
+from dicer.mesh.model import CHUNK, Mesh, nodes_off_lattice, pieces
 from dicer.mesh.topology import (HEX_AXIS_CORNERS, HEX_CORNERS, HEX_EDGES, HEX_FACES, QUAD_AXIS_CORNERS,
                                  QUAD_CORNERS, QUAD_EDGES)
 
@@ -1465,6 +1465,11 @@ def merge_mesh(mesh: Mesh, *, method: str, templates: dict, passes, min_thicknes
 
         return coarsen_mesh(mesh, levels=templates["levels"], min_distance=templates["min_distance"],
                             keep_fine=list(templates["keep_fine"]))
+    moved = nodes_off_lattice(mesh)
+    if moved:  # the checks judge elements on the lattice: a smoothed mesh's would pass below the floor
+        raise DicerError(f"{moved} of the mesh's {mesh.n_points} nodes lie off their lattice points (a smoothed "
+                         "mesh): plane merging works on meshes from dicer mesh or dicer merge; merge before "
+                         "smoothing")
     return merge_planes.__wrapped__(mesh, passes=passes, min_thickness=float(min_thickness), granularity=granularity,
                                     min_scaled_jacobian=float(min_scaled_jacobian), rim_moves=rim_moves)
 

@@ -135,3 +135,29 @@ class Mesh(Sized):
             {k: v.copy() for k, v in self.cell_data.items()}, list(self.names),
             None if self.direction is None else self.direction.copy(), self.scanner,
         )
+
+
+def nodes_off_lattice(mesh: "Mesh") -> int:
+    """How many nodes lie away from their lattice point (``origin + spacing * lattice``):
+    none in a voxel or plane-merged mesh, most boundary nodes of a smoothed one. Nodes
+    between lattice points (index -1, transition templates) are not counted.
+
+    Parameters
+    ----------
+    mesh : Mesh
+
+    Returns
+    -------
+    int
+    """
+    lattice = np.asarray(mesh.lattice)
+    spacing, origin = np.asarray(mesh.spacing, float), np.asarray(mesh.origin, float)
+    reach = float(np.abs(origin).max(initial=0)) + float((spacing * np.asarray(mesh.grid_shape)).max(initial=0))
+    tolerance = 1e-9 * max(1.0, reach)  # rounding of origin + spacing * index, not a move
+    off = 0
+    for part in pieces(mesh.n_points):
+        at = lattice[part] * spacing + origin
+        away = (np.abs(np.asarray(mesh.points[part]) - at) > tolerance).any(axis=1)
+        off += int(np.count_nonzero(away & (lattice[part] >= 0).all(axis=1)))
+    return off
+

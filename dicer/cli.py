@@ -244,6 +244,9 @@ def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = 
             save_overlay_png(image, labels, overlay, title, len(names), names)
         if plot and info.get("criterion"):
             save_threshold_plot(info, plot)
+        elif plot:
+            log.warning("segment: --plot draws the criterion of the shape-connectivity search; segment.method %s has "
+                        "none, so %s is not written", info["method"], plot)
         if info_path:
             # timings go to the log only: the file must be the same on every rerun
             stable = {k: v for k, v in info.items() if not k.endswith("seconds")}

@@ -582,3 +582,14 @@ def test_air_at_its_lowest_values_is_no_padding():
     noisy[noisy == -1024] = np.random.default_rng(1).normal(-1040, 30, int(np.count_nonzero(noisy == -1024)))
     assert padding_value(noisy) is None
     assert padding_value(np.random.default_rng(2).normal(300, 100, (20, 20, 5))) is None
+
+
+def test_a_threshold_plot_without_a_criterion_is_said_not_to_be_written(tmp_path, caplog):
+    from dicer.cli import main
+    from dicer.io.images import write_image
+
+    image, _ = _padded_ct(-1024)
+    write_image(Volume(image.astype(np.float32), (1.0, 1.0, 1.0)), tmp_path / "ct.nii.gz")
+    assert main(["segment", str(tmp_path / "ct.nii.gz"), "-o", str(tmp_path / "l.nii.gz"), "--plot",
+                 str(tmp_path / "t.png"), "--set", "segment.method=multiotsu", "-q"]) == 0
+    assert "segment.method multiotsu has none, so" in caplog.text and not (tmp_path / "t.png").exists()

@@ -164,3 +164,16 @@ def test_pillow_puts_the_surface_on_the_scan(phantom):
     assert report["pillow"]["surface"] == "image" and report["pillow"]["faces_without_layer"] == 0
     assert report["volume_change"] == pytest.approx(
         element_volumes(out.points, out.cells).sum() / element_volumes(mesh.points, mesh.cells).sum() - 1)
+
+
+def test_thresholds_of_another_material_count_are_refused():
+    """Three thresholds for a mesh of two materials (another scan's segmentation.json) were
+    taken, and the extra one ignored."""
+    from dataclasses import replace
+
+    from dicer.mesh.subvoxel import check_thresholds_for_mesh
+
+    mesh = replace(voxel_mesh(np.ones((3, 3, 3), np.uint8)), names=["soft_tissue", "bone"])
+    assert check_thresholds_for_mesh([-200.0, 300.0], mesh).tolist() == [-200.0, 300.0]
+    with pytest.raises(DicerError, match=r"t1.json: 3 threshold\(s\) for a mesh of 2 materials \(soft_tissue, bone\)"):
+        check_thresholds_for_mesh([-200.0, 300.0, 900.0], mesh, "t1.json")

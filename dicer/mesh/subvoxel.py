@@ -91,6 +91,10 @@ def check_thresholds_for_mesh(thresholds, mesh: Mesh, source: str = "the thresho
         raise DicerError(f"{source}: thresholds {t.tolist()} are not strictly increasing; give the lower bound "
                          "of each material in increasing order, as dicer segment writes them")
     top = int(np.max(mesh.material)) if mesh.n_cells else 0
+    if mesh.names and t.size != len(mesh.names):
+        raise DicerError(f"{source}: {t.size} threshold(s) for a mesh of {len(mesh.names)} materials "
+                         f"({', '.join(mesh.names)}); give one threshold per material (the segmentation.json of the "
+                         "scan the mesh came from)")
     if top > t.size:
         raise DicerError(f"{source}: {t.size} threshold(s) for a mesh with material {top}; give one threshold "
                          "per material (the segmentation.json of the scan the mesh came from)")

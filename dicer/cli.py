@@ -276,6 +276,12 @@ def do_labels(labels_path: str, out: Path, config: dict, materials_path: Path | 
     return materials
 
 
+def _npy_spacing(path, config: dict):
+    """image.spacing for a .npy label volume, which carries none (a file with a header keeps
+    its own: the stages after labels read dicer's NIfTI files)."""
+    return config["image"]["spacing"] if str(path).lower().endswith(".npy") else None
+
+
 def downsample_applies(config: dict) -> bool:
     """Whether downsample.factor or downsample.voxel_size asks for a coarser grid: a label
     volume given to 'dicer run --labels' is downsampled only then, since the stage's
@@ -292,7 +298,7 @@ def do_downsample(labels_path: str, out: Path, config: dict):
     from dicer.labels import write_mapped_labels
 
     with _Stage("downsample"):
-        labels = read_labels(labels_path)
+        labels = read_labels(labels_path, _npy_spacing(labels_path, config))
         reduced, info = downsample(labels, **stage_kwargs(config, "downsample"), source=labels_path)
         # factor 1 keeps the grid, and then the input's header (exactly its affine)
         write_mapped_labels(reduced, labels_path, out)
@@ -322,7 +328,7 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
     from dicer.labels import write_mapped_labels
 
     with _Stage("fix"):
-        labels = read_labels(labels_path)
+        labels = read_labels(labels_path, _npy_spacing(labels_path, config))
         _check_labels(labels, labels_path, config)
         settings = stage_kwargs(config, "fix")
         try:
@@ -511,7 +517,7 @@ def do_mesh(labels_path: str, out: Path, config: dict, write=_now):
     from dicer.mesh.voxel import mesh_labels
 
     with _Stage("mesh"):
-        labels = read_labels(labels_path)
+        labels = read_labels(labels_path, _npy_spacing(labels_path, config))
         _check_labels(labels, labels_path, config)
         if labels.array.ndim == 2 and labels.direction is not None and config["mesh"]["coordinates"] == "scanner":
             log.warning("mesh: the 2D image's direction cosines (%s) are not applied: a 2D model lies in the "
@@ -583,7 +589,7 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
 
             from dicer.io.images import read_labels
 
-            labels = read_labels(labels_path) if labels_path else None
+            labels = read_labels(labels_path, _npy_spacing(labels_path, config)) if labels_path else None
             original = read_labels(original_path) if original_path else None
             if labels is not None:
                 # voxel counts of another grid would compare the mesh with another volume

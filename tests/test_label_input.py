@@ -244,6 +244,11 @@ def test_a_npy_label_volume_takes_image_spacing(tmp_path, dim):
     assert _cli("run", "--labels", tmp_path / "seg.npy", "-o", out, "--set", f"image.spacing={spacing}",
                 "--set", "smooth.coefficient=0", "--set", "merge.passes=[0,0,0]") == 0
     assert read_labels(out / "labels.nii.gz").spacing == pytest.approx(spacing)
+    if dim == 3:  # the stages that read a .npy themselves take it too (they took 1 mm)
+        assert _cli("mesh", tmp_path / "seg.npy", "-o", tmp_path / "m.vtu", "--set", f"image.spacing={spacing}") == 0
+        assert read_mesh(tmp_path / "m.vtu").points.max(axis=0) == pytest.approx(np.multiply([18, 14, 6], spacing))
+        assert _cli("fix", tmp_path / "seg.npy", "-o", tmp_path / "f.nii.gz", "--set", f"image.spacing={spacing}") == 0
+        assert read_labels(tmp_path / "f.nii.gz").spacing == pytest.approx(spacing)
     points = read_mesh(out / "model.vtu").points[:, :dim]
     assert points.min(axis=0) == pytest.approx(np.multiply([2, 2], spacing[:2]).tolist() + [0.0] * (dim - 2))
     assert points.max(axis=0) == pytest.approx(np.multiply([18, 14, 6][:dim], spacing).tolist())

@@ -68,10 +68,10 @@ def write_sform_nifti(path: Path, array: np.ndarray, lps_direction: np.ndarray) 
     return ras
 
 
-def write_raw_nifti(path: Path, array: np.ndarray, sform: np.ndarray, quatern=None) -> None:
+def write_raw_nifti(path: Path, array: np.ndarray, sform: np.ndarray, quatern=None, units: int = 2) -> None:
     """A NIfTI-1 of int16 voxels of SPACING (pixdim), written byte by byte: the RAS ``sform``
     (3, 4) with code 2 (aligned) and, when ``quatern`` (b, c, d, qx, qy, qz) is given, a
-    qform with code 1 (scanner); else qform code 0."""
+    qform with code 1 (scanner); else qform code 0. ``units``: xyzt_units (2 mm, 3 microns)."""
     head = bytearray(348)
     struct.pack_into("<i", head, 0, 348)
     struct.pack_into("<8h", head, 40, 3, *array.shape, 1, 1, 1, 1)
@@ -79,7 +79,7 @@ def write_raw_nifti(path: Path, array: np.ndarray, sform: np.ndarray, quatern=No
     struct.pack_into("<8f", head, 76, 1.0, *SPACING, 1, 1, 1, 1)
     struct.pack_into("<f", head, 108, 352.0)
     struct.pack_into("<f", head, 112, 1.0)
-    head[123] = 2  # xyzt_units: mm
+    head[123] = units  # xyzt_units
     struct.pack_into("<2h", head, 252, 0 if quatern is None else 1, 2)
     if quatern is not None:
         struct.pack_into("<6f", head, 256, *quatern)
@@ -186,6 +186,12 @@ def test_an_sform_that_is_not_rigid_gives_way_to_the_qform(tmp_path, caplog, dis
     # Volume.origin: ITK's origin (voxel 0's centre) less half a voxel per index axis
     centre = np.asarray(volume.origin) + np.asarray(SPACING) / 2
     assert np.allclose(centre, LPS_TO_RAS @ np.array([5.0, 6.0, 7.0]), atol=1e-5)
+    # in microns: the qform's offsets are converted as ITK converts pixdim (they stayed in microns)
+    write_raw_nifti(path, labels_array(), sform, (0.0, 0.0, np.sin(angle / 2), 5.0, 6.0, 7.0), units=3)
+    micro = read_labels(path)
+    assert np.allclose(micro.spacing, np.asarray(SPACING) / 1000)
+    assert np.allclose(np.asarray(micro.origin) + np.asarray(SPACING) / 2000, LPS_TO_RAS @ np.array([5e-3, 6e-3, 7e-3]),
+                       atol=1e-8)
     # without a qform there is no rigid placement to use: refused with the fix
     write_raw_nifti(path, labels_array(), sform)
     with pytest.raises(DicerError, match="no qform to use instead; resample the image"):

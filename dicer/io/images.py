@@ -416,12 +416,14 @@ def _nifti_placement(path: Path, spatial: tuple[float, ...]):
             qcode, scode = struct.unpack(e + "2h", head[252:256])
             quat = struct.unpack(e + "6f", head[256:280])
             srow = struct.unpack(e + "12f", head[280:328])
+            units = head[123]
             found = True
         elif sizeof_hdr == 540 and len(head) >= 540:  # NIfTI-2
             (qfac,) = struct.unpack(e + "d", head[104:112])
             qcode, scode = struct.unpack(e + "2i", head[344:352])
             quat = struct.unpack(e + "6d", head[352:400])
             srow = struct.unpack(e + "12d", head[400:496])
+            (units,) = struct.unpack(e + "i", head[500:504])
             found = True
     n = len(spatial)
     if not found or scode <= 0 or n < 2:
@@ -457,7 +459,9 @@ def _nifti_placement(path: Path, spatial: tuple[float, ...]):
         rotation[:, 2] = -rotation[:, 2]
     lps = np.diag([-1.0, -1.0, 1.0])  # NIfTI is RAS, ITK LPS
     direction = (lps @ rotation)[:n, :n]
-    origin = (lps @ np.array([qx, qy, qz]))[:n]
+    # the qform's offsets are in the file's space unit, as ITK converts pixdim: metres, mm, microns
+    to_mm = {1: 1000.0, 2: 1.0, 3: 0.001}.get(units & 7, 1.0)
+    origin = (lps @ np.array([qx, qy, qz]))[:n] * to_mm
     return tuple(direction.ravel()), tuple(origin)
 
 

@@ -882,3 +882,22 @@ def test_a_folder_of_one_multiframe_file_or_a_dicom_medium(tmp_path):
     (medium / "DICOMDIR").write_bytes(b"\0" * 132)
     with pytest.raises(DicerError, match="medium: the folder holds a DICOMDIR index and subfolders"):
         read_image(medium)
+
+
+@pytest.mark.parametrize("units, factor", [('"microns" "microns" "microns"', 1e-3), ('"mm" "mm" "mm"', 1.0),
+                                           ('"m" "m" "m"', 1e3), (None, 1.0), ('"inch" "inch" "inch"', None)])
+def test_nrrd_space_units_are_converted_to_mm(tmp_path, units, factor):
+    """ITK read an NRRD in microns as mm: the micro-CT's model came out 1000 times too large."""
+    data = np.arange(4 * 3 * 2, dtype="<i2")
+    header = ("NRRD0004\ntype: short\ndimension: 3\nspace: left-posterior-superior\nsizes: 4 3 2\n"
+              "space directions: (8,0,0) (0,8,0) (0,0,20)\n" + (f"space units: {units}\n" if units else "")
+              + "kinds: domain domain domain\nendian: little\nencoding: raw\nspace origin: (100,0,0)\n\n")
+    path = tmp_path / "scan.nrrd"
+    path.write_bytes(header.encode() + data.tobytes())
+    if factor is None:
+        with pytest.raises(DicerError, match=r'scan.nrrd: the header.s space units are "inch" "inch" "inch"; dicer reads'):
+            read_image(path)
+        return
+    volume = read_image(path)
+    assert volume.spacing == pytest.approx((8 * factor, 8 * factor, 20 * factor))
+    assert volume.origin == pytest.approx((96 * factor, -4 * factor, -10 * factor))

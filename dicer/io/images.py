@@ -490,6 +490,31 @@ def _read_header_text(path: Path, limit: int = 1 << 16) -> bytes:
         raise DicerError(f"{path}: cannot read the file ({exc.strerror}); check the path and permissions") from None
 
 
+_UNITS_TO_MM = {**dict.fromkeys(("mm", "millimeter", "millimeters", "millimetre", "millimetres"), 1.0),
+                **dict.fromkeys(("um", "\u00b5m", "micron", "microns", "micrometer", "micrometers", "micrometre",
+                                 "micrometres"), 1e-3),
+                **dict.fromkeys(("cm", "centimeter", "centimeters", "centimetre", "centimetres"), 10.0),
+                **dict.fromkeys(("m", "meter", "meters", "metre", "metres"), 1000.0)}
+
+
+def _nrrd_to_mm(path: Path) -> float:
+    """The factor from an NRRD header's ``space units`` to mm (1 without the field): ITK
+    reads spacings and origins as mm whatever the unit (a micro-CT in microns came out
+    1000 times too large)."""
+    head = _read_header_text(path)
+    match = re.search(rb"\r?\n\r?\n", head)
+    for line in head[:match.end() if match else len(head)].decode("utf-8", "replace").splitlines()[1:]:
+        key, _, value = line.partition(":")
+        if key.strip().lower() == "space units":
+            units = {u.strip().lower() for u in re.findall(r'"([^"]*)"', value)}
+            factors = {_UNITS_TO_MM.get(u) for u in units}
+            if None in factors or len(factors) > 1:
+                raise DicerError(f"{path}: the header's space units are {value.strip()}; dicer reads mm, microns, cm "
+                                 "or m, the same on every axis: convert the image to mm")
+            return factors.pop() if factors else 1.0
+    return 1.0
+
+
 def _raw_layout(path: Path, suffix: str):
     """The raw voxel data a MetaImage or NRRD header describes, or None when not checkable.
 
@@ -658,6 +683,9 @@ def _read_file(path: Path, spacing_arg, dtype=np.float32, keep_direction=False) 
         raise DicerError(f"{path}: cannot read the image ({msg}); check that the file is complete and in a "
                          f"supported format ({_SUPPORTED})") from None
     _check_orthonormal(image, path)
+    if suffix in (".nrrd", ".nhdr") and (to_mm := _nrrd_to_mm(path)) != 1.0:
+        image.SetSpacing(tuple(v * to_mm for v in image.GetSpacing()))
+        image.SetOrigin(tuple(v * to_mm for v in image.GetOrigin()))
     if placement is not None and image.GetDimension() >= len(placement[1]):
         n = len(placement[1])
         direction = np.eye(image.GetDimension())

@@ -381,7 +381,8 @@ def test_nifti_bad_pixdim_refused_or_replaced(tmp_path, value):
     np.testing.assert_array_equal(v.array, HU)
 
 
-@pytest.mark.parametrize("slope, inter, refused", [(0.0, 5.0, True), (0.0, 0.0, False), (1.0, 5.0, False)])
+@pytest.mark.parametrize("slope, inter, refused", [(0.0, 5.0, True), (0.0, 0.0, False), (1.0, 5.0, False),
+                                                   (float("nan"), -1024.0, True)])
 def test_nifti_zero_slope_with_an_intercept_is_refused(tmp_path, slope, inter, refused):
     """A zero scl_slope means unscaled values (the NIfTI standard); ITK would add the
     intercept to every voxel: a label volume's background would become label 5."""
@@ -393,8 +394,8 @@ def test_nifti_zero_slope_with_an_intercept_is_refused(tmp_path, slope, inter, r
     struct.pack_into("<2f", data, 112, slope, inter)
     path.write_bytes(bytes(data))
     if refused:
-        with pytest.raises(DicerError, match=r"ct[.]nii: the header's scl_slope is 0 and scl_inter 5: .* set "
-                                             r"scl_slope to 1 and scl_inter to 0"):
+        with pytest.raises(DicerError, match=rf"ct[.]nii: the header's scl_slope is {slope:g} and scl_inter {inter:g}: "
+                                             r".* set scl_slope to 1 and scl_inter to 0"):
             read_image(path)
     else:
         np.testing.assert_array_equal(read_image(path).array, HU + (inter if slope else 0))
@@ -901,3 +902,17 @@ def test_nrrd_space_units_are_converted_to_mm(tmp_path, units, factor):
     volume = read_image(path)
     assert volume.spacing == pytest.approx((8 * factor, 8 * factor, 20 * factor))
     assert volume.origin == pytest.approx((96 * factor, -4 * factor, -10 * factor))
+
+
+def test_float64_values_beyond_float32_are_refused(tmp_path):
+    """1e39 became infinite in the float32 image, and bone, with numpy's overflow warning on
+    standard error."""
+    array = np.zeros((6, 5, 4))
+    array[2:4, 2:4, 1:3] = 1e39
+    np.save(tmp_path / "big.npy", array)
+    with pytest.raises(DicerError, match=r"big.npy: the image holds values up to 1e\+39, beyond the float32 dicer "
+                                         r"computes in; rescale"):
+        read_image(tmp_path / "big.npy", spacing=1.0)
+    array[2:4, 2:4, 1:3] = 3e38  # within float32
+    np.save(tmp_path / "big.npy", array)
+    assert read_image(tmp_path / "big.npy", spacing=1.0).array.max() == np.float32(3e38)

@@ -204,6 +204,12 @@ def _finish(array: np.ndarray, spacing, origin, path, dtype=np.float32, directio
             "images with at least 2 voxels along each axis; give a 2D slice or a 3D volume"
         )
     _check_finite(array, path)
+    if dtype is not None and np.dtype(dtype).kind == "f" and array.dtype.kind == "f" \
+            and np.dtype(dtype).itemsize < array.dtype.itemsize:
+        top = float(np.abs(array).max(initial=0))
+        if top > float(np.finfo(dtype).max):  # would become infinite in the image's float32
+            raise DicerError(f"{path}: the image holds values up to {top:g}, beyond the {np.dtype(dtype).name} dicer "
+                             "computes in; rescale the image to its physical units (HU for CT)")
     return Volume(contiguous(array, dtype), tuple(spacing), tuple(origin), direction)
 
 
@@ -369,9 +375,9 @@ def _check_nifti_complete(path: Path) -> tuple[float, ...] | None:
         return None
     nifti1 = struct.unpack(endian + "i", head[:4])[0] == 348
     slope, inter = struct.unpack(endian + ("2f" if nifti1 else "2d"), head[112:120] if nifti1 else head[176:192])
-    if slope == 0 and inter != 0 and np.isfinite(inter):
-        # the standard: a zero slope means the values are stored unscaled; ITK adds the intercept
-        raise DicerError(f"{path}: the header's scl_slope is 0 and scl_inter {inter:g}: by the NIfTI standard the "
+    if (slope == 0 or not np.isfinite(slope)) and inter != 0 and np.isfinite(inter):
+        # the standard: a zero or non-finite slope means the values are stored unscaled; ITK adds the intercept
+        raise DicerError(f"{path}: the header's scl_slope is {slope:g} and scl_inter {inter:g}: by the NIfTI standard the "
                          "voxels are stored unscaled, but the image reader would add the intercept to every voxel; "
                          "set scl_slope to 1 and scl_inter to 0 in the header (values as stored), or to the "
                          "scaling meant")

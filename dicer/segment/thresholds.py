@@ -8,7 +8,9 @@ holds ``v < t_1`` (and NaN).
 
 from __future__ import annotations
 
+import contextlib
 import time
+import warnings
 
 import numpy as np
 from skimage.filters import threshold_multiotsu, threshold_otsu
@@ -82,6 +84,15 @@ def _finite_values(array: np.ndarray) -> np.ndarray:
     return a
 
 
+@contextlib.contextmanager
+def _quiet():
+    """scikit-image's histograms of extreme values (1e30) warn on standard error; dicer says
+    what is wrong itself (no voxel in a class, a class the morphology emptied)."""
+    with warnings.catch_warnings(), np.errstate(all="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)
+        yield
+
+
 def otsu_thresholds(array: np.ndarray, k: int, names: list[str], source: str) -> list[float]:
     """Otsu's threshold for one material class.
 
@@ -99,7 +110,8 @@ def otsu_thresholds(array: np.ndarray, k: int, names: list[str], source: str) ->
     if k != 1:
         raise DicerError(f"{source}: segment.method=otsu finds one threshold but the config names {k} materials "
                          f"({', '.join(names)}); use segment.method=multiotsu or shape_connectivity")
-    return [float(threshold_otsu(_finite_values(array)))]
+    with _quiet():
+        return [float(threshold_otsu(_finite_values(array)))]
 
 
 def multiotsu_thresholds(array: np.ndarray, k: int, names: list[str], source: str) -> list[float]:
@@ -114,7 +126,8 @@ def multiotsu_thresholds(array: np.ndarray, k: int, names: list[str], source: st
     """
     values = _finite_values(array)
     try:
-        t = threshold_multiotsu(values, classes=k + 1)
+        with _quiet():
+            t = threshold_multiotsu(values, classes=k + 1)
     except ValueError as exc:
         raise DicerError(f"{source}: multi-Otsu cannot split the image into {k + 1} classes ({exc}); "
                          "use fewer materials or segment.method=manual") from None

@@ -608,3 +608,16 @@ def test_an_opening_that_removes_much_of_a_class_is_warned_of():
     assert said == [f"the opening removed 640 of the 712 thresholded voxels of 'bone' (90 %): parts thinner than 3 "
                     "voxels (1.5 x 1.5 x 15 mm) go; on thick slices that is a thick part along them: lower "
                     "segment.opening_radius"]
+
+
+def test_a_few_metal_voxels_leave_multi_otsu_on_the_bulk_of_the_image():
+    """Eight voxels at 30,000 HU spread multi-Otsu's 256 bins over 31,000 HU: its bone
+    threshold, 1057, lay above the skull (1000 HU), which became soft tissue."""
+    image, truth = _padded_ct(-1024)
+    image[20:22, 20:22, 4:6] = 30000
+    truth = truth.copy()
+    truth[20:22, 20:22, 4:6] = 2
+    labels, info = segment(Volume(image, (1.0, 1.0, 1.0)), {"segment": {"method": "multiotsu", "opening_radius": 0,
+                                                                        "closing_radius": 0}})
+    assert info["thresholds"][1] < 900
+    assert np.count_nonzero(labels.array != truth) <= 0.002 * truth.size

@@ -93,6 +93,21 @@ def _quiet():
         yield
 
 
+OUTLIER_SHARE = 1e-3
+"""Share of voxels at each end of the grey values that Otsu's histograms clip: a few metal
+voxels at 30,000 HU spread the 256 bins so wide that skull and soft tissue shared a few."""
+
+
+def _clipped(values: np.ndarray) -> np.ndarray:
+    """``values`` clipped to their quantiles OUTLIER_SHARE and 1 - OUTLIER_SHARE (a copy)."""
+    flat = np.asarray(values, dtype=np.float64).ravel()
+    if flat.size < 2:
+        return flat
+    k = int(OUTLIER_SHARE * (flat.size - 1))
+    lo, hi = np.partition(flat, (k, flat.size - 1 - k))[[k, flat.size - 1 - k]]
+    return np.clip(flat, lo, hi)
+
+
 def otsu_thresholds(array: np.ndarray, k: int, names: list[str], source: str) -> list[float]:
     """Otsu's threshold for one material class.
 
@@ -111,20 +126,21 @@ def otsu_thresholds(array: np.ndarray, k: int, names: list[str], source: str) ->
         raise DicerError(f"{source}: segment.method=otsu finds one threshold but the config names {k} materials "
                          f"({', '.join(names)}); use segment.method=multiotsu or shape_connectivity")
     with _quiet():
-        return [float(threshold_otsu(_finite_values(array)))]
+        return [float(threshold_otsu(_clipped(_finite_values(array))))]
 
 
 def multiotsu_thresholds(array: np.ndarray, k: int, names: list[str], source: str) -> list[float]:
     """Multi-Otsu thresholds for K material classes (K + 1 classes with background).
 
     Uses :func:`skimage.filters.threshold_multiotsu` with ``classes=K+1`` on a
-    256-bin histogram.
+    256-bin histogram of the values clipped to their 0.1 % and 99.9 % quantiles (a few
+    metal voxels would stretch the bins over tens of thousands of HU).
 
     Returns
     -------
     thresholds : list of K floats, increasing
     """
-    values = _finite_values(array)
+    values = _clipped(_finite_values(array))
     try:
         with _quiet():
             t = threshold_multiotsu(values, classes=k + 1)

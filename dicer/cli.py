@@ -573,6 +573,30 @@ def do_surface(mesh_path: str, outdir: Path, config: dict, only: list[str] | Non
     return info
 
 
+def _check_original(original, path: str, mesh) -> None:
+    """Refuse an original segmentation that is not the one the mesh's labels came from: its
+    extent or place differs by more than a voxel of the mesh, or it holds label values past the
+    mesh's materials (a raw atlas before labels.map): its volumes would be compared with
+    another volume."""
+    import numpy as np
+
+    dim = original.array.ndim
+    spacing, origin = np.asarray(mesh.spacing, float)[:dim], np.asarray(mesh.origin, float)[:dim]
+    extent = np.asarray(mesh.grid_shape, float)[:dim] * spacing
+    theirs = np.asarray(original.array.shape, float) * np.asarray(original.spacing, float)
+    if np.any(np.abs(theirs - extent) > spacing) or np.any(np.abs(np.asarray(original.origin, float) - origin) > spacing):
+        raise DicerError(f"{path}: the original segmentation spans {' x '.join(f'{v:g}' for v in theirs)} mm from "
+                         f"{', '.join(f'{v:g}' for v in original.origin)}, the mesh's labels "
+                         f"{' x '.join(f'{v:g}' for v in extent)} mm from {', '.join(f'{v:g}' for v in origin)}; give "
+                         "the segmentation the mesh was made from with --original (labels.nii.gz of the run)")
+    top = int(original.array.max(initial=0))
+    materials = max(len(mesh.names or ()), int(mesh.material.max(initial=0)) if mesh.n_cells else 0)
+    if top > materials:
+        raise DicerError(f"{path}: the original segmentation holds label {top}, past the mesh's {materials} "
+                         "materials (labels before labels.map?); give the mapped labels.nii.gz of dicer labels "
+                         "with --original")
+
+
 def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None = None, html: str | None = None,
                pictures: list[str] = (), stage_reports: list[str] = (), csv: Path | None = None,
                original_path: str | None = None, histogram: Path | None = None, model_picture: Path | None = None,
@@ -590,7 +614,9 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
             from dicer.io.images import read_labels
 
             labels = read_labels(labels_path, _npy_spacing(labels_path, config)) if labels_path else None
-            original = read_labels(original_path) if original_path else None
+            original = read_labels(original_path, _npy_spacing(original_path, config)) if original_path else None
+            if original is not None:
+                _check_original(original, original_path, mesh)
             if labels is not None:
                 # voxel counts of another grid would compare the mesh with another volume
                 shape = tuple(labels.array.shape) + (1,) * (3 - labels.array.ndim)

@@ -368,6 +368,12 @@ def test_quality_and_surface_name_materials_as_the_mesh_does(labelled, tmp_path,
     capsys.readouterr()
     assert _cli("quality", out / "smoothed.vtu", "-o", tmp_path / "q2.json", "--labels", tmp_path / "other.nii.gz") == 2
     assert "other.nii.gz: the labels' voxels are 3 x 3 x 3 mm but the mesh's 1.5 x 1.5 x 1.5 mm" in capsys.readouterr().err
+    # an original that is not the mesh's segmentation: the raw atlas, or another scan's labels
+    assert _cli("quality", out / "smoothed.vtu", "-o", tmp_path / "q4.json", "--original", src) == 2
+    assert "aseg.nii.gz: the original segmentation holds label 99, past the mesh's 4 materials" in capsys.readouterr().err
+    assert _cli("quality", out / "smoothed.vtu", "-o", tmp_path / "q4.json", "--original", tmp_path / "other.nii.gz") == 2
+    assert "other.nii.gz: the original segmentation spans 60 x 54 x 42 mm from" in capsys.readouterr().err
+    assert _cli("quality", out / "smoothed.vtu", "-o", tmp_path / "q4.json", "--original", out / "labels.nii.gz") == 0
     (tmp_path / "list.json").write_text("[1, 2, 3]")
     assert _cli("quality", out / "smoothed.vtu", "-o", tmp_path / "q3.json", "--html", tmp_path / "q3.html",
                 "--stage-report", tmp_path / "list.json") == 2

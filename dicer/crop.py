@@ -94,6 +94,12 @@ def crop_volume(volume: Volume, crop: dict | None, source: str) -> tuple[Volume,
     if crop is None:
         return volume, None
     start, stop = crop_box(volume, crop, source)
+    thin = [(axis, int(b - a)) for axis, (a, b) in enumerate(zip(start.tolist(), stop.tolist())) if b - a < 2]
+    if len(thin) > 1 or (thin and volume.array.ndim == 2):
+        # one voxel thick along one axis of a 3D image is a 2D model; less is nothing to mesh
+        axes = ", ".join(f"{n} voxel along {'xyz'[a]}" for a, n in thin)
+        raise DicerError(f"{source}: image.crop keeps {axes}; every stage needs 2 voxels or more along each axis (one "
+                         "axis of a 3D image may keep one: a 2D model): widen the crop box")
     spacing = np.asarray(volume.spacing, float)
     origin = np.asarray(volume.origin, float) + _direction(volume) @ (spacing * start)
     array = np.ascontiguousarray(volume.array[tuple(slice(a, b) for a, b in zip(start.tolist(), stop.tolist()))])

@@ -584,7 +584,8 @@ def _check_original(original, path: str, mesh) -> None:
     spacing, origin = np.asarray(mesh.spacing, float)[:dim], np.asarray(mesh.origin, float)[:dim]
     extent = np.asarray(mesh.grid_shape, float)[:dim] * spacing
     theirs = np.asarray(original.array.shape, float) * np.asarray(original.spacing, float)
-    if np.any(np.abs(theirs - extent) > spacing) or np.any(np.abs(np.asarray(original.origin, float) - origin) > spacing):
+    moved = np.abs(np.asarray(original.origin, float) - origin)
+    if np.any(np.abs(theirs - extent) > spacing) or np.any(moved > spacing):
         raise DicerError(f"{path}: the original segmentation spans {' x '.join(f'{v:g}' for v in theirs)} mm from "
                          f"{', '.join(f'{v:g}' for v in original.origin)}, the mesh's labels "
                          f"{' x '.join(f'{v:g}' for v in extent)} mm from {', '.join(f'{v:g}' for v in origin)}; give "
@@ -683,18 +684,18 @@ def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_re
                             neighbours=neighbours, parts=parts)
     stages = {}
     for path in stage_reports:
+        stage = Path(path).name.split(".")[0]
         try:
-            stages[Path(path).name.split(".")[0]] = json.loads(Path(path).read_text())
+            stages[stage] = json.loads(Path(path).read_text())
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise DicerError(f"{path}: cannot read the stage report ({exc}); rerun that stage") from None
-        if not isinstance(stages[Path(path).name.split(".")[0]], dict):
+        if not isinstance(stages[stage], dict):
             raise DicerError(f"{path}: not a stage report (a JSON object, as dicer fix, merge and smooth write with "
                              "--report); give those files")
     if stages:
         report["stages"] = stages
     figures = _quality_figures(mesh, report, sj, dict(enumerate(settings["names"], start=1)), histogram,
-                               model_picture, node_classes,
-                               neighbours)
+                               model_picture, node_classes, neighbours)
     if html:
         shown = []
         for path in list(pictures) + figures:

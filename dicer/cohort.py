@@ -55,7 +55,8 @@ def report_problem(report) -> str | None:
     if "elements" not in report:
         return "no element count"
     parts = report.get("parts", {})
-    sections = {"scaled_jacobian": report.get("scaled_jacobian", {}), "parts": parts, "materials": report.get("materials", {}),
+    sections = {"scaled_jacobian": report.get("scaled_jacobian", {}), "parts": parts,
+                "materials": report.get("materials", {}),
                 "parts.model": parts.get("model", {}) if isinstance(parts, dict) else {}}
     for name, value in sections.items():
         if not isinstance(value, dict):

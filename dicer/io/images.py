@@ -206,7 +206,7 @@ def _finish(array: np.ndarray, spacing, origin, path, dtype=np.float32, directio
     _check_finite(array, path)
     if dtype is not None and np.dtype(dtype).kind == "f" and array.dtype.kind == "f" \
             and np.dtype(dtype).itemsize < array.dtype.itemsize:
-        top = float(np.abs(array).max(initial=0))
+        top = max(float(array.max(initial=0)), -float(array.min(initial=0)))
         if top > float(np.finfo(dtype).max):  # would become infinite in the image's float32
             raise DicerError(f"{path}: the image holds values up to {top:g}, beyond the {np.dtype(dtype).name} dicer "
                              "computes in; rescale the image to its physical units (HU for CT)")
@@ -377,10 +377,10 @@ def _check_nifti_complete(path: Path) -> tuple[float, ...] | None:
     slope, inter = struct.unpack(endian + ("2f" if nifti1 else "2d"), head[112:120] if nifti1 else head[176:192])
     if (slope == 0 or not np.isfinite(slope)) and inter != 0 and np.isfinite(inter):
         # the standard: a zero or non-finite slope means the values are stored unscaled; ITK adds the intercept
-        raise DicerError(f"{path}: the header's scl_slope is {slope:g} and scl_inter {inter:g}: by the NIfTI standard the "
-                         "voxels are stored unscaled, but the image reader would add the intercept to every voxel; "
-                         "set scl_slope to 1 and scl_inter to 0 in the header (values as stored), or to the "
-                         "scaling meant")
+        raise DicerError(f"{path}: the header's scl_slope is {slope:g} and scl_inter {inter:g}: by the NIfTI "
+                         "standard the voxels are stored unscaled, but the image reader would add the intercept to "
+                         "every voxel; set scl_slope to 1 and scl_inter to 0 in the header (values as stored), or to "
+                         "the scaling meant")
     spatial = tuple(float(v) for v in pixdim[1 : min(int(dims[0]), 3) + 1])
     if path.name.lower().endswith((".hdr", ".img")):
         return spatial
@@ -503,22 +503,31 @@ _UNITS_TO_MM = {**dict.fromkeys(("mm", "millimeter", "millimeters", "millimetre"
                 **dict.fromkeys(("m", "meter", "meters", "metre", "metres"), 1000.0)}
 
 
+def _nrrd_fields(head: bytes) -> tuple[dict[str, str], re.Match | None]:
+    """An NRRD header's fields (keys lower case without spaces: ``spaceunits``) and the
+    blank line that ends it (None when ``head`` stops before it)."""
+    match = re.search(rb"\r?\n\r?\n", head)
+    fields = {}
+    for line in head[:match.end() if match else len(head)].decode("utf-8", "replace").splitlines()[1:]:
+        if line.startswith("#") or ":=" in line or ": " not in line:
+            continue
+        key, _, value = line.partition(": ")
+        fields[key.strip().lower().replace(" ", "")] = value.strip()
+    return fields, match
+
+
 def _nrrd_to_mm(path: Path) -> float:
     """The factor from an NRRD header's ``space units`` to mm (1 without the field): ITK
     reads spacings and origins as mm whatever the unit (a micro-CT in microns came out
     1000 times too large)."""
-    head = _read_header_text(path)
-    match = re.search(rb"\r?\n\r?\n", head)
-    for line in head[:match.end() if match else len(head)].decode("utf-8", "replace").splitlines()[1:]:
-        key, _, value = line.partition(":")
-        if key.strip().lower() == "space units":
-            units = {u.strip().lower() for u in re.findall(r'"([^"]*)"', value)}
-            factors = {_UNITS_TO_MM.get(u) for u in units}
-            if None in factors or len(factors) > 1:
-                raise DicerError(f"{path}: the header's space units are {value.strip()}; dicer reads mm, microns, cm "
-                                 "or m, the same on every axis: convert the image to mm")
-            return factors.pop() if factors else 1.0
-    return 1.0
+    value = _nrrd_fields(_read_header_text(path))[0].get("spaceunits")
+    if value is None:
+        return 1.0
+    factors = {_UNITS_TO_MM.get(u.strip().lower()) for u in re.findall(r'"([^"]*)"', value)}
+    if None in factors or len(factors) > 1:
+        raise DicerError(f"{path}: the header's space units are {value}; dicer reads mm, microns, cm or m, the same "
+                         "on every axis: convert the image to mm")
+    return factors.pop() if factors else 1.0
 
 
 def _raw_layout(path: Path, suffix: str):
@@ -562,14 +571,8 @@ def _raw_layout(path: Path, suffix: str):
     # NRRD: magic line, "field: value" lines, a blank line, then the data (or a detached file)
     if not head.startswith(b"NRRD000"):
         return None
-    match = re.search(rb"\r?\n\r?\n", head)
+    fields, match = _nrrd_fields(head)
     end = match.end() if match else len(head)
-    fields = {}
-    for line in head[:end].decode("latin-1").splitlines()[1:]:
-        if line.startswith("#") or ":=" in line or ": " not in line:
-            continue
-        key, _, value = line.partition(": ")
-        fields[key.strip().lower().replace(" ", "")] = value.strip()
     if fields.get("encoding", "").lower() != "raw" or fields.get("lineskip", "0") != "0":
         return None
     try:
@@ -629,13 +632,14 @@ def _spacing_error(path: Path, spacing, what: str) -> DicerError:
     )
 
 
-def _dicom_preamble(path: Path) -> bool:
-    """Whether the file starts as a DICOM file does: 128 bytes, then ``DICM``."""
+def _dicom_preamble(path: Path, unreadable: bool = False) -> bool:
+    """Whether the file starts as a DICOM file does: 128 bytes, then ``DICM``
+    (``unreadable`` for a file that cannot be opened)."""
     try:
         with open(path, "rb") as f:
             return f.read(132)[128:] == b"DICM"
     except OSError:
-        return False
+        return unreadable
 
 
 def _read_file(path: Path, spacing_arg, dtype=np.float32, keep_direction=False) -> Volume:
@@ -888,8 +892,7 @@ def _read_slices(folder: Path, files: list[Path], spacing_arg) -> Volume:
         with quiet_itk():
             image = reader.Execute()
     except RuntimeError as exc:
-        detail = _itk_message(exc)
-        raise DicerError(f"{folder}: cannot stack the {len(files)} slices ({detail}); every slice "
+        raise DicerError(f"{folder}: cannot stack the {len(files)} slices ({_itk_message(exc)}); every slice "
                          "must be a readable single-page greyscale image of the same size") from None
     if image.GetDimension() != 3 or (len(files) > 1 and image.GetSize()[2] != len(files)):
         raise DicerError(f"{folder}: the slices are not 2D images of one size; put single-page greyscale "
@@ -913,11 +916,7 @@ def _meant_as_dicom(path: Path) -> bool:
         return False
     if path.suffix.lower() in _DICOM_SUFFIXES or not path.suffix:
         return True
-    try:
-        with open(path, "rb") as f:
-            return f.read(132)[128:] == b"DICM"
-    except OSError:
-        return True
+    return _dicom_preamble(path, unreadable=True)
 
 
 def _slice_error(path: str, detail: str) -> DicerError:
@@ -1011,6 +1010,8 @@ def _clear_padding(array: np.ndarray, paddings: list, folder: Path) -> None:
     """Voxels a slice marks as padding (outside the scanned field of view) take the lowest
     value of the others: unsigned CTs pad with values that rescale to 62,000 HU, which
     segmentation took for bone."""
+    if all(band is None for band in paddings):
+        return
     padded = np.zeros(array.shape, bool)
     for k, band in enumerate(paddings):
         if band is not None:
@@ -1254,7 +1255,8 @@ def read_labels(path: str | os.PathLike, spacing=None) -> Volume:
         .nii, .nii.gz, .nrrd, .mha/.mhd or .npy (indexed [x, y(, z)], origin 0).
     spacing : None, float or sequence of float, optional
         Voxel size in mm (``image.spacing``): a .npy's (default 1 mm), or in place of
-        a header spacing that is zero, negative or not finite (else that is an error).
+        a header spacing that is zero, negative or not finite (without it such a header
+        is an error); a header's own spacing is kept, with a warning.
 
     Returns
     -------

@@ -176,7 +176,7 @@ PADDING_SHARE = 0.005
 hold 20-30 % of a slice), with next to none between it and -1024."""
 
 
-def padding_value(array: np.ndarray) -> float | None:
+def padding_value(array: np.ndarray, lo: float | None = None) -> float | None:
     """The value a CT holds outside its field of view (padding), when it has one.
 
     The image's smallest value, when it lies below :data:`PADDING_BELOW`, holds at least
@@ -187,12 +187,15 @@ def padding_value(array: np.ndarray) -> float | None:
     ----------
     array : ndarray
         Image intensities (HU for CT).
+    lo : float, optional
+        The image's smallest finite value, when known.
 
     Returns
     -------
     float or None
     """
-    lo = float(np.nanmin(array)) if array.size else 0.0
+    if lo is None:
+        lo = float(np.nanmin(array)) if array.size else 0.0
     if not lo < PADDING_BELOW:
         return None
     at = int(np.count_nonzero(array == lo))
@@ -200,11 +203,11 @@ def padding_value(array: np.ndarray) -> float | None:
     return lo if at >= PADDING_SHARE * array.size and between * 10 < at else None
 
 
-def _without_padding(array: np.ndarray) -> tuple[np.ndarray, float | None, int]:
+def _without_padding(array: np.ndarray, lo: float) -> tuple[np.ndarray, float | None, int]:
     """The image for the threshold search, its padding at -1024 HU, as a scanner that pads
     with the lowest HU it stores (within the air's noise, not at its far tail): Otsu's and
     multi-Otsu's splits and the search ranges then see the scan and its air only."""
-    pad = padding_value(array)
+    pad = padding_value(array, lo)
     if pad is None:
         return array, None, 0
     padded = array == pad
@@ -298,7 +301,7 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
     array = image.array
     info: dict = {"method": method}
     if method != "manual":
-        array, pad, padded = _without_padding(array)
+        array, pad, padded = _without_padding(array, lo)
         if pad is not None:  # outside the field of view: as air for the thresholds, background after them
             info["padding"] = {"value": pad, "voxels": padded}
     if method == "manual":

@@ -99,8 +99,8 @@ voxels at 30,000 HU spread the 256 bins so wide that skull and soft tissue share
 
 
 def _clipped(values: np.ndarray) -> np.ndarray:
-    """``values`` clipped to their quantiles OUTLIER_SHARE and 1 - OUTLIER_SHARE (a copy)."""
-    flat = np.asarray(values, dtype=np.float64).ravel()
+    """``values`` (flattened) clipped to their quantiles OUTLIER_SHARE and 1 - OUTLIER_SHARE."""
+    flat = np.ravel(values)
     if flat.size < 2:
         return flat
     k = int(OUTLIER_SHARE * (flat.size - 1))

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dicer.parallel import ordered_map
 from dicer.mesh.topology import HEX_CORNERS, MESHIO_TYPES, QUAD_CORNERS  # noqa: F401  (corners re-exported)
 
 LEVEL_DATA = "coarsening_level"
@@ -154,10 +155,16 @@ def nodes_off_lattice(mesh: "Mesh") -> int:
     spacing, origin = np.asarray(mesh.spacing, float), np.asarray(mesh.origin, float)
     reach = float(np.abs(origin).max(initial=0)) + float((spacing * np.asarray(mesh.grid_shape)).max(initial=0))
     tolerance = 1e-9 * max(1.0, reach)  # rounding of origin + spacing * index, not a move
-    off = 0
-    for part in pieces(mesh.n_points):
-        at = lattice[part] * spacing + origin
-        away = (np.abs(np.asarray(mesh.points[part]) - at) > tolerance).any(axis=1)
-        off += int(np.count_nonzero(away & (lattice[part] >= 0).all(axis=1)))
-    return off
+    points = np.asarray(mesh.points)
+
+    def count(part: slice) -> int:  # a column at a time: no (n, 3) temporaries
+        away, placed = None, None
+        for a in range(3):
+            index = lattice[part, a]
+            moved = np.abs(points[part, a] - (index * spacing[a] + origin[a])) > tolerance
+            away = moved if away is None else away | moved
+            placed = index >= 0 if placed is None else placed & (index >= 0)
+        return int(np.count_nonzero(away & placed))
+
+    return sum(ordered_map(count, pieces(mesh.n_points)))  # both cores: a pass over every node
 

@@ -24,6 +24,7 @@ from dicer.export import (
 )
 from dicer.export.textfmt import Sci, aligned_width, int_digits, int_line_blocks, int_lines, sci_digits
 from dicer.io.meshes import read_mesh
+from dicer.mesh.topology import HEX_FACES
 from dicer.mesh.voxel import voxel_mesh
 
 
@@ -336,6 +337,27 @@ def test_neighbours_of_merged_elements():
     assert nb[1].tolist() == [0, 0, 1, 0, 0, 0]
     assert nb[2].tolist() == [1, 0, 0, 0, 0, 0]
     assert nb[0, 2] == 0 and nb[0, 4] == 2
+
+
+def test_faces_that_share_only_a_diagonal_are_no_neighbours():
+    # two chamfers of a merged mesh (lattice corners, VTK order) beside a notch: the y = 1
+    # side of the first and the y = 0 side of the second share three nodes, and the
+    # diagonal (4, 2, 0)-(6, 2, 1) by which faces are keyed; they are different faces.
+    # A unit box under the second's top face is its true neighbour.
+    from dicer.mesh.faces import face_neighbours
+
+    corners = [[[4, 0, 0], [5, 0, 0], [5, 1, 0], [4, 2, 0], [4, 0, 1], [6, 0, 1], [6, 2, 1], [4, 2, 1]],
+               [[4, 2, 0], [5, 3, 0], [5, 4, 0], [4, 4, 0], [4, 2, 1], [6, 2, 1], [6, 4, 1], [4, 4, 1]],
+               [[4, 2, 1], [6, 2, 1], [6, 4, 1], [4, 4, 1], [4, 2, 2], [6, 2, 2], [6, 4, 2], [4, 4, 2]]]
+    points, cells = np.unique(np.array(corners).reshape(-1, 3), axis=0, return_inverse=True)
+    cells = cells.reshape(3, 8)
+    for order in (cells, cells[::-1]):
+        nb = face_neighbours(order, 3, len(points))
+        # by the faces' full node sets
+        keys = [[frozenset(c[f]) for f in HEX_FACES] for c in order]
+        expected = [[next((j for j in range(3) if j != i and k in keys[j]), -1) for k in keys[i]] for i in range(3)]
+        assert nb.tolist() == expected
+        assert int(np.count_nonzero(nb >= 0)) == 2
 
 
 def _voronoi_labels(n: int, kinds: int, seed: int) -> np.ndarray:

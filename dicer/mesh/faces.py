@@ -191,7 +191,8 @@ def face_neighbours(cells: np.ndarray, dim: int, n_points: int) -> np.ndarray:
     """The element across each face, from a sort of face keys (any conforming mesh).
 
     A quad face is keyed by its smallest node and the node diagonally opposite it, an
-    edge by its two nodes.
+    edge by its two nodes. Faces that share that diagonal only (two chamfers of a merged
+    mesh may) are told apart by their other diagonal.
 
     Parameters
     ----------
@@ -209,7 +210,9 @@ def face_neighbours(cells: np.ndarray, dim: int, n_points: int) -> np.ndarray:
     """
     table = HEX_FACES if dim == 3 else QUAD_EDGES
     m, nf = cells.shape[0], table.shape[0]
+    n64 = np.int64(n_points)
     keys = np.empty((m, nf), np.int64)
+    other = np.empty((m, nf), np.int64) if dim == 3 else None  # the other diagonal
     # piece by piece: the temporaries of a piece stay small and are reused, where whole-mesh
     # temporaries would each take fresh memory (slow to fault in on a virtual machine)
     for part in pieces(m):
@@ -221,23 +224,42 @@ def face_neighbours(cells: np.ndarray, dim: int, n_points: int) -> np.ndarray:
                 first = ac < bd
                 lo = np.where(first, ac, bd)
                 hi = np.where(first, np.maximum(a, c), np.maximum(b, d))
+                other[part, f] = np.where(first, bd, ac) * n64 + np.where(first, np.maximum(b, d), np.maximum(a, c))
             else:
                 lo, hi = np.minimum(block[:, face[0]], block[:, face[1]]), np.maximum(block[:, face[0]], block[:, face[1]])
-            keys[part, f] = lo * np.int64(n_points) + hi
+            keys[part, f] = lo * n64 + hi
     flat = keys.ravel()
     order = np.argsort(flat, kind="stable")
     same = np.empty(max(flat.size - 1, 0), bool)  # sorted key i + 1 equals key i
+    shared_only = []  # diagonals shared by faces that differ
     for part in pieces(same.size):
         i = order[part.start:part.stop + 1]
         sk = flat[i]
         np.equal(sk[1:], sk[:-1], out=same[part])
+        if other is not None:
+            so = other.reshape(-1)[i]
+            differ = same[part] & (so[1:] != so[:-1])
+            if differ.any():
+                shared_only.append(sk[1:][differ])
+    hard = None
+    if shared_only:  # those diagonals' faces are paired by both diagonals below
+        hard = np.isin(flat, np.concatenate(shared_only))
+        same &= ~hard[order[1:]]
     # the keys' memory holds the answer: fresh pages cost more than the work on them
     nb = flat
-    nb.fill(-1)
     del keys, flat
+    if hard is not None:
+        rows = np.flatnonzero(hard)
+        k1, k2 = nb[rows], other.reshape(-1)[rows]
+    nb.fill(-1)
     a = np.compress(same, order[:-1])  # the first face of each pair, as sorted
     b = np.compress(same, order[1:])
     del order, same
+    if hard is not None:
+        by_both = np.lexsort((k2, k1))
+        rows, k1, k2 = rows[by_both], k1[by_both], k2[by_both]
+        pair = (k1[1:] == k1[:-1]) & (k2[1:] == k2[:-1])
+        a, b = np.r_[a, rows[:-1][pair]], np.r_[b, rows[1:][pair]]
     nb[a] = b // nf
     nb[b] = a // nf
     return nb.reshape(m, nf)

@@ -59,16 +59,11 @@ def _noise_2d(seed: int, shape=(40, 36), sigma: float = 0.0) -> np.ndarray:
 
 
 # small volumes of tests/test_merge.py in which chamfers of two axes meet (shared corners)
-_TWO_AXES_3D = np.array([[0, 0, 0, 0, 1], [1, 1, 1, 1, 1], [0, 2, 2, 0, 2], [0, 1, 2, 1, 2]], np.uint8)[:, :, None]
-_JOINED_2D = np.array([[1, 0, 0, 0, 0, 0, 0, 0], [0, 0, 0, 0, 0, 1, 1, 1], [0, 0, 0, 1, 2, 2, 0, 1],
-                       [0, 0, 0, 0, 2, 2, 2, 2], [0, 0, 0, 2, 2, 0, 0, 0]], np.uint8)
-_JOINED_3D = np.array([[[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 1, 0]],
-                       [[0, 0, 0, 0], [1, 1, 0, 0], [1, 1, 1, 0], [0, 0, 1, 0]],
-                       [[0, 0, 0, 0], [2, 2, 0, 0], [1, 1, 1, 0], [0, 0, 0, 0]],
-                       [[0, 0, 0, 0], [1, 0, 0, 0], [1, 1, 1, 0], [0, 0, 1, 0]],
-                       [[0, 0, 0, 0], [1, 0, 0, 0], [0, 0, 0, 0], [0, 0, 1, 0]],
-                       [[0, 0, 0, 0], [1, 0, 0, 0], [0, 0, 1, 1], [0, 0, 1, 1]],
-                       [[0, 0, 0, 1], [1, 0, 0, 1], [0, 0, 1, 1], [0, 0, 0, 2]]], np.uint8)
+_TWO_AXES_3D = np.array([[2, 2, 2, 2, 2], [1, 2, 2, 2, 1], [2, 2, 0, 1, 1], [0, 2, 2, 2, 2], [0, 1, 1, 2, 0]],
+                        np.uint8)[:, :, None]
+_JOINED_2D = np.array([[1, 2, 1], [1, 2, 0], [1, 1, 1], [2, 1, 0], [2, 2, 2]], np.uint8)
+_JOINED_3D = np.array([[[2, 1], [2, 0], [2, 2]], [[2, 1], [2, 0], [2, 2]], [[2, 0], [2, 0], [0, 0]],
+                       [[2, 2], [2, 0], [2, 0]]], np.uint8)
 
 _VOLUMES = {
     "ball": _ball,
@@ -109,25 +104,25 @@ CASES = {
 
 # name: (input labels, merged mesh, report) SHA-256, first 16 hex digits
 GOLDEN = {
-    "ball": ('6b31d01e77909ca2', '4f6ef75e300d34b6', 'f8d6b89fb81f2b58'),
-    "ball_data": ('6b31d01e77909ca2', '66a752cd5abbe55e', 'cdfff2c442ff9b48'),
-    "ball_plane": ('6b31d01e77909ca2', '41222d9531427070', '86e5d0b3c6be2196'),
-    "ball_thin": ('6b31d01e77909ca2', 'd640d10fad944d46', '74fc1348debbbb73'),
-    "noise5": ('acb28eb5de7a8aac', '0123041944314c1d', '54e6a07f2cd433b7'),
-    "noise5_3": ('acb28eb5de7a8aac', '11cbe265d6f0bd2f', '83497119614e9f67'),
-    "noise1_fixed_rims": ('3395c052c03865be', '3ca95be20acb7fa9', '70368f7bd86b8675'),
-    "noise1_thin_flat": ('3395c052c03865be', '484fbc7e0848802f', '519ec10992e04bbd'),
-    "layered1": ('988d5ea2d3db0904', '8433667322410bff', '5556cc1571a8ed17'),
-    "layered1_no_jacobian": ('988d5ea2d3db0904', '8433667322410bff', '771f54506db261ed'),
-    "noise2d": ('8aa86809aae50249', '365f4d8ab14d0947', '724152f52666dca3'),
-    "smooth2d_plane": ('5ce974127b2b7537', '31a3dc9ff6187218', '531b59c1e37bee8a'),
-    "smooth2d_fixed_rims": ('5ce974127b2b7537', 'f541293b5f5dd746', 'd55eb19479a2e0f0'),
-    "two_axes": ('df2bbe076e2bd00f', '949d99d524409e85', '69e786ce1a4fc28f'),
-    "two_axes_fixed_rims": ('df2bbe076e2bd00f', '949d99d524409e85', '988bcaf700e7c167'),
-    "joined2d": ('ffa969a58e20da9e', 'e51b046027dc79b7', 'a5100371824bd37f'),
-    "joined3d": ('6df6d6e13da202c4', '07581cd2e8ad3791', '56b98f8b17e9b9a4'),
-    "long_bone": ('8068aa6bb3daa3df', 'd6f097e1604cb5a7', '0513c2059084d736'),
-    "long_bone_thin": ('8068aa6bb3daa3df', 'e76f4b467beb03bb', 'ef4c72ab4508fe89'),
+    "ball": ('6b31d01e77909ca2', '4f6ef75e300d34b6', 'c2d94e3150e28b1e'),
+    "ball_data": ('6b31d01e77909ca2', '66a752cd5abbe55e', 'f36436534795bb2d'),
+    "ball_plane": ('6b31d01e77909ca2', '41222d9531427070', 'bc78248cf2187797'),
+    "ball_thin": ('6b31d01e77909ca2', 'd640d10fad944d46', 'b1933ecda95bb7ca'),
+    "noise5": ('acb28eb5de7a8aac', 'cce27f3a7c8f1a43', '02af68c253a62b84'),
+    "noise5_3": ('acb28eb5de7a8aac', '952140c625671fac', '14992e4964663ff4'),
+    "noise1_fixed_rims": ('3395c052c03865be', '3ca95be20acb7fa9', '169f8209cf89d842'),
+    "noise1_thin_flat": ('3395c052c03865be', '484fbc7e0848802f', '95fd67eef76573f2'),
+    "layered1": ('988d5ea2d3db0904', 'a9c0920021e5049b', 'e8d8d1dbc2848f54'),
+    "layered1_no_jacobian": ('988d5ea2d3db0904', 'a9c0920021e5049b', '02beca075ebebdb6'),
+    "noise2d": ('8aa86809aae50249', 'a26958c0c73e391d', '051f5c8607bbf1aa'),
+    "smooth2d_plane": ('5ce974127b2b7537', '31a3dc9ff6187218', 'bb98f6ff1e362bf8'),
+    "smooth2d_fixed_rims": ('5ce974127b2b7537', '80916fa8cb22985f', '7e3f61e120a2236b'),
+    "two_axes": ('fde31920e9ab65e5', '8320da938df27f4e', 'a128530550d2942f'),
+    "two_axes_fixed_rims": ('fde31920e9ab65e5', '8320da938df27f4e', '20a36a534309cf1c'),
+    "joined2d": ('5e190cadccdf7af0', '6fc38ae4b53e1b97', 'f1310713450bf6c1'),
+    "joined3d": ('f635632148d42633', 'dc227c7f9bb64041', '34b70a97d275361c'),
+    "long_bone": ('8068aa6bb3daa3df', 'd6f097e1604cb5a7', '1f974a2e15898609'),
+    "long_bone_thin": ('8068aa6bb3daa3df', 'e76f4b467beb03bb', 'ee102df2e48914dc'),
 }
 
 

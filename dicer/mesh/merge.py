@@ -17,8 +17,9 @@ keeps its plane; the paper's "drop the plane" is ``granularity="plane"``.
 
 The trial mesh of every step is checked where it changed (Box 2 steps 12-14, widened):
 no node with more than 6 (2D: 4) neighbours or in more than 8 (4) elements, no face of
-three elements, no node that is the same corner of two elements, and no element whose
-corner scaled Jacobian on the lattice falls below ``min_scaled_jacobian``. A failing
+three elements, no node that is the same corner of two elements, no two elements of one
+material touching along an edge only, and no element whose corner scaled Jacobian on the
+lattice falls below ``min_scaled_jacobian``. A failing
 element is first repaired through its *rim nodes* (plane nodes on one side only): each
 moves one lattice step across the plane, or joins the node already at that corner, so
 the element fills the empty voxel beside it. What still fails makes its merge region
@@ -474,6 +475,54 @@ def _shared_corners(local: np.ndarray, k: int, changed: np.ndarray) -> np.ndarra
     return np.flatnonzero(_any(clash[key]))
 
 
+def _pinches(sub: np.ndarray, material: np.ndarray, inside: np.ndarray, changed: np.ndarray, dim: int) -> np.ndarray:
+    """Rows of ``sub`` (R, c) where two elements of one material touch along an edge only
+    (2D: at a node only), at an edge (node) of a ``changed`` row ((R,) bool).
+
+    Such a contact leaves the material's surface open (four of its faces at one edge), as
+    ``dicer fix`` removes it from the labels. Counted at the edges with both ends
+    ``inside`` ((N,) bool): every element at them is in ``sub``, so the count is exact.
+    ``material`` (R,) gives each row's material.
+    """
+    facets = sub[:, HEX_FACES] if dim == 3 else sub[:, QUAD_EDGES]  # (R, F, k)
+    per = facets.shape[1]
+    f = np.sort(facets.reshape(-1, facets.shape[2]), axis=1).astype(np.int64)
+    n64 = np.int64(inside.shape[0])
+    mat = np.repeat(material.astype(np.int64), per)
+    key1 = f[:, 0] * n64 + f[:, 1]
+    key2 = f[:, 2] * n64 + f[:, 3] if dim == 3 else np.zeros_like(key1)
+    order = np.lexsort((mat, key2, key1))
+    same = (key1[order][1:] == key1[order][:-1]) & (key2[order][1:] == key2[order][:-1]) & \
+        (mat[order][1:] == mat[order][:-1])
+    inner = np.zeros(f.shape[0], dtype=bool)  # a face between two elements of one material
+    inner[order[1:][same]] = True
+    inner[order[:-1][same]] = True
+    outer = np.flatnonzero(~inner)
+    if dim == 3:  # the outer faces' edges, both ends inside
+        ring = facets.reshape(-1, 4)[outer]
+        a, b = ring.ravel(), ring[:, [1, 2, 3, 0]].ravel()
+        lo_end, hi_end = np.minimum(a, b).astype(np.int64), np.maximum(a, b).astype(np.int64)
+        ok = (lo_end != hi_end) & inside[lo_end] & inside[hi_end]
+        ridge = lo_end * n64 + hi_end
+        owner = np.repeat(outer, 4)
+    else:  # the outer edges' nodes
+        ridge = facets.reshape(-1, 2)[outer].ravel().astype(np.int64)
+        ok = inside[ridge]
+        owner = np.repeat(outer, 2)
+    ridge, owner = ridge[ok], owner[ok] // per
+    if ridge.size == 0:
+        return np.empty(0, dtype=np.int64)
+    rmat = material[owner].astype(np.int64)
+    order = np.lexsort((rmat, ridge))
+    ridge, owner, rmat = ridge[order], owner[order], rmat[order]
+    start = np.r_[True, (ridge[1:] != ridge[:-1]) | (rmat[1:] != rmat[:-1])]
+    group = np.cumsum(start) - 1
+    size = np.bincount(group)
+    touched = np.bincount(group, weights=changed[owner]) > 0
+    pinched = (size[group] > 2) & touched[group]
+    return _unique(owner[pinched])
+
+
 def _degrees(sub: np.ndarray, nodes_mask: np.ndarray, edges: np.ndarray):
     """Distinct edge neighbours and element count of the nodes of the elements ``sub`` (R, c).
 
@@ -577,7 +626,7 @@ def _compact(rows: np.ndarray, keep: np.ndarray, new_id: np.ndarray | None = Non
 
 _STEP_FIGURES = ("merged_pairs", "chamfered_elements", "regions", "regions_merged", "blocked_material",
                  "blocked_thin", "blocked_overlap", "blocked_connectivity", "rim_nodes_refused", "retry_rounds",
-                 "overconnected_nodes", "inverted_elements", "crowded_faces", "shared_corners")
+                 "overconnected_nodes", "inverted_elements", "crowded_faces", "shared_corners", "pinched_edges")
 """The figures of every step's report (a step that merges also counts rim nodes moved and joined)."""
 
 
@@ -1085,7 +1134,8 @@ def _check_trial(plane: _Plane, trial: _Trial, work: _Work, settings: _Settings,
     Around the changed elements (``trial.checked``): no node with more than 6 (2D: 4)
     neighbours or in more than 8 (4) elements, no face of three elements, no corner
     scaled Jacobian below the floor; on a trial that passes these, no node the same
-    corner of two elements.
+    corner of two elements, then no two elements of one material touching along an edge
+    only (2D: at a node only).
 
     Returns
     -------
@@ -1124,9 +1174,17 @@ def _check_trial(plane: _Plane, trial: _Trial, work: _Work, settings: _Settings,
         # its corner as the same corner. Tested last, on a trial that passes the
         # rest, so that steps the other tests settle merge exactly as before.
         pos = np.minimum(np.searchsorted(checked, rows), checked.size - 1)
-        shared = _shared_corners(local, degree.size, checked[pos] == rows)
+        changed = checked[pos] == rows
+        shared = _shared_corners(local, degree.size, changed)
         info["shared_corners"] += int(shared.size)
         bad_rows = rows[shared]
+    if bad_rows.size == 0:
+        # A chamfer or a moved rim node can leave two elements of one material touching
+        # along an edge only, a contact ``dicer fix`` took out: the material's surface
+        # would not be closed there.
+        pinched = _pinches(sub, work.material[rows], in_s, changed, dim)
+        info["pinched_edges"] += int(pinched.size)
+        bad_rows = rows[pinched]
     return bad_rows
 
 

@@ -16,6 +16,7 @@ from dicer.mesh.smooth import smooth_mesh
 from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
 from dicer.mesh.voxel import voxel_mesh
 
+from meshcheck import pinches
 from test_smooth_mirror import shells
 
 ON = {"pillow": True}
@@ -197,6 +198,8 @@ def test_random_volumes_get_a_valid_conforming_layer(seed, dim, kinds):
     # every new element has the material of an element with an exterior face, and volume
     assert np.all(np.isin(out.material[mesh.n_cells:], mesh.material[owner]))
     assert np.all(element_volumes(out.points, out.cells[mesh.n_cells:]) > 0)
+    # no two elements of one material touch along an edge only (2D: at a node only)
+    assert pinches(mesh) == 0 and pinches(out) == 0
     # conforming: the exterior is the layer's outer faces, the faces left in bounding planes
     # and the layer's sides there
     table = HEX_FACES if dim == 3 else QUAD_EDGES

@@ -19,7 +19,7 @@ import numpy as np
 from dicer.mesh.faces import face_neighbours
 from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
 
-__all__ = ["surface_faces", "outward_normals", "pillow_cells"]
+__all__ = ["surface_faces", "outward_normals", "pillow_cells", "one_fan_per_node"]
 
 
 def surface_faces(cells: np.ndarray, dim: int, n_points: int, planes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -130,3 +130,75 @@ def pillow_cells(faces: np.ndarray, new_id: np.ndarray) -> np.ndarray:
         return np.concatenate([faces, new_id[faces]], axis=1)
     a, b = faces[:, 0], faces[:, 1]
     return np.column_stack([b, a, new_id[a], new_id[b]])
+
+
+def one_fan_per_node(faces: np.ndarray, kept: np.ndarray, material: np.ndarray) -> np.ndarray:
+    """The faces of the layer with, at every node, one fan of each material's faces.
+
+    All new elements at a node share the edge from the node to its copy. Two of one
+    material there that no chain of that material's faces (joined by their edges) links
+    share only that edge: the material's surface would not be closed (a gap in the layer
+    around the node, another material's face between them, or a surface that touches
+    itself there). At such a node the faces of all but the largest of the material's
+    fans lose their element (ties: the fan of the lowest face); repeated until every node
+    has one fan per material. An edge of more than two faces joins none of them.
+    2D (edges): unchanged.
+
+    Parameters
+    ----------
+    faces : (F, 4) or (F, 2) int64 ndarray
+        From :func:`surface_faces`.
+    kept : (F,) bool ndarray
+        Faces with an element of the layer.
+    material : (F,) int ndarray
+        The material of each face's element.
+
+    Returns
+    -------
+    (F,) bool ndarray
+        ``kept`` with the faces of the other fans dropped.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    kept = kept.copy()
+    if faces.shape[1] != 4:
+        return kept
+    n = np.int64(faces.max(initial=0)) + 1
+    nxt = np.array([1, 2, 3, 0])
+    while True:
+        idx = np.flatnonzero(kept)
+        f = faces[idx].astype(np.int64)
+        mat = np.asarray(material)[idx].astype(np.int64)
+        k = f.shape[0] * 4
+        key = (np.minimum(f, f[:, nxt]) * n + np.maximum(f, f[:, nxt])).ravel()  # edge j: corners j, j + 1
+        order = np.argsort(key, kind="stable")
+        sk = key[order]
+        start = np.r_[True, sk[1:] != sk[:-1]]
+        group = np.cumsum(start) - 1
+        pair = np.flatnonzero(~start[1:] & (np.bincount(group)[group[1:]] == 2))  # sorted i, i + 1: the two
+        p, q = order[pair], order[pair + 1]  # edge slots: face * 4 + corner
+        take = mat[p // 4] == mat[q // 4]
+        p, q = p[take], q[take]
+        p_next, q_next = p - p % 4 + nxt[p % 4], q - q % 4 + nxt[q % 4]
+        same = f.ravel()[p] == f.ravel()[q]  # both faces run the edge the same way
+        a = np.r_[p, p_next]
+        b = np.r_[np.where(same, q, q_next), np.where(same, q_next, q)]
+        graph = coo_matrix((np.ones(a.size, np.int8), (a, b)), shape=(k, k))
+        _, fan = connected_components(graph, directed=True, connection="weak")
+        # (node, material, fan) groups of the corners; more than one per node and material: drop
+        node, kind, face = f.ravel(), np.repeat(mat, 4), np.arange(k) // 4
+        by = np.lexsort((face, fan, kind, node))
+        node, kind, fan, face = node[by], kind[by], fan[by], face[by]
+        head = np.r_[True, (node[1:] != node[:-1]) | (kind[1:] != kind[:-1]) | (fan[1:] != fan[:-1])]
+        lead = np.flatnonzero(head)
+        size = np.diff(np.r_[lead, node.size])
+        g_node, g_kind, g_face = node[lead], kind[lead], face[lead]  # g_face: the fan's lowest face
+        pick = np.lexsort((g_face, -size, g_kind, g_node))
+        best = np.r_[True, (g_node[pick][1:] != g_node[pick][:-1]) | (g_kind[pick][1:] != g_kind[pick][:-1])]
+        if best.all():
+            return kept
+        loses = np.zeros(lead.size, bool)
+        loses[pick[~best]] = True
+        drop = np.unique(face[loses[np.cumsum(head) - 1]])
+        kept[idx[drop]] = False

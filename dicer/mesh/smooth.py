@@ -1037,7 +1037,7 @@ def _add_pillow(st: _Smoothing) -> None:
     DicerError
         An element still fails after ``_PILLOW_ROUNDS`` rounds.
     """
-    from dicer.mesh.pillow import outward_normals, pillow_cells, surface_faces
+    from dicer.mesh.pillow import one_fan_per_node, outward_normals, pillow_cells, surface_faces
 
     t0 = time.perf_counter()
     mesh, s = st.mesh, st.s
@@ -1060,6 +1060,7 @@ def _add_pillow(st: _Smoothing) -> None:
     goal = st.xb[b] if st.surface is None else st.surface[b]  # without the scan: the smoothed surface
     solved = None
     for rounds in range(_PILLOW_ROUNDS + 1):
+        kept = one_fan_per_node(faces, kept, mesh.material[owner])
         layered = np.zeros(nodes.size, bool)
         layered[at[kept]] = True
         rows = np.flatnonzero(layered)

@@ -403,6 +403,7 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
     merged, report = _mesh_to_mesh("merge", lambda m: merge_mesh(m, **settings), mesh_path, out, report_path,
                                    mesh, mapped=True, write=write)
     _warn_of_volume_change(report, merged, settings)
+    _warn_of_flat_templates(report, merged)
     log.info("merge: wrote %s (%d -> %d elements, %d -> %d nodes; volume %s)", out,
              report["elements_before"], report["elements_after"], report["nodes_before"],
              report["nodes_after"], brief_json(_stable(report["volume"]), sort_keys=True))
@@ -442,6 +443,19 @@ def _warn_of_volume_change(report: dict, mesh, settings: dict) -> None:
         hint = (f"the voxels are {' x '.join(f'{v:g}' for v in spacing)} mm: merging across the coarse axis fills "
                 f"steps of a whole slice; set merge.passes={passes} to merge in-plane only")
     log.warning("%s; %s", said, hint)
+
+
+def _warn_of_flat_templates(report: dict, mesh) -> None:
+    """Warn when graded elements fall below the templates' floor: it holds on the lattice,
+    and voxels longer along one axis stretch the templates' slopes."""
+    from dicer.mesh.coarsen import TEMPLATE_FLOOR
+
+    if report.get("method") != "templates" or report["min_scaled_jacobian"] >= TEMPLATE_FLOOR:
+        return
+    spacing = " x ".join(f"{float(v):g}" for v in mesh.spacing[:mesh.dim])
+    log.warning("merge: on %s mm voxels the transition templates reach a scaled Jacobian of %.3f, below the "
+                "%g they keep on cubic voxels; use merge.method: planes, or voxels nearer cubic (downsample "
+                "with a factor per axis)", spacing, report["min_scaled_jacobian"], TEMPLATE_FLOOR)
 
 
 def _read_thresholds(path: str | None, config: dict, image_path: str) -> list:

@@ -266,6 +266,32 @@ def test_merge_stage_dispatches_to_templates():
         merge_mesh(voxel, {"method": "templates", "templates": {"level": 1}})
 
 
+def test_templates_on_long_voxels_are_reported_and_warned(tmp_path, caplog):
+    # the templates' bound holds on the lattice: on cubic voxels it holds in mm too, on
+    # voxels six times longer along z their slopes flatten
+    from dicer.cli import main
+    from dicer.io.meshes import write_mesh
+
+    labels = ball_labels((30, 30, 30), (13,))
+    _, cubic = merge_mesh(voxel_mesh(labels), {"method": "templates"})
+    assert cubic["min_scaled_jacobian"] >= 0.229
+    path = tmp_path / "long.vtu"
+    write_mesh(voxel_mesh(labels, spacing=(0.5, 0.5, 3.0)), path)
+    caplog.set_level("WARNING", logger="dicer")
+    assert main(["merge", str(path), "-o", str(tmp_path / "graded.vtu"), "--set", "merge.method=templates",
+                 "--report", str(tmp_path / "merge.json")]) == 0
+    import json
+
+    report = json.loads((tmp_path / "merge.json").read_text())
+    assert report["min_scaled_jacobian"] < 0.2
+    said = [r.getMessage() for r in caplog.records if "transition templates" in r.getMessage()]
+    assert len(said) == 1 and "0.5 x 0.5 x 3 mm" in said[0] and f"{report['min_scaled_jacobian']:.3f}" in said[0]
+    caplog.clear()
+    write_mesh(voxel_mesh(labels), path)
+    assert main(["merge", str(path), "-o", str(tmp_path / "graded.vtu"), "--set", "merge.method=templates"]) == 0
+    assert not [r for r in caplog.records if "transition templates" in r.getMessage()]
+
+
 @st.composite
 def label_volumes(draw, dim):
     shape = tuple(draw(st.integers(12, 40 if dim == 2 else 16)) for _ in range(dim))

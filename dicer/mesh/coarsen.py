@@ -32,13 +32,16 @@ import time
 import numpy as np
 
 from dicer.errors import DicerError
-from dicer.mesh.metrics import element_volumes
+from dicer.mesh.metrics import element_volumes, scaled_jacobian
 from dicer.mesh.model import LEVEL_DATA, Mesh, pieces
 from dicer.mesh.templates import (BLOCK_TEMPLATES, COARSE, COMPLETION_2D, COMPLETION_BLOCK, FINE, INVALID,
                                   SECTION, TEMPLATES_2D)
 from dicer.mesh.topology import HEX_CORNERS, QUAD_CORNERS
 
-__all__ = ["coarsen_mesh", "coarsen_labels", "LEVEL_DATA"]
+__all__ = ["coarsen_mesh", "coarsen_labels", "LEVEL_DATA", "TEMPLATE_FLOOR"]
+
+TEMPLATE_FLOOR = 0.2
+"""The corner scaled Jacobian every graded element keeps on cubic voxels (templates: 0.229)."""
 
 log = logging.getLogger("dicer")
 
@@ -604,6 +607,9 @@ def _report(mesh: Mesh, out: Mesh, keep: np.ndarray, level: np.ndarray, seconds:
     vol = np.bincount(out.material[coarse], weights=element_volumes(out.points, out.cells[coarse]),
                       minlength=top).astype(float)
     vol += np.bincount(mesh.material[keep], minlength=top) * voxel
+    # in mm: the templates' bound (TEMPLATE_FLOOR) holds on the lattice, i.e. for cubic voxels
+    sj = scaled_jacobian(out.points, out.cells[coarse])
+    min_sj = float(sj.min()) if sj.size else 1.0
     per_level = {}
     out_level = out.cell_data[LEVEL_DATA]
     for lv in np.unique(out_level):
@@ -620,5 +626,6 @@ def _report(mesh: Mesh, out: Mesh, keep: np.ndarray, level: np.ndarray, seconds:
         "volume": {str(int(k)): {"before": float(before[k] * voxel), "after": float(vol[k]),
                                  "change_percent": round(100.0 * (float(vol[k]) - before[k] * voxel)
                                                          / (before[k] * voxel), 6)} for k in kinds},
+        "min_scaled_jacobian": round(min_sj, 6),
         "seconds": round(seconds, 3),
     }

@@ -245,12 +245,12 @@ def face_neighbours(cells: np.ndarray, dim: int, n_points: int) -> np.ndarray:
     if shared_only:  # those diagonals' faces are paired by both diagonals below
         hard = np.isin(flat, np.concatenate(shared_only))
         same &= ~hard[order[1:]]
+        rows = np.flatnonzero(hard)
+        k1, k2 = flat[rows], other.reshape(-1)[rows]
+    del other
     # the keys' memory holds the answer: fresh pages cost more than the work on them
     nb = flat
     del keys, flat
-    if hard is not None:
-        rows = np.flatnonzero(hard)
-        k1, k2 = nb[rows], other.reshape(-1)[rows]
     nb.fill(-1)
     a = np.compress(same, order[:-1])  # the first face of each pair, as sorted
     b = np.compress(same, order[1:])

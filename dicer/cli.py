@@ -312,7 +312,24 @@ def do_downsample(labels_path: str, out: Path, config: dict):
                         "downsample.min_fraction toward 0.5 to keep volumes, or set downsample.morphology=false "
                         "to keep thin parts",
                         DOWNSAMPLE_VOLUME_WARNING, brief_json({n: f"{v:+.1f} %" for n, v in changed.items()}))
+        _warn_of_grid_growth(info)
     return reduced
+
+
+def _warn_of_grid_growth(info: dict) -> None:
+    """Warn when the coarse grid reaches beyond the image with material in that layer (a shape
+    that is no multiple of the factor, material at the image's far faces: a cut model)."""
+    axes = [d for d, grown in enumerate(info.get("material_beyond_image", [])) if grown]
+    if not axes:
+        return
+    shape, factor = info["shape_before"], info["factor"]
+    said = ", ".join(f"{'xyz'[d]} by {info['beyond_image_mm'][d]:g} mm ({shape[d]} voxels, factor {factor[d]})"
+                     for d in axes)
+    fits = {d: [f for f in range(2, shape[d] // 2 + 1) if shape[d] % f == 0][:4] for d in axes}
+    hint = "; ".join(f"{'xyz'[d]}: {', '.join(map(str, f)) or 'none'}" for d, f in fits.items())
+    log.warning("downsample: the coarse grid reaches beyond the image along %s, and material at the image's far "
+                "face grows into it; crop the image to a multiple of the factor (image.crop) or use a factor that "
+                "divides the voxel count (%s)", said, hint)
 
 
 DOWNSAMPLE_VOLUME_WARNING = 20.0

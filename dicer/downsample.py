@@ -180,8 +180,10 @@ def downsample(labels: Volume, *, names: list[str], factor, voxel_size, min_frac
         Coarse labels, same dtype; spacing multiplied by the factor, same origin.
         With factor 1 on every axis the input is returned unchanged.
     info : dict
-        ``factor``, ``shape_before``, ``shape_after``, ``spacing_after`` and
-        ``voxels_before`` / ``voxels_after`` per class name.
+        ``factor``, ``shape_before``, ``shape_after``, ``spacing_after``, ``voxels_before`` /
+        ``voxels_after`` per class name, and per axis how far the coarse grid reaches beyond
+        the image (``beyond_image_mm``) and whether material lies in that last layer
+        (``material_beyond_image``).
     """
     source = source or "labels"
     k = len(names)
@@ -222,9 +224,14 @@ def downsample(labels: Volume, *, names: list[str], factor, voxel_size, min_frac
                              "segment.opening_radius or the downsample factor, or set downsample.morphology=false")
         coarse = cleaned
     spacing = tuple(s * f for s, f in zip(labels.spacing, factor))
+    # a shape that is no multiple of the factor: the last coarse layer reaches beyond the
+    # image, and material voted into it grows the model by that much
+    beyond = [((-n) % f) * float(sp) for n, f, sp in zip(array.shape, factor, labels.spacing)]
+    grown = [bool(b > 0 and np.take(coarse, -1, axis=d).any()) for d, b in enumerate(beyond)]
     voxels_after = {n: v["voxels"] for n, v in label_counts(coarse, names).items()}
     block = int(np.prod(factor))  # fine voxels per coarse voxel
     info.update(shape_after=list(coarse.shape), spacing_after=[round(s, 6) for s in spacing],
+                beyond_image_mm=[round(b, 6) for b in beyond], material_beyond_image=grown,
                 voxels_before=before, voxels_after=voxels_after,
                 volume_change_percent={n: round(100.0 * (voxels_after.get(n, 0) * block - v) / v, 2)
                                        for n, v in before.items() if v})

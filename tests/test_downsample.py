@@ -197,3 +197,35 @@ def test_volume_change_reported_and_a_lost_plate_warned_of(tmp_path, caplog):
                  "--set", "downsample.factor=2", "-q"]) == 0
     warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert len(warned) == 1 and '{"bone": "-100.0 %"}' in warned[0] and "downsample.morphology=false" in warned[0]
+
+
+def test_a_grid_beyond_the_image_is_reported_and_growth_into_it_warned_of(tmp_path, caplog):
+    """24 voxels at factor 5: the fifth coarse layer covers 4 voxels and 1 mm beyond the image.
+    Material at the far face grows into it (a cut model: +13 % for a full cube); background
+    there does not, and a factor that divides the shape reaches nowhere."""
+    from dicer.cli import main
+    from dicer.io.images import write_image
+
+    full = np.ones((24, 24, 24), np.uint8)
+    out, info = downsample(Volume(full, (1.0, 1.0, 1.0)), config(factor=5), "cube.nii")
+    assert info["beyond_image_mm"] == [1.0, 1.0, 1.0] and info["material_beyond_image"] == [True] * 3
+    assert out.array.sum() * 125 == 25 ** 3  # the model is a 25 mm cube
+    inner = np.zeros((24, 24, 24), np.uint8)
+    inner[4:18, 4:18, 4:18] = 1
+    _, info = downsample(Volume(inner, (1.0, 1.0, 1.0)), config(factor=5), "ball.nii")
+    assert info["material_beyond_image"] == [False] * 3
+    _, info = downsample(Volume(full, (1.0, 1.0, 0.5)), config(factor=[4, 6, 3]), "cube.nii")
+    assert info["beyond_image_mm"] == [0.0, 0.0, 0.0] and info["material_beyond_image"] == [False] * 3
+    write_image(Volume(full, (1.0, 1.0, 1.0)), tmp_path / "cube.nii.gz")
+    caplog.set_level("WARNING", logger="dicer")
+    assert main(["downsample", str(tmp_path / "cube.nii.gz"), "-o", str(tmp_path / "d.nii.gz"),
+                 "--set", "downsample.factor=[5, 4, 5]", "-q"]) == 0
+    warned = [r.getMessage() for r in caplog.records if "beyond the image" in r.getMessage()]
+    assert len(warned) == 1
+    assert "x by 1 mm (24 voxels, factor 5), z by 1 mm" in warned[0] and "y by" not in warned[0]
+    assert "(x: 2, 3, 4, 6; z: 2, 3, 4, 6)" in warned[0]
+    caplog.clear()
+    write_image(Volume(inner, (1.0, 1.0, 1.0)), tmp_path / "inner.nii.gz")
+    assert main(["downsample", str(tmp_path / "inner.nii.gz"), "-o", str(tmp_path / "e.nii.gz"),
+                 "--set", "downsample.factor=5", "-q"]) == 0
+    assert not [r for r in caplog.records if "beyond the image" in r.getMessage()]

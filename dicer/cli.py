@@ -848,13 +848,35 @@ def cmd_labels(args):
     do_labels(args.labels, out, _config(args), materials)
 
 
+def _warn_of_config_numbering(args, config: dict, stage: str) -> None:
+    """Warn when a stage numbers a mapped label volume's materials by the config's materials
+    list although its labels.map numbers them otherwise: dicer labels numbers materials by
+    their smallest label value, and without --materials label i takes the i-th entry."""
+    mapping = config["labels"]["map"]
+    if getattr(args, "materials", None) or not mapping:
+        return
+    by_value = list(dict.fromkeys(name for _, name in sorted((int(k), v) for k, v in mapping.items())))
+    listed = [m["name"] for m in config["materials"]]
+    if by_value == listed[:len(by_value)]:
+        return
+    log.warning("%s: the config's labels.map numbers its materials %s (by smallest label value, as dicer labels "
+                "does), its materials list %s: without --materials a mapped label volume's material i takes the "
+                "i-th materials entry, so names and properties may go to the wrong labels; give --materials "
+                "materials.json (written by dicer labels --materials)", stage, brief_names(by_value),
+                brief_names(listed))
+
+
 def cmd_downsample(args):
-    do_downsample(args.labels, _check_output(args.output, (".nii", ".nii.gz"), "the label volume"), _config(args))
+    config = _config(args)
+    _warn_of_config_numbering(args, config, "downsample")
+    do_downsample(args.labels, _check_output(args.output, (".nii", ".nii.gz"), "the label volume"), config)
 
 
 def cmd_fix(args):
     report = _check_output(args.report, (".json",), "the fix report") if args.report else None
-    do_fix(args.labels, _check_output(args.output, (".nii", ".nii.gz"), "the label volume"), _config(args), report)
+    config = _config(args)
+    _warn_of_config_numbering(args, config, "fix")
+    do_fix(args.labels, _check_output(args.output, (".nii", ".nii.gz"), "the label volume"), config, report)
 
 
 def cmd_merge(args):
@@ -869,7 +891,9 @@ def cmd_smooth(args):
 
 
 def cmd_mesh(args):
-    do_mesh(args.labels, _check_output(args.output, (".vtu",), "the mesh"), _config(args))
+    config = _config(args)
+    _warn_of_config_numbering(args, config, "mesh")
+    do_mesh(args.labels, _check_output(args.output, (".vtu",), "the mesh"), config)
 
 
 def cmd_export(args):

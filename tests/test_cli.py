@@ -239,6 +239,38 @@ def test_smooth_warns_when_it_shrinks_a_small_part(tmp_path, capsys, caplog):
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
 
 
+def test_stages_warn_when_labels_map_numbers_materials_otherwise_than_the_config(tmp_path, capsys, caplog):
+    """dicer labels numbers an atlas's materials by smallest value (map {2: soft, 5: bone}:
+    soft 1, bone 2); a config listing bone first gave the mapped soft tissue bone's name and
+    properties in 'dicer mesh' without --materials: said, and --materials or a config in
+    the map's order is quiet."""
+    from dicer.io.meshes import read_mesh
+
+    atlas = np.zeros((6, 6, 6), np.uint8)
+    atlas[1:5, 1:5, 1:5] = 2
+    atlas[2:4, 2:4, 2:4] = 5
+    np.save(tmp_path / "atlas.npy", atlas)
+    config = tmp_path / "c.yaml"
+    config.write_text("labels:\n  map: {2: soft, 5: bone}\nmaterials:\n  - {name: bone, youngs_modulus: 15000}\n"
+                      "  - {name: soft, youngs_modulus: 1}\n")
+    assert run_cli(capsys, "labels", tmp_path / "atlas.npy", "-o", tmp_path / "l.nii.gz", "--config", config,
+                   "--materials", tmp_path / "materials.json")[0] == 0
+    caplog.clear()
+    for stage in ("mesh", "fix", "downsample"):
+        out = tmp_path / ("m.vtu" if stage == "mesh" else f"{stage}.nii.gz")
+        assert run_cli(capsys, stage, tmp_path / "l.nii.gz", "-o", out, "--config", config)[0] == 0
+        warned = [r.getMessage() for r in caplog.records if "labels.map numbers" in r.getMessage()]
+        assert len(warned) == 1 and warned[0].startswith(f"{stage}: ") and "soft, bone" in warned[0]
+        caplog.clear()
+    assert read_mesh(tmp_path / "m.vtu").names == ["bone", "soft"]  # what the warning is about
+    assert run_cli(capsys, "mesh", tmp_path / "l.nii.gz", "-o", tmp_path / "m.vtu", "--config", config,
+                   "--materials", tmp_path / "materials.json")[0] == 0
+    assert read_mesh(tmp_path / "m.vtu").names == ["soft", "bone"]
+    config.write_text("labels:\n  map: {2: soft, 5: bone}\nmaterials:\n  - {name: soft}\n  - {name: bone}\n")
+    assert run_cli(capsys, "mesh", tmp_path / "l.nii.gz", "-o", tmp_path / "m.vtu", "--config", config)[0] == 0
+    assert not [r for r in caplog.records if "labels.map numbers" in r.getMessage()]
+
+
 def test_export_warns_when_the_mesh_names_other_materials_than_the_config(tmp_path, capsys, caplog):
     """A mesh of label_1/label_2 (dicer run --labels) exported with the default config would get
     soft tissue's and bone's names and properties: said, and --materials gives its own."""

@@ -51,6 +51,32 @@ def _config(args) -> dict:
     return config
 
 
+# What a stage's command reads beyond its sections (dicer.config.STAGE_SECTIONS): the
+# spacing of a .npy volume, smooth's scan and manual thresholds
+_ALSO_READS = {"downsample": ("image.spacing",), "fix": ("image.spacing",), "mesh": ("image.spacing",),
+               "smooth": ("image.spacing", "image.allow_irregular_slices", "segment.method", "segment.thresholds"),
+               "quality": ("image.spacing",)}
+
+
+def _warn_of_unused_settings(args) -> None:
+    """Warn of --set keys the command does not read (``image.crop`` to 'dicer mesh': the crop
+    is made when the scan or the label volume is read, by segment and labels)."""
+    from dicer.config import STAGE_SECTIONS
+
+    stage = args.command
+    if stage not in STAGE_SECTIONS or not getattr(args, "set", None):
+        return
+    reads = STAGE_SECTIONS[stage] + _ALSO_READS.get(stage, ())
+    unused = []
+    for item in args.set:
+        key = item.split("=", 1)[0].strip()
+        if not any(key == r or key.startswith(r + ".") for r in reads):
+            unused.append(key)
+    if unused:
+        log.warning("%s: --set %s is not read by dicer %s (it reads %s); give it to the stage that uses it, or to "
+                    "dicer run", stage, ", ".join(unused), stage, ", ".join(reads))
+
+
 def _read_materials(path: str) -> list[dict]:
     """The materials list of a materials file written by ``dicer labels`` (--materials)."""
     try:
@@ -1411,6 +1437,7 @@ def main(argv: list[str] | None = None) -> int:
         # a stage's process takes nearly all its memory fresh: ordinary pages unless the job
         # is large (dicer.pages); 'run' reuses what its stages free, where numpy's huge pages
         # measured faster
+        _warn_of_unused_settings(args)
         run = args.command == "run"
         ordinary = not run and not large_job(_input_paths(args))
         with contextlib.nullcontext() if run else all_or_nothing(), \

@@ -292,3 +292,21 @@ def test_export_warns_when_the_mesh_names_other_materials_than_the_config(tmp_pa
                    tmp_path / "materials.json")[0] == 0
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
     assert "ELSET=label_2" in (tmp_path / "m.inp").read_text()
+
+
+def test_set_keys_a_stage_does_not_read_are_warned_of(tmp_path, capsys, caplog):
+    """image.crop given to 'dicer mesh' (the crop is made by segment and labels) and
+    mesh.coordinates to 'dicer export' (fixed when the mesh is made) did nothing, silently."""
+    np.save(tmp_path / "l.npy", np.ones((4, 4, 4), np.uint8))
+    assert run_cli(capsys, "mesh", tmp_path / "l.npy", "-o", tmp_path / "m.vtu", "--set", "image.crop=null",
+                   "--set", "image.spacing=[1, 1, 2]", "--set", "mesh.coordinates=index",
+                   "--set", "smooth.coefficient=0.5")[0] == 0
+    warned = [r.getMessage() for r in caplog.records if "is not read by" in r.getMessage()]
+    assert warned == ["mesh: --set image.crop, smooth.coefficient is not read by dicer mesh (it reads materials, "
+                      "mesh, image.spacing); give it to the stage that uses it, or to dicer run"]
+    caplog.clear()
+    assert run_cli(capsys, "export", tmp_path / "m.vtu", "-o", tmp_path / "m.inp", "--set", "export.order=2")[0] == 0
+    assert not [r for r in caplog.records if "is not read by" in r.getMessage()]
+    assert run_cli(capsys, "export", tmp_path / "m.vtu", "-o", tmp_path / "m.inp",
+                   "--set", "mesh.coordinates=index")[0] == 0
+    assert [r for r in caplog.records if "--set mesh.coordinates is not read by dicer export" in r.getMessage()]

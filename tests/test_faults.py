@@ -357,3 +357,15 @@ def test_a_flush_that_fails_while_the_deck_is_checked_is_one_error_and_no_file(t
         export_mesh(voxel_mesh(lab), out, load_config(settings={"materials": [{"name": "bone"}]}))
     assert str(info.value).startswith(f"{out}: the disk is full") and ".tmp" not in str(info.value)
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("umask, mode", [(0o077, 0o600), (0o022, 0o644), (0o002, 0o664)])
+def test_outputs_take_the_users_umask(tmp_path, umask, mode):
+    """Every output was made 0644 whatever the umask: labels and decks of a private
+    (umask 077) session came out readable by every user of the machine."""
+    np.save(tmp_path / "l.npy", np.ones((3, 3, 3), np.uint8))
+    out = tmp_path / "m.vtu"
+    proc = subprocess.run([sys.executable, "-m", "dicer", "mesh", str(tmp_path / "l.npy"), "-o", str(out), "-q"],
+                          preexec_fn=lambda: os.umask(umask), capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert out.stat().st_mode & 0o777 == mode

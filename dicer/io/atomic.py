@@ -184,6 +184,16 @@ def in_this_block(fn):
     return run
 
 
+def _file_mode() -> int:
+    """0o666 less the process's umask (read once: setting and restoring it is not thread-safe later)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+_FILE_MODE = _file_mode()
+
+
 def _new_temporary(path: Path, parent: Path, names: list) -> Path:
     """Create an empty temporary file for ``path`` in ``parent``; its name goes into
     ``names`` before the file exists, so a SIGTERM arriving at any moment (its handler runs
@@ -223,7 +233,7 @@ def atomic_path(path: str | os.PathLike):
                              "output path") from None
         try:
             yield tmp
-            os.chmod(tmp, 0o644)
+            os.chmod(tmp, _FILE_MODE)  # as a plain open() would make it: 0o666 less the umask
             _fsync(tmp)
         except OSError as exc:
             raise write_error(path, exc) from None

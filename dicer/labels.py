@@ -191,11 +191,17 @@ _NIFTI_TEXT = ((4, 10), (14, 18), (148, 80), (228, 24), (328, 16))
 """(offset, length) of the NIfTI-1 header's free-text fields: data_type, db_name, descrip,
 aux_file, intent_name."""
 
+_NIFTI_FREE_NUMBERS = ((32, 6), (56, 12), (74, 2), (120, 3), (132, 16))
+"""(offset, length) of the NIfTI-1 header's numbers that say nothing of the grid: extents and
+session_error, intent_p1..3, slice_start, slice_end and slice_code, slice_duration, toffset,
+glmax and glmin. Free to hold anything (a record number, a birth date), they are zeroed."""
+
 
 def _write_nifti_like(header: bytes, endian: str, array: np.ndarray, path: Path) -> None:
     """Write ``array`` ([x, y, z]) as a .nii.gz with ``header``: the data type, the intensity
-    scaling and the display range change, and the free-text fields are blanked; dims,
-    pixdim, qform, sform and codes stay the input's, byte for byte."""
+    scaling and the display range change, and the free-text fields and the numbers free of
+    meaning for a label volume are blanked; dims, pixdim, qform, sform and codes stay the
+    input's, byte for byte."""
     from dicer.io.atomic import atomic_path
 
     head = bytearray(header)
@@ -213,7 +219,7 @@ def _write_nifti_like(header: bytes, endian: str, array: np.ndarray, path: Path)
     struct.pack_into(endian + "h", head, 68, 0)  # intent_code: plain values, whatever the input's was
     # free text (data_type, db_name, descrip, aux_file, intent_name) may hold a patient's name
     # or record number: none of it is passed on
-    for start, length in _NIFTI_TEXT:
+    for start, length in _NIFTI_TEXT + _NIFTI_FREE_NUMBERS:
         head[start:start + length] = bytes(length)
     data = contiguous(array.T, array.dtype.newbyteorder(endian))  # x fastest
     with atomic_path(path) as tmp:

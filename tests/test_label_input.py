@@ -43,6 +43,10 @@ def write_nifti(path: Path, array: np.ndarray, spacing=SPACING, offset=OFFSET, c
     head[148:148 + 26] = b"made by a tool: DOE^JANE\0"  # descrip
     head[228:228 + 10] = b"ACC998877\0"  # aux_file
     head[328:328 + 8] = b"DOEJANE\0"  # intent_name
+    # and numbers that mean nothing for a label volume: a record number, a birth date
+    struct.pack_into("<3f", head, 56, 445566.0, 19840512.0, 7.0)  # intent_p1..3
+    struct.pack_into("<2f", head, 132, 19840512.0, 445566.0)  # slice_duration, toffset
+    struct.pack_into("<2i", head, 140, 445566, 19840512)  # glmax, glmin
     struct.pack_into("<2h", head, 252, code, code)
     struct.pack_into("<6f", head, 256, 0.0, 0.0, 0.0, *offset)
     struct.pack_into("<4f", head, 280, spacing, 0, 0, offset[0])
@@ -205,6 +209,8 @@ def test_run_labels_end_to_end(labelled, tmp_path, caplog):
     for path in out.iterdir():
         data = gzip.decompress(path.read_bytes()) if path.name.endswith(".gz") else path.read_bytes()
         assert not any(text in data for text in (b"DOE", b"JANE", b"MRN445566", b"ACC998877")), path.name
+        if path.name.endswith(".nii.gz"):  # nor its free numbers
+            assert not any(data[a:b].strip(b"\0") for a, b in ((32, 38), (56, 68), (74, 76), (120, 123), (132, 148)))
     # a rerun writes the same bytes
     first = {p.name: p.read_bytes() for p in out.iterdir()}
     assert _cli("run", "--labels", src, "-o", tmp_path / "again", "--config", config) == 0

@@ -245,6 +245,11 @@ def test_model_heading_is_the_same_from_the_workflow_dicer_run_and_the_stage(coh
     # the same smoothed mesh (its checksum is in the heading) and the settings' hash
     assert (cohort / "results" / "head" / "smoothed.vtu").read_bytes() == (tmp_path / "run" / "smoothed.vtu").read_bytes()
     assert f"config sha256/16 {settings_hash(load_config(config))}" in heads["workflow"]
+    # and every file both make, the report with its pictures among them
+    both = sorted({p.name for p in (cohort / "results" / "head").iterdir()} & {p.name for p in (tmp_path / "run").iterdir()})
+    assert "report.html" in both and len(both) >= 15
+    for name in both:
+        assert (cohort / "results" / "head" / name).read_bytes() == (tmp_path / "run" / name).read_bytes(), name
 
 
 def _requested(proc: subprocess.CompletedProcess) -> dict[tuple[str, str], int]:

@@ -741,14 +741,16 @@ def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_re
                             neighbours=neighbours, parts=parts)
     stages = {}
     for path in stage_reports:
-        stage = Path(path).name.split(".")[0]
         try:
-            stages[stage] = json.loads(Path(path).read_text())
+            content = json.loads(Path(path).read_text())
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise DicerError(f"{path}: cannot read the stage report ({exc}); rerun that stage") from None
-        if not isinstance(stages[stage], dict):
+        if not isinstance(content, dict):
             raise DicerError(f"{path}: not a stage report (a JSON object, as dicer fix, merge and smooth write with "
                              "--report); give those files")
+        # named by what it holds, not by its file name (which may carry a patient's code)
+        stage = next((s for s, key in _STAGE_REPORT_KEYS.items() if key in content), Path(path).name.split(".")[0])
+        stages[stage] = content
     if stages:
         report["stages"] = stages
     figures = _quality_figures(mesh, report, sj, dict(enumerate(settings["names"], start=1)), histogram,
@@ -757,13 +759,16 @@ def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_re
         shown = []
         for path in list(pictures) + figures:
             try:
-                shown.append((_PICTURE_CAPTIONS.get(Path(path).name, Path(path).name), pending(path).read_bytes()))
+                shown.append((_PICTURE_CAPTIONS.get(Path(path).name, "Picture"), pending(path).read_bytes()))
             except OSError as exc:
                 raise DicerError(f"{path}: cannot read the picture ({exc.strerror}); give an existing PNG "
                                  "with --picture") from None
         write_bytes_atomic(html, render_html(report, shown))
     return report
 
+
+_STAGE_REPORT_KEYS = {"fix": "type_a", "merge": "element_ratio", "smooth": "node_classes"}
+"""A key each stage's report holds and the others do not."""
 
 _PICTURE_CAPTIONS = {
     "segmentation.png": "Segmentation: the labels over the scan, three orthogonal slices",
@@ -1383,7 +1388,8 @@ def _add_report_commands(command) -> None:
     p.add_argument("--picture", action="append", metavar="PNG",
                    help="a further picture to embed in the HTML report, e.g. segmentation.png (repeatable)")
     p.add_argument("--stage-report", action="append", metavar="JSON",
-                   help="a stage report (fix.json, merge.json, smooth.json) to include (repeatable)")
+                   help="a stage report (fix.json, merge.json, smooth.json) to include (repeatable); named by "
+                        "what it holds, not by its file name")
     _add_materials_option(p)
     _add_config_options(p)
 

@@ -214,3 +214,36 @@ def test_a_voxel_mesh_with_split_nodes_is_no_voxel_mesh():
     assert voxel_elements(split) is None
     assert floating_parts(split)["model"] == {"parts": 2, "largest": 1, "smallest": 1, "floating_elements": 1}
     assert floating_parts(split) == _reference_parts(split)
+
+
+def test_stage_reports_and_pictures_are_named_by_content_not_by_file_name(tmp_path):
+    """A stage report was keyed by its file name up to the first dot and a picture captioned
+    with its file name: patient-coded names (MRN4711.smooth.json, DOE_overlay.png) reached
+    quality.json and report.html, and the same content under other names gave other bytes."""
+    import json
+    import shutil
+
+    from dicer.cli import main
+
+    lab = np.zeros((8, 8, 8), np.uint8)
+    lab[1:7, 1:7, 1:7] = 1
+    run = tmp_path / "run"
+    np.save(tmp_path / "l.npy", lab)
+    assert main(["run", "--labels", str(tmp_path / "l.npy"), "-o", str(run), "-q"]) == 0
+    outputs = []
+    for prefix in ("", "MRN4711."):
+        folder = tmp_path / (prefix or "plain")
+        folder.mkdir()
+        for stage in ("fix", "merge", "smooth"):
+            shutil.copy(run / f"{stage}.json", folder / f"{prefix}{stage}.json")
+        shutil.copy(run / "jacobian.png", folder / f"{prefix}DOE_overlay.png")
+        args = ["quality", str(run / "smoothed.vtu"), "-o", str(folder / "q.json"), "--html", str(folder / "q.html"),
+                "--picture", str(folder / f"{prefix}DOE_overlay.png"), "-q"]
+        for stage in ("smooth", "fix", "merge"):
+            args += ["--stage-report", str(folder / f"{prefix}{stage}.json")]
+        assert main(args) == 0
+        outputs.append(((folder / "q.json").read_bytes(), (folder / "q.html").read_bytes()))
+    assert outputs[0] == outputs[1]
+    report = json.loads(outputs[1][0])
+    assert sorted(report["stages"]) == ["fix", "merge", "smooth"]
+    assert b"MRN4711" not in outputs[1][0] + outputs[1][1] and b"DOE" not in outputs[1][1]

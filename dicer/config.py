@@ -731,8 +731,19 @@ def config_hash(config: dict) -> str:
     str
         16 hex digits.
     """
-    text = json.dumps(config, sort_keys=True, separators=(",", ":"))
+    text = json.dumps(_canonical_numbers(config), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _canonical_numbers(value):
+    """``value`` with every whole float written as an integer: ``1`` and ``1.0`` are one setting."""
+    if isinstance(value, dict):
+        return {k: _canonical_numbers(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_canonical_numbers(v) for v in value]
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return value
 
 
 def material_names(config: dict) -> dict[int, str]:

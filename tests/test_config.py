@@ -112,6 +112,11 @@ def test_config_hash_is_stable_and_sensitive():
     assert config_hash(a) == config_hash(b)
     assert len(config_hash(a)) == 16
     assert config_hash(a) != config_hash(load_config(sets=["export.thickness=3"]))
+    # a number spelled 1 or 1.0 is one setting (the deck's heading was other bytes)
+    assert config_hash(a) == config_hash(load_config(sets=["export.thickness=1"]))
+    assert config_hash(load_config(sets=["materials=[{name: a, youngs_modulus: 1}]"])) == \
+        config_hash(load_config(sets=["materials=[{name: a, youngs_modulus: 1.0}]"]))
+    assert config_hash({"x": [1.5, True, 2.0]}) != config_hash({"x": [1.5, True, 2.5]})
 
 
 def _set_names(names: list[str], sets) -> tuple[list[str], list[str]]:

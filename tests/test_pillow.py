@@ -209,3 +209,25 @@ def test_random_volumes_get_a_valid_conforming_layer(seed, dim, kinds):
     sides = nb_out[mesh.n_cells:, 2:] if dim == 3 else nb_out[mesh.n_cells:, [1, 3]]  # S3-S6; 2D: a-a', b'-b
     assert table.shape[0] > 0
     assert int(np.count_nonzero(nb_out < 0)) == faces.shape[0] + in_plane + int(np.count_nonzero(sides < 0))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_labels_filling_the_image_get_no_layer_and_no_error(dim):
+    """Every exterior face in a bounding plane (an atlas cropped inside the tissue): nothing to
+    pillow. Tracebacks before: a cast error on no faces, an index error when the guard had
+    dropped the few faces there were."""
+    full = np.ones((6,) * dim, np.uint8)
+    out, rep = smooth_mesh(voxel_mesh(full), ON)
+    assert rep["pillow"]["elements_added"] == 0 and rep["pillow"]["faces_without_layer"] == 0
+    assert out.n_cells == 6 ** dim
+    corner = np.ones((12,) * dim, np.uint8)
+    corner[(0,) * dim] = 0
+    mesh = voxel_mesh(corner)
+    faces, _, _ = layer_nodes(mesh)
+    assert faces.shape[0] == dim  # the empty corner voxel's sides off the bounding planes
+    out, rep = smooth_mesh(mesh, ON)
+    assert rep["pillow"]["elements_added"] + rep["pillow"]["faces_without_layer"] == dim
+    assert rep["inverted_elements"] == 0
+    from dicer.mesh.pillow import one_fan_per_node
+
+    assert one_fan_per_node(faces, np.zeros(faces.shape[0], bool), mesh.material[:faces.shape[0]]).sum() == 0

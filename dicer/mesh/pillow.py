@@ -92,7 +92,7 @@ def outward_normals(points: np.ndarray, faces: np.ndarray, nodes: np.ndarray, he
 
     def at_nodes(weights):  # (F, k) weights of the faces' unit vectors, summed at their nodes
         return np.stack([np.bincount(at.ravel(), weights=(weights * unit[:, None, k]).ravel(), minlength=nodes.size)
-                         for k in range(3)], axis=1)
+                         for k in range(3)], axis=1).astype(float)  # (bincount of nothing is integer)
 
     def normalised(v):
         v[held] = 0.0
@@ -168,6 +168,8 @@ def one_fan_per_node(faces: np.ndarray, kept: np.ndarray, material: np.ndarray) 
     nxt = np.array([1, 2, 3, 0])
     while True:
         idx = np.flatnonzero(kept)
+        if idx.size == 0:
+            return kept
         f = faces[idx].astype(np.int64)
         mat = np.asarray(material)[idx].astype(np.int64)
         k = f.shape[0] * 4

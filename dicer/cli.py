@@ -338,6 +338,11 @@ def do_downsample(labels_path: str, out: Path, config: dict):
                         "downsample.min_fraction toward 0.5 to keep volumes, or set downsample.morphology=false "
                         "to keep thin parts",
                         DOWNSAMPLE_VOLUME_WARNING, brief_json({n: f"{v:+.1f} %" for n, v in changed.items()}))
+        lost = [n for n, v in info["voxels_before"].items() if v and not info["voxels_after"].get(n)]
+        if lost:  # named in full count: the volume warning above names eight
+            log.warning("downsample: %d material(s) have no voxels left and no elements in the model: %s; lower the "
+                        "factor (or voxel_size), or set downsample.morphology=false for a label volume made "
+                        "elsewhere", len(lost), brief_names(lost))
         _warn_of_grid_growth(info)
     return reduced
 
@@ -389,7 +394,8 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
         if report["lost_materials"]:  # the deck would have no element set for them
             log.warning("fix: %d material(s) have no voxels left and no elements in the model: %s (removed as "
                         "floating parts below fix.min_component_voxels=%d, or too small to keep through the "
-                        "connectivity fixes); lower fix.min_component_voxels, or merge them into a neighbour",
+                        "connectivity fixes: a part of 1-3 voxels inside another material is filled by the type C "
+                        "fix); lower fix.min_component_voxels, set fix.type_c=false, or merge them into a neighbour",
                         len(report["lost_materials"]), brief_names(report["lost_materials"]),
                         settings["min_component_voxels"])
         if not report["converged"]:
@@ -1108,6 +1114,9 @@ def cmd_run(args):
     try:
         if args.labels is not None:
             step("labels")
+            from dicer.config import for_label_volume
+
+            config = for_label_volume(config)
             config["materials"] = do_labels(args.labels, path("labels.nii.gz"), config, path("materials.json"))
         else:
             step("segment")

@@ -718,6 +718,15 @@ def takes_settings(stage: str, section: bool = False):
     return decorate
 
 
+def for_label_volume(config: dict) -> dict:
+    """``config`` for a label volume made elsewhere (an atlas): ``downsample.morphology`` left
+    unset (null) becomes false, since the segment section's opening and closing, made for the
+    few classes of a scan, remove and regrow an atlas's small parcels. Returns a new dict."""
+    if config.get("downsample", {}).get("morphology", False) is not None:
+        return config
+    return {**config, "downsample": {**config["downsample"], "morphology": False}}
+
+
 def config_hash(config: dict) -> str:
     """Short SHA-256 of the canonical JSON of a configuration (provenance in exported decks).
 

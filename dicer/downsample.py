@@ -198,6 +198,7 @@ def downsample(labels: Volume, *, names: list[str], factor, voxel_size, min_frac
         raise DicerError(f"{source}: labels span {int(array.min())} .. {int(array.max())} but the config names "
                          f"{k} material(s) (labels 0..{k}); use the config the labels were segmented with")
     factor = reduction_factor(labels.spacing, factor=factor, voxel_size=voxel_size, source=source)
+    morphology = True if morphology is None else bool(morphology)  # null: a scan's default (for_label_volume)
     before = {n: v["voxels"] for n, v in label_counts(array, names).items()}
     info = {"factor": list(factor), "shape_before": list(array.shape)}
     if all(f == 1 for f in factor):

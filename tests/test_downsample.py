@@ -229,3 +229,40 @@ def test_a_grid_beyond_the_image_is_reported_and_growth_into_it_warned_of(tmp_pa
     assert main(["downsample", str(tmp_path / "inner.nii.gz"), "-o", str(tmp_path / "e.nii.gz"),
                  "--set", "downsample.factor=5", "-q"]) == 0
     assert not [r for r in caplog.records if "beyond the image" in r.getMessage()]
+
+
+def _block_atlas() -> np.ndarray:
+    """An atlas of 40 parcels (values 2, 5, 8, ...) made of aligned 4 x 4 x 4 blocks, 6^3 blocks."""
+    i, j, k = np.indices((6, 6, 6))
+    index = (i * 7 + j * 13 + k * 29) % 40 * 3 + 2
+    return np.kron(index, np.ones((4, 4, 4), int)).astype(np.uint16)
+
+
+def test_label_volumes_made_elsewhere_are_downsampled_without_the_scans_morphology(tmp_path, caplog):
+    """Factor 2 of an atlas of aligned 4-voxel parcels: every coarse voxel lies in one parcel.
+    The segment section's opening and closing (for a scan's few classes) removed most parcels
+    and regrew their neighbours into them; for 'dicer run --labels' null now means off, and
+    the materials lost are named in full."""
+    from dicer.cli import main
+    from dicer.config import for_label_volume, load_config
+    from dicer.io.images import read_labels, write_image
+
+    assert load_config()["downsample"]["morphology"] is None
+    assert for_label_volume(load_config())["downsample"]["morphology"] is False
+    assert for_label_volume(load_config(sets=["downsample.morphology=true"]))["downsample"]["morphology"] is True
+    atlas = _block_atlas()
+    write_image(Volume(atlas, (1.0, 1.0, 1.0)), tmp_path / "atlas.nii.gz")
+    assert main(["run", "--labels", str(tmp_path / "atlas.nii.gz"), "-o", str(tmp_path / "out"), "-q",
+                 "--set", "downsample.factor=2"]) == 0
+    fine = read_labels(tmp_path / "out" / "labels.nii.gz").array
+    coarse = read_labels(tmp_path / "out" / "labels_ds.nii.gz").array
+    assert np.array_equal(coarse, fine[::2, ::2, ::2]) and np.unique(coarse).size == 40
+    caplog.clear()
+    # 'dicer downsample' alone cannot tell an atlas from a scan's labels: on, and said
+    assert main(["downsample", str(tmp_path / "out" / "labels.nii.gz"), "-o", str(tmp_path / "d.nii.gz"),
+                 "--materials", str(tmp_path / "out" / "materials.json"), "--set", "downsample.factor=2",
+                 "-q"]) == 0
+    left = np.unique(read_labels(tmp_path / "d.nii.gz").array)
+    lost = [r.getMessage() for r in caplog.records if "have no voxels left" in r.getMessage()]
+    assert left.size == 23 and len(lost) == 1  # measured: 17 of 40 parcels lost
+    assert lost[0].startswith("downsample: 17 material(s) have no voxels left")

@@ -10,7 +10,7 @@ from pathlib import Path
 from snakemake.exceptions import WorkflowError
 
 from dicer.cli import downsample_applies
-from dicer.config import deep_merge, load_config, parse_set, stage_settings
+from dicer.config import deep_merge, for_label_volume, load_config, parse_set, stage_settings
 from dicer.errors import DicerError
 from dicer.phantoms import PHANTOMS
 from dicer.sheet import beside_sheet, read_sheet
@@ -95,9 +95,10 @@ def patient_config(patient):
     for item in overrides:
         merged = deep_merge(merged, parse_set(item, source=f"patients.tsv overrides of {patient}"))
     try:
-        return load_config(settings=merged)
+        loaded = load_config(settings=merged)
     except DicerError as exc:
         raise WorkflowError(f"patient {patient}: {exc}")
+    return for_label_volume(loaded) if PATIENTS[patient].get("labels") else loaded
 
 
 def _check_overrides():

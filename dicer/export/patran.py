@@ -70,7 +70,7 @@ def component_names(model) -> dict[int, str]:
     """Packet 21 name of each material present.
 
     Its name when it fits the 12 columns of the card and no other name cut to 12 is the
-    same; else the name cut and ended by ``_<label>``, cut shorter where that would be
+    same in upper case; else the name cut and ended by ``_<label>``, cut shorter where that would be
     another material's name (so the names are unique and a name that fits stays the
     user's own).
 
@@ -85,19 +85,20 @@ def component_names(model) -> dict[int, str]:
     """
     labels = list(model.labels())
     cut = {k: model.names[k][:12] for k in labels}
-    count = Counter(cut.values())
-    out = {k: v for k, v in cut.items() if count[v] == 1}
-    taken = set(out.values())
+    # compared in upper case: solvers read names so (Left_Hippoca and LEFT_HIPPOCA are one)
+    count = Counter(v.upper() for v in cut.values())
+    out = {k: v for k, v in cut.items() if count[v.upper()] == 1}
+    taken = {v.upper() for v in out.values()}
     for k in labels:
         if k in out:
             continue
         # names start with a letter, so "_<label>" alone is never another material's name
         for width in range(11 - len(str(k)), -1, -1):
             name = f"{model.names[k][:width]}_{k}"
-            if name not in taken:
+            if name.upper() not in taken:
                 break
         out[k] = name
-        taken.add(name)
+        taken.add(name.upper())
     return {k: out[k] for k in labels}
 
 

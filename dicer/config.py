@@ -341,7 +341,8 @@ def _explain(err: jsonschema.ValidationError) -> str:
 
 #: the schema's patterns in words
 _PATTERNS = {
-    "^(0|[1-9][0-9]*)$": "a label value: give a whole number without leading zeros (8, not 08)",
+    "^[1-9][0-9]*$": "a label value to mesh: give a whole number from 1, without leading zeros (8, not 08); "
+                     "0 is the background, never meshed",
     "^[A-Za-z][A-Za-z0-9_]{0,31}$": "a name: give a letter, then at most 31 letters, digits or _",
 }
 

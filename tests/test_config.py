@@ -182,8 +182,12 @@ def test_label_values_read_as_decimal_and_once(tmp_path):
         load_config(path)
     # a string key with a leading zero would name the same label as another: refused
     path.write_text("labels:\n  map: {'08': bone, 9: marrow}\n")
-    with pytest.raises(DicerError, match=r"key 'labels.map': \"08\" is not a label value: give a whole number "
-                                         r"without leading zeros \(8, not 08\)$"):
+    with pytest.raises(DicerError, match=r"key 'labels.map': \"08\" is not a label value to mesh: give a whole "
+                                         r"number from 1, without leading zeros \(8, not 08\); 0 is the background"):
+        load_config(path)
+    # value 0 is the background: a map entry for it was ignored without a word
+    path.write_text("labels:\n  map: {0: air, 1: soft}\n")
+    with pytest.raises(DicerError, match=r"\"0\" is not a label value to mesh: .* 0 is the background, never meshed$"):
         load_config(path)
     # --set still overrides the file's entry for a value (a string key over an integer one)
     path.write_text("labels:\n  map: {8: bone}\n")

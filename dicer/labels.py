@@ -27,6 +27,13 @@ log = logging.getLogger("dicer")
 DEFAULT_PROPERTIES = material_defaults()
 
 
+def _schema_materials() -> list[dict]:
+    """The ``materials`` section's default, completed as a loaded config completes it."""
+    from dicer.config import load_config
+
+    return load_config()["materials"]
+
+
 @takes_settings("labels")
 def resolve_materials(values, *, materials: list[dict], map: dict, drop: list,  # noqa: A002 (the key's name)
                       source: str = "labels") -> tuple[dict[int, int], list[dict]]:
@@ -87,6 +94,8 @@ def resolve_materials(values, *, materials: list[dict], map: dict, drop: list,  
                          f"{', '.join(str(v) for v in sorted(lut)) or 'none'}, dropped: {sorted(drop)}); "
                          "check labels.drop in the config")
     given = {m["name"]: m for m in materials}
+    # the default materials (a scan's soft tissue and bone) are no entries the user wrote
+    written = materials != _schema_materials()
     materials, defaulted = [], []
     for name in number:
         if name in given:
@@ -106,7 +115,7 @@ def resolve_materials(values, *, materials: list[dict], map: dict, drop: list,  
                     brief_names(absent), brief_names(unnamed),
                     brief_names([f"label_{v}" for v in unnamed]))
     mapped = [n for n in defaulted if n in set(names.values())]
-    unused = [m["name"] for m in given.values() if m["name"] not in number]
+    unused = [m["name"] for m in given.values() if m["name"] not in number] if written else []
     if mapped and unused:  # a name of labels.map and a materials entry that were meant to be one
         log.warning("labels: labels.map names %s, which no materials entry has (default properties: E %g MPa), "
                     "while the materials entries %s are used by no label; check the spelling of the names",

@@ -339,6 +339,8 @@ def _explain(err: jsonschema.ValidationError) -> str:
     return err.message
 
 
+_NAME = re.compile("^[A-Za-z][A-Za-z0-9_]{0,31}$")  # the schema's material name
+
 #: the schema's patterns in words
 _PATTERNS = {
     "^[1-9][0-9]*$": "a label value to mesh: give a whole number from 1, without leading zeros (8, not 08); "
@@ -388,6 +390,13 @@ def validate(config: dict, source: str = "config") -> dict:
         if not math.isfinite(value):
             raise DicerError(f"{source}: key '{where}': {value} is not a finite number; give a finite number "
                              "(see the allowed range in config/config.yaml)")
+    mapping = config.get("labels", {}).get("map", {}) if isinstance(config.get("labels"), dict) else {}
+    if isinstance(mapping, dict):  # an atlas's lookup table: every bad name at once, not one per run
+        bad = [f"{k}: {v!r}" for k, v in mapping.items() if isinstance(v, str) and not _NAME.match(v)]
+        if len(bad) > 1:
+            shown = ", ".join(bad[:12]) + (f" and {len(bad) - 12} more" if len(bad) > 12 else "")
+            raise DicerError(f"{source}: key 'labels.map': {len(bad)} names are not {_PATTERNS[_NAME.pattern]} "
+                             f"({shown})")
     errors = sorted(_validator().iter_errors(config), key=lambda e: (len(list(e.absolute_path)), e.message))
     if errors:
         err = errors[0]

@@ -185,6 +185,11 @@ def test_label_values_read_as_decimal_and_once(tmp_path):
     with pytest.raises(DicerError, match=r"key 'labels.map': \"08\" is not a label value to mesh: give a whole "
                                          r"number from 1, without leading zeros \(8, not 08\); 0 is the background"):
         load_config(path)
+    # an atlas's lookup table with several names no solver takes: all named in one error
+    path.write_text("labels:\n  map: {2: Left-Cortex, 4: '3rd-Ventricle', 5: ok_name, 7: 'a b'}\n")
+    with pytest.raises(DicerError, match=r"key 'labels.map': 3 names are not a name: give a letter, .* "
+                                         r"\(2: 'Left-Cortex', 4: '3rd-Ventricle', 7: 'a b'\)$"):
+        load_config(path)
     # value 0 is the background: a map entry for it was ignored without a word
     path.write_text("labels:\n  map: {0: air, 1: soft}\n")
     with pytest.raises(DicerError, match=r"\"0\" is not a label value to mesh: .* 0 is the background, never meshed$"):

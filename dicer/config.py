@@ -729,9 +729,22 @@ def takes_settings(stage: str, section: bool = False):
 
 
 def for_label_volume(config: dict) -> dict:
-    """``config`` for a label volume made elsewhere (an atlas): ``downsample.morphology`` left
-    unset (null) becomes false, since the segment section's opening and closing, made for the
-    few classes of a scan, remove and regrow an atlas's small parcels. Returns a new dict."""
+    """``config`` for a label volume made elsewhere (an atlas).
+
+    ``downsample.morphology`` left unset (null) becomes false: the segment section's opening
+    and closing, made for the few classes of a scan, remove and regrow an atlas's small
+    parcels.
+
+    Parameters
+    ----------
+    config : dict
+        A loaded configuration.
+
+    Returns
+    -------
+    dict
+        ``config`` itself when nothing changes, else a new dict (the input is not changed).
+    """
     if config.get("downsample", {}).get("morphology", False) is not None:
         return config
     return {**config, "downsample": {**config["downsample"], "morphology": False}}

@@ -191,6 +191,24 @@ def test_model_picture_of_a_2d_mesh(tmp_path):
     assert imread(path).shape[:2] == (500, 500)
 
 
+def test_model_picture_of_a_model_one_element_thick_along_x(tmp_path):
+    """Every element centre past the mid-plane of x (a plate merged to one element, then
+    smoothed): the cut panel had no face and the picture a numpy traceback; it cuts at the
+    centres' median then."""
+    labels = np.zeros((3, 6, 6), np.uint8)
+    labels[1, 1:5, 1:5] = 1
+    mesh = voxel_mesh(labels)
+    low = np.flatnonzero(np.isclose(mesh.points[:, 0], 1.0))
+    mesh.points[low[1:], 0] += 0.02  # one node keeps the lowest x, the others move in
+    centre = mesh.points[mesh.cells][:, :, 0].mean(axis=1)
+    assert (centre > 0.5 * (mesh.points[:, 0].min() + mesh.points[:, 0].max())).all()
+    path = save_model_picture(mesh, {1: "plate"}, tmp_path / "m.png")
+    picture = imread(path)[:, :, :3]
+    assert picture.shape[:2] == (500, 1000)
+    right = picture[:420, 500:]  # the cut panel holds faces: coloured pixels, not all white
+    assert np.count_nonzero(right.min(axis=2) < 0.9) > 1000
+
+
 def _report(elements, inverted=0, parts=1, bone=(1.5, 23.0)):
     return {"elements": elements, "nodes": elements + 7, "scaled_jacobian": {"min": 0.31, "p1": 0.52},
             "inverted_elements": inverted, "poor_elements": 2, "poor_threshold": 0.2,

@@ -476,6 +476,8 @@ def save_model_picture(mesh, names: dict, path, max_edges: int = 20000, neighbou
             centre_x += x[cells[:, k]]
         centre_x /= cells.shape[1]
         mid = 0.5 * (x.min() + x.max())
+        if not (centre_x <= mid).any():  # a model one element thick along x: its centres lie past the middle
+            mid = float(np.median(centre_x))
         fig = Figure(figsize=(10.0, 5.0), dpi=_DPI)
         panels = []
         views = [("exterior", np.ones(mesh.n_cells, bool)), (f"cut at x = {mid:.1f} mm", centre_x <= mid)]
@@ -490,7 +492,8 @@ def save_model_picture(mesh, names: dict, path, max_edges: int = 20000, neighbou
     fig.legend(handles=legend, loc="lower center", ncol=min(len(legend), 6), fontsize=8, frameon=False)
     FigureCanvasAgg(fig)
     for ax, xy, depth, colours, edges in panels:  # the limits first: they set the layout
-        lo, hi = xy.reshape(-1, 2).min(axis=0), xy.reshape(-1, 2).max(axis=0)
+        corners = xy.reshape(-1, 2) if xy.size else np.zeros((1, 2))  # (a panel with no face: empty)
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
         pad = 0.03 * float((hi - lo).max() or 1.0)
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(lo[1] - pad, hi[1] + pad)
@@ -498,6 +501,7 @@ def save_model_picture(mesh, names: dict, path, max_edges: int = 20000, neighbou
         ax.set_axis_off()
     fig.tight_layout(rect=(0, 0.06 * rows, 1, 1))
     for ax, xy, depth, colours, edges in panels:
-        _draw_faces(ax, xy, depth, colours, edges)
+        if xy.size:
+            _draw_faces(ax, xy, depth, colours, edges)
     _save(fig, path)
     return Path(path)

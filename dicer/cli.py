@@ -449,8 +449,15 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
     settings = stage_kwargs(config, "merge")
     # both methods build a new mesh and only read the input (a copy of 0.9 GB at 256^3
     # cost more than coarsening it)
-    merged, report = _mesh_to_mesh("merge", lambda m: merge_mesh(m, **settings), mesh_path, out, report_path,
-                                   mesh, mapped=True, write=write)
+    try:
+        merged, report = _mesh_to_mesh("merge", lambda m: merge_mesh(m, **settings), mesh_path, out, report_path,
+                                       mesh, mapped=True, write=write)
+    except DicerError as exc:
+        floor = settings.get("min_scaled_jacobian", 0.2)
+        if settings.get("method") != "planes" or floor > 0 or "degenerate or inverted" not in str(exc):
+            raise
+        raise DicerError(f"{exc}: merge.min_scaled_jacobian={floor:g} let merging make flat or inverted corners, "
+                         "which no later stage or solver takes; give a value above 0 (default 0.2)") from None
     _warn_of_volume_change(report, merged, settings)
     _warn_of_flat_templates(report, merged)
     log.info("merge: wrote %s (%d -> %d elements, %d -> %d nodes; volume %s)", out,

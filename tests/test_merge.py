@@ -732,3 +732,22 @@ def test_a_smoothed_mesh_is_refused_by_merge_and_warned_of_by_smooth(tmp_path, c
     assert not (tmp_path / "again.vtu").exists()
     assert main(["smooth", str(tmp_path / "smoothed.vtu"), "-o", str(tmp_path / "twice.vtu"), "-q"]) == 0
     assert "lie off their lattice points already: it was smoothed before" in caplog.text
+
+
+@pytest.mark.parametrize("floor", ["-1", "0"])
+def test_a_floor_that_lets_merging_flatten_corners_is_named_when_the_mesh_is_refused(tmp_path, capsys, floor):
+    """merge.min_scaled_jacobian -1 (the test off) and 0 (flat corners) on a ball: the merged
+    mesh holds flat elements, which the write refuses; the error named neither setting."""
+    from dicer.cli import main
+
+    g = np.indices((20, 20, 20)) - 9.5
+    labels = (np.sqrt((g ** 2).sum(axis=0)) < 8.3).astype(np.uint8)
+    np.save(tmp_path / "ball.npy", fixed(labels))
+    assert main(["mesh", str(tmp_path / "ball.npy"), "-o", str(tmp_path / "m.vtu"), "-q"]) == 0
+    capsys.readouterr()
+    code = main(["merge", str(tmp_path / "m.vtu"), "-o", str(tmp_path / "merged.vtu"), "-q",
+                 "--set", f"merge.min_scaled_jacobian={floor}"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and not (tmp_path / "merged.vtu").exists()
+    assert "degenerate or inverted element(s)" in err[0]
+    assert f"merge.min_scaled_jacobian={floor} let merging make flat or inverted corners" in err[0]

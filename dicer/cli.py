@@ -577,6 +577,12 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
     if said:  # a part a few voxels across loses its corners: a large share of it
         log.warning("%s; parts a few voxels across (after merging: a few merged elements) shrink most: lower "
                     "smooth.coefficient, or merge less (merge.passes, merge.min_thickness)", said)
+    layer = report.get("pillow")
+    faces = layer["elements_added"] + layer["faces_without_layer"] if layer else 0
+    if faces and layer["elements_added"] < 0.5 * faces:  # asked for, and mostly not made
+        log.warning("smooth: the pillow layer covers %d of the %d exterior faces (the others could not keep "
+                    "smooth.min_scaled_jacobian with it); lower smooth.pillow_thickness (now %g) or "
+                    "smooth.min_scaled_jacobian", layer["elements_added"], faces, layer["thickness_voxels"])
     return smoothed
 
 

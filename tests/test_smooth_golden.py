@@ -248,7 +248,7 @@ GOLDEN_SMOOTH = {
     "disc_backoff": "f6c6e3a4b72b0995 643e5e7302c863fb e27322067158518b 1 -",
     "quarter_disc_mirror": "0ff6464d518a41fd 38bd4ad4a81d2134 de91fc3dce2ef699 1 -",
     "quarter_disc_free": "aed86cb0aea72009 decf66e1f33d044e 24f776de02a722ae 1 -",
-    "merged": "a530d6398fe70d62 67b2f02161168701 4b19a571f1a81e60 0 -",
+    "merged": "a530d6398fe70d62 67b2f02161168701 e49b286f00f502ff 0 -",
     "graded": "14212e9998e3c920 156f82b159a44490 b1d4beb61faf2f31 0 -",
     "graded_2d": "87f381c418360458 8bfaf44b8d705e50 d2b4e01333818d5e 1 -",
     "stripes": "cfe39d74484ce0d9 efe7c648830f56d4 0b63c4462ba68759 0 -",

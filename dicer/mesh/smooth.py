@@ -498,7 +498,8 @@ def _template_nodes(mesh: Mesh, x0: np.ndarray) -> np.ndarray:
 
 
 def _lattice_volumes(mesh: Mesh) -> np.ndarray:
-    """Per element, the volume (2D: area) of its lattice box: exact before smoothing."""
+    """Per element, the volume (2D: area) of its lattice box: exact before smoothing for the
+    elements that are boxes (not for the chamfers of plane merging)."""
     far = 6 if mesh.dim == 3 else 2
     lattice = np.asarray(mesh.lattice)
     spacing = [float(mesh.spacing[d]) for d in range(mesh.dim)]
@@ -1150,7 +1151,13 @@ def _volume_change(st: _Smoothing) -> tuple[np.ndarray, float, np.ndarray]:
         Each material's volume before smoothing, mm^3 (mm^2).
     """
     mesh, g, checked, x0 = st.mesh, st.g, st.checked, st.x0
-    base = np.bincount(mesh.material, weights=element_volumes(x0, mesh.cells) if st.graded else _lattice_volumes(mesh))
+    if st.graded:
+        before = element_volumes(x0, mesh.cells)
+    else:  # lattice boxes, but merging's chamfers are no boxes: they lie at the boundary, measured there
+        before = _lattice_volumes(mesh)
+        before[g.boundary_cells] = element_volumes(x0, mesh.cells[g.boundary_cells])
+    base = np.bincount(mesh.material, weights=before)
+    del before
     if st.layer is not None:
         out = st.layer.mesh
         after = np.bincount(out.material, weights=element_volumes(out.points, out.cells), minlength=base.size)

@@ -621,3 +621,18 @@ def test_a_few_metal_voxels_leave_multi_otsu_on_the_bulk_of_the_image():
                                                                         "closing_radius": 0}})
     assert info["thresholds"][1] < 900
     assert np.count_nonzero(labels.array != truth) <= 0.002 * truth.size
+
+
+@settings(max_examples=150, deadline=None)
+@given(mask=st.integers(2, 3).flatmap(lambda dim: arrays(bool, st.tuples(*[st.integers(1, 12)] * dim))),
+       radius=st.integers(1, 7))
+def test_ball_morphology_by_distance_is_scipy_s(mask, radius):
+    """From radius 4 on, erosion and dilation by a ball go through the distance transform
+    (a closing of radius 20 took 254 s and 18 GB on a 48^3 phantom by scipy's binary
+    morphology, 0.75 s now): the same voxels as scipy's, border conventions included."""
+    from dicer.segment.morphology import ball, dilate, erode
+
+    fp = ball(radius, mask.ndim)
+    assert np.array_equal(dilate(mask, radius, by_distance=True), ndi.binary_dilation(mask, structure=fp))
+    assert np.array_equal(erode(mask, radius, by_distance=True),
+                          ndi.binary_erosion(mask, structure=fp, border_value=1))

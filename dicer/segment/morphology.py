@@ -74,6 +74,37 @@ def _copy_when_idle(operation):
     return wrapped
 
 
+_EDT_RADIUS = 4
+"""From this radius on, erosion and dilation by a ball go through a distance transform: its
+cost does not grow with the ball (a ball of radius 15 has 14,000 voxels; scipy's binary
+erosion visits each of them per voxel: 255 s on the head CT)."""
+
+
+def dilate(mask: np.ndarray, radius: int, by_distance: bool | None = None) -> np.ndarray:
+    """Binary dilation of ``mask`` by :func:`ball` (``radius``), nothing beyond the image.
+
+    ``by_distance`` (default: from ``_EDT_RADIUS`` on): every voxel within ``radius`` of a
+    ``mask`` voxel, by the exact Euclidean distance transform; the same voxels as scipy's
+    binary dilation by the ball."""
+    if by_distance if by_distance is not None else radius >= _EDT_RADIUS:
+        if not mask.any():
+            return np.zeros_like(mask)
+        distance = ndi.distance_transform_edt(~mask)
+        return np.rint(distance * distance) <= radius * radius
+    return ndi.binary_dilation(mask, structure=ball(radius, mask.ndim))
+
+
+def erode(mask: np.ndarray, radius: int, by_distance: bool | None = None) -> np.ndarray:
+    """Binary erosion of ``mask`` by :func:`ball` (``radius``), beyond the image counting as
+    ``mask`` (scipy's ``border_value=1``); ``by_distance`` as in :func:`dilate`."""
+    if by_distance if by_distance is not None else radius >= _EDT_RADIUS:
+        if mask.all():
+            return mask.copy()
+        distance = ndi.distance_transform_edt(mask)
+        return np.rint(distance * distance) > radius * radius
+    return ndi.binary_erosion(mask, structure=ball(radius, mask.ndim), border_value=1)
+
+
 def _face_structure(ndim: int) -> np.ndarray:
     return ndi.generate_binary_structure(ndim, 1)
 
@@ -98,7 +129,7 @@ def opening_by_reconstruction(mask: np.ndarray, radius: int) -> np.ndarray:
     -------
     opened : ndarray of bool, same shape as ``mask``
     """
-    eroded = ndi.binary_erosion(mask, structure=ball(radius, mask.ndim), border_value=1)
+    eroded = erode(mask, radius)
     comp, n = ndi.label(mask, structure=_face_structure(mask.ndim))
     keep = np.zeros(n + 1, dtype=bool)
     keep[comp[eroded]] = True
@@ -123,9 +154,8 @@ def closing(mask: np.ndarray, radius: int) -> np.ndarray:
     -------
     closed : ndarray of bool, same shape as ``mask``
     """
-    fp = ball(radius, mask.ndim)
     padded = np.pad(mask, radius, mode="edge")
-    closed = ndi.binary_erosion(ndi.binary_dilation(padded, structure=fp), structure=fp, border_value=1)
+    closed = erode(dilate(padded, radius), radius)
     return closed[tuple(slice(radius, -radius) for _ in range(mask.ndim))]
 
 

@@ -389,8 +389,12 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
                      report["islands"]["removed_parts"], settings["min_component_voxels"],
                      report["islands"]["removed_voxels"], brief_json(removed))
         if not fixed.any():
-            raise DicerError(f"{labels_path}: every part of the model is smaller than fix.min_component_voxels="
-                             f"{settings['min_component_voxels']}; lower it (0 keeps every part)")
+            if report["islands"]["removed_parts"]:
+                raise DicerError(f"{labels_path}: every part of the model is smaller than fix.min_component_voxels="
+                                 f"{settings['min_component_voxels']}; lower it (0 keeps every part)")
+            raise DicerError(f"{labels_path}: the connectivity fixes left no voxel (a part one voxel thin is "
+                             "filled by its neighbours' class in the type C majority rounds); set "
+                             "fix.majority_rounds=0 or fix.type_c=false to keep it")
         if report["lost_materials"]:  # the deck would have no element set for them
             log.warning("fix: %d material(s) have no voxels left and no elements in the model: %s (removed as "
                         "floating parts below fix.min_component_voxels=%d, or too small to keep through the "
@@ -398,9 +402,10 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
                         "fix); lower fix.min_component_voxels, set fix.type_c=false, or merge them into a neighbour",
                         len(report["lost_materials"]), brief_names(report["lost_materials"]),
                         settings["min_component_voxels"])
-        if not report["converged"]:
+        if not report["converged"] and any(report["remaining"].values()):
             log.warning("fix: stopped at a round cap with %s left; raise fix.max_iterations or "
                         "fix.max_type_c_rounds", report["remaining"])
+        _warn_of_fixed_volumes(labels.array, fixed, config)
         # same grid: the input's NIfTI header is kept, so the affine stays exactly the input's
         write_mapped_labels(Volume(fixed, labels.spacing, labels.origin, labels.direction), labels_path, out)
         _write_report(report_path, report)
@@ -409,6 +414,28 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
                  brief_json(report["type_b"]), brief_json(report["type_c"]), report["iterations"], report["majority_rounds"],
                  report["type_c_rounds"], report["type_c_sites"])
     return fixed
+
+
+def _warn_of_fixed_volumes(before: np.ndarray, after: np.ndarray, config: dict) -> None:
+    """Warn when the connectivity fixes changed a material's voxels by more than
+    STAGE_VOLUME_WARNING percent (a plate one voxel thin filled by its neighbours' class)."""
+    from dicer.config import material_names
+    from dicer.image import count_labels
+
+    names = material_names(config)
+    k = max(len(names), int(before.max(initial=0)), int(after.max(initial=0))) + 1
+    was, now = count_labels(before, k), count_labels(after, k)
+    percent = {str(c): round(100.0 * (int(now[c]) - int(was[c])) / int(was[c]), 2) for c in range(1, k) if was[c]}
+    said = _volume_changes("fix", percent, [names.get(c, f"label_{c}") for c in range(1, k)])
+    if said is None:
+        return
+    if min(percent.values()) < -STAGE_VOLUME_WARNING:
+        hint = ("the type C majority rounds fill parts one voxel thin with their neighbours' class and small parts "
+                "are removed: set fix.majority_rounds=0 (raise-only rounds) or lower fix.min_component_voxels to keep "
+                "them")
+    else:
+        hint = "the raise-only type C rounds thicken parts one voxel thin (a plate doubles): segment more finely"
+    log.warning("%s; %s", said, hint)
 
 
 class _InputError(DicerError):
@@ -470,10 +497,11 @@ STAGE_VOLUME_WARNING = 5.0
 """Percent change of a material's volume through merging or smoothing above which the stage warns."""
 
 
-def _volume_changes(stage: str, percent: dict, mesh) -> str | None:
-    """"name +x.x %" of the materials (label strings in ``percent``) whose volume the stage
-    changed by more than STAGE_VOLUME_WARNING percent, or None."""
-    names = {str(i): n for i, n in enumerate(mesh.names, start=1)}
+def _volume_changes(stage: str, percent: dict, material_names: list) -> str | None:
+    """"name +x.x %" of the materials (label strings in ``percent``; names of labels 1, 2, ...
+    in ``material_names``) whose volume the stage changed by more than STAGE_VOLUME_WARNING
+    percent, or None."""
+    names = {str(i): n for i, n in enumerate(material_names, start=1)}
     big = [(k, v) for k, v in percent.items() if abs(v) > STAGE_VOLUME_WARNING]
     if not big:
         return None
@@ -488,7 +516,8 @@ def _warn_of_volume_change(report: dict, mesh, settings: dict) -> None:
     slices) a step is several times the in-plane size."""
     import numpy as np
 
-    said = _volume_changes("merge", {k: v["change_percent"] for k, v in report.get("volume", {}).items()}, mesh)
+    said = _volume_changes("merge", {k: v["change_percent"] for k, v in report.get("volume", {}).items()},
+                           mesh.names)
     if said is None:
         return
     spacing = np.asarray(mesh.spacing[:mesh.dim], float)
@@ -573,7 +602,7 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
     smoothed, report = _mesh_to_mesh("smooth", run, mesh_path, out, report_path, mesh, mapped=True, write=write)
     log.info("smooth: wrote %s (%s)", out, json.dumps(_stable(report), sort_keys=True)[:600])
     said = _volume_changes("smooth", {k: 100 * v for k, v in report.get("volume_change_by_material", {}).items()},
-                           smoothed)
+                           smoothed.names)
     if said:  # a part a few voxels across loses its corners: a large share of it
         log.warning("%s; parts a few voxels across (after merging: a few merged elements) shrink most: lower "
                     "smooth.coefficient, or merge less (merge.passes, merge.min_thickness)", said)

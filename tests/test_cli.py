@@ -192,6 +192,30 @@ def test_fix_warns_of_a_material_it_leaves_without_voxels(tmp_path, capsys, capl
     assert json.loads((tmp_path / "fix.json").read_text())["lost_materials"] == []
 
 
+def test_fix_warns_of_a_volume_it_changes_and_names_the_rounds_that_left_nothing(tmp_path, capsys, caplog):
+    """A one-voxel plate near a block was filled away by the majority rounds (-6.7 %, exit 0,
+    no word), and a plate alone ended in 'smaller than fix.min_component_voxels=0; lower it'."""
+    a = np.zeros((12, 12, 12), np.uint8)
+    a[1:11, 1:11, 1:6] = 1
+    a[3:9, 3:9, 8] = 1  # a plate one voxel thin, apart from the block
+    np.save(tmp_path / "a.npy", a)
+    assert run_cli(capsys, "fix", tmp_path / "a.npy", "-o", tmp_path / "a.nii.gz", "-q",
+                   "--set", "fix.min_component_voxels=0")[0] == 0
+    warned = [r.getMessage() for r in caplog.records if r.getMessage().startswith("fix: material volume")]
+    assert len(warned) == 1 and "(soft_tissue -6.7 %)" in warned[0] and "fix.majority_rounds=0" in warned[0]
+    b = np.zeros((10, 10, 10), np.uint8)
+    b[2:8, 2:8, 5] = 1  # the plate alone
+    np.save(tmp_path / "b.npy", b)
+    code, err = run_cli(capsys, "fix", tmp_path / "b.npy", "-o", tmp_path / "b.nii.gz", "-q",
+                        "--set", "fix.min_component_voxels=0")
+    assert code == 2 and "the connectivity fixes left no voxel" in err and "fix.majority_rounds=0" in err
+    caplog.clear()
+    assert run_cli(capsys, "fix", tmp_path / "b.npy", "-o", tmp_path / "b.nii.gz", "-q", "--set",
+                   "fix.min_component_voxels=0", "--set", "fix.majority_rounds=0")[0] == 0
+    warned = [r.getMessage() for r in caplog.records if r.getMessage().startswith("fix: material volume")]
+    assert len(warned) == 1 and "(soft_tissue +100.0 %)" in warned[0] and "thicken" in warned[0]
+
+
 def test_merge_warns_when_it_grows_a_material_across_thick_slices(tmp_path, capsys, caplog):
     """Chamfers fill whole voxel steps: across 3 mm slices of 0.5 mm pixels a ball grows by
     far more than its in-plane merging would; the stage says so and which passes avoid it."""

@@ -520,6 +520,7 @@ def test_a_class_left_without_voxels_is_warned_of():
     labels, info = segment(Volume(image, (1.0, 1.0, 1.0)), config(method="manual"), "speck.nii.gz")
     assert info["thresholded"]["bone"] == 1 and info["classes"]["bone"]["voxels"] == 0
     assert info["warnings"] == [info["warnings"][0]] and "after the morphology (1 thresholded" in info["warnings"][0]
+    assert "segment.min_component_size" in info["warnings"][0]  # a setting that removes classes too
 
 
 def test_thresholds_at_the_end_of_their_range_are_warned_of():

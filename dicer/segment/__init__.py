@@ -227,9 +227,9 @@ def _empty_class_warnings(info: dict, names: list[str], thresholds) -> list[str]
                             "(or segment.ranges), or remove the material")
         else:
             warnings.append(f"class '{name}' holds no voxel after the morphology ({info['thresholded'][name]} "
-                            "thresholded, removed by the opening or segment.keep, or covered by the class "
-                            f"inside it), so material '{name}' gets no elements; lower segment.opening_radius "
-                            "or set segment.keep: all")
+                            "thresholded, removed by the opening, segment.keep or segment.min_component_size, or "
+                            f"covered by the class inside it), so material '{name}' gets no elements; lower "
+                            "segment.opening_radius or segment.min_component_size, or set segment.keep: all")
     return warnings
 
 

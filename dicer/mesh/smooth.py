@@ -1150,12 +1150,18 @@ def _volume_change(st: _Smoothing) -> tuple[np.ndarray, float, np.ndarray]:
     base : (max material + 1,) float64
         Each material's volume before smoothing, mm^3 (mm^2).
     """
-    mesh, g, checked, x0 = st.mesh, st.g, st.checked, st.x0
+    mesh, g, checked, x0, bc = st.mesh, st.g, st.checked, st.x0, st.g.boundary_cells
+    if checked.hex:  # the boundary cells' volumes from the checked elements' coordinate columns
+        local = checked.local[:, np.searchsorted(st.touched, bc)]  # bc is a subset of touched
+        columns = checked.columns(x0)
+        v0 = hex_volumes_t(columns, local)
+    else:
+        v0 = element_volumes(x0, mesh.cells[bc])
     if st.graded:
         before = element_volumes(x0, mesh.cells)
     else:  # lattice boxes, but merging's chamfers are no boxes: they lie at the boundary, measured there
         before = _lattice_volumes(mesh)
-        before[g.boundary_cells] = element_volumes(x0, mesh.cells[g.boundary_cells])
+        before[bc] = v0
     base = np.bincount(mesh.material, weights=before)
     del before
     if st.layer is not None:
@@ -1163,18 +1169,16 @@ def _volume_change(st: _Smoothing) -> tuple[np.ndarray, float, np.ndarray]:
         after = np.bincount(out.material, weights=element_volumes(out.points, out.cells), minlength=base.size)
         change = after[: base.size] - base
         return change, float(change.sum()), base
-    bc = g.boundary_cells
     if checked.hex:
-        local = checked.local[:, np.searchsorted(st.touched, bc)]  # bc is a subset of touched
-        before = checked.columns(x0)
         on_boundary = g.boundary[checked.nodes]
-        after = [np.where(on_boundary, c1, c0) for c1, c0 in zip(checked.last, before)]
-        dv = hex_volumes_t(after, local) - hex_volumes_t(before, local)
-        del local, before, after
+        for c1, c0 in zip(checked.last, columns):  # only the boundary nodes moved
+            np.copyto(c0, c1, where=on_boundary)
+        dv = hex_volumes_t(columns, local) - v0
+        del local, columns
     else:
         xb_only = x0.copy()
         xb_only[st.bnodes] = st.x[st.bnodes]
-        dv = element_volumes(xb_only, mesh.cells[bc]) - element_volumes(x0, mesh.cells[bc])
+        dv = element_volumes(xb_only, mesh.cells[bc]) - v0
         del xb_only
     return np.bincount(mesh.material[bc], weights=dv, minlength=base.size), float(dv.sum()), base
 

@@ -21,7 +21,7 @@ holds :data:`LARGE_JOB` elements or voxels or more keep numpy's huge pages
 Fresh pages cost most where memory is given back and taken again: glibc's malloc returns
 every freed block of 32 MB or more to the kernel, and the next array of that size is
 faulted in and zeroed page by page again. A stage makes and drops such arrays hundreds
-of times: ``dicer run``, ``merge``, ``export`` and ``quality`` keep freed memory in the
+of times: ``dicer run``, ``merge``, ``smooth``, ``export`` and ``quality`` keep freed memory in the
 process for the next arrays (:func:`reuse_freed_memory`), unless the environment tunes
 glibc's malloc itself.
 Measured at 256³: ``dicer run`` 37-38 s with 16-17 s in the kernel -> 31-34 s with 8 s,

@@ -772,6 +772,12 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
                         "part (the smallest part %d); hold each part in the solver, or drop the parts below a "
                         "size with fix.min_component_voxels", whole["parts"], whole["floating_elements"],
                         whole["smallest"])
+        if report["stretched_elements"]:  # a solver's stresses suffer in them long before it refuses them
+            log.warning("quality: %d element(s) have an edge ratio above %g (largest %.3g); elongated voxels "
+                        "(downsample with a factor per axis), merging across the long axis (merge.passes) or a thin "
+                        "pillow layer (smooth.pillow_thickness) make them; quality.stretched_edge_ratio sets the "
+                        "limit", report["stretched_elements"], report["stretched_threshold"],
+                        report["edge_ratio"]["max"])
     return report
 
 

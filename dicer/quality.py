@@ -206,7 +206,8 @@ def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None) -> dict:
 
 
 @takes_settings("quality")
-def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, labels=None, original=None,
+def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stretched_edge_ratio: float = 20.0,
+                   labels=None, original=None,
                    metrics: dict | None = None, neighbours: np.ndarray | None = None,
                    parts: dict | None = None) -> dict:
     """Quality figures of a mesh as a JSON-ready dict.
@@ -222,6 +223,9 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, labe
         Material names, label 1 first.
     poor_scaled_jacobian : float
         Elements below this scaled Jacobian are counted as poor.
+    stretched_edge_ratio : float
+        Elements whose longest edge is more than this many times their shortest are
+        counted as stretched (a solver's accuracy suffers long before the Jacobian does).
     labels : Volume, optional
         The labels the mesh came from; adds voxel counts and the volume of the mesh
         against the voxel volume per material.
@@ -291,6 +295,8 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, labe
         "inverted_elements": int(np.count_nonzero(sj <= 0)),
         "poor_elements": int(np.count_nonzero(sj < poor)),
         "poor_threshold": poor,
+        "stretched_elements": int(np.count_nonzero(er > stretched_edge_ratio)),
+        "stretched_threshold": float(stretched_edge_ratio),
     }
     parts = floating_parts(mesh, neighbours) if parts is None else parts
     report["parts"] = {"model": parts["model"],
@@ -406,7 +412,8 @@ def render_html(report: dict, pictures: list[tuple[str, bytes]] = ()) -> str:
     str
     """
     top = [(k, report[k]) for k in ("dimension", "element_type", "nodes", "elements", "inverted_elements",
-                                      "poor_elements", "poor_threshold")]
+                                      "poor_elements", "poor_threshold", "stretched_elements",
+                                      "stretched_threshold") if k in report]
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>dicer mesh quality</title>",
         f"<style>{STYLE}</style></head><body>",

@@ -54,6 +54,8 @@ def test_material_defaults_filled_per_item():
         ("materials=[{name: a}, {name: BOUNDARY}]", ["a_BOUNDARY"]),
         ("materials=[{name: Exterior_S2}]", ["Exterior_S2", "exterior face set"]),
         ("materials.0=1", ["materials"]),
+        ("smooth.pillow_thickness=0.01", ["smooth.pillow_thickness", "0.05"]),
+        ("quality.stretched_edge_ratio=0.5", ["quality.stretched_edge_ratio", "1"]),
     ],
 )
 def test_bad_keys_and_types_name_the_key(item, words):

@@ -27,6 +27,29 @@ def test_report_counts_and_metrics():
     assert report["element_volume_mm^3"]["total"] == pytest.approx(96.0 + 8.0)
 
 
+def test_stretched_elements_are_counted_against_the_edge_ratio_limit(tmp_path, caplog):
+    # a 4 x 1 x 1 bar on 0.2 x 1 x 1 mm voxels: edge ratio 5; one end element pulled out to 6
+    mesh = voxel_mesh(np.ones((4, 1, 1), np.uint8), spacing=(0.2, 1.0, 1.0))
+    report = quality_report(mesh, load_config())
+    assert report["stretched_elements"] == 0 and report["stretched_threshold"] == 20.0
+    assert report["edge_ratio"]["max"] == pytest.approx(5.0)
+    assert quality_report(mesh, load_config(), stretched_edge_ratio=4.5)["stretched_elements"] == 4
+    mesh.points[mesh.lattice[:, 0] == 4, 0] += 5.8  # the last element 6 mm long: ratio 6
+    assert quality_report(mesh, load_config(), stretched_edge_ratio=5.5)["stretched_elements"] == 1
+    assert "<th>stretched_elements</th><td>1</td>" in render_html(
+        quality_report(mesh, load_config(), stretched_edge_ratio=5.5))
+    # the command warns, naming the limit and the count
+    from dicer.cli import main
+    from dicer.io.meshes import write_mesh
+
+    write_mesh(mesh, tmp_path / "m.vtu")
+    with caplog.at_level("WARNING"):
+        assert main(["quality", str(tmp_path / "m.vtu"), "-o", str(tmp_path / "q.json"),
+                     "--set", "quality.stretched_edge_ratio=4.5"]) == 0
+    said = [r.getMessage() for r in caplog.records if "edge ratio above" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("quality: 4 element(s) have an edge ratio above 4.5 (largest 6)")
+
+
 def test_inverted_elements_are_counted_and_html_renders():
     labels = np.ones((2, 2, 2), np.uint8)
     mesh = voxel_mesh(labels)

@@ -493,6 +493,10 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
     return merged
 
 
+SMOOTH_BACKOFF_WARNING = 0.1
+"""Share of the boundary nodes whose smoothing the quality guard backed off above which the
+smooth stage warns (the head CT at defaults: 171 of 397,774)."""
+
 STAGE_VOLUME_WARNING = 5.0
 """Percent change of a material's volume through merging or smoothing above which the stage warns."""
 
@@ -606,6 +610,12 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
     if said:  # a part a few voxels across loses its corners: a large share of it
         log.warning("%s; parts a few voxels across (after merging: a few merged elements) shrink most: lower "
                     "smooth.coefficient, or merge less (merge.passes, merge.min_thickness)", said)
+    backed, nodes = report["backed_off_nodes"], report["boundary_nodes"]
+    if backed > SMOOTH_BACKOFF_WARNING * nodes:  # the guard undid much of the smoothing: a near-staircase model
+        log.warning("smooth: the quality guard backed off %d of the %d boundary nodes (%.0f %%; mean boundary move "
+                    "%.3g mm) to keep smooth.min_scaled_jacobian=%g: much of the surface stays the voxel staircase; "
+                    "lower smooth.min_scaled_jacobian (default 0.2)", backed, nodes, 100.0 * backed / nodes,
+                    report["mean_boundary_displacement_mm"], settings["min_scaled_jacobian"])
     layer = report.get("pillow")
     faces = layer["elements_added"] + layer["faces_without_layer"] if layer else 0
     if faces and layer["elements_added"] < 0.5 * faces:  # asked for, and mostly not made

@@ -493,7 +493,7 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
     return merged
 
 
-SMOOTH_BACKOFF_WARNING = 0.1
+SMOOTH_BACKOFF_WARNING = 0.25
 """Share of the boundary nodes whose smoothing the quality guard backed off above which the
 smooth stage warns (the head CT at defaults: 171 of 397,774)."""
 
@@ -613,9 +613,15 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
     backed, nodes = report["backed_off_nodes"], report["boundary_nodes"]
     if backed > SMOOTH_BACKOFF_WARNING * nodes:  # the guard undid much of the smoothing: a near-staircase model
         log.warning("smooth: the quality guard backed off %d of the %d boundary nodes (%.0f %%; mean boundary move "
-                    "%.3g mm) to keep smooth.min_scaled_jacobian=%g: much of the surface stays the voxel staircase; "
+                    "%.3g mm) to keep smooth.min_scaled_jacobian=%g: the surface there stays near the voxel staircase; "
                     "lower smooth.min_scaled_jacobian (default 0.2)", backed, nodes, 100.0 * backed / nodes,
                     report["mean_boundary_displacement_mm"], settings["min_scaled_jacobian"])
+    pull = report.get("surface_from_image")
+    if pull and pull["nodes_on_the_image_surface"] < 0.5 * pull["nodes_between_two_kinds"]:
+        log.warning("smooth: %d of the %d boundary nodes between two materials reach the scan's iso-surface: the "
+                    "others stay where the labels put them; smooth.image_sigma=%g may blur the edges away (default "
+                    "0.5), or the thresholds do not match the scan (--thresholds)",
+                    pull["nodes_on_the_image_surface"], pull["nodes_between_two_kinds"], pull["image_sigma"])
     layer = report.get("pillow")
     faces = layer["elements_added"] + layer["faces_without_layer"] if layer else 0
     if faces and layer["elements_added"] < 0.5 * faces:  # asked for, and mostly not made

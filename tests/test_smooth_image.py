@@ -140,6 +140,28 @@ def test_cli_smooth_with_image(tmp_path, capsys, caplog):
     assert not (tmp_path / "c.vtu").exists()
 
 
+def test_nodes_that_miss_the_iso_surface_are_counted_and_warned_of(tmp_path, caplog):
+    """image_sigma 3 on the shell phantom (a skull a voxel or two thick) blurs its edges away:
+    2 of 2,392 nodes found the iso-surface, while smooth.json said 2,260 were on it (it
+    counted every node with its whole pull left)."""
+    assert main(["phantom", "shell", "-o", str(tmp_path / "shell.nii.gz"), "--size", "24", "-q"]) == 0
+    for sigma, warned in ((0.5, False), (3.0, True)):
+        caplog.clear()
+        out = tmp_path / f"out{sigma}"
+        assert main(["run", str(tmp_path / "shell.nii.gz"), "-o", str(out), "-q", "--set",
+                     "smooth.surface_from_image=true", "--set", f"smooth.image_sigma={sigma}"]) == 0
+        pull = json.loads((out / "smooth.json").read_text())["surface_from_image"]
+        said = [r.getMessage() for r in caplog.records if "reach the scan's iso-surface" in r.getMessage()]
+        assert len(said) == int(warned)
+        on, kinds = pull["nodes_on_the_image_surface"], pull["nodes_between_two_kinds"]
+        if warned:
+            assert on <= pull["nodes_moved"] < 0.01 * kinds
+            assert said[0].startswith(f"smooth: {on} of the {kinds} boundary nodes")
+            assert "smooth.image_sigma=3" in said[0]
+        else:
+            assert on > 0.9 * kinds
+
+
 def test_pillow_puts_the_surface_on_the_scan(phantom):
     # a pillow layer (smooth.pillow) frees the surface nodes from the corners the quality
     # floor otherwise leaves: they stay where the iso-surface projection put them.

@@ -579,6 +579,8 @@ class _Pull:
         Positions on the iso-surfaces (mm) for the current boundary solve.
     info : dict or None
         ``project``'s report for the current boundary solve.
+    found : (B,) bool or None
+        Nodes whose target lies on an iso-surface (a crossing found near them).
     """
 
     surface: object
@@ -588,6 +590,7 @@ class _Pull:
     rounds: int = 0
     target: np.ndarray | None = None
     info: dict | None = None
+    found: np.ndarray | None = None
 
 
 @dataclass
@@ -812,6 +815,7 @@ def _pull_onto_image(st: _Smoothing, xb_labels: np.ndarray) -> None:
     from dicer.mesh.subvoxel import lift, project
 
     on_surface, st.pull.info = project(st.pull.surface, st.pull.sides, st.adj, st.degree, st.x0, st.bnodes, xb_labels)
+    st.pull.found = np.any(on_surface != xb_labels, axis=1)
     if st.surface is None and st.s["pillow"]:
         st.surface = on_surface
     st.pull.target = lift(st.pull.sides, on_surface, float(st.s["min_scaled_jacobian"]))
@@ -1190,7 +1194,7 @@ def _pull_report(st: _Smoothing) -> dict:
     p = st.pull
     return {"surface_from_image": {**p.info, "image_sigma": st.s["image_sigma"], "pull_backoff_rounds": p.rounds,
                                    "pull_backed_off_nodes": int(p.backed.sum()),
-                                   "nodes_on_the_image_surface": int(np.count_nonzero(p.share == 1.0))}}
+                                   "nodes_on_the_image_surface": int(np.count_nonzero((p.share == 1.0) & p.found))}}
 
 
 def _report(st: _Smoothing, t0: float) -> dict:

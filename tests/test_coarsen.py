@@ -292,6 +292,31 @@ def test_templates_on_long_voxels_are_reported_and_warned(tmp_path, caplog):
     assert not [r for r in caplog.records if "transition templates" in r.getMessage()]
 
 
+def test_templates_that_make_no_fewer_elements_are_warned_of(tmp_path, caplog):
+    # an 8^3 block: 48 cubes became transitions (min scaled Jacobian 1.0 -> 0.30), 512 -> 512
+    from dicer.cli import main
+    from dicer.io.meshes import write_mesh
+
+    path = tmp_path / "block.vtu"
+    caplog.set_level("WARNING", logger="dicer")
+    for size, warned in ((8, True), (30, False)):
+        caplog.clear()
+        write_mesh(voxel_mesh(np.ones((size,) * 3, np.uint8)), path)
+        assert main(["merge", str(path), "-o", str(tmp_path / "graded.vtu"), "--set", "merge.method=templates",
+                     "--report", str(tmp_path / "merge.json")]) == 0
+        import json
+
+        report = json.loads((tmp_path / "merge.json").read_text())
+        said = [r.getMessage() for r in caplog.records if "made no fewer elements" in r.getMessage()]
+        assert len(said) == int(warned)
+        if warned:
+            assert report["elements_after"] == report["elements_before"] == 512
+            assert said[0].startswith("merge: the transition templates made no fewer elements (512 -> 512; min "
+                                      f"scaled Jacobian {report['min_scaled_jacobian']:.3f})")
+        else:
+            assert report["elements_after"] < 0.7 * report["elements_before"]  # 27,000 -> 17,880
+
+
 @st.composite
 def label_volumes(draw, dim):
     shape = tuple(draw(st.integers(12, 40 if dim == 2 else 16)) for _ in range(dim))

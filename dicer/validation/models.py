@@ -103,8 +103,10 @@ def build(labels: np.ndarray, folder: str | os.PathLike, sets: list[str] = (), o
     decks = {}
     for order in orders:
         deck = out / ("model.inp" if order == 1 else f"model_order{order}.inp")
+        # the export reads its own section only (the others would be warned of as unread)
+        export_sets = [a for s in sets if s.startswith(("export.", "materials")) for a in ("--set", s)]
         if order != 1 and main(["export", str(out / "smoothed.vtu"), "-o", str(deck), "--order", str(order),
-                                *common]) != 0:
+                                "--config", str(folder / "config.yaml"), *export_sets, "-q"]) != 0:
             raise DicerError(f"{folder}: dicer export --order {order} failed")
         decks[order] = deck
     return {"decks": decks, "quality": json.loads((out / "quality.json").read_text()),

@@ -225,6 +225,42 @@ def test_two_dimensional_deck(tmp_path, config):
     assert "EXTERIOR_S4, S4" in text
 
 
+@pytest.mark.parametrize("order", [1, 2])
+def test_plane_sets_hold_only_nodes_on_their_plane(tmp_path, caplog, mesh, order):
+    """A tube cut by the z planes, smoothed with bounding_planes free and
+    keep_bounding_planes false: its cut faces leave z = 0 and z = 4, so Z0 and Z1 would
+    hold nodes off the plane (a symmetry condition on them pulls them back)."""
+    from dicer.mesh.quadratic import quadratic_mesh
+    from dicer.mesh.smooth import smooth_mesh
+
+    g = np.indices((12, 12, 4)).astype(float) - 5.5
+    r = np.hypot(g[0], g[1])
+    tube = voxel_mesh(((r < 5) & (r > 2)).astype(np.uint8))
+    cfg = {"export": {"order": order, "sets": ["planes"]}}
+    mirrored, _ = smooth_mesh(tube, {})
+    loose, _ = smooth_mesh(tube, {"bounding_planes": "free", "keep_bounding_planes": False})
+    # mirror planes keep every plane node on its plane: the sets are those of the lattice
+    model = prepare_model(mirrored, cfg, path=tmp_path / "m.inp")
+    assert sorted(model.node_sets) == ["Z0", "Z1"] and "moved nodes" not in caplog.text
+    z0 = np.flatnonzero(mirrored.lattice[:, 2] == 0)
+    n = z0.size if order == 1 else np.count_nonzero(quadratic_mesh(tube)[2][:, 2] == 0)  # + mid-edge nodes
+    assert n == (96 if order == 1 else 96 + 164) and model.node_sets["Z0"].size == n
+    assert np.abs(loose.points[z0, 2]).min() > 1e-4  # every cut-face node of the loose model left the plane
+    model = prepare_model(loose, cfg, path=tmp_path / "m.inp")
+    assert model.node_sets == {}
+    assert (f"m.inp: smoothing moved nodes of the image's bounding planes off them (Z0: {n} of {n} nodes, "
+            f"Z1: {n} of {n} nodes), which smooth.keep_bounding_planes: false allows") in caplog.text
+    # a plane left in part keeps the nodes still on it, within 1e-6 voxel
+    x0 = np.flatnonzero(mesh.lattice[:, 0] == 0)
+    mesh.points = mesh.points.copy()
+    mesh.points[x0[:3], 0] += 2e-6 * mesh.spacing[0]
+    mesh.points[x0[3], 0] += 5e-7 * mesh.spacing[0]
+    caplog.clear()
+    model = prepare_model(mesh, {"export": {"sets": ["planes"]}}, path=tmp_path / "m.inp")
+    assert np.array_equal(model.node_sets["X0"], x0[3:]) and f"(X0: 3 of {x0.size} nodes)" in caplog.text
+    assert sorted(model.node_sets) == ["X0", "X1", "Y0", "Y1", "Z0", "Z1"]
+
+
 def test_heading_is_the_same_for_a_config_its_sections_and_the_keywords(tmp_path, mesh, config):
     # one settings path: the whole config, the export sections alone (as the workflow passes
     # them), the keywords of stage_kwargs and a partial config that leaves defaults out give

@@ -34,9 +34,11 @@ def labels():
 @pytest.fixture
 def mesh(labels):
     m = voxel_mesh(labels, spacing=(0.5, 0.75, 1.25), origin=(-1.0, 2.0, 0.5))
-    # a smoothed-looking mesh: move interior-free nodes a little, keep elements valid
+    # a smoothed-looking mesh: move nodes a little, keep elements valid; nodes on the
+    # image's bounding planes stay in them, as smoothing keeps them
     rng = np.random.default_rng(0)
-    m.points += rng.uniform(-0.05, 0.05, m.points.shape)
+    on_plane = (m.lattice == 0) | (m.lattice == m.grid_shape)
+    m.points += np.where(on_plane, 0.0, rng.uniform(-0.05, 0.05, m.points.shape))
     return m
 
 

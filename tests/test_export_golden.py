@@ -34,41 +34,41 @@ CASES = {
 
 GOLDEN_VERSION = "0.1.0"
 GOLDEN = {
-    "3d_o1.inp": "24d9fa98a3efe7f236c23efe49d4be86b731517c54981202a30bdedb25a3d6bd",
-    "3d_o1.vtu": "372ca48e87097622ef689cd1dfdceac032e85fb1a8a59e2c92fb9ce6f0e454b4",
-    "3d_o1.out": "cc7e3062190f0d5fa713e2802d061280ffcc6eeb17ab54bde8ae2630c9c71695",
-    "3d_o1.neu": "cc7e3062190f0d5fa713e2802d061280ffcc6eeb17ab54bde8ae2630c9c71695",
-    "3d_o1.k": "9fde3d34f93cdc932e80dd0f87d247037f27979d4072f7c1561b00c1bde1f5a6",
-    "3d_o1.msh": "2f2a263c457e388e0654c0d048138096aa8c7a75f3251e5e72e4bf1f57d49e53",
-    "3d_o1.exo": "2cdffacf54a16102abcdfbbb85be5faae3e0e40c3152550d37d35330bc575289",
-    "3d_o1.feb": "e548586b7e478364f224088d095e8e67ed2b41a72fbd9c4ff894b2f8ea9e9af5",
-    "3d_o1_mirror.inp": "df71c754f114b8fc0752e0a8451df8c234db4c059b5f80526c8ec5f17659af25",
-    "3d_o1_mirror.vtu": "4748666570075d74bbb9dc9c17970fca7ab36af5816c3c19eb3df9aa35b32edb",
-    "3d_o1_mirror.out": "6a979e3c6b65581669dbf03403a69e8e976f90b8fdeaeab45d96f9424b395759",
-    "3d_o1_mirror.k": "d5521f01c01365bdb8030304b07b7a212d99b59352c80e255e4702d54393a3cb",
-    "3d_o1_mirror.msh": "57dd0cfe5ed39d231c62a2e4978309d215ac96cc7fc717f3b25a12956ed3a79f",
-    "3d_o1_mirror.exo": "3ace8f8336ee02c159aa40022da922463168ce1b618cbe9fc81637874ff85988",
-    "3d_o1_mirror.feb": "47a896bf3afb89043a309e7c34b9af1d1ff92f7f72cfe38919407d3fbb04ce0c",
-    "3d_o2.inp": "3ecb8b7dc0d574ac75eb000d5a6a571eb7f4e4fa8a5c3a3c34ad4458cb9d802c",
-    "3d_o2.vtu": "7e9576b9a855c7889592b9acc32cfc449dcca45cabc774fe1800731d40870e98",
-    "3d_o2.out": "3c87b9a09f23b2ce136fe246335ccf100b3e5c50bb635dc2fa48d0a6c9c4a725",
-    "3d_o2.msh": "4bfcdd801498fd533798d20d4739d72203a77cc64a5455d287526e1b669efa69",
-    "3d_o2.exo": "e8b66778a9c68b4ce8fe57ad3451998ff6b7c6831294f31b1c3b987f925684a6",
-    "3d_o2.feb": "5edeeaa295a80202929c0176c61362298f53a71c7e96285f1cba13564eb1a32f",
-    "2d_o1.inp": "e9e2073d8c14753aca9a6f5d5dbf6a874f6af82335d0e0acb917a453a0c420f8",
-    "2d_o1.vtu": "65c857c674ccdcc50367886d5fb93171a5d2cd144963ee89d95693e51f9afc48",
-    "2d_o1.out": "77bf5c4dd7fcbefaf74b598d115b50d43676cd776ac1332f5946130cd9d3aca0",
-    "2d_o1.msh": "1bb08b1703c061531d8233eff2650eb2e8104541ab8b8a0c149f00c161ad5780",
-    "2d_o1.exo": "9435cba6f0a0261344bb8d9f595565b4a58e9c20fdd95386b34170d85f50586e",
-    "2d_o2.inp": "46568e57a0eadc8a4631cb365ce1bb865f9d76d572a17a30ac46ed1c9705543b",
-    "2d_o2.vtu": "6b8340ec1ffde409dda2e3fc10405405b45e3a85411fd28c9a0d8a6a02e745cd",
-    "2d_o2.out": "a00807e60cc58b9ecb44fd62502f14f06901293d888b9a4c0b744e2d86e615e1",
-    "2d_o2.msh": "1e731fe075a3239c005bedd684de8ba4ad7be3bf63c18dda5e6e52283d068839",
-    "2d_o2.exo": "b45bdd51abe277b6a3c07485bd07153af68e3d84e4fcf1932ff56575d44eb73a",
-    "stl_3d_o1/bone.stl": "bad895442df03d22e2f6ecbf252b78c3096d16ffaf35ac443fbd010f507e3cb8",
-    "stl_3d_o1/soft.stl": "3f20a762fc638166fb0e70a4f5cf1dea8c9eca2cabaaaecf8c92bf3e05fc45aa",
-    "stl_3d_o1_mirror/bone.stl": "bc89d88107250a795573dc7fb58663c142ecd3226bd60b77abcc77dcf5907e65",
-    "stl_3d_o1_mirror/soft.stl": "131d6de663571021a843cb11449ecf52c06197016b202e45e156b7e36e528200",
+    "3d_o1.inp": "0053abb5af1c0c6ac9ffd3f7ba974e5d3a30af0d9c0ef4f574013a45adcfc9bb",
+    "3d_o1.vtu": "842dd43ea112e8a2c696ae73ca63282920d63929595491f66e7825f8ba4a86fd",
+    "3d_o1.out": "36dbc27386b68783299b5a7c0071ea38d10ac0e141c0300dd0b85e3163f8be0a",
+    "3d_o1.neu": "36dbc27386b68783299b5a7c0071ea38d10ac0e141c0300dd0b85e3163f8be0a",
+    "3d_o1.k": "786e1ecf8ea12230598cbabec9d2d4e02408911eeeaa60b10751d3fb1361d3d9",
+    "3d_o1.msh": "058eaf9b037f7c723a24572de350f328d97003c2be791d8438ab6d6367ef6f74",
+    "3d_o1.exo": "b5f0c6e197aefb4bfdf184d3128207759c4c806dc10890a971f96fd9a13f5a12",
+    "3d_o1.feb": "fcc0e9e1ab15c5f3cb59d79ebd898fe046ddfb8b90b565f89038874557b145ee",
+    "3d_o1_mirror.inp": "a52f7f1e279d33c7e935ee9e66f97567ede6d478d3f62ef090d0308b05908ec1",
+    "3d_o1_mirror.vtu": "49a57d197963befb80b39486fe694d32275411ca9e8f126e225459fed96140ec",
+    "3d_o1_mirror.out": "042986381baaa00e9513149e8261ac9d394a6ee4414e4d419f824de5ce745f35",
+    "3d_o1_mirror.k": "329391819916611f037c9a600e3d4bdb896cc16a5158128f7d8eb855ed84e47d",
+    "3d_o1_mirror.msh": "4acaafe8144f1f2380a9e8eaffedebffc1a1249a2f3fe4b2b23a49421e146970",
+    "3d_o1_mirror.exo": "2e3f605a63d0510ea12dae14964b08b9da3d8eb364979c9a054654cb9b7bec75",
+    "3d_o1_mirror.feb": "e70438d8620566e54c50f5b9f01caeae9c9f4d8431beaa0ab3dfdd617c4af06a",
+    "3d_o2.inp": "9dd33f7b3ccef4a2b94b52feafd9dc20d772d764070e8b4998f7d34db0bda1fc",
+    "3d_o2.vtu": "1334e494a468e8a8a1360005eda8d5bc5b12bdd3353fcca94eb95c090ef678c1",
+    "3d_o2.out": "2f28cbf2d6448682c161e1cb99573bc33951f2811093add3d57ebacac9224ef7",
+    "3d_o2.msh": "027254dd9932cdc7a77b8f6a4b3585736145a3a5c47f3c0cd8580db13a429b00",
+    "3d_o2.exo": "06ff0d3c492a874555554bd61a62906b65905de5889dd3b8e96bdeabf3c928e7",
+    "3d_o2.feb": "49a0588e3dcf59995d76730ae47ce15855422f21f049899d206885c0872ac733",
+    "2d_o1.inp": "4911ff1a50a4668e83949f4961f8f9b435fac11ef773115b68af2b76b20a7d21",
+    "2d_o1.vtu": "d2002852e14997265e8e264a77132e9b7c4f8da97597bc4a879192b6d6045a42",
+    "2d_o1.out": "b52cd1de7db08c82bb6b085065b328e509278bcde85471a926e89f7c9a074193",
+    "2d_o1.msh": "2c418fff18034673e462b5939b87a6a6a12af4f880162b39d4817917f1561ade",
+    "2d_o1.exo": "c22a3319e374be61357d91a24fcacc0fea38aae09217b7af97dc4c14f1d9ec17",
+    "2d_o2.inp": "98d2b4846ae738a964f0289c2fb887563953b9280fdc815661d164ea9c8dbb8e",
+    "2d_o2.vtu": "354d0b4920406790a0b557051bc006bc1a03c93d7e54270d8f28c52e2b6a1c2a",
+    "2d_o2.out": "607e07db84941d2e6c30da5ba071cf1689a5993487c26bd97e4d9b29d595f329",
+    "2d_o2.msh": "ebc00170dffed70205de4a24856d7499bab052d95a4a6cab9653bdbde4a1e5ad",
+    "2d_o2.exo": "e5cc6b57d10975fdb1d1fdb03e7b2bbac2d198dd7e763d03d4360d15ff42c429",
+    "stl_3d_o1/bone.stl": "47283d2ec36d28ddc50f9aa6a0f9f806e738a9efb2b76276e88d3109a59a4271",
+    "stl_3d_o1/soft.stl": "59fc140822196f38798ce6fd210ecc97fbb80235614b04307efb656c9cad9b82",
+    "stl_3d_o1_mirror/bone.stl": "1058af3e2c2f59fd0d55b6ccc9d4c33306e9c948fbb56c386a85452097ce7556",
+    "stl_3d_o1_mirror/soft.stl": "23eef2d49650ad0924975b8820ddfa1679ef8928a8fef0a31435ab275905ca7f",
 }
 
 
@@ -85,7 +85,9 @@ def _mesh(dim: int, direction=None):
         lab[1:4, 3:] = 2
         mesh = voxel_mesh(lab, spacing=(0.5, 0.75), origin=(-1.0, 2.0))
     rng = np.random.default_rng(7)
-    mesh.points[:, :dim] += rng.uniform(-0.05, 0.05, (mesh.n_points, dim))
+    shift = rng.uniform(-0.05, 0.05, (mesh.n_points, dim))
+    on_plane = (mesh.lattice[:, :dim] == 0) | (mesh.lattice[:, :dim] == mesh.grid_shape[:dim])
+    mesh.points[:, :dim] += np.where(on_plane, 0.0, shift)  # plane nodes stay in their planes, as smoothing keeps them
     return mesh
 
 

@@ -8,6 +8,7 @@ neighbours of :mod:`dicer.mesh.faces`.
 
 from __future__ import annotations
 
+import logging
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,12 +19,15 @@ from dicer.config import name_clash, stage_kwargs
 from dicer.errors import DicerError
 from dicer.export.provenance import provenance, sha256_in_background
 from dicer.image import MAX_LABEL
+from dicer.mesh.boundary import PLANE_TOLERANCE
 from dicer.mesh.faces import materials_across, neighbour_materials
 from dicer.mesh.frame import mirrored, to_scanner
 from dicer.mesh.model import Mesh, Sized, pieces
 from dicer.mesh.topology import (HEX20_FACES, HEX20_MIRROR, HEX_FACE_MIRROR, HEX_FACES, HEX_MIRROR, QUAD8_SIDES,
                                  QUAD_EDGES)
 from dicer.parallel import ordered_map
+
+log = logging.getLogger("dicer")
 
 # element type -> (dimension, order); the node order of every type is VTK's (= Abaqus's)
 ELEMENT_TYPES = {
@@ -333,6 +337,42 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray,
     return node_sets, exterior_faces, interfaces
 
 
+def _plane_sets(mesh: Mesh, points: np.ndarray, lattice2: np.ndarray | None, path) -> dict[str, np.ndarray]:
+    """The nodes on each of the image's bounding planes (X0 ... Z1), by lattice index and
+    position, for boundary conditions on cut and symmetry planes.
+
+    A node of a bounding lattice plane that smoothing moved off it
+    (``smooth.bounding_planes: free`` with ``keep_bounding_planes: false``) is left out: a
+    symmetry condition on it would pull it back. The tolerance is the smoothing's own
+    (:func:`dicer.mesh.boundary.bounding_planes`, 1e-6 voxel). A plane with no node left
+    on it gets no set; either case is warned of.
+    """
+    sets, left = {}, []
+    g2 = 2 * np.asarray(mesh.grid_shape, np.int64)
+    spacing = np.asarray(mesh.spacing, float)
+    for axis in range(mesh.dim):
+        for side, target in (("0", 0), ("1", g2[axis])):
+            if lattice2 is None:
+                ids = np.flatnonzero(mesh.lattice[:, axis] == target // 2)
+            else:
+                ids = np.flatnonzero(lattice2[:, axis] == target)
+            plane = float(mesh.origin[axis]) + target / 2 * spacing[axis]
+            on = np.abs(points[ids, axis] - plane) <= PLANE_TOLERANCE * spacing[axis]
+            name = "XYZ"[axis] + side
+            if not on.all():
+                left.append(f"{name}: {ids.size - int(on.sum())} of {ids.size} nodes")
+                ids = ids[on]
+            if ids.size:
+                sets[name] = ids
+    if left:
+        log.warning("export: %s: smoothing moved nodes of the image's bounding planes off them (%s), which "
+                    "smooth.keep_bounding_planes: false allows; the plane sets hold only the nodes still on their "
+                    "plane (a plane with none gets no set): for boundary conditions on the planes, smooth with "
+                    "smooth.keep_bounding_planes: true (or smooth.bounding_planes: mirror)",
+                    Path(path).name, ", ".join(left))
+    return sets
+
+
 def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "model",
                   build_sets: bool = True, neighbours=None) -> SolverModel:
     """Validate a mesh against the configuration and build the SolverModel the writers share.
@@ -419,15 +459,7 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
         digits=int(ex["digits"]), use_heading=bool(ex["heading"]), mesh=mesh,
     )
     if "planes" in kinds:
-        g2 = 2 * np.asarray(mesh.grid_shape, np.int64)
-        for axis in range(mesh.dim):
-            for side, target in (("0", 0), ("1", g2[axis])):
-                if lattice2 is None:
-                    ids = np.flatnonzero(mesh.lattice[:, axis] == target // 2)
-                else:
-                    ids = np.flatnonzero(lattice2[:, axis] == target)
-                if ids.size:
-                    model.node_sets["XYZ"[axis] + side] = ids
+        model.node_sets.update(_plane_sets(mesh, points, lattice2, path))
     if kinds & {"materials", "interfaces", "exterior"}:
         if model.n_points >= 2**31:
             raise DicerError(f"{path}: node sets of models with 2**31 nodes or more are not supported; leave "

@@ -155,6 +155,27 @@ def test_coefficients_control_the_motion():
     assert s["coefficients"]["D"] == 0.2 and s["coefficients"]["A"] == DEFAULTS["coefficients"]["A"]
 
 
+def test_one_coefficient_beside_a_coefficients_map_is_warned_of(tmp_path, caplog):
+    from dicer.config import load_config, stage_kwargs
+
+    said = "smooth.coefficient 0.7 is used for every node class, so the smooth.coefficients map given"
+    s = smoothing_settings({"coefficient": 0.7, "coefficients": {"D": 0.2, "A": 0.5}})
+    assert set(s["coefficients"].values()) == {0.7}
+    assert caplog.text.count(said) == 1 and "given (A 0.5, D 0.2) is not used; leave smooth.coefficient out" \
+        in caplog.text
+    # a map at its defaults (as config/config.yaml spells them) loses nothing: no warning
+    caplog.clear()
+    s = smoothing_settings({"coefficient": 0.7, "coefficients": dict(DEFAULTS["coefficients"])})
+    assert set(s["coefficients"].values()) == {0.7} and "smooth.coefficient" not in caplog.text
+    smoothing_settings({"coefficients": {"D": 0.2}})
+    assert "smooth.coefficient" not in caplog.text
+    # the map in a config file, the one value from --set
+    (tmp_path / "c.yaml").write_text("smooth:\n  coefficients: {E: 0.6}\n")
+    config = load_config(tmp_path / "c.yaml", sets=["smooth.coefficient=0.7"])
+    smoothing_settings(**stage_kwargs(config, "smooth"))
+    assert caplog.text.count(said) == 1 and "given (E 0.6)" in caplog.text
+
+
 def test_guard_backs_off_locally():
     m = ball(n=24, radii=(8.3,), centre=np.array([12.2, 11.9, 12.1]))
     out, rep = smooth_mesh(m, {"min_scaled_jacobian": 0.6})

@@ -46,6 +46,7 @@ whatever the number of threads.
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 
@@ -61,6 +62,8 @@ from dicer.mesh.model import LEVEL_DATA, Mesh
 from dicer.mesh.topology import HEX_CORNERS, HEX_EDGES, QUAD_CORNERS, QUAD_EDGES
 
 __all__ = ["DEFAULTS", "smooth_mesh", "smoothing_settings"]
+
+log = logging.getLogger("dicer")
 
 DEFAULTS = section_defaults("smooth")
 """The ``smooth:`` section's defaults, as the config schema gives them."""
@@ -88,7 +91,8 @@ pillow_thickness, tolerance
     -------
     dict
         The settings; ``coefficients`` holds every class A-F as a float (``coefficient``,
-        when not None, replaces them all).
+        when not None, replaces them all, with a warning when the map differs from its
+        defaults).
 
     Raises
     ------
@@ -98,6 +102,13 @@ pillow_thickness, tolerance
     if not keep_bounding_planes and bounding_planes != "free":
         raise DicerError("smooth.keep_bounding_planes = false lets plane nodes leave their plane, which only "
                          "bounding_planes: free does; set smooth.bounding_planes: free with it")
+    # a map left at its defaults (config/config.yaml lists them) loses nothing to the one value
+    mapped = [f"{c} {coefficients[c]:g}" for c in _CLASS_LETTERS
+              if float(coefficients[c]) != float(DEFAULTS["coefficients"][c])]
+    if coefficient is not None and mapped:
+        log.warning("smooth: smooth.coefficient %g is used for every node class, so the smooth.coefficients map "
+                    "given (%s) is not used; leave smooth.coefficient out (null) to smooth with the map",
+                    coefficient, ", ".join(mapped))
     per_class = {c: float(coefficients[c] if coefficient is None else coefficient) for c in _CLASS_LETTERS}
     return {"surface_from_image": surface_from_image, "image_sigma": image_sigma, "coefficient": coefficient,
             "coefficients": per_class, "bounding_planes": bounding_planes,

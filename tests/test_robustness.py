@@ -232,6 +232,13 @@ CASES = {
         (lambda command, out: lambda t, b: [command, _resaved_vtu(b / "mesh.vtu", t / "re.vtu"), "-o", t / out])(
             command, out), "re.vtu: the mesh file has no grid data")
        for command, out in (("export", "model.inp"), ("smooth", "s.vtu"))},
+    **{f"{command}: an order-2 export (20-node hexahedra) as its mesh": (
+        (lambda command, out: lambda t, b: [command, _quadratic_vtu(b / "mesh.vtu", t / "model.vtu"), "-o",
+                                            t / out])(command, out),
+        "model.vtu: holds quadratic elements (hexahedron20), as an export with export.order 2 writes them, and "
+        "dicer reads meshes of linear hexahedra or quads; give the stage mesh it was exported from (smoothed.vtu), "
+        "or a model.vtu exported with export.order 1")
+       for command, out in (("surface", "surf"), ("quality", "q.json"))},
     "export: material 0 in a mesh": (
         lambda t, b: ["export", _material_vtu(t / "m0.vtu", 0), "-o", t / "model.inp"],
         "m0.vtu: 1 element(s) have material 0; material numbers are labels 1..K"),
@@ -296,6 +303,12 @@ def _inverted_vtu(path: Path) -> Path:
     mesh = voxel_mesh(np.pad(np.ones((3, 3, 3), np.uint8), ((0, 0), (0, 0), (0, 1))) + 0)
     mesh.cells[0] = mesh.cells[0, HEX_MIRROR]
     write_mesh(mesh, path, allow_inverted=True)
+    return path
+
+
+def _quadratic_vtu(src: Path, path: Path) -> Path:
+    """``src`` exported as a VTU of 20-node hexahedra (export.order 2)."""
+    assert main(["export", str(src), "-o", str(path), "--set", "export.order=2", "-q"]) == 0
     return path
 
 

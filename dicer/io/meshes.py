@@ -706,6 +706,9 @@ def read_raw_vtu(path: str | os.PathLike, name: str):
     return _read_raw_vtu(Path(path), name)
 
 
+_QUADRATIC = {"hexahedron20", "hexahedron27", "quad8", "quad9"}  # meshio's names of quadratic hexahedra and quads
+
+
 def _read_meshio(path: Path, name: str):
     """The parts of any mesh file meshio reads, as _read_raw_vtu returns them."""
     import meshio
@@ -718,8 +721,14 @@ def _read_meshio(path: Path, name: str):
         raise DicerError(f"{name}: cannot read mesh ({type(exc).__name__}: {str(exc)[:120]}); is the file complete?") from None
     blocks = [(b.type, b.data) for b in m.cells]
     types = {t for t, _ in blocks}
+    if types & _QUADRATIC:  # an export with export.order 2 (model.vtu): its stage mesh is linear
+        raise DicerError(f"{name}: holds quadratic elements ({', '.join(sorted(types))}), as an export with "
+                         "export.order 2 writes them, and dicer reads meshes of linear hexahedra or quads; give "
+                         "the stage mesh it was exported from (smoothed.vtu), or a model.vtu exported with "
+                         "export.order 1")
     if types - {"hexahedron", "quad"} or len(types) != 1:
-        raise DicerError(f"{name}: expected only hexahedron or only quad elements, found {sorted(types)}")
+        raise DicerError(f"{name}: expected only hexahedron or only quad elements, found {sorted(types)}; give a "
+                         "mesh a dicer stage wrote (mesh.vtu, merged.vtu, smoothed.vtu)")
     cells = np.concatenate([d for _, d in blocks])
     cell_data = {k: np.concatenate(v) for k, v in m.cell_data.items()}
     return types.pop(), m.points, cells, dict(m.point_data), cell_data, m.field_data

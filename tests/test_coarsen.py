@@ -204,6 +204,24 @@ def test_levels_zero_and_keep_fine_leave_voxels():
     assert report["elements_by_material"]["1"]["after"] < report["elements_by_material"]["1"]["before"]
 
 
+def test_keep_fine_naming_no_material_of_the_mesh_is_warned_of(caplog):
+    """keep_fine: [3] written for bone's 2 kept nothing fine and said nothing."""
+    labels = ball_labels((60, 60), (28, 12))
+    voxel = voxel_mesh(labels)
+    voxel.names = ["soft_tissue", "bone"]
+    coarsened, report = coarsen_mesh(voxel, levels=2, keep_fine=[3, 2], min_distance=1)
+    assert report["elements_by_material"]["2"]["after"] == report["elements_by_material"]["2"]["before"]
+    assert caplog.text.count("keep_fine") == 1
+    assert ("merge.templates.keep_fine names label(s) 3 that no material of the mesh has (its materials: "
+            "1 soft_tissue, 2 bone), so they keep nothing at voxel size") in caplog.text
+    caplog.clear()
+    coarsen_mesh(voxel, levels=2, keep_fine=[1, 2], min_distance=1)
+    merge_mesh(voxel, {"method": "templates", "templates": {"keep_fine": [2]}})
+    assert "keep_fine" not in caplog.text
+    merge_mesh(voxel, {"method": "templates", "templates": {"keep_fine": [7, 9]}})
+    assert "keep_fine names label(s) 7, 9 that no material" in caplog.text
+
+
 def test_min_distance_keeps_thin_parts_fine():
     labels = np.zeros((60, 60), np.int32)
     labels[5:55, 5:55] = 1

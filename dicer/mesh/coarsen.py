@@ -31,6 +31,7 @@ import time
 
 import numpy as np
 
+from dicer.brief import brief_names
 from dicer.errors import DicerError
 from dicer.mesh.metrics import element_volumes, scaled_jacobian
 from dicer.mesh.model import LEVEL_DATA, Mesh, pieces
@@ -486,6 +487,7 @@ def coarsen_mesh(mesh: Mesh, *, levels: int, min_distance: int, keep_fine) -> tu
         raise DicerError(f"merge.templates.levels={levels!r}: give a whole number >= 0")
     if isinstance(min_distance, bool) or not isinstance(min_distance, (int, np.integer)) or min_distance < 1:
         raise DicerError(f"merge.templates.min_distance={min_distance!r}: give a whole number of voxels >= 1")
+    _check_keep_fine(mesh, keep_fine)
     t0 = time.perf_counter()
     labels, first, key = _voxels_of(mesh)
     decomposition = coarsen_labels(labels, levels=int(levels), min_distance=int(min_distance), keep_fine=keep_fine)
@@ -500,6 +502,20 @@ def coarsen_mesh(mesh: Mesh, *, levels: int, min_distance: int, keep_fine) -> tu
     log.info("merge: templates, %d levels: %d -> %d elements (%.1f s)", levels, mesh.n_cells, out.n_cells,
              report["seconds"])
     return out, report
+
+
+def _check_keep_fine(mesh: Mesh, keep_fine) -> None:
+    """Warn of ``keep_fine`` labels that no element of the mesh has: they keep nothing fine,
+    and a label written for another (3 for bone's 2) lets the meant material coarsen."""
+    present = np.flatnonzero(np.bincount(np.asarray(mesh.material).ravel()))  # labels are 1..K: no sort
+    absent = sorted(set(int(k) for k in keep_fine) - set(present.tolist()))
+    if not absent:
+        return
+    names = list(mesh.names or ())
+    have = [f"{k} {names[k - 1]}" if 0 < k <= len(names) else str(k) for k in present.tolist()]
+    log.warning("merge: merge.templates.keep_fine names label(s) %s that no material of the mesh has (its "
+                "materials: %s), so they keep nothing at voxel size; give the labels of the materials to keep "
+                "fine", brief_names(absent), brief_names(have))
 
 
 def _node_lookup(key: np.ndarray, n_grid: int):

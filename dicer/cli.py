@@ -613,7 +613,15 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
     log.info("smooth: wrote %s (%s)", out, json.dumps(_stable(report), sort_keys=True)[:600])
     said = _volume_changes("smooth", {k: 100 * v for k, v in report.get("volume_change_by_material", {}).items()},
                            smoothed.names)
-    if said:  # a part a few voxels across loses its corners: a large share of it
+    if said and "surface_from_image" in report:  # the scan's iso-surface, not the labels', set the surface
+        where = Path(thresholds_path).name if thresholds_path else "segment.thresholds"  # dicer run: a staged file
+        log.warning("%s; the surface went onto the scan's iso-surfaces (smooth.surface_from_image) at the "
+                    "thresholds %s (%s), so the volume follows the scan where they lie away from the labels' "
+                    "surface (the segmentation's clean-up, thresholds other than the segmentation's, or "
+                    "smooth.image_sigma %g blurring thin parts): check the thresholds and smooth.image_sigma, or "
+                    "set smooth.surface_from_image: false to smooth from the labels alone",
+                    said, ", ".join(f"{float(t):g}" for t in thresholds), where, settings["image_sigma"])
+    elif said:  # a part a few voxels across loses its corners: a large share of it
         log.warning("%s; parts a few voxels across (after merging: a few merged elements) shrink most: lower "
                     "smooth.coefficient, or merge less (merge.passes, merge.min_thickness)", said)
     backed, nodes = report["backed_off_nodes"], report["boundary_nodes"]

@@ -162,6 +162,41 @@ def test_nodes_that_miss_the_iso_surface_are_counted_and_warned_of(tmp_path, cap
             assert on > 0.9 * kinds
 
 
+def test_volume_warning_names_the_pull_onto_the_scan(tmp_path, caplog):
+    """A ball labelled at 500 HU, its surface pulled onto the 850 HU iso-surface: the volume
+    drops by 15 %, which the scan's surface did, not the smoothing coefficients."""
+    g = np.indices((24, 24, 24)).astype(float) - 11.7
+    image = ndimage.gaussian_filter(np.where(np.sqrt((g ** 2).sum(0)) < 7.3, 1000.0, 0.0), 1.0).astype(np.float32)
+    labels, _ = fix_connectivity((image >= 500).astype(np.uint8))
+    mesh = voxel_mesh(labels)
+    mesh.names = ["bone"]
+    write_mesh(mesh, tmp_path / "mesh.vtu")
+    write_image(Volume(image, (1.0, 1.0, 1.0)), tmp_path / "scan.nii.gz")
+    (tmp_path / "c.yaml").write_text("materials: [{name: bone, youngs_modulus: 15000, poissons_ratio: 0.3}]\n"
+                                     "smooth: {surface_from_image: true}\n")
+    change = {}
+    for threshold in (850, 500):
+        (tmp_path / "segmentation.json").write_text(json.dumps({"thresholds": [threshold]}))
+        caplog.clear()
+        assert main(["smooth", str(tmp_path / "mesh.vtu"), "-o", str(tmp_path / f"s{threshold}.vtu"), "--image",
+                     str(tmp_path / "scan.nii.gz"), "--thresholds", str(tmp_path / "segmentation.json"),
+                     "--config", str(tmp_path / "c.yaml"), "--report", str(tmp_path / "s.json"), "-q"]) == 0
+        report = json.loads((tmp_path / "s.json").read_text())
+        change[threshold] = 100 * report["volume_change_by_material"]["1"]
+        warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+        if threshold == 850:
+            assert change[850] < -10 and report["surface_from_image"]["nodes_moved"] > 100 and len(warned) == 1
+            assert warned[0] == (
+                f"smooth: material volume changed by more than 5 % (bone {change[850]:+.1f} %); the surface went "
+                "onto the scan's iso-surfaces (smooth.surface_from_image) at the thresholds 850 (segmentation.json), "
+                "so the volume follows the scan where they lie away from the labels' surface (the segmentation's "
+                "clean-up, thresholds other than the segmentation's, or smooth.image_sigma 0.5 blurring thin "
+                "parts): check the thresholds and smooth.image_sigma, or set smooth.surface_from_image: false to "
+                "smooth from the labels alone")
+        else:  # the thresholds the labels were made with: the volume stays
+            assert abs(change[500]) < 1 and not warned
+
+
 def test_pillow_puts_the_surface_on_the_scan(phantom):
     # a pillow layer (smooth.pillow) frees the surface nodes from the corners the quality
     # floor otherwise leaves: they stay where the iso-surface projection put them.

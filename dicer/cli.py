@@ -1147,7 +1147,37 @@ def _side_by_side(source: str, elements: int) -> bool:
     return have is None or SIDE_BY_SIDE_MEMORY * run_peak_mb(voxels, 1, elements) <= have
 
 
+@contextlib.contextmanager
+def _each_warning_once():
+    """Drop a warning that repeats one said before word for word (dicer run's two exports of
+    one mesh met the same things)."""
+    said = set()
+
+    def first_time(record: logging.LogRecord) -> bool:
+        if record.levelno != logging.WARNING:
+            return True
+        text = record.getMessage()
+        if text in said:
+            return False
+        said.add(text)
+        return True
+
+    loggers = [logging.getLogger(name) for name in ("dicer", "dicer.io.images")]
+    for logger in loggers:
+        logger.addFilter(first_time)
+    try:
+        yield
+    finally:
+        for logger in loggers:
+            logger.removeFilter(first_time)
+
+
 def cmd_run(args):
+    with _each_warning_once():
+        return _run_chain(args)
+
+
+def _run_chain(args):
     """segment -> downsample -> fix -> mesh -> merge -> smooth -> export (.inp, .vtu) -> quality, into OUTDIR.
 
     With --labels: labels (map the given label volume to materials) -> downsample (only when

@@ -217,6 +217,25 @@ def test_smooth_warns_when_the_guard_undoes_most_of_the_smoothing(tmp_path, caps
             assert "smooth.min_scaled_jacobian=0.9" in said[0]
 
 
+def test_run_says_each_warning_once(tmp_path, caplog):
+    """Both exports of dicer run (model.inp and model.vtu) met a curved-midside request on a
+    merged mesh and each warned of it: the same line twice."""
+    g = np.indices((14, 14, 14)) - 6.5
+    a = ((g ** 2).sum(0) < 30).astype(np.uint8)  # a ball: merging leaves chamfers
+    np.save(tmp_path / "in.npy", a)
+    with caplog.at_level("WARNING"):
+        assert main(["run", "--labels", str(tmp_path / "in.npy"), "-o", str(tmp_path / "out"), "-q",
+                     "--set", "export.order=2", "--set", "export.midside_nodes=curved"]) == 0
+    said = [r.getMessage() for r in caplog.records if "export.midside_nodes curved" in r.getMessage()]
+    assert len(said) == 1
+    # and only within the run: a later command says it again
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        assert main(["export", str(tmp_path / "out" / "smoothed.vtu"), "-o", str(tmp_path / "m.inp"), "-q",
+                     "--set", "export.order=2", "--set", "export.midside_nodes=curved"]) == 0
+    assert len([r for r in caplog.records if "export.midside_nodes curved" in r.getMessage()]) == 1
+
+
 def test_fix_warns_of_a_volume_it_changes_and_names_the_rounds_that_left_nothing(tmp_path, capsys, caplog):
     """A one-voxel plate near a block was filled away by the majority rounds (-6.7 %, exit 0,
     no word), and a plate alone ended in 'smaller than fix.min_component_voxels=0; lower it'."""

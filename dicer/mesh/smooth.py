@@ -827,6 +827,7 @@ def _pull_onto_image(st: _Smoothing, xb_labels: np.ndarray) -> None:
 
     on_surface, st.pull.info = project(st.pull.surface, st.pull.sides, st.adj, st.degree, st.x0, st.bnodes, xb_labels)
     st.pull.found = np.any(on_surface != xb_labels, axis=1)
+    st.pull.info["nodes_moved"] = int(np.count_nonzero(st.pull.found))  # over every pass, not the last one's
     if st.surface is None and st.s["pillow"]:
         st.surface = on_surface
     st.pull.target = lift(st.pull.sides, on_surface, float(st.s["min_scaled_jacobian"]))

@@ -252,8 +252,8 @@ GOLDEN_SMOOTH = {
     "graded": "14212e9998e3c920 156f82b159a44490 b1d4beb61faf2f31 0 -",
     "graded_2d": "87f381c418360458 8bfaf44b8d705e50 d2b4e01333818d5e 1 -",
     "stripes": "cfe39d74484ce0d9 efe7c648830f56d4 0b63c4462ba68759 0 -",
-    "ct3_image": "41117c15eefeb097 93a92adc8d68ce10 dbdae1631308fef3 0 2",
-    "ct3_image_pull_backoff": "2ba2540c06e2ae2e 93a92adc8d68ce10 514eab9617e0318a 2 10",
+    "ct3_image": "41117c15eefeb097 93a92adc8d68ce10 03ad495fb6fed513 0 2",
+    "ct3_image_pull_backoff": "2ba2540c06e2ae2e 93a92adc8d68ce10 0814f2394fc32a54 2 10",
     "ct2_image": "215315215ef72de5 77d80cb3dfef2a0c 86ca2cb74cb94235 0 3",
     "ct3_image_off": "5a5c7c82f3759ea5 93a92adc8d68ce10 c7cb80870a7f9182 0 -",
 }

@@ -632,9 +632,10 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
                     report["mean_boundary_displacement_mm"], settings["min_scaled_jacobian"])
     pull = report.get("surface_from_image")
     if pull and pull["nodes_on_the_image_surface"] < 0.5 * pull["nodes_between_two_kinds"]:
-        log.warning("smooth: %d of the %d boundary nodes between two materials reach the scan's iso-surface: the "
-                    "others stay where the labels put them; smooth.image_sigma=%g may blur the edges away (default "
-                    "0.5), or the thresholds do not match the scan (--thresholds)",
+        log.warning("smooth: %d of the %d boundary nodes between two materials reach the scan's iso-surface, the "
+                    "others stop short of it (the quality guard held them back, or the scan shows no edge near them); "
+                    "smooth.image_sigma=%g may blur the edges away (default 0.5), or the thresholds do not match the "
+                    "scan (--thresholds)",
                     pull["nodes_on_the_image_surface"], pull["nodes_between_two_kinds"], pull["image_sigma"])
     layer = report.get("pillow")
     faces = layer["elements_added"] + layer["faces_without_layer"] if layer else 0

@@ -184,7 +184,9 @@ def test_volume_warning_names_the_pull_onto_the_scan(tmp_path, caplog):
         report = json.loads((tmp_path / "s.json").read_text())
         change[threshold] = 100 * report["volume_change_by_material"]["1"]
         warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
-        if threshold == 850:
+        if threshold == 850:  # the pull's own warnings come too (105 of 974 nodes reach that iso-surface)
+            assert any("reach the scan's iso-surface" in m for m in warned)
+            warned = [m for m in warned if "material volume changed" in m]
             assert change[850] < -10 and report["surface_from_image"]["nodes_moved"] > 100 and len(warned) == 1
             assert warned[0] == (
                 f"smooth: material volume changed by more than 5 % (bone {change[850]:+.1f} %); the surface went "

@@ -426,6 +426,18 @@ def validate(config: dict, source: str = "config") -> dict:
         raise DicerError(f"{source}: key 'materials': the name {taken[0]} is taken by the grid data of dicer's "
                          "mesh files; rename the material")
     section = config.get("labels", {})
+    # label 0's name in materials.json, segmentation.json and the stage reports: a material of
+    # that name would be meshed (and stiff) under a name that says it is not there
+    background = sorted((int(k), v) for k, v in section.get("map", {}).items() if str(v).lower() == "background")
+    if background:
+        value, name = background[0]
+        raise DicerError(f"{source}: key 'labels.map': value {value} is named {name!r}, the name of label 0, which "
+                         f"is never meshed; to leave value {value} out of the model use labels.drop: [{value}], "
+                         "else give it another name")
+    named = [n for n in names if n.lower() == "background"]
+    if named:
+        raise DicerError(f"{source}: key 'materials': the name {named[0]} is label 0's, which is never meshed; "
+                         "rename the material (to leave a label out of the model use labels.drop)")
     both = sorted(set(section.get("drop", [])) & {int(k) for k in section.get("map", {})})
     if both:
         raise DicerError(f"{source}: key 'labels': label value {both[0]} is both in labels.map and in "

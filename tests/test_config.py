@@ -55,6 +55,9 @@ def test_material_defaults_filled_per_item():
         ("materials=[{name: Exterior_S2}]", ["Exterior_S2", "exterior face set"]),
         ("materials.0=1", ["materials"]),
         ("smooth.pillow_thickness=0.01", ["smooth.pillow_thickness", "0.05"]),
+        # label 0's name: a material called so was meshed, stiff, under a name saying it was not there
+        ("labels.map={2: wm, 24: background}", ["labels.map", "value 24 is named 'background'", "labels.drop: [24]"]),
+        ("materials=[{name: Background}]", ["the name Background is label 0's", "rename"]),
         ("quality.stretched_edge_ratio=0.5", ["quality.stretched_edge_ratio", "1"]),
     ],
 )

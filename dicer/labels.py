@@ -116,7 +116,14 @@ def resolve_materials(values, *, materials: list[dict], map: dict, drop: list,  
                     brief_names([f"label_{v}" for v in unnamed]))
     mapped = [n for n in defaulted if n in set(names.values())]
     unused = [m["name"] for m in given.values() if m["name"] not in number] if written else []
-    if mapped and unused:  # a name of labels.map and a materials entry that were meant to be one
+    if not names and unused:  # the entries were meant for the label values, in order (as a stage's mesh takes them)
+        kept = sorted(v for v in lut if lut[v])
+        hint = ", ".join(f"{v}: {m['name']}" for v, m in zip(kept, given.values()))
+        log.warning("labels: the config's materials %s are used by no label: without labels.map each label value is "
+                    "its own material (label_<value>, default properties: E %g MPa); name the values with "
+                    "labels.map, e.g. labels.map: {%s}", brief_names(unused), DEFAULT_PROPERTIES["youngs_modulus"],
+                    hint)
+    elif mapped and unused:  # a name of labels.map and a materials entry that were meant to be one
         log.warning("labels: labels.map names %s, which no materials entry has (default properties: E %g MPa), "
                     "while the materials entries %s are used by no label; check the spelling of the names",
                     brief_names(mapped), DEFAULT_PROPERTIES["youngs_modulus"], brief_names(unused))

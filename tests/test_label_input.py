@@ -151,6 +151,25 @@ def test_a_map_name_without_materials_entry_beside_an_unused_entry_is_warned_of(
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
 
 
+def test_materials_entries_without_a_map_are_warned_of(caplog):
+    """materials [soft_tissue E 2.5, bone E 12000] and no labels.map: both labels took the
+    default E 1000 MPa (the stages, taking label i as the i-th entry, gave the user's)."""
+    settings = {"materials": [{"name": "soft_tissue", "youngs_modulus": 2.5},
+                              {"name": "bone", "youngs_modulus": 12000.0}]}
+    with caplog.at_level("INFO", logger="dicer"):
+        _, materials = resolve_materials([0, 1, 2], load_config(settings=settings))
+    assert [m["youngs_modulus"] for m in materials] == [1000.0, 1000.0]
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warned == ["labels: the config's materials soft_tissue, bone are used by no label: without labels.map "
+                      "each label value is its own material (label_<value>, default properties: E 1000 MPa); name "
+                      "the values with labels.map, e.g. labels.map: {1: soft_tissue, 2: bone}"]
+    # the default materials (no entries the user wrote): quiet
+    caplog.clear()
+    with caplog.at_level("INFO", logger="dicer"):
+        resolve_materials([0, 1, 2], load_config())
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+
+
 def test_a_map_value_the_volume_lacks_beside_an_unnamed_value_is_warned_of(caplog):
     """labels.map: 12 where the volume holds 21: label 21 would fall to default properties."""
     settings = {"labels": {"map": {"3": "bone", "12": "brain"}}}

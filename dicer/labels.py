@@ -142,6 +142,34 @@ def resolve_materials(values, *, materials: list[dict], map: dict, drop: list,  
     return lut, materials
 
 
+_MANY_VALUES = 100
+"""Distinct values above which a label volume is checked for looking like an image of intensities."""
+
+_SHARED_NEIGHBOURS = 0.2
+"""Share of the face-neighbouring voxel pairs in the foreground (either voxel labelled) with one
+value, below which such a volume is refused: a label volume's regions make many pairs alike
+(atlases of 130-1000 parcels of 20 voxels and more: 0.49-0.74), an image's noise makes them
+differ (an MR head given as labels: 0.001-0.004)."""
+
+
+def _refuse_intensities(array: np.ndarray, distinct: int, source: str) -> None:
+    """Raise DicerError when ``array`` (many distinct values) looks like grey values, not labels."""
+    alike = pairs = 0
+    for axis in range(array.ndim):
+        if array.shape[axis] > 1:  # slabs of 64 planes: no copy of the whole volume
+            for part in np.array_split(np.arange(array.shape[axis] - 1), max(1, array.shape[axis] // 64)):
+                lo = np.take(array, part, axis=axis)
+                hi = np.take(array, part + 1, axis=axis)
+                some = (lo != 0) | (hi != 0)
+                alike += np.count_nonzero((lo == hi) & some)
+                pairs += np.count_nonzero(some)
+    if pairs and alike < _SHARED_NEIGHBOURS * pairs:
+        raise DicerError(f"{source}: {distinct} distinct values, and only {100 * alike / pairs:.1f} % of neighbouring "
+                         "voxels in the foreground share one (in a label volume many do): this looks like an image "
+                         "of grey values, not labels; give it as the IMAGE of dicer run (or dicer segment) to "
+                         "segment it")
+
+
 @takes_settings("labels")
 def map_labels(volume: Volume, *, materials: list[dict], map: dict, drop: list,  # noqa: A002 (the key's name)
                source: str = "labels") -> tuple[Volume, list[dict], dict]:
@@ -168,6 +196,8 @@ def map_labels(volume: Volume, *, materials: list[dict], map: dict, drop: list, 
     """
     array = volume.array
     values, inverse = np.unique(array, return_inverse=True)
+    if values.size > _MANY_VALUES:
+        _refuse_intensities(array, values.size, source)
     lut, materials = resolve_materials.__wrapped__(values.tolist(), materials=materials, map=map, drop=drop,
                                                    source=source)
     table = np.array([lut[int(v)] for v in values], dtype=np.uint8 if len(materials) < 256 else np.uint16)

@@ -170,6 +170,30 @@ def test_materials_entries_without_a_map_are_warned_of(caplog):
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
 
 
+def test_an_image_of_grey_values_given_as_labels_is_refused(tmp_path, capsys):
+    """An MR given to --labels was meshed as 814 materials of scattered voxels, exit 0."""
+    from dicer.image import Volume
+    from dicer.io.images import write_image
+
+    g = np.indices((24, 24, 24)) - 11.5
+    head = np.sqrt((g ** 2).sum(0)) < 10
+    rng = np.random.default_rng(0)
+    mr = np.where(head, 1500 + rng.normal(0, 300, head.shape), 0).clip(0).astype(np.int16)
+    write_image(Volume(mr, (1.0, 1.0, 1.0)), tmp_path / "t1.nii.gz")
+    assert main(["run", "--labels", str(tmp_path / "t1.nii.gz"), "-o", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    distinct = np.unique(mr).size
+    assert err.startswith(f"error: {tmp_path / 't1.nii.gz'}: {distinct} distinct values, and only ")
+    assert "looks like an image of grey values, not labels; give it as the IMAGE of dicer run" in err
+    assert not (tmp_path / "out").exists()
+    # the same head in blocks of 3 voxels a side, each its own value (an atlas): taken
+    blocks = [(g[0] + 12).astype(int) // 3, (g[1] + 12).astype(int) // 3, (g[2] + 12).astype(int) // 3]
+    atlas = np.where(head, 1 + blocks[0] * 64 + blocks[1] * 8 + blocks[2], 0).astype(np.int16)
+    assert np.unique(atlas).size > 100
+    write_image(Volume(atlas, (1.0, 1.0, 1.0)), tmp_path / "atlas.nii.gz")
+    assert main(["labels", str(tmp_path / "atlas.nii.gz"), "-o", str(tmp_path / "mapped.nii.gz"), "-q"]) == 0
+
+
 def test_a_map_value_the_volume_lacks_beside_an_unnamed_value_is_warned_of(caplog):
     """labels.map: 12 where the volume holds 21: label 21 would fall to default properties."""
     settings = {"labels": {"map": {"3": "bone", "12": "brain"}}}

@@ -198,6 +198,33 @@ def test_an_sform_that_is_not_rigid_gives_way_to_the_qform(tmp_path, caplog, dis
         read_labels(path)
 
 
+@pytest.mark.parametrize("units", [2, 3])
+def test_an_aligned_sform_beside_a_qform_places_the_voxels(tmp_path, caplog, units):
+    # ITK takes the qform when the sform's code is not 1 (here 2, aligned): the model lay
+    # 10 mm from where nibabel and FSL show the scan and dicer's label files
+    sform = np.zeros((3, 4))
+    sform[:3, :3] = LPS_TO_RAS @ OBLIQUE * np.asarray(SPACING)
+    sform[:, 3] = (-40.0, -50.0, -30.0)
+    path = tmp_path / "aligned.nii.gz"
+    angle = 0.4
+    write_raw_nifti(path, labels_array(), sform, (0.0, 0.0, np.sin(angle / 2), 5.0, 6.0, 7.0), units=units)
+    volume = read_labels(path)
+    to_mm = 1e-3 if units == 3 else 1.0
+    spacing = np.asarray(SPACING) * to_mm
+    assert np.allclose(np.reshape(volume.direction, (3, 3)), OBLIQUE, atol=1e-6)
+    assert np.allclose(volume.spacing, spacing)
+    centre = np.asarray(volume.origin) + spacing / 2  # voxel 0's centre: the sform's offset
+    assert np.allclose(centre, LPS_TO_RAS @ sform[:, 3] * to_mm, atol=1e-5 * to_mm)
+    said = [r.getMessage() for r in caplog.records if "place the image differently" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("aligned.nii.gz: its sform (code 2) and qform (code 1)")
+    assert said[0].endswith("meshing at the sform, where nibabel and FSL show it")
+    # the two alike: no word
+    caplog.clear()
+    write_sform_nifti(path, labels_array(), OBLIQUE)
+    read_labels(path)
+    assert "place the image differently" not in caplog.text
+
+
 def _run(*argv) -> None:
     assert main([str(a) for a in argv] + ["-q"]) == 0
 

@@ -396,12 +396,16 @@ def _check_nifti_complete(path: Path) -> tuple[float, ...] | None:
 
 
 def _nifti_placement(path: Path, spatial: tuple[float, ...]):
-    """The qform placement to use instead of a NIfTI file's sform, or None when ITK's own is right.
+    """The placement to use instead of ITK's for a NIfTI file, or None when ITK's own is right.
 
-    ITK places voxels by the sform when its code is set, keeping pixdim as the spacing: an
-    sform whose columns are not pixdim long (a scaling, e.g. a transform to a template
-    space) is then applied without its scale, and a sheared one falls back to the qform
-    or fails. The qform is always a rigid placement of pixdim-sized voxels (the scanner
+    dicer places voxels by the sform when its code is set and it is rigid (as nibabel, FSL
+    and FreeSurfer do), else by the qform. ITK differs in two ways. It takes the sform only
+    when its code is 1 (scanner) or there is no qform: for an aligned or template sform
+    (codes 2-4) beside a qform it takes the qform, so here the sform's placement is given
+    (with a warning when the two differ). And it keeps pixdim as the spacing: an sform
+    whose columns are not pixdim long (a scaling, e.g. a transform to a template space)
+    would be applied without its scale, and a sheared one falls back to the qform or
+    fails. The qform is always a rigid placement of pixdim-sized voxels (the scanner
     geometry), so it is used whenever the sform is not one; without a qform such a file
     has no rigid placement and is refused.
 
@@ -442,9 +446,24 @@ def _nifti_placement(path: Path, spatial: tuple[float, ...]):
         scale_error = float(np.max(np.abs(lengths - np.abs(spatial)) / np.abs(spatial)))
         unit = affine[:, :n] / lengths
         shear = float(np.max(np.abs(unit.T @ unit - np.eye(n))))
+    lps = np.diag([-1.0, -1.0, 1.0])  # NIfTI is RAS, ITK LPS
+    # the offsets are in the file's space unit, as ITK converts pixdim: metres, mm, microns
+    to_mm = {1: 1000.0, 2: 1.0, 3: 0.001}.get(units & 7, 1.0)
     # float32 headers round at 1e-7; ITK's own tolerances are 1e-3 mm and 1e-4
     if scale_error <= 1e-4 and shear <= 1e-4:
-        return None
+        if qcode <= 0 or scode == 1:
+            return None  # ITK places the voxels by the sform itself
+        # ITK takes the qform when both are set and the sform is not scanner-based (code 1);
+        # nibabel, FSL and FreeSurfer take the sform, and so does dicer: the model then lies
+        # where those tools show the scan and the label files dicer writes with its header
+        sform = (tuple((lps @ unit)[:n, :n].ravel()), tuple((lps @ affine[:, 3])[:n] * to_mm))
+        qform = _qform_placement(quat, qfac, n, to_mm)
+        apart = float(np.max(np.abs(np.subtract(sform[1], qform[1]))))
+        turned = float(np.max(np.abs(np.subtract(sform[0], qform[0]))))
+        if apart > 1e-3 or turned > 1e-4:
+            _warn_once("%s: its sform (code %d) and qform (code %d) place the image differently (origins %.3g mm "
+                       "apart): meshing at the sform, where nibabel and FSL show it", path.name, scode, qcode, apart)
+        return sform
     sizes = ", ".join(f"{v:.4g}" for v in lengths)
     stored = ", ".join(f"{v:.4g}" for v in spatial)
     problem = (f"the header's sform (code {scode}) does not place voxels of the pixdim size rigidly "
@@ -456,6 +475,12 @@ def _nifti_placement(path: Path, spatial: tuple[float, ...]):
         )
     _warn_once("%s: %s, so it maps to another space; meshing in the qform's scanner geometry", path.name,
                problem.replace("the header's ", "its "))
+    return _qform_placement(quat, qfac, n, to_mm)
+
+
+def _qform_placement(quat, qfac: float, n: int, to_mm: float) -> tuple[tuple, tuple]:
+    """``(direction, origin)`` in ITK's LPS frame of a NIfTI qform (quaternion b, c, d and
+    offsets, qfac), offsets converted to mm by ``to_mm``; see :func:`_nifti_placement`."""
     b, c, d, qx, qy, qz = quat
     a = np.sqrt(max(0.0, 1.0 - (b * b + c * c + d * d)))
     rotation = np.array([[a * a + b * b - c * c - d * d, 2 * (b * c - a * d), 2 * (b * d + a * c)],
@@ -465,8 +490,6 @@ def _nifti_placement(path: Path, spatial: tuple[float, ...]):
         rotation[:, 2] = -rotation[:, 2]
     lps = np.diag([-1.0, -1.0, 1.0])  # NIfTI is RAS, ITK LPS
     direction = (lps @ rotation)[:n, :n]
-    # the qform's offsets are in the file's space unit, as ITK converts pixdim: metres, mm, microns
-    to_mm = {1: 1000.0, 2: 1.0, 3: 0.001}.get(units & 7, 1.0)
     origin = (lps @ np.array([qx, qy, qz]))[:n] * to_mm
     return tuple(direction.ravel()), tuple(origin)
 

@@ -61,7 +61,8 @@ def report_problem(report) -> str | None:
     for name, value in sections.items():
         if not isinstance(value, dict):
             return f"{name!r} is a {type(value).__name__}, not an object"
-    numbers = {k: report.get(k) for k in ("elements", "nodes", "inverted_elements", "poor_elements")}
+    numbers = {k: report.get(k) for k in ("elements", "nodes", "inverted_elements", "poor_elements",
+                                          "stretched_elements")}
     numbers |= {f"scaled_jacobian.{k}": sections["scaled_jacobian"].get(k) for k in ("min", "p1")}
     numbers |= {f"parts.model.{k}": sections["parts.model"].get(k) for k in ("parts", "floating_elements")}
     for name, material in sections["materials"].items():
@@ -79,7 +80,8 @@ def cohort_rows(reports: dict[str, dict], benchmarks: dict[str, dict[str, dict]]
     """The cohort table: column names, one row per patient in the order of ``reports``.
 
     Columns: patient, elements, nodes, min_scaled_jacobian, p1_scaled_jacobian, inverted,
-    poor, parts (face-connected parts of the model), floating_elements, per material
+    poor, stretched (edge ratio above the quality stage's limit; missing in reports made
+    before it was counted), parts (face-connected parts of the model), floating_elements, per material
     ``volume_change_percent:<name>`` (against the meshed labels) and
     ``original_volume_change_percent:<name>`` (against the full-resolution segmentation),
     per stage ``seconds:<stage>`` and ``peak_mb:<stage>``.
@@ -101,7 +103,7 @@ def cohort_rows(reports: dict[str, dict], benchmarks: dict[str, dict[str, dict]]
     materials = _materials(reports)
     stages = _stages(benchmarks)
     columns = ["patient", "elements", "nodes", "min_scaled_jacobian", "p1_scaled_jacobian", "inverted", "poor",
-               "parts", "floating_elements"]
+               "stretched", "parts", "floating_elements"]
     columns += [f"volume_change_percent:{m}" for m in materials]
     columns += [f"original_volume_change_percent:{m}" for m in materials]
     columns += [f"{kind}:{s}" for s in stages for kind in ("seconds", "peak_mb")]
@@ -110,7 +112,7 @@ def cohort_rows(reports: dict[str, dict], benchmarks: dict[str, dict[str, dict]]
         sj = r.get("scaled_jacobian", {})
         parts = r.get("parts", {}).get("model", {})
         row = [patient, r.get("elements"), r.get("nodes"), sj.get("min"), sj.get("p1"), r.get("inverted_elements"),
-               r.get("poor_elements"), parts.get("parts"), parts.get("floating_elements")]
+               r.get("poor_elements"), r.get("stretched_elements"), parts.get("parts"), parts.get("floating_elements")]
         mats = r.get("materials", {})
         row += [mats.get(m, {}).get("volume_change_percent") for m in materials]
         row += [mats.get(m, {}).get("original_volume_change_percent") for m in materials]
@@ -164,7 +166,7 @@ def render_cohort_html(columns: list[str], rows: list[list], poor_threshold: flo
     head1 = ("<tr><th rowspan='2'>patient</th><th rowspan='2'>elements</th><th rowspan='2'>nodes</th>"
              "<th colspan='2'>scaled Jacobian</th><th rowspan='2'>inverted</th><th rowspan='2'>poor"
              + (f" (&lt; {poor_threshold:g})" if poor_threshold is not None else "") + "</th>"
-             "<th rowspan='2'>parts</th><th rowspan='2'>floating elements</th>"
+             "<th rowspan='2'>stretched</th><th rowspan='2'>parts</th><th rowspan='2'>floating elements</th>"
              + (f"<th colspan='{len(materials)}'>volume change, % (against meshed labels / original)</th>"
                 if materials else "")
              + (f"<th colspan='{len(stages)}'>seconds / peak MB per stage</th>" if stages else "") + "</tr>")
@@ -175,7 +177,8 @@ def render_cohort_html(columns: list[str], rows: list[list], poor_threshold: flo
         warn = bool(row[at["inverted"]]) or (row[at["parts"]] or 1) > 1
         cells = [html.escape(str(row[at["patient"]])), _cell(row[at["elements"]]), _cell(row[at["nodes"]]),
                  _cell(row[at["min_scaled_jacobian"]], ".3f"), _cell(row[at["p1_scaled_jacobian"]], ".3f"),
-                 _cell(row[at["inverted"]]), _cell(row[at["poor"]]), _cell(row[at["parts"]]),
+                 _cell(row[at["inverted"]]), _cell(row[at["poor"]]), _cell(row[at["stretched"]]),
+                 _cell(row[at["parts"]]),
                  _cell(row[at["floating_elements"]])]
         cells += [f"{_cell(row[at[f'volume_change_percent:{m}']], '+.1f')} / "
                   f"{_cell(row[at[f'original_volume_change_percent:{m}']], '+.1f')}" for m in materials]

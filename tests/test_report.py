@@ -211,7 +211,7 @@ def test_model_picture_of_a_model_one_element_thick_along_x(tmp_path):
 
 def _report(elements, inverted=0, parts=1, bone=(1.5, 23.0)):
     return {"elements": elements, "nodes": elements + 7, "scaled_jacobian": {"min": 0.31, "p1": 0.52},
-            "inverted_elements": inverted, "poor_elements": 2, "poor_threshold": 0.2,
+            "inverted_elements": inverted, "poor_elements": 2, "poor_threshold": 0.2, "stretched_elements": 3,
             "parts": {"model": {"parts": parts, "floating_elements": 4 * (parts - 1)}},
             "materials": {"soft_tissue": {"volume_change_percent": -0.5, "original_volume_change_percent": 2.0},
                           "bone": {"volume_change_percent": bone[0], "original_volume_change_percent": bone[1]}}}
@@ -223,8 +223,9 @@ def test_cohort_table_rows_and_columns():
              "p2": {"mesh": {"s": "0.7", "max_rss": "120"}}}
     columns, rows = cohort_rows(reports, bench)
     at = {c: i for i, c in enumerate(columns)}
-    assert columns[:9] == ["patient", "elements", "nodes", "min_scaled_jacobian", "p1_scaled_jacobian", "inverted",
-                           "poor", "parts", "floating_elements"]
+    assert columns[:10] == ["patient", "elements", "nodes", "min_scaled_jacobian", "p1_scaled_jacobian", "inverted",
+                            "poor", "stretched", "parts", "floating_elements"]
+    assert [row[at["stretched"]] for row in rows] == [3, 3]
     # stages in pipeline order, materials in report order
     assert [c for c in columns if c.startswith("seconds:")] == ["seconds:mesh", "seconds:quality"]
     assert rows[0][at["original_volume_change_percent:bone"]] == 23.0
@@ -234,6 +235,7 @@ def test_cohort_table_rows_and_columns():
     assert len(tsv) == 3 and tsv[1].split("\t")[:3] == ["p1", "100", "107"]
     page = render_cohort_html(columns, rows, 0.2)
     assert page.count("<tr class=warn>") == 1  # p2: inverted and floating
+    assert "<th rowspan='2'>stretched</th>" in page and "<td>2</td><td>3</td><td>1</td>" in page
     assert "<td>+1.5 / +23.0</td>" in page and "<td>1.2 / 300</td>" in page and "<td>0.5 / –</td>" in page
 
 

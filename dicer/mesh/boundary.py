@@ -128,9 +128,20 @@ def plane_bits(mesh: Mesh, points: np.ndarray | None = None) -> np.ndarray:
     """(N,) uint8: bit a set for a node on the low bounding plane normal to axis a, bit
     3 + a on the high one (the two planes of an axis are two mirrors: a slab one voxel
     thick, mirrored at both, is endless)."""
-    on_lo, on_hi = _plane_sides(mesh, points)
-    weights = np.left_shift(np.uint8(1), np.arange(6, dtype=np.uint8))
-    return (np.concatenate([on_lo, on_hi], axis=1).astype(np.uint8) * weights).sum(axis=1, dtype=np.uint8)
+    pts = mesh.points if points is None else points
+    lo = np.asarray(mesh.origin, float)
+    hi = lo + np.asarray(mesh.grid_shape, float) * np.asarray(mesh.spacing, float)
+    tol = PLANE_TOLERANCE * np.asarray(mesh.spacing, float)
+    bits = np.zeros(pts.shape[0], np.uint8)
+    distance = np.empty(pts.shape[0])
+    on = np.empty(pts.shape[0], bool)
+    for axis in range(mesh.dim):  # the tests of _plane_sides, into one byte per node: no (N, 6) tables
+        for plane, bit in ((lo[axis], axis), (hi[axis], 3 + axis)):
+            np.subtract(pts[:, axis], plane, out=distance)
+            np.abs(distance, out=distance)
+            np.less_equal(distance, tol[axis], out=on)
+            bits[on] |= np.uint8(1 << bit)
+    return bits
 
 
 def plane_axes(planes: np.ndarray) -> np.ndarray:

@@ -935,9 +935,13 @@ for label, array in LABELS.items():
 case("9-kinds", "mesh: labels 8x8x1 (a 2D slice, good)",
      lambda c: argv_for(c, "mesh", inp=npy(c.t / "l.npy", np.ones((8, 8, 1), np.uint8))), good=True,
      outputs=("m.vtu",))
-case("9-kinds", "labels: 300 distinct label values (good)",
+case("9-kinds", "labels: 300 distinct label values in blocks of 2 voxels a side (good)",
+     lambda c: argv_for(c, "labels", inp=npy(c.t / "l.npy", ((np.indices((16, 16, 16)) // 2 * [[[[64]]], [[[8]]], [[[1]]]])
+                                                            .sum(0) % 300 + 1).astype(np.uint16))),
+     good=True, outputs=("l.nii.gz",))
+case("9-kinds", "labels: 300 distinct label values, every voxel's neighbours other values (an image's grey values)",
      lambda c: argv_for(c, "labels", inp=npy(c.t / "l.npy", (np.arange(16 ** 3) % 300 + 1).reshape(16, 16, 16)
-                                             .astype(np.uint16))), good=True, outputs=("l.nii.gz",))
+                                             .astype(np.uint16))), "l.npy", "grey values")
 case("9-kinds", "segment: a constant image", lambda c: argv_for(c, "segment", inp=npy(c.t / "v.npy",
                                                                                      np.full((8, 8, 8), 40.0))), "v.npy")
 case("9-kinds", "segment: a 2-voxel-thick image",

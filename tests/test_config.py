@@ -53,6 +53,8 @@ def test_material_defaults_filled_per_item():
         ("materials=[{name: a}, {name: a_b}, {name: b_c}, {name: c}]", ["a and b_c", "a_b and c", "a_b_c"]),
         ("materials=[{name: a}, {name: BOUNDARY}]", ["a_BOUNDARY"]),
         ("materials=[{name: Exterior_S2}]", ["Exterior_S2", "exterior face set"]),
+        # its element set beside the surface EXTERIOR: CalculiX put a *DSLOAD EXTERIOR on nothing
+        ("materials=[{name: exterior}]", ["exterior", "exterior face set"]),
         ("materials.0=1", ["materials"]),
         ("smooth.pillow_thickness=0.01", ["smooth.pillow_thickness", "0.05"]),
         # label 0's name: a material called so was meshed, stiff, under a name saying it was not there

@@ -159,6 +159,102 @@ def curved_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_
     return mid
 
 
+# natural coordinates of the nodes of the 20-node hexahedron and 8-node quad, VTK (= Abaqus) order
+_HEX_CORNERS = np.array([[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1],
+                         [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], float)
+_HEX_NODES = np.concatenate([_HEX_CORNERS, 0.5 * (_HEX_CORNERS[HEX_EDGES[:, 0]] + _HEX_CORNERS[HEX_EDGES[:, 1]])])
+_QUAD_NODES = np.concatenate([_HEX_CORNERS[:4, :2],
+                              0.5 * (_HEX_CORNERS[QUAD_EDGES[:, 0], :2] + _HEX_CORNERS[QUAD_EDGES[:, 1], :2])])
+
+
+def _serendipity_gradients(nodes: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """(P, K, d) derivatives of the serendipity shape functions of the K ``nodes`` (natural
+    coordinates, (K, d): corners at +-1, mid-edge nodes with one 0) at the points ``at`` (P, d)."""
+    p, k, d = at.shape[0], nodes.shape[0], nodes.shape[1]
+    out = np.empty((p, k, d))
+    x = at[:, None, :]  # (P, 1, d)
+    c = nodes[None, :, :]  # (1, K, d)
+    corner = np.all(nodes != 0, axis=1)
+    for a in range(d):
+        others = [b for b in range(d) if b != a]
+        lin = np.prod([1 + x[..., b] * c[..., b] for b in others], axis=0)  # (P, K)
+        # corners: N = (1/2^d) prod(1 + x c) (sum x c - (d - 1))
+        s = (x * c).sum(axis=2) - (d - 1)
+        dcorner = c[..., a] * lin * (s + 1 + x[..., a] * c[..., a]) / 2 ** d
+        # mid-edge node with c_a = 0: N = (1/2^(d-1)) (1 - x_a^2) prod_others(1 + x c)
+        dmid_zero = -2 * x[..., a] * lin / 2 ** (d - 1)
+        # mid-edge node with c_a != 0 and c_z = 0 for one other axis z
+        zero = np.argmin(np.abs(nodes), axis=1)  # the axis along which a mid-edge node lies
+        dmid = np.empty((p, k))
+        for j in range(k):
+            if corner[j] or zero[j] == a:
+                continue
+            z = zero[j]
+            rest = [b for b in others if b != z]
+            prod = np.prod([1 + at[:, b] * nodes[j, b] for b in rest], axis=0) if rest else 1.0
+            dmid[:, j] = (1 - at[:, z] ** 2) * nodes[j, a] * prod / 2 ** (d - 1)
+        out[..., a] = np.where(corner[None, :], dcorner, np.where((zero == a)[None, :], dmid_zero, dmid))
+    return out
+
+
+def _check_points(dim: int) -> np.ndarray:
+    """The points where a quadratic element's Jacobian must stay positive: the 3^d Gauss
+    points of full integration, the 2^d of reduced integration and the corners."""
+    g3, g2 = np.sqrt(0.6), 1 / np.sqrt(3.0)
+    axes = [np.array([-g3, 0.0, g3]), np.array([-g2, g2]), np.array([-1.0, 1.0])]
+    return np.concatenate([np.stack(np.meshgrid(*[v] * dim, indexing="ij"), axis=-1).reshape(-1, dim) for v in axes])
+
+
+_CURVED_FLOOR = 0.1
+"""Smallest Jacobian determinant over a curved element's check points, relative to its
+largest, that keeps its curved mid-edge nodes (the quality guard's kind of margin: a
+solver needs det J > 0 at every integration point)."""
+
+
+def _failing(points: np.ndarray, cells: np.ndarray, grads: np.ndarray, dim: int) -> np.ndarray:
+    """(M,) bool: quadratic elements (``cells`` (M, K), node positions ``points`` mm) whose
+    Jacobian determinant at the check points falls below ``_CURVED_FLOOR`` of their largest."""
+    out = np.empty(cells.shape[0], bool)
+    for start in range(0, cells.shape[0], 4096):
+        x = points[cells[start:start + 4096], :dim]  # (B, K, d)
+        jac = np.einsum("pka,bkc->bpac", grads, x)  # (B, P, d, d): dx_c / dxi_a
+        det = np.linalg.det(jac)
+        big = det.max(axis=1)
+        out[start:start + 4096] = ~(det.min(axis=1) >= _CURVED_FLOOR * np.maximum(big, 0)) | (big <= 0)
+    return out
+
+
+def _straighten_folds(mesh: Mesh, edges: np.ndarray, index: np.ndarray, mid: np.ndarray) -> np.ndarray:
+    """``mid`` with the curved mid-edge nodes of elements that the curve folds put back at
+    their edge's midpoint, until no element with a curved node fails (:func:`_failing`);
+    an element whose mid-edge nodes are all midpoints is the linear mesh's, which the
+    smoothing's guard checked."""
+    x = mesh.points
+    straight = 0.5 * (x[edges[:, 0]] + x[edges[:, 1]])
+    curved = np.any(mid != straight, axis=1)
+    dim = mesh.dim
+    grads = _serendipity_gradients(_HEX_NODES if dim == 3 else _QUAD_NODES, _check_points(dim))
+    n = mesh.n_points
+    reset = 0
+    while True:
+        holding = np.flatnonzero(curved[index].any(axis=1))  # elements with a curved mid-edge node
+        if holding.size == 0:
+            break
+        cells = np.concatenate([mesh.cells[holding], index[holding] + n], axis=1)
+        bad = holding[_failing(np.concatenate([x, mid]), cells, grads, dim)]
+        if bad.size == 0:
+            break
+        back = np.unique(index[bad])
+        back = back[curved[back]]
+        mid[back] = straight[back]
+        curved[back] = False
+        reset += back.size
+    if reset:
+        logging.getLogger("dicer").info("export: %d curved mid-edge node(s) put back at their edge's midpoint (the "
+                                        "curve would fold their elements)", reset)
+    return mid
+
+
 def quadratic_mesh(mesh: Mesh, boundary_faces: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points, 20-node (8-node) cells and doubled lattice indices of the quadratic mesh.
 
@@ -185,7 +281,7 @@ def quadratic_mesh(mesh: Mesh, boundary_faces: np.ndarray | None = None) -> tupl
     found = _edges_by_lattice(mesh, cells)
     edges, index = found if found is not None else mesh_edges(cells, n)
     if boundary_faces is not None and found is not None:  # lattice lines needed for the continuation
-        mid_points = curved_midpoints(mesh, edges, index, boundary_faces)
+        mid_points = _straighten_folds(mesh, edges, index, curved_midpoints(mesh, edges, index, boundary_faces))
     else:
         if boundary_faces is not None:
             logging.getLogger("dicer").warning(

@@ -635,5 +635,6 @@ def check_lsdyna(path: str | Path, model) -> None:
 
 
 FORMAT = Format("lsdyna", (".k", ".key", ".dyn"), write_lsdyna, check_lsdyna, dims=(3,), orders=(1,),
-                limits="LS-DYNA export writes 8-node hexahedra only (3D meshes, export.order 1); "
-                       "set export.order 1 or choose another format", digits=(9,))  # E16 columns
+                limits="LS-DYNA export writes 8-node hexahedra only (3D meshes, export.order 1); export a 3D "
+                       "mesh at export.order 1, or this one to .inp (a 2D one as CPS4/CPE4) or another format",
+                digits=(9,))  # E16 columns

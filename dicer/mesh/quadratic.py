@@ -286,8 +286,9 @@ def quadratic_mesh(mesh: Mesh, boundary_faces: np.ndarray | None = None) -> tupl
         if boundary_faces is not None:
             logging.getLogger("dicer").warning(
                 "export: export.midside_nodes curved places mid-edge nodes along lattice lines, and this mesh has "
-                "edges off them (the chamfers of plane merging, graded templates): every mid-edge node is at its "
-                "edge's midpoint; for curved ones export a mesh smoothed without merging (merge.passes=[0, 0, 0])")
+                "edges off them (the chamfers of plane merging, graded templates, a pillow layer): every mid-edge "
+                "node is at its edge's midpoint; for curved ones export a mesh smoothed without merging "
+                "(merge.passes=[0, 0, 0]) and without a pillow layer (smooth.pillow: false)")
         mid_points = 0.5 * (mesh.points[edges[:, 0]] + mesh.points[edges[:, 1]])
     points = np.concatenate([mesh.points, mid_points])
     lattice2 = np.concatenate([2 * mesh.lattice, mesh.lattice[edges[:, 0]] + mesh.lattice[edges[:, 1]]])

@@ -491,8 +491,8 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
         # too small (or too finely divided) for coarser levels: only the transitions' worse shapes
         log.warning("merge: the transition templates made no fewer elements (%d -> %d; min scaled Jacobian %.3f): "
                     "the model is too small or its parts too thin for a coarser level, and the transitions only worsen "
-                    "the shapes; use merge.method: planes, or merge.templates.levels: 0 to keep the voxel mesh", report["elements_before"],
-                    report["elements_after"], report["min_scaled_jacobian"])
+                    "the shapes; use merge.method: planes, or merge.templates.levels: 0 to keep the voxel mesh",
+                    report["elements_before"], report["elements_after"], report["min_scaled_jacobian"])
     log.info("merge: wrote %s (%d -> %d elements, %d -> %d nodes; volume %s)", out,
              report["elements_before"], report["elements_after"], report["nodes_before"],
              report["nodes_after"], brief_json(_stable(report["volume"]), sort_keys=True))

@@ -206,9 +206,8 @@ def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None) -> dict:
 
 
 @takes_settings("quality")
-def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stretched_edge_ratio: float = 20.0,
-                   labels=None, original=None,
-                   metrics: dict | None = None, neighbours: np.ndarray | None = None,
+def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stretched_edge_ratio: float,
+                   labels=None, original=None, metrics: dict | None = None, neighbours: np.ndarray | None = None,
                    parts: dict | None = None) -> dict:
     """Quality figures of a mesh as a JSON-ready dict.
 
@@ -413,7 +412,7 @@ def render_html(report: dict, pictures: list[tuple[str, bytes]] = ()) -> str:
     """
     top = [(k, report[k]) for k in ("dimension", "element_type", "nodes", "elements", "inverted_elements",
                                       "poor_elements", "poor_threshold", "stretched_elements",
-                                      "stretched_threshold") if k in report]
+                                      "stretched_threshold")]
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>dicer mesh quality</title>",
         f"<style>{STYLE}</style></head><body>",

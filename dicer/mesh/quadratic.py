@@ -169,31 +169,23 @@ _QUAD_NODES = np.concatenate([_HEX_CORNERS[:4, :2],
 
 def _serendipity_gradients(nodes: np.ndarray, at: np.ndarray) -> np.ndarray:
     """(P, K, d) derivatives of the serendipity shape functions of the K ``nodes`` (natural
-    coordinates, (K, d): corners at +-1, mid-edge nodes with one 0) at the points ``at`` (P, d)."""
-    p, k, d = at.shape[0], nodes.shape[0], nodes.shape[1]
-    out = np.empty((p, k, d))
-    x = at[:, None, :]  # (P, 1, d)
-    c = nodes[None, :, :]  # (1, K, d)
-    corner = np.all(nodes != 0, axis=1)
+    coordinates, (K, d): corners at +-1, mid-edge nodes with one 0) at the points ``at`` (P, d).
+
+    Each function is a product of one factor per axis, 1 + x c (1 - x^2 along a mid-edge
+    node's own axis), over 2^d (2^(d-1) for mid-edge nodes), a corner's times
+    (sum x c - d + 1)."""
+    d = nodes.shape[1]
+    x, c = at[:, None, :], nodes[None, :, :]
+    along = nodes == 0  # (K, d): a mid-edge node's own axis
+    corner = ~along.any(axis=1)
+    factor = np.where(along, 1 - x * x, 1 + x * c)  # (P, K, d)
+    slope = np.where(along, -2 * x, c)
+    extra = np.where(corner, (x * c).sum(axis=2) - (d - 1), 1.0)  # (P, K)
+    scale = np.where(corner, 2.0 ** -d, 2.0 ** (1 - d))
+    out = np.empty(factor.shape)
     for a in range(d):
-        others = [b for b in range(d) if b != a]
-        lin = np.prod([1 + x[..., b] * c[..., b] for b in others], axis=0)  # (P, K)
-        # corners: N = (1/2^d) prod(1 + x c) (sum x c - (d - 1))
-        s = (x * c).sum(axis=2) - (d - 1)
-        dcorner = c[..., a] * lin * (s + 1 + x[..., a] * c[..., a]) / 2 ** d
-        # mid-edge node with c_a = 0: N = (1/2^(d-1)) (1 - x_a^2) prod_others(1 + x c)
-        dmid_zero = -2 * x[..., a] * lin / 2 ** (d - 1)
-        # mid-edge node with c_a != 0 and c_z = 0 for one other axis z
-        zero = np.argmin(np.abs(nodes), axis=1)  # the axis along which a mid-edge node lies
-        dmid = np.empty((p, k))
-        for j in range(k):
-            if corner[j] or zero[j] == a:
-                continue
-            z = zero[j]
-            rest = [b for b in others if b != z]
-            prod = np.prod([1 + at[:, b] * nodes[j, b] for b in rest], axis=0) if rest else 1.0
-            dmid[:, j] = (1 - at[:, z] ** 2) * nodes[j, a] * prod / 2 ** (d - 1)
-        out[..., a] = np.where(corner[None, :], dcorner, np.where((zero == a)[None, :], dmid_zero, dmid))
+        others = np.prod(np.delete(factor, a, axis=2), axis=2)
+        out[..., a] = scale * others * (slope[..., a] * extra + np.where(corner, factor[..., a] * c[..., a], 0.0))
     return out
 
 

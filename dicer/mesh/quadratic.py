@@ -206,11 +206,18 @@ solver needs det J > 0 at every integration point)."""
 def _failing(points: np.ndarray, cells: np.ndarray, grads: np.ndarray, dim: int) -> np.ndarray:
     """(M,) bool: quadratic elements (``cells`` (M, K), node positions ``points`` mm) whose
     Jacobian determinant at the check points falls below ``_CURVED_FLOOR`` of their largest."""
+    p, k = grads.shape[0], grads.shape[1]
+    rows = grads.transpose(0, 2, 1).reshape(p * dim, k)  # (P d, K): one matrix product per block
     out = np.empty(cells.shape[0], bool)
     for start in range(0, cells.shape[0], 4096):
-        x = points[cells[start:start + 4096], :dim]  # (B, K, d)
-        jac = np.einsum("pka,bkc->bpac", grads, x)  # (B, P, d, d): dx_c / dxi_a
-        det = np.linalg.det(jac)
+        jac = (rows @ points[cells[start:start + 4096], :dim]).reshape(-1, p, dim, dim)  # dx_c / dxi_a
+        if dim == 3:
+            a, b, c = jac[..., 0, :], jac[..., 1, :], jac[..., 2, :]
+            det = (a[..., 0] * (b[..., 1] * c[..., 2] - b[..., 2] * c[..., 1])
+                   - a[..., 1] * (b[..., 0] * c[..., 2] - b[..., 2] * c[..., 0])
+                   + a[..., 2] * (b[..., 0] * c[..., 1] - b[..., 1] * c[..., 0]))
+        else:
+            det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
         big = det.max(axis=1)
         out[start:start + 4096] = ~(det.min(axis=1) >= _CURVED_FLOOR * np.maximum(big, 0)) | (big <= 0)
     return out
@@ -220,16 +227,18 @@ def _straighten_folds(mesh: Mesh, edges: np.ndarray, index: np.ndarray, mid: np.
     """``mid`` with the curved mid-edge nodes of elements that the curve folds put back at
     their edge's midpoint, until no element with a curved node fails (:func:`_failing`);
     an element whose mid-edge nodes are all midpoints is the linear mesh's, which the
-    smoothing's guard checked."""
+    smoothing's guard checked. After the first pass only the elements around the nodes put
+    back are checked again (the others did not change)."""
     x = mesh.points
     straight = 0.5 * (x[edges[:, 0]] + x[edges[:, 1]])
     curved = np.any(mid != straight, axis=1)
     dim = mesh.dim
     grads = _serendipity_gradients(_HEX_NODES if dim == 3 else _QUAD_NODES, _check_points(dim))
     n = mesh.n_points
+    changed = curved  # the mid-edge nodes whose elements are (re)checked
     reset = 0
     while True:
-        holding = np.flatnonzero(curved[index].any(axis=1))  # elements with a curved mid-edge node
+        holding = np.flatnonzero(changed[index].any(axis=1) & curved[index].any(axis=1))
         if holding.size == 0:
             break
         cells = np.concatenate([mesh.cells[holding], index[holding] + n], axis=1)
@@ -240,6 +249,8 @@ def _straighten_folds(mesh: Mesh, edges: np.ndarray, index: np.ndarray, mid: np.
         back = back[curved[back]]
         mid[back] = straight[back]
         curved[back] = False
+        changed = np.zeros(edges.shape[0], bool)
+        changed[back] = True
         reset += back.size
     if reset:
         logging.getLogger("dicer").info("export: %d curved mid-edge node(s) put back at their edge's midpoint (the "

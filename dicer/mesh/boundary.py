@@ -41,7 +41,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 
 from dicer.errors import DicerError
 from dicer.mesh.model import LEVEL_DATA, Mesh
@@ -77,7 +76,7 @@ class BoundaryGraph:
     boundary_cells: np.ndarray
     planes: np.ndarray | None = None
 
-    def adjacency(self, nodes: np.ndarray | None = None) -> sp.csr_matrix:
+    def adjacency(self, nodes: np.ndarray | None = None) -> "scipy.sparse.csr_matrix":
         """Adjacency of the boundary graph, restricted to ``nodes`` (default: the boundary
         nodes, in increasing order); rows and columns follow ``nodes``. Entry (n, j) is the
         number of mirror copies of j next to n (``mirror_weights``): 1 without mirrors,
@@ -95,6 +94,8 @@ class BoundaryGraph:
             ea, eb = self.edges[keep, 0], self.edges[keep, 1]
             w = np.concatenate([mirror_weights(self.planes[ea], self.planes[eb]),
                                 mirror_weights(self.planes[eb], self.planes[ea])])
+        import scipy.sparse as sp  # here: the processes that only export or check never load scipy (0.2 s)
+
         return sp.csr_matrix((w, (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(nodes.size, nodes.size))
 
 
@@ -251,6 +252,8 @@ def _edge_counts_packed(lo: np.ndarray, hi: np.ndarray, rank: np.ndarray, n: int
     Every material gets a 3-bit counter in an int64 and a sparse matrix sums the
     duplicates: one linear pass, faster than a sort for few materials.
     """
+    import scipy.sparse as sp
+
     code = np.left_shift(np.int64(1), 3 * np.arange(n_kinds, dtype=np.int64))
     hist = sp.csr_matrix((code[rank], (lo, hi)), shape=(n, n))
     hist.sum_duplicates()  # rows and columns sorted: edges in increasing (first, second) order

@@ -590,6 +590,10 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
         thresholds = _read_thresholds(thresholds_path, config, image_path)
         image = read_image(image_path, spacing=config["image"]["spacing"],
                            allow_irregular_slices=config["image"]["allow_irregular_slices"])
+        from dicer.crop import crop_volume
+
+        # the mesh's lattice starts at the crop's first voxel: the scan is cut as segment cut it
+        image, _ = crop_volume(image, config["image"]["crop"], image_path)
 
     def run(m):
         if m is not mesh:  # read from a file: a mesh dicer run hands on is never smoothed yet

@@ -134,3 +134,31 @@ def test_segment_crops_the_scan_before_segmenting(tmp_path):
     # every kept slice's centre at z <= 6 mm, the next one above it
     z = whole.TransformIndexToPhysicalPoint((0, 0, cut.GetSize()[2]))[2]
     assert cut.TransformIndexToPhysicalPoint((0, 0, cut.GetSize()[2] - 1))[2] <= 6.0 < z
+
+
+def test_run_with_crop_pulls_onto_the_scan_where_the_uncropped_run_does(tmp_path):
+    # the pull samples the scan in the mesh's lattice frame: a cropped mesh starts at the crop's
+    # first voxel, so the scan must be cut the same way (with flipped axes the frames differ)
+    size, centre, radius = 20, np.array([9.6, 10.3, 9.2]), 6.2
+    g = (np.arange(size * 4) + 0.5) / 4
+    x, y, z = np.meshgrid(g, g, g, indexing="ij", sparse=True)
+    inside = (x - centre[0]) ** 2 + (y - centre[1]) ** 2 + (z - centre[2]) ** 2 < radius**2
+    hu = 2000.0 * inside.reshape(size, 4, size, 4, size, 4).mean(axis=(1, 3, 5)) - 1000.0
+    scan = tmp_path / "ball.nii.gz"
+    write_itk(scan, hu, np.diag([-1.0, -1.0, 1.0]) @ OBLIQUE, np.int16)
+    config = tmp_path / "config.yaml"
+    config.write_text("segment: {method: manual, thresholds: [0], opening_radius: 0, closing_radius: 0, keep: all}\n"
+                      "materials: [{name: solid, youngs_modulus: 1000, poissons_ratio: 0.3}]\n"
+                      "smooth: {surface_from_image: true}\nmerge: {passes: [0, 0, 0]}\n")
+    start = [2, 1, 1]
+    crop = f"image.crop={{unit: voxels, min: {start}, max: [19, 20, 18]}}"
+    models = []
+    for name, extra in (("whole", []), ("cut", ["--set", crop])):
+        out = tmp_path / name
+        assert main(["run", str(scan), "-o", str(out), "--config", str(config), "-q", *extra]) == 0
+        models.append(meshio.read(out / "model.vtu"))
+    whole, cut = models
+    at = {tuple(v): i for i, v in enumerate(np.asarray(whole.point_data["lattice"]).tolist())}
+    pairs = np.array([(at[tuple(v)], j) for j, v in enumerate((np.asarray(cut.point_data["lattice"]) + start).tolist())])
+    assert pairs.shape[0] == cut.points.shape[0] == whole.points.shape[0]  # the crop cuts nothing of the ball
+    assert np.abs(whole.points[pairs[:, 0]] - cut.points[pairs[:, 1]]).max() < 0.01  # mm (5.7 mm when not cut)

@@ -101,6 +101,17 @@ def test_multiotsu_two_classes_noisy():
     assert dice(labels.array == 2, truth == 2) > 0.99
 
 
+def test_multiotsu_warns_when_it_cuts_one_tissue_in_two():
+    image, truth = head_like(32, noise=60, seed=3)
+    _, info = segment(image, config(method="multiotsu"), "head.nii.gz")
+    assert "warnings" not in info  # both thresholds in the valleys between air, soft tissue and bone
+    image.array[truth == 2] = SOFT + np.random.default_rng(4).normal(0, 60, np.count_nonzero(truth == 2))
+    _, info = segment(image, config(method="multiotsu"), "soft.nii.gz")  # no bone: two materials, one tissue
+    said = [w for w in info["warnings"] if "at a peak of the image's histogram" in w]
+    assert len(said) == 1 and "'soft_tissue'" in said[0]
+    assert AIR - 200 < info["thresholds"][0] < AIR + 200  # the air cut in two: what the warning is for
+
+
 def test_segment_2d():
     image, truth = head_like(32)
     im2 = Volume(image.array[:, :, 16].copy(), (0.5, 0.7))

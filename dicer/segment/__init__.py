@@ -22,6 +22,7 @@ from dicer.segment.thresholds import (
     multiotsu_thresholds,
     otsu_thresholds,
     shape_connectivity_thresholds,
+    thresholds_in_a_mode,
     value_range,
 )
 
@@ -253,6 +254,23 @@ def _range_warnings(info: dict, names: list[str], lo: float, hi: float) -> list[
     return warnings
 
 
+def _histogram_warnings(method: str, array: np.ndarray, names: list[str], thresholds) -> list[str]:
+    """Warnings for thresholds from the histogram alone (otsu, multiotsu) that cut through one
+    tissue's peak (:func:`thresholds_in_a_mode`): the histogram is split into as many classes as
+    there are materials whatever the scan holds, so a scan without bone has its air cut in two
+    and the head becomes 'bone'."""
+    if method not in ("otsu", "multiotsu"):
+        return []
+    cut = thresholds_in_a_mode(array, thresholds)
+    if not cut:
+        return []
+    which = ", ".join(f"'{names[i]}' ({float(thresholds[i]):g})" for i in cut)
+    return [f"{method} put the threshold of {which} at a peak of the image's histogram, inside one tissue's values, "
+            "not between two: the scan holds fewer tissues than the materials listed, and the classes are not the "
+            "tissues they are named after; list only the materials the scan holds, or set segment.method: manual "
+            "(or shape_connectivity with segment.ranges)"]
+
+
 @takes_settings("segment")
 def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges, bins: int, opening_radius: int,
             closing_radius: int, keep, min_component_size, priority, source: str = "") -> tuple[Volume, dict]:
@@ -317,7 +335,7 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
     info["thresholds"] = [round(float(t), 4) for t in thresholds]
     t_threshold = time.perf_counter()
 
-    array = image.array
+    searched, array = array, image.array
     raw = classify(array, thresholds)
     if not raw.any():
         raise DicerError(f"{source}: no voxel >= {thresholds[0]:g} (the lower bound of class '{names[0]}'); "
@@ -336,7 +354,8 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
     info["removed_by_opening"] = {names[c - 1]: n for c, n in minfo["removed_by_opening"].items()}
     info["removed_parts"] = {names[c - 1]: p for c, p in minfo["removed_parts"].items() if p["parts"]}
     info["classes"] = label_counts(labels, names)
-    warnings = _empty_class_warnings(info, names, thresholds) + _range_warnings(info, names, lo, hi)
+    warnings = (_empty_class_warnings(info, names, thresholds) + _range_warnings(info, names, lo, hi)
+                + _histogram_warnings(method, searched, names, thresholds))
     for name, removed in info["removed_by_opening"].items():
         kept, thresholded = info["classes"][name]["voxels"], info["thresholded"][name]
         if kept and removed >= OPENED_AWAY * thresholded:  # an empty class has its own warning

@@ -154,6 +154,39 @@ def multiotsu_thresholds(array: np.ndarray, k: int, names: list[str], source: st
     return t
 
 
+MODE_SHARE = 0.25
+"""A histogram threshold at which the image's value density (256 bins) is at least this share
+of its highest bin's lies in a populated mode, not in a valley between two."""
+
+
+def thresholds_in_a_mode(array: np.ndarray, thresholds) -> list[int]:
+    """The thresholds (their indices) that cut through a populated mode of the histogram.
+
+    Otsu's criterion splits the values into the classes asked for whatever they hold: with
+    more classes than the scan has tissues (a scan without bone) one tissue is cut in two, at
+    its own peak. A threshold between two tissues lies in a valley of the histogram.
+
+    Parameters
+    ----------
+    array : ndarray
+        Image intensities.
+    thresholds : sequence of float
+
+    Returns
+    -------
+    list of int
+    """
+    values = _clipped(_finite_values(array))
+    with _quiet():
+        counts, edges = np.histogram(values, bins=256)
+    if not counts.size or counts.max() == 0:
+        return []
+    # the bin of the threshold and its neighbours: one noisy bin does not decide
+    near = np.convolve(counts, np.ones(3) / 3, mode="same")
+    at = np.clip(np.searchsorted(edges, np.asarray(thresholds, float), side="right") - 1, 0, counts.size - 1)
+    return [i for i, b in enumerate(at) if near[b] >= MODE_SHARE * counts.max()]
+
+
 # --- shape connectivity (Lie) -------------------------------------------------------------
 
 

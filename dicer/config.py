@@ -745,7 +745,8 @@ def for_label_volume(config: dict) -> dict:
 
     ``downsample.morphology`` left unset (null) becomes false: the segment section's opening
     and closing, made for the few classes of a scan, remove and regrow an atlas's small
-    parcels.
+    parcels; ``downsample.vote`` left unset becomes plurality: an atlas's label numbers
+    order nothing.
 
     Parameters
     ----------
@@ -757,9 +758,12 @@ def for_label_volume(config: dict) -> dict:
     dict
         ``config`` itself when nothing changes, else a new dict (the input is not changed).
     """
-    if config.get("downsample", {}).get("morphology", False) is not None:
+    section = config.get("downsample", {})
+    unset = {key: value for key, value in (("morphology", False), ("vote", "plurality")) if key in section
+             and section[key] is None}
+    if not unset:
         return config
-    return {**config, "downsample": {**config["downsample"], "morphology": False}}
+    return {**config, "downsample": {**section, **unset}}
 
 
 def config_hash(config: dict) -> str:

@@ -10,6 +10,10 @@ block becomes one coarse voxel by this vote:
 2. if no class qualifies, the most frequent value of the block wins, background
    included (ties: the class first in the priority, background last).
 
+With ``downsample.vote: plurality`` (the default for label volumes made elsewhere: an
+atlas's label numbers order nothing) rule 1 goes by count: when the non-background
+classes together fill ``min_fraction`` of the block, the most frequent of them wins.
+
 A two-voxel bone plate in 4-voxel blocks fills half of each block it crosses, so it
 survives a vote that plain majority would lose. The coarse spacing is the fine
 spacing times the factor; the origin (corner of voxel 0) is unchanged. Opening by
@@ -68,7 +72,8 @@ def reduction_factor(spacing, *, factor, voxel_size, source: str = "") -> tuple[
     return tuple(int(x) for x in f)
 
 
-def vote(labels: np.ndarray, factor, n_classes: int, min_fraction: float, priority=None) -> np.ndarray:
+def vote(labels: np.ndarray, factor, n_classes: int, min_fraction: float, priority=None,
+         plurality: bool = False) -> np.ndarray:
     """Reduce a label array by the thin-class vote (see the module notes).
 
     Parameters
@@ -83,6 +88,9 @@ def vote(labels: np.ndarray, factor, n_classes: int, min_fraction: float, priori
         Fraction of a block, in [0, 1], a class must fill to be a candidate.
     priority : sequence of int, optional
         Class labels, highest priority first; default ``K, ..., 1``.
+    plurality : bool, optional
+        Rule 1 by count: when the non-background classes together fill ``min_fraction``,
+        the most frequent of them wins (ties: the first in the priority).
 
     Returns
     -------
@@ -104,9 +112,16 @@ def vote(labels: np.ndarray, factor, n_classes: int, min_fraction: float, priori
     step = max(1, _VOXELS // max(1, padded[: f[0]].size))  # coarse planes along x per slab
     for x0 in range(0, coarse_shape[0], step):
         slab = padded[x0 * f[0] : (x0 + step) * f[0]]
-        out[x0 : x0 + step] = _vote_blocks(_blocks(slab, f), rank, np.asarray(order), min_fraction * block
-                                           ).reshape((-1,) + coarse_shape[1:])
+        odd = None
+        if plurality:  # the blocks' checkerboard parity: which way a tie goes
+            grid = np.indices((min(step, coarse_shape[0] - x0),) + coarse_shape[1:]).sum(axis=0) + x0
+            odd = (grid % 2 == 1).ravel()
+        out[x0 : x0 + step] = _vote_blocks(_blocks(slab, f), rank, np.asarray(order), min_fraction * block,
+                                           plurality, odd).reshape((-1,) + coarse_shape[1:])
     return out
+
+
+_thin_class_vote = vote  # for downsample, whose setting of that name hides it
 
 
 _VOXELS = 1 << 22  # fine voxels per slab of the vote: its temporaries stay small
@@ -122,7 +137,8 @@ def _blocks(a: np.ndarray, f: tuple[int, ...]) -> np.ndarray:
         int(np.prod(coarse)), int(np.prod(f)))
 
 
-def _vote_blocks(rows: np.ndarray, rank: np.ndarray, order: np.ndarray, need: float) -> np.ndarray:
+def _vote_blocks(rows: np.ndarray, rank: np.ndarray, order: np.ndarray, need: float,
+                 plurality: bool = False, odd: np.ndarray | None = None) -> np.ndarray:
     """The vote of every row of ``rows`` (blocks, voxels): one pass over the sorted rows.
 
     rank : position of each value in ``order`` (prio then background; len(order) for
@@ -139,19 +155,31 @@ def _vote_blocks(rows: np.ndarray, rank: np.ndarray, order: np.ndarray, need: fl
     r = rank[flat[runs]]
     first = np.searchsorted(runs, np.arange(n) * width)  # each row's first run
     outside = len(order)
-    # rule 1: among the classes of the priority filling ``need`` (and at least one voxel), the first
-    cand = (count >= need) & (count > 0) & (r < outside - 1)
-    best = np.minimum.reduceat(np.where(cand, r, outside), first)
     # rule 2: the most frequent value of ``order``, ties to the first in it
     score = np.where(r < outside, count * (outside + 1) + (outside - r), 0)
     plural = np.maximum.reduceat(score, first)
     plural_rank = np.where(plural > 0, outside - plural % (outside + 1), 0)
+    classes = r < outside - 1  # runs of a class of the priority (not the background)
+    if plurality:
+        # rule 1 by count: the classes together fill ``need``: the most frequent of them; a tie
+        # goes to the first in the priority in every other block (``odd`` False) and to the
+        # last in the others, so that no class wins the ties of a whole atlas by its number
+        filled = np.add.reduceat(np.where(classes, count, 0), first)
+        tie = np.where(odd[runs // width], r + 1, outside - r) if odd is not None else outside - r
+        top = np.maximum.reduceat(np.where(classes, count * (outside + 1) + tie, 0), first)
+        top = np.where(top > 0, np.where(odd[np.arange(n)], top % (outside + 1) - 1, outside - top % (outside + 1))
+                       if odd is not None else outside - top % (outside + 1), outside)
+        best = np.where(filled >= need, top, outside)
+    else:
+        # rule 1: among the classes of the priority filling ``need`` (and at least one voxel), the first
+        cand = (count >= need) & (count > 0) & classes
+        best = np.minimum.reduceat(np.where(cand, r, outside), first)
     return order[np.where(best < outside, best, plural_rank)].astype(rows.dtype)
 
 
 @takes_settings("downsample")
 def downsample(labels: Volume, *, names: list[str], factor, voxel_size, min_fraction: float, morphology: bool,
-               opening_radius: int, closing_radius: int, keep, min_component_size, priority,
+               vote: str | None, opening_radius: int, closing_radius: int, keep, min_component_size, priority,
                source: str = "") -> tuple[Volume, dict]:
     """Reduce a label volume's resolution, keeping thin classes, then clean it again.
 
@@ -166,7 +194,7 @@ def downsample(labels: Volume, *, names: list[str], factor, voxel_size, min_frac
         (nx, ny[, nz]) integer labels, 0 background, 1..K classes; spacing in mm.
     names : list of str
         The material names (the ``materials`` section); label i is ``names[i - 1]``.
-    factor, voxel_size, min_fraction, morphology
+    factor, voxel_size, min_fraction, morphology, vote
         The ``downsample:`` config section (see the schema).
     opening_radius, closing_radius, keep, min_component_size, priority
         Those keys of the ``segment:`` section: the vote's class priority and the
@@ -200,7 +228,7 @@ def downsample(labels: Volume, *, names: list[str], factor, voxel_size, min_frac
     factor = reduction_factor(labels.spacing, factor=factor, voxel_size=voxel_size, source=source)
     morphology = True if morphology is None else bool(morphology)  # null: a scan's default (for_label_volume)
     before = {n: v["voxels"] for n, v in label_counts(array, names).items()}
-    info = {"factor": list(factor), "shape_before": list(array.shape)}
+    info = {"factor": list(factor), "shape_before": list(array.shape), "vote": vote or "priority"}
     if all(f == 1 for f in factor):
         info.update(shape_after=list(array.shape), spacing_after=list(labels.spacing),
                     voxels_before=before, voxels_after=before)
@@ -217,7 +245,8 @@ def downsample(labels: Volume, *, names: list[str], factor, voxel_size, min_frac
                                  min_component_size=min_component_size, priority=priority, source=source)
     if morphology:
         check_radii(options, after, source)
-    coarse = vote(array, factor, k, float(min_fraction), options["priority"])
+    coarse = _thin_class_vote(array, factor, k, float(min_fraction), options["priority"],
+                              plurality=vote == "plurality")  # null: a scan's default (for_label_volume)
     if morphology:
         cleaned, _ = clean_labels(coarse, **options)
         if coarse.any() and not cleaned.any():

@@ -238,6 +238,53 @@ def _block_atlas() -> np.ndarray:
     return np.kron(index, np.ones((4, 4, 4), int)).astype(np.uint16)
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 300).flatmap(lambda k: st.tuples(
+           st.just(k), arrays(np.uint16, st.tuples(*[st.integers(1, 7)] * 3), elements=st.integers(0, k)),
+           st.permutations(list(range(1, k + 1))))),
+       st.tuples(*[st.integers(1, 3)] * 3), st.sampled_from([0.0, 0.2, 0.5, 1.0]))
+def test_plurality_vote_matches_blockwise_rule(drawn, factor, frac):
+    # the classes together fill frac: the most frequent, ties to the first in the priority on
+    # even blocks (i + j + k) and to the last on odd ones; else the block's most frequent value
+    k, lab, prio = drawn
+    out = vote(lab, factor, k, frac, priority=prio, plurality=True)
+    order = prio + [0]
+    pad = np.zeros([-(-n // f) * f for n, f in zip(lab.shape, factor)], np.uint16)
+    pad[tuple(slice(0, n) for n in lab.shape)] = lab
+    for idx in np.ndindex(*out.shape):
+        blk = pad[tuple(slice(i * f, (i + 1) * f) for i, f in zip(idx, factor))]
+        counts = np.bincount(blk.ravel(), minlength=k + 1)
+        present = [c for c in prio if counts[c] > 0]
+        if present and counts[1:].sum() >= frac * blk.size:
+            first = sum(idx) % 2 == 0
+            expected = max(present, key=lambda c: (counts[c], -prio.index(c) if first else prio.index(c)))
+        else:
+            expected = max(order, key=lambda c: (counts[c], -order.index(c)))
+        assert out[idx] == expected
+
+
+def test_renumbering_an_atlas_does_not_move_volume_between_its_parcels():
+    # 300 random parcels at factor 2: the priority vote gave the high numbers the low ones' volume
+    rng = np.random.default_rng(5)
+    n = 24
+    seeds = rng.uniform(0, n, (300, 3))
+    grid = np.stack(np.meshgrid(*[np.arange(n) + 0.5] * 3, indexing="ij"), -1).reshape(-1, 3)
+    nearest = np.argmin(((grid[:, None, :] - seeds[None]) ** 2).sum(-1), axis=1).reshape(n, n, n)
+    atlas = (nearest + 1).astype(np.uint16)
+    ratios = {}
+    for name, lab in (("as numbered", atlas), ("reversed", 301 - atlas)):
+        coarse = vote(lab, (2, 2, 2), 300, 0.25, plurality=True)
+        fine = np.bincount(lab.ravel(), minlength=301)
+        kept = np.bincount(coarse.ravel(), minlength=301) * 8
+        parcel = np.arange(1, 301) if name == "as numbered" else 301 - np.arange(1, 301)
+        ratios[name] = kept[parcel] / fine[parcel]  # by parcel, whatever its number
+    for r in ratios.values():
+        assert 0.9 < r[:75].mean() < 1.1 and 0.9 < r[-75:].mean() < 1.1  # no end of the numbering favoured
+    priority = vote(atlas, (2, 2, 2), 300, 0.25)
+    low = np.bincount(priority.ravel(), minlength=301)[1:76] * 8 / np.bincount(atlas.ravel(), minlength=301)[1:76]
+    assert low.mean() < 0.8  # what the priority vote does to the low numbers
+
+
 def test_label_volumes_made_elsewhere_are_downsampled_without_the_scans_morphology(tmp_path, caplog):
     """Factor 2 of an atlas of aligned 4-voxel parcels: every coarse voxel lies in one parcel.
     The segment section's opening and closing (for a scan's few classes) removed most parcels
@@ -249,6 +296,8 @@ def test_label_volumes_made_elsewhere_are_downsampled_without_the_scans_morpholo
 
     assert load_config()["downsample"]["morphology"] is None
     assert for_label_volume(load_config())["downsample"]["morphology"] is False
+    assert for_label_volume(load_config())["downsample"]["vote"] == "plurality"
+    assert for_label_volume(load_config(sets=["downsample.vote=priority"]))["downsample"]["vote"] == "priority"
     assert for_label_volume(load_config(sets=["downsample.morphology=true"]))["downsample"]["morphology"] is True
     atlas = _block_atlas()
     write_image(Volume(atlas, (1.0, 1.0, 1.0)), tmp_path / "atlas.nii.gz")

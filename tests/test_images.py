@@ -916,3 +916,22 @@ def test_float64_values_beyond_float32_are_refused(tmp_path):
     array[2:4, 2:4, 1:3] = 3e38  # within float32
     np.save(tmp_path / "big.npy", array)
     assert read_image(tmp_path / "big.npy", spacing=1.0).array.max() == np.float32(3e38)
+
+
+@pytest.mark.parametrize("gz", [False, True])
+def test_a_nifti2_file_is_refused_saying_so(tmp_path, gz):
+    import struct
+
+    # a 4x4x4 int16 NIfTI-2 image: 540-byte header, 4 bytes of extension flag, the voxels
+    head = bytearray(540)
+    struct.pack_into("<i", head, 0, 540)
+    head[4:12] = b"n+2\0\r\n\x1a\n"
+    struct.pack_into("<2h", head, 12, 4, 16)  # datatype int16, bitpix
+    struct.pack_into("<8q", head, 16, 3, 4, 4, 4, 1, 1, 1, 1)
+    struct.pack_into("<8d", head, 104, 1, 1, 1, 1, 1, 1, 1, 1)
+    struct.pack_into("<q", head, 168, 544)
+    data = bytes(head) + bytes(4) + np.arange(64, dtype="<i2").tobytes()
+    path = tmp_path / ("scan.nii.gz" if gz else "scan.nii")
+    path.write_bytes(gzip.compress(data, mtime=0) if gz else data)
+    with pytest.raises(DicerError, match="a NIfTI-2 file.*save it as NIfTI-1"):
+        read_image(path)

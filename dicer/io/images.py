@@ -316,6 +316,19 @@ def _nifti_header(head: bytes):
     return None
 
 
+def _is_nifti2(path: Path) -> bool:
+    """True for a file with a NIfTI-2 header (sizeof_hdr 540, either byte order)."""
+    name = path.name.lower()
+    if not (name.endswith(".nii") or name.endswith(".nii.gz")):
+        return False
+    try:
+        with (gzip.open if name.endswith(".gz") else open)(path, "rb") as f:
+            head = f.read(4)
+    except (OSError, EOFError):
+        return False
+    return len(head) == 4 and 540 in (struct.unpack("<i", head)[0], struct.unpack(">i", head)[0])
+
+
 def _check_nifti_complete(path: Path) -> tuple[float, ...] | None:
     """Raise DicerError when a NIfTI file is truncated or holds NaN or infinite voxels.
 
@@ -713,6 +726,10 @@ def _read_file(path: Path, spacing_arg, dtype=np.float32, keep_direction=False) 
             raise DicerError(
                 f"{path}: the header has a zero or negative voxel spacing ({msg}); fix the spacing in the header"
             ) from None
+        if _is_nifti2(path):
+            raise DicerError(f"{path}: a NIfTI-2 file, which the image reader (ITK's NIfTI-1 reader) does not "
+                             "read; save it as NIfTI-1 (nibabel: nib.save(nib.Nifti1Image(img.dataobj, img.affine, "
+                             "img.header), 'scan.nii.gz')) or as .nrrd or .mha") from None
         raise DicerError(f"{path}: cannot read the image ({msg}); check that the file is complete and in a "
                          f"supported format ({_SUPPORTED})") from None
     _check_orthonormal(image, path)

@@ -68,10 +68,12 @@ def write_sform_nifti(path: Path, array: np.ndarray, lps_direction: np.ndarray) 
     return ras
 
 
-def write_raw_nifti(path: Path, array: np.ndarray, sform: np.ndarray, quatern=None, units: int = 2) -> None:
+def write_raw_nifti(path: Path, array: np.ndarray, sform: np.ndarray, quatern=None, units: int = 2,
+                    scode: int = 2) -> None:
     """A NIfTI-1 of int16 voxels of SPACING (pixdim), written byte by byte: the RAS ``sform``
-    (3, 4) with code 2 (aligned) and, when ``quatern`` (b, c, d, qx, qy, qz) is given, a
-    qform with code 1 (scanner); else qform code 0. ``units``: xyzt_units (2 mm, 3 microns)."""
+    (3, 4) with code ``scode`` (default 2, aligned) and, when ``quatern`` (b, c, d, qx, qy, qz)
+    is given, a qform with code 1 (scanner); else qform code 0. ``units``: xyzt_units (2 mm,
+    3 microns)."""
     head = bytearray(348)
     struct.pack_into("<i", head, 0, 348)
     struct.pack_into("<8h", head, 40, 3, *array.shape, 1, 1, 1, 1)
@@ -80,7 +82,7 @@ def write_raw_nifti(path: Path, array: np.ndarray, sform: np.ndarray, quatern=No
     struct.pack_into("<f", head, 108, 352.0)
     struct.pack_into("<f", head, 112, 1.0)
     head[123] = units  # xyzt_units
-    struct.pack_into("<2h", head, 252, 0 if quatern is None else 1, 2)
+    struct.pack_into("<2h", head, 252, 0 if quatern is None else 1, scode)
     if quatern is not None:
         struct.pack_into("<6f", head, 256, *quatern)
     struct.pack_into("<12f", head, 280, *np.asarray(sform, float).ravel())
@@ -223,6 +225,23 @@ def test_an_aligned_sform_beside_a_qform_places_the_voxels(tmp_path, caplog, uni
     write_sform_nifti(path, labels_array(), OBLIQUE)
     read_labels(path)
     assert "place the image differently" not in caplog.text
+
+
+def test_forms_that_differ_are_warned_of_by_how_far_the_corners_move(tmp_path, caplog):
+    # an sform turned 0.4 rad about z against the qform, both at one origin, and both scanner
+    # forms (code 1, which ITK takes itself): the corners, not the origins, tell them apart
+    sform = np.zeros((3, 4))
+    sform[:3, :3] = rotation([0, 0, 1], 0.4) * np.asarray(SPACING)
+    sform[:, 3] = (5.0, 6.0, 7.0)
+    path = tmp_path / "turned.nii.gz"
+    write_raw_nifti(path, labels_array(), sform, (0.0, 0.0, 0.0, 5.0, 6.0, 7.0), scode=1)
+    volume = read_labels(path)
+    assert np.allclose(np.reshape(volume.direction, (3, 3)), LPS_TO_RAS @ rotation([0, 0, 1], 0.4), atol=1e-6)
+    said = [r.getMessage() for r in caplog.records if "place the image differently" in r.getMessage()]
+    far = np.array([11, 9, 7]) * np.asarray(SPACING)  # the far corner's centre from voxel 0's
+    expected = np.linalg.norm(rotation([0, 0, 1], 0.4) @ far - far)
+    assert len(said) == 1 and "(code 1) and qform (code 1)" in said[0]
+    assert f"corners up to {expected:.3g} mm apart" in said[0]
 
 
 def _run(*argv) -> None:

@@ -408,6 +408,17 @@ def _check_nifti_complete(path: Path) -> tuple[float, ...] | None:
     return spatial
 
 
+def _corners_apart(a: tuple, b: tuple, spatial: tuple[float, ...], head: bytes, n: int) -> float:
+    """The largest distance (mm) between the image's corner voxel centres placed by ``a`` and by
+    ``b`` (each (direction, origin) as :func:`_nifti_placement` returns them)."""
+    found = _nifti_header(head)
+    dims = np.asarray(found[0][1 : n + 1] if found else (1,) * n, float)
+    corners = np.array(np.meshgrid(*[[0.0, max(d - 1, 0)] for d in dims], indexing="ij")).reshape(n, -1)
+    steps = corners * np.abs(np.asarray(spatial, float))[:, None]
+    at = [np.asarray(d, float).reshape(n, n) @ steps + np.asarray(o, float)[:, None] for d, o in (a, b)]
+    return float(np.max(np.linalg.norm(at[0] - at[1], axis=0)))
+
+
 def _nifti_placement(path: Path, spatial: tuple[float, ...]):
     """The placement to use instead of ITK's for a NIfTI file, or None when ITK's own is right.
 
@@ -464,19 +475,19 @@ def _nifti_placement(path: Path, spatial: tuple[float, ...]):
     to_mm = {1: 1000.0, 2: 1.0, 3: 0.001}.get(units & 7, 1.0)
     # float32 headers round at 1e-7; ITK's own tolerances are 1e-3 mm and 1e-4
     if scale_error <= 1e-4 and shear <= 1e-4:
-        if qcode <= 0 or scode == 1:
+        if qcode <= 0:
             return None  # ITK places the voxels by the sform itself
         # ITK takes the qform when both are set and the sform is not scanner-based (code 1);
         # nibabel, FSL and FreeSurfer take the sform, and so does dicer: the model then lies
         # where those tools show the scan and the label files dicer writes with its header
         sform = (tuple((lps @ unit)[:n, :n].ravel()), tuple((lps @ affine[:, 3])[:n] * to_mm))
         qform = _qform_placement(quat, qfac, n, to_mm)
-        apart = float(np.max(np.abs(np.subtract(sform[1], qform[1]))))
-        turned = float(np.max(np.abs(np.subtract(sform[0], qform[0]))))
-        if apart > 1e-3 or turned > 1e-4:
-            _warn_once("%s: its sform (code %d) and qform (code %d) place the image differently (origins %.3g mm "
-                       "apart): meshing at the sform, where nibabel and FSL show it", path.name, scode, qcode, apart)
-        return sform
+        apart = _corners_apart(sform, qform, spatial, head, n)
+        if apart > 1e-3:
+            _warn_once("%s: its sform (code %d) and qform (code %d) place the image differently (its corners up to "
+                       "%.3g mm apart): meshing at the sform, where nibabel and FSL show it", path.name, scode, qcode,
+                       apart)
+        return None if scode == 1 else sform
     sizes = ", ".join(f"{v:.4g}" for v in lengths)
     stored = ", ".join(f"{v:.4g}" for v in spatial)
     problem = (f"the header's sform (code {scode}) does not place voxels of the pixdim size rigidly "

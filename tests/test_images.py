@@ -506,6 +506,13 @@ def test_read_labels_rejects_fractions_and_negatives(tmp_path):
         read_labels(tmp_path / "n.npy")
     np.save(tmp_path / "ok.npy", np.full((3, 3, 3), 2.0))
     assert read_labels(tmp_path / "ok.npy").array.dtype == np.uint8
+    # float32 rounds 2**31 - 1 up to 2**31, which equals int32's largest in float32 arithmetic:
+    # it was cast to -2**31 (with a RuntimeWarning) and named 'label_-2147483648'
+    big = np.full((3, 3, 3), 1234567, np.float32)
+    big[1, 1, 1] = 2147483647
+    np.save(tmp_path / "big.npy", big)
+    with pytest.raises(DicerError, match="label value 2.14748e"r"\+09 is too large"):
+        read_labels(tmp_path / "big.npy")
     (tmp_path / "x.png").touch()
     with pytest.raises(DicerError, match="NIfTI"):
         read_labels(tmp_path / "x.png")

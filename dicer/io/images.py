@@ -1336,7 +1336,8 @@ def read_labels(path: str | os.PathLike, spacing=None) -> Volume:
                              "(0 = background, 1..K = materials)")
     elif array.dtype.kind == "b":
         array = array.astype(np.uint8)
-    lo, hi = (array.min(), array.max()) if array.size else (0, 0)
+    # as Python numbers: a float32 2**31 equals int32's largest value in float32 arithmetic
+    lo, hi = (array.min().item(), array.max().item()) if array.size else (0, 0)
     if lo < 0:
         raise DicerError(f"{path}: the labels contain negative values (min {lo:g}); use 0 for background "
                          "and 1..K for materials")

@@ -317,3 +317,78 @@ def test_smoothing_of_int32_connectivity_is_the_smoothing_of_int64(merged):
     b, _ = smooth_mesh(narrow)
     assert not np.array_equal(a.points, wide.points)  # it moved nodes
     assert np.array_equal(a.points, b.points) and np.array_equal(a.cells, b.cells)
+
+
+def test_thick_slices_keep_the_floor_at_default_settings(tmp_path):
+    # an ellipsoid head with a skull shell on 0.4 x 0.4 x 5 mm voxels, merged: backing off one
+    # element a round moved the failure along a row of merged elements until the rounds ran
+    # out (an error at default settings); elements near the floor now back off with them
+    import json
+
+    import SimpleITK as sitk
+
+    from dicer.cli import main
+
+    shape, spacing, radii = (128, 128, 16), np.array([0.4, 0.4, 5.0]), np.array([22.0, 24.0, 35.0])
+    c = (np.array(shape) - 1) / 2
+    idx = np.indices(shape).astype(float)
+    r = np.sqrt(sum(((idx[i] - c[i]) * spacing[i] / radii[i]) ** 2 for i in range(3)))
+    labels = np.zeros(shape, np.uint8)
+    labels[r < 1] = 1
+    labels[(r < 0.88) & (r >= 0.76)] = 2
+    image = sitk.GetImageFromArray(labels.T.copy())
+    image.SetSpacing(tuple(spacing))
+    sitk.WriteImage(image, str(tmp_path / "thick.nii.gz"))
+    assert main(["run", "--labels", str(tmp_path / "thick.nii.gz"), "-o", str(tmp_path / "out"), "-q"]) == 0
+    quality = json.loads((tmp_path / "out" / "quality.json").read_text())
+    report = json.loads((tmp_path / "out" / "smooth.json").read_text())
+    assert quality["scaled_jacobian"]["min"] >= 0.2 and quality["inverted_elements"] == 0
+    assert 2 <= report["backoff_rounds"] <= 12
+
+
+def test_short_edges_are_those_shrunk_below_a_twentieth():
+    from dicer.mesh.smooth import _short_edges
+
+    x0 = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
+    cells = np.arange(8)[None, :]
+    x = x0.copy()
+    x[4:, 2] = 0.04  # the vertical edges down to 0.04 of their length: a sliver with square corners
+    short = _short_edges(cells, x, x0, np.ones(8, bool))
+    assert short.shape == (1, 12) and np.flatnonzero(short[0]).tolist() == [8, 9, 10, 11]
+    assert scaled_jacobian(x, cells)[0] == pytest.approx(1.0)  # what the scaled Jacobian alone passes
+    moved = np.zeros(8, bool)
+    moved[[1, 5]] = True  # only edge 1-5 has a moved end
+    assert np.flatnonzero(_short_edges(cells, x, x0, moved)[0]).tolist() == [9]
+    x[4:, 2] = 0.06
+    assert not _short_edges(cells, x, x0, np.ones(8, bool)).any()
+
+
+def test_a_pillow_copy_stops_where_the_layer_keeps_its_thinnest():
+    from dicer.mesh.smooth import _hold_thickness
+
+    # copies start 0.25 above their nodes and are pulled to goals 0.1 and 0.3 below the start
+    under = np.zeros((3, 3))
+    start = np.array([[0, 0, 0.25], [0, 0, 0.25], [0, 0, 0.25]])
+    goal = np.array([[0, 0, 0.15], [0, 0, -0.05], [0, 0, 0.4]])
+    share = np.ones(3)
+    _hold_thickness(share, np.arange(3), start, goal, under, np.full(3, 0.05))
+    copy = start + share[:, None] * (goal - start)
+    assert share[0] == 1.0 and share[2] == 1.0  # 0.15 thick, and outward: as pulled
+    assert copy[1, 2] == pytest.approx(0.05 * 1.001)  # stopped at the thinnest, not at -0.05 (inverted)
+
+
+def test_guard_error_names_the_element_where_the_exported_model_has_it():
+    import re
+
+    labels = np.zeros((10, 10, 10), np.uint8)
+    labels[2:8, 2:8, 2:8] = 1
+    centres = []
+    for direction in (None, (-1.0, 0, 0, 0, -1.0, 0, 0, 0, 1.0)):
+        with pytest.raises(DicerError) as err:
+            smooth_mesh(voxel_mesh(labels, (1, 1, 1), (0, 0, 0), direction),
+                        {"min_scaled_jacobian": 0.99, "max_backoff_rounds": 0})
+        assert "raise smooth.max_backoff_rounds" in str(err.value)
+        centres.append([float(v) for v in re.search(r"centre ([-\d., ]+) mm", str(err.value)).group(1).split(", ")])
+    lattice, scanner = np.array(centres)
+    # scanner = c + D (lattice - c), c the centre of voxel 0 (0.5, 0.5, 0.5)
+    assert scanner == pytest.approx([1.0 - lattice[0], 1.0 - lattice[1], lattice[2]], abs=0.011)

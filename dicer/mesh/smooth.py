@@ -639,6 +639,7 @@ class _Smoothing:
     x_band: np.ndarray | None = None  # (M, 3) current band positions
     sj: np.ndarray | None = None  # scaled Jacobian of the checked elements
     bad: np.ndarray | None = None  # the checked elements that fail the guard
+    short: tuple | None = None  # with the pull: (checked rows, (R, E) bool) edges it shrank too far
     it_b: int = 0  # conjugate-gradient iterations, boundary and interior
     it_i: int = 0
     t_solve: float = 0.0
@@ -856,9 +857,29 @@ def _solve_band(st: _Smoothing, xb: np.ndarray) -> None:
         st.x[st.band_nodes] = st.x_band
 
 
+_SHORTEST_EDGE = 0.05
+"""An edge of a checked element may not shrink below this share of its length before smoothing
+(an edge ratio of about 20, where the quality report calls an element stretched)."""
+
+
+def _short_edges(cells: np.ndarray, x: np.ndarray, x0: np.ndarray, moved: np.ndarray) -> np.ndarray:
+    """(M, E) bool: the elements' edges with an end in ``moved`` (N,) bool, shorter than
+    ``_SHORTEST_EDGE`` of their length at ``x0``.
+
+    A pull onto an iso-surface can bring an edge's two ends together (a riser of the staircase,
+    both ends projected onto one flat patch): its corners stay square, so the scaled Jacobian
+    passes an element a solver cannot condition."""
+    edges = HEX_EDGES if cells.shape[1] == 8 else QUAD_EDGES
+    a, b = cells[:, edges[:, 0]], cells[:, edges[:, 1]]
+    now = np.einsum("mei,mei->me", x[a] - x[b], x[a] - x[b])
+    before = np.einsum("mei,mei->me", x0[a] - x0[b], x0[a] - x0[b])
+    return (now < _SHORTEST_EDGE**2 * before) & (moved[a] | moved[b])
+
+
 def _check_quality(st: _Smoothing) -> None:
     """The guard's test: sets ``sj`` and ``bad``, the checked elements below ``min_scaled_jacobian``
-    (or <= 0) except those already below it before smoothing that did not get worse."""
+    (or <= 0) except those already below it before smoothing that did not get worse; with the
+    pull, also those with an edge shrunk below ``_SHORTEST_EDGE`` of its length."""
     floor = float(st.s["min_scaled_jacobian"])
     sj = st.checked.scaled_jacobian(st.x)
     bad = (sj < floor) | (sj <= 0)
@@ -868,6 +889,14 @@ def _check_quality(st: _Smoothing) -> None:
         before = st.checked.scaled_jacobian(st.x0, which)
         after = sj[which]
         bad[which] = ~((before < floor) & (after >= before - 1e-12) & (before > 0))
+    st.short = None
+    if st.pull is not None:  # the elements with a node the pull moves: only those it shortens
+        moved = np.zeros(st.mesh.n_points, bool)
+        moved[st.bnodes[st.pull.share > 0]] = True
+        pulled = np.flatnonzero(moved[st.mesh.cells[st.touched]].any(axis=1))
+        short = _short_edges(st.mesh.cells[st.touched[pulled]], st.x, st.x0, moved)
+        st.short = (pulled, short)
+        bad[pulled[short.any(axis=1)]] = True
     st.sj, st.bad = sj, bad
 
 
@@ -879,6 +908,12 @@ def _back_off_pull(st: _Smoothing) -> bool:
     failing = st.mesh.cells[st.touched[st.bad]]
     corner = corner_scaled_jacobians(st.x, failing)
     pulled = bpos[failing[(corner < floor) | (corner <= 0)]]
+    if st.short is not None:  # and both ends of every edge the pull shrank too far
+        rows, short = st.short
+        e, k = np.nonzero(short)
+        ends = st.mesh.cells[st.touched[rows[e]]][:, (HEX_EDGES if short.shape[1] == 12 else QUAD_EDGES)]
+        ends = ends[np.arange(e.size), k]
+        pulled = np.concatenate([pulled, bpos[ends.ravel()]])
     pulled = np.unique(pulled[pulled >= 0])
     share = st.pull.share
     pulled = pulled[share[pulled] > 0]
@@ -891,12 +926,27 @@ def _back_off_pull(st: _Smoothing) -> bool:
     return True
 
 
+_NEAR_FLOOR = 0.05
+"""From the second back-off round on (without the pull), the elements within this of the floor
+are backed off with the failing ones."""
+
+
 def _nodes_to_back_off(st: _Smoothing) -> np.ndarray:
     """(S,) int64 boundary-node numbers: the failing elements' boundary nodes that still move
-    (k > 0, or pulled), widened to their neighbours (at most 4 times) when none does."""
+    (k > 0, or pulled), widened to their neighbours (at most 4 times) when none does.
+
+    From the second round on, the elements within ``_NEAR_FLOOR`` of the floor count as
+    failing too: backing off one element moves others towards the floor, and a row of such
+    elements (merged elements under 6 mm slices) then failed one element a round, more rounds
+    than the guard has. Not with the pull onto a scan: its corner sharpening leaves thousands
+    of elements at the floor + 0.02 by design (the head CT: 31 % of the boundary nodes
+    backed off)."""
     cells = st.mesh.cells
     bpos = st.boundary_position()
-    nodes = np.unique(cells[st.touched[st.bad]].ravel())
+    bad = st.bad
+    if st.rounds >= 2 and st.pull is None:  # counted before the round
+        bad = bad | (st.sj < float(st.s["min_scaled_jacobian"]) + _NEAR_FLOOR)
+    nodes = np.unique(cells[st.touched[bad]].ravel())
     for _ in range(4):
         sel = bpos[nodes]
         sel = sel[(sel >= 0)]
@@ -931,11 +981,15 @@ def _guard_failure(st: _Smoothing) -> DicerError:
     worst = int(np.argmin(np.where(bad, sj, np.inf)))
     e = int(st.touched[worst])
     centre = st.x[mesh.cells[e]].mean(axis=0)
+    if mesh.direction is not None:  # where the exported model and a viewer of the scan put it
+        from dicer.mesh.frame import to_scanner
+
+        centre = to_scanner(centre[None], mesh.spacing, mesh.origin, mesh.direction)[0]
     return DicerError(
         f"smoothing cannot keep element {e + 1} (material {int(mesh.material[e])}, centre "
         f"{', '.join(f'{c:.2f}' for c in centre[: mesh.dim])} mm) at a scaled Jacobian of at least "
         f"{float(st.s['min_scaled_jacobian']):g} (it reaches {sj[worst]:.3f}, {int(bad.sum())} element(s) fail); "
-        "lower smooth.coefficient or smooth.min_scaled_jacobian")
+        "lower smooth.coefficient or smooth.min_scaled_jacobian, or raise smooth.max_backoff_rounds")
 
 
 def _solve_with_guard(st: _Smoothing) -> None:
@@ -975,6 +1029,7 @@ def _solve_with_guard(st: _Smoothing) -> None:
 
 _PILLOW_ROUNDS = 40  # guard rounds of the layer
 _PILLOW_ROOM = 0.02  # with the layer the smoothing keeps its elements this far above the floor: room for the move
+_PILLOW_THINNEST = 0.5  # where the taper makes the layer thinner than _SHORTEST_EDGE voxel, it keeps this share
 
 
 @dataclass
@@ -1033,6 +1088,26 @@ def _taper(layered: np.ndarray, at: np.ndarray) -> np.ndarray:
     return share
 
 
+def _hold_thickness(share: np.ndarray, rows: np.ndarray, start: np.ndarray, goal: np.ndarray, under: np.ndarray,
+                    thinnest: np.ndarray) -> None:
+    """Lower ``share[rows]`` where a copy at ``start + share (goal - start)`` would lie closer than
+    ``thinnest`` to its node at ``under`` (all (R, 3), mm): to the first share at which its
+    distance falls to 1.001 ``thinnest`` (``start`` lies farther: the layer's depth)."""
+    d = goal - start
+    w = start - under
+    a = np.einsum("ij,ij->i", d, d)
+    half_b = np.einsum("ij,ij->i", w, d)
+    c = np.einsum("ij,ij->i", w, w) - (1.001 * thinnest) ** 2
+    s = share[rows]
+    dist2 = a * s * s + 2 * half_b * s + c  # |copy - under|^2 - (1.001 thinnest)^2
+    close = (dist2 < 0) & (a > 0)
+    if not close.any():
+        return
+    a, half_b, c = a[close], half_b[close], c[close]
+    first = (-half_b - np.sqrt(np.maximum(half_b * half_b - a * c, 0.0))) / a  # the smaller root, c > 0
+    share[rows[close]] = np.clip(first, 0.0, s[close])
+
+
 def _add_pillow(st: _Smoothing) -> None:
     """Put a pillow layer over the smoothed mesh's exterior surface (``dicer.mesh.pillow``).
 
@@ -1068,7 +1143,8 @@ def _add_pillow(st: _Smoothing) -> None:
     normal = outward_normals(st.x, faces, nodes, held)
     spacing = np.asarray(mesh.spacing, float)
     # mm: voxels along the normal, the same everywhere in isotropic voxels
-    move = -(float(s["pillow_thickness"]) * np.linalg.norm(normal * spacing, axis=1))[:, None] * normal
+    voxel = np.linalg.norm(normal * spacing, axis=1)  # mm: a voxel along the normal
+    move = -(float(s["pillow_thickness"]) * voxel)[:, None] * normal
     # the share of its move onto st.surface a copy makes (without the scan: no move)
     share = np.zeros(nodes.size) if st.surface is None else np.ones(nodes.size)
     kept = np.ones(faces.shape[0], bool)  # faces with an element of the layer
@@ -1082,16 +1158,35 @@ def _add_pillow(st: _Smoothing) -> None:
         layered[at[kept]] = True
         rows = np.flatnonzero(layered)
         if solved is None or not np.array_equal(solved, layered):
-            sj_under = _move_under_layer(st, x, xb, b[rows], _taper(layered, at)[rows, None] * move[rows])
+            depth = _taper(layered, at)[rows, None] * move[rows]
+            sj_under = _move_under_layer(st, x, xb, b[rows], depth)
+            # a layer thinner than a twentieth of a voxel is a sliver (an edge ratio of about 20);
+            # where the taper leaves less depth than that, half of it
+            thinnest = np.zeros(nodes.size)
+            thinnest[rows] = np.minimum(_SHORTEST_EDGE * voxel[rows], _PILLOW_THINNEST * np.linalg.norm(depth, axis=1))
             solved = layered
         new_id = np.full(n, -1, np.int64)
         new_id[nodes[rows]] = n + np.arange(rows.size)
         cells = pillow_cells(faces[kept], new_id)
+        # a copy pulled onto an iso-surface below the smoothed one thins the layer, and a sliver
+        # passes the scaled Jacobian (its corners stay square) but not a solver's conditioning:
+        # such a copy stops where the layer is still ``thinnest`` thick
+        _hold_thickness(share, rows, xb[b[rows]], goal[rows], st.x[nodes[rows]], thinnest[rows])
         outer = xb[b[rows]] + share[rows, None] * (goal[rows] - xb[b[rows]])
         sj_layer = scaled_jacobian(np.concatenate([st.x, outer]), cells)
         # an element under the layer may stay below the floor where the smoothing left it so
         bad_under = ((sj_under < floor) | (sj_under <= 0)) & (sj_under < sj_accepted - 1e-12)
         bad_layer = (sj_layer < floor) | (sj_layer <= 0)
+        # and edges brought together, on the copies' face (the copies start where their nodes
+        # were) or under the layer by its move (not those the smoothing left so)
+        bad_layer |= _short_edges(cells, np.concatenate([st.x, outer]), np.concatenate([st.x0, st.x0[nodes[rows]]]),
+                                  np.ones(n + rows.size, bool)).any(axis=1)
+        moved = np.zeros(n, bool)
+        moved[nodes[rows]] = True
+        near = np.flatnonzero(moved[mesh.cells[st.touched]].any(axis=1))
+        near_cells = mesh.cells[st.touched[near]]
+        bad_under[near] |= (_short_edges(near_cells, st.x, st.x0, moved)
+                            & ~_short_edges(near_cells, x, st.x0, moved)).any(axis=1)
         if not (bad_under.any() or bad_layer.any()):
             break
         if rounds == _PILLOW_ROUNDS:

@@ -870,10 +870,13 @@ def _short_edges(cells: np.ndarray, x: np.ndarray, x0: np.ndarray, moved: np.nda
     both ends projected onto one flat patch): its corners stay square, so the scaled Jacobian
     passes an element a solver cannot condition."""
     edges = HEX_EDGES if cells.shape[1] == 8 else QUAD_EDGES
-    a, b = cells[:, edges[:, 0]], cells[:, edges[:, 1]]
-    now = np.einsum("mei,mei->me", x[a] - x[b], x[a] - x[b])
-    before = np.einsum("mei,mei->me", x0[a] - x0[b], x0[a] - x0[b])
-    return (now < _SHORTEST_EDGE**2 * before) & (moved[a] | moved[b])
+    short = np.zeros((cells.shape[0], edges.shape[0]), bool)
+    for e, (i, j) in enumerate(edges):  # an edge at a time: (M, 3) temporaries, not (M, E, 3)
+        a, b = cells[:, i], cells[:, j]
+        d, d0 = x[a] - x[b], x0[a] - x0[b]
+        short[:, e] = (np.einsum("mi,mi->m", d, d) < _SHORTEST_EDGE**2 * np.einsum("mi,mi->m", d0, d0)) & (
+            moved[a] | moved[b])
+    return short
 
 
 def _check_quality(st: _Smoothing) -> None:

@@ -1019,6 +1019,40 @@ case("11-good", "segment of a DICOM series with a missing slice, allow_irregular
                         extra=["--set", "segment.method=manual", "--set", "image.allow_irregular_slices=true"]),
      good=True, outputs=("l.nii.gz",))
 
+
+def _nifti2(path: Path) -> Path:
+    """A 4x4x4 int16 NIfTI-2 file (which ITK's NIfTI-1 reader does not read)."""
+    head = bytearray(540)
+    struct.pack_into("<i", head, 0, 540)
+    head[4:12] = b"n+2\0\r\n\x1a\n"
+    struct.pack_into("<2h", head, 12, 4, 16)
+    struct.pack_into("<8q", head, 16, 3, 4, 4, 4, 1, 1, 1, 1)
+    struct.pack_into("<8d", head, 104, 1, 1, 1, 1, 1, 1, 1, 1)
+    struct.pack_into("<q", head, 168, 544)
+    path.write_bytes(gzip.compress(bytes(head) + bytes(4) + np.arange(64, dtype="<i2").tobytes(), mtime=0))
+    return path
+
+
+def _thick_head(path: Path) -> Path:
+    """An ellipsoid head with a skull shell on 0.4 x 0.4 x 5 mm voxels (labels)."""
+    shape, spacing, radii = (128, 128, 16), np.array([0.4, 0.4, 5.0]), np.array([22.0, 24.0, 35.0])
+    idx = np.indices(shape).astype(float)
+    r = np.sqrt(sum(((idx[i] - (shape[i] - 1) / 2) * spacing[i] / radii[i]) ** 2 for i in range(3)))
+    labels = np.zeros(shape, np.uint8)
+    labels[r < 1] = 1
+    labels[(r < 0.88) & (r >= 0.76)] = 2
+    return write_sitk(path, labels, tuple(spacing))
+
+
+case("9-kinds", "segment: a NIfTI-2 file", lambda c: argv_for(c, "segment", inp=_nifti2(c.t / "n2.nii.gz")),
+     "n2.nii.gz", "NIfTI-2")
+case("9-kinds", "labels: float32 labels holding 2**31 (rounded from 2**31 - 1)",
+     lambda c: argv_for(c, "labels", inp=npy(c.t / "l.npy", _with(np.full((8, 8, 8), 1234567, np.float32),
+                                                                 (3, 3, 3), 2147483647))), "l.npy", "too large")
+case("11-good", "run --labels on 0.4 x 0.4 x 5 mm voxels at default settings",
+     lambda c: ["run", "--labels", _thick_head(c.t / "thick.nii.gz"), "-o", c.t / "out", "-q"], good=True,
+     outputs=("out/model.inp", "out/quality.json"))
+
 CASES[:] = [c for c in CASES if c is not None]
 
 

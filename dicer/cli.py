@@ -1201,6 +1201,49 @@ def _run_chain(args):
     source = args.labels if args.image is None else args.image
     if not args.skip_memory_check:
         _check_memory(source, config)
+    with _output_lock(outdir):
+        _run_staged(args, config, outdir, source)
+
+
+@contextlib.contextmanager
+def _output_lock(outdir: Path):
+    """Hold ``.OUTDIR.lock`` beside OUTDIR while a run writes it: a second run into the same
+    folder shared the staging folder with the first, deleted it under it and mixed the two
+    runs' files in OUTDIR. The lock file goes when the run ends (checked to be the one
+    locked, so that a run starting as another ends cannot lock a file already removed)."""
+    import fcntl
+
+    lock = outdir.parent / f".{outdir.name}.lock"
+    try:
+        outdir.parent.mkdir(parents=True, exist_ok=True)  # as the staging folder would be
+        while True:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o600)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                raise DicerError(f"{outdir}: another dicer run is writing this folder (it holds {lock.name}); "
+                                 "wait for it to finish, or give another output folder with -o") from None
+            try:
+                same = os.stat(lock).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)
+    except OSError as exc:
+        raise DicerError(f"{outdir}: cannot write to folder {outdir.parent} ({exc.strerror}); choose a writable "
+                         "output folder") from None
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(lock)
+        os.close(fd)
+
+
+def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
+    """The stages of ``dicer run`` into a staging folder, published into ``outdir`` at the end."""
     # every stage writes into a staging folder beside OUTDIR; only a finished run moves its
     # files into OUTDIR (an existing OUTDIR keeps its old files until then), and a failed
     # one leaves its finished, checked stage files in OUTDIR.failed for a look or a report

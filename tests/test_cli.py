@@ -378,3 +378,25 @@ def test_set_keys_a_stage_does_not_read_are_warned_of(tmp_path, capsys, caplog):
     assert run_cli(capsys, "export", tmp_path / "m.vtu", "-o", tmp_path / "m.inp",
                    "--set", "mesh.coordinates=index")[0] == 0
     assert [r for r in caplog.records if "--set mesh.coordinates is not read by dicer export" in r.getMessage()]
+
+
+def test_a_second_run_into_the_same_folder_is_refused_while_the_first_writes(tmp_path):
+    # both shared the staging folder: the second deleted it under the first, and the folder
+    # mixed the two runs' files while the first exited 0
+    import time
+
+    assert main(["phantom", "head", "-o", str(tmp_path / "head.nii.gz"), "--size", "64", "-q"]) == 0
+    argv = [sys.executable, "-m", "dicer", "run", str(tmp_path / "head.nii.gz"), "-o", str(tmp_path / "out"), "-q"]
+    first = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lock = tmp_path / ".out.lock"
+    for _ in range(600):  # until the first run holds the folder
+        if lock.exists() or first.poll() is not None:
+            break
+        time.sleep(0.01)
+    second = subprocess.run(argv, capture_output=True, text=True)
+    out, err = first.communicate(timeout=300)
+    assert first.returncode == 0, err
+    assert second.returncode == 2 and second.stderr.count("\n") == 1
+    assert "another dicer run is writing this folder" in second.stderr and str(tmp_path / "out") in second.stderr
+    assert not lock.exists() and not (tmp_path / ".out.partial").exists() and not (tmp_path / "out.failed").exists()
+    assert (tmp_path / "out" / "model.inp").exists()

@@ -51,22 +51,15 @@ def _config(args) -> dict:
     return config
 
 
-# What a stage's command reads beyond its sections (dicer.config.STAGE_SECTIONS): the
-# spacing of a .npy volume, smooth's scan and manual thresholds
-_ALSO_READS = {"downsample": ("image.spacing",), "fix": ("image.spacing",), "mesh": ("image.spacing",),
-               "smooth": ("image.spacing", "image.allow_irregular_slices", "segment.method", "segment.thresholds"),
-               "quality": ("image.spacing",)}
-
-
 def _warn_of_unused_settings(args) -> None:
     """Warn of --set keys the command does not read (``image.crop`` to 'dicer mesh': the crop
     is made when the scan or the label volume is read, by segment and labels)."""
-    from dicer.config import STAGE_SECTIONS
+    from dicer.config import STAGE_KEYS, STAGE_SECTIONS
 
     stage = args.command
     if stage not in STAGE_SECTIONS or not getattr(args, "set", None):
         return
-    reads = STAGE_SECTIONS[stage] + _ALSO_READS.get(stage, ())
+    reads = STAGE_SECTIONS[stage] + STAGE_KEYS.get(stage, ())
     unused = []
     for item in args.set:
         key = item.split("=", 1)[0].strip()

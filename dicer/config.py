@@ -36,6 +36,17 @@ STAGE_SECTIONS = {
     "quality": ("materials", "quality"),  # the report names the materials
 }
 
+# Keys of other sections a stage reads too (the workflow passes them with the sections): the
+# spacing of a .npy volume; smooth's scan, read as segment read it (spacing, slices, crop), and
+# its manual thresholds
+STAGE_KEYS = {
+    "downsample": ("image.spacing",),
+    "fix": ("image.spacing",),
+    "mesh": ("image.spacing",),
+    "smooth": ("image.spacing", "image.allow_irregular_slices", "image.crop", "segment.method", "segment.thresholds"),
+    "quality": ("image.spacing",),
+}
+
 
 def schema() -> dict:
     """The configuration JSON Schema as a dict.
@@ -571,7 +582,7 @@ def load_config(path: str | Path | None = None, sets: list[str] | tuple = (), se
 
 
 def stage_settings(config: dict, stage: str) -> dict:
-    """The part of a configuration a stage reads (see :data:`STAGE_SECTIONS`).
+    """The part of a configuration a stage reads (see :data:`STAGE_SECTIONS` and :data:`STAGE_KEYS`).
 
     Parameters
     ----------
@@ -583,7 +594,12 @@ def stage_settings(config: dict, stage: str) -> dict:
     -------
     dict
     """
-    return {k: copy.deepcopy(config[k]) for k in STAGE_SECTIONS[stage] if k in config}
+    part = {k: copy.deepcopy(config[k]) for k in STAGE_SECTIONS[stage] if k in config}
+    for dotted in STAGE_KEYS.get(stage, ()):
+        section, key = dotted.split(".")
+        if key in config.get(section, {}):
+            part.setdefault(section, {})[key] = copy.deepcopy(config[section][key])
+    return part
 
 
 def _plain(value):

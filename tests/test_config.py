@@ -107,11 +107,18 @@ def test_parse_set_nests_dotted_keys(parts, value):
 def test_stage_settings_only_hold_their_sections():
     config = load_config()
     assert set(stage_settings(config, "export")) == {"materials", "export"}
-    assert set(stage_settings(config, "mesh")) == {"materials", "mesh"}  # names go into the mesh
-    assert set(stage_settings(config, "quality")) == {"materials", "quality"}  # the report names them
+    assert set(stage_settings(config, "mesh")) == {"materials", "mesh", "image"}  # names go into the mesh
+    assert set(stage_settings(config, "mesh")["image"]) == {"spacing"}  # of a .npy volume
+    assert set(stage_settings(config, "quality")) == {"materials", "quality", "image"}  # the report names them
     changed = load_config(sets=["export.thickness=3"])
     assert stage_settings(changed, "segment") == stage_settings(config, "segment")
     assert stage_settings(changed, "export") != stage_settings(config, "export")
+    # smooth reads the scan as segment read it: a crop changes its settings, not mesh's (the
+    # workflow's smooth rule lined the uncropped scan up with the cropped mesh)
+    cropped = load_config(sets=["image.crop={unit: voxels, min: [1, 1, 1], max: [9, 9, 9]}"])
+    assert stage_settings(cropped, "smooth")["image"]["crop"]["min"] == [1, 1, 1]
+    assert set(stage_settings(cropped, "smooth")["segment"]) == {"method", "thresholds"}
+    assert stage_settings(cropped, "mesh") == stage_settings(config, "mesh")
 
 
 def test_config_hash_is_stable_and_sensitive():

@@ -405,3 +405,20 @@ def test_bad_override_stops_the_run_naming_the_sheet_line_without_traceback(tmp_
     assert proc.returncode != 0
     assert "patients.tsv, line 3: patient bone: config: unknown key 'fix.colour'" in out
     assert "Traceback" not in out and "InputFunctionException" not in out
+
+
+def test_a_cropped_patient_pulled_onto_its_scan_matches_dicer_run(tmp_path):
+    """The smooth rule was given the smooth section only: the pull read the uncropped scan
+    against the cropped mesh (nodes up to 7.6 mm from dicer run's, exit 0)."""
+    workdir = _cohort(tmp_path)
+    sets = ["image.crop={unit: voxels, min: [6, 6, 4], max: [34, 40, 28]}", "smooth.surface_from_image=true"]
+    (workdir / "config" / "patients.tsv").write_text(
+        f"patient\timage\toverrides\ncut\tresources/phantoms/head.nii.gz\t{';'.join(sets)}\n")
+    _snakemake(workdir, "results/cut/smoothed.vtu")
+    args = [sys.executable, "-m", "dicer", "run", str(workdir / "resources" / "phantoms" / "head.nii.gz"), "-o",
+            str(tmp_path / "run"), "--config", str(workdir / "config" / "config.yaml"), "-q"]
+    for item in sets:
+        args += ["--set", item]
+    subprocess.run(args, check=True, env=_env(), timeout=600)
+    made = (workdir / "results" / "cut" / "smoothed.vtu").read_bytes()
+    assert made == (tmp_path / "run" / "smoothed.vtu").read_bytes()

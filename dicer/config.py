@@ -36,6 +36,10 @@ STAGE_SECTIONS = {
     "quality": ("materials", "quality"),  # the report names the materials
 }
 
+# The stages that read only the materials' names (and order): a change of a material's
+# properties re-runs the exports alone (and labels, which writes them into materials.json)
+NAMES_ONLY = ("segment", "downsample", "fix", "mesh", "quality")
+
 # Keys of other sections a stage reads too (the workflow passes them with the sections): the
 # spacing of a .npy volume; smooth's scan, read as segment read it (spacing, slices, crop), and
 # its manual thresholds
@@ -595,6 +599,8 @@ def stage_settings(config: dict, stage: str) -> dict:
     dict
     """
     part = {k: copy.deepcopy(config[k]) for k in STAGE_SECTIONS[stage] if k in config}
+    if stage in NAMES_ONLY and "materials" in part:
+        part["materials"] = [{"name": m["name"]} for m in part["materials"]]
     for dotted in STAGE_KEYS.get(stage, ()):
         section, key = dotted.split(".")
         if key in config.get(section, {}):

@@ -121,6 +121,13 @@ def test_changing_export_settings_reruns_only_export_and_later(cohort):
         jobs = _planned_jobs(_snakemake(cohort, "-n"))
         assert jobs.get("segment") == 2 and jobs.get("mesh") == 2 and "phantom" not in jobs
 
+        # a material's stiffness: the exports alone (the stages before read only the names)
+        config = yaml.safe_load(original)
+        config["materials"][1]["youngs_modulus"] = 12000.0
+        config_path.write_text(yaml.safe_dump(config, sort_keys=False))
+        jobs = _planned_jobs(_snakemake(cohort, "-n"))
+        assert jobs == {"export": 4, "cohort": 1, "all": 1}
+
         config = yaml.safe_load(original)
         config["smooth"] = {"coefficient": 0.8}
         config_path.write_text(yaml.safe_dump(config, sort_keys=False))

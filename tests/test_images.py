@@ -942,3 +942,17 @@ def test_a_nifti2_file_is_refused_saying_so(tmp_path, gz):
     path.write_bytes(gzip.compress(data, mtime=0) if gz else data)
     with pytest.raises(DicerError, match="a NIfTI-2 file.*save it as NIfTI-1"):
         read_image(path)
+
+
+def test_dicom_series_with_a_slice_of_another_patient_is_refused_without_naming_either(dicom_folder):
+    # one slice of another patient filed under the series' UID was stacked into the scan
+    folder, _ = dicom_folder
+    slice_path = sorted(folder.glob("*.dcm"))[2]
+    ds = pydicom.dcmread(slice_path)
+    ds.PatientID = "PID-INTRUDER-42"
+    ds.save_as(slice_path)
+    with pytest.raises(DicerError) as err:
+        read_image(folder)
+    message = str(err.value)
+    assert "more than one patient or study (Patient ID differs" in message and slice_path.name in message
+    assert SECRET_ID not in message and "INTRUDER" not in message

@@ -992,12 +992,21 @@ def _read_dicom_slices(names: list[str]):
     reader = sitk.ImageFileReader()
     reader.SetImageIO("GDCMImageIO")
     positions, directions, sizes, spacings, paddings = [], [], [], [], []
+    sessions = set()
     for name in names:
         reader.SetFileName(name)
         try:
             reader.ReadImageInformation()
         except RuntimeError as exc:
             raise _slice_error(name, _itk_message(exc)) from None
+        # a slice of another patient or study filed under the series' UID: compared, never shown
+        sessions.add(tuple(reader.GetMetaData(tag).strip() if reader.HasMetaDataKey(tag) else ""
+                           for tag, _, _ in _SESSION_TAGS))
+        if len(sessions) > 1:
+            differs = next(label for i, (_, _, label) in enumerate(_SESSION_TAGS) if len({v[i] for v in sessions}) > 1)
+            raise DicerError(f"{Path(name).parent}: the slices of the DICOM series belong to more than one patient or "
+                             f"study ({differs} differs, first at {Path(name).name}), so the stack mixes scans: "
+                             "export the series again from its own scan")
         for tag, what, unknown in (("0028|0030", "Pixel Spacing (0028,0030)", "in-plane voxel size is unknown "
                                     "(GDCM would take 1 mm)"),
                                    ("0020|0032", "Image Position (Patient) (0020,0032)", "order and spacing are "

@@ -223,6 +223,21 @@ def write_dicom_series(folder: Path, positions, shape=(12, 10), orient=None, siz
     return folder
 
 
+def _jpeg_slice(t: Path) -> Path:
+    """A series whose slice 3 declares JPEG baseline and holds a broken JPEG stream: GDCM's
+    decoder printed 'Corrupt JPEG data ...' lines before dicer's one."""
+    import pydicom
+    from pydicom.encaps import encapsulate
+
+    folder = write_dicom_series(t / "series", np.arange(6) * 2.0)
+    ds = pydicom.dcmread(folder / "im003.dcm")
+    ds.PixelData = encapsulate([b"\xff\xd8garbage\xff\xd9"])
+    ds["PixelData"].is_undefined_length = True
+    ds.file_meta.TransferSyntaxUID = "1.2.840.10008.1.2.4.50"
+    ds.save_as(folder / "im003.dcm", enforce_file_format=False)
+    return folder
+
+
 def damaged_series(t: Path, how: str) -> Path:
     folder = write_dicom_series(t / "series", np.arange(6) * 2.0)
     victim = folder / "im003.dcm"
@@ -433,6 +448,7 @@ DICOM_CASES = {
     "random-bytes slice": (lambda c: damaged_series(c.t, "random"), "im003.dcm"),
     "0-byte slice": (lambda c: damaged_series(c.t, "empty"), "im003.dcm"),
     "slice cut in its header": (lambda c: damaged_series(c.t, "header"), "im003.dcm"),
+    "slice with a broken JPEG stream": (lambda c: _jpeg_slice(c.t), "im003.dcm"),
     "slices of two orientations": (lambda c: write_dicom_series(c.t / "series", [0, 2, 4, 6],
                                                                 orient={2: [0, 1, 0, 0, 0, 1]}), "orientation"),
     "slices of two sizes": (lambda c: write_dicom_series(c.t / "series", [0, 2, 4, 6], sizes={1: (14, 10)}),

@@ -23,6 +23,7 @@ import gzip
 import logging
 import os
 import re
+import sys
 import struct
 from pathlib import Path
 
@@ -988,6 +989,8 @@ def _read_dicom_slices(names: list[str]):
         Direction cosines of the first slice; column 2 is the slice normal.
     pixel_spacing : tuple of float
         In-plane voxel size (x, y), mm.
+    paddings : list
+        Each slice's padding range (``_padding_range``), for ``_clear_padding``.
     """
     reader = sitk.ImageFileReader()
     reader.SetImageIO("GDCMImageIO")
@@ -1044,8 +1047,7 @@ def _read_dicom_slices(names: list[str]):
         if pixels.size != nx * ny or image.GetNumberOfComponentsPerPixel() != 1:
             raise _slice_error(name, f"{pixels.size} values where the header promises {nx}x{ny}")
         array[:, :, k] = pixels.reshape(ny, nx).T  # [y, x] -> [x, y]
-    _clear_padding(array, paddings, first)
-    return array, positions, directions[0].reshape(3, 3), tuple(float(v) for v in spacings[0])
+    return array, positions, directions[0].reshape(3, 3), tuple(float(v) for v in spacings[0]), paddings
 
 
 def _padding_range(reader) -> tuple[float, float] | None:
@@ -1208,41 +1210,64 @@ def _read_dicom_series(folder: Path, required: bool = True, allow_irregular: boo
     ``allow_irregular`` (then resampled, duplicates still refused). A file in the folder
     that looks like a slice but cannot be parsed is refused by name.
     """
-    with quiet_itk():
-        try:
-            series = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder))
-        except RuntimeError:
-            series = ()
-        if not series and not required:
-            return None
-        if not series:
-            raise DicerError(
-                f"{folder}: the folder holds no DICOM series, TIFF or PNG slices; {_SUPPORTED}"
-            )
-        # the series with the most slices; a tie is refused
-        members = {sid: sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), sid) for sid in sorted(series)}
-        if len(members) > 1:
-            _refuse_other_sessions(folder, members)
-        candidates = [(len(names), sid) for sid, names in members.items()]
-        count, chosen = max(candidates, key=lambda c: c[0])
-        tied = sum(c == count for c, _ in candidates)
-        if tied > 1:  # no way to tell which is the scan (CT and its reformat, two echoes)
-            raise DicerError(f"{folder}: the folder holds {len(series)} DICOM series, {tied} of them of {count} slices "
-                             "(the most); dicer cannot tell which one is the scan: put each series in a folder of "
-                             "its own and give that folder")
-        known = {Path(name).name for names in members.values() for name in names}
-        for path in sorted(folder.iterdir(), key=lambda p: _natural_key(p.name)):
-            if (path.is_file() and not path.name.startswith(".") and path.name not in known
-                    and _meant_as_dicom(path)):
-                raise _slice_error(str(path), "not a DICOM file GDCM can parse")
-        if len(series) > 1:
-            # slice counts only: series and patient identifiers stay out of the log
-            log.info("%s: %d DICOM series found (slices: %s); reading the one with the most slices (%d)",
-                     folder.name, len(series), ", ".join(str(c) for c, _ in candidates), count)
-        names = list(members[chosen])
-        if len(names) == 1 and _frames(names[0]) > 1:  # one multi-frame file: read as the file it is
-            return _read_file(Path(names[0]), None, keep_direction=True)
-        array, positions, direction, pixel_spacing = _read_dicom_slices(names)
+    # GDCM decodes JPEG slices already to list the series, and its decoder prints a line per
+    # damaged block ('Corrupt JPEG data: ...') straight to standard error: dicer says in one
+    # line what is wrong itself
+    with quiet_itk(), captured_stderr():
+        found = _dicom_series_slices(folder, required, allow_irregular)
+    if found is None:
+        return None
+    names, array, positions, direction, pixel_spacing, paddings, counts = found
+    if array is not None:
+        _clear_padding(array, paddings, folder)  # it says what it cleared: out of the captured block
+    if len(counts) > 1:
+        # slice counts only: series and patient identifiers stay out of the log
+        log.info("%s: %d DICOM series found (slices: %s); reading the one with the most slices (%d)",
+                 folder.name, len(counts), ", ".join(map(str, counts)), len(names))
+    if array is None:  # one multi-frame file
+        return _read_file(Path(names[0]), None, keep_direction=True)
+    return _stack_dicom_slices(folder, names, array, positions, direction, pixel_spacing, allow_irregular)
+
+
+def _dicom_series_slices(folder: Path, required: bool, allow_irregular: bool):
+    """The chosen series' slice files, read (``_read_dicom_series``); array None for one
+    multi-frame file, and the slice count of every series found."""
+    try:
+        series = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder))
+    except RuntimeError:
+        series = ()
+    if not series and not required:
+        return None
+    if not series:
+        raise DicerError(
+            f"{folder}: the folder holds no DICOM series, TIFF or PNG slices; {_SUPPORTED}"
+        )
+    # the series with the most slices; a tie is refused
+    members = {sid: sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), sid) for sid in sorted(series)}
+    if len(members) > 1:
+        _refuse_other_sessions(folder, members)
+    candidates = [(len(names), sid) for sid, names in members.items()]
+    count, chosen = max(candidates, key=lambda c: c[0])
+    tied = sum(c == count for c, _ in candidates)
+    if tied > 1:  # no way to tell which is the scan (CT and its reformat, two echoes)
+        raise DicerError(f"{folder}: the folder holds {len(series)} DICOM series, {tied} of them of {count} slices "
+                         "(the most); dicer cannot tell which one is the scan: put each series in a folder of "
+                         "its own and give that folder")
+    known = {Path(name).name for names in members.values() for name in names}
+    for path in sorted(folder.iterdir(), key=lambda p: _natural_key(p.name)):
+        if (path.is_file() and not path.name.startswith(".") and path.name not in known
+                and _meant_as_dicom(path)):
+            raise _slice_error(str(path), "not a DICOM file GDCM can parse")
+    names = list(members[chosen])
+    counts = [c for c, _ in candidates]
+    if len(names) == 1 and _frames(names[0]) > 1:  # one multi-frame file: read as the file it is
+        return names, None, None, None, None, None, counts
+    return (names, *_read_dicom_slices(names), counts)
+
+
+def _stack_dicom_slices(folder: Path, names: list, array, positions, direction, pixel_spacing,
+                        allow_irregular: bool) -> Volume:
+    """The slices of ``_read_dicom_slices`` sorted along the slice normal, checked and stacked."""
     normal = direction[:, 2]
     depth = positions @ normal
     order = np.argsort(depth, kind="stable")

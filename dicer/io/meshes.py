@@ -381,16 +381,16 @@ def refuse_inverted(mesh: Mesh, source: str) -> None:
     if mesh.cells.shape[1] != 8:
         _refuse_inverted(scaled_jacobian(mesh.points, mesh.cells), source)
         return
-    columns = [np.ascontiguousarray(mesh.points[:, d]) for d in range(3)]  # once, not per block
+    # gathered from views of the (N, 3) points: a contiguous copy per axis cost more to make
+    # (fresh pages) than it saved (0.3 s at 6.5 M nodes)
+    columns = [mesh.points[:, d] for d in range(3)]
     cells_t = mesh.cells.T
-    jacobian = np.empty(mesh.n_cells)
 
-    def block(part: slice) -> None:
-        hex_min_jacobian_t(columns, cells_t[:, part], out=jacobian[part])
+    def block(part: slice) -> np.ndarray:
+        # the failing elements of the block only: no (M,) array of values to fault in
+        return np.flatnonzero(hex_min_jacobian_t(columns, cells_t[:, part]) <= 0) + part.start
 
-    for _ in ordered_map(block, pieces(mesh.n_cells, 1 << 18)):
-        pass
-    bad = np.flatnonzero(jacobian <= 0)
+    bad = np.concatenate([np.zeros(0, np.int64), *ordered_map(block, pieces(mesh.n_cells, 1 << 18))])
     if bad.size:  # the scaled Jacobians of the elements named
         sj = np.ones(mesh.n_cells)
         sj[bad] = scaled_jacobian(mesh.points, mesh.cells[bad])

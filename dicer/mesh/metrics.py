@@ -133,8 +133,22 @@ def _edge_ratio_of_lengths(sq: np.ndarray) -> np.ndarray:
 _BLOCK = 16384
 
 
-def _columns(points: np.ndarray) -> list[np.ndarray]:
-    return [np.ascontiguousarray(points[:, d]) for d in range(3)]
+def point_columns(points: np.ndarray) -> list[np.ndarray]:
+    """The x, y and z columns of (N, 3) points, as the block loops take them.
+
+    Views, not copies: a block gathers a corner's x, y and z from one cache line, and a
+    contiguous copy per axis cost more in fresh pages than it saved (0.3 s at 6.5 M nodes
+    against 0.1 s).
+
+    Parameters
+    ----------
+    points : (N, 3) float64 ndarray
+
+    Returns
+    -------
+    list of three (N,) float64 ndarrays
+    """
+    return [points[:, d] for d in range(3)]
 
 
 def _per_block(func, columns: list[np.ndarray], cells_t: np.ndarray, chunk: int,
@@ -165,7 +179,7 @@ def scaled_jacobian(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) 
     """
     out = np.empty(cells.shape[0])
     if cells.shape[1] == 8:
-        return hex_scaled_jacobian_t(_columns(points), cells.T, chunk, out)
+        return hex_scaled_jacobian_t(point_columns(points), cells.T, chunk, out)
     for part in pieces(cells.shape[0], chunk):
         out[part] = corner_scaled_jacobians(points, cells[part]).min(axis=1)
     return out
@@ -238,7 +252,7 @@ def element_volumes(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
         # shoelace formula: exact for a bilinear quad
         out[:] = 0.5 * np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1)
         return out
-    return hex_volumes_t(_columns(points), cells.T, out=out)
+    return hex_volumes_t(point_columns(points), cells.T, out=out)
 
 
 def _triple(a: list[np.ndarray], b: list[np.ndarray], c: list[np.ndarray]) -> np.ndarray:
@@ -285,7 +299,7 @@ def edge_ratio(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np
     (M,) float64 ndarray
         1 for a cube; inf for an element with a zero-length edge.
     """
-    columns = _columns(points)
+    columns = point_columns(points)
     out = np.empty(cells.shape[0])
     if cells.shape[1] == 8:  # edge vectors from slices of the corner rows, as element_metrics
         return _per_block(_hex_edge_ratio, columns, cells.T, chunk, out)
@@ -321,7 +335,7 @@ def skew(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np.ndarr
     """
     # + ends and - ends of each axis
     axes = _HEX_SKEW_AXES if cells.shape[1] == 8 else _QUAD_SKEW_AXES
-    columns = _columns(points)
+    columns = point_columns(points)
     return _per_block(lambda x: _skew_of(x, axes), columns, cells.T, chunk, None)
 
 
@@ -418,7 +432,7 @@ def element_metrics(points: np.ndarray, cells: np.ndarray, names=METRICS, chunk:
         return {k: funcs[k](points, cells) for k in names}
     funcs = {"scaled_jacobian": _hex_min_scaled_jacobian, "edge_ratio": _hex_edge_ratio, "skew": _hex_skew,
              "volume": _hex_volume}
-    columns = _columns(points)
+    columns = point_columns(points)
     cells_t = cells.T
     m = cells.shape[0]
     out = {k: np.empty(m) for k in names}

@@ -168,7 +168,8 @@ class SolverModel(Sized):
 
     def labels(self) -> list[int]:
         """Material labels present, ascending."""
-        return [int(k) for k in np.unique(self.material)]
+        # a count per label: np.unique sorted every element (0.05 s a call at 6.4 M)
+        return [int(k) for k in np.flatnonzero(np.bincount(self.material, minlength=max(self.names) + 1))]
 
     def blocks(self) -> list[tuple[int, np.ndarray]]:
         """(label, element indices ascending) per material present."""

@@ -956,3 +956,15 @@ def test_dicom_series_with_a_slice_of_another_patient_is_refused_without_naming_
     message = str(err.value)
     assert "more than one patient or study (Patient ID differs" in message and slice_path.name in message
     assert SECRET_ID not in message and "INTRUDER" not in message
+
+
+def test_dicom_slice_with_an_orientation_gdcm_does_not_take_is_refused(dicom_folder):
+    # not unit vectors: GDCM read the slice as axial (the identity) without a word
+    folder, _ = dicom_folder
+    slice_path = sorted(folder.glob("*.dcm"))[1]
+    ds = pydicom.dcmread(slice_path)
+    ds.ImageOrientationPatient = [0.9, 0.1, 0, 0, 1, 0]
+    ds.save_as(slice_path)
+    with pytest.raises(DicerError, match=re.escape(slice_path.name) + r".*Image Orientation \(Patient\).*not two "
+                       r"perpendicular unit vectors \(0.9, 0.1, 0, 0, 1, 0\)"):
+        read_image(folder)

@@ -1002,6 +1002,7 @@ def _read_dicom_slices(names: list[str]):
             reader.ReadImageInformation()
         except RuntimeError as exc:
             raise _slice_error(name, _itk_message(exc)) from None
+        _check_orientation_tag(reader, name)
         # a slice of another patient or study filed under the series' UID: compared, never shown
         sessions.add(tuple(reader.GetMetaData(tag).strip() if reader.HasMetaDataKey(tag) else ""
                            for tag, _, _ in _SESSION_TAGS))
@@ -1048,6 +1049,27 @@ def _read_dicom_slices(names: list[str]):
             raise _slice_error(name, f"{pixels.size} values where the header promises {nx}x{ny}")
         array[:, :, k] = pixels.reshape(ny, nx).T  # [y, x] -> [x, y]
     return array, positions, directions[0].reshape(3, 3), tuple(float(v) for v in spacings[0]), paddings
+
+
+def _check_orientation_tag(reader, name: str) -> None:
+    """Refuse a slice whose Image Orientation (Patient) (0020,0037) GDCM did not take (not two
+    perpendicular unit vectors): it puts the identity in its place, and the slice was read as
+    axial whatever it said ([0.9, 0.1, 0, 0, 1, 0]: exit 0, no word)."""
+    if not reader.HasMetaDataKey("0020|0037"):
+        return
+    try:
+        values = [float(v) for v in reader.GetMetaData("0020|0037").strip().split("\\")]
+    except ValueError:
+        values = []
+    if len(values) != 6:
+        raise _slice_error(name, "its Image Orientation (Patient) (0020,0037) is not six numbers")
+    row, col = np.asarray(values[:3]), np.asarray(values[3:])
+    taken = np.asarray(reader.GetDirection(), float).reshape(3, 3)  # columns: the index axes
+    with np.errstate(all="ignore"):
+        given = np.column_stack([row / np.linalg.norm(row), col / np.linalg.norm(col)])
+    if not np.all(np.abs(given - taken[:, :2]) <= 1e-3):  # GDCM put the identity in its place
+        raise _slice_error(name, "its Image Orientation (Patient) (0020,0037) is not two perpendicular unit vectors "
+                           f"({', '.join(f'{v:g}' for v in values)})")
 
 
 def _padding_range(reader) -> tuple[float, float] | None:

@@ -968,3 +968,18 @@ def test_dicom_slice_with_an_orientation_gdcm_does_not_take_is_refused(dicom_fol
     with pytest.raises(DicerError, match=re.escape(slice_path.name) + r".*Image Orientation \(Patient\).*not two "
                        r"perpendicular unit vectors \(0.9, 0.1, 0, 0, 1, 0\)"):
         read_image(folder)
+
+
+def test_dicom_folder_gdcm_drops_for_a_malformed_value_says_so(dicom_folder):
+    # one slice's Image Position as text: GDCM's scan dropped every file, and the error said
+    # the folder holds no DICOM series
+    from pydicom.dataelem import DataElement
+
+    folder, _ = dicom_folder
+    slice_path = sorted(folder.glob("*.dcm"))[2]
+    ds = pydicom.dcmread(slice_path)
+    ds[0x00200032] = DataElement(0x00200032, "LO", "abc\\1\\2")
+    ds.save_as(slice_path)
+    with pytest.raises(DicerError, match=r"GDCM finds no DICOM series in the folder's 6 DICOM file\(s\).*Image "
+                                         r"Position"):
+        read_image(folder)

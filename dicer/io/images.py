@@ -1261,6 +1261,13 @@ def _dicom_series_slices(folder: Path, required: bool, allow_irregular: bool):
     if not series and not required:
         return None
     if not series:
+        dicom = [p for p in sorted(folder.iterdir(), key=lambda p: _natural_key(p.name))
+                 if p.is_file() and _dicom_preamble(p)]
+        if dicom:  # GDCM's scan drops them all for one malformed value (a DS of Image Position)
+            raise DicerError(f"{folder}: GDCM finds no DICOM series in the folder's {len(dicom)} DICOM file(s) (the "
+                             f"first: {dicom[0].name}): a header value it cannot parse (Image Position, Pixel "
+                             "Spacing, Image Orientation) drops them; check the slices' headers, or export the "
+                             "series again")
         raise DicerError(
             f"{folder}: the folder holds no DICOM series, TIFF or PNG slices; {_SUPPORTED}"
         )

@@ -103,6 +103,20 @@ def _records(path: Path, text: str) -> list[tuple[int, list[str]]]:
         start = reader.line_num + 1
 
 
+_SEGMENTATION_ONLY = ("segment.method", "segment.thresholds", "segment.ranges", "segment.bins")
+"""Settings of the threshold search, which a label volume made elsewhere skips (the segment
+section's morphology and priority still serve its downsampling)."""
+
+
+def _unread_override(key: str, label_volume: bool) -> str | None:
+    """Why no stage of the row's patient reads override ``key``, or None when one does."""
+    if not label_volume and (key == "labels" or key.startswith("labels.")):
+        return "is read only for a label volume (the labels column), and this row's image is segmented"
+    if label_volume and any(key == k or key.startswith(k + ".") for k in _SEGMENTATION_ONLY):
+        return "sets the threshold search, which this row's label volume (the labels column) skips"
+    return None
+
+
 def _check_row(row: dict, schema: dict, where: str) -> None:
     """One row against the schema and the rules a schema cannot say, naming the column."""
     import jsonschema
@@ -131,6 +145,10 @@ def _check_row(row: dict, schema: dict, where: str) -> None:
                              "whole cohort's; set them in the config, not per patient")
         if keys.count(key) > 1:
             raise DicerError(f"{where}: patient {row['patient']!r}: override {key!r} is given twice; keep one")
+        unread = _unread_override(key, bool(row.get("labels")))
+        if unread:
+            raise DicerError(f"{where}: patient {row['patient']!r}: override {key!r} {unread}, so it would change "
+                             "nothing: remove it, or move the file to the other column")
 
 
 def beside_sheet(path: str | os.PathLike, sheet: str | os.PathLike) -> Path | None:

@@ -57,6 +57,11 @@ def test_rows_keep_their_line_numbers_across_blank_rows(tmp_path):
     ("patient\tscan\nA\ta.nii.gz\n", r"line 2: unknown column 'scan'"),
     (HEAD + "A/B\ta.nii.gz\t\n", r"line 2: column 'patient'"),
     (HEAD + "A\t\t\n", r"line 2: patient 'A': give either an image or a labels file"),
+    # overrides no stage of the patient reads were accepted and changed nothing
+    (HEAD + "A\ta.nii.gz\tlabels.drop=[2]\n",
+     r"line 2: patient 'A': override 'labels.drop' is read only for a label volume .* would change nothing"),
+    ("patient\timage\tlabels\toverrides\nA\t\tl.nii.gz\tsegment.thresholds=[0, 300]\n",
+     r"line 2: patient 'A': override 'segment.thresholds' sets the threshold search, which this row's label"),
 ])
 def test_bad_sheets_are_refused_naming_the_line(tmp_path, text, said):
     with pytest.raises(DicerError, match=said):

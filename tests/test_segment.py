@@ -112,6 +112,16 @@ def test_multiotsu_warns_when_it_cuts_one_tissue_in_two():
     assert AIR - 200 < info["thresholds"][0] < AIR + 200  # the air cut in two: what the warning is for
 
 
+def test_otsu_on_an_image_without_air_in_hu_is_warned_of():
+    # an MR under the CT materials: multi-Otsu split it and its brightest tissue became 'bone'
+    image, truth = head_like(32, noise=60, seed=3)
+    mr = Volume(np.where(truth == 0, 30.0, np.where(truth == 1, 1800.0, 3000.0))
+                + np.random.default_rng(5).normal(0, 40, truth.shape).clip(-29), image.spacing)
+    _, info = segment(mr, config(method="multiotsu"), "mr.nii.gz")
+    said = [w for w in info["warnings"] if w.startswith("the image holds no value below -500")]
+    assert len(said) == 1 and "named soft_tissue, bone in order of intensity" in said[0]
+
+
 def test_segment_2d():
     image, truth = head_like(32)
     im2 = Volume(image.array[:, :, 16].copy(), (0.5, 0.7))

@@ -28,6 +28,10 @@ from dicer.segment.thresholds import (
 
 __all__ = ["segment", "class_priority", "morphology_options", "label_counts"]
 
+NO_AIR_HU = -500.0
+"""A CT in HU holds air (about -1000) around the body; an image whose lowest value lies above
+this is an MR, a rescaled image or one cropped inside the body."""
+
 OPENED_AWAY = 0.1
 """Share of a class's thresholded voxels whose removal by the opening is warned of (0.2 % of
 the head CT's bone, 7 % of the head phantom's soft tissue; a 10 mm plate on 5 mm slices 64 %;
@@ -262,14 +266,22 @@ def _histogram_warnings(method: str, array: np.ndarray, names: list[str], thresh
     and the head becomes 'bone'."""
     if method not in ("otsu", "multiotsu"):
         return []
+    said = []
     cut = thresholds_in_a_mode(array, thresholds)
-    if not cut:
-        return []
-    which = ", ".join(f"'{names[i]}' ({float(thresholds[i]):g})" for i in cut)
-    return [f"{method} put the threshold of {which} at a peak of the image's histogram, inside one tissue's values, "
-            "not between two: the scan holds fewer tissues than the materials listed, and the classes are not the "
-            "tissues they are named after; list only the materials the scan holds, or set segment.method: manual "
-            "(or shape_connectivity with segment.ranges)"]
+    if cut:
+        which = ", ".join(f"'{names[i]}' ({float(thresholds[i]):g})" for i in cut)
+        said.append(f"{method} put the threshold of {which} at a peak of the image's histogram, inside one tissue's "
+                    "values, not between two: the scan holds fewer tissues than the materials listed, and the classes "
+                    "are not the tissues they are named after; list only the materials the scan holds, or set "
+                    "segment.method: manual (or shape_connectivity with segment.ranges)")
+    lowest = float(np.nanmin(array)) if array.size else 0.0
+    if lowest > NO_AIR_HU:
+        # Otsu splits any values; the classes take the materials' names in order of intensity
+        said.append(f"the image holds no value below {NO_AIR_HU:g} (its lowest is {lowest:g}): no air in HU, so it is "
+                    f"not a CT in HU (an MR?) or holds no air; {method} made {len(names)} class(es) of its values, "
+                    f"named {', '.join(names)} in order of intensity: check that the brightest class is "
+                    f"'{names[-1]}' (an MR's bright tissue is not bone), or name the materials for this scan")
+    return said
 
 
 @takes_settings("segment")

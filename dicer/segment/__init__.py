@@ -19,6 +19,7 @@ from dicer.segment.morphology import clean_labels
 from dicer.segment.thresholds import (
     check_thresholds,
     classify,
+    histogram_values,
     multiotsu_thresholds,
     otsu_thresholds,
     shape_connectivity_thresholds,
@@ -259,15 +260,16 @@ def _range_warnings(info: dict, names: list[str], lo: float, hi: float) -> list[
     return warnings
 
 
-def _histogram_warnings(method: str, array: np.ndarray, names: list[str], thresholds) -> list[str]:
+def _histogram_warnings(method: str, array: np.ndarray, values, names: list[str], thresholds) -> list[str]:
     """Warnings for thresholds from the histogram alone (otsu, multiotsu) that cut through one
     tissue's peak (:func:`thresholds_in_a_mode`): the histogram is split into as many classes as
     there are materials whatever the scan holds, so a scan without bone has its air cut in two
-    and the head becomes 'bone'."""
+    and the head becomes 'bone'; and an image without air in HU. ``values``: the
+    thresholds' :func:`histogram_values`."""
     if method not in ("otsu", "multiotsu"):
         return []
     said = []
-    cut = thresholds_in_a_mode(array, thresholds)
+    cut = thresholds_in_a_mode(values, thresholds)
     if cut:
         which = ", ".join(f"'{names[i]}' ({float(thresholds[i]):g})" for i in cut)
         said.append(f"{method} put the threshold of {which} at a peak of the image's histogram, inside one tissue's "
@@ -331,16 +333,16 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
     lo, hi = _check_image(image, source)
     array = image.array
     info: dict = {"method": method}
+    values = None  # Otsu's histogram values (histogram_values)
     if method != "manual":
         array, pad, padded = _without_padding(array, lo)
         if pad is not None:  # outside the field of view: as air for the thresholds, background after them
             info["padding"] = {"value": pad, "voxels": padded}
     if method == "manual":
         thresholds = check_thresholds(thresholds, k, names, source)
-    elif method == "otsu":
-        thresholds = otsu_thresholds(array, k, names, source)
-    elif method == "multiotsu":
-        thresholds = multiotsu_thresholds(array, k, names, source)
+    elif method in ("otsu", "multiotsu"):
+        values = histogram_values(array)  # one partition of the image, for the thresholds and their check
+        thresholds = (otsu_thresholds if method == "otsu" else multiotsu_thresholds)(values, k, names, source)
     else:  # shape_connectivity (the schema knows no other method)
         thresholds, search = shape_connectivity_thresholds(array, ranges, names, source, bins=int(bins))
         info.update({key: value for key, value in search.items() if key != "seconds"})
@@ -368,7 +370,7 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
     info["removed_parts"] = {names[c - 1]: p for c, p in minfo["removed_parts"].items() if p["parts"]}
     info["classes"] = label_counts(labels, names)
     warnings = (_empty_class_warnings(info, names, thresholds) + _range_warnings(info, names, lo, hi)
-                + _histogram_warnings(method, searched, names, thresholds))
+                + _histogram_warnings(method, searched, values, names, thresholds))
     for name, removed in info["removed_by_opening"].items():
         kept, thresholded = info["classes"][name]["voxels"], info["thresholded"][name]
         if kept and removed >= OPENED_AWAY * thresholded:  # an empty class has its own warning

@@ -18,7 +18,8 @@ from skimage.filters import threshold_multiotsu, threshold_otsu
 from dicer.errors import DicerError
 
 __all__ = [
-    "classify", "check_thresholds", "otsu_thresholds", "multiotsu_thresholds", "value_range",
+    "classify", "check_thresholds", "histogram_values", "otsu_thresholds", "multiotsu_thresholds", "value_range",
+    "thresholds_in_a_mode",
     "check_ranges", "candidate_edges", "whole_valued", "bin_image", "cooccurrence", "shape_connectivity_thresholds",
 ]
 
@@ -108,13 +109,30 @@ def _clipped(values: np.ndarray) -> np.ndarray:
     return np.clip(flat, lo, hi)
 
 
-def otsu_thresholds(array: np.ndarray, k: int, names: list[str], source: str) -> list[float]:
-    """Otsu's threshold for one material class.
+def histogram_values(array: np.ndarray) -> np.ndarray:
+    """The values Otsu's histograms are taken of: the finite ones, clipped to their
+    OUTLIER_SHARE quantiles (one partition of the image: made once, shared by the
+    thresholds and their check).
 
     Parameters
     ----------
     array : ndarray
         Image intensities.
+
+    Returns
+    -------
+    (P,) ndarray
+    """
+    return _clipped(_finite_values(array))
+
+
+def otsu_thresholds(values: np.ndarray, k: int, names: list[str], source: str) -> list[float]:
+    """Otsu's threshold for one material class.
+
+    Parameters
+    ----------
+    values : ndarray
+        Image intensities as :func:`histogram_values` gives them.
     k : int
         Number of material classes; must be 1.
 
@@ -126,21 +144,21 @@ def otsu_thresholds(array: np.ndarray, k: int, names: list[str], source: str) ->
         raise DicerError(f"{source}: segment.method=otsu finds one threshold but the config names {k} materials "
                          f"({', '.join(names)}); use segment.method=multiotsu or shape_connectivity")
     with _quiet():
-        return [float(threshold_otsu(_clipped(_finite_values(array))))]
+        return [float(threshold_otsu(values))]
 
 
-def multiotsu_thresholds(array: np.ndarray, k: int, names: list[str], source: str) -> list[float]:
+def multiotsu_thresholds(values: np.ndarray, k: int, names: list[str], source: str) -> list[float]:
     """Multi-Otsu thresholds for K material classes (K + 1 classes with background).
 
     Uses :func:`skimage.filters.threshold_multiotsu` with ``classes=K+1`` on a
-    256-bin histogram of the values clipped to their 0.1 % and 99.9 % quantiles (a few
-    metal voxels would stretch the bins over tens of thousands of HU).
+    256-bin histogram of ``values``, the image's clipped to their 0.1 % and 99.9 %
+    quantiles (:func:`histogram_values`: a few metal voxels would stretch the bins over
+    tens of thousands of HU).
 
     Returns
     -------
     thresholds : list of K floats, increasing
     """
-    values = _clipped(_finite_values(array))
     try:
         with _quiet():
             t = threshold_multiotsu(values, classes=k + 1)
@@ -159,7 +177,7 @@ MODE_SHARE = 0.25
 of its highest bin's lies in a populated mode, not in a valley between two."""
 
 
-def thresholds_in_a_mode(array: np.ndarray, thresholds) -> list[int]:
+def thresholds_in_a_mode(values: np.ndarray, thresholds) -> list[int]:
     """The thresholds (their indices) that cut through a populated mode of the histogram.
 
     Otsu's criterion splits the values into the classes asked for whatever they hold: with
@@ -168,15 +186,14 @@ def thresholds_in_a_mode(array: np.ndarray, thresholds) -> list[int]:
 
     Parameters
     ----------
-    array : ndarray
-        Image intensities.
+    values : ndarray
+        Image intensities as :func:`histogram_values` gives them.
     thresholds : sequence of float
 
     Returns
     -------
     list of int
     """
-    values = _clipped(_finite_values(array))
     with _quiet():
         counts, edges = np.histogram(values, bins=256)
     if not counts.size or counts.max() == 0:

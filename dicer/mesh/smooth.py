@@ -1167,6 +1167,15 @@ def _add_pillow(st: _Smoothing) -> None:
             # where the taper leaves less depth than that, half of it
             thinnest = np.zeros(nodes.size)
             thinnest[rows] = np.minimum(_SHORTEST_EDGE * voxel[rows], _PILLOW_THINNEST * np.linalg.norm(depth, axis=1))
+            # the elements under the layer whose edges its move brought together (not those the
+            # smoothing left so), and the copies' start: where their nodes were
+            moved = np.zeros(n, bool)
+            moved[nodes[rows]] = True
+            near = np.flatnonzero(moved[mesh.cells[st.touched]].any(axis=1))
+            near_cells = mesh.cells[st.touched[near]]
+            shrunk = near[(_short_edges(near_cells, st.x, st.x0, moved)
+                           & ~_short_edges(near_cells, x, st.x0, moved)).any(axis=1)]
+            x0_layer = np.concatenate([st.x0, st.x0[nodes[rows]]])
             solved = layered
         new_id = np.full(n, -1, np.int64)
         new_id[nodes[rows]] = n + np.arange(rows.size)
@@ -1176,20 +1185,14 @@ def _add_pillow(st: _Smoothing) -> None:
         # such a copy stops where the layer is still ``thinnest`` thick
         _hold_thickness(share, rows, xb[b[rows]], goal[rows], st.x[nodes[rows]], thinnest[rows])
         outer = xb[b[rows]] + share[rows, None] * (goal[rows] - xb[b[rows]])
-        sj_layer = scaled_jacobian(np.concatenate([st.x, outer]), cells)
+        x_layer = np.concatenate([st.x, outer])
+        sj_layer = scaled_jacobian(x_layer, cells)
         # an element under the layer may stay below the floor where the smoothing left it so
         bad_under = ((sj_under < floor) | (sj_under <= 0)) & (sj_under < sj_accepted - 1e-12)
+        bad_under[shrunk] = True
         bad_layer = (sj_layer < floor) | (sj_layer <= 0)
-        # and edges brought together, on the copies' face (the copies start where their nodes
-        # were) or under the layer by its move (not those the smoothing left so)
-        bad_layer |= _short_edges(cells, np.concatenate([st.x, outer]), np.concatenate([st.x0, st.x0[nodes[rows]]]),
-                                  np.ones(n + rows.size, bool)).any(axis=1)
-        moved = np.zeros(n, bool)
-        moved[nodes[rows]] = True
-        near = np.flatnonzero(moved[mesh.cells[st.touched]].any(axis=1))
-        near_cells = mesh.cells[st.touched[near]]
-        bad_under[near] |= (_short_edges(near_cells, st.x, st.x0, moved)
-                            & ~_short_edges(near_cells, x, st.x0, moved)).any(axis=1)
+        # and edges brought together on the copies' face
+        bad_layer |= _short_edges(cells, x_layer, x0_layer, np.ones(x_layer.shape[0], bool)).any(axis=1)
         if not (bad_under.any() or bad_layer.any()):
             break
         if rounds == _PILLOW_ROUNDS:

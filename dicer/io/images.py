@@ -23,7 +23,6 @@ import gzip
 import logging
 import os
 import re
-import sys
 import struct
 from pathlib import Path
 
@@ -1236,7 +1235,7 @@ def _read_dicom_series(folder: Path, required: bool = True, allow_irregular: boo
     # damaged block ('Corrupt JPEG data: ...') straight to standard error: dicer says in one
     # line what is wrong itself
     with quiet_itk(), captured_stderr():
-        found = _dicom_series_slices(folder, required, allow_irregular)
+        found = _dicom_series_slices(folder, required)
     if found is None:
         return None
     names, array, positions, direction, pixel_spacing, paddings, counts = found
@@ -1251,7 +1250,7 @@ def _read_dicom_series(folder: Path, required: bool = True, allow_irregular: boo
     return _stack_dicom_slices(folder, names, array, positions, direction, pixel_spacing, allow_irregular)
 
 
-def _dicom_series_slices(folder: Path, required: bool, allow_irregular: bool):
+def _dicom_series_slices(folder: Path, required: bool):
     """The chosen series' slice files, read (``_read_dicom_series``); array None for one
     multi-frame file, and the slice count of every series found."""
     try:

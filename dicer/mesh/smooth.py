@@ -58,7 +58,7 @@ from dicer.errors import DicerError
 from dicer.mesh.boundary import (NODE_CLASSES, BoundaryGraph, boundary_graph, bounding_planes, class_counts,
                                  mirror_share, mirror_weights, plane_axes, plane_bits)
 from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes, hex_scaled_jacobian_t, hex_volumes_t, scaled_jacobian
-from dicer.mesh.model import LEVEL_DATA, Mesh
+from dicer.mesh.model import LEVEL_DATA, Mesh, pieces
 from dicer.mesh.topology import HEX_CORNERS, HEX_EDGES, QUAD_CORNERS, QUAD_EDGES
 
 __all__ = ["DEFAULTS", "smooth_mesh", "smoothing_settings"]
@@ -640,6 +640,7 @@ class _Smoothing:
     sj: np.ndarray | None = None  # scaled Jacobian of the checked elements
     bad: np.ndarray | None = None  # the checked elements that fail the guard
     short: tuple | None = None  # with the pull: (checked rows, (R, E) bool) edges it shrank too far
+    lengths0: np.ndarray | None = None  # with the pull: (C, E) float32 squared edge lengths before smoothing
     it_b: int = 0  # conjugate-gradient iterations, boundary and interior
     it_i: int = 0
     t_solve: float = 0.0
@@ -862,21 +863,29 @@ _SHORTEST_EDGE = 0.05
 (an edge ratio of about 20, where the quality report calls an element stretched)."""
 
 
-def _short_edges(cells: np.ndarray, x: np.ndarray, x0: np.ndarray, moved: np.ndarray) -> np.ndarray:
+def _edge_lengths2(cells: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(M, E) float64: the squared lengths of the elements' edges at positions ``x``."""
+    edges = HEX_EDGES if cells.shape[1] == 8 else QUAD_EDGES
+    out = np.empty((cells.shape[0], edges.shape[0]))
+    for part in pieces(cells.shape[0], 1 << 15):  # the corners gathered once a block, its temporaries small
+        corner = x[cells[part]]  # (b, k, 3)
+        d = corner[:, edges[:, 1]] - corner[:, edges[:, 0]]
+        out[part] = np.einsum("bei,bei->be", d, d)
+    return out
+
+
+def _short_edges(cells: np.ndarray, x: np.ndarray, x0: np.ndarray | None, moved: np.ndarray,
+                 before: np.ndarray | None = None) -> np.ndarray:
     """(M, E) bool: the elements' edges with an end in ``moved`` (N,) bool, shorter than
-    ``_SHORTEST_EDGE`` of their length at ``x0``.
+    ``_SHORTEST_EDGE`` of their length at ``x0`` (or their squared lengths ``before``, (M, E)).
 
     A pull onto an iso-surface can bring an edge's two ends together (a riser of the staircase,
     both ends projected onto one flat patch): its corners stay square, so the scaled Jacobian
     passes an element a solver cannot condition."""
     edges = HEX_EDGES if cells.shape[1] == 8 else QUAD_EDGES
-    short = np.zeros((cells.shape[0], edges.shape[0]), bool)
-    for e, (i, j) in enumerate(edges):  # an edge at a time: (M, 3) temporaries, not (M, E, 3)
-        a, b = cells[:, i], cells[:, j]
-        d, d0 = x[a] - x[b], x0[a] - x0[b]
-        short[:, e] = (np.einsum("mi,mi->m", d, d) < _SHORTEST_EDGE**2 * np.einsum("mi,mi->m", d0, d0)) & (
-            moved[a] | moved[b])
-    return short
+    before = _edge_lengths2(cells, x0) if before is None else before
+    m = moved[cells]
+    return (_edge_lengths2(cells, x) < _SHORTEST_EDGE**2 * before) & (m[:, edges[:, 0]] | m[:, edges[:, 1]])
 
 
 def _check_quality(st: _Smoothing) -> None:
@@ -893,11 +902,20 @@ def _check_quality(st: _Smoothing) -> None:
         after = sj[which]
         bad[which] = ~((before < floor) & (after >= before - 1e-12) & (before > 0))
     st.short = None
-    if st.pull is not None:  # the elements with a node the pull moves: only those it shortens
+    if st.pull is not None:
         moved = np.zeros(st.mesh.n_points, bool)
-        moved[st.bnodes[st.pull.share > 0]] = True
-        pulled = np.flatnonzero(moved[st.mesh.cells[st.touched]].any(axis=1))
-        short = _short_edges(st.mesh.cells[st.touched[pulled]], st.x, st.x0, moved)
+        moved[st.bnodes[st.pull.share > 0]] = True  # only edges with a pulled end: those it shortens
+        # an edge falls below _SHORTEST_EDGE of its length only when one of its ends moved at
+        # least half the rest of it: the elements of such nodes only (a few of every check's)
+        reach = 0.5 * (1 - _SHORTEST_EDGE) * float(np.min(np.asarray(st.mesh.spacing, float)[: st.mesh.dim]))
+        far = np.zeros(st.mesh.n_points, bool)
+        for ids in (st.bnodes, st.band_nodes):
+            step = st.x[ids] - st.x0[ids]
+            far[ids[np.einsum("ij,ij->i", step, step) >= reach * reach]] = True
+        pulled = np.flatnonzero(far[st.mesh.cells[st.touched]].any(axis=1))
+        if st.lengths0 is None:  # the checked elements' edges before smoothing, once
+            st.lengths0 = _edge_lengths2(st.mesh.cells[st.touched], st.x0).astype(np.float32)
+        short = _short_edges(st.mesh.cells[st.touched[pulled]], st.x, None, moved, st.lengths0[pulled])
         st.short = (pulled, short)
         bad[pulled[short.any(axis=1)]] = True
     st.sj, st.bad = sj, bad

@@ -137,21 +137,28 @@ def _wdot(w: np.ndarray):
 
 
 def _pcg(apply, b: np.ndarray, inv_diag: np.ndarray | None, tol: float, maxiter: int,
-         weight: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+         weight: np.ndarray | None = None, start: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Conjugate gradients on A x = b, ``apply(p)`` giving A p.
 
     ``b`` holds the columns of a block-diagonal system stacked into one vector (the block
     system is symmetric positive definite when each block is). Preconditioned by
     ``inv_diag`` (None: none), until ||r|| <= tol * ||b||. Vector updates are in place.
     ``weight``: the inner product sum w a b (A self-adjoint in it; None: w = 1).
+    ``start``: the first iterate (None: 0); the stopping rule is the same either way.
     """
     _dot_ = _dot if weight is None else _wdot(weight)
     bnorm = float(np.sqrt(_dot_(b, b)))
-    x = np.zeros_like(b)
     if bnorm == 0:
-        return x, 0
+        return np.zeros_like(b), 0
     buf = np.empty_like(b)
-    r = b.copy()
+    if start is None:
+        x = np.zeros_like(b)
+        r = b.copy()
+    else:
+        x = start.astype(b.dtype, copy=True)
+        r = b - apply(x)
+        if np.sqrt(_dot_(r, r)) <= tol * bnorm:
+            return x, 0
     z = r if inv_diag is None else r * inv_diag
     p = z.copy()
     rz = _dot_(r, z)
@@ -410,8 +417,12 @@ class _Interior:
             self.free = (~plane_axes(bits)).T.astype(np.float32)
             self.weight = np.tile(mirror_share(bits), 3).astype(np.float32)
 
-    def solve(self, u_boundary: np.ndarray, tol: float) -> tuple[np.ndarray, int]:
-        """Displacements of the band nodes given those of the boundary nodes (B, 3)."""
+    def solve(self, u_boundary: np.ndarray, tol: float, start: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+        """Displacements (M, 3) of the band nodes given those of the boundary nodes (B, 3).
+
+        ``start``: (M, 3) displacements to start from (a previous solve's: the guard's rounds
+        move a few boundary nodes, so the last solution is close); None starts from 0.
+        """
         m = self.nodes.size
         if m == 0:
             return np.zeros((0, 3)), 0
@@ -434,7 +445,10 @@ class _Interior:
                 np.subtract(buf[part], nbrs, out=out[part])
             return out
 
-        u, it = _pcg(apply, b, None, tol, 5000, self.weight)
+        x0 = None if start is None else np.ascontiguousarray(start.T, np.float32).ravel()
+        if x0 is not None and free is not None:
+            x0 *= free.ravel()
+        u, it = _pcg(apply, b, None, tol, 5000, self.weight, x0)
         return u.reshape(3, m).T.astype(np.float64), it
 
 
@@ -852,7 +866,9 @@ def _solve_band(st: _Smoothing, xb: np.ndarray) -> None:
     them: sets ``st.xb`` and ``st.x_band``."""
     st.x[st.bnodes] = st.xb = xb
     if st.interior is not None and st.band_nodes.size:
-        u, it = st.interior.solve(xb - st.xb0, st.s["tolerance"])
+        # from the last solve's displacements: a guard round changes few boundary nodes
+        start = None if st.x_band is None else st.x_band - st.x_band0
+        u, it = st.interior.solve(xb - st.xb0, st.s["tolerance"], start)
         st.it_i += it
         st.x_band = st.x_band0 + u
         st.x[st.band_nodes] = st.x_band

@@ -325,17 +325,22 @@ def do_downsample(labels_path: str, out: Path, config: dict):
         changed = {n: v for n, v in info.get("volume_change_percent", {}).items()
                    if abs(v) > DOWNSAMPLE_VOLUME_WARNING}
         if changed:  # thin parts lost to the vote and the opening, or a label outvoted by its neighbours
-            log.warning("downsample: material volume changed by more than %g %% (%s): a class filling "
-                        "downsample.min_fraction of a block takes it (higher labels first), and parts thinner than "
-                        "about two coarse voxels are removed; lower the factor (or voxel_size), raise "
-                        "downsample.min_fraction toward 0.5 to keep volumes, or set downsample.morphology=false "
-                        "to keep thin parts",
-                        DOWNSAMPLE_VOLUME_WARNING, brief_json({n: f"{v:+.1f} %" for n, v in changed.items()}))
+            rule = ("the most frequent class takes a block its classes fill to downsample.min_fraction"
+                    if info["vote"] == "plurality" else
+                    "a class filling downsample.min_fraction of a block takes it (first in segment.priority)")
+            thin = ("parts thinner than about two coarse voxels are removed" if info["morphology"] else
+                    "a part thinner than a coarse voxel keeps only the blocks it fills")
+            mend = "" if not info["morphology"] else ", or set downsample.morphology=false to keep thin parts"
+            log.warning("downsample: material volume changed by more than %g %% (%s): %s, and %s; lower the factor "
+                        "(or voxel_size), or raise downsample.min_fraction toward 0.5 to keep volumes%s",
+                        DOWNSAMPLE_VOLUME_WARNING, brief_json({n: f"{v:+.1f} %" for n, v in changed.items()}),
+                        rule, thin, mend)
         lost = [n for n, v in info["voxels_before"].items() if v and not info["voxels_after"].get(n)]
         if set(lost) - set(list(changed)[:8]):  # counted in full: the volume warning above names eight
             log.warning("downsample: %d material(s) have no voxels left and no elements in the model: %s; lower the "
-                        "factor (or voxel_size), or set downsample.morphology=false for a label volume made "
-                        "elsewhere", len(lost), brief_names(lost))
+                        "factor (or voxel_size)%s", len(lost), brief_names(lost),
+                        ", or set downsample.morphology=false for a label volume made elsewhere"
+                        if info["morphology"] else "")
         _warn_of_grid_growth(info)
     return reduced
 
@@ -399,6 +404,7 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
             log.warning("fix: stopped at a round cap with %s left; raise fix.max_iterations or "
                         "fix.max_type_c_rounds", report["remaining"])
         _warn_of_fixed_volumes(labels.array, fixed, config)
+        _warn_of_fixed_shape(report)
         # same grid: the input's NIfTI header is kept, so the affine stays exactly the input's
         write_mapped_labels(Volume(fixed, labels.spacing, labels.origin, labels.direction), labels_path, out)
         _write_report(report_path, report)
@@ -427,8 +433,30 @@ def _warn_of_fixed_volumes(before: np.ndarray, after: np.ndarray, config: dict) 
                 "are removed: set fix.majority_rounds=0 (raise-only rounds) or lower fix.min_component_voxels to keep "
                 "them")
     else:
-        hint = "the raise-only type C rounds thicken parts one voxel thin (a plate doubles): segment more finely"
+        hint = ("the raise-only type C rounds thicken parts one voxel thin (a plate doubles): segment more finely "
+                "or lower downsample.factor, so that thin parts are two voxels thick")
     log.warning("%s; %s", said, hint)
+
+
+def _warn_of_fixed_shape(report: dict) -> None:
+    """Warn when the connectivity fixes grew the model into the background by more than
+    STAGE_VOLUME_WARNING percent, made it reach faces of the image it did not reach, or
+    joined separate parts (a gap one voxel wide filled)."""
+    solid = report["solid_voxels"]
+    grown = 100.0 * (solid["after"] - solid["before"]) / solid["before"] if solid["before"] else 0.0
+    faces = report["faces_reached"]
+    if grown > STAGE_VOLUME_WARNING or faces:
+        reach = (f", and it now reaches the image's faces {', '.join(faces)} (the deck's node sets of those names "
+                 "hold the grown material)" if faces else "")
+        log.warning("fix: the model grew by %.1f %% into the background%s: the raise-only type C rounds thicken "
+                    "every part one voxel thin, so a layer or shell one voxel thick doubles; segment more finely or "
+                    "lower downsample.factor, so that layers are two voxels thick", grown, reach)
+    if report["joined_parts"]:
+        log.warning("fix: %d separate part(s) of the labels were joined to others: they touched only at an edge or "
+                    "a corner, or a gap one voxel wide between them was filled (type C), so they are one body in the "
+                    "model and carry load across it; to keep them apart the gap must be two voxels wide everywhere "
+                    "(segment more finely, lower downsample.factor) or hold a material of its own (labels.map)",
+                    report["joined_parts"])
 
 
 class _InputError(DicerError):

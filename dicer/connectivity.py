@@ -37,7 +37,8 @@ from dicer.config import takes_settings
 from dicer.errors import DicerError
 from dicer.image import count_labels
 
-__all__ = ["fix_connectivity", "fix_stage", "connectivity_defects", "boundary_edge_counts", "remove_islands"]
+__all__ = ["fix_connectivity", "fix_stage", "connectivity_defects", "boundary_edge_counts", "remove_islands",
+           "joined_parts", "faces_reached"]
 
 
 # --- helpers -----------------------------------------------------------------------------
@@ -796,7 +797,55 @@ def fix_stage(labels: np.ndarray, *, names: dict[str, str], min_component_voxels
         report[kind] = {named.get(k, k): v for k, v in report[kind].items()}
     gone = np.setdiff1d(_present(labels), _present(fixed))
     report["lost_materials"] = [names.get(str(int(k)), str(int(k))) for k in gone[gone > 0]]
+    report["joined_parts"] = joined_parts(array, fixed, after["parts"] - after["removed_parts"])
+    solid_before, solid_after = int(np.count_nonzero(labels)), int(np.count_nonzero(fixed))
+    report["solid_voxels"] = {"before": solid_before, "after": solid_after}
+    report["faces_reached"] = faces_reached(labels, fixed)
     return fixed, report
+
+
+def joined_parts(before: np.ndarray, after: np.ndarray, parts_after: int | None = None) -> int:
+    """How many separate parts of ``before`` the fixes joined into others in ``after``.
+
+    A part is a component of the non-background voxels touching at faces (an element mesh
+    holds together only through them), as in :func:`remove_islands`. The count is the parts
+    of ``before`` that keep a voxel less the parts of ``after``: two parts touching only at
+    an edge or a corner (which the fixes connect) or a gap one voxel wide filled between
+    them (a slot the type C rounds fill) make it positive. A part split in two by the fixes
+    offsets a join, so the count is a lower bound.
+
+    Parameters
+    ----------
+    before, after : (nx, ny[, nz]) int ndarray
+        Label volumes, 0 background, the same shape.
+    parts_after : int, optional
+        The parts of ``after`` when already counted.
+
+    Returns
+    -------
+    int
+        0 or more.
+    """
+    from scipy import ndimage
+
+    comp, n = ndimage.label(before != 0, output=np.int32)
+    if n < 2:
+        return 0
+    kept = int(np.count_nonzero(np.bincount(comp[after != 0], minlength=n + 1)[1:]))
+    if parts_after is None:
+        parts_after = ndimage.label(after != 0, output=np.int32)[1]
+    return max(kept - int(parts_after), 0)
+
+
+def faces_reached(before: np.ndarray, after: np.ndarray) -> list[str]:
+    """The image's faces (``X0``, ``X1``, ``Y0``, ...: the deck's plane sets) that material
+    reaches in ``after`` and did not in ``before`` (same-shaped label volumes, 0 background)."""
+    out = []
+    for axis in range(before.ndim):
+        for side, end in ((0, 0), (1, -1)):
+            if np.take(after, end, axis=axis).any() and not np.take(before, end, axis=axis).any():
+                out.append(f"{'XYZ'[axis]}{side}")
+    return out
 
 
 def _present(labels: np.ndarray) -> np.ndarray:

@@ -228,7 +228,8 @@ def downsample(labels: Volume, *, names: list[str], factor, voxel_size, min_frac
     factor = reduction_factor(labels.spacing, factor=factor, voxel_size=voxel_size, source=source)
     morphology = True if morphology is None else bool(morphology)  # null: a scan's default (for_label_volume)
     before = {n: v["voxels"] for n, v in label_counts(array, names).items()}
-    info = {"factor": list(factor), "shape_before": list(array.shape), "vote": vote or "priority"}
+    info = {"factor": list(factor), "shape_before": list(array.shape), "vote": vote or "priority",
+            "morphology": morphology}
     if all(f == 1 for f in factor):
         info.update(shape_after=list(array.shape), spacing_after=list(labels.spacing),
                     voxels_before=before, voxels_after=before)

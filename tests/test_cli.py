@@ -260,6 +260,46 @@ def test_fix_warns_of_a_volume_it_changes_and_names_the_rounds_that_left_nothing
     assert len(warned) == 1 and "(soft_tissue +100.0 %)" in warned[0] and "thicken" in warned[0]
 
 
+def test_fix_warns_of_parts_it_joins_and_of_a_model_grown_to_the_image_faces(tmp_path, capsys, caplog):
+    """A brain inside a skull shell one voxel apart was welded to the skull by the fixes, and a
+    downsampled shell grew by two thirds to the image's faces, each with only a per-material
+    volume warning ("segment more finely") and exit 0."""
+    n = 40
+    x, y, z = np.mgrid[:n, :n, :n].astype(float)
+    r = np.sqrt((x - 19.3) ** 2 + (y - 20.1) ** 2 + (z - 19.7) ** 2)
+    config = tmp_path / "c.yaml"
+    config.write_text("labels:\n  map: {1: soft_tissue, 2: bone}\n")
+    for gap, joined in ((1.0, 1), (2.0, 0)):
+        lab = np.zeros((n, n, n), np.uint8)
+        lab[r < 17] = 1
+        lab[r < 14] = 0
+        lab[r < 14 - gap] = 2
+        np.save(tmp_path / "gap.npy", lab)
+        caplog.clear()
+        assert run_cli(capsys, "fix", tmp_path / "gap.npy", "-o", tmp_path / "g.nii.gz", "-q", "--config", config,
+                       "--report", tmp_path / "fix.json")[0] == 0
+        report = json.loads((tmp_path / "fix.json").read_text())
+        assert report["joined_parts"] == joined
+        warned = [r.getMessage() for r in caplog.records if "separate part(s)" in r.getMessage()]
+        assert len(warned) == joined
+        if joined:
+            assert warned[0].startswith("fix: 1 separate part(s) of the labels were joined") and "two voxels" in warned[0]
+    lab = np.zeros((n, n, n), np.uint8)  # shells: 2, 1 and 14 voxels, downsampled by 2 as the next stage sees it
+    lab[r < 17] = 1
+    lab[r < 15] = 2
+    lab[r < 14] = 1
+    np.save(tmp_path / "shells.npy", lab[::2, ::2, ::2])
+    caplog.clear()
+    assert run_cli(capsys, "fix", tmp_path / "shells.npy", "-o", tmp_path / "s.nii.gz", "-q", "--config", config,
+                   "--report", tmp_path / "fix.json")[0] == 0
+    report = json.loads((tmp_path / "fix.json").read_text())
+    grown = 100 * (report["solid_voxels"]["after"] / report["solid_voxels"]["before"] - 1)
+    warned = [r.getMessage() for r in caplog.records if r.getMessage().startswith("fix: the model grew")]
+    assert grown > 5 and len(warned) == 1 and f"grew by {grown:.1f} %" in warned[0]
+    assert report["faces_reached"] == ["Y1", "Z1"]  # the off-centre shell, 0.5 voxel from those faces
+    assert "faces Y1, Z1 (" in warned[0]
+
+
 def test_merge_warns_when_it_grows_a_material_across_thick_slices(tmp_path, capsys, caplog):
     """Chamfers fill whole voxel steps: across 3 mm slices of 0.5 mm pixels a ball grows by
     far more than its in-plane merging would; the stage says so and which passes avoid it."""

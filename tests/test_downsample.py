@@ -177,6 +177,16 @@ def test_volume_change_reported_and_a_lost_plate_warned_of(tmp_path, caplog):
                  "--set", "downsample.factor=2", "-q"]) == 0
     warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert len(warned) == 1 and '{"bone": "-100.0 %"}' in warned[0] and "downsample.morphology=false" in warned[0]
+    assert "first in segment.priority" in warned[0] and "are removed" in warned[0]
+    # the plurality vote without morphology (a label volume's defaults): the warning names them, and
+    # no longer advises the setting already in force
+    caplog.clear()
+    assert main(["downsample", str(tmp_path / "l.nii.gz"), "-o", str(tmp_path / "d.nii.gz"), "--set",
+                 "downsample.factor=4", "--set", "downsample.vote=plurality", "--set", "downsample.morphology=false",
+                 "-q"]) == 0
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warned) == 1 and "the most frequent class takes a block" in warned[0], warned
+    assert "keeps only the blocks it fills" in warned[0] and "morphology=false" not in warned[0]
 
 
 def test_a_grid_beyond_the_image_is_reported_and_growth_into_it_warned_of(tmp_path, caplog):

@@ -38,7 +38,7 @@ from dicer.errors import DicerError
 from dicer.image import count_labels
 
 __all__ = ["fix_connectivity", "fix_stage", "connectivity_defects", "boundary_edge_counts", "remove_islands",
-           "joined_parts", "faces_reached"]
+           "joined_parts", "faces_reached", "priority_order"]
 
 
 # --- helpers -----------------------------------------------------------------------------
@@ -753,7 +753,8 @@ def remove_islands(labels: np.ndarray, min_voxels: int) -> tuple[np.ndarray, dic
 
 @takes_settings("fix")
 def fix_stage(labels: np.ndarray, *, names: dict[str, str], min_component_voxels: int, max_iterations: int,
-              type_c: bool, max_type_c_rounds: int, majority_rounds: int) -> tuple[np.ndarray, dict]:
+              type_c: bool, max_type_c_rounds: int, majority_rounds: int, priority: list[str] | None
+              ) -> tuple[np.ndarray, dict]:
     """The fix stage: floating parts removed, the connectivity fixes, floating parts again.
 
     The command line passes ``dicer.config.stage_kwargs(config, "fix")``; a library call
@@ -766,8 +767,10 @@ def fix_stage(labels: np.ndarray, *, names: dict[str, str], min_component_voxels
         Label volume, 0 = background.
     names : dict of str to str
         Material name per label value (as a string); the report names materials by them.
-    min_component_voxels, max_iterations, type_c, max_type_c_rounds, majority_rounds
-        The ``fix:`` config section (see the schema).
+    min_component_voxels, max_iterations, type_c, max_type_c_rounds, majority_rounds, priority
+        The ``fix:`` config section (see the schema). With ``priority`` the fixes run on
+        the labels renumbered in that order (:func:`priority_order`) and the result is
+        numbered back: every fix compares classes only by their order.
 
     Returns
     -------
@@ -778,12 +781,21 @@ def fix_stage(labels: np.ndarray, *, names: dict[str, str], min_component_voxels
         ``islands`` entry (floating parts removed before and after the fixes) and
         ``lost_materials``: the materials of the input that have no voxel left.
     """
+    values, ranked = None, labels
+    if priority is not None:
+        values, ranked = priority_order(labels, names, priority)
     # floating parts go first (the fixes need not work on them) and again after the fixes
     # (which can cut a thin bridge)
-    array, islands = remove_islands(labels, min_component_voxels)
+    array, islands = remove_islands(ranked, min_component_voxels)
     fixed, report = fix_connectivity.__wrapped__(array, max_iterations=max_iterations, type_c=type_c,
                                      max_type_c_rounds=max_type_c_rounds, majority_rounds=majority_rounds)
     fixed, after = remove_islands(fixed, min_component_voxels)
+    if values is not None:  # numbered back: the report's classes too
+        fixed, array = values[fixed].astype(labels.dtype), labels if array is ranked else values[array]
+        for part in (report, islands, after):
+            for kind in ("type_a", "type_b", "type_c", "removed_by_material"):
+                if kind in part:
+                    part[kind] = {str(int(values[int(k)])): v for k, v in part[kind].items()}
     removed: dict[str, int] = {}
     for part in (islands, after):
         for k, v in part["removed_by_material"].items():
@@ -802,6 +814,45 @@ def fix_stage(labels: np.ndarray, *, names: dict[str, str], min_component_voxels
     report["solid_voxels"] = {"before": solid_before, "after": solid_after}
     report["faces_reached"] = faces_reached(labels, fixed)
     return fixed, report
+
+
+def priority_order(labels: np.ndarray, names: dict[str, str], priority: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """The labels renumbered so that the fixes' order of classes is ``priority``'s.
+
+    Parameters
+    ----------
+    labels : (nx, ny[, nz]) int ndarray
+        0 background.
+    names : dict of str to str
+        Material name per label value (as a string).
+    priority : list of str
+        Material names, the first the highest class; the others follow below them in
+        label order, the background lowest.
+
+    Returns
+    -------
+    values : (K,) ndarray
+        The label value of each new number (``values[renumbered]`` gives the labels back).
+    renumbered : ndarray
+        Same shape, 0 .. K - 1, background 0.
+
+    Raises
+    ------
+    DicerError
+        A name that is no material.
+    """
+    by_name = {n: int(v) for v, n in names.items()}
+    unknown = [n for n in priority if n not in by_name]
+    if unknown:
+        raise DicerError(f"fix.priority names {', '.join(map(repr, unknown))}, which the materials do not hold "
+                         f"(they are {', '.join(names.values())}); list material names")
+    present = _present(labels)
+    listed = [by_name[n] for n in priority]
+    rest = [int(v) for v in present if v != 0 and int(v) not in listed]
+    values = np.array([0] + rest + listed[::-1], dtype=np.int64)
+    order = np.argsort(values)
+    index = np.searchsorted(values[order], labels)  # every value of labels is in ``values`` or listed
+    return values, order[index].astype(np.min_scalar_type(max(values.size - 1, 1)))
 
 
 def joined_parts(before: np.ndarray, after: np.ndarray, parts_after: int | None = None) -> int:

@@ -316,3 +316,33 @@ def test_floating_parts_below_the_size_are_removed():
     assert out.sum() == labels.sum() - 2 - 16
     same, report = remove_islands(labels, 0)
     assert same is labels and report["removed_parts"] == 0
+
+
+def test_fix_priority_makes_the_result_independent_of_the_label_numbers():
+    """Nested shells one voxel thick (scalp, skull, CSF, brain): with the highest label first,
+    renumbering the same anatomy changed 2,516 voxels; with fix.priority naming the order the
+    two numberings give the same model, and the label order itself gives the default's."""
+    from dicer.connectivity import fix_stage
+
+    n = 24
+    x, y, z = np.mgrid[:n, :n, :n].astype(float)
+    r = np.sqrt((x - 11.3) ** 2 + (y - 12.1) ** 2 + (z - 11.7) ** 2)
+    lab = np.zeros((n,) * 3, np.uint8)
+    lab[r < 11], lab[r < 10], lab[r < 9], lab[r < 6] = 1, 2, 3, 4
+    names = {"1": "scalp", "2": "skull", "3": "csf", "4": "brain"}
+    perm = np.array([0, 4, 3, 2, 1], np.uint8)  # brain 1, csf 2, skull 3, scalp 4
+    renamed = {str(perm[int(k)]): v for k, v in names.items()}
+    a, _ = fix_stage(lab, names=names)
+    b, _ = fix_stage(perm[lab], names=renamed)
+    assert (perm[a] != b).sum() > 1000  # the default: the numbers decide
+    order = ["skull", "scalp", "brain", "csf"]
+    c, rc = fix_stage(lab, names=names, priority=order)
+    d, rd = fix_stage(perm[lab], names=renamed, priority=order)
+    assert np.array_equal(perm[c], d) and c.dtype == lab.dtype
+    assert rc["type_a"] == rd["type_a"] and rc["type_c"] == rd["type_c"] and rc["changed_voxels"] == rd["changed_voxels"]
+    assert set(rc["type_c"]) <= set(names.values())
+    assert connectivity_defects(c) == {"type_a": 0, "type_b": 0, "type_c": 0}
+    same, _ = fix_stage(lab, names=names, priority=["brain", "csf", "skull", "scalp"])
+    assert np.array_equal(same, a)
+    with pytest.raises(DicerError, match="fix.priority names 'bone', which the materials do not hold"):
+        fix_stage(lab, names=names, priority=["bone"])

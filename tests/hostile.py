@@ -798,6 +798,8 @@ case("7-blame", "mesh: a label above the materials",
      "label 7")
 case("7-blame", "fix: min_component_voxels removes every part",
      lambda c: argv_for(c, "fix", extra=["--set", "fix.min_component_voxels=1000000"]), "min_component_voxels")
+case("7-blame", "fix: fix.priority names no material",
+     lambda c: argv_for(c, "fix", extra=["--set", "fix.priority=[skull]"]), "fix.priority names 'skull'")
 case("7-blame", "image.crop past the image",
      lambda c: argv_for(c, "segment", extra=["--set", "image.crop={unit: voxels, min: [0,0,0], max: [99,9,9]}"]),
      "image.crop")

@@ -1095,7 +1095,7 @@ def _cropped_voxels(voxels: int, spacing, crop: dict | None) -> int:
     box's extent over the voxel size, as for an axis-aligned scan)."""
     import numpy as np
 
-    if crop is None:
+    if crop is None or len(crop["min"]) != len(crop["max"]):  # a bad crop: the first stage names it
         return voxels
     extent = np.abs(np.subtract(crop["max"], crop["min"]))
     if crop["unit"] == "mm":
@@ -1216,13 +1216,17 @@ def _run_chain(args):
         raise DicerError("dicer run: give either an IMAGE to segment or --labels LABELS (a label volume), "
                          "not both and not neither")
     config = _config(args)
+    if not str(args.output).strip():  # an unset shell variable: Path("") is the current folder
+        raise DicerError("dicer run: -o names no folder (an empty string); give an output folder with -o")
     outdir = Path(args.output)
     if (outdir.exists() or outdir.is_symlink()) and not outdir.is_dir():
         raise DicerError(f"{outdir}: exists and is not a folder; give an output folder with -o")
     source = args.labels if args.image is None else args.image
     if not args.skip_memory_check:
         _check_memory(source, config)
-    with _output_lock(outdir):
+    # locked by the folder itself: a second run given a symlink to it (or it by another path)
+    # would otherwise lock another file and publish into the same folder
+    with _output_lock(outdir.resolve()):
         _run_staged(args, config, outdir, source)
 
 
@@ -1374,6 +1378,8 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
         raise
     except BaseException as exc:
         kept = _keep_failed(staging, failed)
+        if kept and not isinstance(exc, DicerError):  # interrupted or terminated: said by main
+            exc.add_note(f"{outdir} is unchanged; the finished stage files are in {failed}")
         if isinstance(exc, DicerError):
             where = f"; its finished stage files are in {failed}" if kept else ""
             # the stage named its file in the staging folder: name it where it now is
@@ -1638,15 +1644,16 @@ def main(argv: list[str] | None = None) -> int:
                 ordinary_pages(unless_set=True) if ordinary else contextlib.nullcontext():
             args.func(args)
         check_stop()
-    except Terminated:
-        print("error: terminated (SIGTERM, e.g. a cluster time limit); no output of the unfinished step was kept",
-              file=sys.stderr)
+    except Terminated as exc:
+        kept = "; ".join(getattr(exc, "__notes__", ())) or "no output of the unfinished step was kept"
+        print(f"error: terminated (SIGTERM, e.g. a cluster time limit); {kept}", file=sys.stderr)
         return 143
     except DicerError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("error: interrupted; no output was kept", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        kept = "; ".join(getattr(exc, "__notes__", ())) or "no output was kept"
+        print(f"error: interrupted; {kept}", file=sys.stderr)
         # CPython marks the process interrupted when a KeyboardInterrupt leaves an exec()
         # or eval() of a string (a namedtuple or dataclass made while a module is
         # imported), caught or not, and under "python -m" then ends it by SIGINT instead

@@ -590,10 +590,12 @@ for stage_file in ("labels.nii.gz", "labels_ds.nii.gz", "labels_fixed.nii.gz", "
          exit=143, signal_at=(f".out.partial/{stage_file}", signal.SIGTERM), allowed=("out.failed", "out.failed/*"))
 case("4-rerun", "run into an existing folder: SIGTERM after mesh.vtu is written",
      lambda c: ["run", c.copy("head48.nii.gz"), "-o", c.copy("run_out", "out")], "terminated",
-     exit=143, signal_at=(".out.partial/mesh.vtu", signal.SIGTERM), allowed=("out.failed", "out.failed/*"))
+     "out is unchanged; the finished stage files are in", exit=143, signal_at=(".out.partial/mesh.vtu", signal.SIGTERM), allowed=("out.failed", "out.failed/*"))
+case("4-rerun", "run into a folder given by an empty -o (an unset shell variable)",
+     lambda c: ["run", c.copy("head48.nii.gz"), "-o", ""], "-o names no folder")
 case("4-rerun", "run: SIGINT after mesh.vtu is written",
      lambda c: ["run", c.copy("head48.nii.gz"), "-o", c.t / "out"], "interrupted",
-     exit=130, signal_at=(".out.partial/mesh.vtu", signal.SIGINT), allowed=("out.failed", "out.failed/*"))
+     "the finished stage files are in", exit=130, signal_at=(".out.partial/mesh.vtu", signal.SIGINT), allowed=("out.failed", "out.failed/*"))
 for command, out_name, pattern in (("mesh", "m.vtu", ".m.vtu.*.tmp*"),):
     case("4-rerun", f"{command}: SIGTERM while the output is written",
          lambda c: ["mesh", c.copy("big_ones.npy"), "-o", c.t / "m.vtu"], "terminated", exit=143,
@@ -800,6 +802,9 @@ case("7-blame", "fix: min_component_voxels removes every part",
      lambda c: argv_for(c, "fix", extra=["--set", "fix.min_component_voxels=1000000"]), "min_component_voxels")
 case("7-blame", "fix: fix.priority names no material",
      lambda c: argv_for(c, "fix", extra=["--set", "fix.priority=[skull]"]), "fix.priority names 'skull'")
+case("7-blame", "run: image.crop with two values in min and three in max (a traceback from the memory check)",
+     lambda c: ["run", c.copy("head48.nii.gz"), "-o", c.t / "out", "--set",
+                "image.crop={unit: mm, min: [0,0], max: [10,10,10]}"], "image.crop gives 2 and 3 values")
 case("7-blame", "image.crop past the image",
      lambda c: argv_for(c, "segment", extra=["--set", "image.crop={unit: voxels, min: [0,0,0], max: [99,9,9]}"]),
      "image.crop")

@@ -427,6 +427,8 @@ def test_a_second_run_into_the_same_folder_is_refused_while_the_first_writes(tmp
 
     assert main(["phantom", "head", "-o", str(tmp_path / "head.nii.gz"), "--size", "64", "-q"]) == 0
     argv = [sys.executable, "-m", "dicer", "run", str(tmp_path / "head.nii.gz"), "-o", str(tmp_path / "out"), "-q"]
+    (tmp_path / "out").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "out")
     first = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     lock = tmp_path / ".out.lock"
     for _ in range(600):  # until the first run holds the folder
@@ -434,9 +436,12 @@ def test_a_second_run_into_the_same_folder_is_refused_while_the_first_writes(tmp
             break
         time.sleep(0.01)
     second = subprocess.run(argv, capture_output=True, text=True)
+    # by a symlink to the folder: the lock was named after the path as typed, and both exited 0
+    third = subprocess.run(argv[:-2] + [str(tmp_path / "link"), "-q"], capture_output=True, text=True)
     out, err = first.communicate(timeout=300)
     assert first.returncode == 0, err
-    assert second.returncode == 2 and second.stderr.count("\n") == 1
-    assert "another dicer run is writing this folder" in second.stderr and str(tmp_path / "out") in second.stderr
+    for other in (second, third):
+        assert other.returncode == 2 and other.stderr.count("\n") == 1, other.stderr
+        assert "another dicer run is writing this folder" in other.stderr and str(tmp_path / "out") in other.stderr
     assert not lock.exists() and not (tmp_path / ".out.partial").exists() and not (tmp_path / "out.failed").exists()
     assert (tmp_path / "out" / "model.inp").exists()

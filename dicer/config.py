@@ -324,9 +324,28 @@ def _range(node: dict) -> str | None:
     return f"{kind} {' and '.join(parts)}"
 
 
+_JSON_TYPES = {"null": type(None), "boolean": bool, "object": dict, "array": list, "string": str}
+
+
+def _of_type(value, kind) -> bool:
+    """Whether ``value`` is of the JSON Schema type ``kind`` (a name; None for no type)."""
+    if kind in ("number", "integer"):
+        return isinstance(value, int if kind == "integer" else (int, float)) and not isinstance(value, bool)
+    return kind in _JSON_TYPES and isinstance(value, _JSON_TYPES[kind])
+
+
 def _explain(err: jsonschema.ValidationError) -> str:
     """A schema error in words that give the allowed values."""
     value = json.dumps(err.instance) if not isinstance(err.instance, (dict, list)) else type(err.instance).__name__
+    if err.validator in ("oneOf", "anyOf") and err.context and isinstance(err.instance, (dict, list)):
+        # a value of the type of one alternative only (a mapping for image.crop): what is
+        # wrong inside it, not "a mapping is not allowed"
+        fits = [i for i, sub in enumerate(err.validator_value) if _of_type(err.instance, sub.get("type"))]
+        inner = [e for e in err.context if len(fits) == 1 and e.relative_schema_path[0] == fits[0]]
+        if inner:
+            best = jsonschema.exceptions.best_match(inner)
+            where = ".".join(str(p) for p in best.relative_path)
+            return (f"{where}: " if where else "") + _explain(best)
     if err.validator in ("oneOf", "anyOf"):
         allowed = []
         for sub in err.validator_value:
@@ -337,7 +356,7 @@ def _explain(err: jsonschema.ValidationError) -> str:
             elif _range(sub):
                 allowed.append(_range(sub))
             elif "type" in sub:
-                allowed.append(f"a {sub['type']}")
+                allowed.append(f"{'an' if sub['type'][0] in 'aeiou' else 'a'} {sub['type']}")
         if allowed:
             return f"{value} is not allowed; give {' or '.join(allowed)}"
     if err.validator in ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum") and _range(err.schema):

@@ -1,4 +1,5 @@
 import itertools
+import re
 
 import pytest
 from hypothesis import given, settings
@@ -237,6 +238,19 @@ def test_range_errors_state_the_allowed_range():
         load_config(sets=["smooth.interior_band=-2"])
     with pytest.raises(DicerError, match=r"'smooth.coefficient': 1.5 is not allowed; give null or a number >= 0 and < 1"):
         load_config(sets=["smooth.coefficient=1.5"])
+
+
+@pytest.mark.parametrize("crop, said", [
+    ("{unit: voxel, min: [0,0,0], max: [5,5,5]}", 'unit: "voxel" is not one of voxels, mm'),
+    ("{min: [0,0,0], max: [5,5,5]}", "'unit' is a required property"),
+    ("{unit: mm, min: [0,0,0], max: [5,5,5], size: 1}", "Additional properties are not allowed ('size' was unexpected)"),
+    ("{unit: mm, min: [0,a,0], max: [5,5,5]}", "min.1: 'a' is not of type 'number'"),
+    ("[0, 5]", "list is not allowed; give null or an object"),
+])
+def test_an_error_inside_a_mapping_of_two_kinds_names_what_is_wrong_in_it(crop, said):
+    # every one of these read "dict is not allowed; give null or a object"
+    with pytest.raises(DicerError, match=re.escape(f"key 'image.crop': {said}")):
+        load_config(sets=[f"image.crop={crop}"])
 
 
 @pytest.mark.parametrize("nu, ok", [(0.4999999, True), (0.49999999, False), (0.4999999999999, False),

@@ -234,7 +234,9 @@ def _crop(volume, config: dict, source: str):
 
 
 def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = None, info_path: Path | None = None,
-               plot: Path | None = None):
+               plot: Path | None = None, plot_if_any: bool = False):
+    """The segment stage; ``plot_if_any``: draw the criterion where the method has one, and
+    say nothing where it has none (``dicer run``, whose user asked for no plot)."""
     from dicer.config import material_names, stage_kwargs
     from dicer.io.atomic import write_bytes_atomic
     from dicer.io.images import read_image
@@ -263,7 +265,7 @@ def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = 
             save_overlay_png(image, labels, overlay, title, len(names), names)
         if plot and info.get("criterion"):
             save_threshold_plot(info, plot)
-        elif plot:
+        elif plot and not plot_if_any:
             log.warning("segment: --plot draws the criterion of the shape-connectivity search; segment.method %s has "
                         "none, so %s is not written", info["method"], plot)
         if info_path:
@@ -1302,7 +1304,7 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
         else:
             step("segment")
             do_segment(args.image, path("labels.nii.gz"), config, overlay=path("segmentation.png"),
-                       info_path=path("segmentation.json"), plot=path("thresholds.png"))
+                       info_path=path("segmentation.json"), plot=path("thresholds.png"), plot_if_any=True)
         fix_input = path("labels.nii.gz")
         if args.labels is None or downsample_applies(config):
             step("downsample")

@@ -916,6 +916,9 @@ for kind, make in WRONG_KIND.items():
         case("9-kinds", f"{command}: input is {kind} ({suffix})",
              (lambda make, command, suffix: lambda c: argv_for(c, command, inp=make(c, suffix)))(make, command, suffix),
              suffix)
+case("9-kinds", "segment: a plain NIfTI named .nii.gz (said to be truncated or corrupt)",
+     lambda c: argv_for(c, "segment", inp=text(c.t / "plain.nii.gz", gzip.decompress(c.copy("head.nii.gz").read_bytes()))),
+     "not gzip-compressed", "rename it to plain.nii")
 case("9-kinds", "mesh: a mesh given as labels", lambda c: argv_for(c, "mesh", inp=c.copy("mesh.vtu")), "mesh.vtu")
 case("9-kinds", "merge: an image given as mesh", lambda c: argv_for(c, "merge", inp=c.copy("labels.nii.gz")),
      "labels.nii.gz")

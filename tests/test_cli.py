@@ -445,3 +445,17 @@ def test_a_second_run_into_the_same_folder_is_refused_while_the_first_writes(tmp
         assert "another dicer run is writing this folder" in other.stderr and str(tmp_path / "out") in other.stderr
     assert not lock.exists() and not (tmp_path / ".out.partial").exists() and not (tmp_path / "out.failed").exists()
     assert (tmp_path / "out" / "model.inp").exists()
+
+
+def test_run_with_a_method_without_a_criterion_says_nothing_of_a_plot_it_was_not_asked_for(tmp_path, caplog):
+    # 'dicer run' with multiotsu warned "--plot draws the criterion ... so .run.partial/thresholds.png is
+    # not written", naming its staging folder; 'dicer segment --plot' still says it
+    assert main(["phantom", "head", "-o", str(tmp_path / "head.nii.gz"), "--size", "32", "-q"]) == 0
+    caplog.set_level("WARNING", logger="dicer")
+    assert main(["run", str(tmp_path / "head.nii.gz"), "-o", str(tmp_path / "out"), "-q",
+                 "--set", "segment.method=multiotsu"]) == 0
+    assert not [r for r in caplog.records if "--plot" in r.getMessage()]
+    assert not (tmp_path / "out" / "thresholds.png").exists() and (tmp_path / "out" / "model.inp").exists()
+    assert main(["segment", str(tmp_path / "head.nii.gz"), "-o", str(tmp_path / "l.nii.gz"), "-q",
+                 "--set", "segment.method=multiotsu", "--plot", str(tmp_path / "t.png")]) == 0
+    assert [r for r in caplog.records if "--plot draws the criterion" in r.getMessage()]

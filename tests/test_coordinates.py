@@ -227,6 +227,22 @@ def test_an_aligned_sform_beside_a_qform_places_the_voxels(tmp_path, caplog, uni
     assert "place the image differently" not in caplog.text
 
 
+def test_a_header_without_a_placement_is_warned_of(tmp_path, caplog):
+    # qform and sform codes 0: ITK puts voxel 0 at the origin with identity axes, nibabel
+    # mirrors x; the model was made without a word
+    path = tmp_path / "nowhere.nii.gz"
+    write_raw_nifti(path, labels_array(), np.zeros((3, 4)), scode=0)
+    volume = read_labels(path)
+    assert volume.direction is None and np.allclose(volume.origin, -np.asarray(SPACING) / 2)  # voxel 0 at 0
+    said = [r.getMessage() for r in caplog.records if "places the image nowhere" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("nowhere.nii.gz: its header places the image nowhere in the scanner "
+                                                 "(qform and sform codes 0)")
+    caplog.clear()
+    write_raw_nifti(path, labels_array(), np.zeros((3, 4)), (0.0, 0.0, 0.0, 5.0, 6.0, 7.0), scode=0)
+    read_labels(path)  # a qform alone places it
+    assert "places the image nowhere" not in caplog.text
+
+
 def test_forms_that_differ_are_warned_of_by_how_far_the_corners_move(tmp_path, caplog):
     # an sform turned 0.4 rad about z against the qform, both at one origin, and both scanner
     # forms (code 1, which ITK takes itself): the corners, not the origins, tell them apart

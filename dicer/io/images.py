@@ -346,6 +346,12 @@ def _check_nifti_complete(path: Path) -> tuple[float, ...] | None:
         without a word, so the caller judges these values itself.
     """
     gz = path.name.lower().endswith(".gz")
+    if gz:
+        with open(path, "rb") as f:
+            start = f.read(348)
+        if start[:2] != b"\x1f\x8b" and len(start) == 348 and _nifti_header(start) is not None:
+            raise DicerError(f"{path}: the file is a NIfTI image that is not gzip-compressed, though its name ends "
+                             f"in .gz; rename it to {path.name[:-3]}")
     opener = gzip.open if gz else open
     nan = inf = 0
     try:
@@ -460,6 +466,13 @@ def _nifti_placement(path: Path, spatial: tuple[float, ...]):
             (units,) = struct.unpack(e + "i", head[500:504])
             found = True
     n = len(spatial)
+    if found and scode <= 0 and qcode <= 0 and n >= 2:
+        # ITK gives it an identity direction at the origin, nibabel the Analyze default
+        # (x mirrored): no placement to keep, and tools disagree where the image lies
+        _warn_once("%s: its header places the image nowhere in the scanner (qform and sform codes 0): the model "
+                   "is made from its voxel size alone, at the origin with the image axes as L, P, S; other tools "
+                   "may show this file mirrored; write a qform or sform if the model must overlay other images",
+                   path.name)
     if not found or scode <= 0 or n < 2:
         return None
     affine = np.asarray(srow, float).reshape(3, 4)

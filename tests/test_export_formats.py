@@ -292,6 +292,23 @@ def test_lsdyna_round_trip(tmp_path, mesh):
     assert all(len(line) == 80 for line in element_lines)
 
 
+def test_lsdyna_material_constants_keep_the_digits_their_fields_hold_and_rounding_is_warned_of(tmp_path, mesh,
+                                                                                                caplog):
+    # density 1.987654321e-9 was printed 1.9877e-09 (5 digits) without a word; the .inp keeps all
+    config = load_config(settings={"materials": [
+        {"name": "soft_tissue", "youngs_modulus": 17654.321987, "poissons_ratio": 0.45, "density": 1.987654321e-9},
+        {"name": "bone", "youngs_modulus": 17123.5, "poissons_ratio": 0.3, "density": 1.9e-9}]})
+    caplog.set_level("WARNING", logger="dicer")
+    export_mesh(mesh, tmp_path / "m.k", config)
+    got = read_lsdyna(tmp_path / "m.k")["materials"]
+    assert got[1] == (1.98765e-9, 17654.322, 0.45) and got[2] == (1.9e-9, 17123.5, 0.3)
+    warned = [r.getMessage() for r in caplog.records if "*MAT_ELASTIC" in r.getMessage()]
+    assert len(warned) == 1 and warned[0].startswith("export: m.k: LS-DYNA's 10-column *MAT_ELASTIC fields round ")
+    assert "soft_tissue density 1.987654321e-09 as 1.98765e-09" in warned[0] and "youngs" not in warned[0]
+    assert "*MAT_ELASTIC\n$#     mid        ro         e        pr\n         11.98765e-9 17654.322      0.45\n" in (
+        tmp_path / "m.k").read_text()
+
+
 def test_lsdyna_element_formulation_and_limits(tmp_path, mesh):
     export_mesh(mesh, tmp_path / "r.k", cfg(element_type="C3D8R"))
     assert set(read_lsdyna(tmp_path / "r.k")["sections"].values()) == {1}

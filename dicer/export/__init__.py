@@ -160,6 +160,8 @@ def export_mesh(mesh: Mesh, path: str | os.PathLike, *, materials: list[dict], o
     if model.order not in fmt.orders:
         raise DicerError(f"{path}: {fmt.limits.format(dim=model.dim, order=model.order)}")
     _check_printed_digits(fmt, model, mesh, digits, path)
+    if fmt.warn is not None:
+        fmt.warn(model, path)
     with atomic_path(path) as tmp:
         _write_and_check(fmt, model, tmp, path, ex, check)
         size = tmp.stat().st_size

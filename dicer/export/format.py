@@ -39,6 +39,9 @@ class Format:
         The significant digits a text format prints coordinates with: the values of
         ``export.digits`` it honours (the first when it honours none); empty where the
         coordinates are stored exactly (binary, or printed in full).
+    warn : callable or None
+        ``warn(model, path)``: logs what the format changes of the model as it prints it
+        (LS-DYNA's rounded material constants), before the file is written.
     """
 
     name: str
@@ -53,6 +56,7 @@ class Format:
     requires: tuple[str, ...] = ()
     holds_sets: bool = True
     digits: tuple[int, ...] = ()
+    warn: Callable | None = None
 
     def options(self, which: str, export: dict) -> dict:
         """Keyword arguments of ``write`` or ``check`` from the ``export`` settings.

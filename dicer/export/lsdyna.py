@@ -22,7 +22,9 @@ files back strictly and :func:`check_lsdyna` compares one with the model.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -34,17 +36,41 @@ from dicer.export.textfmt import Float, Int, Sci, row_ids, write_chunks, write_i
 from dicer.export.textparse import CHUNK_ROWS, FormatError, layout_of_columns, parse_records
 from dicer.pages import map_readonly
 
+log = logging.getLogger("dicer")
+
 E16 = Sci(9, b"e", width=16)
 ELFORM = {"C3D8": 2, "C3D8R": 1, "C3D8I": -2}
 
 
 def _e10(v: float) -> str:
-    """A real in a 10-column field with as many digits as fit."""
+    """A real in a 10-column field with as many digits as fit (an exponent without its
+    sign or leading zeros where that fits one more: 1.98765e-9, not 1.9877e-09)."""
     for p in range(9, 0, -1):
-        text = f"{float(v):.{p}g}"
-        if len(text) <= 10:
-            return f"{text:>10s}"
+        short = re.sub(r"e([+-])0*(\d)", lambda m: "e" + m[1].replace("+", "") + m[2], f"{float(v):.{p - 1}e}")
+        for text in (f"{float(v):.{p}g}", short):
+            if len(text) <= 10:
+                return f"{text:>10s}"
     raise ValueError(f"{v} does not fit a 10-column field")
+
+
+ROUNDED_CONSTANT = 1e-7
+"""Relative change of a material constant by its 10-column field above which the export warns."""
+
+
+def _warn_of_rounded_constants(model, path) -> None:
+    """Warn when *MAT_ELASTIC's 10-column fields round a material constant by more than
+    ROUNDED_CONSTANT (the other decks print them in full)."""
+    rounded = []
+    for k in model.labels():
+        for key in ("density", "youngs_modulus", "poissons_ratio"):
+            value = float(model.props[k][key])
+            printed = float(_e10(value))
+            if value and abs(printed - value) > ROUNDED_CONSTANT * abs(value):
+                rounded.append(f"{model.names[k]} {key} {value!r} as {printed!r}")
+    if rounded:
+        log.warning("export: %s: LS-DYNA's 10-column *MAT_ELASTIC fields round %s; give the constants with fewer "
+                    "digits, or export to .inp, .feb or .exo, which print them in full", Path(path).name,
+                    ", ".join(rounded[:6]) + (f" and {len(rounded) - 6} more" if len(rounded) > 6 else ""))
 
 
 def write_lsdyna(model, path: str | Path) -> None:
@@ -637,4 +663,4 @@ def check_lsdyna(path: str | Path, model) -> None:
 FORMAT = Format("lsdyna", (".k", ".key", ".dyn"), write_lsdyna, check_lsdyna, dims=(3,), orders=(1,),
                 limits="LS-DYNA export writes 8-node hexahedra only (3D meshes, export.order 1); export a 3D "
                        "mesh at export.order 1, or this one to .inp (a 2D one as CPS4/CPE4) or another format",
-                digits=(9,))  # E16 columns
+                digits=(9,), warn=_warn_of_rounded_constants)  # E16 columns

@@ -889,8 +889,18 @@ def joined_parts(before: np.ndarray, after: np.ndarray, parts_after: int | None 
 
 
 def faces_reached(before: np.ndarray, after: np.ndarray) -> list[str]:
-    """The image's faces (``X0``, ``X1``, ``Y0``, ...: the deck's plane sets) that material
-    reaches in ``after`` and did not in ``before`` (same-shaped label volumes, 0 background)."""
+    """The image's faces that material reaches in ``after`` and did not in ``before``.
+
+    Parameters
+    ----------
+    before, after : (nx, ny[, nz]) int ndarray
+        Label volumes, 0 background, the same shape.
+
+    Returns
+    -------
+    list of str
+        ``X0``, ``X1``, ``Y0``, ... (the deck's plane sets of those names), in that order.
+    """
     out = []
     for axis in range(before.ndim):
         for side, end in ((0, 0), (1, -1)):

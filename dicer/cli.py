@@ -1219,16 +1219,14 @@ def _run_chain(args):
                          "not both and not neither")
     config = _config(args)
     if not str(args.output).strip():  # an unset shell variable: Path("") is the current folder
-        raise DicerError("dicer run: -o names no folder (an empty string); give an output folder with -o")
+        raise DicerError("dicer run: -o names no folder (an empty or blank string); give an output folder with -o")
     outdir = Path(args.output)
     if (outdir.exists() or outdir.is_symlink()) and not outdir.is_dir():
         raise DicerError(f"{outdir}: exists and is not a folder; give an output folder with -o")
     source = args.labels if args.image is None else args.image
     if not args.skip_memory_check:
         _check_memory(source, config)
-    # locked by the folder itself: a second run given a symlink to it (or it by another path)
-    # would otherwise lock another file and publish into the same folder
-    with _output_lock(outdir.resolve()):
+    with _output_lock(outdir):
         _run_staged(args, config, outdir, source)
 
 
@@ -1261,12 +1259,26 @@ def _output_lock(outdir: Path):
     except OSError as exc:
         raise DicerError(f"{outdir}: cannot write to folder {outdir.parent} ({exc.strerror}); choose a writable "
                          "output folder") from None
+    folder = None
     try:
+        # the folder itself too: a run given a symlink to it holds another lock file (beside
+        # the link, where its staging folder goes) but publishes here
+        with contextlib.suppress(OSError):
+            folder = os.open(outdir, os.O_RDONLY | os.O_DIRECTORY) if outdir.is_dir() else None
+        if folder is not None:
+            try:
+                fcntl.flock(folder, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise DicerError(f"{outdir}: another dicer run is writing this folder ({os.path.realpath(outdir)}, "
+                                 "given by another path); wait for it to finish, or give another output folder "
+                                 "with -o") from None
         yield
     finally:
         with contextlib.suppress(OSError):
             os.unlink(lock)
         os.close(fd)
+        if folder is not None:
+            os.close(folder)
 
 
 def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
@@ -1391,8 +1403,9 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
     try:
         try:
             check_stop()
-        except BaseException:
-            _keep_failed(staging, failed)
+        except BaseException as exc:
+            if _keep_failed(staging, failed):
+                exc.add_note(f"{outdir} is unchanged; the finished stage files are in {failed}")
             raise
         _publish(staging, outdir)
     except OSError as exc:

@@ -810,9 +810,9 @@ def fix_stage(labels: np.ndarray, *, names: dict[str, str], min_component_voxels
     gone = np.setdiff1d(_present(labels), _present(fixed))
     report["lost_materials"] = [names.get(str(int(k)), str(int(k))) for k in gone[gone > 0]]
     report["joined_parts"] = joined_parts(array, fixed, after["parts"] - after["removed_parts"])
-    solid_before, solid_after = int(np.count_nonzero(labels)), int(np.count_nonzero(fixed))
-    report["solid_voxels"] = {"before": solid_before, "after": solid_after}
-    report["faces_reached"] = faces_reached(labels, fixed)
+    # against the labels less their floating specks (removed and reported as such)
+    report["solid_voxels"] = {"before": int(np.count_nonzero(array)), "after": int(np.count_nonzero(fixed))}
+    report["faces_reached"] = faces_reached(array, fixed)
     return fixed, report
 
 
@@ -841,13 +841,19 @@ def priority_order(labels: np.ndarray, names: dict[str, str], priority: list[str
     DicerError
         A name that is no material.
     """
-    by_name = {n: int(v) for v, n in names.items()}
+    if not np.issubdtype(labels.dtype, np.integer):
+        raise DicerError(f"labels of type {labels.dtype}: the fixes take integer labels")
+    by_name: dict[str, list[int]] = {}
+    for v, n in names.items():
+        if int(v) != 0:
+            by_name.setdefault(n, []).append(int(v))
     unknown = [n for n in priority if n not in by_name]
     if unknown:
         raise DicerError(f"fix.priority names {', '.join(map(repr, unknown))}, which the materials do not hold "
-                         f"(they are {', '.join(names.values())}); list material names")
+                         f"(they are {', '.join(by_name)}); list material names")
     present = _present(labels)
-    listed = [by_name[n] for n in priority]
+    # a name of several labels: the highest of them first, as without a priority
+    listed = [v for n in priority for v in sorted(by_name[n], reverse=True)]
     rest = [int(v) for v in present if v != 0 and int(v) not in listed]
     values = np.array([0] + rest + listed[::-1], dtype=np.int64)
     order = np.argsort(values)

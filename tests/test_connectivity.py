@@ -346,3 +346,16 @@ def test_fix_priority_makes_the_result_independent_of_the_label_numbers():
     assert np.array_equal(same, a)
     with pytest.raises(DicerError, match="fix.priority names 'bone', which the materials do not hold"):
         fix_stage(lab, names=names, priority=["bone"])
+    with pytest.raises(DicerError, match="the fixes take integer labels"):
+        fix_stage(lab.astype(np.float32), names=names, priority=order)
+
+
+def test_the_growth_and_faces_reached_leave_out_the_specks_removed_first():
+    from dicer.connectivity import fix_stage
+
+    lab = np.zeros((12, 12, 12), np.uint8)
+    lab[2:10, 2:10, 2:10] = 1
+    lab[0, 0, 11] = 1  # a speck on faces X0, Y0, Z1: removed as a floating part, no face reached
+    fixed, report = fix_stage(lab, names={"1": "bone"}, min_component_voxels=8)
+    assert report["solid_voxels"] == {"before": 512, "after": 512} and report["faces_reached"] == []
+    assert report["islands"]["removed_voxels"] == 1 and report["joined_parts"] == 0

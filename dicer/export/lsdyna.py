@@ -48,7 +48,7 @@ def _e10(v: float) -> str:
     for p in range(9, 0, -1):
         short = re.sub(r"e([+-])0*(\d)", lambda m: "e" + m[1].replace("+", "") + m[2], f"{float(v):.{p - 1}e}")
         for text in (f"{float(v):.{p}g}", short):
-            if len(text) <= 10:
+            if len(text) <= 10 and np.isfinite(float(text)):  # 1.7977e308 would read back as inf
                 return f"{text:>10s}"
     raise ValueError(f"{v} does not fit a 10-column field")
 

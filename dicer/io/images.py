@@ -348,8 +348,8 @@ def _check_nifti_complete(path: Path) -> tuple[float, ...] | None:
     gz = path.name.lower().endswith(".gz")
     if gz:
         with open(path, "rb") as f:
-            start = f.read(348)
-        if start[:2] != b"\x1f\x8b" and len(start) == 348 and _nifti_header(start) is not None:
+            start = f.read(540)  # a NIfTI-2 header's length
+        if start[:2] != b"\x1f\x8b" and len(start) >= 348 and _nifti_header(start) is not None:
             raise DicerError(f"{path}: the file is a NIfTI image that is not gzip-compressed, though its name ends "
                              f"in .gz; rename it to {path.name[:-3]}")
     opener = gzip.open if gz else open

@@ -830,6 +830,11 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
                         "part (the smallest part %d); hold each part in the solver, or drop the parts below a "
                         "size with fix.min_component_voxels", whole["parts"], whole["floating_elements"],
                         whole["smallest"])
+        if report["materials_without_elements"]:  # said by the stage that lost them, which a workflow logs only
+            log.warning("quality: %d material(s) have no elements in the model: %s; the deck has no element set for "
+                        "them (the segmentation, downsampling or fixes left no voxel of them: see those stages' "
+                        "warnings)", len(report["materials_without_elements"]),
+                        brief_names(report["materials_without_elements"]))
         if report["stretched_elements"]:  # a solver's stresses suffer in them long before it refuses them
             log.warning("quality: %d element(s) have an edge ratio above %g (largest %.3g); elongated voxels "
                         "(downsample with a factor per axis), merging across the long axis (merge.passes) or a thin "

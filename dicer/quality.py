@@ -296,6 +296,9 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stre
         "poor_threshold": poor,
         "stretched_elements": int(np.count_nonzero(er > stretched_edge_ratio)),
         "stretched_threshold": float(stretched_edge_ratio),
+        # named materials the model has no element of (a class the segmentation left empty, a
+        # material downsampling or the fixes removed): the deck has no element set for them
+        "materials_without_elements": [n for i, n in names.items() if i not in set(per["label"].tolist())],
     }
     parts = floating_parts(mesh, neighbours) if parts is None else parts
     report["parts"] = {"model": parts["model"],
@@ -337,6 +340,24 @@ STYLE = ("body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;
          "th,td{border:1px solid #bbb;padding:3px 8px;text-align:left}td{font-variant-numeric:tabular-nums}"
          "tr.warn td{background:#fde0dd}img{max-width:100%}figure{margin:0 0 1.5em 0}"
          "figcaption{font-size:90%;color:#444}")
+
+
+def missing_html(report: dict) -> str:
+    """A highlighted line naming the materials without elements ('' when every one has some).
+
+    Parameters
+    ----------
+    report : dict
+        From :func:`quality_report`.
+
+    Returns
+    -------
+    str
+    """
+    missing = report.get("materials_without_elements") or []
+    if not missing:
+        return ""
+    return _grid(["materials without elements"], [[", ".join(missing)]], ["warn"])
 
 
 def parts_html(report: dict) -> str:
@@ -418,6 +439,7 @@ def render_html(report: dict, pictures: list[tuple[str, bytes]] = ()) -> str:
         f"<style>{STYLE}</style></head><body>",
         f"<h1>Mesh quality</h1><p>dicer {html.escape(report['dicer_version'])}</p>",
         _table(top),
+        missing_html(report),
         parts_html(report),
         volume_html(report),
     ]

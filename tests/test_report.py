@@ -239,6 +239,30 @@ def test_cohort_table_rows_and_columns():
     assert "<td>+1.5 / +23.0</td>" in page and "<td>1.2 / 300</td>" in page and "<td>0.5 / –</td>" in page
 
 
+def test_a_material_without_elements_is_named_in_the_report_the_page_and_the_cohort(tmp_path, caplog):
+    # a class the segmentation left empty: the workflow logged the stage's warning only, and the
+    # report, the page and the cohort table showed nothing (the cohort's "–" meant "not recorded")
+    from dicer.cli import main
+    from dicer.io.meshes import write_mesh
+
+    labels = np.ones((4, 4, 4), np.uint8)  # soft tissue only: the default config names bone too
+    report = quality_report(voxel_mesh(labels), load_config())
+    assert report["materials_without_elements"] == ["bone"] and list(report["materials"]) == ["soft_tissue"]
+    assert "<tr class='warn'><td>bone</td></tr>" in render_html(report)
+    labels[0] = 2
+    full = quality_report(voxel_mesh(labels), load_config())
+    assert full["materials_without_elements"] == [] and "materials without elements" not in render_html(full)
+    columns, rows = cohort_rows({"p1": report, "p2": full, "old": _report(100)})
+    at = columns.index("materials_without_elements")
+    assert [row[at] for row in rows] == ["bone", "", None]
+    page = render_cohort_html(columns, rows)
+    assert page.count("<tr class=warn>") == 1 and "<td>bone</td>" in page
+    write_mesh(voxel_mesh(np.ones((4, 4, 4), np.uint8)), tmp_path / "m.vtu")
+    assert main(["quality", str(tmp_path / "m.vtu"), "-o", str(tmp_path / "q.json"), "-q"]) == 0
+    warned = [r.getMessage() for r in caplog.records if "no elements in the model" in r.getMessage()]
+    assert len(warned) == 1 and warned[0].startswith("quality: 1 material(s) have no elements in the model: bone")
+
+
 def _dicer(*args, cwd=None):
     return subprocess.run([sys.executable, "-m", "dicer", *map(str, args)], capture_output=True, text=True,
                           cwd=cwd, timeout=300)

@@ -429,3 +429,50 @@ def test_a_cropped_patient_pulled_onto_its_scan_matches_dicer_run(tmp_path):
     subprocess.run(args, check=True, env=_env(), timeout=600)
     made = (workdir / "results" / "cut" / "smoothed.vtu").read_bytes()
     assert made == (tmp_path / "run" / "smoothed.vtu").read_bytes()
+
+
+def test_deleted_benchmarks_rerun_nothing_and_a_rewritten_input_reruns_its_patient(cohort):
+    """Deleting benchmarks/ made the next change re-run every patient's chain (the cohort took the
+    files as inputs); a scan rewritten with an older modification time (cp -p, rsync -a) or a
+    file changed inside a scan folder left a stale model (Snakemake compares the input's own
+    time only)."""
+    saved = cohort.parent / (cohort.name + "_benchmarks")
+    shutil.copytree(cohort / "benchmarks", saved)
+    try:
+        shutil.rmtree(cohort / "benchmarks")
+        assert _planned_jobs(_snakemake(cohort, "-n")) == {}
+        config_path = cohort / "config" / "config.yaml"
+        original = config_path.read_text()
+        try:
+            config = yaml.safe_load(original)
+            config["export"]["element_type"] = "C3D8R"
+            config_path.write_text(yaml.safe_dump(config, sort_keys=False))
+            assert _planned_jobs(_snakemake(cohort, "-n")) == {"export": 4, "cohort": 1, "all": 1}
+        finally:
+            config_path.write_text(original)
+    finally:
+        shutil.rmtree(cohort / "benchmarks", ignore_errors=True)
+        shutil.copytree(saved, cohort / "benchmarks")
+        shutil.rmtree(saved)
+    # a label patient whose volume is replaced by one of the same name with an older time
+    work = cohort.parent / (cohort.name + "_labels")
+    shutil.copytree(cohort / "config", work / "config")
+    import numpy as np
+
+    from dicer.image import Volume
+    from dicer.io.images import write_image
+
+    labels = np.zeros((12, 12, 12), np.uint8)
+    labels[2:10, 2:10, 2:10] = 1
+    scans = work / "scans"
+    scans.mkdir()
+    write_image(Volume(labels, (1.0, 1.0, 1.0)), scans / "cube.nii.gz")
+    (work / "config" / "patients.tsv").write_text("patient\tlabels\toverrides\ncube\tscans/cube.nii.gz\t\n")
+    _snakemake(work)
+    assert _planned_jobs(_snakemake(work, "-n")) == {}
+    old = (scans / "cube.nii.gz").stat()
+    labels[2:10, 2:10, 2:6] = 0
+    write_image(Volume(labels, (1.0, 1.0, 1.0)), scans / "cube.nii.gz")
+    os.utime(scans / "cube.nii.gz", ns=(old.st_atime_ns, old.st_mtime_ns - 10**9))  # older than before
+    jobs = _planned_jobs(_snakemake(work, "-n"))
+    assert jobs.get("labels") == 1 and jobs.get("mesh") == 1 and jobs.get("export") == 2

@@ -131,6 +131,37 @@ def patient_image(wildcards):
     return PATIENTS[wildcards.patient]["image"]
 
 
+def input_fingerprint(path):
+    """params: a patient's scan or label volume by the size and modification time of each of
+    its files (a folder's files, a header's data file beside it). Snakemake compares the
+    modification times of the input itself only: a slice rewritten inside a DICOM folder
+    leaves the folder's own time, and a file copied in with its older time (cp -p, rsync -a,
+    tar) looks older than the results; both left a stale model. Phantoms are the workflow's
+    own outputs and need none."""
+    import glob
+    import hashlib
+
+    path = Path(path)
+    if path.parent == Path(PHANTOM_DIR):
+        return ""
+    if path.is_dir():
+        files = sorted(f for f in path.rglob("*") if f.is_file())
+    else:  # ct.mhd and its ct.raw, ct.nhdr and its ct.raw.gz
+        stem = path.name.split(".")[0]
+        files = sorted(f for f in path.parent.glob(glob.escape(stem) + ".*") if f.is_file())
+    entries = [[str(f.relative_to(path if path.is_dir() else path.parent)), f.stat().st_size, f.stat().st_mtime_ns]
+               for f in files]
+    return hashlib.sha256(json.dumps(entries).encode()).hexdigest()[:16]
+
+
+def image_fingerprint(wildcards):
+    return input_fingerprint(patient_image(wildcards))
+
+
+def labels_fingerprint(wildcards):
+    return input_fingerprint(PATIENTS[wildcards.patient]["labels"])
+
+
 def patient_labels(wildcards):
     return PATIENTS[wildcards.patient]["labels"]
 

@@ -11,6 +11,11 @@ localrules:
 rule cohort:
     input:
         reports=expand(rules.quality.output.json, patient=PATIENTS),
+        # the table shows the exports' seconds: a re-export makes it again
+        models=[patient_file(f"model.{ext}").format(patient=p) for p in PATIENTS for ext in CONFIG["workflow"]["exports"]],
+    params:
+        # read where they exist, not inputs: a deleted benchmark file would re-run its stage
+        # (and, through the cohort, every patient's chain) to be made again
         benchmarks=[benchmark_file(stage).format(patient=p) for p in PATIENTS for stage in patient_stages(p)],
     output:
         html=report(

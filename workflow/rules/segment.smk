@@ -36,6 +36,7 @@ rule segment:
         info=patient_file("segmentation.json"),
     params:
         settings=settings("segment"),
+        files=image_fingerprint,
     conda:
         CONDA_ENV
     threads: 1
@@ -61,6 +62,7 @@ rule labels:
         materials=patient_file("materials.json"),
     params:
         settings=settings("labels"),
+        files=labels_fingerprint,
     conda:
         CONDA_ENV
     threads: 1

@@ -9,7 +9,9 @@ smk = snakemake  # noqa: F821 -- given by Snakemake's script directive
 log = Path(smk.log[0])
 arguments = log.with_suffix(".args")
 arguments.parent.mkdir(parents=True, exist_ok=True)
-arguments.write_text("".join(f"{a}\n" for a in [*smk.input.reports, "--benchmarks", *smk.input.benchmarks]))
+benchmarks = [b for b in smk.params.benchmarks if Path(b).is_file()]  # a deleted one leaves its cells empty
+arguments.write_text("".join(f"{a}\n" for a in [*smk.input.reports, *(["--benchmarks", *benchmarks] if benchmarks
+                                                                      else [])]))
 with open(log, "w") as out:
     done = subprocess.run(["dicer", "cohort", f"@{arguments}", "-o", smk.output.html, "--tsv", smk.output.tsv],
                           stdout=out, stderr=subprocess.STDOUT)

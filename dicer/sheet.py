@@ -108,12 +108,18 @@ _SEGMENTATION_ONLY = ("segment.method", "segment.thresholds", "segment.ranges", 
 section's morphology and priority still serve its downsampling)."""
 
 
+_SCAN_ONLY = ("smooth.surface_from_image", "smooth.image_sigma")
+"""Smoothing settings that act only on a scan, which a label volume's smoothing has not."""
+
+
 def _unread_override(key: str, label_volume: bool) -> str | None:
     """Why no stage of the row's patient reads override ``key``, or None when one does."""
     if not label_volume and (key == "labels" or key.startswith("labels.")):
         return "is read only for a label volume (the labels column), and this row's image is segmented"
     if label_volume and any(key == k or key.startswith(k + ".") for k in _SEGMENTATION_ONLY):
         return "sets the threshold search, which this row's label volume (the labels column) skips"
+    if label_volume and key in _SCAN_ONLY:
+        return "acts on the scan a segmented row's smoothing is given, and this row's label volume has none"
     return None
 
 

@@ -470,6 +470,16 @@ def test_deleted_benchmarks_rerun_nothing_and_a_rewritten_input_reruns_its_patie
     (work / "config" / "patients.tsv").write_text("patient\tlabels\toverrides\ncube\tscans/cube.nii.gz\t\n")
     _snakemake(work)
     assert _planned_jobs(_snakemake(work, "-n")) == {}
+    # the scan's settings that smooth reads for a segmented patient: nothing to do for a label volume
+    config = yaml.safe_load((work / "config" / "config.yaml").read_text())
+    config["segment"].update(method="manual", thresholds=[-200, 300])
+    config["image"]["crop"] = {"unit": "voxels", "min": [0, 0, 0], "max": [12, 12, 12]}
+    (work / "config" / "config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
+    assert _planned_jobs(_snakemake(work, "-n")) == {"labels": 1, "fix": 1, "mesh": 1, "merge": 1, "smooth": 1,
+                                                     "export": 2, "quality": 1, "cohort": 1, "all": 1}
+    config["image"]["crop"] = None  # the crop is the labels stage's; the segment keys read by smooth alone
+    (work / "config" / "config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
+    assert _planned_jobs(_snakemake(work, "-n")) == {}
     old = (scans / "cube.nii.gz").stat()
     labels[2:10, 2:10, 2:6] = 0
     write_image(Volume(labels, (1.0, 1.0, 1.0)), scans / "cube.nii.gz")

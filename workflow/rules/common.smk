@@ -117,9 +117,23 @@ def _check_overrides():
 _check_overrides()
 
 
+# what smooth reads of the scan's settings, which a label-volume patient's smoothing (no scan) does not
+SCAN_KEYS = {"segment": ("method", "thresholds"), "image": ("crop", "allow_irregular_slices")}
+
+
 def settings(stage):
     """params: the config sections `stage` reads, as JSON; a change re-runs only that stage and later ones."""
-    return lambda wildcards: json.dumps(stage_settings(patient_config(wildcards.patient), stage), sort_keys=True)
+
+    def of(wildcards):
+        part = stage_settings(patient_config(wildcards.patient), stage)
+        if stage == "smooth" and wildcards.patient in LABEL_PATIENTS:
+            for section, keys in SCAN_KEYS.items():
+                for key in keys:
+                    part.get(section, {}).pop(key, None)
+            part = {k: v for k, v in part.items() if v != {}}
+        return json.dumps(part, sort_keys=True)
+
+    return of
 
 
 def phantom_size_option(wildcards):

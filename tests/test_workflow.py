@@ -142,6 +142,7 @@ def test_bad_config_key_stops_the_run_naming_it(tmp_path):
     proc = _snakemake(workdir, "-n", check=False)
     assert proc.returncode != 0
     assert "segment.closing_radiuss" in proc.stdout + proc.stderr
+    assert "config: config" not in proc.stdout + proc.stderr  # the prefix was doubled
 
 
 def test_bad_override_names_the_patient(tmp_path):

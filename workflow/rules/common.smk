@@ -21,7 +21,7 @@ os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + os.environ.g
 try:
     CONFIG = load_config(settings=config)
 except DicerError as exc:
-    raise WorkflowError(f"config: {exc}")
+    raise WorkflowError(str(exc) if str(exc).startswith("config") else f"config: {exc}")
 
 RESULTS = CONFIG["workflow"]["results"]
 PHANTOM_DIR = "resources/phantoms"

@@ -62,6 +62,12 @@ def read_sheet(path: str | os.PathLike, schema: dict) -> list[tuple[int, dict[st
     twice = sorted({n for n in names if n and names.count(n) > 1})
     if twice:
         raise DicerError(f"{path}, line 1: column {twice[0]!r} appears twice in the header; keep one")
+    known = set(schema["properties"])
+    unknown = [n for n in names if n and n not in known]
+    if unknown:  # the header's fault, not each row's
+        comma = " (the sheet's columns are separated by tabs, not commas)" if any("," in n for n in unknown) else ""
+        raise DicerError(f"{path}, line 1: unknown column {', '.join(map(repr, unknown))}{comma}; the columns are "
+                         f"{', '.join(schema['properties'])}")
     if not rows:
         raise DicerError(f"{path}: the sheet lists no patient; add a row per patient below the header")
     checked, seen = [], {}

@@ -54,7 +54,9 @@ def test_rows_keep_their_line_numbers_across_blank_rows(tmp_path):
     ("", r"the sheet is empty; write a header line"),
     (HEAD, r"the sheet lists no patient"),
     ("patient\tlabels\tlabels\nA\ta\tb\n", r"line 1: column 'labels' appears twice in the header"),
-    ("patient\tscan\nA\ta.nii.gz\n", r"line 2: unknown column 'scan'"),
+    ("patient\tscan\nA\ta.nii.gz\n", r"line 1: unknown column 'scan'"),
+    ("patient,image,overrides\nA,a.nii.gz,\n",
+     r"line 1: unknown column 'patient,image,overrides' \(the sheet's columns are separated by tabs, not commas\)"),
     (HEAD + "A/B\ta.nii.gz\t\n", r"line 2: column 'patient'"),
     (HEAD + "A\t\t\n", r"line 2: patient 'A': give either an image or a labels file"),
     # overrides no stage of the patient reads were accepted and changed nothing

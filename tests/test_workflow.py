@@ -172,7 +172,7 @@ def test_sheet_with_a_byte_order_mark_and_a_bad_column(tmp_path):
     sheet.write_text(sheet.read_text(encoding="utf-8-sig").replace("patient\timage", "patient\tscan"))
     proc = _snakemake(workdir, "-n", check=False)
     out = proc.stdout + proc.stderr
-    assert proc.returncode != 0 and "line 2: unknown column 'scan'" in out
+    assert proc.returncode != 0 and "line 1: unknown column 'scan'" in out
 
 
 @pytest.mark.skipif(shutil.which("snakemake") is None and not (Path(sys.executable).parent / "snakemake").exists(),

@@ -91,9 +91,11 @@ def test_full_disk_through_the_command(small_disk, tmp_path):
     assert list(small_disk.iterdir()) == []
 
 
-def _terminate_while_writing(args: list[str], folder: Path, pattern: str, seconds: float) -> str:
+def _terminate_while_writing(args: list[str], folder: Path, pattern: str, seconds: float,
+                             kept: str = "no output of the unfinished step was kept") -> str:
     """Start ``dicer ARGS``, send SIGTERM once a temporary file ``pattern`` shows in
-    ``folder``, check the one error line and exit status 143; returns its stderr."""
+    ``folder``, check the one error line (``kept`` after the signal's name) and exit status
+    143; returns its stderr."""
     proc = subprocess.Popen([sys.executable, "-m", "dicer", *args], stderr=subprocess.PIPE, text=True, cwd=ROOT,
                             env={**os.environ, "PYTHONPATH": str(ROOT)})
     deadline = time.monotonic() + seconds
@@ -105,7 +107,7 @@ def _terminate_while_writing(args: list[str], folder: Path, pattern: str, second
     _, err = proc.communicate(timeout=seconds)
     assert proc.returncode == 143, err
     assert [line for line in err.splitlines() if line.startswith("error:")] == [
-        "error: terminated (SIGTERM, e.g. a cluster time limit); no output of the unfinished step was kept"]
+        f"error: terminated (SIGTERM, e.g. a cluster time limit); {kept}"]
     return err
 
 
@@ -285,7 +287,8 @@ def test_sigterm_while_the_report_is_made_beside_the_exports(tmp_path):
     staging = tmp_path / ".out.partial"
     # once the exports began, the report beside them
     err = _terminate_while_writing(["run", str(image), "-o", str(out), "--set", "downsample.factor=2"], staging,
-                                   ".model.inp.*.tmp*", 300)
+                                   ".model.inp.*.tmp*", 300,
+                                   f"{out} is unchanged; the finished stage files are in {tmp_path / 'out.failed'}")
     assert "dicer run: the quality report is made beside the exports" in err
     assert not out.exists() and not staging.exists()
     failed = tmp_path / "out.failed"

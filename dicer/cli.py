@@ -497,17 +497,29 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
     from dicer.mesh.merge import merge_mesh
 
     settings = stage_kwargs(config, "merge")
+
+    def advised(exc: DicerError) -> DicerError:
+        floor = settings.get("min_scaled_jacobian", 0.2)
+        if settings.get("method") != "planes" or floor > 0 or "degenerate or inverted" not in str(exc):
+            return exc
+        return DicerError(f"{exc}: merge.min_scaled_jacobian={floor:g} let merging make flat or inverted corners, "
+                          "which no later stage or solver takes; give a value above 0 (default 0.2)")
+
+    def write_advised(job):  # the file's check may run beside the next stage: its error gets the advice too
+        def checked():
+            try:
+                job()
+            except DicerError as exc:
+                raise advised(exc) from None
+        write(checked)
+
     # both methods build a new mesh and only read the input (a copy of 0.9 GB at 256^3
     # cost more than coarsening it)
     try:
         merged, report = _mesh_to_mesh("merge", lambda m: merge_mesh(m, **settings), mesh_path, out, report_path,
-                                       mesh, mapped=True, write=write)
+                                       mesh, mapped=True, write=write_advised)
     except DicerError as exc:
-        floor = settings.get("min_scaled_jacobian", 0.2)
-        if settings.get("method") != "planes" or floor > 0 or "degenerate or inverted" not in str(exc):
-            raise
-        raise DicerError(f"{exc}: merge.min_scaled_jacobian={floor:g} let merging make flat or inverted corners, "
-                         "which no later stage or solver takes; give a value above 0 (default 0.2)") from None
+        raise advised(exc) from None
     _warn_of_volume_change(report, merged, settings)
     _warn_of_flat_templates(report, merged)
     if report.get("method") == "templates" and report["elements_after"] >= report["elements_before"]:
@@ -1347,18 +1359,26 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
                 else:
                     job()
 
-            mesh = do_mesh(str(path("labels_fixed.nii.gz")), path("mesh.vtu"), config, write=write)
-            step("merge")
-            # the merge's many fresh tables come quicker in ordinary pages (dicer.pages): 1-2 s
-            # at 256³; a large mesh's in huge pages (16 s of 57 at 512³)
-            with ordinary_pages(unless_set=True) if mesh.n_cells < LARGE_JOB else contextlib.nullcontext():
-                mesh = do_merge(str(path("mesh.vtu")), path("merged.vtu"), config, path("merge.json"), mesh=mesh,
-                                write=write)
-            step("smooth")
-            # a segmented scan lends its grey values: the surface goes onto its iso-surfaces
-            scan = (args.image, str(path("segmentation.json"))) if args.labels is None else (None, None)
-            mesh = do_smooth(str(path("merged.vtu")), path("smoothed.vtu"), config, path("smooth.json"),
-                             image_path=scan[0], thresholds_path=scan[1], mesh=mesh, write=write)
+            try:
+                mesh = do_mesh(str(path("labels_fixed.nii.gz")), path("mesh.vtu"), config, write=write)
+                step("merge")
+                # the merge's many fresh tables come quicker in ordinary pages (dicer.pages): 1-2 s
+                # at 256³; a large mesh's in huge pages (16 s of 57 at 512³)
+                with ordinary_pages(unless_set=True) if mesh.n_cells < LARGE_JOB else contextlib.nullcontext():
+                    mesh = do_merge(str(path("mesh.vtu")), path("merged.vtu"), config, path("merge.json"),
+                                    mesh=mesh, write=write)
+                step("smooth")
+                # a segmented scan lends its grey values: the surface goes onto its iso-surfaces
+                scan = (args.image, str(path("segmentation.json"))) if args.labels is None else (None, None)
+                mesh = do_smooth(str(path("merged.vtu")), path("smoothed.vtu"), config, path("smooth.json"),
+                                 image_path=scan[0], thresholds_path=scan[1], mesh=mesh, write=write)
+            except BaseException:
+                # an earlier stage's file, checked beside this stage, failed first: its error is the
+                # cause (a merge that made inverted corners, then the smoothing that could not mend them)
+                for stage, job in written:
+                    if job.exception() is not None:
+                        job.result()
+                raise
             # every file checked before the exports (they hash smoothed.vtu); a failed write
             # names the stage that made its file (``stage``, as the error handler reads it)
             for stage, job in written:

@@ -321,6 +321,26 @@ def test_a_stage_file_written_beside_the_next_stage_names_its_stage_when_it_fail
     assert not out.exists() and not list(failed.glob(".*tmp*"))
 
 
+def test_a_merge_whose_check_beside_the_smoothing_fails_is_named_before_the_smoothing(tmp_path, monkeypatch, capsys):
+    # merge.min_scaled_jacobian=-1 let merging flatten corners; the merged file's check ran beside
+    # the smoothing, whose error ("smoothing cannot keep element 5 ...") came first and named a
+    # file the failed folder does not hold
+    import dicer.cli as cli
+
+    x, y, z = np.meshgrid(*[np.arange(48) + 0.5] * 3, indexing="ij")
+    plates = np.zeros((48, 48, 48), np.uint8)
+    plates[np.abs((0.3 * x + 0.5 * y + 0.81 * z) / np.linalg.norm([0.3, 0.5, 0.81]) - 30) < 0.6] = 1
+    plates[np.abs((0.7 * x - 0.4 * y + 0.2 * z) / np.linalg.norm([0.7, -0.4, 0.2]) - 10) < 1.0] = 2
+    np.save(tmp_path / "plates.npy", plates)
+    monkeypatch.setattr(cli, "_side_by_side", lambda source, elements: True)
+    out = tmp_path / "out"
+    assert cli.main(["run", "--labels", str(tmp_path / "plates.npy"), "-o", str(out), "-q", "--set",
+                     "merge.min_scaled_jacobian=-1", "--set", "merge.passes=[2,2,2]"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "merge.min_scaled_jacobian=-1 let merging make flat or inverted corners" in err[0]
+    assert "stopped at the merge stage" in err[0] and "smoothing cannot" not in err[0]
+
+
 def test_an_interrupt_that_left_an_exec_of_a_string_still_exits_130(tmp_path):
     # CPython ends a "python -m" process by SIGINT once a KeyboardInterrupt has left an
     # exec() of a string, even a caught one: a SIGINT that lands while an import makes a

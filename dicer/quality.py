@@ -19,7 +19,7 @@ from dicer.mesh.metrics import element_metrics
 from dicer.mesh.model import Mesh
 
 _PERCENTILES = (1, 5, 25, 50, 75, 95, 99)
-_NODE_CLASSES = "ABCDEF"
+_NODE_CLASSES = "ABCDEFX"  # X: irregular nodes (dicer.mesh.boundary.NODE_CLASSES)
 REPORT_METRICS = ("scaled_jacobian", "edge_ratio", "volume")
 """The element metrics :func:`quality_report` uses."""
 

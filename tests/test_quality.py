@@ -270,3 +270,16 @@ def test_stage_reports_and_pictures_are_named_by_content_not_by_file_name(tmp_pa
     report = json.loads(outputs[1][0])
     assert sorted(report["stages"]) == ["fix", "merge", "smooth"]
     assert b"MRN4711" not in outputs[1][0] + outputs[1][1] and b"DOE" not in outputs[1][1]
+
+
+def test_node_classes_in_the_report_count_the_irregular_ones():
+    # class X (code 7) was left out of quality.json while smooth.json counted it
+    labels = np.ones((3, 3, 3), np.uint8)
+    mesh = voxel_mesh(labels)
+    codes = np.zeros(mesh.n_points, np.int8)
+    codes[:7] = np.arange(1, 8)  # one node of each class A..F and X
+    codes[7:9] = 7
+    mesh.point_data["node_class"] = codes
+    classes = quality_report(mesh, load_config())["node_classes"]
+    assert classes == {"interior": mesh.n_points - 9, "A": 1, "B": 1, "C": 1, "D": 1, "E": 1, "F": 1, "X": 3}
+    assert sum(classes.values()) == mesh.n_points

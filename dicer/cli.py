@@ -842,6 +842,14 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
                         "part (the smallest part %d); hold each part in the solver, or drop the parts below a "
                         "size with fix.min_component_voxels", whole["parts"], whole["floating_elements"],
                         whole["smallest"])
+        changed = report.get("topology_changed")
+        if changed:
+            first = report["materials"][changed[0]]
+            log.warning("quality: the surface of %s has another topology than its voxels (Euler characteristic %d "
+                        "against %d): merging closed a hole or channel a voxel or two wide, filled a cavity, or "
+                        "pinched the surface at a node; to keep the voxels' shape set merge.passes=[0, 0, 0] or "
+                        "merge.method: templates", brief_names(changed), first["surface_euler"],
+                        first["voxel_surface_euler"])
         if report["materials_without_elements"]:  # said by the stage that lost them, which a workflow logs only
             log.warning("quality: %d material(s) have no elements in the model: %s; the deck has no element set for "
                         "them (the segmentation, downsampling or fixes left no voxel of them: see those stages' "
@@ -1375,8 +1383,9 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
             except BaseException:
                 # an earlier stage's file, checked beside this stage, failed first: its error is the
                 # cause (a merge that made inverted corners, then the smoothing that could not mend them)
-                for stage, job in written:
+                for earlier, job in written:
                     if job.exception() is not None:
+                        stage = earlier  # as the error handler names it
                         job.result()
                 raise
             # every file checked before the exports (they hash smoothed.vtu); a failed write

@@ -97,6 +97,110 @@ def element_neighbours(mesh: Mesh) -> np.ndarray:
     return nb
 
 
+def surface_euler(mesh: Mesh, neighbours: np.ndarray) -> dict[int, int]:
+    """The Euler characteristic of each material's surface in a 3D mesh: V - E + F of the
+    element faces it shares with no element of its own material.
+
+    A closed surface of g holes has 2 - 2g; a material of c parts, each with g holes and
+    v cavities, sums to 2 (c + v - g). Merging that fills a hole or a cavity changes it.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        3D (hexahedra, 8 or 20 nodes; the corners are used).
+    neighbours : (M, 6) int ndarray
+        :func:`element_neighbours`.
+
+    Returns
+    -------
+    dict of int to int
+        Label -> Euler characteristic, for the labels with elements.
+    """
+    from dicer.mesh.topology import HEX_FACES
+
+    cells = np.asarray(mesh.cells)[:, :8]
+    material = np.asarray(mesh.material)
+    nb = np.asarray(neighbours)
+    other = np.where(nb >= 0, material[np.maximum(nb, 0)], -1)
+    elem, face = np.nonzero(other != material[:, None])
+    faces = cells[elem[:, None], HEX_FACES[face]].astype(np.int64)  # (F, 4)
+    mats = material[elem]
+    order = np.argsort(mats, kind="stable")
+    faces, mats = faces[order], mats[order]
+    starts = np.flatnonzero(np.r_[True, mats[1:] != mats[:-1]])
+    n = int(mesh.n_points)
+    seen = np.zeros(n, bool)
+    out = {}
+    for label, f in zip(mats[starts].tolist(), np.split(faces, starts[1:])):
+        seen[:] = False
+        seen[f.ravel()] = True
+        a, b = f.ravel(), np.roll(f, -1, axis=1).ravel()
+        keys = np.sort(np.minimum(a, b) * n + np.maximum(a, b))  # counted by sorting: np.unique hashes slowly here
+        edges = int(np.count_nonzero(keys[1:] != keys[:-1])) + 1
+        out[int(label)] = int(np.count_nonzero(seen)) - edges + f.shape[0]
+    return out
+
+
+def region_euler(mesh: Mesh) -> dict[int, int]:
+    """The Euler characteristic of each material's region in a 2D mesh: V - E + F of its
+    quadrilaterals (parts less holes).
+
+    Parameters
+    ----------
+    mesh : Mesh
+        2D (4- or 8-node quadrilaterals; the corners are used).
+
+    Returns
+    -------
+    dict of int to int
+        Label -> Euler characteristic, for the labels with elements.
+    """
+    cells = np.asarray(mesh.cells)[:, :4].astype(np.int64)
+    material = np.asarray(mesh.material)
+    n = int(mesh.n_points)
+    seen = np.zeros(n, bool)
+    out = {}
+    for label in np.unique(material).tolist():
+        f = cells[material == label]
+        seen[:] = False
+        seen[f.ravel()] = True
+        a, b = f.ravel(), np.roll(f, -1, axis=1).ravel()
+        keys = np.sort(np.minimum(a, b) * n + np.maximum(a, b))
+        edges = int(np.count_nonzero(keys[1:] != keys[:-1])) + 1
+        out[int(label)] = int(np.count_nonzero(seen)) - edges + f.shape[0]
+    return out
+
+
+def voxel_euler(labels: np.ndarray, which) -> dict[int, int]:
+    """The Euler characteristic each label's voxels give what :func:`surface_euler` (3D:
+    twice the voxels', that of their surface) or :func:`region_euler` (2D) counts, for the
+    labels ``which``.
+
+    Parameters
+    ----------
+    labels : (nx, ny[, nz]) int ndarray
+        Fixed labels (no edge or corner contacts: every connectivity gives one answer).
+    which : iterable of int
+
+    Returns
+    -------
+    dict of int to int
+    """
+    from scipy import ndimage
+    from skimage.measure import euler_number
+
+    labels = np.asarray(labels)
+    boxes = ndimage.find_objects(labels)
+    out = {}
+    for label in which:
+        box = boxes[label - 1] if 0 < label <= len(boxes) else None
+        if box is None:
+            continue
+        value = int(euler_number(np.pad(labels[box] == label, 1), connectivity=1))
+        out[int(label)] = 2 * value if labels.ndim == 3 else value
+    return out
+
+
 def _grid_parts(shape: tuple[int, ...], voxel: np.ndarray, material: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Face-connected parts of a voxel mesh (each element's ``voxel`` in the grid of
@@ -227,7 +331,9 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stre
         counted as stretched (a solver's accuracy suffers long before the Jacobian does).
     labels : Volume, optional
         The labels the mesh came from; adds voxel counts and the volume of the mesh
-        against the voxel volume per material.
+        against the voxel volume per material, and the Euler characteristic of each
+        material's surface (2D: region) in the voxels beside the mesh's (``topology_changed`` names the
+        materials where they differ: a hole, channel or cavity that merging filled).
     original : Volume, optional
         The segmentation before downsampling (the full-resolution labels); adds its voxel
         volume per material and the mesh's volume change against it, which holds what
@@ -300,6 +406,25 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stre
         # material downsampling or the fixes removed): the deck has no element set for them
         "materials_without_elements": [n for i, n in names.items() if i not in set(per["label"].tolist())],
     }
+    if mesh.n_cells and labels is not None and np.asarray(labels.array).ndim == mesh.dim:
+        # each material's surface against its voxels': merging that closed a hole or a channel
+        # a voxel or two wide, or filled a cavity, changes it
+        if mesh.dim == 3:
+            if neighbours is None:  # made once, for the floating parts too
+                neighbours = element_neighbours(mesh)
+            euler = surface_euler(mesh, neighbours)
+        else:
+            euler = region_euler(mesh)
+        voxels = voxel_euler(labels.array, euler)
+        changed = []
+        for label, value in euler.items():
+            entry = materials[names.get(label, f"material_{label}")]
+            entry["surface_euler"] = value
+            if label in voxels:
+                entry["voxel_surface_euler"] = voxels[label]
+                if voxels[label] != value:
+                    changed.append(names.get(label, f"material_{label}"))
+        report["topology_changed"] = changed
     parts = floating_parts(mesh, neighbours) if parts is None else parts
     report["parts"] = {"model": parts["model"],
                        "materials": {names.get(k, f"material_{k}"): v for k, v in parts["materials"].items()}}

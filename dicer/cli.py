@@ -813,15 +813,20 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
         from dicer.quality import REPORT_METRICS, element_neighbours, floating_parts
 
         def connectivity() -> tuple:  # the face neighbours (model picture) and the parts: no metric needed
-            nb = neighbours() if neighbours is not None else element_neighbours(mesh) if model_picture else None
-            return nb, floating_parts(mesh, nb)
+            from dicer.mesh.faces import voxel_elements
+
+            voxel = voxel_elements(mesh) if mesh.n_cells and mesh.material.min() > 0 else None
+            # another mesh's parts (and surfaces, against the labels) need the neighbours anyway
+            wanted = model_picture or (voxel is None and mesh.n_cells)
+            nb = neighbours() if neighbours is not None else element_neighbours(mesh) if wanted else None
+            return nb, floating_parts(mesh, nb, voxel), voxel
 
         # on a thread beside the metrics: labelling the parts runs much of its time on one core
         parts_later = meanwhile(connectivity)
         names = REPORT_METRICS + (("skew",) if csv else ())
         metrics = element_metrics(mesh.points, mesh.cells, names)
         sj = metrics["scaled_jacobian"]
-        across, parts = parts_later()
+        across, parts, voxel = parts_later()
         with ThreadPoolExecutor(1) as pool:
             table = None
             if csv:  # the table is written and read back beside the report (part of its all-or-nothing)
@@ -830,7 +835,7 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
                 table = pool.submit(in_this_block(write_metrics_csv), mesh, csv, metrics)
             # on an error the pool waits for the table, whose file the block then deletes
             report = _report_of(mesh, config, labels, original, metrics, sj, stage_reports, html, pictures,
-                                histogram, model_picture, node_classes, across, parts)
+                                histogram, model_picture, node_classes, across, parts, voxel)
             if table is not None:
                 table.result()
         write_bytes_atomic(out, json.dumps(report, indent=2, sort_keys=True) + "\n")
@@ -865,7 +870,7 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
 
 
 def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_reports, html, pictures, histogram,
-               model_picture, node_classes, neighbours, parts: dict) -> dict:
+               model_picture, node_classes, neighbours, parts: dict, voxel=None) -> dict:
     """The quality report of ``mesh`` with the stage reports; its pictures and HTML page written.
     ``neighbours``: the model picture's faces (None without it: the parts of a voxel mesh come
     from its voxel grid); ``parts``: the mesh's floating parts."""
@@ -875,7 +880,7 @@ def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_re
 
     settings = {**stage_kwargs(config, "quality"), "names": _mesh_names(mesh, config)}
     report = quality_report(mesh, **settings, labels=labels, original=original, metrics=metrics,
-                            neighbours=neighbours, parts=parts)
+                            neighbours=neighbours, parts=parts, voxel=voxel)
     stages = {}
     for path in stage_reports:
         try:

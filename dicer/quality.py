@@ -260,7 +260,7 @@ def _graph_parts(m: int, nb: np.ndarray, material: np.ndarray) -> tuple[np.ndarr
     return model_sizes, comp_material, sizes
 
 
-def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None) -> dict:
+def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None, voxel: np.ndarray | None = None) -> dict:
     """Connected parts of the model and of each material, through shared faces (2D: edges).
 
     Elements that share only an edge or a node do not hold together in a solve, so parts are
@@ -274,6 +274,8 @@ def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None) -> dict:
     neighbours : (M, F) int64 ndarray, optional
         From :func:`element_neighbours`; for a mesh that is not a voxel mesh, computed
         here when not given.
+    voxel : (M,) int64 ndarray, optional
+        :func:`dicer.mesh.faces.voxel_elements` of the mesh when already computed.
 
     Returns
     -------
@@ -290,7 +292,10 @@ def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None) -> dict:
     if m == 0:
         return out
     material = np.asarray(mesh.material, np.int64)
-    voxel = voxel_elements(mesh) if material.min() > 0 else None  # the grid holds 0 for no element
+    if voxel is None and material.min() > 0:  # the grid holds 0 for no element
+        voxel = voxel_elements(mesh)
+    elif material.min() <= 0:
+        voxel = None
     if voxel is not None:
         shape = tuple(int(n) for n in np.asarray(mesh.grid_shape)[:mesh.dim])
         model_sizes, comp_material, sizes = _grid_parts(shape, voxel, material)
@@ -312,7 +317,7 @@ def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None) -> dict:
 @takes_settings("quality")
 def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stretched_edge_ratio: float,
                    labels=None, original=None, metrics: dict | None = None, neighbours: np.ndarray | None = None,
-                   parts: dict | None = None) -> dict:
+                   parts: dict | None = None, voxel: np.ndarray | None = None) -> dict:
     """Quality figures of a mesh as a JSON-ready dict.
 
     Settings come as keywords (:func:`dicer.config.stage_kwargs` of ``quality``); a
@@ -345,6 +350,9 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stre
         The element across each face (:func:`element_neighbours`).
     parts : dict, optional
         :func:`floating_parts` of the mesh, already computed.
+    voxel : (M,) int64 ndarray, optional
+        :func:`dicer.mesh.faces.voxel_elements` of the mesh, already computed (None: made
+        here when needed).
 
     Returns
     -------
@@ -407,25 +415,35 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stre
         "materials_without_elements": [n for i, n in names.items() if i not in set(per["label"].tolist())],
     }
     if mesh.n_cells and labels is not None and np.asarray(labels.array).ndim == mesh.dim:
+        from dicer.mesh.faces import voxel_elements
+
         # each material's surface against its voxels': merging that closed a hole or a channel
-        # a voxel or two wide, or filled a cavity, changes it
-        if mesh.dim == 3:
-            if neighbours is None:  # made once, for the floating parts too
-                neighbours = element_neighbours(mesh)
-            euler = surface_euler(mesh, neighbours)
-        else:
-            euler = region_euler(mesh)
-        voxels = voxel_euler(labels.array, euler)
+        # a voxel or two wide, or filled a cavity, changes it; a voxel mesh of these labels
+        # (smoothed or not) has their topology and needs no count
+        if voxel is None and parts is None:
+            voxel = voxel_elements(mesh)
+        array = np.asarray(labels.array)
+        same = (voxel is not None and array.size == int(np.prod(np.asarray(mesh.grid_shape)[:mesh.dim]))
+                and int(np.count_nonzero(array)) == mesh.n_cells
+                and np.array_equal(array.reshape(-1)[voxel], np.asarray(mesh.material)))
         changed = []
-        for label, value in euler.items():
-            entry = materials[names.get(label, f"material_{label}")]
-            entry["surface_euler"] = value
-            if label in voxels:
-                entry["voxel_surface_euler"] = voxels[label]
-                if voxels[label] != value:
-                    changed.append(names.get(label, f"material_{label}"))
+        if not same:
+            if mesh.dim == 3:
+                if neighbours is None:  # made once, for the floating parts too
+                    neighbours = element_neighbours(mesh)
+                euler = surface_euler(mesh, neighbours)
+            else:
+                euler = region_euler(mesh)
+            voxels = voxel_euler(array, euler)
+            for label, value in euler.items():
+                entry = materials[names.get(label, f"material_{label}")]
+                entry["surface_euler"] = value
+                if label in voxels:
+                    entry["voxel_surface_euler"] = voxels[label]
+                    if voxels[label] != value:
+                        changed.append(names.get(label, f"material_{label}"))
         report["topology_changed"] = changed
-    parts = floating_parts(mesh, neighbours) if parts is None else parts
+    parts = floating_parts(mesh, neighbours, voxel) if parts is None else parts
     report["parts"] = {"model": parts["model"],
                        "materials": {names.get(k, f"material_{k}"): v for k, v in parts["materials"].items()}}
     if "node_class" in mesh.point_data:

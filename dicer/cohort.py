@@ -73,9 +73,10 @@ def report_problem(report) -> str | None:
     for name, value in numbers.items():
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
             return f"{name!r} is {value!r}, not a number"
-    missing = report.get("materials_without_elements", [])
-    if not isinstance(missing, list) or not all(isinstance(m, str) for m in missing):
-        return f"'materials_without_elements' is {missing!r}, not a list of names"
+    for key in ("materials_without_elements", "topology_changed"):
+        listed = report.get(key, [])
+        if not isinstance(listed, list) or not all(isinstance(m, str) for m in listed):
+            return f"{key!r} is {listed!r}, not a list of names"
     return None
 
 
@@ -85,8 +86,8 @@ def cohort_rows(reports: dict[str, dict], benchmarks: dict[str, dict[str, dict]]
     Columns: patient, elements, nodes, min_scaled_jacobian, p1_scaled_jacobian, inverted,
     poor, stretched (edge ratio above the quality stage's limit; missing in reports made
     before it was counted), parts (face-connected parts of the model), floating_elements,
-    materials_without_elements (their names, space-separated; missing in reports made before
-    they were listed), per material
+    materials_without_elements and topology_changed (material names, space-separated; missing
+    in reports made before they were listed), per material
     ``volume_change_percent:<name>`` (against the meshed labels) and
     ``original_volume_change_percent:<name>`` (against the full-resolution segmentation),
     per stage ``seconds:<stage>`` and ``peak_mb:<stage>``.
@@ -108,7 +109,7 @@ def cohort_rows(reports: dict[str, dict], benchmarks: dict[str, dict[str, dict]]
     materials = _materials(reports)
     stages = _stages(benchmarks)
     columns = ["patient", "elements", "nodes", "min_scaled_jacobian", "p1_scaled_jacobian", "inverted", "poor",
-               "stretched", "parts", "floating_elements", "materials_without_elements"]
+               "stretched", "parts", "floating_elements", "materials_without_elements", "topology_changed"]
     columns += [f"volume_change_percent:{m}" for m in materials]
     columns += [f"original_volume_change_percent:{m}" for m in materials]
     columns += [f"{kind}:{s}" for s in stages for kind in ("seconds", "peak_mb")]
@@ -118,8 +119,9 @@ def cohort_rows(reports: dict[str, dict], benchmarks: dict[str, dict[str, dict]]
         parts = r.get("parts", {}).get("model", {})
         row = [patient, r.get("elements"), r.get("nodes"), sj.get("min"), sj.get("p1"), r.get("inverted_elements"),
                r.get("poor_elements"), r.get("stretched_elements"), parts.get("parts"), parts.get("floating_elements")]
-        missing = r.get("materials_without_elements")  # None in reports made before it was listed
-        row.append(None if missing is None else " ".join(missing))
+        for key in ("materials_without_elements", "topology_changed"):  # None in reports made before
+            names = r.get(key)
+            row.append(None if names is None else " ".join(names))
         mats = r.get("materials", {})
         row += [mats.get(m, {}).get("volume_change_percent") for m in materials]
         row += [mats.get(m, {}).get("original_volume_change_percent") for m in materials]
@@ -154,8 +156,8 @@ def cohort_tsv(columns: list[str], rows: list[list]) -> str:
 def render_cohort_html(columns: list[str], rows: list[list], poor_threshold: float | None = None) -> str:
     """The cohort overview as one self-contained HTML table.
 
-    A patient with an inverted element, a floating part or a material without elements is
-    highlighted.
+    A patient with an inverted element, a floating part, a material without elements or a
+    surface whose topology merging changed is highlighted.
 
     Parameters
     ----------
@@ -175,7 +177,7 @@ def render_cohort_html(columns: list[str], rows: list[list], poor_threshold: flo
              "<th colspan='2'>scaled Jacobian</th><th rowspan='2'>inverted</th><th rowspan='2'>poor"
              + (f" (&lt; {poor_threshold:g})" if poor_threshold is not None else "") + "</th>"
              "<th rowspan='2'>stretched</th><th rowspan='2'>parts</th><th rowspan='2'>floating elements</th>"
-             "<th rowspan='2'>materials without elements</th>"
+             "<th rowspan='2'>materials without elements</th><th rowspan='2'>surface topology changed</th>"
              + (f"<th colspan='{len(materials)}'>volume change, % (against meshed labels / original)</th>"
                 if materials else "")
              + (f"<th colspan='{len(stages)}'>seconds / peak MB per stage</th>" if stages else "") + "</tr>")
@@ -184,13 +186,14 @@ def render_cohort_html(columns: list[str], rows: list[list], poor_threshold: flo
     body = []
     for row in rows:
         warn = (bool(row[at["inverted"]]) or (row[at["parts"]] or 1) > 1
-                or bool(row[at["materials_without_elements"]]))
+                or bool(row[at["materials_without_elements"]]) or bool(row[at["topology_changed"]]))
         cells = [html.escape(str(row[at["patient"]])), _cell(row[at["elements"]]), _cell(row[at["nodes"]]),
                  _cell(row[at["min_scaled_jacobian"]], ".3f"), _cell(row[at["p1_scaled_jacobian"]], ".3f"),
                  _cell(row[at["inverted"]]), _cell(row[at["poor"]]), _cell(row[at["stretched"]]),
                  _cell(row[at["parts"]]),
                  _cell(row[at["floating_elements"]]),
-                 html.escape(_cell(row[at["materials_without_elements"]]))]
+                 html.escape(_cell(row[at["materials_without_elements"]])),
+                 html.escape(_cell(row[at["topology_changed"]]))]
         cells += [f"{_cell(row[at[f'volume_change_percent:{m}']], '+.1f')} / "
                   f"{_cell(row[at[f'original_volume_change_percent:{m}']], '+.1f')}" for m in materials]
         cells += [f"{_cell(row[at[f'seconds:{s}']], '.1f')} / {_cell(row[at[f'peak_mb:{s}']], '.0f')}"

@@ -485,8 +485,9 @@ STYLE = ("body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;
          "figcaption{font-size:90%;color:#444}")
 
 
-def missing_html(report: dict) -> str:
-    """A highlighted line naming the materials without elements ('' when every one has some).
+def notices_html(report: dict) -> str:
+    """Highlighted lines naming the materials without elements and those whose surface
+    topology differs from their voxels' ('' when there are none).
 
     Parameters
     ----------
@@ -497,10 +498,11 @@ def missing_html(report: dict) -> str:
     -------
     str
     """
-    missing = report.get("materials_without_elements") or []
-    if not missing:
-        return ""
-    return _grid(["materials without elements"], [[", ".join(missing)]], ["warn"])
+    rows = [[what, ", ".join(report.get(key) or [])]
+            for key, what in (("materials_without_elements", "materials without elements"),
+                              ("topology_changed", "surface topology unlike the voxels"))
+            if report.get(key)]
+    return _grid(["notice", "materials"], rows, ["warn"] * len(rows)) if rows else ""
 
 
 def parts_html(report: dict) -> str:
@@ -582,7 +584,7 @@ def render_html(report: dict, pictures: list[tuple[str, bytes]] = ()) -> str:
         f"<style>{STYLE}</style></head><body>",
         f"<h1>Mesh quality</h1><p>dicer {html.escape(report['dicer_version'])}</p>",
         _table(top),
-        missing_html(report),
+        notices_html(report),
         parts_html(report),
         volume_html(report),
     ]

@@ -300,6 +300,7 @@ def test_a_hole_that_merging_closes_is_reported_as_a_change_of_topology(dim):
     merged, _ = merge_mesh(voxel_mesh(labels))
     report = quality_report(merged, load_config(), labels=volume)
     assert report["elements"] < voxels["elements"] and report["topology_changed"] == ["soft_tissue"]
+    assert "<td>surface topology unlike the voxels</td><td>soft_tissue</td>" in render_html(report)
     entry = report["materials"]["soft_tissue"]
     assert entry["voxel_surface_euler"] == 0 and entry["surface_euler"] == (2 if dim == 3 else 1)
     # a cavity and a second material: counted per material, nothing changed unmerged

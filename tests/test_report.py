@@ -248,7 +248,7 @@ def test_a_material_without_elements_is_named_in_the_report_the_page_and_the_coh
     labels = np.ones((4, 4, 4), np.uint8)  # soft tissue only: the default config names bone too
     report = quality_report(voxel_mesh(labels), load_config())
     assert report["materials_without_elements"] == ["bone"] and list(report["materials"]) == ["soft_tissue"]
-    assert "<tr class='warn'><td>bone</td></tr>" in render_html(report)
+    assert "<tr class='warn'><td>materials without elements</td><td>bone</td></tr>" in render_html(report)
     labels[0] = 2
     full = quality_report(voxel_mesh(labels), load_config())
     assert full["materials_without_elements"] == [] and "materials without elements" not in render_html(full)
@@ -257,6 +257,10 @@ def test_a_material_without_elements_is_named_in_the_report_the_page_and_the_coh
     assert [row[at] for row in rows] == ["bone", "", None]
     page = render_cohort_html(columns, rows)
     assert page.count("<tr class=warn>") == 1 and "<td>bone</td>" in page
+    changed = dict(full, topology_changed=["soft_tissue"])
+    columns, rows = cohort_rows({"p2": changed})
+    assert rows[0][columns.index("topology_changed")] == "soft_tissue"
+    assert render_cohort_html(columns, rows).count("<tr class=warn>") == 1
     write_mesh(voxel_mesh(np.ones((4, 4, 4), np.uint8)), tmp_path / "m.vtu")
     assert main(["quality", str(tmp_path / "m.vtu"), "-o", str(tmp_path / "q.json"), "-q"]) == 0
     warned = [r.getMessage() for r in caplog.records if "no elements in the model" in r.getMessage()]

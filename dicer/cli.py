@@ -1302,6 +1302,9 @@ def _output_lock(outdir: Path):
                 raise DicerError(f"{outdir}: another dicer run is writing this folder ({os.path.realpath(outdir)}, "
                                  "given by another path); wait for it to finish, or give another output folder "
                                  "with -o") from None
+            except OSError:  # a file system that locks only files open for writing (NFS): the lock file holds
+                os.close(folder)
+                folder = None
         yield
     finally:
         with contextlib.suppress(OSError):

@@ -1,6 +1,7 @@
 """The `dicer` command: every form runs, and bad input ends in one `error:` line, exit 2, no file."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -459,3 +460,29 @@ def test_run_with_a_method_without_a_criterion_says_nothing_of_a_plot_it_was_not
     assert main(["segment", str(tmp_path / "head.nii.gz"), "-o", str(tmp_path / "l.nii.gz"), "-q",
                  "--set", "segment.method=multiotsu", "--plot", str(tmp_path / "t.png")]) == 0
     assert [r for r in caplog.records if "--plot draws the criterion" in r.getMessage()]
+
+
+def test_the_folder_lock_is_left_out_where_the_file_system_refuses_it(tmp_path, monkeypatch):
+    # NFS locks only files open for writing: flock on the folder fails with EBADF, which came
+    # out of 'dicer run' as a traceback; the lock file beside the folder still holds
+    import errno
+    import fcntl
+
+    import dicer.cli as cli
+    from dicer.errors import DicerError
+
+    real = fcntl.flock
+
+    def nfs(fd, op):
+        if os.path.isdir(f"/proc/self/fd/{fd}"):
+            raise OSError(errno.EBADF, "Bad file descriptor")
+        return real(fd, op)
+
+    monkeypatch.setattr(fcntl, "flock", nfs)
+    (tmp_path / "out").mkdir()
+    with cli._output_lock(tmp_path / "out"):
+        assert (tmp_path / ".out.lock").exists()
+        with pytest.raises(DicerError, match="another dicer run is writing this folder"):
+            with cli._output_lock(tmp_path / "out"):
+                pass
+    assert not (tmp_path / ".out.lock").exists()

@@ -44,11 +44,28 @@ def _config(args) -> dict:
             raise DicerError("--settings: pass a JSON object of config sections")
     config = load_config(args.config, args.set or (), settings)
     if getattr(args, "materials", None):
-        config["materials"] = _read_materials(args.materials)
+        # the file gives the materials of the mapped labels, in order; a material the user's
+        # own config also lists takes its properties from there (the workflow's label patients:
+        # a stiffness study re-runs the exports alone, not the labels that wrote the file)
+        listed = {m["name"]: m for m in config["materials"]} if _lists_materials(args, settings) else {}
+        config["materials"] = [listed.get(m.get("name"), m) if isinstance(m, dict) else m
+                               for m in _read_materials(args.materials)]
         from dicer.config import validate
 
         validate(config, args.materials)
     return config
+
+
+def _lists_materials(args, settings: dict | None) -> bool:
+    """Whether the command's own configuration (--settings, --set or --config) lists the
+    materials, rather than taking the defaults'."""
+    from dicer.config import read_config_file
+
+    if settings is not None and "materials" in settings:
+        return True
+    if any(item.split("=", 1)[0].strip().split(".")[0] == "materials" for item in args.set or ()):
+        return True
+    return bool(getattr(args, "config", None)) and "materials" in read_config_file(args.config)
 
 
 def _warn_of_unused_settings(args) -> None:

@@ -486,3 +486,32 @@ def test_the_folder_lock_is_left_out_where_the_file_system_refuses_it(tmp_path, 
             with cli._output_lock(tmp_path / "out"):
                 pass
     assert not (tmp_path / ".out.lock").exists()
+
+
+def test_a_materials_file_takes_the_properties_of_the_materials_the_config_lists(tmp_path, capsys):
+    # the workflow's label patients: materials.json gives the mapped labels' names in order;
+    # the properties of a material the command's own config lists come from there, so a
+    # stiffness study need not re-run the labels stage that wrote the file
+    from dicer.io.meshes import write_mesh
+    from dicer.mesh.voxel import voxel_mesh
+
+    labels = np.ones((3, 3, 3), np.uint8)
+    labels[0] = 2
+    write_mesh(voxel_mesh(labels), tmp_path / "m.vtu")
+    (tmp_path / "materials.json").write_text(json.dumps({"materials": [
+        {"name": "gel", "youngs_modulus": 5.0, "poissons_ratio": 0.45, "density": 1e-9},
+        {"name": "shell", "youngs_modulus": 700.0, "poissons_ratio": 0.3, "density": 2e-9}]}))
+
+    def elastic(name):
+        deck = (tmp_path / "d.inp").read_text()
+        return deck[deck.index(f"*MATERIAL, NAME={name}"):].split("*ELASTIC\n", 1)[1].split("\n", 1)[0]
+
+    argv = ["export", tmp_path / "m.vtu", "-o", tmp_path / "d.inp", "--materials", tmp_path / "materials.json", "-q"]
+    assert run_cli(capsys, *argv)[0] == 0  # no config: the file's
+    assert elastic("gel") == "5, 0.45" and elastic("shell") == "700, 0.3"
+    (tmp_path / "c.yaml").write_text("materials:\n  - {name: shell, youngs_modulus: 900, poissons_ratio: 0.25}\n"
+                                     "  - {name: other, youngs_modulus: 1}\n")
+    assert run_cli(capsys, *argv, "--config", tmp_path / "c.yaml")[0] == 0
+    assert elastic("gel") == "5, 0.45" and elastic("shell") == "900, 0.25"
+    assert run_cli(capsys, *argv, "--set", "materials=[{name: gel, youngs_modulus: 6}]")[0] == 0
+    assert elastic("gel") == "6, 0.3" and elastic("shell") == "700, 0.3"

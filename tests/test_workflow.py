@@ -206,6 +206,20 @@ def test_labels_column_meshes_a_label_volume(tmp_path):
     report = json.loads((brain / "quality.json").read_text())
     assert set(report["materials"]) == {"white_matter", "grey_matter", "label_4", "cerebellum"}
     assert _planned_jobs(_snakemake(workdir, "-n")) == {}
+    # a stiffness study re-runs the exports alone (the labels stage wrote the properties into
+    # materials.json, and every stage after it ran again), and the deck takes the new value
+    config_path = workdir / "config" / "config.yaml"
+    config = yaml.safe_load(config_path.read_text())
+    config["materials"].append({"name": "cerebellum", "youngs_modulus": 0.002, "poissons_ratio": 0.49})
+    config_path.write_text(yaml.safe_dump(config, sort_keys=False))
+    _snakemake(workdir)
+    config["materials"][-1]["youngs_modulus"] = 4321.5
+    config_path.write_text(yaml.safe_dump(config, sort_keys=False))
+    assert _planned_jobs(_snakemake(workdir, "-n")) == {"export": 4, "cohort": 1, "all": 1}
+    _snakemake(workdir)
+    deck = (brain / "model.inp").read_text()
+    block = deck[deck.index("*MATERIAL, NAME=cerebellum"):]
+    assert block.split("*ELASTIC\n", 1)[1].startswith("4321.5,")
 
 
 def test_row_with_image_and_labels_is_refused(tmp_path):

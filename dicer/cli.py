@@ -295,8 +295,10 @@ def do_segment(image_path: str, out: Path, config: dict, overlay: Path | None = 
     return labels
 
 
-def do_labels(labels_path: str, out: Path, config: dict, materials_path: Path | None = None) -> list[dict]:
-    """Map a label volume made elsewhere to materials 1..K (config ``labels``); returns the materials."""
+def do_labels(labels_path: str, out: Path, config: dict, materials_path: Path | None = None,
+              names_only: bool = False) -> list[dict]:
+    """Map a label volume made elsewhere to materials 1..K (config ``labels``); returns the
+    materials. ``names_only``: the materials file holds their names, not properties."""
     from dicer.config import stage_kwargs
     from dicer.io.atomic import write_bytes_atomic
     from dicer.io.images import read_labels
@@ -307,7 +309,8 @@ def do_labels(labels_path: str, out: Path, config: dict, materials_path: Path | 
         mapped, materials, info = map_labels(labels, **stage_kwargs(config, "labels"), source=labels_path)
         write_mapped_labels(mapped, labels_path, out)
         if materials_path:
-            text = json.dumps({"materials": materials, "values": info["values"]}, indent=1, sort_keys=True)
+            written = [{"name": m["name"]} for m in materials] if names_only else materials
+            text = json.dumps({"materials": written, "values": info["values"]}, indent=1, sort_keys=True)
             write_bytes_atomic(materials_path, text + "\n")
         log.info("labels: wrote %s (%d material(s): %s; values %s)", out, len(materials),
                  brief_json(info["voxels"]), brief_json(info["values"]))
@@ -1035,7 +1038,16 @@ def cmd_segment(args):
 def cmd_labels(args):
     out = _check_output(args.output, (".nii", ".nii.gz"), "the label volume")
     materials = _check_output(args.materials_out, (".json",), "the materials file") if args.materials_out else None
-    do_labels(args.labels, out, _config(args), materials)
+    do_labels(args.labels, out, _config(args), materials, names_only=_names_only(args))
+
+
+def _names_only(args) -> bool:
+    """Whether --settings gives the materials by name alone (the workflow's labels rule: the
+    properties go to the export from its own settings, and the file holds no stale ones)."""
+    if not getattr(args, "settings", None):
+        return False
+    listed = json.loads(args.settings).get("materials")
+    return bool(listed) and all(isinstance(m, dict) and set(m) == {"name"} for m in listed)
 
 
 def _warn_of_config_numbering(args, config: dict, stage: str) -> None:

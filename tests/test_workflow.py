@@ -217,6 +217,8 @@ def test_labels_column_meshes_a_label_volume(tmp_path):
     config_path.write_text(yaml.safe_dump(config, sort_keys=False))
     assert _planned_jobs(_snakemake(workdir, "-n")) == {"export": 4, "cohort": 1, "all": 1}
     _snakemake(workdir)
+    listed = json.loads((brain / "materials.json").read_text())["materials"]
+    assert listed == [{"name": n} for n in ("white_matter", "grey_matter", "label_4", "cerebellum")]
     deck = (brain / "model.inp").read_text()
     block = deck[deck.index("*MATERIAL, NAME=cerebellum"):]
     assert block.split("*ELASTIC\n", 1)[1].startswith("4321.5,")

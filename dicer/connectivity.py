@@ -791,7 +791,8 @@ def fix_stage(labels: np.ndarray, *, names: dict[str, str], min_component_voxels
                                      max_type_c_rounds=max_type_c_rounds, majority_rounds=majority_rounds)
     fixed, after = remove_islands(fixed, min_component_voxels)
     if values is not None:  # numbered back: the report's classes too
-        fixed, array = values[fixed].astype(labels.dtype), labels if array is ranked else values[array]
+        back = values.astype(labels.dtype)  # a table: no (voxels,) int64 temporaries
+        fixed, array = back[fixed], labels if array is ranked else back[array]
         for part in (report, islands, after):
             for kind in ("type_a", "type_b", "type_c", "removed_by_material"):
                 if kind in part:
@@ -856,9 +857,14 @@ def priority_order(labels: np.ndarray, names: dict[str, str], priority: list[str
     listed = [v for n in priority for v in sorted(by_name[n], reverse=True)]
     rest = [int(v) for v in present if v != 0 and int(v) not in listed]
     values = np.array([0] + rest + listed[::-1], dtype=np.int64)
+    small = np.min_scalar_type(max(values.size - 1, 1))
+    if present.size and 0 <= int(present[0]) and int(present[-1]) < 1 << 20:  # a table by value
+        table = np.zeros(int(max(values.max(), present[-1])) + 1, small)
+        table[values] = np.arange(values.size, dtype=small)
+        return values, table[labels]
     order = np.argsort(values)
     index = np.searchsorted(values[order], labels)  # every value of labels is in ``values`` or listed
-    return values, order[index].astype(np.min_scalar_type(max(values.size - 1, 1)))
+    return values, order[index].astype(small)
 
 
 def joined_parts(before: np.ndarray, after: np.ndarray, parts_after: int | None = None) -> int:

@@ -128,17 +128,20 @@ def surface_euler(mesh: Mesh, neighbours: np.ndarray) -> dict[int, int]:
     order = np.argsort(mats, kind="stable")
     faces, mats = faces[order], mats[order]
     starts = np.flatnonzero(np.r_[True, mats[1:] != mats[:-1]])
-    n = int(mesh.n_points)
-    seen = np.zeros(n, bool)
-    out = {}
-    for label, f in zip(mats[starts].tolist(), np.split(faces, starts[1:])):
-        seen[:] = False
-        seen[f.ravel()] = True
-        a, b = f.ravel(), np.roll(f, -1, axis=1).ravel()
-        keys = np.sort(np.minimum(a, b) * n + np.maximum(a, b))  # counted by sorting: np.unique hashes slowly here
-        edges = int(np.count_nonzero(keys[1:] != keys[:-1])) + 1
-        out[int(label)] = int(np.count_nonzero(seen)) - edges + f.shape[0]
-    return out
+    seen = np.zeros(mesh.n_points, bool)
+    return {int(label): _quads_euler(f, seen) for label, f in zip(mats[starts].tolist(), np.split(faces, starts[1:]))}
+
+
+def _quads_euler(quads: np.ndarray, seen: np.ndarray) -> int:
+    """V - E + F of a set of quadrilaterals (Q, 4) int64 of node numbers; ``seen``: an (N,)
+    bool scratch array (its contents are overwritten)."""
+    n = seen.size
+    seen[:] = False
+    seen[quads.ravel()] = True
+    a, b = quads.ravel(), np.roll(quads, -1, axis=1).ravel()
+    keys = np.sort(np.minimum(a, b) * n + np.maximum(a, b))  # counted by sorting: np.unique hashes slowly here
+    edges = int(np.count_nonzero(keys[1:] != keys[:-1])) + 1
+    return int(np.count_nonzero(seen)) - edges + quads.shape[0]
 
 
 def region_euler(mesh: Mesh) -> dict[int, int]:
@@ -157,18 +160,8 @@ def region_euler(mesh: Mesh) -> dict[int, int]:
     """
     cells = np.asarray(mesh.cells)[:, :4].astype(np.int64)
     material = np.asarray(mesh.material)
-    n = int(mesh.n_points)
-    seen = np.zeros(n, bool)
-    out = {}
-    for label in np.unique(material).tolist():
-        f = cells[material == label]
-        seen[:] = False
-        seen[f.ravel()] = True
-        a, b = f.ravel(), np.roll(f, -1, axis=1).ravel()
-        keys = np.sort(np.minimum(a, b) * n + np.maximum(a, b))
-        edges = int(np.count_nonzero(keys[1:] != keys[:-1])) + 1
-        out[int(label)] = int(np.count_nonzero(seen)) - edges + f.shape[0]
-    return out
+    seen = np.zeros(mesh.n_points, bool)
+    return {int(label): _quads_euler(cells[material == label], seen) for label in np.unique(material).tolist()}
 
 
 def voxel_euler(labels: np.ndarray, which) -> dict[int, int]:
@@ -292,10 +285,10 @@ def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None, voxel: np.n
     if m == 0:
         return out
     material = np.asarray(mesh.material, np.int64)
-    if voxel is None and material.min() > 0:  # the grid holds 0 for no element
-        voxel = voxel_elements(mesh)
-    elif material.min() <= 0:
+    if material.min() <= 0:  # the grid holds 0 for no element
         voxel = None
+    elif voxel is None:
+        voxel = voxel_elements(mesh)
     if voxel is not None:
         shape = tuple(int(n) for n in np.asarray(mesh.grid_shape)[:mesh.dim])
         model_sizes, comp_material, sizes = _grid_parts(shape, voxel, material)
@@ -395,6 +388,7 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stre
                     100.0 * (per["volume"][i] / (voxels * orig_voxel_volume) - 1.0))
         materials[names.get(label, f"material_{label}")] = entry
 
+    meshed = set(per["label"].tolist())
     report = {
         "dicer_version": __version__,
         "dimension": mesh.dim,
@@ -412,7 +406,7 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stre
         "stretched_threshold": float(stretched_edge_ratio),
         # named materials the model has no element of (a class the segmentation left empty, a
         # material downsampling or the fixes removed): the deck has no element set for them
-        "materials_without_elements": [n for i, n in names.items() if i not in set(per["label"].tolist())],
+        "materials_without_elements": [n for i, n in names.items() if i not in meshed],
     }
     if mesh.n_cells and labels is not None and np.asarray(labels.array).ndim == mesh.dim:
         from dicer.mesh.faces import voxel_elements
@@ -423,7 +417,7 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stre
         if voxel is None and parts is None:
             voxel = voxel_elements(mesh)
         array = np.asarray(labels.array)
-        same = (voxel is not None and array.size == int(np.prod(np.asarray(mesh.grid_shape)[:mesh.dim]))
+        same = (voxel is not None and array.shape == tuple(int(k) for k in np.asarray(mesh.grid_shape)[:mesh.dim])
                 and int(np.count_nonzero(array)) == mesh.n_cells
                 and np.array_equal(array.reshape(-1)[voxel], np.asarray(mesh.material)))
         changed = []

@@ -38,7 +38,7 @@ STAGE_SECTIONS = {
 
 # The stages that read only the materials' names (and order): a change of a material's
 # properties re-runs the exports alone (the labels stage's materials.json then holds the
-# names' defaults, and the export takes the properties from its own settings by name)
+# names alone, and the export takes the properties from its own settings by name)
 NAMES_ONLY = ("segment", "labels", "downsample", "fix", "mesh", "quality")
 
 # Keys of other sections a stage reads too (the workflow passes them with the sections): the

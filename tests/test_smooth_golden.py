@@ -144,9 +144,13 @@ SMOOTH_CASES = {
     "graded_2d": ("graded_2d", {}),
     "stripes": ("stripes", {"coefficient": 0.5}),
     "ct3_image": ("ct3", {"surface_from_image": True}),
-    "ct3_image_pull_backoff": ("ct3", {"surface_from_image": True, "min_scaled_jacobian": 0.6, "coefficient": 0.9}),
+    "ct3_image_pull_backoff": ("ct3", {"surface_from_image": True, "min_scaled_jacobian": 0.4, "coefficient": 0.9}),
     "ct2_image": ("ct2", {"surface_from_image": True, "image_sigma": 0.0}),
     "ct3_image_off": ("ct3", {}),
+    "cut_fit": ("cut", {"surface_from_labels": True}),
+    "merged_fit": ("merged", {"surface_from_labels": True}),
+    "graded_fit": ("graded", {"surface_from_labels": True, "label_surface_radius": 3}),
+    "quarter_disc_fit": ("quarter_disc", {"surface_from_labels": True}),
 }
 
 GRAPH_CASES = {
@@ -178,7 +182,7 @@ def smooth_digest(name):
     except DicerError as err:
         return f"error {sha(str(err))}"
     assert out.cells is m.cells
-    pull = report.get("surface_from_image", {}).get("pull_backoff_rounds", "-")
+    pull = report.get("surface_from_image", report.get("surface_from_labels", {})).get("pull_backoff_rounds", "-")
     # points, node classes, report; back-off rounds of the coefficients and of the pull onto the image
     return (f"{sha(np.asarray(out.points))} {sha(np.asarray(out.point_data['node_class']))} "
             f"{sha(without_seconds(report))} {report['backoff_rounds']} {pull}")
@@ -252,10 +256,14 @@ GOLDEN_SMOOTH = {
     "graded": "14212e9998e3c920 156f82b159a44490 b1d4beb61faf2f31 0 -",
     "graded_2d": "3cba2cd66dd38c0e 8bfaf44b8d705e50 a490eb95a33444bd 1 -",
     "stripes": "cfe39d74484ce0d9 efe7c648830f56d4 0b63c4462ba68759 0 -",
-    "ct3_image": "3e4e8f82030b7a48 93a92adc8d68ce10 9ceb5b5b7ed8f060 0 2",
-    "ct3_image_pull_backoff": "d54a97b5de0e19d5 93a92adc8d68ce10 2a6fe9c96465aa42 2 10",
-    "ct2_image": "96eb50d051a40440 77d80cb3dfef2a0c 206d1d780d9df74a 0 3",
+    "ct3_image": "3e4e8f82030b7a48 93a92adc8d68ce10 5adae844212b8cf1 0 2",
+    "ct3_image_pull_backoff": "8d17e237db097fd0 93a92adc8d68ce10 1e23fe1da361fd37 5 12",
+    "ct2_image": "96eb50d051a40440 77d80cb3dfef2a0c 7dd7cca851eb20a5 0 3",
     "ct3_image_off": "5a5c7c82f3759ea5 93a92adc8d68ce10 c7cb80870a7f9182 0 -",
+    "cut_fit": "211ca479705e3f80 56e6b73b7f51e9c6 6424cc23855dcbcc 0 0",
+    "merged_fit": "fe32a91368256c6a 67b2f02161168701 d056b0936b4a5044 0 0",
+    "graded_fit": "f99d8c8259ad7294 156f82b159a44490 1ecf3d150aea5ac5 0 0",
+    "quarter_disc_fit": "3cc82e6d1c04595e 38bd4ad4a81d2134 918131c8a6db3a21 0 0",
 }
 
 GOLDEN_GRAPH = {

@@ -72,9 +72,10 @@ _PULL_ROUNDS = 5  # guard rounds per solve that back off the pull onto the image
 
 
 @takes_settings("smooth", section=True)
-def smoothing_settings(*, surface_from_image, image_sigma, coefficient, coefficients, bounding_planes,
-                       keep_bounding_planes, interior, shrink_compensation, interior_band, min_scaled_jacobian,
-                       backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance) -> dict:
+def smoothing_settings(*, surface_from_image, image_sigma, surface_from_labels, label_surface_radius, coefficient,
+                       coefficients, bounding_planes, keep_bounding_planes, interior, shrink_compensation,
+                       interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow,
+                       pillow_thickness, tolerance) -> dict:
     """The ``smooth:`` settings as the solves read them: a coefficient per node class.
 
     Types and ranges are the schema's to check (:func:`dicer.config.stage_kwargs`, through
@@ -82,9 +83,9 @@ def smoothing_settings(*, surface_from_image, image_sigma, coefficient, coeffici
 
     Parameters
     ----------
-    surface_from_image, image_sigma, coefficient, coefficients, bounding_planes, keep_bounding_planes, \
-interior, shrink_compensation, interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow, \
-pillow_thickness, tolerance
+    surface_from_image, image_sigma, surface_from_labels, label_surface_radius, coefficient, coefficients, \
+bounding_planes, keep_bounding_planes, interior, shrink_compensation, interior_band, min_scaled_jacobian, \
+backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance
         The ``smooth:`` config section (see the schema).
 
     Returns
@@ -110,7 +111,9 @@ pillow_thickness, tolerance
                     "given (%s) is not used; leave smooth.coefficient out (null) to smooth with the map",
                     coefficient, ", ".join(mapped))
     per_class = {c: float(coefficients[c] if coefficient is None else coefficient) for c in _CLASS_LETTERS}
-    return {"surface_from_image": surface_from_image, "image_sigma": image_sigma, "coefficient": coefficient,
+    return {"surface_from_image": surface_from_image, "image_sigma": image_sigma,
+            "surface_from_labels": surface_from_labels, "label_surface_radius": label_surface_radius,
+            "coefficient": coefficient,
             "coefficients": per_class, "bounding_planes": bounding_planes,
             "keep_bounding_planes": keep_bounding_planes, "interior": interior,
             "shrink_compensation": shrink_compensation, "interior_band": interior_band,
@@ -674,17 +677,24 @@ class _Smoothing:
 
 
 def _image_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str) -> tuple[object | None, float]:
-    """The scan's iso-surfaces for ``surface_from_image``.
+    """The surface the boundary nodes are pulled onto: the scan's iso-surfaces for
+    ``surface_from_image``, else the labels' fitted staircase for ``surface_from_labels``.
 
     Returns
     -------
-    surface : ImageSurface or None
-        None without an image or with the setting off.
+    surface : ImageSurface, LabelSurface or None
+        None with neither (or ``surface_from_image`` alone and no image).
     seconds : float
         Time taken.
     """
     if image is None or not s["surface_from_image"]:
-        return None, 0.0
+        if not s["surface_from_labels"]:
+            return None, 0.0
+        from dicer.mesh.labelsurface import LabelSurface
+
+        t = time.perf_counter()
+        return (LabelSurface(mesh, s["label_surface_radius"], s["bounding_planes"] == "mirror"),
+                time.perf_counter() - t)
     from dicer.mesh.subvoxel import ImageSurface, check_thresholds_for_mesh
 
     if thresholds is None:
@@ -805,7 +815,7 @@ def _set_up(mesh: Mesh, s: dict, surface, t0: float, t_img: float) -> _Smoothing
         from dicer.mesh.subvoxel import NodeSides
 
         t2 = time.perf_counter()
-        sides = NodeSides(mesh, bnodes, g.boundary_cells, x0, on_plane, fixed, surface.thresholds)
+        sides = NodeSides(mesh, bnodes, g.boundary_cells, x0, on_plane, fixed, surface.thresholds, planes is not None)
         pull = _Pull(surface, sides, (k > 0).astype(float), np.zeros(bnodes.size, bool))
         timings["image"] = time.perf_counter() - t2 + t_img
     return _Smoothing(mesh, s, x0, g, graded, bnodes, adj, degree, k, fixed, weight, x0[bnodes], band_nodes,
@@ -837,16 +847,28 @@ def _boundary_solve(st: _Smoothing) -> np.ndarray:
 
 
 def _pull_onto_image(st: _Smoothing, xb_labels: np.ndarray) -> None:
-    """Targets on the scan's iso-surfaces (``dicer.mesh.subvoxel.project``) for the boundary
-    positions ``xb_labels`` (B, 3) mm; the guard backs this move off first."""
-    from dicer.mesh.subvoxel import lift, project
+    """Targets on the scan's iso-surfaces (``dicer.mesh.subvoxel.project``) or the labels' fitted
+    staircase (``LabelSurface.project``) for the boundary positions ``xb_labels`` (B, 3) mm; the
+    guard backs this move off first."""
+    from dicer.mesh.subvoxel import ImageSurface, lift, pairs_not_helped, project
 
-    on_surface, st.pull.info = project(st.pull.surface, st.pull.sides, st.adj, st.degree, st.x0, st.bnodes, xb_labels)
-    st.pull.found = np.any(on_surface != xb_labels, axis=1)
-    st.pull.info["nodes_moved"] = int(np.count_nonzero(st.pull.found))  # over every pass, not the last one's
+    if isinstance(st.pull.surface, ImageSurface):
+        on_surface, st.pull.info = project(st.pull.surface, st.pull.sides, st.adj, st.degree, st.x0, st.bnodes,
+                                           xb_labels)
+    elif st.pull.target is not None:  # the labels' fit is made once: its targets stand
+        return
+    else:
+        on_surface, st.pull.info = st.pull.surface.project(st.pull.sides, st.x0, st.bnodes, xb_labels)
+    found = np.any(on_surface != xb_labels, axis=1)
     if st.surface is None and st.s["pillow"]:
         st.surface = on_surface
-    st.pull.target = lift(st.pull.sides, on_surface, float(st.s["min_scaled_jacobian"]))
+    target = lift(st.pull.sides, on_surface, float(st.s["min_scaled_jacobian"]), st.weight)
+    stay, pairs = pairs_not_helped(st.pull.sides, found, on_surface, target, xb_labels, st.weight)
+    target[stay] = xb_labels[stay]
+    st.pull.found = found & ~stay
+    st.pull.target = target
+    st.pull.info["nodes_moved"] = int(np.count_nonzero(st.pull.found))  # over every pass, not the last one's
+    st.pull.info["pairs_left_to_the_labels"] = pairs
 
 
 def _interior_solve(st: _Smoothing, xb_labels: np.ndarray) -> None:
@@ -953,7 +975,7 @@ def _back_off_pull(st: _Smoothing) -> bool:
         pulled = np.concatenate([pulled, bpos[ends.ravel()]])
     pulled = np.unique(pulled[pulled >= 0])
     share = st.pull.share
-    pulled = pulled[share[pulled] > 0]
+    pulled = pulled[(share[pulled] > 0) & st.pull.found[pulled]]  # a node not pulled has no pull to back off
     if pulled.size == 0:
         return False
     share[pulled] *= 0.5
@@ -1335,13 +1357,18 @@ def _volume_change(st: _Smoothing) -> tuple[np.ndarray, float, np.ndarray]:
 
 
 def _pull_report(st: _Smoothing) -> dict:
-    """The ``surface_from_image`` part of the report (empty without the pull)."""
+    """The ``surface_from_image`` (or ``surface_from_labels``) part of the report (empty without the pull)."""
     if st.pull is None:
         return {}
+    from dicer.mesh.subvoxel import ImageSurface
+
     p = st.pull
-    return {"surface_from_image": {**p.info, "image_sigma": st.s["image_sigma"], "pull_backoff_rounds": p.rounds,
-                                   "pull_backed_off_nodes": int(p.backed.sum()),
-                                   "nodes_on_the_image_surface": int(np.count_nonzero((p.share == 1.0) & p.found))}}
+    common = {"pull_backoff_rounds": p.rounds, "pull_backed_off_nodes": int(p.backed.sum())}
+    on = int(np.count_nonzero((p.share == 1.0) & p.found))
+    if not isinstance(p.surface, ImageSurface):
+        return {"surface_from_labels": {**p.info, **common, "nodes_on_the_fitted_surface": on}}
+    return {"surface_from_image": {**p.info, "image_sigma": st.s["image_sigma"], **common,
+                                   "nodes_on_the_image_surface": on}}
 
 
 def _report(st: _Smoothing, t0: float) -> dict:
@@ -1382,10 +1409,10 @@ def _report(st: _Smoothing, t0: float) -> dict:
 
 
 @takes_settings("smooth", section=True)
-def smooth_mesh(mesh: Mesh, *, surface_from_image, image_sigma, coefficient, coefficients, bounding_planes,
-                keep_bounding_planes, interior, shrink_compensation, interior_band, min_scaled_jacobian,
-                backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance, image=None, thresholds=None,
-                image_source: str = "image") -> tuple[Mesh, dict]:
+def smooth_mesh(mesh: Mesh, *, surface_from_image, image_sigma, surface_from_labels, label_surface_radius,
+                coefficient, coefficients, bounding_planes, keep_bounding_planes, interior, shrink_compensation,
+                interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow, pillow_thickness,
+                tolerance, image=None, thresholds=None, image_source: str = "image") -> tuple[Mesh, dict]:
     """Smooth ``mesh``: node classes, boundary solve, pull onto the image, interior solve, guard.
 
     The settings are keyword-only, with no defaults here: the command line passes
@@ -1397,13 +1424,15 @@ def smooth_mesh(mesh: Mesh, *, surface_from_image, image_sigma, coefficient, coe
     ----------
     mesh : Mesh
         A mesh made by 'dicer mesh' (voxel, plane-merged or graded), with ``lattice`` point data.
-    surface_from_image, image_sigma, coefficient, coefficients, bounding_planes, keep_bounding_planes, \
-interior, shrink_compensation, interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow, \
-pillow_thickness, tolerance
+    surface_from_image, image_sigma, surface_from_labels, label_surface_radius, coefficient, coefficients, \
+bounding_planes, keep_bounding_planes, interior, shrink_compensation, interior_band, min_scaled_jacobian, \
+backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance
         The ``smooth:`` config section (see the schema and :func:`smoothing_settings`).
     image : dicer.image.Volume, optional
         The scan the labels were segmented from; with ``surface_from_image`` the boundary nodes
-        move onto its iso-surfaces after the boundary solve (``dicer.mesh.subvoxel``).
+        move onto its iso-surfaces after the boundary solve (``dicer.mesh.subvoxel``). Without
+        it, ``surface_from_labels`` moves them onto a fit of the labels' staircase
+        (``dicer.mesh.labelsurface``).
     thresholds : sequence of float, optional
         The lower bound of each material 1..K in the image's units, as segmentation chose them.
     image_source : str
@@ -1423,9 +1452,10 @@ pillow_thickness, tolerance
         do not fit the mesh, or a mesh the guard cannot bring above ``min_scaled_jacobian``.
     """
     s = smoothing_settings.__wrapped__(
-        surface_from_image=surface_from_image, image_sigma=image_sigma, coefficient=coefficient,
-        coefficients=coefficients, bounding_planes=bounding_planes, keep_bounding_planes=keep_bounding_planes,
-        interior=interior, shrink_compensation=shrink_compensation, interior_band=interior_band,
+        surface_from_image=surface_from_image, image_sigma=image_sigma, surface_from_labels=surface_from_labels,
+        label_surface_radius=label_surface_radius, coefficient=coefficient, coefficients=coefficients,
+        bounding_planes=bounding_planes, keep_bounding_planes=keep_bounding_planes, interior=interior,
+        shrink_compensation=shrink_compensation, interior_band=interior_band,
         min_scaled_jacobian=min_scaled_jacobian, backoff_factor=backoff_factor,
         max_backoff_rounds=max_backoff_rounds, pillow=pillow, pillow_thickness=pillow_thickness, tolerance=tolerance)
     _check_input(mesh)

@@ -46,7 +46,7 @@ from dicer.image import Volume
 from dicer.mesh.model import Mesh
 from dicer.mesh.topology import HEX_CORNER_NEIGHBOURS, QUAD_CORNER_NEIGHBOURS
 
-__all__ = ["ImageSurface", "NodeSides", "check_thresholds_for_mesh", "project"]
+__all__ = ["ImageSurface", "NodeSides", "check_thresholds_for_mesh", "lift", "pairs_not_helped", "project"]
 
 # corners per element -> for each corner, the corners its edges run to, right-handed
 _EDGE_ENDS = {8: HEX_CORNER_NEIGHBOURS, 4: QUAD_CORNER_NEIGHBOURS}
@@ -197,6 +197,7 @@ class NodeSides:
     on_plane : (B, 3) bool, the bounding-plane axes each boundary node lies on.
     fixed : (B, 3) bool, the coordinates the smoothing holds (plane axes, z in 2D).
     thresholds : (K,) float64, lower bound of each material.
+    mirror : bool, the bounding planes are mirrors (``bounding_planes: mirror``).
 
     Attributes
     ----------
@@ -207,7 +208,7 @@ class NodeSides:
     """
 
     def __init__(self, mesh: Mesh, bnodes: np.ndarray, cells_near: np.ndarray, x0: np.ndarray,
-                 on_plane: np.ndarray, fixed: np.ndarray, thresholds: np.ndarray):
+                 on_plane: np.ndarray, fixed: np.ndarray, thresholds: np.ndarray, mirror: bool = False):
         n = mesh.n_points
         b = bnodes.size
         dim = mesh.dim
@@ -245,6 +246,9 @@ class NodeSides:
         self.cells = sub
         self.b = b
         self.fixed = fixed
+        # the coordinates a mirror plane holds: the mirror images of a node's corners move them
+        # the other way, so ``lift`` sizes its steps as if they were free and then drops them
+        self.mirrored = on_plane & fixed if mirror else np.zeros_like(fixed)
         self.top = top
         # the corners at a usable node whose edges all end at boundary nodes: their scaled
         # Jacobian depends on boundary positions only (``lift``)
@@ -283,7 +287,7 @@ class NodeSides:
         return nrm / np.where(ok, length, 1.0)[:, None], ok
 
 
-def lift(sides: NodeSides, y: np.ndarray, floor: float) -> np.ndarray:
+def lift(sides: NodeSides, y: np.ndarray, floor: float, share: np.ndarray | None = None) -> np.ndarray:
     """Boundary positions with flattened corners sharpened to the quality floor.
 
     A voxel at a convex corner of the staircase has up to seven boundary nodes; placed on a
@@ -303,6 +307,10 @@ def lift(sides: NodeSides, y: np.ndarray, floor: float) -> np.ndarray:
         Boundary node positions, mm.
     floor : float
         Lowest corner scaled Jacobian wanted.
+    share : (B,) float64 ndarray, optional
+        With mirror planes: each node's share of the mirrored model (2^-planes it lies on).
+        A node on a plane has the mirror images of its corners too, whose moves in the plane
+        equal its own corners' moves, so its summed move is divided by its share.
 
     Returns
     -------
@@ -314,6 +322,7 @@ def lift(sides: NodeSides, y: np.ndarray, floor: float) -> np.ndarray:
     p, ends = sides.corner, sides.corner_ends
     nodes = np.concatenate([p[:, None], ends], axis=1)  # (C, 1 + dim)
     free = ~sides.fixed[nodes]  # (C, 1 + dim, 3)
+    counted = free | sides.mirrored[nodes]  # the whole mirrored model's gradient
     y = y.copy()
     for _ in range(_LIFT_ITERATIONS):
         e = y[ends] - y[p][:, None, :]  # (C, dim, 3)
@@ -330,17 +339,63 @@ def lift(sides: NodeSides, y: np.ndarray, floor: float) -> np.ndarray:
             ga = np.stack([b[:, 1], -b[:, 0], zero], axis=1)  # df/da
             gb = np.stack([-a[:, 1], a[:, 0], zero], axis=1)  # df/db
             grad = np.stack([-(ga + gb), ga, gb], axis=1)
-        grad = np.where(free, grad, 0.0)
+        grad = np.where(counted, grad, 0.0)
         need = target * np.prod(length, axis=1) - f
         g2 = np.einsum("ijk,ijk->i", grad, grad)
         go = (need > 0) & (g2 > 0)
         if not go.any():
             break
-        step = grad[go] * (need[go] / g2[go])[:, None, None]
+        step = np.where(free[go], grad[go], 0.0) * (need[go] / g2[go])[:, None, None]
         flat = nodes[go].ravel()
         moves = step.reshape(-1, 3)
-        y += np.stack([np.bincount(flat, weights=moves[:, k], minlength=sides.b) for k in range(3)], axis=1)
+        total = np.stack([np.bincount(flat, weights=moves[:, k], minlength=sides.b) for k in range(3)], axis=1)
+        y += total if share is None else total / share[:, None]
     return y
+
+
+def pairs_not_helped(sides: NodeSides, moved: np.ndarray, surface: np.ndarray, lifted: np.ndarray,
+                     start: np.ndarray, share: np.ndarray | None = None) -> tuple[np.ndarray, list[str]]:
+    """The pairs of kinds whose nodes :func:`lift` takes farther from the surface than the labels' smoothing left them.
+
+    Between two materials both sides' convex corners are sharpened (each side's elements keep
+    the quality floor), so on an interface the lifted nodes can end up farther from the surface
+    than where the labels' smoothing put them: such a pair is better left unpulled. Decided
+    per pair, by the mean distance of its moved nodes from the surface.
+
+    Parameters
+    ----------
+    sides : NodeSides
+    moved : (B,) bool ndarray
+        Nodes given a position on the surface.
+    surface : (B, 3) float64 ndarray
+        Those positions (the others: unused), mm.
+    lifted : (B, 3) float64 ndarray
+        The positions after :func:`lift`, mm.
+    start : (B, 3) float64 ndarray
+        The positions the labels' smoothing gave, mm.
+    share : (B,) float64 ndarray, optional
+        Each node's share of the mirrored model (a cut model decides as the whole one).
+
+    Returns
+    -------
+    stay : (B,) bool ndarray
+        The nodes of those pairs.
+    pairs : list of str
+        Those pairs, "lower|higher" (0: background).
+    """
+    stay = np.zeros(sides.b, bool)
+    pairs = []
+    if not moved.any():
+        return stay, pairs
+    pair = sides.pair
+    ids, rank = np.unique(pair[moved], return_inverse=True)
+    w = 1.0 if share is None else share[moved]
+    lifted_off = np.bincount(rank, weights=w * np.linalg.norm(lifted[moved] - surface[moved], axis=1))
+    start_off = np.bincount(rank, weights=w * np.linalg.norm(start[moved] - surface[moved], axis=1))
+    for p in ids[lifted_off >= start_off]:  # a pair or two
+        stay |= pair == p
+        pairs.append(f"{int(p) // sides.top}|{int(p) % sides.top}")
+    return stay, pairs
 
 
 def project(surface: ImageSurface, sides: NodeSides, adj: sp.csr_matrix, degree: np.ndarray, x: np.ndarray,

@@ -1,0 +1,300 @@
+"""Sub-voxel surfaces from the labels: boundary nodes moved onto a local quadric fit of the staircase.
+
+A label image places a surface only to within a voxel, but its staircase holds more: the
+element faces between two kinds scatter about the surface they were cut from by up to half
+a voxel along its normal, evenly over a few voxels of surface. After the boundary solve of
+``dicer.mesh.smooth`` (``smooth.surface_from_labels``), every boundary node between exactly
+two kinds (a material and the background, or two materials) moves along its normal onto a
+quadric fitted by weighted least squares to those faces near it (moving least squares):
+
+1. **Samples**: every element face between two kinds, not on a bounding plane, at the
+   unsmoothed positions, cut into its lattice steps (a merged face of 1 x 4 voxels gives four
+   samples), each with the face's unit normal into the higher kind and its area. With
+   ``bounding_planes: mirror`` the samples near a bounding plane are mirrored across it, so a
+   cut model is fitted as the whole one is.
+2. **Neighbours**: the samples within the radius r (``label_surface_radius`` voxels of the
+   finest axis) of the node, of the node's pair of kinds, facing its side (the far side of a
+   thin plate faces the other way; faces within 6 degrees of edge-on count less) and within two
+   voxels of its tangent plane (bent by r).
+3. **Fit**: in the node's frame (normal n from its elements, as the image pull takes it;
+   tangents t1, t2) the height h = c0 + c1 u + c2 v + c3 u^2 + c4 uv + c5 v^2 (2D:
+   c0 + c1 u + c2 u^2), weights area (1 - d^2 / r^2)^2 with d the tangential distance; then
+   once more without the samples a voxel or more off the first fit (another sheet). The
+   quadric takes the surface's curvature, so a curved body is not shrunk as blurring the
+   labels would shrink it.
+4. The node moves by c0 along n, at most the voxel's extent along n. A node with fewer than
+   three samples per coefficient stays where the labels' smoothing put it.
+
+The fitted surface does not depend on the smoothing coefficients, so it is fitted once per
+stage; the quality guard then backs the move off as it backs off the pull onto a scan.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from dicer.mesh.boundary import _plane_sides
+from dicer.mesh.faces import neighbour_materials
+from dicer.mesh.model import Mesh
+from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
+from dicer.parallel import ordered_map
+
+__all__ = ["LabelSurface", "staircase_samples"]
+
+_FACING = 0.1  # the cosine between a face's and the node's normals from which a face counts fully
+_SHEET = 2.0  # voxels off the tangent plane (besides the bend over r) where another sheet begins
+_OUTLIER = 1.0  # voxels off the first fit: dropped from the second
+_PER_COEFFICIENT = 3  # samples needed per coefficient of the fit
+_CHUNK = 8192  # nodes fitted at a time: (chunk, k) temporaries
+
+
+def staircase_samples(mesh: Mesh, mirror_reach: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The faces between two kinds, cut into lattice steps.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        Voxel, plane-merged or graded, unsmoothed (its ``points`` on the lattice).
+    mirror_reach : float, optional
+        Mirror the samples within this distance (mm) of each bounding plane across it, the
+        mirror images too (so a corner of two or three planes is mirrored into each of its
+        quadrants or octants); 0: none.
+
+    Returns
+    -------
+    points : (S, dim) float64 ndarray
+        Sample positions, mm.
+    normals : (S, dim) float64 ndarray
+        Unit normals into the higher kind.
+    kinds : (S, 2) int64 ndarray
+        The lower and the higher kind (0: background).
+    weights : (S,) float64 ndarray
+        The area (2D: length) each sample stands for, mm^2 (mm).
+    """
+    dim = mesh.dim
+    x0 = np.asarray(mesh.points, float)
+    table = HEX_FACES if dim == 3 else QUAD_EDGES
+    across = neighbour_materials(mesh)
+    own = np.asarray(mesh.material)
+    elem, face = np.nonzero(across != own[:, None])
+    corner = np.asarray(mesh.cells)[elem[:, None], table[face]]  # (F, 4 | 2)
+    on_lo, on_hi = _plane_sides(mesh, x0)
+    on_plane = np.zeros(elem.size, bool)
+    for d in range(dim):  # the image's edge is no surface between two kinds
+        on_plane |= on_lo[corner, d].all(axis=1) | on_hi[corner, d].all(axis=1)
+    keep = ~on_plane
+    elem, face, corner = elem[keep], face[keep], corner[keep]
+    a, b = own[elem].astype(np.int64), across[elem, face].astype(np.int64)
+    kinds = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)
+    p = x0[corner][..., :dim]  # (F, 4 | 2, dim)
+    if dim == 3:
+        nrm = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
+        area = 0.5 * np.linalg.norm(nrm, axis=1)
+    else:
+        e = p[:, 1] - p[:, 0]
+        nrm = np.stack([e[:, 1], -e[:, 0]], axis=1)
+        area = np.linalg.norm(nrm, axis=1)
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1), 1e-30)[:, None]
+    inward = x0[np.asarray(mesh.cells)[elem]][..., :dim].mean(axis=1) - p.mean(axis=1)  # into the face's element
+    towards_own = np.sign(np.einsum("ij,ij->i", nrm, inward))
+    nrm *= (np.where(a == kinds[:, 1], 1.0, -1.0) * towards_own)[:, None]
+    # lattice steps along the face's two edges from corner 0
+    lat = np.asarray(mesh.lattice)[corner][..., :dim]
+    steps_u = np.maximum(np.abs(lat[:, 1] - lat[:, 0]).max(axis=1), 1)
+    steps_v = np.maximum(np.abs(lat[:, -1] - lat[:, 0]).max(axis=1), 1) if dim == 3 else np.ones_like(steps_u)
+    code = steps_u * (int(steps_v.max(initial=1)) + 1) + steps_v
+    parts = []
+    for c in np.unique(code):  # a few face sizes
+        sel = np.flatnonzero(code == c)
+        nu, nv = int(steps_u[sel[0]]), int(steps_v[sel[0]])
+        su, sv = (np.arange(nu) + 0.5) / nu, (np.arange(nv) + 0.5) / nv
+        if dim == 3:
+            uu, vv = (g.ravel() for g in np.meshgrid(su, sv, indexing="ij"))
+            shape = np.stack([(1 - uu) * (1 - vv), uu * (1 - vv), uu * vv, (1 - uu) * vv], axis=1)  # bilinear
+        else:
+            shape = np.stack([1 - su, su], axis=1)
+        pts = np.einsum("sc,fcd->fsd", shape, p[sel])  # (f, steps, dim)
+        k = shape.shape[0]
+        parts.append((pts.reshape(-1, dim), np.repeat(nrm[sel], k, axis=0), np.repeat(kinds[sel], k, axis=0),
+                      np.repeat(area[sel] / k, k)))
+    if not parts:
+        return np.zeros((0, dim)), np.zeros((0, dim)), np.zeros((0, 2), np.int64), np.zeros(0)
+    points, normals, kinds, weights = (np.concatenate(x) for x in zip(*parts))
+    if mirror_reach > 0:
+        lo = np.asarray(mesh.origin, float)[:dim]
+        hi = lo + np.asarray(mesh.grid_shape, float)[:dim] * np.asarray(mesh.spacing, float)[:dim]
+        for d in range(dim):
+            copies = [(points, normals, kinds, weights)]
+            for plane in (lo[d], hi[d]):
+                near = np.flatnonzero(np.abs(points[:, d] - plane) < mirror_reach)
+                mp, mn = points[near], normals[near]
+                mp[:, d] = 2 * plane - mp[:, d]
+                mn[:, d] = -mn[:, d]
+                copies.append((mp, mn, kinds[near], weights[near]))
+            points, normals, kinds, weights = (np.concatenate(x) for x in zip(*copies))
+    return points, normals, kinds, weights
+
+
+
+class LabelSurface:
+    """The labels' staircase near a mesh, and the fit of its boundary nodes onto it.
+
+    Parameters
+    ----------
+    mesh : Mesh
+        The mesh to be smoothed (unsmoothed: on its lattice).
+    radius : float
+        The fit's radius, voxels of the finest axis.
+    mirror : bool
+        ``bounding_planes: mirror``: samples mirrored across the bounding planes.
+    """
+
+    def __init__(self, mesh: Mesh, radius: float, mirror: bool):
+        dim = mesh.dim
+        self.dim = dim
+        spacing = np.asarray(mesh.spacing, float)[:dim]
+        self.mesh_spacing = spacing
+        self.voxel = float(spacing.max())
+        self.radius = float(radius) * float(spacing.min())
+        self.points, self.normals, kinds, self.weights = staircase_samples(mesh, self.radius if mirror else 0.0)
+        self.top = int(np.max(mesh.material, initial=0)) + 1
+        # thresholds for NodeSides: one per material (the labels have no image values)
+        self.thresholds = np.arange(1, self.top, dtype=float)
+        # each pair of kinds in a space of its own: a fourth coordinate, the pair's rank times
+        # more than the radius, so a query finds its own pair's samples only (an atlas's
+        # thousands of pairs would otherwise crowd each other's neighbourhoods)
+        self.pairs, rank = np.unique(kinds[:, 0] * self.top + kinds[:, 1], return_inverse=True)
+        self._apart = 4.0 * self.radius
+        self.tree = cKDTree(np.c_[self.points, rank * self._apart]) if self.points.shape[0] else None
+        # the samples a disc of the radius can hold on a staircase (sqrt 3 its area), and more
+        r = float(radius)
+        self.k = int(np.ceil(2.2 * np.pi * r * r if dim == 3 else 4.4 * r)) + 8
+
+    def offsets(self, y: np.ndarray, normal: np.ndarray, pair: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The fitted surface's height above each node along its normal.
+
+        Parameters
+        ----------
+        y : (P, 3) float64 ndarray
+            Node positions, mm.
+        normal : (P, 3) float64 ndarray
+            Unit normals into the higher kind.
+        pair : (P,) int64 ndarray
+            Each node's kinds, lower * ``top`` + higher.
+
+        Returns
+        -------
+        height : (P,) float64 ndarray
+            mm along the normal, 0 where no fit.
+        fitted : (P,) bool ndarray
+            Nodes with enough samples for the fit.
+        """
+        height = np.zeros(y.shape[0])
+        fitted = np.zeros(y.shape[0], bool)
+        if self.tree is None or y.shape[0] == 0:
+            return height, fitted
+
+        def fit(part: slice) -> None:
+            height[part], fitted[part] = self._fit(y[part, :self.dim], normal[part, :self.dim], pair[part])
+
+        for _ in ordered_map(fit, [slice(s, s + _CHUNK) for s in range(0, y.shape[0], _CHUNK)]):
+            pass
+        return height, fitted
+
+    def _neighbours(self, p: np.ndarray, pair: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every sample of the pair within the radius of each point: (P, k) distances (inf: none)
+        and indices.
+
+        The k nearest are asked for, and again with twice k where all k lie within the radius,
+        so no sample within it is left out (leaving some out would break ties by numbering and
+        a mirrored model would not fit alike)."""
+        rank = np.searchsorted(self.pairs, pair)
+        known = (rank < self.pairs.size) & (self.pairs[np.minimum(rank, self.pairs.size - 1)] == pair)
+        p = np.c_[p, np.where(known, rank, -1) * self._apart]  # a pair without samples: none near
+        k = min(self.k, self.points.shape[0])
+        dist, idx = self.tree.query(p, k=k, distance_upper_bound=self.radius)
+        full = np.isfinite(dist[:, -1])
+        while full.any() and k < self.points.shape[0]:
+            k = min(2 * k, self.points.shape[0])
+            rows = np.flatnonzero(full)
+            d2, i2 = self.tree.query(p[rows], k=k, distance_upper_bound=self.radius)
+            wide_d = np.full((p.shape[0], k), np.inf)
+            wide_i = np.full((p.shape[0], k), self.points.shape[0], np.int64)
+            wide_d[:, :dist.shape[1]], wide_i[:, :idx.shape[1]] = dist, idx
+            wide_d[rows], wide_i[rows] = d2, i2
+            dist, idx = wide_d, wide_i
+            full = np.zeros(p.shape[0], bool)
+            full[rows] = np.isfinite(d2[:, -1])
+        return dist, idx
+
+    def _fit(self, p: np.ndarray, n: np.ndarray, pair: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        dim, r = self.dim, self.radius
+        dist, idx = self._neighbours(p, pair)
+        ok = np.isfinite(dist)
+        idx[~ok] = 0
+        # facing the node's side: a weight rising from 0 (edge-on) to 1 at _FACING, continuous so
+        # that faces edge-on to the node (an axis-aligned normal) count alike in a mirrored model
+        facing = np.clip((self.normals[idx] * n[:, None, :]).sum(axis=2) / _FACING, 0.0, 1.0)
+        rel = self.points[idx] - p[:, None, :]
+        h = rel @ n[:, :, None]  # (P, k, 1)
+        h = h[..., 0]
+        if dim == 2:
+            u = rel[..., 0] * -n[:, None, 1] + rel[..., 1] * n[:, None, 0]
+            d2 = u * u
+            basis = np.stack([np.ones_like(u), u, u * u], axis=-1)
+        else:
+            helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+            t1 = np.cross(n, helper)
+            t1 /= np.linalg.norm(t1, axis=1)[:, None]
+            t2 = np.cross(n, t1)
+            u = (rel @ t1[:, :, None])[..., 0]
+            v = (rel @ t2[:, :, None])[..., 0]
+            d2 = u * u + v * v
+            basis = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1)
+        q = d2 / (r * r)
+        ok &= (q < 1.0) & (np.abs(h) < self.voxel * _SHEET + 0.5 * d2 / r)
+        w = np.where(ok, (1.0 - q) ** 2 * facing * self.weights[idx], 0.0)
+        m = basis.shape[-1]
+        bt = basis.transpose(0, 2, 1)
+        coef = np.zeros((p.shape[0], m))
+        for _ in range(2):  # the second without the samples far off the first fit
+            wb = bt * w[:, None, :]
+            normal_matrix = wb @ basis
+            normal_matrix += (1e-9 * np.maximum(np.trace(normal_matrix, axis1=1, axis2=2), 1e-30))[:, None, None] \
+                * np.eye(m)
+            coef = np.linalg.solve(normal_matrix, (wb @ h[..., None]))[..., 0]
+            residual = h - (basis @ coef[..., None])[..., 0]
+            w = np.where(np.abs(residual) < _OUTLIER * self.voxel, w, 0.0)
+        fitted = np.count_nonzero(w, axis=1) >= _PER_COEFFICIENT * m
+        return np.where(fitted, coef[:, 0], 0.0), fitted
+
+    def project(self, sides, x: np.ndarray, bnodes: np.ndarray, xb: np.ndarray) -> tuple[np.ndarray, dict]:
+        """The boundary positions moved onto the fitted surface (before ``subvoxel.lift``).
+
+        Parameters
+        ----------
+        sides : dicer.mesh.subvoxel.NodeSides
+        x : (N, 3) float64 ndarray
+            Positions of all nodes, mm (the boundary nodes' are replaced by ``xb``).
+        bnodes : (B,) int64 ndarray
+        xb : (B, 3) float64 ndarray
+            The boundary nodes' positions from the labels' smoothing, mm.
+
+        Returns
+        -------
+        positions : (B, 3) float64 ndarray
+        report : dict
+        """
+        xs = x.copy()
+        xs[bnodes] = xb
+        normal, defined = sides.normals(xs, xb)
+        sel = np.flatnonzero(defined)
+        lo, hi = sides.pair[sel] // sides.top, sides.pair[sel] % sides.top
+        height, fitted = self.offsets(xb[sel], normal[sel], lo * self.top + hi)
+        limit = np.abs(normal[sel, :self.dim]) @ self.mesh_spacing
+        height = np.clip(height, -limit, limit)
+        y = xb.copy()
+        y[sel] += height[:, None] * normal[sel]
+        return y, {"nodes_moved": int(np.count_nonzero(fitted)), "nodes_between_two_kinds": int(sides.usable.sum()),
+                   "label_surface_radius": self.radius / float(self.mesh_spacing.min())}

@@ -147,14 +147,15 @@ def sphere(request):
 def test_sphere_from_labels_alone(sphere):
     dim, mesh, labels_only, fitted, report = sphere
     before, after = radial(mesh, labels_only, dim), radial(mesh, fitted, dim)
-    # measured: 3D 0.137 -> 0.122 mean (the quality floor's corner kinks keep most of it: the
-    # fit itself is 0.046 before them), 2D 0.107 -> 0.093
+    # measured: 3D 0.137 -> 0.061 mean (the fit itself 0.046, the quality floor's corner
+    # sharpening the rest), 0.46 -> 0.53 max; 2D 0.107 -> 0.092 mean. The 3D mean is the
+    # sphere-from-labels target of docs/validation.md (0.12)
     if dim == 3:
-        assert before[0] > 0.13 and after[0] < 0.125
+        assert before[0] > 0.13 and after[0] < 0.065 and after[1] < 0.55
     else:
-        assert before[0] > 0.10 and after[0] < 0.095
+        assert before[0] > 0.10 and after[0] < 0.095 and after[1] < 0.42
     exact = 4 / 3 * np.pi * R**3 if dim == 3 else np.pi * R**2
-    assert abs(element_volumes(fitted.points, fitted.cells).sum() / exact - 1) < 0.002  # measured -0.12 / -0.09 %
+    assert abs(element_volumes(fitted.points, fitted.cells).sum() / exact - 1) < 0.003  # measured -0.22 / -0.06 %
     sj = scaled_jacobian(fitted.points, fitted.cells)
     assert sj.min() >= 0.2 and report["inverted_elements"] == 0
     info = report["surface_from_labels"]
@@ -171,20 +172,40 @@ def test_off_by_default_and_reproducible(sphere):
     assert not np.array_equal(labels_only.points, fitted.points)
 
 
-def test_an_interface_the_lift_would_roughen_is_left_to_the_labels():
-    # the outer surface (0|1) is fitted; on the interface (1|2) both sides' convex corners
-    # would be sharpened to the quality floor, taking its nodes farther from the fitted
-    # surface than the labels' smoothing left them (measured 0.236 against 0.138 voxel), so
-    # that pair is not pulled
+def test_two_interfaces_each_fitted_to_its_own_staircase():
+    # the outer surface (0|1) and the interface (1|2) of a ball in a shell, each from the faces
+    # of its own pair of kinds
     mesh = voxel_mesh(ball_labels(3, radii=(R, 9.7)))
     before, _ = smooth_mesh(mesh, {})
     after, report = smooth_mesh(mesh, ON)
     inner = radial(mesh, before, 3, 9.7, kinds=[2]), radial(mesh, after, 3, 9.7, kinds=[2])
     outer = radial(mesh, before, 3, R, kinds=[1]), radial(mesh, after, 3, R, kinds=[1])
-    assert outer[1][0] < outer[0][0] - 0.01  # measured 0.137 -> 0.122
-    assert inner[1] == inner[0]
-    assert report["surface_from_labels"]["pairs_left_to_the_labels"] == ["1|2"]
+    assert outer[1][0] < 0.5 * outer[0][0]  # measured 0.137 -> 0.061
+    assert inner[1][0] < 0.6 * inner[0][0]  # measured 0.141 -> 0.078
+    assert report["surface_from_labels"]["pairs_left_to_the_labels"] == []
     assert report["inverted_elements"] == 0
+
+
+def test_a_pair_the_sharpening_would_roughen_stays_with_the_labels(monkeypatch):
+    # where the corner sharpening takes a pair's nodes farther from its surface than the
+    # labels' smoothing left them (here made so: the interface's nodes pushed 0.4 voxel off),
+    # that pair keeps the labels' positions and the others are pulled
+    from dicer.mesh import subvoxel
+
+    mesh = voxel_mesh(ball_labels(3, radii=(R, 9.7)))
+    lift = subvoxel.lift
+
+    def rough(sides, y, floor, share=None):
+        out = lift(sides, y, floor, share)
+        out[sides.pair == 1 * sides.top + 2, 0] += 0.4
+        return out
+
+    monkeypatch.setattr(subvoxel, "lift", rough)
+    before, _ = smooth_mesh(mesh, {})
+    after, report = smooth_mesh(mesh, ON)
+    assert report["surface_from_labels"]["pairs_left_to_the_labels"] == ["1|2"]
+    assert radial(mesh, after, 3, 9.7, kinds=[2]) == radial(mesh, before, 3, 9.7, kinds=[2])
+    assert radial(mesh, after, 3, R, kinds=[1])[0] < 0.07
 
 
 def test_a_thin_plate_keeps_its_thickness():

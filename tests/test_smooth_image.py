@@ -61,12 +61,13 @@ def phantom(request):
 def test_surface_from_the_scan(phantom):
     dim, _, mesh, labels_only, scan, report = phantom
     before, after = measure(mesh, labels_only, dim), measure(mesh, scan, dim)
-    # measured (docs/smoothing.md): 3D 0.140 -> 0.089 mean, 0.46 -> 0.37 max;
-    # 2D 0.121 -> 0.045 mean, 0.36 -> 0.14 max
+    # measured (docs/smoothing.md): 3D 0.140 -> 0.046 mean, 0.46 -> 0.167 max;
+    # 2D 0.121 -> 0.044 mean, 0.36 -> 0.145 max. The 3D figures are the sphere target of
+    # docs/validation.md: mean <= 0.05, max <= 0.2, volume within 0.5 %
     if dim == 3:
-        assert before["mean"] > 0.13 and after["mean"] <= 0.095 and after["max"] <= 0.4
+        assert before["mean"] > 0.13 and after["mean"] <= 0.05 and after["max"] <= 0.2
     else:
-        assert before["mean"] > 0.11 and after["mean"] <= 0.05 and after["max"] <= 0.2
+        assert before["mean"] > 0.11 and after["mean"] <= 0.05 and after["max"] <= 0.16
     assert abs(after["volume"]) <= 0.005
     assert after["min_sj"] >= 0.2 and after["inverted"] == 0
     assert report["inverted_elements"] == 0 and report["min_scaled_jacobian"] >= 0.2
@@ -202,8 +203,8 @@ def test_volume_warning_names_the_pull_onto_the_scan(tmp_path, caplog):
 def test_pillow_puts_the_surface_on_the_scan(phantom):
     # a pillow layer (smooth.pillow) frees the surface nodes from the corners the quality
     # floor otherwise leaves: they stay where the iso-surface projection put them.
-    # Measured (docs/smoothing.md §3b): 3D mean 0.030, max 0.124, volume -0.35 %;
-    # 2D mean 0.040, max 0.120, volume -0.17 %
+    # Measured (docs/smoothing.md §3b): 3D mean 0.030, max 0.124, volume -0.35 % (without the
+    # layer 0.046, 0.167); 2D mean 0.040, max 0.120, volume -0.17 %
     from dicer.mesh.boundary import plane_bits
     from dicer.mesh.pillow import surface_faces
 
@@ -217,7 +218,7 @@ def test_pillow_puts_the_surface_on_the_scan(phantom):
     volume = float(element_volumes(out.points, out.cells).sum() / exact - 1)
     before = measure(mesh, scan, dim)
     assert np.abs(r).mean() <= 0.045 and np.abs(r).max() <= 0.15 and abs(volume) <= 0.005
-    assert np.abs(r).mean() < 0.5 * before["mean"] if dim == 3 else np.abs(r).mean() <= before["mean"]
+    assert np.abs(r).mean() < 0.7 * before["mean"] if dim == 3 else np.abs(r).mean() <= before["mean"]
     sj = scaled_jacobian(out.points, out.cells)
     assert sj.min() >= 0.2 and report["inverted_elements"] == 0 and report["min_scaled_jacobian"] == pytest.approx(sj.min())
     assert report["pillow"]["surface"] == "image" and report["pillow"]["faces_without_layer"] == 0

@@ -51,7 +51,7 @@ __all__ = ["ImageSurface", "NodeSides", "check_thresholds_for_mesh", "lift", "pa
 # corners per element -> for each corner, the corners its edges run to, right-handed
 _EDGE_ENDS = {8: HEX_CORNER_NEIGHBOURS, 4: QUAD_CORNER_NEIGHBOURS}
 _LIFT_MARGIN = 0.02
-_LIFT_ITERATIONS = 4
+_LIFT_ITERATIONS = 30  # at most; rounds end when every corner reaches the target
 
 _SAMPLES = 21  # profile samples over [-L, L]
 _FAR = 2.5  # the contrast samples, in units of L
@@ -297,8 +297,10 @@ def lift(sides: NodeSides, y: np.ndarray, floor: float, share: np.ndarray | None
     and its three edge ends (2D: (-(rot(b - a)), ...)); the components sum to zero. Each
     corner below ``floor`` + a margin moves its four nodes along that gradient (free
     coordinates only) by the least amount that reaches the target to first order: the
-    corner node out, its ends in, the surface's mean position kept. The moves of all
-    corners are summed per node; a few rounds, as the moves change neighbouring corners.
+    corner node out, its ends in, the surface's mean position kept. A node in several such
+    corners takes the mean of their moves (their sum would overshoot: each alone reaches its
+    target), in rounds until every corner reaches it (at most ``_LIFT_ITERATIONS``), as the
+    moves change neighbouring corners.
 
     Parameters
     ----------
@@ -310,7 +312,7 @@ def lift(sides: NodeSides, y: np.ndarray, floor: float, share: np.ndarray | None
     share : (B,) float64 ndarray, optional
         With mirror planes: each node's share of the mirrored model (2^-planes it lies on).
         A node on a plane has the mirror images of its corners too, whose moves in the plane
-        equal its own corners' moves, so its summed move is divided by its share.
+        equal its own corners' moves: they count 1 / share times in its mean.
 
     Returns
     -------
@@ -349,7 +351,13 @@ def lift(sides: NodeSides, y: np.ndarray, floor: float, share: np.ndarray | None
         flat = nodes[go].ravel()
         moves = step.reshape(-1, 3)
         total = np.stack([np.bincount(flat, weights=moves[:, k], minlength=sides.b) for k in range(3)], axis=1)
-        y += total if share is None else total / share[:, None]
+        # each corner's step alone reaches its target: a node in several corners takes their
+        # mean (their sum overshoots, and the kinks grow), over the mirror images too
+        count = np.bincount(flat, minlength=sides.b).astype(float)
+        if share is not None:
+            total /= share[:, None]
+            count /= share
+        y += total / np.maximum(count, 1.0)[:, None]
     return y
 
 

@@ -95,7 +95,10 @@ def rim_figure(results: dict, path: str | os.PathLike) -> None:
     ax.plot(theta, 1 - 2 * np.cos(np.radians(2 * theta)), "k-", lw=1, label="Kirsch: 1 − 2 cos 2θ")
     rows = results["kirsch"]["quarter"]
     for setting, etype, style in (("k=0", "CPS4", "C7"), ("defaults", "CPS4", "C0"), ("defaults", "CPS8", "C3"),
-                                  ("defaults+merge", "CPS4", "C2")):
+                                  ("defaults+merge", "CPS4", "C2"), ("labels fit", "CPS4", "C4"),
+                                  ("labels fit", "CPS8", "C1")):
+        if setting not in rows:
+            continue
         r = rows[setting][etype]
         ax.plot(r["rim_theta_deg"], r["rim_hoop"], ".-", color=style, ms=3, lw=0.7, label=f"{etype}, {setting}")
     _finish(plt, fig, ax, path, "θ (degrees from the load axis)", "hoop stress / σ0 at the rim nodes",
@@ -126,6 +129,11 @@ def lame_figure(results: dict, path: str | os.PathLike) -> None:
         ax.errorbar(a * shift, mean, yerr=[lo, hi], fmt="o-", color=color, capsize=3, label=f"{etype}: mean, node range")
         fit = np.array([r[etype]["wall_fit"] for r in rows.values()]) / exact
         ax.plot(a * shift, fit, "D", mfc="none", color=color, label=f"{etype}: wall fit at r = a")
+        fits = {float(k[2:].split("+")[0]): r for k, r in results["lame"].items() if k.endswith("+fit")}
+        if fits:
+            ax.plot(np.array(sorted(fits)) * shift, [fits[k][etype]["mean"] / fits[k][etype]["exact"]
+                                                     for k in sorted(fits)],
+                    "s", ms=6, mfc="none", color=color, label=f"{etype}: mean, surface fitted to the labels")
         scans = {float(k[2:]): r for k, r in results.get("lame-scan", {}).items() if "+" not in k}
         if scans:
             ax.plot(np.array(sorted(scans)) * shift, [scans[k][etype]["mean"] / scans[k][etype]["exact"]

@@ -8,7 +8,8 @@ the same bytes):
   stage's per-class defaults), all without plane merging; plus ``defaults+merge``, the
   whole default chain of ``dicer run``; and part ``full-offset`` (the full plate with its
   hole centre off the lattice by ``OFFSET``) at the settings ``OFFSET_SETTINGS``.
-* ``lame``: {"a=<inner>": {...}} at default smoothing without merging, and ``a=7+merge``.
+* ``lame``: {"a=<inner>": {...}} at default smoothing without merging, ``a=7+merge``, and
+  ``a=<inner>+fit`` with the surface fitted to the labels (``smooth.surface_from_labels``).
 * ``kirsch`` parts ``quarter-scan`` and ``full-scan``, and ``lame-scan``: the same bodies
   from a CT-like grey-value image (``geometry.kirsch_scan``, ``geometry.lame_scan``) by
   ``dicer run`` on the image with ``smooth.surface_from_image`` (the rim pulled onto the
@@ -32,11 +33,13 @@ COEFFICIENTS = (0.0, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95)
 NO_MERGE = "merge.passes=[0,0,0]"
 KIRSCH_RADIUS, KIRSCH_WIDTH = 7.0, 140  # a = 7 voxels, L = 20 a
 OFFSET = (0.35, 0.2)  # the full plate's hole centre off the lattice (voxels)
-OFFSET_SETTINGS = ("k=0", "k=0.8", "defaults", "defaults+merge")
+OFFSET_SETTINGS = ("k=0", "k=0.8", "defaults", "defaults+merge", "labels fit", "labels fit+merge",
+                   "labels fit+merge, min SJ 0.3")
 LAME_RADII = (7.0, 14.0, 28.0)  # inner radius a; outer 2 a
 LAME_SCAN_RADII = (7.0, 14.0)
 MIN_SJ_03 = "smooth.min_scaled_jacobian=0.3"  # the validation targets' quality floor as the guard's floor
 PILLOW = "smooth.pillow=true"  # a layer of elements over the surface (docs/smoothing.md §3b)
+FIT = "smooth.surface_from_labels=true"  # the surface fitted to the labels' staircase (docs/smoothing.md §3c)
 SCAN_NOISE = 30.0  # the grey-value images' noise on a contrast of 1000 (the ``-clean`` parts: none)
 ORDER_NAMES = {"kirsch": {1: "CPS4", 2: "CPS8"}, "lame": {1: "C3D8", 2: "C3D20"}}
 
@@ -56,7 +59,8 @@ def _named(result: dict, case: str) -> dict:
 
 
 def kirsch_settings() -> dict[str, list[str]]:
-    """The settings of the Kirsch sweep.
+    """The settings of the Kirsch sweep: the coefficient, the defaults (without and with plane
+    merging) and the surface fitted to the labels' staircase (``labels fit``).
 
     Returns
     -------
@@ -66,6 +70,11 @@ def kirsch_settings() -> dict[str, list[str]]:
     out = {f"k={k:g}": [NO_MERGE, f"smooth.coefficient={k!r}"] for k in COEFFICIENTS}
     out["defaults"] = [NO_MERGE]
     out["defaults+merge"] = []
+    out["labels fit"] = [NO_MERGE, FIT]
+    out["labels fit, min SJ 0.3"] = [NO_MERGE, FIT, MIN_SJ_03]
+    out["labels fit+merge"] = [FIT]
+    out["labels fit+merge, min SJ 0.3"] = [FIT, MIN_SJ_03]
+    out["labels fit, pillow, min SJ 0.3"] = [NO_MERGE, FIT, PILLOW, MIN_SJ_03]
     return out
 
 
@@ -131,6 +140,13 @@ def run_study(work: str | os.PathLike, log=print) -> dict:
     results["lame"][f"a={LAME_RADII[0]:g}+merge"] = _named(r, "lame")
     r = cases.lame(work / "lame_7_pillow", "quarter", [NO_MERGE, PILLOW], inner=LAME_RADII[0], outer=2 * LAME_RADII[0])
     results["lame"][f"a={LAME_RADII[0]:g}+pillow"] = _named(r, "lame")
+    for a in LAME_RADII:
+        r = cases.lame(work / f"lame_{a:g}_fit", "quarter", [NO_MERGE, FIT], inner=a, outer=2 * a)
+        results["lame"][f"a={a:g}+fit"] = _named(r, "lame")
+        log(f"lame a={a:g}+fit: C3D8 {r[1]['error_mean']:+.4f} C3D20 {r[2]['error_mean']:+.4f}")
+    r = cases.lame(work / "lame_7_fit_pillow", "quarter", [NO_MERGE, FIT, PILLOW], inner=LAME_RADII[0],
+                   outer=2 * LAME_RADII[0])
+    results["lame"][f"a={LAME_RADII[0]:g}+fit+pillow"] = _named(r, "lame")
     log(f"lame: {time.perf_counter() - t0:.0f} s")
     _run_scans(work, results, log)
     return _rounded(results)

@@ -17,7 +17,7 @@ import pytest
 from calculix import needs_ccx
 
 from dicer.validation import cases, geometry, reference
-from dicer.validation.study import MIN_SJ_03, NO_MERGE, OFFSET, PILLOW
+from dicer.validation.study import FIT, MIN_SJ_03, NO_MERGE, OFFSET, PILLOW
 
 pytestmark = [pytest.mark.calculix, needs_ccx]
 
@@ -59,20 +59,31 @@ def test_lame_quarter_tube_from_a_grey_value_image(tmp_path):
     r = cases.lame(tmp_path, "quarter", [NO_MERGE], inner=7.0, outer=14.0, orders=(1,), scan=True)
     assert r["inverted"] == 0 and r["min_sj"] == pytest.approx(0.22, abs=0.005)
     e = r[1]
-    assert e["error_mean"] == pytest.approx(-0.048, abs=0.01)  # from labels: -0.1415
-    assert e["error_wall_fit"] == pytest.approx(-0.008, abs=0.01)
-    assert e["bore_radius_mean"] == pytest.approx(6.974, abs=0.01)
+    assert e["error_mean"] == pytest.approx(-0.043, abs=0.01)  # from labels: -0.1415
+    assert e["error_wall_fit"] == pytest.approx(-0.018, abs=0.01)
+    assert e["bore_radius_mean"] == pytest.approx(6.976, abs=0.01)
 
 
 def test_lame_quarter_tube_from_a_grey_value_image_with_a_pillow_layer(tmp_path):
     """Fast: the pillow layer over the bore (smooth.pillow, a = 7 voxels, C3D8): the bore's mean
     hoop stress within 3 % (without the layer -4.8 %)."""
     r = cases.lame(tmp_path, "quarter", [NO_MERGE, PILLOW], inner=7.0, outer=14.0, orders=(1,), scan=True)
-    assert r["inverted"] == 0 and r["min_sj"] == pytest.approx(0.244, abs=0.005)
+    assert r["inverted"] == 0 and r["min_sj"] == pytest.approx(0.225, abs=0.005)
     e = r[1]
     assert e["elements"] == 312  # 228 and a layer of 84
     assert e["error_mean"] == pytest.approx(0.004, abs=0.01) and abs(e["error_mean"]) <= 0.03
     assert abs(e["error_wall_fit"]) < 0.01
+
+
+def test_lame_quarter_tube_from_labels_with_the_fitted_surface(tmp_path):
+    """Fast: the bore fitted to the labels' staircase (smooth.surface_from_labels, a = 7 voxels,
+    C3D8): the mean hoop stress -7.9 %, from -14.2 % without the fit."""
+    r = cases.lame(tmp_path, "quarter", [NO_MERGE, FIT], inner=7.0, outer=14.0, orders=(1,))
+    assert r["inverted"] == 0 and r["min_sj"] == pytest.approx(0.22, abs=0.005)
+    e = r[1]
+    assert e["elements"] == 230
+    assert e["error_mean"] == pytest.approx(-0.079, abs=0.01)
+    assert e["bore_radius_mean"] == pytest.approx(7.053, abs=0.01)
 
 
 @pytest.mark.parametrize("order,at_90", [(1, 3.0503), (2, 3.0213)])
@@ -155,6 +166,75 @@ def test_lame_refined(tmp_path, a, c3d8, c3d20):
     assert abs(r[1]["error_wall_fit"]) < 0.01 and abs(r[2]["error_wall_fit"]) < 0.015
 
 
+def kirsch_target(quarter: dict, full: dict, order: int, rel: float) -> None:
+    """The Kirsch target (docs/validation.md): sigma_x at 90 deg and the largest rim stress
+    within ``rel`` of 3.0, the largest at 90 +- 10 deg, min SJ >= 0.3, 0 inverted, quarter and
+    full plate within 1 %."""
+    for r in (quarter, full):
+        assert r["min_sj"] >= 0.3 and r["inverted"] == 0
+        assert r[order]["sigma_x_90"] == pytest.approx(3.0, rel=rel)
+        assert r[order]["peak"] == pytest.approx(3.0, rel=rel)
+        assert abs(r[order]["peak_angle_deg"] - 90.0) <= 10.0
+    assert quarter[order]["sigma_x_90"] == pytest.approx(full[order]["sigma_x_90"], rel=0.01)
+
+
+@pytest.fixture(scope="module")
+def kirsch_fit(tmp_path_factory):
+    """Quarter and full plate from the labels with the surface fitted to their staircase
+    (smooth.surface_from_labels), the guard's floor at 0.3: without plane merging and with it
+    (the default chain)."""
+    return {(part, merge): cases.kirsch(tmp_path_factory.mktemp(f"kirsch_fit_{part}"), part,
+                                        ([] if merge else [NO_MERGE]) + [FIT, MIN_SJ_03])
+            for part in ("quarter", "full") for merge in (False, True)}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("merge,cps4,cps8", [(False, (3.1224, 3.1738, 82.5), (2.9351, 3.2249, 71.9)),
+                                             (True, (3.0249, 3.0249, 90.0), (3.1064, 3.1064, 90.0))])
+def test_kirsch_plate_from_labels_with_the_fitted_surface(kirsch_fit, merge, cps4, cps8):
+    q, f = kirsch_fit[("quarter", merge)], kirsch_fit[("full", merge)]
+    for r in (q, f):
+        assert r["min_sj"] == pytest.approx(0.32, abs=0.005) and r["inverted"] == 0
+        for order, (at_90, peak, angle) in ((1, cps4), (2, cps8)):
+            assert r[order]["sigma_x_90"] == pytest.approx(at_90, abs=0.02)
+            assert r[order]["peak"] == pytest.approx(peak, abs=0.02)
+            assert r[order]["peak_angle_deg"] == pytest.approx(angle, abs=3.0)
+    for order in (1, 2):  # the cut plate fits as the whole one
+        assert f[order]["sigma_x_90"] == pytest.approx(q[order]["sigma_x_90"], abs=2e-4)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("order", [1, 2])
+def test_target_kirsch_from_labels_with_the_fitted_surface(kirsch_fit, order):
+    """The Kirsch target from the label image alone (within 8 % of 3.0 at 90 deg, the largest
+    rim stress within 8 % and at 90 +- 10 deg, min SJ >= 0.3, quarter and full within 1 %),
+    met by dicer run's default chain with smooth.surface_from_labels and
+    smooth.min_scaled_jacobian 0.3 (measured: CPS4 3.025, CPS8 3.106, both largest at 90 deg,
+    min SJ 0.320). Without plane merging the CPS8 largest rim stress sits at 72 deg."""
+    kirsch_target(kirsch_fit[("quarter", True)], kirsch_fit[("full", True)], order, 0.08)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="target from the label image at default settings (surface_from_labels off): "
+                   "sigma_x(90) 2.619 (CPS4, -12.7 %) with plane merging, 2.460 (-18.0 %) without; CPS8 2.762 "
+                   "(-7.9 %) with merging is within it")
+def test_target_kirsch_from_labels_at_defaults(tmp_path):
+    r = cases.kirsch(tmp_path, "quarter", [])
+    assert r["min_sj"] >= 0.3 and r["inverted"] == 0
+    for order in (1, 2):
+        assert r[order]["sigma_x_90"] == pytest.approx(3.0, rel=0.08)
+        assert r[order]["peak"] == pytest.approx(3.0, rel=0.08)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("a,c3d8,c3d20", [(14.0, -0.0445, -0.0608), (28.0, -0.0228, -0.0453)])
+def test_lame_from_labels_with_the_fitted_surface_refined(tmp_path, a, c3d8, c3d20):
+    r = cases.lame(tmp_path, "quarter", [NO_MERGE, FIT], inner=a, outer=2 * a)
+    assert r["inverted"] == 0
+    assert r[1]["error_mean"] == pytest.approx(c3d8, abs=0.01)
+    assert r[2]["error_mean"] == pytest.approx(c3d20, abs=0.01)
+
+
 # --- from a grey-value image: dicer run on a CT-like image, the rim on its iso-line ---------
 
 
@@ -187,22 +267,22 @@ def test_kirsch_plate_from_a_grey_value_image(kirsch_scan, part, name, min_sj, c
 @pytest.mark.slow
 def test_kirsch_rim_from_a_grey_value_image(kirsch_scan, kirsch_defaults):
     # the rim nodes' distance from the hole's circle: labels 0.186 mean, 0.52 largest;
-    # from the image 0.06 and 0.13 (noise of 30 on 1000 and the guard's sharpened corners)
+    # from the image 0.060 and 0.13 (noise of 30 on 1000 and the guard's sharpened corners)
     labels, scan = kirsch_defaults["quarter"][1], kirsch_scan[("quarter", "defaults")][1]
     assert labels["rim_radius_error_mean"] == pytest.approx(0.186, abs=0.005)
     assert labels["rim_radius_error_max"] == pytest.approx(0.522, abs=0.005)
-    assert scan["rim_radius_error_mean"] == pytest.approx(0.062, abs=0.005)
+    assert scan["rim_radius_error_mean"] == pytest.approx(0.060, abs=0.005)
     assert scan["rim_radius_error_max"] == pytest.approx(0.129, abs=0.005)
     assert scan["rim_radius_90"] == pytest.approx(7.039, abs=0.005)
     floor = kirsch_scan[("quarter", "min SJ 0.3")][1]  # a higher floor sharpens the corners more
-    assert floor["rim_radius_error_mean"] == pytest.approx(0.073, abs=0.005)
+    assert floor["rim_radius_error_mean"] == pytest.approx(0.069, abs=0.005)
     # the field about the hole: Kirsch's form fitted through the rim nodes, at 90 deg (about
     # 3.03 for this finite plate): the labels' rim makes it 12 % (CPS4) and 18 % (CPS8) low,
     # the image's 2.7 %; the nodes scatter about it by 0.17 (CPS4) and 0.31 (CPS8)
-    for order, from_labels, from_scan, scatter in ((1, 2.636, 2.949, 0.17), (2, 2.474, 2.957, 0.31)):
+    for order, from_labels, from_scan, scatter in ((1, 2.636, 2.946, 0.17), (2, 2.474, 2.958, 0.31)):
         assert kirsch_defaults["quarter"][order]["rim_fit_90"] == pytest.approx(from_labels, abs=0.01)
         assert kirsch_scan[("quarter", "defaults")][order]["rim_fit_90"] == pytest.approx(from_scan, abs=0.01)
-        assert kirsch_scan[("full", "defaults")][order]["rim_fit_90"] == pytest.approx(from_scan, abs=0.04)
+        assert kirsch_scan[("full", "defaults")][order]["rim_fit_90"] == pytest.approx(from_scan, abs=0.05)
         assert kirsch_scan[("quarter", "defaults")][order]["rim_fit_scatter"] == pytest.approx(scatter, abs=0.02)
 
 
@@ -232,10 +312,10 @@ def test_kirsch_plate_from_a_noise_free_image(kirsch_scan_clean):
     # mirrored), and the rim fit is the finite plate's 3.0
     q, f = kirsch_scan_clean["quarter"], kirsch_scan_clean["full"]
     for r in (q, f):
-        assert r["min_sj"] == pytest.approx(0.364, abs=0.005) and r["inverted"] == 0
-        assert r[1]["sigma_x_90"] == pytest.approx(3.144, abs=0.01)
-        assert r[2]["sigma_x_90"] == pytest.approx(3.055, abs=0.01)
-        assert r[2]["peak"] == pytest.approx(3.069, abs=0.01) and r[2]["peak_angle_deg"] == pytest.approx(82.4, abs=1)
+        assert r["min_sj"] == pytest.approx(0.320, abs=0.005) and r["inverted"] == 0
+        assert r[1]["sigma_x_90"] == pytest.approx(3.150, abs=0.01)
+        assert r[2]["sigma_x_90"] == pytest.approx(3.060, abs=0.01)
+        assert r[2]["peak"] == pytest.approx(3.076, abs=0.01) and r[2]["peak_angle_deg"] == pytest.approx(82.4, abs=1)
         assert r[1]["rim_fit_90"] == pytest.approx(3.0, abs=0.02)
     for order in (1, 2):
         assert f[order]["sigma_x_90"] == pytest.approx(q[order]["sigma_x_90"], abs=1e-3)
@@ -245,8 +325,8 @@ def test_kirsch_plate_from_a_noise_free_image(kirsch_scan_clean):
 @pytest.mark.slow
 def test_target_kirsch_cps8_from_a_noise_free_image(kirsch_scan_clean):
     """The Kirsch target holds for CPS8 from the grey-value image without noise, at
-    smooth.min_scaled_jacobian 0.3 (measured: 3.055 at 90 deg, largest 3.069 at 82 deg, min SJ
-    0.364, quarter and full within 0.02 %)."""
+    smooth.min_scaled_jacobian 0.3 (measured: 3.060 at 90 deg, largest 3.076 at 82 deg, min SJ
+    0.320, quarter and full within 0.02 %)."""
     q, f = kirsch_scan_clean["quarter"], kirsch_scan_clean["full"]
     for r in (q, f):
         assert r["min_sj"] >= 0.3 and r["inverted"] == 0
@@ -257,7 +337,7 @@ def test_target_kirsch_cps8_from_a_noise_free_image(kirsch_scan_clean):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="CPS4 from the noise-free image at min SJ 0.3: sigma_x(90) 3.144 (+4.8 %); "
+@pytest.mark.xfail(strict=True, reason="CPS4 from the noise-free image at min SJ 0.3: sigma_x(90) 3.150 (+5.0 %); "
                    "the O-grid reference of the same element size reads +1.7 % (infinite plate)")
 def test_target_kirsch_cps4_from_a_noise_free_image(kirsch_scan_clean):
     for r in kirsch_scan_clean.values():
@@ -276,7 +356,7 @@ def kirsch_scan_clean_pillow(tmp_path_factory):
 def test_target_kirsch_with_a_pillow_layer_from_a_noise_free_image(kirsch_scan_clean_pillow):
     """The Kirsch target, CPS4 and CPS8, from the partial-volume image with the pillow layer at
     smooth.min_scaled_jacobian 0.3 (measured: CPS4 3.077 at 90 deg, the largest there; CPS8
-    3.034, largest 3.082 at 82 deg; min SJ 0.377; quarter and full within 0.03 %)."""
+    3.034, largest 3.082 at 82 deg; min SJ 0.325; quarter and full within 0.03 %)."""
     q, f = kirsch_scan_clean_pillow["quarter"], kirsch_scan_clean_pillow["full"]
     for r in (q, f):
         assert r["min_sj"] >= 0.3 and r["inverted"] == 0
@@ -285,7 +365,7 @@ def test_target_kirsch_with_a_pillow_layer_from_a_noise_free_image(kirsch_scan_c
             assert r[order]["peak"] == pytest.approx(3.0, rel=0.03)
             assert abs(r[order]["peak_angle_deg"] - 90.0) <= 10.0
         # the figures measured (docs/validation.md §4)
-        assert r["min_sj"] == pytest.approx(0.377, abs=0.005)
+        assert r["min_sj"] == pytest.approx(0.325, abs=0.005)
         assert r[1]["sigma_x_90"] == pytest.approx(3.077, abs=0.01)
         assert r[2]["sigma_x_90"] == pytest.approx(3.034, abs=0.01)
         assert r[2]["peak"] == pytest.approx(3.082, abs=0.01)
@@ -307,13 +387,13 @@ def test_target_lame_with_a_pillow_layer_from_a_grey_value_image(tmp_path, a, c3
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("a,c3d8,c3d20", [(7.0, -0.048, -0.103), (14.0, -0.026, -0.067)])
+@pytest.mark.parametrize("a,c3d8,c3d20", [(7.0, -0.043, -0.058), (14.0, -0.024, -0.043)])
 def test_lame_from_a_grey_value_image(tmp_path, a, c3d8, c3d20):
     r = cases.lame(tmp_path, "quarter", [NO_MERGE], inner=a, outer=2 * a, scan=True)
     assert r["inverted"] == 0 and r["min_sj"] == pytest.approx(0.22, abs=0.005)
     assert r[1]["error_mean"] == pytest.approx(c3d8, abs=0.01)
     assert r[2]["error_mean"] == pytest.approx(c3d20, abs=0.01)
-    assert abs(r[1]["error_wall_fit"]) < 0.01 and abs(r[2]["error_wall_fit"]) < 0.01
+    assert abs(r[1]["error_wall_fit"]) < 0.02 and abs(r[2]["error_wall_fit"]) < 0.01
 
 
 # --- the accuracy targets, not met by the current defaults (numbers in docs/validation.md) ---
@@ -339,23 +419,17 @@ def test_target_lame_within_3_percent(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="target from a grey-value image at min SJ >= 0.3 (smooth.min_scaled_jacobian "
-                   "0.3): sigma_x(90) quarter / full 3.218 / 3.139 (CPS4, +7.3 / +4.6 %), 3.056 / 3.001 (CPS8); "
-                   "largest rim stress (CPS8) 3.327 / 3.367 at 79 deg; quarter and full 2.5 % (CPS4), "
-                   "1.8 % (CPS8) apart")
+                   "0.3): sigma_x(90) quarter / full 3.218 / 3.143 (CPS4, +7.3 / +4.8 %), 3.057 / 3.005 (CPS8); "
+                   "largest rim stress (CPS8) 3.329 / 3.369 at 79 deg; quarter and full 2.4 % (CPS4), "
+                   "1.7 % (CPS8) apart")
 @pytest.mark.parametrize("order", [1, 2])
 def test_target_kirsch_from_a_grey_value_image(kirsch_scan, order):
-    q, f = kirsch_scan[("quarter", "min SJ 0.3")], kirsch_scan[("full", "min SJ 0.3")]
-    for r in (q, f):
-        assert r["min_sj"] >= 0.3 and r["inverted"] == 0
-        assert r[order]["sigma_x_90"] == pytest.approx(3.0, rel=0.03)
-        assert r[order]["peak"] == pytest.approx(3.0, rel=0.03)
-        assert abs(r[order]["peak_angle_deg"] - 90.0) <= 10.0
-    assert q[order]["sigma_x_90"] == pytest.approx(f[order]["sigma_x_90"], rel=0.01)
+    kirsch_target(kirsch_scan[("quarter", "min SJ 0.3")], kirsch_scan[("full", "min SJ 0.3")], order, 0.03)
 
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="target from a grey-value image: bore hoop within 3 %; measured at a = 7 "
-                   "mean -4.8 % (C3D8), -10.3 % (C3D20)")
+                   "mean -4.3 % (C3D8), -5.7 % (C3D20)")
 def test_target_lame_from_a_grey_value_image(tmp_path):
     r = cases.lame(tmp_path, "quarter", [NO_MERGE], inner=7.0, outer=14.0, scan=True)
     assert abs(r[1]["error_mean"]) <= 0.03 and abs(r[2]["error_mean"]) <= 0.03

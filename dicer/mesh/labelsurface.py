@@ -46,7 +46,7 @@ _FACING = 0.1  # the cosine between a face's and the node's normals from which a
 _SHEET = 2.0  # voxels off the tangent plane (besides the bend over r) where another sheet begins
 _OUTLIER = 1.0  # voxels off the first fit: dropped from the second
 _PER_COEFFICIENT = 3  # samples needed per coefficient of the fit
-_CHUNK = 8192  # nodes fitted at a time: (chunk, k) temporaries
+_CHUNK = 2048  # nodes fitted at a time: (chunk, k) temporaries, some 10 of them, k 180 or more
 
 
 def staircase_samples(mesh: Mesh, mirror_reach: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

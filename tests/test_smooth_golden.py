@@ -256,14 +256,14 @@ GOLDEN_SMOOTH = {
     "graded": "14212e9998e3c920 156f82b159a44490 b1d4beb61faf2f31 0 -",
     "graded_2d": "3cba2cd66dd38c0e 8bfaf44b8d705e50 a490eb95a33444bd 1 -",
     "stripes": "cfe39d74484ce0d9 efe7c648830f56d4 0b63c4462ba68759 0 -",
-    "ct3_image": "bed7e298ce20b922 93a92adc8d68ce10 be4e5caac257f619 0 0",
-    "ct3_image_pull_backoff": "b7f90462705567a4 93a92adc8d68ce10 3dc0177955baae09 2 9",
-    "ct2_image": "6c327de61ad67e7f 77d80cb3dfef2a0c 8f94f587cfdab976 0 3",
+    "ct3_image": "aff3de29f011fa75 93a92adc8d68ce10 7ae6a769b1c8f297 0 0",
+    "ct3_image_pull_backoff": "255b89129eece7b9 93a92adc8d68ce10 21661a6341c611e3 2 9",
+    "ct2_image": "20a4427f63fee62f 77d80cb3dfef2a0c 9d96b6678735d9a8 0 3",
     "ct3_image_off": "5a5c7c82f3759ea5 93a92adc8d68ce10 c7cb80870a7f9182 0 -",
-    "cut_fit": "320b61e8221c34ec 56e6b73b7f51e9c6 b07495bc4e5f21dd 0 0",
-    "merged_fit": "0e6e2098353ed9a4 67b2f02161168701 398e12d84c791c21 0 0",
-    "graded_fit": "240d619881f6bf0e 156f82b159a44490 c747ac913621ce35 0 0",
-    "quarter_disc_fit": "2bfb53dea56a24e2 38bd4ad4a81d2134 d75b44a7963e34df 0 0",
+    "cut_fit": "268117e28dcc1e10 56e6b73b7f51e9c6 1816ff16327a2c3b 0 0",
+    "merged_fit": "5587d58730c05e8a 67b2f02161168701 53d2749989930cb1 0 0",
+    "graded_fit": "1403571cca972402 156f82b159a44490 5f268014efbbe4ab 0 0",
+    "quarter_disc_fit": "28291658670af99a 38bd4ad4a81d2134 3746c286df89169d 0 0",
 }
 
 GOLDEN_GRAPH = {

@@ -52,6 +52,7 @@ __all__ = ["ImageSurface", "NodeSides", "check_thresholds_for_mesh", "lift", "pa
 _EDGE_ENDS = {8: HEX_CORNER_NEIGHBOURS, 4: QUAD_CORNER_NEIGHBOURS}
 _LIFT_MARGIN = 0.02
 _LIFT_ITERATIONS = 30  # at most; rounds end when every corner reaches the target
+_LIFT_TOLERANCE = 1e-3  # a corner within this of its target (in scaled Jacobian) has reached it
 
 _SAMPLES = 21  # profile samples over [-L, L]
 _FAR = 2.5  # the contrast samples, in units of L
@@ -326,8 +327,9 @@ def lift(sides: NodeSides, y: np.ndarray, floor: float, share: np.ndarray | None
     free = ~sides.fixed[nodes]  # (C, 1 + dim, 3)
     counted = free | sides.mirrored[nodes]  # the whole mirrored model's gradient
     y = y.copy()
+    active = np.arange(p.size)  # corners whose nodes moved since they were last checked
     for _ in range(_LIFT_ITERATIONS):
-        e = y[ends] - y[p][:, None, :]  # (C, dim, 3)
+        e = y[ends[active]] - y[p[active]][:, None, :]  # (A, dim, 3)
         length = np.linalg.norm(e, axis=2)
         if sides.dim == 3:
             a, b, c = e[:, 0], e[:, 1], e[:, 2]
@@ -341,23 +343,28 @@ def lift(sides: NodeSides, y: np.ndarray, floor: float, share: np.ndarray | None
             ga = np.stack([b[:, 1], -b[:, 0], zero], axis=1)  # df/da
             gb = np.stack([-a[:, 1], a[:, 0], zero], axis=1)  # df/db
             grad = np.stack([-(ga + gb), ga, gb], axis=1)
-        grad = np.where(counted, grad, 0.0)
-        need = target * np.prod(length, axis=1) - f
+        grad = np.where(counted[active], grad, 0.0)
+        scale = np.prod(length, axis=1)
+        need = target * scale - f
         g2 = np.einsum("ijk,ijk->i", grad, grad)
-        go = (need > 0) & (g2 > 0)
+        go = (need > _LIFT_TOLERANCE * scale) & (g2 > 0)
         if not go.any():
             break
-        step = np.where(free[go], grad[go], 0.0) * (need[go] / g2[go])[:, None, None]
-        flat = nodes[go].ravel()
+        rows = active[go]
+        step = np.where(free[rows], grad[go], 0.0) * (need[go] / g2[go])[:, None, None]
+        flat = nodes[rows].ravel()
         moves = step.reshape(-1, 3)
         total = np.stack([np.bincount(flat, weights=moves[:, k], minlength=sides.b) for k in range(3)], axis=1)
-        # each corner's step alone reaches its target: a node in several corners takes their
-        # mean (their sum overshoots, and the kinks grow), over the mirror images too
-        count = np.bincount(flat, minlength=sides.b).astype(float)
+        # each corner's step alone reaches its target: a node in several corners takes the mean
+        # of the steps that move it (their sum overshoots, and the kinks grow), over the mirror
+        # images too
+        count = np.bincount(flat, weights=np.any(moves != 0.0, axis=1), minlength=sides.b)
         if share is not None:
             total /= share[:, None]
             count /= share
         y += total / np.maximum(count, 1.0)[:, None]
+        # a corner none of whose nodes moved keeps its value: it stays above the target
+        active = np.flatnonzero((count > 0)[nodes].any(axis=1))
     return y
 
 

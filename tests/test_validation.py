@@ -77,13 +77,13 @@ def test_lame_quarter_tube_from_a_grey_value_image_with_a_pillow_layer(tmp_path)
 
 def test_lame_quarter_tube_from_labels_with_the_fitted_surface(tmp_path):
     """Fast: the bore fitted to the labels' staircase (smooth.surface_from_labels, a = 7 voxels,
-    C3D8): the mean hoop stress -7.9 %, from -14.2 % without the fit."""
+    C3D8): the mean hoop stress -7.6 %, from -14.2 % without the fit."""
     r = cases.lame(tmp_path, "quarter", [NO_MERGE, FIT], inner=7.0, outer=14.0, orders=(1,))
     assert r["inverted"] == 0 and r["min_sj"] == pytest.approx(0.22, abs=0.005)
     e = r[1]
     assert e["elements"] == 230
-    assert e["error_mean"] == pytest.approx(-0.079, abs=0.01)
-    assert e["bore_radius_mean"] == pytest.approx(7.053, abs=0.01)
+    assert e["error_mean"] == pytest.approx(-0.076, abs=0.01)
+    assert e["bore_radius_mean"] == pytest.approx(7.044, abs=0.01)
 
 
 @pytest.mark.parametrize("order,at_90", [(1, 3.0503), (2, 3.0213)])
@@ -189,7 +189,7 @@ def kirsch_fit(tmp_path_factory):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("merge,cps4,cps8", [(False, (3.1224, 3.1738, 82.5), (2.9351, 3.2249, 71.9)),
+@pytest.mark.parametrize("merge,cps4,cps8", [(False, (3.1224, 3.1738, 82.5), (2.9351, 3.2249, 73.6)),
                                              (True, (3.0249, 3.0249, 90.0), (3.1064, 3.1064, 90.0))])
 def test_kirsch_plate_from_labels_with_the_fitted_surface(kirsch_fit, merge, cps4, cps8):
     q, f = kirsch_fit[("quarter", merge)], kirsch_fit[("full", merge)]
@@ -210,7 +210,8 @@ def test_target_kirsch_from_labels_with_the_fitted_surface(kirsch_fit, order):
     rim stress within 8 % and at 90 +- 10 deg, min SJ >= 0.3, quarter and full within 1 %),
     met by dicer run's default chain with smooth.surface_from_labels and
     smooth.min_scaled_jacobian 0.3 (measured: CPS4 3.025, CPS8 3.106, both largest at 90 deg,
-    min SJ 0.320). Without plane merging the CPS8 largest rim stress sits at 72 deg."""
+    min SJ 0.320). Without plane merging the CPS8 largest rim stress sits at 72-75 deg (two rim
+    nodes read within 0.001 of each other)."""
     kirsch_target(kirsch_fit[("quarter", True)], kirsch_fit[("full", True)], order, 0.08)
 
 
@@ -227,7 +228,7 @@ def test_target_kirsch_from_labels_at_defaults(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("a,c3d8,c3d20", [(14.0, -0.0445, -0.0608), (28.0, -0.0228, -0.0453)])
+@pytest.mark.parametrize("a,c3d8,c3d20", [(14.0, -0.0448, -0.0626), (28.0, -0.0227, -0.0467)])
 def test_lame_from_labels_with_the_fitted_surface_refined(tmp_path, a, c3d8, c3d20):
     r = cases.lame(tmp_path, "quarter", [NO_MERGE, FIT], inner=a, outer=2 * a)
     assert r["inverted"] == 0
@@ -356,7 +357,7 @@ def kirsch_scan_clean_pillow(tmp_path_factory):
 def test_target_kirsch_with_a_pillow_layer_from_a_noise_free_image(kirsch_scan_clean_pillow):
     """The Kirsch target, CPS4 and CPS8, from the partial-volume image with the pillow layer at
     smooth.min_scaled_jacobian 0.3 (measured: CPS4 3.077 at 90 deg, the largest there; CPS8
-    3.034, largest 3.082 at 82 deg; min SJ 0.325; quarter and full within 0.03 %)."""
+    3.034, largest 3.082 at 82 deg; min SJ 0.324; quarter and full within 0.03 %)."""
     q, f = kirsch_scan_clean_pillow["quarter"], kirsch_scan_clean_pillow["full"]
     for r in (q, f):
         assert r["min_sj"] >= 0.3 and r["inverted"] == 0
@@ -365,7 +366,7 @@ def test_target_kirsch_with_a_pillow_layer_from_a_noise_free_image(kirsch_scan_c
             assert r[order]["peak"] == pytest.approx(3.0, rel=0.03)
             assert abs(r[order]["peak_angle_deg"] - 90.0) <= 10.0
         # the figures measured (docs/validation.md §4)
-        assert r["min_sj"] == pytest.approx(0.325, abs=0.005)
+        assert r["min_sj"] == pytest.approx(0.324, abs=0.005)
         assert r[1]["sigma_x_90"] == pytest.approx(3.077, abs=0.01)
         assert r[2]["sigma_x_90"] == pytest.approx(3.034, abs=0.01)
         assert r[2]["peak"] == pytest.approx(3.082, abs=0.01)

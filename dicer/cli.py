@@ -696,6 +696,13 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
                     "smooth.image_sigma=%g may blur the edges away (default 0.5), or the thresholds do not match the "
                     "scan (--thresholds)",
                     pull["nodes_on_the_image_surface"], pull["nodes_between_two_kinds"], pull["image_sigma"])
+    fit = report.get("surface_from_labels")
+    if fit and fit["nodes_on_the_fitted_surface"] < 0.5 * fit["nodes_between_two_kinds"]:
+        log.warning("smooth: %d of the %d boundary nodes between two materials reach the surface fitted to the labels "
+                    "(smooth.surface_from_labels), the others stay where the labels' smoothing put them (parts too "
+                    "small for a fit within smooth.label_surface_radius=%g voxels, or the quality guard held them "
+                    "back); a smaller smooth.label_surface_radius fits smaller parts",
+                    fit["nodes_on_the_fitted_surface"], fit["nodes_between_two_kinds"], fit["label_surface_radius"])
     layer = report.get("pillow")
     faces = layer["elements_added"] + layer["faces_without_layer"] if layer else 0
     if faces and layer["elements_added"] < 0.5 * faces:  # asked for, and mostly not made

@@ -258,3 +258,18 @@ def test_smooth_command_reports_the_fit(tmp_path):
     assert read_mesh(out).n_points == voxel_mesh(ball_labels(2)).n_points
     assert main(["smooth", str(tmp_path / "mesh.vtu"), "-o", str(out), "--set", "smooth.label_surface_radius=1",
                  "-q"]) == 2
+
+
+def test_a_fit_that_reaches_few_nodes_is_warned_of(tmp_path, caplog):
+    # a cube of 2 voxels holds too few faces for a fit of 6 coefficients around any node: the
+    # nodes keep the labels' smoothing, and the command says so
+    lab = np.zeros((12, 12, 12), np.uint8)
+    lab[5:7, 5:7, 5:7] = 1
+    write_mesh(voxel_mesh(lab), tmp_path / "mesh.vtu")
+    out = tmp_path / "smoothed.vtu"
+    assert main(["smooth", str(tmp_path / "mesh.vtu"), "-o", str(out), "--set", "smooth.surface_from_labels=true",
+                 "--report", str(tmp_path / "smooth.json")]) == 0
+    report = json.loads((tmp_path / "smooth.json").read_text())["surface_from_labels"]
+    assert report["nodes_on_the_fitted_surface"] == 0 and report["nodes_between_two_kinds"] == 26
+    warned = [r.getMessage() for r in caplog.records if "fitted to the labels" in r.getMessage()]
+    assert len(warned) == 1 and "0 of the 26" in warned[0] and "label_surface_radius=5" in warned[0]

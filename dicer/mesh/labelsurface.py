@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from dicer.mesh.boundary import _plane_sides
+from dicer.mesh.boundary import plane_bits
 from dicer.mesh.faces import neighbour_materials
 from dicer.mesh.model import Mesh
 from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
@@ -79,11 +79,8 @@ def staircase_samples(mesh: Mesh, mirror_reach: float = 0.0) -> tuple[np.ndarray
     own = np.asarray(mesh.material)
     elem, face = np.nonzero(across != own[:, None])
     corner = np.asarray(mesh.cells)[elem[:, None], table[face]]  # (F, 4 | 2)
-    on_lo, on_hi = _plane_sides(mesh, x0)
-    on_plane = np.zeros(elem.size, bool)
-    for d in range(dim):  # the image's edge is no surface between two kinds
-        on_plane |= on_lo[corner, d].all(axis=1) | on_hi[corner, d].all(axis=1)
-    keep = ~on_plane
+    # the image's edge is no surface between two kinds: a face whose corners share a bounding plane
+    keep = np.bitwise_and.reduce(plane_bits(mesh, x0)[corner], axis=1) == 0
     elem, face, corner = elem[keep], face[keep], corner[keep]
     a, b = own[elem].astype(np.int64), across[elem, face].astype(np.int64)
     kinds = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)
@@ -134,7 +131,6 @@ def staircase_samples(mesh: Mesh, mirror_reach: float = 0.0) -> tuple[np.ndarray
                 copies.append((mp, mn, kinds[near], weights[near]))
             points, normals, kinds, weights = (np.concatenate(x) for x in zip(*copies))
     return points, normals, kinds, weights
-
 
 
 class LabelSurface:
@@ -257,15 +253,15 @@ class LabelSurface:
         w = np.where(ok, (1.0 - q) ** 2 * facing * self.weights[idx], 0.0)
         m = basis.shape[-1]
         bt = basis.transpose(0, 2, 1)
-        coef = np.zeros((p.shape[0], m))
-        for _ in range(2):  # the second without the samples far off the first fit
+        for second in (False, True):  # the second without the samples far off the first fit
+            if second:
+                residual = h - (basis @ coef[..., None])[..., 0]
+                w = np.where(np.abs(residual) < _OUTLIER * self.voxel, w, 0.0)
             wb = bt * w[:, None, :]
             normal_matrix = wb @ basis
             normal_matrix += (1e-9 * np.maximum(np.trace(normal_matrix, axis1=1, axis2=2), 1e-30))[:, None, None] \
                 * np.eye(m)
             coef = np.linalg.solve(normal_matrix, (wb @ h[..., None]))[..., 0]
-            residual = h - (basis @ coef[..., None])[..., 0]
-            w = np.where(np.abs(residual) < _OUTLIER * self.voxel, w, 0.0)
         fitted = np.count_nonzero(w, axis=1) >= _PER_COEFFICIENT * m
         return np.where(fitted, coef[:, 0], 0.0), fitted
 

@@ -676,7 +676,7 @@ class _Smoothing:
 # --- set-up: the scan's surfaces, node classes, coefficients, the interior band ----------------
 
 
-def _image_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str) -> tuple[object | None, float]:
+def _pull_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str) -> tuple[object | None, float]:
     """The surface the boundary nodes are pulled onto: the scan's iso-surfaces for
     ``surface_from_image``, else the labels' fitted staircase for ``surface_from_labels``.
 
@@ -1459,7 +1459,7 @@ backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance
         min_scaled_jacobian=min_scaled_jacobian, backoff_factor=backoff_factor,
         max_backoff_rounds=max_backoff_rounds, pillow=pillow, pillow_thickness=pillow_thickness, tolerance=tolerance)
     _check_input(mesh)
-    surface, t_img = _image_surface(mesh, s, image, thresholds, image_source)
+    surface, t_img = _pull_surface(mesh, s, image, thresholds, image_source)
     t0 = time.perf_counter()
     if s["pillow"]:  # the smoothing leaves room above the floor for the layer's move inward
         st = _set_up(mesh, {**s, "min_scaled_jacobian": min(s["min_scaled_jacobian"] + _PILLOW_ROOM, 0.99)}, surface,

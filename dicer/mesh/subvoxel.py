@@ -398,19 +398,14 @@ def pairs_not_helped(sides: NodeSides, moved: np.ndarray, surface: np.ndarray, l
     pairs : list of str
         Those pairs, "lower|higher" (0: background).
     """
-    stay = np.zeros(sides.b, bool)
-    pairs = []
     if not moved.any():
-        return stay, pairs
-    pair = sides.pair
-    ids, rank = np.unique(pair[moved], return_inverse=True)
+        return np.zeros(sides.b, bool), []
+    ids, rank = np.unique(sides.pair[moved], return_inverse=True)
     w = 1.0 if share is None else share[moved]
     lifted_off = np.bincount(rank, weights=w * np.linalg.norm(lifted[moved] - surface[moved], axis=1))
     start_off = np.bincount(rank, weights=w * np.linalg.norm(start[moved] - surface[moved], axis=1))
-    for p in ids[lifted_off >= start_off]:  # a pair or two
-        stay |= pair == p
-        pairs.append(f"{int(p) // sides.top}|{int(p) % sides.top}")
-    return stay, pairs
+    worse = ids[lifted_off >= start_off]
+    return np.isin(sides.pair, worse), [f"{int(p) // sides.top}|{int(p) % sides.top}" for p in worse]
 
 
 def project(surface: ImageSurface, sides: NodeSides, adj: sp.csr_matrix, degree: np.ndarray, x: np.ndarray,

@@ -629,6 +629,29 @@ def _read_thresholds(path: str | None, config: dict, image_path: str) -> list:
     return thresholds
 
 
+def _warn_of_short_pull(report: dict) -> None:
+    """Warn when under half the boundary nodes between two materials reach the surface they were
+    pulled onto (the scan's iso-surface, or the fit of the labels' staircase)."""
+    if "surface_from_image" in report:
+        pull = report["surface_from_image"]
+        on = pull["nodes_on_the_image_surface"]
+        what = ("reach the scan's iso-surface, the others stop short of it (the quality guard held them back, or the "
+                f"scan shows no edge near them); smooth.image_sigma={pull['image_sigma']:g} may blur the edges away "
+                "(default 0.5), or the thresholds do not match the scan (--thresholds)")
+    elif "surface_from_labels" in report:
+        pull = report["surface_from_labels"]
+        on = pull["nodes_on_the_fitted_surface"]
+        what = ("reach the surface fitted to the labels (smooth.surface_from_labels), the others stay where the labels' "
+                "smoothing put them (parts too small for a fit within smooth.label_surface_radius="
+                f"{pull['label_surface_radius']:g} voxels, or the quality guard held them back); a smaller "
+                "smooth.label_surface_radius fits smaller parts")
+    else:
+        return
+    if on < 0.5 * pull["nodes_between_two_kinds"]:
+        log.warning("smooth: %d of the %d boundary nodes between two materials %s", on, pull["nodes_between_two_kinds"],
+                    what)
+
+
 def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None = None,
               image_path: str | None = None, thresholds_path: str | None = None, mesh=None, write=_now):
     from dicer.config import stage_kwargs
@@ -689,20 +712,7 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
                     "%.3g mm) to keep smooth.min_scaled_jacobian=%g: the surface there stays near the voxel staircase; "
                     "lower smooth.min_scaled_jacobian (default 0.2)", backed, nodes, 100.0 * backed / nodes,
                     report["mean_boundary_displacement_mm"], settings["min_scaled_jacobian"])
-    pull = report.get("surface_from_image")
-    if pull and pull["nodes_on_the_image_surface"] < 0.5 * pull["nodes_between_two_kinds"]:
-        log.warning("smooth: %d of the %d boundary nodes between two materials reach the scan's iso-surface, the "
-                    "others stop short of it (the quality guard held them back, or the scan shows no edge near them); "
-                    "smooth.image_sigma=%g may blur the edges away (default 0.5), or the thresholds do not match the "
-                    "scan (--thresholds)",
-                    pull["nodes_on_the_image_surface"], pull["nodes_between_two_kinds"], pull["image_sigma"])
-    fit = report.get("surface_from_labels")
-    if fit and fit["nodes_on_the_fitted_surface"] < 0.5 * fit["nodes_between_two_kinds"]:
-        log.warning("smooth: %d of the %d boundary nodes between two materials reach the surface fitted to the labels "
-                    "(smooth.surface_from_labels), the others stay where the labels' smoothing put them (parts too "
-                    "small for a fit within smooth.label_surface_radius=%g voxels, or the quality guard held them "
-                    "back); a smaller smooth.label_surface_radius fits smaller parts",
-                    fit["nodes_on_the_fitted_surface"], fit["nodes_between_two_kinds"], fit["label_surface_radius"])
+    _warn_of_short_pull(report)
     layer = report.get("pillow")
     faces = layer["elements_added"] + layer["faces_without_layer"] if layer else 0
     if faces and layer["elements_added"] < 0.5 * faces:  # asked for, and mostly not made

@@ -47,6 +47,7 @@ _SHEET = 2.0  # voxels off the tangent plane (besides the bend over r) where ano
 _OUTLIER = 1.0  # voxels off the first fit: dropped from the second
 _PER_COEFFICIENT = 3  # samples needed per coefficient of the fit
 _CHUNK = 2048  # nodes fitted at a time: (chunk, k) temporaries, some 10 of them, k 180 or more
+_GROUPS = 4  # a chunk's nodes fitted in this many groups of like sample counts
 
 
 def staircase_samples(mesh: Mesh, mirror_reach: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -165,7 +166,7 @@ class LabelSurface:
         self.tree = cKDTree(np.c_[self.points, rank * self._apart]) if self.points.shape[0] else None
         # the samples a disc of the radius can hold on a staircase (sqrt 3 its area), and more
         r = float(radius)
-        self.k = int(np.ceil(2.2 * np.pi * r * r if dim == 3 else 4.4 * r)) + 8
+        self.k = int(np.ceil(3.0 * np.pi * r * r if dim == 3 else 6.0 * r)) + 8
 
     def offsets(self, y: np.ndarray, normal: np.ndarray, pair: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The fitted surface's height above each node along its normal.
@@ -222,11 +223,30 @@ class LabelSurface:
             dist, idx = wide_d, wide_i
             full = np.zeros(p.shape[0], bool)
             full[rows] = np.isfinite(d2[:, -1])
-        return dist, idx
+        # sorted by distance, the misses last: as wide as the fullest row (the doubling widens
+        # every row for a few, and the fit's temporaries are this wide)
+        width = max(int(np.count_nonzero(np.isfinite(dist), axis=1).max(initial=0)), 1)
+        return dist[:, :width], idx[:, :width]
 
     def _fit(self, p: np.ndarray, n: np.ndarray, pair: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        dim, r = self.dim, self.radius
+        """(P,) heights and fitted flags of the points ``p`` (P, dim) with normals ``n`` (P, dim)."""
         dist, idx = self._neighbours(p, pair)
+        # in groups of like sample counts, each as wide as its fullest row: the counts vary
+        # twofold (a thin plate's both sides), and the temporaries are that wide
+        count = np.count_nonzero(np.isfinite(dist), axis=1)
+        order = np.argsort(count, kind="stable")
+        height, fitted = np.zeros(p.shape[0]), np.zeros(p.shape[0], bool)
+        for g in np.array_split(order, _GROUPS):
+            if g.size:
+                width = max(int(count[g].max()), 1)
+                height[g], fitted[g] = self._fit_samples(p[g], n[g], dist[g, :width], idx[g, :width])
+        return height, fitted
+
+    def _fit_samples(self, p: np.ndarray, n: np.ndarray, dist: np.ndarray, idx: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """The fit of points ``p`` (P, dim) with normals ``n`` to their samples (``dist``, ``idx``:
+        (P, k), inf where none)."""
+        dim, r = self.dim, self.radius
         ok = np.isfinite(dist)
         idx[~ok] = 0
         # facing the node's side: a weight rising from 0 (edge-on) to 1 at _FACING, continuous so

@@ -237,3 +237,48 @@ def test_thresholds_of_another_material_count_are_refused():
     assert check_thresholds_for_mesh([-200.0, 300.0], mesh).tolist() == [-200.0, 300.0]
     with pytest.raises(DicerError, match=r"t1.json: 3 threshold\(s\) for a mesh of 2 materials \(soft_tissue, bone\)"):
         check_thresholds_for_mesh([-200.0, 300.0, 900.0], mesh, "t1.json")
+
+
+@pytest.fixture(scope="module")
+def hard_pull():
+    """The 3D scan at a floor of 0.5: the guard backs the pull off over several rounds."""
+    image = ct_ball(3)
+    labels, _ = fix_connectivity((image >= 500).astype(np.uint8))
+    mesh = voxel_mesh(labels)
+    settings = {**ON, "min_scaled_jacobian": 0.5}
+    return mesh, settings, Volume(image, (1.0,) * 3)
+
+
+def test_pull_rounds_check_only_what_moved(hard_pull, monkeypatch):
+    """A pull round rechecks the elements whose nodes moved or that sat near the floor: it
+    decides as a whole check does, so the result is the same to the bit."""
+    import dicer.mesh.smooth as smooth
+
+    mesh, settings, image = hard_pull
+    partial, report = smooth_mesh(mesh, settings, image=image, thresholds=[500.0])
+    assert report["surface_from_image"]["pull_backoff_rounds"] >= 3
+    whole = smooth._rechecked
+    monkeypatch.setattr(smooth, "_rechecked", lambda st: None if whole(st) is None else
+                        (np.ones(st.touched.size, bool),) * 2)
+    full, again = smooth_mesh(mesh, settings, image=image, thresholds=[500.0])
+    assert full.points.tobytes() == partial.points.tobytes()
+    assert again["surface_from_image"] == report["surface_from_image"]
+
+
+def test_a_partial_check_never_accepts(hard_pull, monkeypatch):
+    """Positions are accepted on a whole check only: a partial check that missed every failing
+    element (here made to) still leaves no element under the floor."""
+    import dicer.mesh.smooth as smooth
+
+    mesh, settings, image = hard_pull
+    check = smooth._check_quality
+
+    def blind(st, whole=False):
+        check(st, whole)
+        if not whole:
+            st.bad[:] = False
+
+    monkeypatch.setattr(smooth, "_check_quality", blind)
+    out, report = smooth_mesh(mesh, settings, image=image, thresholds=[500.0])
+    sj = scaled_jacobian(out.points, out.cells)
+    assert sj.min() >= 0.5 - 1e-9 and report["min_scaled_jacobian"] >= 0.5 - 1e-9

@@ -562,6 +562,16 @@ class _Elements:
         for start in range(0, elements.size, _ROWS):
             self.local[:, start : start + _ROWS] = pos[cells[elements[start : start + _ROWS]]].T
 
+    def holding(self, mark: np.ndarray) -> np.ndarray:
+        """(C,) bool: the elements holding a node marked in ``mark`` (N,) bool."""
+        if not self.hex:
+            return mark[self.cells[self.elements]].any(axis=1)
+        local = mark[self.nodes]
+        out = np.zeros(self.elements.size, bool)
+        for corner in self.local:
+            out |= local[corner]
+        return out
+
     def columns(self, x: np.ndarray) -> list[np.ndarray]:
         """The coordinates of the elements' nodes: x, y and z arrays in local numbering."""
         return [x[self.nodes, d] for d in range(3)]
@@ -658,6 +668,8 @@ class _Smoothing:
     bad: np.ndarray | None = None  # the checked elements that fail the guard
     short: tuple | None = None  # with the pull: (checked rows, (R, E) bool) edges it shrank too far
     lengths0: np.ndarray | None = None  # with the pull: (C, E) float32 squared edge lengths before smoothing
+    x_checked: np.ndarray | None = None  # (N, 3) with the pull: the positions of the last check
+    share_checked: np.ndarray | None = None  # (B,) bool, with the pull: the nodes pulled at the last check
     it_b: int = 0  # conjugate-gradient iterations, boundary and interior
     it_i: int = 0
     t_solve: float = 0.0
@@ -926,12 +938,50 @@ def _short_edges(cells: np.ndarray, x: np.ndarray, x0: np.ndarray | None, moved:
     return (_edge_lengths2(cells, x) < _SHORTEST_EDGE**2 * before) & (m[:, edges[:, 0]] | m[:, edges[:, 1]])
 
 
-def _check_quality(st: _Smoothing) -> None:
+_RECHECK_MOVE = 1e-3
+"""A guard round rechecks the elements with a node moved more than this (voxels of the finest
+axis) since the last check: a round changes few nodes much, and the interior solve the rest
+only to its tolerance."""
+_RECHECK_MARGIN = 0.01
+"""... and those the last check put below the floor + this (+ ``_NEAR_FLOOR`` without the pull):
+a move under ``_RECHECK_MOVE`` changes a scaled Jacobian by less, so a stale value decides
+nothing a whole check would decide otherwise."""
+
+
+def _rechecked(st: _Smoothing) -> tuple[np.ndarray, np.ndarray] | None:
+    """The checked elements whose guard test a round must repeat (``_RECHECK_MOVE``,
+    ``_RECHECK_MARGIN``): (C,) bool those holding a node that moved (or whose pull changed), and
+    (C,) bool those and the ones near the floor; None for all of them (the first check)."""
+    if st.sj is None or st.x_checked is None:
+        return None
+    reach = _RECHECK_MOVE * float(np.min(np.asarray(st.mesh.spacing, float)[: st.mesh.dim]))
+    moved = np.zeros(st.mesh.n_points, bool)
+    for ids in (st.bnodes, st.band_nodes):
+        step = st.x[ids] - st.x_checked[ids]
+        moved[ids[np.einsum("ij,ij->i", step, step) > reach * reach]] = True
+    if st.pull is not None:  # a node whose pull changed: its edges' test changes with it
+        moved[st.bnodes[(st.pull.share > 0) != st.share_checked]] = True
+    rows = st.checked.holding(moved)
+    margin = _RECHECK_MARGIN + (_NEAR_FLOOR if st.pull is None else 0.0)
+    return rows, rows | (st.sj < float(st.s["min_scaled_jacobian"]) + margin)
+
+
+def _check_quality(st: _Smoothing, whole: bool = False) -> None:
     """The guard's test: sets ``sj`` and ``bad``, the checked elements below ``min_scaled_jacobian``
     (or <= 0) except those already below it before smoothing that did not get worse; with the
-    pull, also those with an edge shrunk below ``_SHORTEST_EDGE`` of its length."""
+    pull, also those with an edge shrunk below ``_SHORTEST_EDGE`` of its length.
+
+    Unless ``whole``, only the elements ``_rechecked`` names are tested again: the guard accepts
+    positions only after a whole check (``_solve_with_guard``)."""
     floor = float(st.s["min_scaled_jacobian"])
-    sj = st.checked.scaled_jacobian(st.x)
+    again = None if whole else _rechecked(st)
+    if again is None:
+        sj = st.checked.scaled_jacobian(st.x)
+    else:
+        moved_rows, again = again
+        sj = st.sj.copy()
+        which = np.flatnonzero(again)
+        sj[which] = st.checked.scaled_jacobian(st.x, which)
     bad = (sj < floor) | (sj <= 0)
     if bad.any():
         # their value before smoothing is needed only here
@@ -939,7 +989,6 @@ def _check_quality(st: _Smoothing) -> None:
         before = st.checked.scaled_jacobian(st.x0, which)
         after = sj[which]
         bad[which] = ~((before < floor) & (after >= before - 1e-12) & (before > 0))
-    st.short = None
     if st.pull is not None:
         moved = np.zeros(st.mesh.n_points, bool)
         moved[st.bnodes[st.pull.share > 0]] = True  # only edges with a pulled end: those it shortens
@@ -950,13 +999,23 @@ def _check_quality(st: _Smoothing) -> None:
         for ids in (st.bnodes, st.band_nodes):
             step = st.x[ids] - st.x0[ids]
             far[ids[np.einsum("ij,ij->i", step, step) >= reach * reach]] = True
-        pulled = np.flatnonzero(far[st.mesh.cells[st.touched]].any(axis=1))
+        pulled = np.flatnonzero(st.checked.holding(far))
+        kept = None
+        if again is not None and st.short is not None:  # the last check's verdicts where nothing moved
+            rows, short = st.short
+            kept = ~moved_rows[rows]
+            pulled = pulled[moved_rows[pulled]]
         if st.lengths0 is None:  # the checked elements' edges before smoothing, once
             st.lengths0 = _edge_lengths2(st.mesh.cells[st.touched], st.x0).astype(np.float32)
-        short = _short_edges(st.mesh.cells[st.touched[pulled]], st.x, None, moved, st.lengths0[pulled])
-        st.short = (pulled, short)
-        bad[pulled[short.any(axis=1)]] = True
+        new = _short_edges(st.mesh.cells[st.touched[pulled]], st.x, None, moved, st.lengths0[pulled])
+        if kept is not None:
+            pulled, new = np.concatenate([rows[kept], pulled]), np.concatenate([short[kept], new])
+        st.short = (pulled, new)
+        bad[pulled[new.any(axis=1)]] = True
+        st.share_checked = st.pull.share > 0
     st.sj, st.bad = sj, bad
+    if st.pull is not None:  # for the next pull round's check
+        st.x_checked = st.x.copy()
 
 
 def _back_off_pull(st: _Smoothing) -> bool:
@@ -1071,7 +1130,11 @@ def _solve_with_guard(st: _Smoothing) -> None:
             _interior_solve(st, xb_labels)
             tg = time.perf_counter()
             st.t_solve += tg - ts
-            _check_quality(st)
+            # a pull round moves few nodes: only its elements are checked again, and positions
+            # are accepted on a whole check only
+            _check_quality(st, whole=pull_round == 0)
+            if pull_round > 0 and not st.bad.any():
+                _check_quality(st, whole=True)
             ts = time.perf_counter()
             st.t_guard += ts - tg
             if st.pull is None or not st.bad.any() or pull_round >= _PULL_ROUNDS or not _back_off_pull(st):

@@ -10,8 +10,8 @@ quadric fitted by weighted least squares to those faces near it (moving least sq
 1. **Samples**: every element face between two kinds, not on a bounding plane, at the
    unsmoothed positions, cut into its lattice steps (a merged face of 1 x 4 voxels gives four
    samples), each with the face's unit normal into the higher kind and its area. With
-   ``bounding_planes: mirror`` the samples near a bounding plane are mirrored across it, so a
-   cut model is fitted as the whole one is.
+   ``bounding_planes: mirror`` the samples near a bounding plane are mirrored across it (the
+   two planes of an axis as two facing mirrors), so a cut model is fitted as the whole one is.
 2. **Neighbours**: the samples within the radius r (``label_surface_radius`` voxels of the
    finest axis) of the node, of the node's pair of kinds, facing its side (the far side of a
    thin plate faces the other way; faces within 6 degrees of edge-on count less) and within two
@@ -60,7 +60,8 @@ def staircase_samples(mesh: Mesh, mirror_reach: float = 0.0) -> tuple[np.ndarray
     mirror_reach : float, optional
         Mirror the samples within this distance (mm) of each bounding plane across it, the
         mirror images too (so a corner of two or three planes is mirrored into each of its
-        quadrants or octants); 0: none.
+        quadrants or octants, and a slab thinner than the distance into an endless prism);
+        0: none.
 
     Returns
     -------
@@ -123,13 +124,23 @@ def staircase_samples(mesh: Mesh, mirror_reach: float = 0.0) -> tuple[np.ndarray
         lo = np.asarray(mesh.origin, float)[:dim]
         hi = lo + np.asarray(mesh.grid_shape, float)[:dim] * np.asarray(mesh.spacing, float)[:dim]
         for d in range(dim):
+            # the two planes of an axis are two mirrors: their images repeat with period twice
+            # the model's width (a slab thinner than the reach is an endless prism), each image
+            # x + 2 k T (k != 0) or 2 lo - x + 2 k T, within the reach of the model
+            width = hi[d] - lo[d]
+            turns = int(np.ceil(mirror_reach / (2 * width))) + 1
             copies = [(points, normals, kinds, weights)]
-            for plane in (lo[d], hi[d]):
-                near = np.flatnonzero(np.abs(points[:, d] - plane) < mirror_reach)
-                mp, mn = points[near], normals[near]
-                mp[:, d] = 2 * plane - mp[:, d]
-                mn[:, d] = -mn[:, d]
-                copies.append((mp, mn, kinds[near], weights[near]))
+            for k in range(-turns, turns + 1):
+                for flip in (False, True):
+                    if k == 0 and not flip:
+                        continue
+                    c = (2 * lo[d] - points[:, d] if flip else points[:, d]) + 2 * k * width
+                    near = np.flatnonzero((c > lo[d] - mirror_reach) & (c < hi[d] + mirror_reach))
+                    mp, mn = points[near], normals[near]
+                    mp[:, d] = c[near]
+                    if flip:
+                        mn[:, d] = -mn[:, d]
+                    copies.append((mp, mn, kinds[near], weights[near]))
             points, normals, kinds, weights = (np.concatenate(x) for x in zip(*copies))
     return points, normals, kinds, weights
 

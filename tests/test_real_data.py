@@ -229,6 +229,18 @@ def half_run(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
+def test_half_resolution_smooths_at_a_floor_of_0_3(half_run, tmp_path):
+    """Merging leaves chamfers at a scaled Jacobian of 0.29 under a floor of 0.3: the guard
+    stops their nodes at once and holds their band nodes (it used to halve their coefficients
+    round by round, and failed after 12 rounds with 12 elements at 0.257)."""
+    dicer("smooth", half_run / "merged.vtu", "-o", tmp_path / "s.vtu", "--report", tmp_path / "s.json",
+          "--set", "smooth.min_scaled_jacobian=0.3", "-q")
+    report = json.loads((tmp_path / "s.json").read_text())
+    assert report["backoff_rounds"] <= 4 and report["inverted_elements"] == 0  # measured 3
+    assert report["min_scaled_jacobian"] > 0.26  # 0.2666: chamfers below 0.3 before, no worse
+
+
 def solve_iteratively(run: Path, folder: Path, timeout: float) -> None:
     # ccx's conjugate gradient solver with an incomplete Cholesky preconditioner: SPOOLES' direct
     # factorisation already took 1.3 GB and 44 s at factor 4 (126 k degrees of freedom), and its

@@ -413,6 +413,15 @@ class _Interior:
         self.deg = np.float32(nb.shape[1])
         self._mirror(bits)
 
+    def hold(self, rows: np.ndarray) -> None:
+        """Keep the band nodes ``rows`` (numbers among the band's) where they are from the next
+        solve on: all three coordinates held, as a mirror plane holds one."""
+        if rows.size == 0 or self.nodes.size == 0:
+            return
+        if self.free is None:
+            self.free = np.ones((3, self.nodes.size), np.float32)
+        self.free[:, rows] = 0.0
+
     def _mirror(self, bits: np.ndarray) -> None:
         """The free coordinates (3, m) and CG weights of the band nodes on mirror planes ``bits``."""
         self.free = self.weight = None
@@ -659,6 +668,7 @@ class _Smoothing:
     pull: _Pull | None
     timings: dict
     backed: np.ndarray  # (B,) bool, nodes whose coefficient the guard reduced
+    held: np.ndarray  # (M,) bool, band nodes the guard held where they were
     bpos: np.ndarray | None = None  # (N,) a node's number among the boundary nodes (-1: none)
     rounds: int = 0  # back-off rounds of the coefficients
     x: np.ndarray | None = None  # (N, 3) current positions
@@ -831,7 +841,8 @@ def _set_up(mesh: Mesh, s: dict, surface, t0: float, t_img: float) -> _Smoothing
         pull = _Pull(surface, sides, (k > 0).astype(float), np.zeros(bnodes.size, bool))
         timings["image"] = time.perf_counter() - t2 + t_img
     return _Smoothing(mesh, s, x0, g, graded, bnodes, adj, degree, k, fixed, weight, x0[bnodes], band_nodes,
-                      touched, interior, x0[band_nodes], checked, pull, timings, np.zeros(bnodes.size, bool))
+                      touched, interior, x0[band_nodes], checked, pull, timings, np.zeros(bnodes.size, bool),
+                      np.zeros(band_nodes.size, bool))
 
 
 # --- the solves and the quality guard ---------------------------------------------------------
@@ -966,9 +977,16 @@ def _rechecked(st: _Smoothing) -> tuple[np.ndarray, np.ndarray] | None:
     return rows, rows | (st.sj < float(st.s["min_scaled_jacobian"]) + margin)
 
 
+_WORSE = 0.005
+"""An element already below the floor before smoothing passes while it loses less than this:
+its boundary nodes can be held (k = 0) but not the interior band's, which the relaxation moves
+by a few thousandths of a voxel for the rest of the surface (merging's chamfers at 0.29 under a
+floor of 0.3 then failed every round, and the back-off spent its rounds around them)."""
+
+
 def _check_quality(st: _Smoothing, whole: bool = False) -> None:
     """The guard's test: sets ``sj`` and ``bad``, the checked elements below ``min_scaled_jacobian``
-    (or <= 0) except those already below it before smoothing that did not get worse; with the
+    (or <= 0) except those already below it before smoothing that did not get worse (``_WORSE``); with the
     pull, also those with an edge shrunk below ``_SHORTEST_EDGE`` of its length.
 
     Unless ``whole``, only the elements ``_rechecked`` names are tested again: the guard accepts
@@ -988,7 +1006,7 @@ def _check_quality(st: _Smoothing, whole: bool = False) -> None:
         which = np.flatnonzero(bad)
         before = st.checked.scaled_jacobian(st.x0, which)
         after = sj[which]
-        bad[which] = ~((before < floor) & (after >= before - 1e-12) & (before > 0))
+        bad[which] = ~((before < floor) & (after >= before - _WORSE) & (after > 0))
     if st.pull is not None:
         moved = np.zeros(st.mesh.n_points, bool)
         moved[st.bnodes[st.pull.share > 0]] = True  # only edges with a pulled end: those it shortens
@@ -1077,10 +1095,40 @@ def _nodes_to_back_off(st: _Smoothing) -> np.ndarray:
     return sel
 
 
+def _freeze(st: _Smoothing) -> None:
+    """Failing elements that were below the floor before smoothing pass only as they were: their
+    boundary nodes stop at once (k = 0, no pull; halving k round by round took six rounds).
+    Those and the failing elements none of whose boundary nodes moves any more fail by their
+    interior band nodes, which the relaxation moves for the rest of the surface: those are held
+    where they were."""
+    bad = np.flatnonzero(st.bad)
+    cells = st.mesh.cells[st.touched[bad]]
+    b = st.boundary_position()[cells]
+    low = st.checked.scaled_jacobian(st.x0, bad) < float(st.s["min_scaled_jacobian"])
+    stop = b[low][b[low] >= 0]
+    st.k[stop] = 0.0
+    st.backed[stop] = True
+    if st.pull is not None:
+        st.pull.share[stop] = 0.0
+    if st.interior is None or st.band_nodes.size == 0:
+        return
+    moving = (b >= 0) & (st.k[np.maximum(b, 0)] > 0)
+    if st.pull is not None:
+        moving |= (b >= 0) & (st.pull.share[np.maximum(b, 0)] > 0)
+    nodes = np.unique(cells[~moving.any(axis=1)])
+    rows = np.searchsorted(st.band_nodes, nodes)
+    inside = rows < st.band_nodes.size
+    rows = rows[inside][st.band_nodes[rows[inside]] == nodes[inside]]
+    st.interior.hold(rows)
+    st.held[rows] = True
+
+
 def _back_off(st: _Smoothing) -> None:
     """One back-off round: the failing elements' nodes lose their pull and their coefficient is
-    multiplied by ``backoff_factor`` (0 in the last rounds, and below 0.02)."""
+    multiplied by ``backoff_factor`` (0 in the last rounds, and below 0.02); the interior band
+    nodes of failing elements with nothing left to back off are held (``_freeze``)."""
     s, k = st.s, st.k
+    _freeze(st)
     last = st.rounds >= max(1, s["max_backoff_rounds"] - 2)
     sel = _nodes_to_back_off(st)
     if sel.size == 0:

@@ -710,8 +710,14 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
     if backed > SMOOTH_BACKOFF_WARNING * nodes:  # the guard undid much of the smoothing: a near-staircase model
         log.warning("smooth: the quality guard backed off %d of the %d boundary nodes (%.0f %%; mean boundary move "
                     "%.3g mm) to keep smooth.min_scaled_jacobian=%g: the surface there stays near the voxel staircase; "
-                    "lower smooth.min_scaled_jacobian (default 0.2)", backed, nodes, 100.0 * backed / nodes,
+                    "lower smooth.min_scaled_jacobian (default 0.3)", backed, nodes, 100.0 * backed / nodes,
                     report["mean_boundary_displacement_mm"], settings["min_scaled_jacobian"])
+    if report.get("frozen_rounds"):
+        log.warning("smooth: %d back-off rounds did not keep smooth.min_scaled_jacobian=%g; %d more kept %d boundary "
+                    "nodes around the failing elements where they were (the voxel staircase there): lower "
+                    "smooth.min_scaled_jacobian or raise smooth.max_backoff_rounds to smooth them",
+                    report["backoff_rounds"], settings["min_scaled_jacobian"], report["frozen_rounds"],
+                    report["frozen_nodes"])
     _warn_of_short_pull(report)
     layer = report.get("pillow")
     faces = layer["elements_added"] + layer["faces_without_layer"] if layer else 0

@@ -20,7 +20,8 @@ from dicer.mesh.smooth import smooth_mesh
 from dicer.mesh.voxel import voxel_mesh
 from tests.test_smooth_mirror import BALL, DISC, cut_versus_full, shells
 
-ON = {"surface_from_labels": True}
+ON = {"surface_from_labels": True}  # the default, named for the tests that compare with OFF
+OFF = {"surface_from_labels": False}  # the labels' smoothing alone
 R = 16.3
 CENTRE = np.array([20.31, 19.77, 20.13])  # off the lattice
 
@@ -139,7 +140,7 @@ def test_the_fit_of_a_tilted_plane_is_flat_and_no_farther_than_its_staircase(slo
 def sphere(request):
     dim = request.param
     mesh = voxel_mesh(ball_labels(dim))
-    labels_only, _ = smooth_mesh(mesh, {})
+    labels_only, _ = smooth_mesh(mesh, OFF)
     fitted, report = smooth_mesh(mesh, ON)
     return dim, mesh, labels_only, fitted, report
 
@@ -147,17 +148,17 @@ def sphere(request):
 def test_sphere_from_labels_alone(sphere):
     dim, mesh, labels_only, fitted, report = sphere
     before, after = radial(mesh, labels_only, dim), radial(mesh, fitted, dim)
-    # measured: 3D 0.137 -> 0.061 mean (the fit itself 0.046, the quality floor's corner
-    # sharpening the rest), 0.46 -> 0.53 max; 2D 0.107 -> 0.092 mean. The 3D mean is the
-    # sphere-from-labels target of docs/validation.md (0.12)
+    # measured at the default floor 0.3: 3D 0.137 -> 0.078 mean (the fit itself 0.046, the
+    # floor's corner sharpening the rest; 0.061 at a floor of 0.2), 0.46 -> 0.53 max; 2D 0.123 ->
+    # 0.098 mean. The 3D mean is the sphere-from-labels target of docs/validation.md (0.12)
     if dim == 3:
-        assert before[0] > 0.13 and after[0] < 0.065 and after[1] < 0.55
+        assert before[0] > 0.13 and after[0] < 0.085 and after[1] < 0.55
     else:
-        assert before[0] > 0.10 and after[0] < 0.095 and after[1] < 0.42
+        assert before[0] > 0.11 and after[0] < 0.105 and after[1] < 0.42
     exact = 4 / 3 * np.pi * R**3 if dim == 3 else np.pi * R**2
     assert abs(element_volumes(fitted.points, fitted.cells).sum() / exact - 1) < 0.003  # measured -0.22 / -0.06 %
     sj = scaled_jacobian(fitted.points, fitted.cells)
-    assert sj.min() >= 0.2 and report["inverted_elements"] == 0
+    assert sj.min() >= 0.3 and report["inverted_elements"] == 0
     info = report["surface_from_labels"]
     assert info["nodes_moved"] >= 0.99 * info["nodes_between_two_kinds"]
     assert info["label_surface_radius"] == 5.0
@@ -165,9 +166,9 @@ def test_sphere_from_labels_alone(sphere):
     assert np.array_equal(fitted.cells, mesh.cells)
 
 
-def test_off_by_default_and_reproducible(sphere):
+def test_on_by_default_and_reproducible(sphere):
     dim, mesh, labels_only, fitted, _ = sphere
-    again, _ = smooth_mesh(mesh, ON)
+    again, _ = smooth_mesh(mesh, {})
     assert np.array_equal(again.points, fitted.points)  # threads fit disjoint chunks
     assert not np.array_equal(labels_only.points, fitted.points)
 
@@ -176,12 +177,12 @@ def test_two_interfaces_each_fitted_to_its_own_staircase():
     # the outer surface (0|1) and the interface (1|2) of a ball in a shell, each from the faces
     # of its own pair of kinds
     mesh = voxel_mesh(ball_labels(3, radii=(R, 9.7)))
-    before, _ = smooth_mesh(mesh, {})
+    before, _ = smooth_mesh(mesh, OFF)
     after, report = smooth_mesh(mesh, ON)
     inner = radial(mesh, before, 3, 9.7, kinds=[2]), radial(mesh, after, 3, 9.7, kinds=[2])
     outer = radial(mesh, before, 3, R, kinds=[1]), radial(mesh, after, 3, R, kinds=[1])
-    assert outer[1][0] < 0.5 * outer[0][0]  # measured 0.137 -> 0.061
-    assert inner[1][0] < 0.6 * inner[0][0]  # measured 0.141 -> 0.078
+    assert outer[1][0] < 0.6 * outer[0][0]  # measured 0.137 -> 0.078 (floor 0.2: 0.061)
+    assert inner[1][0] < 0.7 * inner[0][0]  # measured 0.141 -> 0.095 (floor 0.2: 0.078)
     assert report["surface_from_labels"]["pairs_left_to_the_labels"] == []
     assert report["inverted_elements"] == 0
 
@@ -201,11 +202,11 @@ def test_a_pair_the_sharpening_would_roughen_stays_with_the_labels(monkeypatch):
         return out
 
     monkeypatch.setattr(subvoxel, "lift", rough)
-    before, _ = smooth_mesh(mesh, {})
+    before, _ = smooth_mesh(mesh, OFF)
     after, report = smooth_mesh(mesh, ON)
     assert report["surface_from_labels"]["pairs_left_to_the_labels"] == ["1|2"]
     assert radial(mesh, after, 3, 9.7, kinds=[2]) == radial(mesh, before, 3, 9.7, kinds=[2])
-    assert radial(mesh, after, 3, R, kinds=[1])[0] < 0.07
+    assert radial(mesh, after, 3, R, kinds=[1])[0] < 0.085
 
 
 def test_a_thin_plate_keeps_its_thickness():
@@ -222,7 +223,7 @@ def test_a_thin_plate_keeps_its_thickness():
     nodes = nodes[np.all(np.abs(mesh.points[nodes, :2] - 14.0) < 8, axis=1)]
     half = np.abs((out.points[nodes] - 14.0) @ n)
     assert abs(half.mean() - 1.2) < 0.05
-    base, _ = smooth_mesh(mesh, {})
+    base, _ = smooth_mesh(mesh, OFF)
     assert np.abs(half - 1.2).mean() < np.abs(np.abs((base.points[nodes] - 14.0) @ n) - 1.2).mean()
 
 

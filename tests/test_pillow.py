@@ -97,8 +97,9 @@ def test_labels_only_layer_under_the_smoothed_surface(dim):
     n = 24 if dim == 3 else 40
     lab = shells(n, dim, [(0.0, 0.37 * n, 1)])
     mesh = voxel_mesh(lab)
-    plain, rep0 = smooth_mesh(mesh, {})
-    out, rep = smooth_mesh(mesh, ON)
+    alone = {"surface_from_labels": False, "min_scaled_jacobian": 0.2}  # the labels' smoothing, no fit, no back-off
+    plain, rep0 = smooth_mesh(mesh, alone)
+    out, rep = smooth_mesh(mesh, {**ON, **alone})
     faces, owner, nodes = layer_nodes(mesh)
     n0, m0 = mesh.n_points, mesh.n_cells
     info = rep["pillow"]

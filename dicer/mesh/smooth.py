@@ -669,8 +669,10 @@ class _Smoothing:
     timings: dict
     backed: np.ndarray  # (B,) bool, nodes whose coefficient the guard reduced
     held: np.ndarray  # (M,) bool, band nodes the guard held where they were
+    frozen: np.ndarray  # (B,) bool, boundary nodes kept where they were by _freeze_around_failures
     bpos: np.ndarray | None = None  # (N,) a node's number among the boundary nodes (-1: none)
     rounds: int = 0  # back-off rounds of the coefficients
+    frozen_rounds: int = 0  # rounds after those that kept the elements around failures as they were
     x: np.ndarray | None = None  # (N, 3) current positions
     xb: np.ndarray | None = None  # (B, 3) current boundary positions
     x_band: np.ndarray | None = None  # (M, 3) current band positions
@@ -842,7 +844,7 @@ def _set_up(mesh: Mesh, s: dict, surface, t0: float, t_img: float) -> _Smoothing
         timings["image"] = time.perf_counter() - t2 + t_img
     return _Smoothing(mesh, s, x0, g, graded, bnodes, adj, degree, k, fixed, weight, x0[bnodes], band_nodes,
                       touched, interior, x0[band_nodes], checked, pull, timings, np.zeros(bnodes.size, bool),
-                      np.zeros(band_nodes.size, bool))
+                      np.zeros(band_nodes.size, bool), np.zeros(bnodes.size, bool))
 
 
 # --- the solves and the quality guard ---------------------------------------------------------
@@ -1123,6 +1125,35 @@ def _freeze(st: _Smoothing) -> None:
     st.held[rows] = True
 
 
+_FREEZE_ROUNDS = 20
+"""Rounds after ``max_backoff_rounds`` that keep the failing elements and their neighbours as
+they were before smoothing, before the guard gives up."""
+
+
+def _freeze_around_failures(st: _Smoothing) -> None:
+    """After the back-off rounds: the failing elements and the elements around them keep their
+    nodes where they were before smoothing (boundary nodes k = 0 and no pull, band nodes held).
+
+    Backing off a node moves its neighbours' elements towards the floor, and on strongly
+    anisotropic merged elements (6 mm slices) a new few failed every round until the rounds ran
+    out; an element whose nodes all stay is as it was, so these rounds end (at worst the
+    unsmoothed mesh, which passes)."""
+    mark = np.zeros(st.mesh.n_points, bool)
+    mark[st.mesh.cells[st.touched[st.bad]]] = True
+    mark[st.mesh.cells[st.touched[st.checked.holding(mark)]]] = True  # and one ring of elements around
+    b = st.boundary_position()[np.flatnonzero(mark)]
+    b = b[b >= 0]
+    st.frozen[b] = True
+    st.k[b] = 0.0
+    st.backed[b] = True
+    if st.pull is not None:
+        st.pull.share[b] = 0.0
+    if st.interior is not None and st.band_nodes.size:
+        rows = np.flatnonzero(mark[st.band_nodes])
+        st.interior.hold(rows)
+        st.held[rows] = True
+
+
 def _back_off(st: _Smoothing) -> None:
     """One back-off round: the failing elements' nodes lose their pull and their coefficient is
     multiplied by ``backoff_factor`` (0 in the last rounds, and below 0.02); the interior band
@@ -1190,7 +1221,11 @@ def _solve_with_guard(st: _Smoothing) -> None:
         if not st.bad.any():
             return
         if st.rounds >= st.s["max_backoff_rounds"]:
-            raise _guard_failure(st)
+            if st.s["max_backoff_rounds"] == 0 or st.frozen_rounds >= _FREEZE_ROUNDS:
+                raise _guard_failure(st)
+            st.frozen_rounds += 1
+            _freeze_around_failures(st)
+            continue
         st.rounds += 1
         _back_off(st)
 
@@ -1504,6 +1539,8 @@ def _report(st: _Smoothing, t0: float) -> dict:
         "interior_iterations": int(st.it_i),
         "backoff_rounds": st.rounds,
         "backed_off_nodes": int(st.backed.sum()),
+        # only when the back-off rounds did not suffice: nodes kept where they were (the staircase)
+        **({"frozen_rounds": st.frozen_rounds, "frozen_nodes": int(st.frozen.sum())} if st.frozen_rounds else {}),
         "min_scaled_jacobian": float(sj.min()) if sj.size else 1.0,
         "checked_elements": int(st.touched.size),
         "inverted_elements": int(np.count_nonzero(sj <= 0)),

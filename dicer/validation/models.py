@@ -25,6 +25,14 @@ from dicer.validation.geometry import THRESHOLD
 
 E_MODULUS, POISSON = 1000.0, 0.3  # MPa, -; stress ratios do not depend on them
 
+BASE_SMOOTHING = """\
+smooth:  # the study's base, the smoothing defaults until 5 December 2026: a row's --set changes it
+  surface_from_labels: false
+  min_scaled_jacobian: 0.2
+"""
+"""The smoothing every case starts from: the labels' smoothing alone at the floor 0.2 (today's
+defaults, the labels' fit and the floor 0.3, are the row ``labels fit+merge, min SJ 0.3``)."""
+
 CONFIG = f"""\
 labels:
   map: {{1: solid}}
@@ -32,7 +40,7 @@ materials:
   - {{name: solid, youngs_modulus: {E_MODULUS}, poissons_ratio: {POISSON}}}
 export:
   thickness: 1.0
-"""
+{BASE_SMOOTHING}"""
 
 SCAN_CONFIG = f"""\
 materials:
@@ -45,6 +53,7 @@ segment:
   keep: all
 smooth:
   surface_from_image: true
+  min_scaled_jacobian: 0.2  # the study's base (BASE_SMOOTHING)
 export:
   thickness: 1.0
 """

@@ -425,7 +425,7 @@ def test_conjugate_gradients_from_a_start_meet_the_same_rule_in_fewer_iterations
     assert np.abs(warm - fresh).max() < 1e-3 * np.abs(fresh).max()
 
 
-def test_rounds_after_the_back_off_keep_the_failing_elements_as_they_were(monkeypatch, caplog):
+def test_rounds_after_the_back_off_keep_the_failing_elements_as_they_were(monkeypatch, caplog, tmp_path):
     """When the back-off rounds do not hold the floor (here made so: they back nothing off), the
     guard keeps the failing elements and those around them as they were before smoothing, round
     by round, and says so; with max_backoff_rounds 0 it stops with the error at once."""
@@ -442,3 +442,14 @@ def test_rounds_after_the_back_off_keep_the_failing_elements_as_they_were(monkey
     assert smoothed.any()  # the rest keeps its smoothing
     with pytest.raises(DicerError, match="scaled Jacobian of at least 0.4"):
         smooth_mesh(m, {**settings, "max_backoff_rounds": 0})
+    # the command says how many nodes kept their place
+    from dicer.cli import main
+    from dicer.io.meshes import write_mesh
+
+    write_mesh(m, tmp_path / "m.vtu")
+    with caplog.at_level("WARNING", logger="dicer"):
+        assert main(["smooth", str(tmp_path / "m.vtu"), "-o", str(tmp_path / "s.vtu"), "-q", "--set",
+                     "smooth.coefficient=0.9", "--set", "smooth.min_scaled_jacobian=0.4", "--set",
+                     "smooth.surface_from_labels=false", "--set", "smooth.max_backoff_rounds=2"]) == 0
+    said = [r.getMessage() for r in caplog.records if "back-off rounds did not keep" in r.getMessage()]
+    assert len(said) == 1 and f"kept {rep['frozen_nodes']} boundary nodes" in said[0]

@@ -145,6 +145,16 @@ def staircase_samples(mesh: Mesh, mirror_reach: float = 0.0) -> tuple[np.ndarray
     return points, normals, kinds, weights
 
 
+def _weighted_fit(basis: np.ndarray, w: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """(P, m) least-squares coefficients of ``h`` (P, k) in ``basis`` (P, k, m) with weights
+    ``w`` (P, k); a relative 1e-9 on the diagonal keeps a degenerate row solvable."""
+    m = basis.shape[-1]
+    wb = basis.transpose(0, 2, 1) * w[:, None, :]
+    normal_matrix = wb @ basis
+    normal_matrix += (1e-9 * np.maximum(np.trace(normal_matrix, axis1=1, axis2=2), 1e-30))[:, None, None] * np.eye(m)
+    return np.linalg.solve(normal_matrix, (wb @ h[..., None]))[..., 0]
+
+
 class LabelSurface:
     """The labels' staircase near a mesh, and the fit of its boundary nodes onto it.
 
@@ -283,17 +293,14 @@ class LabelSurface:
         ok &= (q < 1.0) & (np.abs(h) < self.voxel * _SHEET + 0.5 * d2 / r)
         w = np.where(ok, (1.0 - q) ** 2 * facing * self.weights[idx], 0.0)
         m = basis.shape[-1]
-        bt = basis.transpose(0, 2, 1)
-        for second in (False, True):  # the second without the samples far off the first fit
-            if second:
-                residual = h - (basis @ coef[..., None])[..., 0]
-                w = np.where(np.abs(residual) < _OUTLIER * self.voxel, w, 0.0)
-            wb = bt * w[:, None, :]
-            normal_matrix = wb @ basis
-            normal_matrix += (1e-9 * np.maximum(np.trace(normal_matrix, axis1=1, axis2=2), 1e-30))[:, None, None] \
-                * np.eye(m)
-            coef = np.linalg.solve(normal_matrix, (wb @ h[..., None]))[..., 0]
-        fitted = np.count_nonzero(w, axis=1) >= _PER_COEFFICIENT * m
+        coef = _weighted_fit(basis, w, h)
+        # once more without the samples far off the first fit, for the nodes that had such
+        residual = h - (basis @ coef[..., None])[..., 0]
+        kept = np.where(np.abs(residual) < _OUTLIER * self.voxel, w, 0.0)
+        again = np.flatnonzero(np.any(kept != w, axis=1))
+        if again.size:
+            coef[again] = _weighted_fit(basis[again], kept[again], h[again])
+        fitted = np.count_nonzero(kept, axis=1) >= _PER_COEFFICIENT * m
         return np.where(fitted, coef[:, 0], 0.0), fitted
 
     def project(self, sides, x: np.ndarray, bnodes: np.ndarray, xb: np.ndarray) -> tuple[np.ndarray, dict]:

@@ -248,12 +248,18 @@ def test_the_scan_wins_over_the_labels_fit():
     assert "surface_from_labels" in report
 
 
-def test_smooth_command_reports_the_fit(tmp_path):
+def test_smooth_command_reports_the_fit(tmp_path, caplog):
     write_mesh(voxel_mesh(ball_labels(2)), tmp_path / "mesh.vtu")
     out = tmp_path / "smoothed.vtu"
-    assert main(["smooth", str(tmp_path / "mesh.vtu"), "-o", str(out), "--set", "smooth.surface_from_labels=true",
-                 "--set", "smooth.label_surface_radius=4", "--report", str(tmp_path / "smooth.json"), "-q"]) == 0
+    with caplog.at_level("INFO", logger="dicer"):
+        assert main(["smooth", str(tmp_path / "mesh.vtu"), "-o", str(out), "--set", "smooth.label_surface_radius=4",
+                     "--report", str(tmp_path / "smooth.json")]) == 0
     report = json.loads((tmp_path / "smooth.json").read_text())
+    # progress on the stage's longest step: the fit, before and after
+    said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("smooth: fit")]
+    assert said[0] == (f"smooth: fitting {report['surface_from_labels']['nodes_between_two_kinds']} boundary nodes to "
+                       "the labels' staircase (smooth.surface_from_labels, radius 4 voxels)")
+    assert len(said) == 2 and said[1].startswith("smooth: fitted in ")
     assert report["surface_from_labels"]["label_surface_radius"] == 4.0
     assert report["surface_from_labels"]["nodes_moved"] > 100
     assert read_mesh(out).n_points == voxel_mesh(ball_labels(2)).n_points

@@ -447,9 +447,12 @@ def test_rounds_after_the_back_off_keep_the_failing_elements_as_they_were(monkey
     from dicer.io.meshes import write_mesh
 
     write_mesh(m, tmp_path / "m.vtu")
-    with caplog.at_level("WARNING", logger="dicer"):
-        assert main(["smooth", str(tmp_path / "m.vtu"), "-o", str(tmp_path / "s.vtu"), "-q", "--set",
+    with caplog.at_level("INFO", logger="dicer"):
+        assert main(["smooth", str(tmp_path / "m.vtu"), "-o", str(tmp_path / "s.vtu"), "--set",
                      "smooth.coefficient=0.9", "--set", "smooth.min_scaled_jacobian=0.4", "--set",
                      "smooth.surface_from_labels=false", "--set", "smooth.max_backoff_rounds=2"]) == 0
     said = [r.getMessage() for r in caplog.records if "back-off rounds did not keep" in r.getMessage()]
     assert len(said) == 1 and f"kept {rep['frozen_nodes']} boundary nodes" in said[0]
+    rounds = [r.getMessage() for r in caplog.records if "below smooth.min_scaled_jacobian=0.4: back-off round" in
+              r.getMessage()]  # progress, a line a round
+    assert len(rounds) == rep["backoff_rounds"] + rep["frozen_rounds"] and rounds[0].endswith("back-off round 1")

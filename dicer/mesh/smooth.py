@@ -882,8 +882,12 @@ def _pull_onto_image(st: _Smoothing, xb_labels: np.ndarray) -> None:
                                            xb_labels)
     elif st.pull.target is not None:  # the labels' fit is made once: its targets stand
         return
-    else:
+    else:  # progress: the fit is the stage's longest step (a minute for an atlas of a million surface nodes)
+        t = time.perf_counter()
+        log.info("smooth: fitting %d boundary nodes to the labels' staircase (smooth.surface_from_labels, radius %g "
+                 "voxels)", int(st.pull.sides.usable.sum()), float(st.s["label_surface_radius"]))
         on_surface, st.pull.info = st.pull.surface.project(st.pull.sides, st.x0, st.bnodes, xb_labels)
+        log.info("smooth: fitted in %.1f s", time.perf_counter() - t)
     found = np.any(on_surface != xb_labels, axis=1)
     if st.surface is None and st.s["pillow"]:
         st.surface = on_surface
@@ -1220,6 +1224,8 @@ def _solve_with_guard(st: _Smoothing) -> None:
                 break
         if not st.bad.any():
             return
+        log.info("smooth: %d element(s) below smooth.min_scaled_jacobian=%g: back-off round %d", int(st.bad.sum()),
+                 float(st.s["min_scaled_jacobian"]), st.rounds + st.frozen_rounds + 1)
         if st.rounds >= st.s["max_backoff_rounds"]:
             if st.s["max_backoff_rounds"] == 0 or st.frozen_rounds >= _FREEZE_ROUNDS:
                 raise _guard_failure(st)

@@ -185,7 +185,8 @@ class LabelSurface:
         self.pairs, rank = np.unique(kinds[:, 0] * self.top + kinds[:, 1], return_inverse=True)
         self._apart = 4.0 * self.radius
         self.tree = cKDTree(np.c_[self.points, rank * self._apart]) if self.points.shape[0] else None
-        # the samples a disc of the radius can hold on a staircase (sqrt 3 its area), and more
+        # the samples a disc of the radius holds on a staircase (sqrt 3 its area), and more (a thin
+        # part's far side): most nodes' all in one query
         r = float(radius)
         self.k = int(np.ceil(3.0 * np.pi * r * r if dim == 3 else 6.0 * r)) + 8
 

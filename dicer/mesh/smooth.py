@@ -668,7 +668,6 @@ class _Smoothing:
     pull: _Pull | None
     timings: dict
     backed: np.ndarray  # (B,) bool, nodes whose coefficient the guard reduced
-    held: np.ndarray  # (M,) bool, band nodes the guard held where they were
     frozen: np.ndarray  # (B,) bool, boundary nodes kept where they were by _freeze_around_failures
     bpos: np.ndarray | None = None  # (N,) a node's number among the boundary nodes (-1: none)
     rounds: int = 0  # back-off rounds of the coefficients
@@ -844,7 +843,7 @@ def _set_up(mesh: Mesh, s: dict, surface, t0: float, t_img: float) -> _Smoothing
         timings["image"] = time.perf_counter() - t2 + t_img
     return _Smoothing(mesh, s, x0, g, graded, bnodes, adj, degree, k, fixed, weight, x0[bnodes], band_nodes,
                       touched, interior, x0[band_nodes], checked, pull, timings, np.zeros(bnodes.size, bool),
-                      np.zeros(band_nodes.size, bool), np.zeros(bnodes.size, bool))
+                      np.zeros(bnodes.size, bool))
 
 
 # --- the solves and the quality guard ---------------------------------------------------------
@@ -1111,22 +1110,24 @@ def _freeze(st: _Smoothing) -> None:
     cells = st.mesh.cells[st.touched[bad]]
     b = st.boundary_position()[cells]
     low = st.checked.scaled_jacobian(st.x0, bad) < float(st.s["min_scaled_jacobian"])
-    stop = b[low][b[low] >= 0]
-    st.k[stop] = 0.0
-    st.backed[stop] = True
-    if st.pull is not None:
-        st.pull.share[stop] = 0.0
-    if st.interior is None or st.band_nodes.size == 0:
-        return
+    _keep_in_place(st, b[low][b[low] >= 0])
     moving = (b >= 0) & (st.k[np.maximum(b, 0)] > 0)
     if st.pull is not None:
         moving |= (b >= 0) & (st.pull.share[np.maximum(b, 0)] > 0)
-    nodes = np.unique(cells[~moving.any(axis=1)])
-    rows = np.searchsorted(st.band_nodes, nodes)
-    inside = rows < st.band_nodes.size
-    rows = rows[inside][st.band_nodes[rows[inside]] == nodes[inside]]
-    st.interior.hold(rows)
-    st.held[rows] = True
+    mark = np.zeros(st.mesh.n_points, bool)
+    mark[cells[~moving.any(axis=1)]] = True
+    _keep_in_place(st, np.zeros(0, np.int64), mark)
+
+
+def _keep_in_place(st: _Smoothing, boundary: np.ndarray, band: np.ndarray | None = None) -> None:
+    """The boundary nodes ``boundary`` (numbers among the boundary's) stop (k = 0, no pull), and
+    the band nodes marked in ``band`` (N,) bool are held where they were."""
+    st.k[boundary] = 0.0
+    st.backed[boundary] = True
+    if st.pull is not None:
+        st.pull.share[boundary] = 0.0
+    if band is not None and st.interior is not None and st.band_nodes.size:
+        st.interior.hold(np.flatnonzero(band[st.band_nodes]))
 
 
 _FREEZE_ROUNDS = 20
@@ -1148,14 +1149,7 @@ def _freeze_around_failures(st: _Smoothing) -> None:
     b = st.boundary_position()[np.flatnonzero(mark)]
     b = b[b >= 0]
     st.frozen[b] = True
-    st.k[b] = 0.0
-    st.backed[b] = True
-    if st.pull is not None:
-        st.pull.share[b] = 0.0
-    if st.interior is not None and st.band_nodes.size:
-        rows = np.flatnonzero(mark[st.band_nodes])
-        st.interior.hold(rows)
-        st.held[rows] = True
+    _keep_in_place(st, b, mark)
 
 
 def _back_off(st: _Smoothing) -> None:

@@ -185,6 +185,28 @@ def test_guard_backs_off_locally():
     assert rep["backoff_rounds"] >= 1 and 0 < rep["backed_off_nodes"] < rep["boundary_nodes"]
 
 
+def test_back_off_rounds_solve_the_boundary_from_the_last_round():
+    """A back-off round changes a few coefficients: its boundary solves start from the last
+    round's displacements (0 iterations from the solution itself) and end where a solve from
+    zero ends, to the solver's tolerance, in fewer iterations."""
+    from dicer.mesh.smooth import _BoundarySystem, _set_up
+
+    m = ball(n=32, radii=(11.3,), centre=np.array([16.2, 15.9, 16.1]))
+    st = _set_up(m, smoothing_settings({"surface_from_labels": False}), None, 0.0, 0.0)
+    tol = st.s["tolerance"]
+    d, _ = _BoundarySystem(st.adj, st.degree, st.k, st.fixed, st.weight).step(st.xb0, tol)
+    same, it_same = _BoundarySystem(st.adj, st.degree, st.k, st.fixed, st.weight).step(st.xb0, tol, d)
+    assert it_same == 0 and np.array_equal(same, d)
+    k = st.k.copy()
+    near = np.linalg.norm(st.xb0 - st.xb0[0], axis=1) < 3.0  # a back-off round: the nodes about a failure
+    k[near] *= 0.5
+    system = _BoundarySystem(st.adj, st.degree, k, st.fixed, st.weight)
+    warm, it_warm = system.step(st.xb0, tol, d)
+    cold, it_cold = system.step(st.xb0, tol)
+    assert 0 < it_warm < 0.8 * it_cold
+    assert np.abs(warm - cold).max() < 1e-3 * np.abs(cold).max()
+
+
 def test_guard_error_names_the_worst_element():
     # an input element that is already inverted cannot be rescued by backing off
     m = ball(n=24, radii=(8.3,), centre=np.array([12.2, 11.9, 12.1]))

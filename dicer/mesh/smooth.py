@@ -232,8 +232,10 @@ class _BoundarySystem:
         indices = np.concatenate(indices)
         self.mat = sp.csr_matrix((np.concatenate(data), indices, indptr), shape=(3 * n, 3 * n))
 
-    def step(self, y: np.ndarray, tol: float) -> tuple[np.ndarray, int]:
-        """The displacement S(y) - y of the boundary system applied to positions ``y``.
+    def step(self, y: np.ndarray, tol: float, start: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+        """The displacement S(y) - y of the boundary system applied to positions ``y``; ``start``
+        (B, 3): a displacement to start from (a guard round's previous one: it changes few
+        coefficients), None: 0.
 
         With x = y + delta, the system (R/k) x_n - sum x_j = R (1/k - 1) y_n becomes
         (R/k) delta_n - sum delta_j = sum_j (y_j - y_n): the right-hand side is the graph
@@ -252,7 +254,9 @@ class _BoundarySystem:
             np.subtract(buf, out, out=out)
             return out
 
-        delta, it = _pcg(apply, b, self.inv_diag, tol, 2000, self.weight)
+        if start is not None:
+            start = np.ascontiguousarray(np.where(self.fixed, 0.0, start).T, np.float32).ravel()
+        delta, it = _pcg(apply, b, self.inv_diag, tol, 2000, self.weight, start)
         return np.where(self.fixed, 0.0, delta.reshape(3, n).T.astype(np.float64)), it
 
 
@@ -680,6 +684,7 @@ class _Smoothing:
     short: tuple | None = None  # with the pull: (checked rows, (R, E) bool) edges it shrank too far
     lengths0: np.ndarray | None = None  # with the pull: (C, E) float32 squared edge lengths before smoothing
     x_checked: np.ndarray | None = None  # (N, 3) with the pull: the positions of the last check
+    boundary_steps: tuple | None = None  # the last boundary solve's displacements (d1, d2), (B, 3) each
     share_checked: np.ndarray | None = None  # (B,) bool, with the pull: the nodes pulled at the last check
     it_b: int = 0  # conjugate-gradient iterations, boundary and interior
     it_i: int = 0
@@ -859,14 +864,17 @@ def _boundary_solve(st: _Smoothing) -> np.ndarray:
     """
     tol = st.s["tolerance"]
     system = _BoundarySystem(st.adj, st.degree, st.k, st.fixed, st.weight)
-    d1, it = system.step(st.xb0, tol)
+    last = st.boundary_steps or (None, None)  # a guard round starts from the last round's steps
+    d1, it = system.step(st.xb0, tol, last[0])
     st.it_b += it
     if not st.s["shrink_compensation"]:
+        st.boundary_steps = (d1, None)
         return st.xb0 + d1
     # twicing: x = (2S - S^2) x0 = x0 - (S(d1) - d1) with d1 = S(x0) - x0; the
     # low-frequency part of the displacement (the shrinkage) is taken back
-    d2, it = system.step(d1, tol)
+    d2, it = system.step(d1, tol, last[1])
     st.it_b += it
+    st.boundary_steps = (d1, d2)
     return st.xb0 - d2
 
 

@@ -207,6 +207,48 @@ def test_back_off_rounds_solve_the_boundary_from_the_last_round():
     assert np.abs(warm - cold).max() < 1e-3 * np.abs(cold).max()
 
 
+def test_a_pull_rounds_interior_solve_solves_near_the_change_first(monkeypatch):
+    """A pull round moves a few boundary nodes: the interior solve from the last solution first
+    solves for the change near them, and then meets the whole band's stopping rule with few
+    passes over the whole band; it ends where a solve over the whole band ends, to the
+    tolerance."""
+    import dicer.mesh.smooth as sm
+
+    monkeypatch.setattr(sm, "_NEAR_HOPS", 10)  # a small ball's band: 12 edges reach more than an eighth of it
+    m = ball(n=40, radii=(14.3,), centre=np.array([20.2, 19.9, 20.1]))
+    st = sm._set_up(m, smoothing_settings({"surface_from_labels": False}), None, 0.0, 0.0)
+    tol, interior = st.s["tolerance"], st.interior
+    rel = st.xb0 - 20.0
+    ub = 0.05 * np.sin(np.linalg.norm(rel, axis=1))[:, None] * rel  # smooth, as the labels' smoothing
+    u1, _ = interior.solve(ub, tol / 10)  # a last solution well inside the rule: room for the change
+    ub2 = ub.copy()
+    near = np.linalg.norm(st.xb0 - st.xb0[0], axis=1) < 1.5  # the nodes one pull round moves
+    ub2[near] += 0.05
+    whole_passes = []
+    laplace = sm._laplace
+
+    def counted(m_bb, deg, free):
+        apply = laplace(m_bb, deg, free)
+        if m_bb.shape[0] < interior.nodes.size:
+            return apply
+
+        def whole(v):
+            whole_passes.append(1)
+            return apply(v)
+        return whole
+
+    monkeypatch.setattr(sm, "_laplace", counted)
+    warm, _ = interior.solve(ub2, tol, u1)
+    passes_near = len(whole_passes)
+    interior._last_b = None  # the same solve over the whole band only
+    whole_passes.clear()
+    plain, _ = interior.solve(ub2, tol, u1)
+    assert 2 <= passes_near <= 3 < len(whole_passes) // 2, (passes_near, len(whole_passes))  # measured 2, 11
+    fresh, _ = interior.solve(ub2, 1e-7)
+    scale = np.abs(fresh).max()
+    assert np.abs(warm - fresh).max() < 1e-3 * scale and np.abs(plain - fresh).max() < 1e-3 * scale
+
+
 def test_guard_error_names_the_worst_element():
     # an input element that is already inverted cannot be rescued by backing off
     m = ball(n=24, radii=(8.3,), centre=np.array([12.2, 11.9, 12.1]))

@@ -189,3 +189,44 @@ def test_chamfer_meeting_a_mirror_plane_keeps_its_rim_node_on_the_boundary():
     assert rim.size == 1 and g.boundary[rim[0]] and g.node_class[rim[0]] != 0
     out, rep = smooth_mesh(merged, {})
     assert rep["inverted_elements"] == 0 and rep["min_scaled_jacobian"] >= 0.2
+
+
+def test_a_repeated_interior_solve_near_a_change_mirrors_alike(ball, monkeypatch):
+    """A pull round's interior solve first solves near the nodes that moved (``_near_first``):
+    an octant and the whole ball, moved alike, decide and solve alike."""
+    monkeypatch.setattr(smooth_module, "_NEAR_HOPS", 2)  # a small ball's band: 12 edges reach more than an eighth of it
+    settings = smooth_module.smoothing_settings({})
+    full_mesh, part_mesh = voxel_mesh(ball), voxel_mesh(ball[16:, 16:, 16:])
+    near_iterations = []
+    solved = {}
+    for name, mesh, centre in (("full", full_mesh, 16.0), ("part", part_mesh, 0.0)):
+        st = smooth_module._set_up(mesh, settings, None, 0.0, 0.0)
+        rel = st.xb0 - centre
+        r = np.linalg.norm(rel, axis=1)
+        ub = 0.05 * np.sin(r)[:, None] * rel  # radial: alike under the mirrors
+        u1, _ = st.interior.solve(ub, settings["tolerance"])
+        spot = np.array([4.0, 6.0, 9.0])  # a patch off the planes, in every octant of the whole
+        moved = np.linalg.norm(np.abs(rel) - spot, axis=1) < 1.2
+        ub2 = ub.copy()
+        ub2[moved] += 0.3 * np.sign(rel[moved])
+        first = smooth_module._Interior._near_first
+
+        def near(self, b, x0, tol, apply):
+            x, it = first(self, b, x0, tol, apply)
+            near_iterations.append(it)
+            return x, it
+
+        smooth_module._Interior._near_first = near
+        try:
+            u2, it = st.interior.solve(ub2, settings["tolerance"], u1)
+        finally:
+            smooth_module._Interior._near_first = first
+        solved[name] = (st.band_nodes, u2, it)
+    assert len(near_iterations) == 2 and near_iterations[0] == near_iterations[1] > 0
+    (band_f, u_f, it_f), (band_p, u_p, it_p) = solved["full"], solved["part"]
+    assert it_f == it_p
+    rows = node_index(full_mesh)[tuple((part_mesh.lattice[band_p] + 16).T)]
+    at = np.full(full_mesh.n_points, -1)
+    at[band_f] = np.arange(band_f.size)
+    assert np.all(at[rows] >= 0)
+    assert np.abs(u_p - u_f[at[rows]]).max() < 1e-6, np.abs(u_p - u_f[at[rows]]).max()  # voxels

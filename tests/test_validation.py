@@ -17,7 +17,7 @@ import pytest
 from calculix import needs_ccx
 
 from dicer.validation import cases, geometry, reference
-from dicer.validation.study import FIT, MIN_SJ_03, NO_MERGE, OFFSET, PILLOW
+from dicer.validation.study import FIT, MIN_SJ_03, NO_MERGE, OFFSET, PILLOW, TODAY
 
 pytestmark = [pytest.mark.calculix, needs_ccx]
 
@@ -178,6 +178,16 @@ def kirsch_target(quarter: dict, full: dict, order: int, rel: float) -> None:
     assert quarter[order]["sigma_x_90"] == pytest.approx(full[order]["sigma_x_90"], rel=0.01)
 
 
+def kirsch_figures(r: dict, min_sj: float, cps4: tuple, cps8: tuple, peak_abs: float = 0.02) -> None:
+    """One Kirsch result against its recorded figures: min SJ, 0 inverted, and per element type
+    (sigma_x at 90 deg, largest rim stress, its angle)."""
+    assert r["min_sj"] == pytest.approx(min_sj, abs=0.005) and r["inverted"] == 0
+    for order, (at_90, peak, angle) in ((1, cps4), (2, cps8)):
+        assert r[order]["sigma_x_90"] == pytest.approx(at_90, abs=0.02)
+        assert r[order]["peak"] == pytest.approx(peak, abs=peak_abs)
+        assert r[order]["peak_angle_deg"] == pytest.approx(angle, abs=3.0)
+
+
 @pytest.fixture(scope="module")
 def kirsch_fit(tmp_path_factory):
     """Quarter and full plate from the labels with the surface fitted to their staircase
@@ -194,11 +204,7 @@ def kirsch_fit(tmp_path_factory):
 def test_kirsch_plate_from_labels_with_the_fitted_surface(kirsch_fit, merge, cps4, cps8):
     q, f = kirsch_fit[("quarter", merge)], kirsch_fit[("full", merge)]
     for r in (q, f):
-        assert r["min_sj"] == pytest.approx(0.32, abs=0.005) and r["inverted"] == 0
-        for order, (at_90, peak, angle) in ((1, cps4), (2, cps8)):
-            assert r[order]["sigma_x_90"] == pytest.approx(at_90, abs=0.02)
-            assert r[order]["peak"] == pytest.approx(peak, abs=0.02)
-            assert r[order]["peak_angle_deg"] == pytest.approx(angle, abs=3.0)
+        kirsch_figures(r, 0.32, cps4, cps8)
     for order in (1, 2):  # the cut plate fits as the whole one
         assert f[order]["sigma_x_90"] == pytest.approx(q[order]["sigma_x_90"], abs=2e-4)
 
@@ -245,12 +251,7 @@ def kirsch_scan(tmp_path_factory):
     ("full", "min SJ 0.3", 0.320, (3.1394, 3.1895, 83.0), (3.0014, 3.3670, 79.2)),
 ])
 def test_kirsch_plate_from_a_grey_value_image(kirsch_scan, part, name, min_sj, cps4, cps8):
-    r = kirsch_scan[(part, name)]
-    assert r["min_sj"] == pytest.approx(min_sj, abs=0.005) and r["inverted"] == 0
-    for order, (at_90, peak, angle) in ((1, cps4), (2, cps8)):
-        assert r[order]["sigma_x_90"] == pytest.approx(at_90, abs=0.02)
-        assert r[order]["peak"] == pytest.approx(peak, abs=0.03)
-        assert r[order]["peak_angle_deg"] == pytest.approx(angle, abs=3.0)
+    kirsch_figures(kirsch_scan[(part, name)], min_sj, cps4, cps8, peak_abs=0.03)
 
 
 @pytest.mark.slow
@@ -417,6 +418,32 @@ def test_target_lame_within_3_percent(tmp_path):
 @pytest.mark.parametrize("order", [1, 2])
 def test_target_kirsch_from_a_grey_value_image(kirsch_scan, order):
     kirsch_target(kirsch_scan[("quarter", "min SJ 0.3")], kirsch_scan[("full", "min SJ 0.3")], order, 0.03)
+
+
+@pytest.fixture(scope="module")
+def kirsch_scan_today(tmp_path_factory):
+    """Quarter and full plate from the grey-value image by dicer run at today's defaults: the
+    surface fitted to the segmentation's labels (no pull onto the image), the floor 0.3, plane
+    merging."""
+    return {part: cases.kirsch(tmp_path_factory.mktemp(f"kirsch_scan_today_{part}"), part, TODAY, scan=True)
+            for part in ("quarter", "full")}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("part,cps4,cps8", [("quarter", (2.9205, 2.9205, 90.0), (2.9577, 2.9577, 90.0)),
+                                            ("full", (2.9913, 3.0200, 90.0), (3.0604, 3.1016, 90.0))])
+def test_kirsch_plate_from_a_grey_value_image_at_todays_defaults(kirsch_scan_today, part, cps4, cps8):
+    kirsch_figures(kirsch_scan_today[part], 0.32, cps4, cps8)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="target from a grey-value image at today's defaults: CPS4 sigma_x(90) "
+                   "quarter / full 2.921 / 2.991 (-2.6 / -0.3 %), CPS8 2.958 / 3.060 (-1.4 / +2.0 %), largest "
+                   "rim stress all at 90 deg, the full plate's CPS8 3.102 (+3.4 %); quarter and full 2.4 % (CPS4) "
+                   "and 3.4 % (CPS8) apart: the noise segments the quadrants differently")
+@pytest.mark.parametrize("order", [1, 2])
+def test_target_kirsch_from_a_grey_value_image_at_todays_defaults(kirsch_scan_today, order):
+    kirsch_target(kirsch_scan_today["quarter"], kirsch_scan_today["full"], order, 0.03)
 
 
 @pytest.mark.slow

@@ -365,6 +365,55 @@ def _axis_neighbours(cells: np.ndarray, slots: np.ndarray, nodes: np.ndarray) ->
     return out
 
 
+_NEAR_HOPS = 12
+"""Edges around the changed rows over which a repeated interior solve first solves for the change
+(``_Interior._near_first``): the band is three layers thick between held ends, so a change fades
+along it; on the head CT's pull rounds 12 edges leave the whole band's rule met at once or after
+one iteration (6: four to six more iterations)."""
+
+
+def _laplace(m_bb: sp.csr_matrix, deg, free: np.ndarray | None):
+    """The interior operator v -> deg v - free * (m_bb v) on the coordinates stacked x | y | z
+    ((3M,) float32; the returned array is reused by the next call)."""
+    m = m_bb.shape[0]
+    out, buf = np.empty(3 * m, np.float32), np.empty(3 * m, np.float32)
+
+    def apply(v):
+        for d in range(3):
+            part = slice(d * m, (d + 1) * m)
+            np.multiply(v[part], deg, out=buf[part])
+            nbrs = m_bb @ v[part]
+            if free is not None:
+                nbrs *= free[d]
+            np.subtract(buf[part], nbrs, out=out[part])
+        return out
+
+    return apply
+
+
+def _reach(m_bb: sp.csr_matrix, rows: np.ndarray, hops: int, share: np.ndarray, limit: float) -> np.ndarray | None:
+    """(K,) sorted: the rows ``rows`` and those within ``hops`` edges of them in the pattern of
+    ``m_bb`` (symmetric), found frontier by frontier; None once their ``share`` (M,) sums to
+    more than ``limit`` (the search stops there: a wide change is solved over the whole band)."""
+    mark = np.zeros(m_bb.shape[0], bool)
+    mark[rows] = True
+    frontier, total = rows, float(share[rows].sum())
+    for _ in range(hops):
+        start, count = m_bb.indptr[frontier], np.diff(m_bb.indptr)[frontier]
+        size = int(count.sum())
+        if size == 0:
+            break
+        # the frontier rows' column indices, gathered in one go
+        idx = np.repeat(start - np.cumsum(count) + count, count) + np.arange(size)
+        nb = np.unique(m_bb.indices[idx])
+        frontier = nb[~mark[nb]]
+        mark[frontier] = True
+        total += float(share[frontier].sum())
+        if total > limit:
+            return None
+    return np.flatnonzero(mark)
+
+
 class _Interior:
     """The interior Laplace system on a band of interior nodes, assembled once.
 
@@ -425,6 +474,7 @@ class _Interior:
         if self.free is None:
             self.free = np.ones((3, self.nodes.size), np.float32)
         self.free[:, rows] = 0.0
+        self._last_b = None  # the system changed: the next solve starts over the whole band
 
     def _mirror(self, bits: np.ndarray) -> None:
         """The free coordinates (3, m) and CG weights of the band nodes on mirror planes ``bits``."""
@@ -437,7 +487,10 @@ class _Interior:
         """Displacements (M, 3) of the band nodes given those of the boundary nodes (B, 3).
 
         ``start``: (M, 3) displacements to start from (a previous solve's: the guard's rounds
-        move a few boundary nodes, so the last solution is close); None starts from 0.
+        move a few boundary nodes, so the last solution is close); None starts from 0. From the
+        last solve's solution, with few right-hand sides changed (a pull round), the change is
+        first solved for near them (``_near_first``): the same stopping rule then takes few
+        iterations over the whole band, or none.
         """
         m = self.nodes.size
         if m == 0:
@@ -446,27 +499,55 @@ class _Interior:
         b = np.empty(3 * m, np.float32)
         for d in range(3):
             b[d * m : (d + 1) * m] = self.m_bB @ ub[d]
-        deg, m_bb, free = self.deg, self.m_bb, self.free
-        if free is not None:
-            b *= free.ravel()  # a plane node's normal displacement is 0
-        out, buf = np.empty_like(b), np.empty_like(b)
-
-        def apply(v):
-            for d in range(3):
-                part = slice(d * m, (d + 1) * m)
-                np.multiply(v[part], deg, out=buf[part])
-                nbrs = m_bb @ v[part]
-                if free is not None:
-                    nbrs *= free[d]
-                np.subtract(buf[part], nbrs, out=out[part])
-            return out
-
+        if self.free is not None:
+            b *= self.free.ravel()  # a plane node's normal displacement is 0
+        apply = _laplace(self.m_bb, self.deg, self.free)
         x0 = None if start is None else np.ascontiguousarray(start.T, np.float32).ravel()
-        if x0 is not None and free is not None:
-            x0 *= free.ravel()
+        it_near = 0
+        if x0 is not None:
+            if self.free is not None:
+                x0 *= self.free.ravel()
+            x0, it_near = self._near_first(b, x0, tol, apply)
+        self._last_b = b
         u, it = _pcg(apply, b, None, tol, 5000, self.weight, x0)
-        return u.reshape(3, m).T.astype(np.float64), it
+        return u.reshape(3, m).T.astype(np.float64), it + it_near
 
+    def _near_first(self, b: np.ndarray, x0: np.ndarray, tol: float, apply) -> tuple[np.ndarray, int]:
+        """``x0`` (3M,) improved where the right-hand side ``b`` (3M,) differs from the last solve's
+        (``x0`` its solution): the residual solved for on the band nodes within ``_NEAR_HOPS``
+        edges of those rows, the others held, to half of what the whole solve's rule leaves
+        beside the residual elsewhere."""
+        last, self._last_b = getattr(self, "_last_b", None), None
+        m = self.nodes.size
+        if last is None:
+            return x0, 0
+        changed = np.flatnonzero((b != last).reshape(3, m).any(axis=0))
+        # counted as shares of the mirrored model, so a cut model decides as the whole one does
+        share = np.ones(m, np.float32) if self.weight is None else self.weight[:m]
+        whole = float(share.sum())
+        if changed.size == 0 or float(share[changed].sum()) > whole / 32:
+            return x0, 0
+        rows = _reach(self.m_bb, changed, _NEAR_HOPS, share, whole / 8)
+        if rows is None:
+            return x0, 0
+        at = (rows[None, :] + m * np.arange(3)[:, None]).ravel()  # the rows' places in the stacked vectors
+        weight = None if self.weight is None else self.weight[at]
+        dot = _dot if self.weight is None else _wdot(self.weight)
+        r = b - apply(x0)
+        total2 = dot(r, r)
+        r = r[at]
+        inside2 = _dot(r, r) if weight is None else _wdot(weight)(r, r)
+        # the rule's budget less the last solve's residual elsewhere (held), half of it here
+        budget2 = (tol * tol) * dot(b, b) - (total2 - inside2)
+        if budget2 <= 0 or inside2 <= 0.25 * budget2:
+            return x0, 0
+        target, rnorm = 0.5 * np.sqrt(budget2), np.sqrt(inside2)
+        deg = self.deg if np.ndim(self.deg) == 0 else self.deg[rows]
+        near = _laplace(self.m_bb[rows][:, rows], deg, None if self.free is None else self.free[:, rows])
+        delta, it = _pcg(near, r, None, target / rnorm, 5000, weight)
+        x0 = x0.copy()
+        x0[at] += delta
+        return x0, it
 
 class _InteriorGraph(_Interior):
     """The interior Laplace system of a graded mesh (transition templates: nodes shared by

@@ -40,6 +40,7 @@ LAME_SCAN_RADII = (7.0, 14.0)
 MIN_SJ_03 = "smooth.min_scaled_jacobian=0.3"  # the validation targets' quality floor as the guard's floor
 PILLOW = "smooth.pillow=true"  # a layer of elements over the surface (docs/smoothing.md §3b)
 FIT = "smooth.surface_from_labels=true"  # the surface fitted to the labels' staircase (docs/smoothing.md §3c)
+TODAY = ["smooth.surface_from_image=false", FIT, MIN_SJ_03]  # the scan's settings changed back to today's defaults
 SCAN_NOISE = 30.0  # the grey-value images' noise on a contrast of 1000 (the ``-clean`` parts: none)
 ORDER_NAMES = {"kirsch": {1: "CPS4", 2: "CPS8"}, "lame": {1: "C3D8", 2: "C3D20"}}
 
@@ -81,7 +82,9 @@ def kirsch_settings() -> dict[str, list[str]]:
 def scan_settings(part: str = "quarter") -> dict[str, list[str]]:
     """The settings of the grey-value plates: defaults, the guard's floor at 0.3, k = 0.8, a
     wider image smoothing and the whole default chain (the full plate, four times the
-    elements, at the first two and the last only).
+    elements, at the first two and the last only); ``today's defaults``: ``dicer run`` on the
+    image at its defaults since 5 December 2026 (no pull onto the image: the surface fitted to
+    the segmentation's labels, the floor 0.3, plane merging).
 
     Parameters
     ----------
@@ -97,6 +100,7 @@ def scan_settings(part: str = "quarter") -> dict[str, list[str]]:
         out["k=0.8"] = [NO_MERGE, "smooth.coefficient=0.8"]
         out["image_sigma=1"] = [NO_MERGE, "smooth.image_sigma=1.0"]
     out["defaults+merge"] = []
+    out["today's defaults"] = list(TODAY)
     out["pillow"] = [NO_MERGE, PILLOW]
     out["pillow, min SJ 0.3"] = [NO_MERGE, PILLOW, MIN_SJ_03]
     return out

@@ -426,6 +426,8 @@ class _Interior:
     of the node stays 0 (``free``); ``weight`` is the CG inner product (see _BoundarySystem).
     """
 
+    _last_b: np.ndarray | None = None  # the last solve's right-hand side (3M,), for ``_near_first``
+
     def __init__(self, cells: np.ndarray, slots: np.ndarray, band_nodes: np.ndarray, boundary: np.ndarray,
                  bnodes: np.ndarray, planes: np.ndarray | None = None):
         n = boundary.size
@@ -517,7 +519,7 @@ class _Interior:
         (``x0`` its solution): the residual solved for on the band nodes within ``_NEAR_HOPS``
         edges of those rows, the others held, to half of what the whole solve's rule leaves
         beside the residual elsewhere."""
-        last, self._last_b = getattr(self, "_last_b", None), None
+        last, self._last_b = self._last_b, None
         m = self.nodes.size
         if last is None:
             return x0, 0
@@ -548,6 +550,7 @@ class _Interior:
         x0 = x0.copy()
         x0[at] += delta
         return x0, it
+
 
 class _InteriorGraph(_Interior):
     """The interior Laplace system of a graded mesh (transition templates: nodes shared by

@@ -653,12 +653,22 @@ def _warn_of_short_pull(report: dict) -> None:
 
 
 def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None = None,
-              image_path: str | None = None, thresholds_path: str | None = None, mesh=None, write=_now):
+              image_path: str | None = None, thresholds_path: str | None = None, mesh=None, write=_now,
+              labels_path: str | None = None, labels=None):
     from dicer.config import stage_kwargs
     from dicer.mesh.smooth import smooth_mesh
 
     settings = stage_kwargs(config, "smooth")
     image = thresholds = None
+    # the labels' staircase before merging, for the fit (smooth.surface_from_labels) unless a
+    # scan's iso-surfaces place the surface
+    fits_labels = settings["surface_from_labels"] and not (image_path is not None and settings["surface_from_image"])
+    if not fits_labels:
+        labels = labels_path = None
+    elif labels_path is not None and labels is None:
+        from dicer.io.images import read_labels
+
+        labels = read_labels(labels_path, _npy_spacing(labels_path, config))
     if image_path is None and settings["surface_from_image"]:
         log.warning("smooth: smooth.surface_from_image is set, but there is no scan to take the surface from (a label "
                     "volume input, or dicer smooth without --image): the surface is smoothed from the labels alone")
@@ -683,19 +693,27 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
                             "before, and smoothing it again shrinks it further; smooth the mesh of dicer mesh or "
                             "dicer merge", moved, m.n_points)
         try:
-            return smooth_mesh(m, **settings, image=image, thresholds=thresholds, image_source=image_path or "image")
+            return smooth_mesh(m, **settings, image=image, thresholds=thresholds, image_source=image_path or "image",
+                               labels=labels, labels_source=labels_path or "the labels")
         except DicerError as exc:
             text = str(exc)
-            if image_path and (text.startswith(image_path) or (thresholds_path and text.startswith(thresholds_path))):
+            if any(source and text.startswith(source) for source in (image_path, thresholds_path, labels_path)):
                 raise _InputError(text) from None
             raise
 
     # smoothing only reads its input mesh (new points; cells and data shared)
     smoothed, report = _mesh_to_mesh("smooth", run, mesh_path, out, report_path, mesh, mapped=True, write=write)
     log.info("smooth: wrote %s (%s)", out, json.dumps(_stable(report), sort_keys=True)[:600])
-    said = _volume_changes("smooth", {k: 100 * v for k, v in report.get("volume_change_by_material", {}).items()},
-                           smoothed.names)
-    if said and "surface_from_image" in report:  # the scan's iso-surface, not the labels', set the surface
+    # against the labels where the fit had them: a merge's chamfers, which the fit takes back, count
+    from_labels = "volume_change_from_labels_by_material" in report
+    said = _volume_changes("smooth", {k: 100 * v for k, v in report.get(
+        "volume_change_from_labels_by_material" if from_labels else "volume_change_by_material", {}).items()},
+        smoothed.names)
+    if said and from_labels:  # parts too small for the fit, or held back by the quality guard
+        log.warning("%s from the labels' voxels; parts a few voxels across shrink most (the fit needs "
+                    "smooth.label_surface_radius voxels of surface): lower smooth.coefficient or "
+                    "smooth.label_surface_radius, or merge less (merge.passes, merge.min_thickness)", said)
+    elif said and "surface_from_image" in report:  # the scan's iso-surface, not the labels', set the surface
         where = Path(thresholds_path).name if thresholds_path else "segment.thresholds"  # dicer run: a staged file
         log.warning("%s; the surface went onto the scan's iso-surfaces (smooth.surface_from_image) at the "
                     "thresholds %s (%s), so the volume follows the scan where they lie away from the labels' "
@@ -1110,9 +1128,18 @@ def cmd_merge(args):
 
 
 def cmd_smooth(args):
+    from dicer.config import stage_kwargs
+
     report = _check_output(args.report, (".json",), "the smoothing report") if args.report else None
-    do_smooth(args.mesh, _check_output(args.output, (".vtu",), "the mesh"), _config(args), report,
-              image_path=args.image, thresholds_path=args.thresholds)
+    config = _config(args)
+    smooth = stage_kwargs(config, "smooth")
+    scan_surface = args.image is not None and smooth["surface_from_image"]
+    if args.labels is not None and (scan_surface or not smooth["surface_from_labels"]):
+        log.warning("smooth: --labels is read by smooth.surface_from_labels only, which is %s: %s is not read",
+                    "not used beside the scan's surface (smooth.surface_from_image)" if scan_surface else "off",
+                    args.labels)
+    do_smooth(args.mesh, _check_output(args.output, (".vtu",), "the mesh"), config, report,
+              image_path=args.image, thresholds_path=args.thresholds, labels_path=args.labels)
 
 
 def cmd_mesh(args):
@@ -1439,7 +1466,8 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
                 # a segmented scan lends its grey values: the surface goes onto its iso-surfaces
                 scan = (args.image, str(path("segmentation.json"))) if args.labels is None else (None, None)
                 mesh = do_smooth(str(path("merged.vtu")), path("smoothed.vtu"), config, path("smooth.json"),
-                                 image_path=scan[0], thresholds_path=scan[1], mesh=mesh, write=write)
+                                 image_path=scan[0], thresholds_path=scan[1], mesh=mesh, write=write,
+                                 labels_path=str(path("labels_fixed.nii.gz")))
             except BaseException:
                 # an earlier stage's file, checked beside this stage, failed first: its error is the
                 # cause (a merge that made inverted corners, then the smoothing that could not mend them)
@@ -1650,6 +1678,9 @@ def _add_mesh_commands(command) -> None:
     p.add_argument("--thresholds", metavar="JSON",
                    help="with --image: segmentation.json of 'dicer segment --info' (its thresholds); "
                         "default: the config's manual segment.thresholds")
+    p.add_argument("--labels", metavar="LABELS",
+                   help="the label volume the mesh was made from (dicer fix's output): smooth.surface_from_labels "
+                        "fits its staircase, not a merged mesh's steps; default: the mesh's own faces")
     _add_config_options(p)
 
     p = command("export", cmd_export, "write the mesh for a solver or viewer (format from the file extension)")

@@ -69,7 +69,7 @@ def chain(request, tmp_path_factory):
         ["fix", "atlas.nii.gz", "-o", "fixed.nii.gz"],
         ["mesh", "fixed.nii.gz", "-o", "mesh.vtu"],
         ["merge", "mesh.vtu", "-o", "merged.vtu", "--report", "merge.json"],
-        ["smooth", "merged.vtu", "-o", "smoothed.vtu", "--report", "smooth.json"],
+        ["smooth", "merged.vtu", "-o", "smoothed.vtu", "--report", "smooth.json", "--labels", "fixed.nii.gz"],
         ["export", "smoothed.vtu", "-o", "model.inp"],
         ["quality", "smoothed.vtu", "-o", "quality.json", "--labels", "fixed.nii.gz"],
     ]

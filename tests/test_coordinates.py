@@ -305,7 +305,8 @@ def test_stage_by_stage_gives_the_run_bytes(run_dir, tmp_path):
     _run("fix", tmp_path / "labels.nii.gz", "-o", tmp_path / "labels_fixed.nii.gz", *m)
     _run("mesh", tmp_path / "labels_fixed.nii.gz", "-o", tmp_path / "mesh.vtu", *m)
     _run("merge", tmp_path / "mesh.vtu", "-o", tmp_path / "merged.vtu")
-    _run("smooth", tmp_path / "merged.vtu", "-o", tmp_path / "smoothed.vtu")
+    _run("smooth", tmp_path / "merged.vtu", "-o", tmp_path / "smoothed.vtu",
+         "--labels", tmp_path / "labels_fixed.nii.gz")
     for name in ("model.inp", "model.vtu"):
         _run("export", tmp_path / "smoothed.vtu", "-o", tmp_path / name, *m)
     for name in ("labels.nii.gz", "labels_fixed.nii.gz", "mesh.vtu", "merged.vtu", "smoothed.vtu",

@@ -262,10 +262,13 @@ def test_a_layer_mostly_not_made_is_warned_of(tmp_path, capsys, caplog):
 
     np.save(tmp_path / "wedge.npy", _wedge())
     caplog.set_level("WARNING", logger="dicer")
-    for thickness, said in (("0.9", True), ("0.25", False)):
+    # the thick layer under a floor of 0.7 is made nowhere; the defaults' floor (0.3) lets the
+    # thick layer cover 60 of the 66 faces (measured), the thin one all
+    for thickness, floor, said in (("0.9", "0.7", True), ("0.9", "0.3", False), ("0.25", "0.3", False)):
         caplog.clear()
-        assert main(["run", "--labels", str(tmp_path / "wedge.npy"), "-o", str(tmp_path / thickness), "-q",
-                     "--set", "smooth.pillow=true", "--set", f"smooth.pillow_thickness={thickness}"]) == 0
+        assert main(["run", "--labels", str(tmp_path / "wedge.npy"), "-o", str(tmp_path / f"{thickness}_{floor}"), "-q",
+                     "--set", "smooth.pillow=true", "--set", f"smooth.pillow_thickness={thickness}",
+                     "--set", f"smooth.min_scaled_jacobian={floor}"]) == 0
         warned = [r.getMessage() for r in caplog.records if "pillow layer covers" in r.getMessage()]
         assert warned == (["smooth: the pillow layer covers 0 of the 66 exterior faces (the others could not keep "
                            "smooth.min_scaled_jacobian with it); lower smooth.pillow_thickness (now 0.9) or "

@@ -34,13 +34,14 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from dicer.errors import DicerError
 from dicer.mesh.boundary import plane_bits
 from dicer.mesh.faces import neighbour_materials
 from dicer.mesh.model import Mesh
 from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
 from dicer.parallel import ordered_map
 
-__all__ = ["LabelSurface", "staircase_samples"]
+__all__ = ["LabelSurface", "check_labels_for_mesh", "label_image_samples", "staircase_samples"]
 
 _FACING = 0.1  # the cosine between a face's and the node's normals from which a face counts fully
 _SHEET = 2.0  # voxels off the tangent plane (besides the bend over r) where another sheet begins
@@ -48,6 +49,10 @@ _OUTLIER = 1.0  # voxels off the first fit: dropped from the second
 _PER_COEFFICIENT = 3  # samples needed per coefficient of the fit
 _CHUNK = 2048  # nodes fitted at a time: (chunk, k) temporaries, some 10 of them, k 180 or more
 _GROUPS = 4  # a chunk's nodes fitted in this many groups of like sample counts
+_CHECKED = 200_000  # elements checked against a label volume at most (evenly spread)
+_AGREE = 0.9  # the share of them that must lie on voxels of their own material
+_GIVE = ("give the label volume the mesh was made from (labels_fixed.nii.gz of dicer run, or what dicer fix "
+         "wrote)")
 
 
 def staircase_samples(mesh: Mesh, mirror_reach: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -79,7 +84,8 @@ def staircase_samples(mesh: Mesh, mirror_reach: float = 0.0) -> tuple[np.ndarray
     table = HEX_FACES if dim == 3 else QUAD_EDGES
     across = neighbour_materials(mesh)
     own = np.asarray(mesh.material)
-    elem, face = np.nonzero(across != own[:, None])
+    # a face between two materials once, from its lower material's element
+    elem, face = np.nonzero((across != own[:, None]) & ((across == 0) | (across > own[:, None])))
     corner = np.asarray(mesh.cells)[elem[:, None], table[face]]  # (F, 4 | 2)
     # the image's edge is no surface between two kinds: a face whose corners share a bounding plane
     keep = np.bitwise_and.reduce(plane_bits(mesh, x0)[corner], axis=1) == 0
@@ -120,6 +126,102 @@ def staircase_samples(mesh: Mesh, mirror_reach: float = 0.0) -> tuple[np.ndarray
     if not parts:
         return np.zeros((0, dim)), np.zeros((0, dim)), np.zeros((0, 2), np.int64), np.zeros(0)
     points, normals, kinds, weights = (np.concatenate(x) for x in zip(*parts))
+    return _mirrored(mesh, (points, normals, kinds, weights), mirror_reach)
+
+
+def label_image_samples(labels, mesh: Mesh, mirror_reach: float = 0.0
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The faces between two kinds of a label volume: the staircase its voxel mesh has.
+
+    The samples :func:`staircase_samples` gives for ``voxel_mesh(labels)``, in another order,
+    without making that mesh; for a plane-merged or graded mesh of these labels, the
+    staircase before merging (a merge's chamfers and filled notches add volume at the surface).
+
+    Parameters
+    ----------
+    labels : dicer.image.Volume
+        (nx, ny[, nz]) integer labels, 0 background, on ``mesh``'s lattice
+        (:func:`check_labels_for_mesh`).
+    mesh : Mesh
+        The mesh of the labels: its origin, spacing and bounding planes.
+    mirror_reach : float, optional
+        As in :func:`staircase_samples`.
+
+    Returns
+    -------
+    points, normals, kinds, weights
+        As :func:`staircase_samples`.
+    """
+    lab = np.asarray(labels.array)
+    dim = lab.ndim
+    spacing = np.asarray(mesh.spacing, float)[:dim]
+    origin = np.asarray(mesh.origin, float)[:dim]
+    parts = []
+    for d in range(dim):
+        lo = lab[(slice(None),) * d + (slice(None, -1),)]
+        hi = lab[(slice(None),) * d + (slice(1, None),)]
+        index = np.nonzero(lo != hi)  # the faces between voxels i and i + 1 along d
+        a, b = lo[index].astype(np.int64), hi[index].astype(np.int64)
+        centre = np.column_stack(index).astype(float) + 0.5
+        centre[:, d] += 0.5
+        normal = np.zeros((a.size, dim))
+        normal[:, d] = np.where(b > a, 1.0, -1.0)  # into the higher kind
+        parts.append((origin + centre * spacing, normal, np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1),
+                      np.full(a.size, float(np.prod(np.delete(spacing, d))))))
+    samples = tuple(np.concatenate(x) for x in zip(*parts))
+    return _mirrored(mesh, samples, mirror_reach)
+
+
+def check_labels_for_mesh(labels, mesh: Mesh, source: str) -> None:
+    """Raise unless ``labels`` is a label volume ``mesh`` can have been made from.
+
+    Its dimensions, voxel count per axis, voxel size and origin must be the mesh's, and of
+    the elements (at most ``_CHECKED``, evenly spread) at least ``_AGREE`` must hold a voxel
+    of their own material at a corner (inside the element; a merge fills a few steps, a fix
+    changes a few voxels, another scan's labels agree far less).
+
+    Parameters
+    ----------
+    labels : dicer.image.Volume
+    mesh : Mesh
+    source : str
+        The labels' name in messages.
+
+    Raises
+    ------
+    DicerError
+    """
+    lab = np.asarray(labels.array)
+    dim = mesh.dim
+    if lab.ndim != dim:
+        raise DicerError(f"{source}: a {lab.ndim}D label volume for a {dim}D mesh; {_GIVE}")
+    grid = tuple(int(v) for v in np.asarray(mesh.grid_shape)[:dim])
+    if lab.shape != grid:
+        raise DicerError(f"{source}: {'x'.join(map(str, lab.shape))} voxels, but the mesh was made from "
+                         f"{'x'.join(map(str, grid))}; {_GIVE}")
+    for what, mine, theirs in (("voxel size", labels.spacing, mesh.spacing), ("origin", labels.origin, mesh.origin)):
+        mine, theirs = np.asarray(mine, float)[:dim], np.asarray(theirs, float)[:dim]
+        if not np.allclose(mine, theirs, rtol=1e-6, atol=1e-6 * float(np.max(np.asarray(mesh.spacing)[:dim]))):
+            raise DicerError(f"{source}: {what} {' x '.join(f'{v:g}' for v in mine)} mm, the mesh's "
+                             f"{' x '.join(f'{v:g}' for v in theirs)} mm; {_GIVE}")
+    n = mesh.n_cells
+    rows = np.arange(0, n, max(1, -(-n // _CHECKED)))
+    # the voxel inside each element at each of its corners: a merged box's are all its own, a
+    # chamfer's or a filled notch's unmoved corners hold the voxel it was made from
+    corners = np.asarray(mesh.lattice)[np.asarray(mesh.cells)[rows]][..., :dim]
+    voxel = corners - (corners > corners.mean(axis=1, keepdims=True))
+    np.clip(voxel, 0, np.array(grid) - 1, out=voxel)
+    own = np.any(lab[tuple(np.moveaxis(voxel, -1, 0))] == np.asarray(mesh.material)[rows, None], axis=1)
+    if rows.size and np.count_nonzero(own) < _AGREE * rows.size:
+        raise DicerError(f"{source}: {rows.size - np.count_nonzero(own)} of {rows.size} elements of the mesh hold no "
+                         f"voxel of their material in these labels, so it was not made from them; {_GIVE}")
+
+
+def _mirrored(mesh: Mesh, samples: tuple, mirror_reach: float) -> tuple:
+    """The samples with their mirror images across the bounding planes within ``mirror_reach``
+    (mm) of the model (none for 0)."""
+    points, normals, kinds, weights = samples
+    dim = points.shape[1]
     if mirror_reach > 0:
         lo = np.asarray(mesh.origin, float)[:dim]
         hi = lo + np.asarray(mesh.grid_shape, float)[:dim] * np.asarray(mesh.spacing, float)[:dim]
@@ -166,16 +268,22 @@ class LabelSurface:
         The fit's radius, voxels of the finest axis.
     mirror : bool
         ``bounding_planes: mirror``: samples mirrored across the bounding planes.
+    labels : dicer.image.Volume, optional
+        The label volume the mesh was made from (checked by :func:`check_labels_for_mesh`):
+        the staircase is taken from it instead of from the mesh's faces, so a plane-merged or
+        graded mesh is fitted to the labels' surface, not to its chamfers.
     """
 
-    def __init__(self, mesh: Mesh, radius: float, mirror: bool):
+    def __init__(self, mesh: Mesh, radius: float, mirror: bool, labels=None):
         dim = mesh.dim
         self.dim = dim
         spacing = np.asarray(mesh.spacing, float)[:dim]
         self.mesh_spacing = spacing
         self.voxel = float(spacing.max())
         self.radius = float(radius) * float(spacing.min())
-        self.points, self.normals, kinds, self.weights = staircase_samples(mesh, self.radius if mirror else 0.0)
+        reach = self.radius if mirror else 0.0
+        samples = staircase_samples(mesh, reach) if labels is None else label_image_samples(labels, mesh, reach)
+        self.points, self.normals, kinds, self.weights = samples
         self.top = int(np.max(mesh.material, initial=0)) + 1
         # thresholds for NodeSides: one per material (the labels have no image values)
         self.thresholds = np.arange(1, self.top, dtype=float)

@@ -788,9 +788,11 @@ class _Smoothing:
 # --- set-up: the scan's surfaces, node classes, coefficients, the interior band ----------------
 
 
-def _pull_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str) -> tuple[object | None, float]:
+def _pull_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str, labels=None,
+                  labels_source: str = "labels") -> tuple[object | None, float]:
     """The surface the boundary nodes are pulled onto: the scan's iso-surfaces for
-    ``surface_from_image``, else the labels' fitted staircase for ``surface_from_labels``.
+    ``surface_from_image``, else the labels' fitted staircase for ``surface_from_labels``
+    (of the label volume ``labels`` where given, else of the mesh's faces).
 
     Returns
     -------
@@ -802,10 +804,12 @@ def _pull_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str) -> 
     if image is None or not s["surface_from_image"]:
         if not s["surface_from_labels"]:
             return None, 0.0
-        from dicer.mesh.labelsurface import LabelSurface
+        from dicer.mesh.labelsurface import LabelSurface, check_labels_for_mesh
 
         t = time.perf_counter()
-        return (LabelSurface(mesh, s["label_surface_radius"], s["bounding_planes"] == "mirror"),
+        if labels is not None:
+            check_labels_for_mesh(labels, mesh, labels_source)
+        return (LabelSurface(mesh, s["label_surface_radius"], s["bounding_planes"] == "mirror", labels),
                 time.perf_counter() - t)
     from dicer.mesh.subvoxel import ImageSurface, check_thresholds_for_mesh
 
@@ -1609,11 +1613,17 @@ def _pull_report(st: _Smoothing) -> dict:
                                    "nodes_on_the_image_surface": on}}
 
 
-def _report(st: _Smoothing, t0: float) -> dict:
-    """The stage's report (see docs/smoothing.md); ``t0``: the stage's start, for the timings."""
+def _report(st: _Smoothing, t0: float, labels=None) -> dict:
+    """The stage's report (see docs/smoothing.md); ``t0``: the stage's start, for the timings;
+    ``labels``: the label volume the fit took, whose volumes the result is compared with."""
     mesh, g, s, sj = st.mesh, st.g, st.s, st.sj
     change, total, base = _volume_change(st)
     volume_change = {str(kind): float(change[kind] / base[kind]) for kind in np.flatnonzero(base)}
+    if labels is not None:
+        volume_change_from_labels = {"volume_change_from_labels_by_material": _change_from_labels(change, base, labels,
+                                                                                                   mesh)}
+    else:
+        volume_change_from_labels = {}
     bdisp = np.linalg.norm(st.xb - st.xb0, axis=1)
     idisp = np.linalg.norm(st.x_band - st.x_band0, axis=1) if st.band_nodes.size else np.zeros(0)
     max_disp = max(float(bdisp.max()) if bdisp.size else 0.0, float(idisp.max()) if idisp.size else 0.0)
@@ -1638,6 +1648,7 @@ def _report(st: _Smoothing, t0: float) -> dict:
         "inverted_elements": int(np.count_nonzero(sj <= 0)),
         "volume_change": total / float(base.sum()) if base.sum() else 0.0,  # 0: a mesh of no volume
         "volume_change_by_material": volume_change,
+        **volume_change_from_labels,
         "max_displacement_mm": max_disp,
         "mean_boundary_displacement_mm": float(bdisp.mean()) if bdisp.size else 0.0,
         **_pull_report(st),
@@ -1652,7 +1663,8 @@ def _report(st: _Smoothing, t0: float) -> dict:
 def smooth_mesh(mesh: Mesh, *, surface_from_image, image_sigma, surface_from_labels, label_surface_radius,
                 coefficient, coefficients, bounding_planes, keep_bounding_planes, interior, shrink_compensation,
                 interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow, pillow_thickness,
-                tolerance, image=None, thresholds=None, image_source: str = "image") -> tuple[Mesh, dict]:
+                tolerance, image=None, thresholds=None, image_source: str = "image", labels=None,
+                labels_source: str = "labels") -> tuple[Mesh, dict]:
     """Smooth ``mesh``: node classes, boundary solve, pull onto the image, interior solve, guard.
 
     The settings are keyword-only, with no defaults here: the command line passes
@@ -1677,6 +1689,11 @@ backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance
         The lower bound of each material 1..K in the image's units, as segmentation chose them.
     image_source : str
         The image's name in messages.
+    labels : dicer.image.Volume, optional
+        The label volume the mesh was made from (before merging or grading): ``surface_from_labels``
+        fits its staircase, not the mesh's faces, whose merged steps (chamfers) lie off it.
+    labels_source : str
+        The labels' name in messages.
 
     Returns
     -------
@@ -1688,8 +1705,8 @@ backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance
     Raises
     ------
     DicerError
-        Bad settings, an empty mesh, a mesh without lattice data, an image or thresholds that
-        do not fit the mesh, or a mesh the guard cannot bring above ``min_scaled_jacobian``.
+        Bad settings, an empty mesh, a mesh without lattice data, an image, thresholds or labels
+        that do not fit the mesh, or a mesh the guard cannot bring above ``min_scaled_jacobian``.
     """
     s = smoothing_settings.__wrapped__(
         surface_from_image=surface_from_image, image_sigma=image_sigma, surface_from_labels=surface_from_labels,
@@ -1699,7 +1716,8 @@ backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance
         min_scaled_jacobian=min_scaled_jacobian, backoff_factor=backoff_factor,
         max_backoff_rounds=max_backoff_rounds, pillow=pillow, pillow_thickness=pillow_thickness, tolerance=tolerance)
     _check_input(mesh)
-    surface, t_img = _pull_surface(mesh, s, image, thresholds, image_source)
+    surface, t_img = _pull_surface(mesh, s, image, thresholds, image_source, labels, labels_source)
+    surface_from_scan = image is not None and s["surface_from_image"]
     t0 = time.perf_counter()
     if s["pillow"]:  # the smoothing leaves room above the floor for the layer's move inward
         st = _set_up(mesh, {**s, "min_scaled_jacobian": min(s["min_scaled_jacobian"] + _PILLOW_ROOM, 0.99)}, surface,
@@ -1710,4 +1728,14 @@ backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance
     else:
         st = _set_up(mesh, s, surface, t0, t_img)
         _solve_with_guard(st)
-    return _smoothed_mesh(st), _report(st, t0)
+    # the labels as the fit took them (not beside a scan's surface)
+    return _smoothed_mesh(st), _report(st, t0, labels if surface is not None and not surface_from_scan else None)
+
+
+def _change_from_labels(change: np.ndarray, base: np.ndarray, labels, mesh: Mesh) -> dict:
+    """Each material's smoothed volume (``base`` + ``change``, by material) against its voxels'
+    in ``labels``, relative: the labels before merging, so a merge's chamfers count."""
+    after = base + change
+    voxel = float(np.prod(np.asarray(mesh.spacing, float)[:mesh.dim]))
+    counts = np.bincount(np.asarray(labels.array).ravel(), minlength=after.size)[:after.size] * voxel
+    return {str(kind): float(after[kind] / counts[kind] - 1.0) for kind in np.flatnonzero(counts[1:]) + 1}

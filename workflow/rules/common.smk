@@ -10,7 +10,7 @@ from pathlib import Path
 from snakemake.exceptions import WorkflowError
 
 from dicer.cli import downsample_applies
-from dicer.config import deep_merge, for_label_volume, load_config, parse_set, stage_settings
+from dicer.config import deep_merge, for_label_volume, load_config, parse_set, stage_kwargs, stage_settings
 from dicer.errors import DicerError
 from dicer.phantoms import PHANTOMS
 from dicer.sheet import beside_sheet, read_sheet
@@ -215,6 +215,14 @@ def scan_option(wildcards, input):
     if "image" not in input.keys():
         return ""
     return f"--image {shlex.quote(input.image)} --thresholds {shlex.quote(input.thresholds)}"
+
+
+def labels_option(wildcards, input):
+    """params: --labels labels_fixed.nii.gz where the smoothing fits the labels' staircase
+    (smooth.surface_from_labels, not beside the scan's surface), else nothing."""
+    smooth = stage_kwargs(patient_config(wildcards.patient), "smooth")
+    beside_scan = "image" in input.keys() and smooth["surface_from_image"]
+    return f"--labels {shlex.quote(input.labels)}" if smooth["surface_from_labels"] and not beside_scan else ""
 
 
 def pictures(wildcards):

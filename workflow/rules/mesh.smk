@@ -51,12 +51,14 @@ rule smooth:
     input:
         unpack(scan_input),
         mesh=rules.merge.output.mesh,
+        labels=rules.fix.output.labels,
     output:
         mesh=patient_file("smoothed.vtu"),
         report=patient_file("smooth.json"),
     params:
         settings=settings("smooth"),
         scan=scan_option,
+        labels=labels_option,
     conda:
         CONDA_ENV
     threads: 1
@@ -68,5 +70,6 @@ rule smooth:
     log:
         "logs/{patient}/smooth.log",
     shell:
-        "dicer smooth {input.mesh:q} -o {output.mesh:q} --report {output.report:q} {params.scan}"
+        "dicer smooth {input.mesh:q} -o {output.mesh:q} --report {output.report:q} {params.labels}"
+        " {params.scan}"
         " --settings {params.settings:q} > {log:q} 2>&1"

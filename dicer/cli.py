@@ -540,7 +540,7 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
                                        mesh, mapped=True, write=write_advised)
     except DicerError as exc:
         raise advised(exc) from None
-    _warn_of_volume_change(report, merged, settings)
+    _warn_of_volume_change(report, merged, settings, stage_kwargs(config, "smooth")["surface_from_labels"])
     _warn_of_flat_templates(report, merged)
     if report.get("method") == "templates" and report["elements_after"] >= report["elements_before"]:
         # too small (or too finely divided) for coarser levels: only the transitions' worse shapes
@@ -575,10 +575,11 @@ def _volume_changes(stage: str, percent: dict, material_names: list) -> str | No
         f" and {len(big) - 8} more)" if len(big) > 8 else ")")
 
 
-def _warn_of_volume_change(report: dict, mesh, settings: dict) -> None:
+def _warn_of_volume_change(report: dict, mesh, settings: dict, fit_follows: bool = False) -> None:
     """Warn when merging changed a material's volume by more than STAGE_VOLUME_WARNING percent:
     chamfers fill whole voxel steps, and across a coarse axis of anisotropic voxels (thick
-    slices) a step is several times the in-plane size."""
+    slices) a step is several times the in-plane size. ``fit_follows``: the smoothing fits the
+    labels (smooth.surface_from_labels), which takes the surface back, if given the labels."""
     import numpy as np
 
     said = _volume_changes("merge", {k: v["change_percent"] for k, v in report.get("volume", {}).items()},
@@ -592,6 +593,9 @@ def _warn_of_volume_change(report: dict, mesh, settings: dict) -> None:
         passes = [0 if c else int(p) for c, p in zip(coarse, list(settings["passes"]) + [0] * 3)]
         hint = (f"the voxels are {' x '.join(f'{v:g}' for v in spacing)} mm: merging across the coarse axis fills "
                 f"steps of a whole slice; set merge.passes={passes} to merge in-plane only")
+    if fit_follows:
+        hint += ("; smoothing with the labels takes the surface back to theirs (smooth.surface_from_labels and "
+                 "dicer smooth --labels, as dicer run does), the elements stay coarser there")
     log.warning("%s; %s", said, hint)
 
 

@@ -561,6 +561,11 @@ smooth stage warns (the head CT at defaults: 171 of 397,774)."""
 STAGE_VOLUME_WARNING = 5.0
 """Percent change of a material's volume through merging or smoothing above which the stage warns."""
 
+SLOPED_SAMPLES_WARNING = 0.01
+"""Share of the labels' fit samples on a merged mesh's slopes (chamfers), without the labels
+themselves, above which the smooth stage warns (the head CT's merged mesh: 0.3 %, a merged
+ball of radius 16 voxels: 55 %)."""
+
 
 def _volume_changes(stage: str, percent: dict, material_names: list) -> str | None:
     """"name +x.x %" of the materials (label strings in ``percent``; names of labels 1, 2, ...
@@ -708,6 +713,12 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
     # smoothing only reads its input mesh (new points; cells and data shared)
     smoothed, report = _mesh_to_mesh("smooth", run, mesh_path, out, report_path, mesh, mapped=True, write=write)
     log.info("smooth: wrote %s (%s)", out, json.dumps(_stable(report), sort_keys=True)[:600])
+    fit = report.get("surface_from_labels", {})
+    if labels is None and fit.get("samples_on_sloped_faces", 0) > SLOPED_SAMPLES_WARNING * fit.get("samples", 0):
+        sloped = fit["samples_on_sloped_faces"]  # fitted to a merged mesh's faces, many of them chamfers
+        log.warning("smooth: %d of the fit's %d samples lie on merging's slopes (chamfers), which stand off the "
+                    "labels' surface: give --labels with the label volume the mesh was made from "
+                    "(labels_fixed.nii.gz), as dicer run does", sloped, fit["samples"])
     # against the labels where the fit had them: a merge's chamfers, which the fit takes back, count
     from_labels = "volume_change_from_labels_by_material" in report
     said = _volume_changes("smooth", {k: 100 * v for k, v in report.get(

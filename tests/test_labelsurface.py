@@ -390,6 +390,17 @@ def test_smooth_command_fits_the_labels_dicer_run_made(tmp_path, caplog, capsys)
     argv = ["smooth", str(run / "merged.vtu"), "-o", str(out), "--labels", str(run / "labels_fixed.nii.gz"), "-q"]
     assert main(argv) == 0
     assert out.read_bytes() == (run / "smoothed.vtu").read_bytes()  # what dicer run made
+    # without the labels: fitted to the merged faces, more than half of them slopes, and said
+    caplog.clear()
+    assert main(["smooth", str(run / "merged.vtu"), "-o", str(tmp_path / "faces.vtu"), "--report",
+                 str(tmp_path / "faces.json")]) == 0
+    fit = json.loads((tmp_path / "faces.json").read_text())["surface_from_labels"]
+    assert fit["samples_on_sloped_faces"] > 0.5 * fit["samples"]  # measured 2,683 of 4,851
+    said = [r.getMessage() for r in caplog.records if "merging's slopes" in r.getMessage()]
+    assert said == [f"smooth: {fit['samples_on_sloped_faces']} of the fit's {fit['samples']} samples lie on merging's "
+                    "slopes (chamfers), which stand off the labels' surface: give --labels with the label volume the "
+                    "mesh was made from (labels_fixed.nii.gz), as dicer run does"]
+    assert report["surface_from_labels"]["samples_on_sloped_faces"] == 0  # the labels' faces: all on the axes
     # labels of another scan: one line, exit 2, no output
     np.save(tmp_path / "other.npy", np.roll(lab, 9, axis=0))
     capsys.readouterr()

@@ -248,12 +248,12 @@ GOLDEN_MESHES = {
 }
 
 GOLDEN_SMOOTH = {
-    "ball_defaults": "a54c7269cfc30a97 1f5beaadf21a4d22 e100e033873549bc 0 0",
-    "merged_defaults": "59140031ad15e30e 67b2f02161168701 315762db8967e1bd 0 0",
-    "graded_defaults": "14fd52e3a34a5945 156f82b159a44490 e391c7b419316881 0 0",
-    "quarter_disc_defaults": "e3f81019fb27d9b8 38bd4ad4a81d2134 808d9e5e738c5e8a 0 0",
+    "ball_defaults": "a54c7269cfc30a97 1f5beaadf21a4d22 c1dc1f10ec2aa04c 0 0",
+    "merged_defaults": "59140031ad15e30e 67b2f02161168701 1d0c09f1304e05c4 0 0",
+    "graded_defaults": "14fd52e3a34a5945 156f82b159a44490 05d791d6e1437602 0 0",
+    "quarter_disc_defaults": "e3f81019fb27d9b8 38bd4ad4a81d2134 f1185d51a9f63a48 0 0",
     "ct3_image_defaults": "3436875fcff2a2fb 93a92adc8d68ce10 b9c343707e7246fc 0 0",
-    "stripes_defaults": "3bd0aab08e389022 efe7c648830f56d4 a25e6ceb92c570cc 0 1",
+    "stripes_defaults": "3bd0aab08e389022 efe7c648830f56d4 5f973112c709be81 0 1",
     "ball": "ba013ac9a35f2ac0 1f5beaadf21a4d22 f215aed5abb1a541 0 -",
     "ball_no_twicing": "59330de206e46706 1f5beaadf21a4d22 cd04177c5be745ba 1 -",
     "ball_band_all": "ba013ac9a35f2ac0 1f5beaadf21a4d22 5dcd3ed9a0cca004 0 -",
@@ -278,10 +278,10 @@ GOLDEN_SMOOTH = {
     "ct3_image_pull_backoff": "fe21a258ebc83167 93a92adc8d68ce10 1f3bc14a0ebc7df2 2 9",
     "ct2_image": "20a4427f63fee62f 77d80cb3dfef2a0c 9d96b6678735d9a8 0 3",
     "ct3_image_off": "5a5c7c82f3759ea5 93a92adc8d68ce10 c7cb80870a7f9182 0 -",
-    "cut_fit": "b6296e87b98bcb5b 56e6b73b7f51e9c6 05302c8f16d381bb 0 0",
-    "merged_fit": "2754c666342bedc9 67b2f02161168701 50f2ef98f4ff7c8e 0 0",
-    "graded_fit": "e3d891f2947f9950 156f82b159a44490 03e90bd75ea04773 0 0",
-    "quarter_disc_fit": "28291658670af99a 38bd4ad4a81d2134 3746c286df89169d 0 0",
+    "cut_fit": "b6296e87b98bcb5b 56e6b73b7f51e9c6 e4f4297a10c046d0 0 0",
+    "merged_fit": "2754c666342bedc9 67b2f02161168701 ffbc5bcef47464ab 0 0",
+    "graded_fit": "e3d891f2947f9950 156f82b159a44490 3a1f66dc1b7efc5c 0 0",
+    "quarter_disc_fit": "28291658670af99a 38bd4ad4a81d2134 73efb9e3dd169e74 0 0",
 }
 
 GOLDEN_GRAPH = {

@@ -284,6 +284,8 @@ class LabelSurface:
         reach = self.radius if mirror else 0.0
         samples = staircase_samples(mesh, reach) if labels is None else label_image_samples(labels, mesh, reach)
         self.points, self.normals, kinds, self.weights = samples
+        # the mesh's faces off the lattice's axes: merging's slopes (chamfers), off the labels' surface
+        self.sloped = int(np.count_nonzero(np.abs(self.normals).max(axis=1) < 1 - 1e-9))
         self.top = int(np.max(mesh.material, initial=0)) + 1
         # thresholds for NodeSides: one per material (the labels have no image values)
         self.thresholds = np.arange(1, self.top, dtype=float)
@@ -440,4 +442,5 @@ class LabelSurface:
         y = xb.copy()
         y[sel] += height[:, None] * normal[sel]
         return y, {"nodes_moved": int(np.count_nonzero(fitted)), "nodes_between_two_kinds": int(sides.usable.sum()),
-                   "label_surface_radius": self.radius / float(self.mesh_spacing.min())}
+                   "label_surface_radius": self.radius / float(self.mesh_spacing.min()),
+                   "samples": int(self.points.shape[0]), "samples_on_sloped_faces": self.sloped}

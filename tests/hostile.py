@@ -674,6 +674,27 @@ for command in ("quality", "export", "surface", "smooth", "merge"):
     case("5-inputs", f"{command}: a mesh with a NaN node coordinate",
          (lambda command: lambda c: argv_for(c, command, inp=vtu_edit(c.b / "smoothed.vtu", c.t / "n.vtu",
                                                                       _nan_point)))(command), "n.vtu")
+case("5-inputs", "smooth --labels: labels of another grid",
+     lambda c: argv_for(c, "smooth", extra=["--labels", c.copy("big_ones.npy")]), "big_ones.npy", "110x110x110")
+def _moved_labels(c: Ctx) -> Path:
+    """The base labels moved by 6 voxels along x: the mesh's grid, another anatomy."""
+    from dicer.image import Volume
+    from dicer.io.images import read_labels, write_labels
+
+    labels = read_labels(c.b / "labels.nii.gz")
+    write_labels(Volume(np.roll(labels.array, 6, axis=0), labels.spacing, labels.origin, labels.direction),
+                 c.t / "moved.nii.gz")
+    return c.t / "moved.nii.gz"
+
+
+case("5-inputs", "smooth --labels: labels of another scan",
+     lambda c: argv_for(c, "smooth", extra=["--labels", _moved_labels(c)]), "moved.nii.gz",
+     "hold no voxel of their material")
+case("5-inputs", "smooth --labels: the scan instead of its labels",
+     lambda c: argv_for(c, "smooth", extra=["--labels", c.copy("head.nii.gz")]), "head.nii.gz")
+case("5-inputs", "smooth --labels: a float label volume with NaN",
+     lambda c: argv_for(c, "smooth", extra=["--labels", npy(c.t / "l.npy", _with(np.ones((32, 32, 32), np.float32),
+                                                                                 (1, 1, 1), np.nan))]), "l.npy")
 for label, content in (("a key twice", "smooth:\n  interior: true\nsmooth:\n  interior: false\n"),
                        ("a nested key twice", "smooth:\n  interior: true\n  interior: false\n"),
                        ("an anchor merge key twice", "a: &x {b: 1}\nfix:\n  <<: *x\n  type_c: true\n  type_c: false\n")):

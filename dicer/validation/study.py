@@ -151,6 +151,10 @@ def run_study(work: str | os.PathLike, log=print) -> dict:
     r = cases.lame(work / "lame_7_fit_pillow", "quarter", [NO_MERGE, FIT, PILLOW], inner=LAME_RADII[0],
                    outer=2 * LAME_RADII[0])
     results["lame"][f"a={LAME_RADII[0]:g}+fit+pillow"] = _named(r, "lame")
+    for a in LAME_RADII[:2]:  # dicer run's defaults: the labels' fit, the floor 0.3, plane merging
+        r = cases.lame(work / f"lame_{a:g}_today", "quarter", [FIT, MIN_SJ_03], inner=a, outer=2 * a)
+        results["lame"][f"a={a:g}+today"] = _named(r, "lame")
+        log(f"lame a={a:g}+today: C3D8 {r[1]['error_mean']:+.4f} C3D20 {r[2]['error_mean']:+.4f}")
     log(f"lame: {time.perf_counter() - t0:.0f} s")
     _run_scans(work, results, log)
     return _rounded(results)

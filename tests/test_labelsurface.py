@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from dicer.cli import main
@@ -309,12 +309,13 @@ def test_a_slab_between_two_mirrors_is_fitted_as_an_endless_prism(monkeypatch):
 
 def _sorted_samples(samples):
     points, normals, kinds, weights = samples
-    order = np.lexsort(np.c_[points, normals, kinds].T[::-1])
+    order = np.lexsort(np.c_[np.round(points, 9), normals, kinds].T[::-1])  # rounded: ties sort alike
     return points[order], normals[order], kinds[order], weights[order]
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(dim=st.sampled_from([2, 3]), seed=st.integers(0, 2**31 - 1), reach=st.sampled_from([0.0, 1.5]))
+@example(dim=3, seed=43708, reach=0.0)  # points equal but for rounding: sorted alike only when rounded
 def test_a_label_volume_gives_its_voxel_meshs_samples(dim, seed, reach):
     rng = np.random.default_rng(seed)
     shape = tuple(rng.integers(2, 7, size=dim))

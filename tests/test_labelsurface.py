@@ -348,9 +348,10 @@ def test_a_merged_ball_fitted_to_its_labels_keeps_their_surface(dim):
     on_labels, report = smooth_mesh(merged, labels=Volume(lab, (1.0,) * dim))
     # measured: the merged mesh's faces (chamfers fill steps, +5.5 % / +2.3 % volume) put the
     # surface 0.327 / 0.224 voxel off the sphere on average, +4.8 % / +2.2 % volume; the labels
-    # 0.116 / 0.123, -0.65 % / +0.12 % (the voxel mesh's own fit: 0.078 / 0.098)
+    # 0.116 / 0.123, -0.65 % / +0.12 % (the voxel mesh's own fit: 0.078 / 0.098); in 3D the
+    # sphere-from-labels target of docs/validation.md (0.12) at dicer run's defaults, merging on
     faces_error, labels_error = radial(merged, on_faces, dim), radial(merged, on_labels, dim)
-    assert faces_error[0] > 0.2 and labels_error[0] < 0.13 and labels_error[1] < 0.55
+    assert faces_error[0] > 0.2 and labels_error[0] < (0.12 if dim == 3 else 0.13) and labels_error[1] < 0.55
     volume = element_volumes(on_labels.points, on_labels.cells).sum()
     assert abs(volume / exact - 1) < 0.008
     assert element_volumes(on_faces.points, on_faces.cells).sum() / exact - 1 > 0.02

@@ -681,7 +681,9 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
     if image_path is None and settings["surface_from_image"]:
         log.warning("smooth: smooth.surface_from_image is set, but there is no scan to take the surface from (a label "
                     "volume input, or dicer smooth without --image): the surface is smoothed from the labels alone")
-    if image_path is not None and settings["surface_from_image"]:
+    # the scan: for its surface, or to place the labels' faces for the fit
+    fit_to_scan = fits_labels and settings["fit_to_scan"] and labels is not None
+    if image_path is not None and (settings["surface_from_image"] or fit_to_scan):
         from dicer.io.images import read_image
 
         thresholds = _read_thresholds(thresholds_path, config, image_path)

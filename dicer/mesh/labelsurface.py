@@ -41,7 +41,7 @@ from dicer.mesh.model import Mesh
 from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
 from dicer.parallel import ordered_map
 
-__all__ = ["LabelSurface", "check_labels_for_mesh", "label_image_samples", "staircase_samples"]
+__all__ = ["LabelSurface", "check_labels_for_mesh", "label_image_samples", "scan_crossings", "staircase_samples"]
 
 _FACING = 0.1  # the cosine between a face's and the node's normals from which a face counts fully
 _SHEET = 2.0  # voxels off the tangent plane (besides the bend over r) where another sheet begins
@@ -129,7 +129,7 @@ def staircase_samples(mesh: Mesh, mirror_reach: float = 0.0) -> tuple[np.ndarray
     return _mirrored(mesh, (points, normals, kinds, weights), mirror_reach)
 
 
-def label_image_samples(labels, mesh: Mesh, mirror_reach: float = 0.0
+def label_image_samples(labels, mesh: Mesh, mirror_reach: float = 0.0, scan=None
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The faces between two kinds of a label volume: the staircase its voxel mesh has.
 
@@ -146,6 +146,10 @@ def label_image_samples(labels, mesh: Mesh, mirror_reach: float = 0.0
         The mesh of the labels: its origin, spacing and bounding planes.
     mirror_reach : float, optional
         As in :func:`staircase_samples`.
+    scan : dicer.mesh.subvoxel.ImageSurface, optional
+        The scan the labels were segmented from: each sample moves along its normal to where
+        the scan crosses its pair's threshold between the two voxels' centres
+        (:func:`scan_crossings`).
 
     Returns
     -------
@@ -168,8 +172,53 @@ def label_image_samples(labels, mesh: Mesh, mirror_reach: float = 0.0
         normal[:, d] = np.where(b > a, 1.0, -1.0)  # into the higher kind
         parts.append((origin + centre * spacing, normal, np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1),
                       np.full(a.size, float(np.prod(np.delete(spacing, d))))))
-    samples = tuple(np.concatenate(x) for x in zip(*parts))
-    return _mirrored(mesh, samples, mirror_reach)
+    points, normals, kinds, weights = (np.concatenate(x) for x in zip(*parts))
+    if scan is not None and points.shape[0]:
+        points = scan_crossings(points, normals, kinds, np.abs(normals) @ spacing, scan)
+    return _mirrored(mesh, (points, normals, kinds, weights), mirror_reach)
+
+
+def _off_faces(points: np.ndarray, normals: np.ndarray, mesh: Mesh) -> int:
+    """How many axis-aligned samples lie off their lattice face (placed by the scan)."""
+    dim = points.shape[1]
+    axis = np.argmax(np.abs(normals), axis=1)
+    lattice = (points[np.arange(axis.size), axis] - np.asarray(mesh.origin, float)[:dim][axis]) / np.asarray(
+        mesh.spacing, float)[:dim][axis]
+    return int(np.count_nonzero(np.abs(lattice - np.round(lattice)) > 1e-6))
+
+
+def scan_crossings(points: np.ndarray, normals: np.ndarray, kinds: np.ndarray, step: np.ndarray, scan) -> np.ndarray:
+    """Face samples moved to where the scan crosses their threshold between the voxels' centres.
+
+    A face between a voxel of the lower kind and one of the higher lies half a voxel from
+    each centre; where the (smoothed) scan is below the higher kind's threshold at the lower
+    centre and at or above it at the higher, the sample moves to the linear crossing between
+    them, at most half a voxel. Elsewhere (the segmentation's clean-up, noise across the
+    threshold) it stays on the face: the surface follows the labels, placed within the voxel
+    by the scan.
+
+    Parameters
+    ----------
+    points, normals : (S, dim) float64 ndarray
+        Face centres (mm) and unit normals into the higher kind.
+    kinds : (S, 2) int64 ndarray
+        Lower and higher kind (0: background).
+    step : (S,) float64 ndarray
+        The voxel's extent along each normal, mm.
+    scan : dicer.mesh.subvoxel.ImageSurface
+        Its ``thresholds`` (lower bound of each material) and ``sample``.
+
+    Returns
+    -------
+    (S, dim) float64 ndarray
+    """
+    t = np.asarray(scan.thresholds, float)[np.clip(kinds[:, 1] - 1, 0, len(scan.thresholds) - 1)]
+    half = (0.5 * step)[:, None] * normals
+    below = scan.sample(points - half).astype(float)
+    above = scan.sample(points + half).astype(float)
+    across = (below < t) & (above >= t)
+    f = np.where(across, (t - below) / np.where(across, above - below, 1.0), 0.5)
+    return points + ((f - 0.5) * step)[:, None] * normals
 
 
 def check_labels_for_mesh(labels, mesh: Mesh, source: str) -> None:
@@ -272,9 +321,12 @@ class LabelSurface:
         The label volume the mesh was made from (checked by :func:`check_labels_for_mesh`):
         the staircase is taken from it instead of from the mesh's faces, so a plane-merged or
         graded mesh is fitted to the labels' surface, not to its chamfers.
+    scan : dicer.mesh.subvoxel.ImageSurface, optional
+        With ``labels``: the scan they were segmented from, which places each face sample
+        within its voxel pair (:func:`scan_crossings`).
     """
 
-    def __init__(self, mesh: Mesh, radius: float, mirror: bool, labels=None):
+    def __init__(self, mesh: Mesh, radius: float, mirror: bool, labels=None, scan=None):
         dim = mesh.dim
         self.dim = dim
         spacing = np.asarray(mesh.spacing, float)[:dim]
@@ -282,10 +334,12 @@ class LabelSurface:
         self.voxel = float(spacing.max())
         self.radius = float(radius) * float(spacing.min())
         reach = self.radius if mirror else 0.0
-        samples = staircase_samples(mesh, reach) if labels is None else label_image_samples(labels, mesh, reach)
+        samples = (staircase_samples(mesh, reach) if labels is None
+                   else label_image_samples(labels, mesh, reach, scan))
         self.points, self.normals, kinds, self.weights = samples
         # the mesh's faces off the lattice's axes: merging's slopes (chamfers), off the labels' surface
         self.sloped = int(np.count_nonzero(np.abs(self.normals).max(axis=1) < 1 - 1e-9))
+        self.placed = _off_faces(self.points, self.normals, mesh) if scan is not None else None
         self.top = int(np.max(mesh.material, initial=0)) + 1
         # thresholds for NodeSides: one per material (the labels have no image values)
         self.thresholds = np.arange(1, self.top, dtype=float)
@@ -443,4 +497,5 @@ class LabelSurface:
         y[sel] += height[:, None] * normal[sel]
         return y, {"nodes_moved": int(np.count_nonzero(fitted)), "nodes_between_two_kinds": int(sides.usable.sum()),
                    "label_surface_radius": self.radius / float(self.mesh_spacing.min()),
-                   "samples": int(self.points.shape[0]), "samples_on_sloped_faces": self.sloped}
+                   "samples": int(self.points.shape[0]), "samples_on_sloped_faces": self.sloped,
+                   **({} if self.placed is None else {"samples_placed_by_the_scan": self.placed})}

@@ -72,8 +72,8 @@ _PULL_ROUNDS = 5  # guard rounds per solve that back off the pull onto the image
 
 
 @takes_settings("smooth", section=True)
-def smoothing_settings(*, surface_from_image, image_sigma, surface_from_labels, label_surface_radius, coefficient,
-                       coefficients, bounding_planes, keep_bounding_planes, interior, shrink_compensation,
+def smoothing_settings(*, surface_from_image, image_sigma, surface_from_labels, label_surface_radius, fit_to_scan,
+                       coefficient, coefficients, bounding_planes, keep_bounding_planes, interior, shrink_compensation,
                        interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow,
                        pillow_thickness, tolerance) -> dict:
     """The ``smooth:`` settings as the solves read them: a coefficient per node class.
@@ -83,9 +83,9 @@ def smoothing_settings(*, surface_from_image, image_sigma, surface_from_labels, 
 
     Parameters
     ----------
-    surface_from_image, image_sigma, surface_from_labels, label_surface_radius, coefficient, coefficients, \
-bounding_planes, keep_bounding_planes, interior, shrink_compensation, interior_band, min_scaled_jacobian, \
-backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance
+    surface_from_image, image_sigma, surface_from_labels, label_surface_radius, fit_to_scan, coefficient, \
+coefficients, bounding_planes, keep_bounding_planes, interior, shrink_compensation, interior_band, \
+min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance
         The ``smooth:`` config section (see the schema).
 
     Returns
@@ -113,7 +113,7 @@ backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance
     per_class = {c: float(coefficients[c] if coefficient is None else coefficient) for c in _CLASS_LETTERS}
     return {"surface_from_image": surface_from_image, "image_sigma": image_sigma,
             "surface_from_labels": surface_from_labels, "label_surface_radius": label_surface_radius,
-            "coefficient": coefficient,
+            "fit_to_scan": fit_to_scan, "coefficient": coefficient,
             "coefficients": per_class, "bounding_planes": bounding_planes,
             "keep_bounding_planes": keep_bounding_planes, "interior": interior,
             "shrink_compensation": shrink_compensation, "interior_band": interior_band,
@@ -807,18 +807,25 @@ def _pull_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str, lab
         from dicer.mesh.labelsurface import LabelSurface, check_labels_for_mesh
 
         t = time.perf_counter()
+        scan = None
         if labels is not None:
             check_labels_for_mesh(labels, mesh, labels_source)
-        return (LabelSurface(mesh, s["label_surface_radius"], s["bounding_planes"] == "mirror", labels),
+            if image is not None and s["fit_to_scan"]:  # the scan places the labels' faces within their voxels
+                scan = _image_surface(mesh, s, image, thresholds, image_source)
+        return (LabelSurface(mesh, s["label_surface_radius"], s["bounding_planes"] == "mirror", labels, scan),
                 time.perf_counter() - t)
+    t = time.perf_counter()
+    return _image_surface(mesh, s, image, thresholds, image_source), time.perf_counter() - t
+
+
+def _image_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str):
+    """The scan smoothed by ``image_sigma`` around the mesh, with its checked thresholds."""
     from dicer.mesh.subvoxel import ImageSurface, check_thresholds_for_mesh
 
     if thresholds is None:
         raise DicerError(f"{image_source}: the thresholds segmentation chose are needed with the image")
-    t = time.perf_counter()
-    surface = ImageSurface(image, check_thresholds_for_mesh(thresholds, mesh, image_source), mesh,
-                           s["image_sigma"], image_source)
-    return surface, time.perf_counter() - t
+    return ImageSurface(image, check_thresholds_for_mesh(thresholds, mesh, image_source), mesh, s["image_sigma"],
+                        image_source)
 
 
 def _classify(mesh: Mesh, s: dict, x0: np.ndarray, graded: bool
@@ -1661,9 +1668,9 @@ def _report(st: _Smoothing, t0: float, labels=None) -> dict:
 
 @takes_settings("smooth", section=True)
 def smooth_mesh(mesh: Mesh, *, surface_from_image, image_sigma, surface_from_labels, label_surface_radius,
-                coefficient, coefficients, bounding_planes, keep_bounding_planes, interior, shrink_compensation,
-                interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow, pillow_thickness,
-                tolerance, image=None, thresholds=None, image_source: str = "image", labels=None,
+                fit_to_scan, coefficient, coefficients, bounding_planes, keep_bounding_planes, interior,
+                shrink_compensation, interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow,
+                pillow_thickness, tolerance, image=None, thresholds=None, image_source: str = "image", labels=None,
                 labels_source: str = "labels") -> tuple[Mesh, dict]:
     """Smooth ``mesh``: node classes, boundary solve, pull onto the image, interior solve, guard.
 
@@ -1676,9 +1683,9 @@ def smooth_mesh(mesh: Mesh, *, surface_from_image, image_sigma, surface_from_lab
     ----------
     mesh : Mesh
         A mesh made by 'dicer mesh' (voxel, plane-merged or graded), with ``lattice`` point data.
-    surface_from_image, image_sigma, surface_from_labels, label_surface_radius, coefficient, coefficients, \
-bounding_planes, keep_bounding_planes, interior, shrink_compensation, interior_band, min_scaled_jacobian, \
-backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance
+    surface_from_image, image_sigma, surface_from_labels, label_surface_radius, fit_to_scan, coefficient, \
+coefficients, bounding_planes, keep_bounding_planes, interior, shrink_compensation, interior_band, \
+min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance
         The ``smooth:`` config section (see the schema and :func:`smoothing_settings`).
     image : dicer.image.Volume, optional
         The scan the labels were segmented from; with ``surface_from_image`` the boundary nodes
@@ -1710,7 +1717,8 @@ backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance
     """
     s = smoothing_settings.__wrapped__(
         surface_from_image=surface_from_image, image_sigma=image_sigma, surface_from_labels=surface_from_labels,
-        label_surface_radius=label_surface_radius, coefficient=coefficient, coefficients=coefficients,
+        label_surface_radius=label_surface_radius, fit_to_scan=fit_to_scan, coefficient=coefficient,
+        coefficients=coefficients,
         bounding_planes=bounding_planes, keep_bounding_planes=keep_bounding_planes, interior=interior,
         shrink_compensation=shrink_compensation, interior_band=interior_band,
         min_scaled_jacobian=min_scaled_jacobian, backoff_factor=backoff_factor,

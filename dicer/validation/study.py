@@ -41,6 +41,7 @@ MIN_SJ_03 = "smooth.min_scaled_jacobian=0.3"  # the validation targets' quality 
 PILLOW = "smooth.pillow=true"  # a layer of elements over the surface (docs/smoothing.md §3b)
 FIT = "smooth.surface_from_labels=true"  # the surface fitted to the labels' staircase (docs/smoothing.md §3c)
 TODAY = ["smooth.surface_from_image=false", FIT, MIN_SJ_03]  # the scan's settings changed back to today's defaults
+FIT_TO_SCAN = "smooth.fit_to_scan=true"  # the labels' faces placed within their voxels by the scan (§3c)
 SCAN_NOISE = 30.0  # the grey-value images' noise on a contrast of 1000 (the ``-clean`` parts: none)
 ORDER_NAMES = {"kirsch": {1: "CPS4", 2: "CPS8"}, "lame": {1: "C3D8", 2: "C3D20"}}
 
@@ -84,7 +85,8 @@ def scan_settings(part: str = "quarter") -> dict[str, list[str]]:
     wider image smoothing and the whole default chain (the full plate, four times the
     elements, at the first two and the last only); ``today's defaults``: ``dicer run`` on the
     image at its defaults since 5 December 2026 (no pull onto the image: the surface fitted to
-    the segmentation's labels, the floor 0.3, plane merging).
+    the segmentation's labels, the floor 0.3, plane merging); ``fit_to_scan``: those with the
+    labels' faces placed by the scan before the fit.
 
     Parameters
     ----------
@@ -101,6 +103,7 @@ def scan_settings(part: str = "quarter") -> dict[str, list[str]]:
         out["image_sigma=1"] = [NO_MERGE, "smooth.image_sigma=1.0"]
     out["defaults+merge"] = []
     out["today's defaults"] = list(TODAY)
+    out["fit_to_scan"] = list(TODAY) + [FIT_TO_SCAN]
     out["pillow"] = [NO_MERGE, PILLOW]
     out["pillow, min SJ 0.3"] = [NO_MERGE, PILLOW, MIN_SJ_03]
     return out

@@ -480,7 +480,7 @@ def test_a_ct_ball_fitted_to_its_labels_placed_by_the_scan(dim):
     assert "samples_placed_by_the_scan" not in smooth_mesh(mesh, labels=labels)[1]["surface_from_labels"]
 
 
-def test_dicer_run_on_a_scan_places_the_faces_by_it(tmp_path):
+def test_dicer_run_on_a_scan_places_the_faces_by_it(tmp_path, caplog):
     from dicer.io.images import write_image
     from tests.test_smooth_image import ct_ball
 
@@ -497,3 +497,11 @@ def test_dicer_run_on_a_scan_places_the_faces_by_it(tmp_path):
     assert "samples_placed_by_the_scan" not in reports[False]
     assert reports[True]["samples_placed_by_the_scan"] > 0.5 * reports[True]["samples"]
     assert reports[True]["samples"] == reports[False]["samples"]  # the same faces, placed
+    # dicer smooth without the scan: said, and fitted to the labels' faces as they are
+    caplog.clear()
+    run = tmp_path / "run_True"
+    assert main(["smooth", str(run / "merged.vtu"), "-o", str(tmp_path / "s.vtu"), "--labels",
+                 str(run / "labels_fixed.nii.gz"), "--set", "smooth.fit_to_scan=true"]) == 0
+    assert [r.getMessage() for r in caplog.records if "fit_to_scan" in r.getMessage()] == [
+        "smooth: smooth.fit_to_scan places the labels' faces by the scan: it needs both --labels and --image (with "
+        "--thresholds); without --image the fit takes the labels' faces as they are"]

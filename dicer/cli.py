@@ -663,7 +663,7 @@ def _warn_of_short_pull(report: dict) -> None:
 
 def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None = None,
               image_path: str | None = None, thresholds_path: str | None = None, mesh=None, write=_now,
-              labels_path: str | None = None, labels=None):
+              labels_path: str | None = None):
     from dicer.config import stage_kwargs
     from dicer.mesh.smooth import smooth_mesh
 
@@ -672,9 +672,10 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
     # the labels' staircase before merging, for the fit (smooth.surface_from_labels) unless a
     # scan's iso-surfaces place the surface
     fits_labels = settings["surface_from_labels"] and not (image_path is not None and settings["surface_from_image"])
+    labels = None
     if not fits_labels:
-        labels = labels_path = None
-    elif labels_path is not None and labels is None:
+        labels_path = None
+    elif labels_path is not None:
         from dicer.io.images import read_labels
 
         labels = read_labels(labels_path, _npy_spacing(labels_path, config))

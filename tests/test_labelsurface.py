@@ -314,8 +314,10 @@ def _sorted_samples(samples):
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(dim=st.sampled_from([2, 3]), seed=st.integers(0, 2**31 - 1), reach=st.sampled_from([0.0, 1.5]))
+@given(dim=st.sampled_from([2, 3]), seed=st.integers(0, 2**31 - 1), reach=st.sampled_from([0.0, 1.3]))
 @example(dim=3, seed=43708, reach=0.0)  # points equal but for rounding: sorted alike only when rounded
+@example(dim=3, seed=32768, reach=1.3)  # a reach of 1.5 mm: samples at exactly the reach, in by rounding or out
+# (the fit gives such a sample no weight: it lies on the edge of the fit's window too)
 def test_a_label_volume_gives_its_voxel_meshs_samples(dim, seed, reach):
     rng = np.random.default_rng(seed)
     shape = tuple(rng.integers(2, 7, size=dim))

@@ -14,7 +14,7 @@ from dicer.errors import DicerError
 from dicer.image import Volume
 from dicer.io.meshes import read_mesh, write_mesh
 from dicer.mesh.boundary import boundary_graph
-from dicer.mesh.labelsurface import LabelSurface, label_image_samples, staircase_samples
+from dicer.mesh.labelsurface import LabelSurface, label_image_samples, scan_crossings, staircase_samples
 from dicer.mesh.merge import merge_planes
 from dicer.mesh.metrics import element_volumes, scaled_jacobian
 from dicer.mesh.smooth import smooth_mesh
@@ -425,6 +425,13 @@ def test_smooth_command_fits_the_labels_dicer_run_made(tmp_path, caplog, capsys)
 # --- the labels' faces placed by the scan (smooth.fit_to_scan) ---------------------------------
 
 
+def _placed(volume, mesh, scan):
+    """The label volume's samples with their faces placed by ``scan`` (as ``LabelSurface`` does)."""
+    points, normals, kinds, weights = label_image_samples(volume, mesh)
+    step = np.abs(normals) @ np.asarray(volume.spacing, float)
+    return scan_crossings(points, normals, kinds, step, scan), normals, kinds, weights
+
+
 class _Scan:
     """An ImageSurface stand-in: the scan's values by a function of position, one threshold."""
 
@@ -444,16 +451,16 @@ def test_the_scan_places_each_face_at_its_crossing_within_half_a_voxel(dim):
     mesh = voxel_mesh(lab, spacing)
     volume = Volume(lab, spacing)
     plain = label_image_samples(volume, mesh)
-    placed = label_image_samples(volume, mesh, scan=_Scan(ramp))
+    placed = _placed(volume, mesh, _Scan(ramp))
     across = np.abs(plain[1][:, 0]) == 1  # the faces across x
     assert np.allclose(plain[0][across, 0], 2.5) and np.allclose(placed[0][across, 0], 2.6)  # a ramp: exact
     assert np.array_equal(placed[0][:, 1:], plain[0][:, 1:])  # along the normal only
     # a scan above the threshold on both sides (the segmentation's clean-up): the faces stay
-    stay = label_image_samples(volume, mesh, scan=_Scan(lambda p: np.full(p.shape[0], 900.0)))
+    stay = _placed(volume, mesh, _Scan(lambda p: np.full(p.shape[0], 900.0)))
     assert np.array_equal(stay[0], plain[0])
     # noise: never more than half a voxel along the normal
     rng = np.random.default_rng(0)
-    noisy = label_image_samples(volume, mesh, scan=_Scan(lambda p: rng.normal(500.0, 300.0, p.shape[0])))
+    noisy = _placed(volume, mesh, _Scan(lambda p: rng.normal(500.0, 300.0, p.shape[0])))
     half = 0.5 * (np.abs(plain[1]) @ np.asarray(spacing))
     assert np.all(np.abs(noisy[0] - plain[0]).sum(axis=1) <= half + 1e-12)
 

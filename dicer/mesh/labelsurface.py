@@ -129,7 +129,7 @@ def staircase_samples(mesh: Mesh, mirror_reach: float = 0.0) -> tuple[np.ndarray
     return _mirrored(mesh, (points, normals, kinds, weights), mirror_reach)
 
 
-def label_image_samples(labels, mesh: Mesh, mirror_reach: float = 0.0, scan=None
+def label_image_samples(labels, mesh: Mesh, mirror_reach: float = 0.0
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The faces between two kinds of a label volume: the staircase its voxel mesh has.
 
@@ -146,10 +146,6 @@ def label_image_samples(labels, mesh: Mesh, mirror_reach: float = 0.0, scan=None
         The mesh of the labels: its origin, spacing and bounding planes.
     mirror_reach : float, optional
         As in :func:`staircase_samples`.
-    scan : dicer.mesh.subvoxel.ImageSurface, optional
-        The scan the labels were segmented from: each sample moves along its normal to where
-        the scan crosses its pair's threshold between the two voxels' centres
-        (:func:`scan_crossings`).
 
     Returns
     -------
@@ -172,19 +168,8 @@ def label_image_samples(labels, mesh: Mesh, mirror_reach: float = 0.0, scan=None
         normal[:, d] = np.where(b > a, 1.0, -1.0)  # into the higher kind
         parts.append((origin + centre * spacing, normal, np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1),
                       np.full(a.size, float(np.prod(np.delete(spacing, d))))))
-    points, normals, kinds, weights = (np.concatenate(x) for x in zip(*parts))
-    if scan is not None and points.shape[0]:
-        points = scan_crossings(points, normals, kinds, np.abs(normals) @ spacing, scan)
-    return _mirrored(mesh, (points, normals, kinds, weights), mirror_reach)
-
-
-def _off_faces(points: np.ndarray, normals: np.ndarray, mesh: Mesh) -> int:
-    """How many axis-aligned samples lie off their lattice face (placed by the scan)."""
-    dim = points.shape[1]
-    axis = np.argmax(np.abs(normals), axis=1)
-    lattice = (points[np.arange(axis.size), axis] - np.asarray(mesh.origin, float)[:dim][axis]) / np.asarray(
-        mesh.spacing, float)[:dim][axis]
-    return int(np.count_nonzero(np.abs(lattice - np.round(lattice)) > 1e-6))
+    samples = tuple(np.concatenate(x) for x in zip(*parts))
+    return _mirrored(mesh, samples, mirror_reach)
 
 
 def scan_crossings(points: np.ndarray, normals: np.ndarray, kinds: np.ndarray, step: np.ndarray, scan) -> np.ndarray:
@@ -334,12 +319,19 @@ class LabelSurface:
         self.voxel = float(spacing.max())
         self.radius = float(radius) * float(spacing.min())
         reach = self.radius if mirror else 0.0
-        samples = (staircase_samples(mesh, reach) if labels is None
-                   else label_image_samples(labels, mesh, reach, scan))
+        self.placed = None
+        if labels is None:
+            samples = staircase_samples(mesh, reach)
+        else:
+            points, normals, kinds, weights = label_image_samples(labels, mesh)
+            if scan is not None:  # placed before mirroring, so the mirror images are placed alike
+                placed = scan_crossings(points, normals, kinds, np.abs(normals) @ spacing, scan)
+                self.placed = int(np.count_nonzero(np.any(placed != points, axis=1)))
+                points = placed
+            samples = _mirrored(mesh, (points, normals, kinds, weights), reach)
         self.points, self.normals, kinds, self.weights = samples
         # the mesh's faces off the lattice's axes: merging's slopes (chamfers), off the labels' surface
         self.sloped = int(np.count_nonzero(np.abs(self.normals).max(axis=1) < 1 - 1e-9))
-        self.placed = _off_faces(self.points, self.normals, mesh) if scan is not None else None
         self.top = int(np.max(mesh.material, initial=0)) + 1
         # thresholds for NodeSides: one per material (the labels have no image values)
         self.thresholds = np.arange(1, self.top, dtype=float)

@@ -1626,11 +1626,6 @@ def _report(st: _Smoothing, t0: float, labels=None) -> dict:
     mesh, g, s, sj = st.mesh, st.g, st.s, st.sj
     change, total, base = _volume_change(st)
     volume_change = {str(kind): float(change[kind] / base[kind]) for kind in np.flatnonzero(base)}
-    if labels is not None:
-        volume_change_from_labels = {"volume_change_from_labels_by_material": _change_from_labels(change, base, labels,
-                                                                                                   mesh)}
-    else:
-        volume_change_from_labels = {}
     bdisp = np.linalg.norm(st.xb - st.xb0, axis=1)
     idisp = np.linalg.norm(st.x_band - st.x_band0, axis=1) if st.band_nodes.size else np.zeros(0)
     max_disp = max(float(bdisp.max()) if bdisp.size else 0.0, float(idisp.max()) if idisp.size else 0.0)
@@ -1655,7 +1650,8 @@ def _report(st: _Smoothing, t0: float, labels=None) -> dict:
         "inverted_elements": int(np.count_nonzero(sj <= 0)),
         "volume_change": total / float(base.sum()) if base.sum() else 0.0,  # 0: a mesh of no volume
         "volume_change_by_material": volume_change,
-        **volume_change_from_labels,
+        **({} if labels is None else
+           {"volume_change_from_labels_by_material": _change_from_labels(change, base, labels, mesh)}),
         "max_displacement_mm": max_disp,
         "mean_boundary_displacement_mm": float(bdisp.mean()) if bdisp.size else 0.0,
         **_pull_report(st),

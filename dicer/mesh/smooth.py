@@ -767,7 +767,7 @@ class _Smoothing:
     bad: np.ndarray | None = None  # the checked elements that fail the guard
     short: tuple | None = None  # with the pull: (checked rows, (R, E) bool) edges it shrank too far
     lengths0: np.ndarray | None = None  # with the pull: (C, E) float32 squared edge lengths before smoothing
-    x_checked: np.ndarray | None = None  # (N, 3) with the pull: the positions of the last check
+    x_checked: np.ndarray | None = None  # (N, 3) the positions of the last check
     boundary_steps: tuple | None = None  # the last boundary solve's displacements (d1, d2), (B, 3) each
     share_checked: np.ndarray | None = None  # (B,) bool, with the pull: the nodes pulled at the last check
     it_b: int = 0  # conjugate-gradient iterations, boundary and interior
@@ -1092,13 +1092,14 @@ by a few thousandths of a voxel for the rest of the surface (merging's chamfers 
 floor of 0.3 then failed every round, and the back-off spent its rounds around them)."""
 
 
-def _check_quality(st: _Smoothing, whole: bool = False) -> None:
+def _check_quality(st: _Smoothing, whole: bool = False) -> bool:
     """The guard's test: sets ``sj`` and ``bad``, the checked elements below ``min_scaled_jacobian``
     (or <= 0) except those already below it before smoothing that did not get worse (``_WORSE``); with the
     pull, also those with an edge shrunk below ``_SHORTEST_EDGE`` of its length.
 
     Unless ``whole``, only the elements ``_rechecked`` names are tested again: the guard accepts
-    positions only after a whole check (``_solve_with_guard``)."""
+    positions only after a whole check (``_solve_with_guard``). Returns True when every checked
+    element was tested."""
     floor = float(st.s["min_scaled_jacobian"])
     again = None if whole else _rechecked(st)
     if again is None:
@@ -1140,8 +1141,8 @@ def _check_quality(st: _Smoothing, whole: bool = False) -> None:
         bad[pulled[new.any(axis=1)]] = True
         st.share_checked = st.pull.share > 0
     st.sj, st.bad = sj, bad
-    if st.pull is not None:  # for the next pull round's check
-        st.x_checked = st.x.copy()
+    st.x_checked = st.x.copy()  # for the next round's check
+    return again is None
 
 
 def _back_off_pull(st: _Smoothing) -> bool:
@@ -1310,10 +1311,9 @@ def _solve_with_guard(st: _Smoothing) -> None:
             _interior_solve(st, xb_labels)
             tg = time.perf_counter()
             st.t_solve += tg - ts
-            # a pull round moves few nodes: only its elements are checked again, and positions
-            # are accepted on a whole check only
-            _check_quality(st, whole=pull_round == 0)
-            if pull_round > 0 and not st.bad.any():
+            # a round moves few nodes much (a pull round's, a back-off round's): only the elements
+            # it moved are checked again, and positions are accepted on a whole check only
+            if not _check_quality(st) and not st.bad.any():
                 _check_quality(st, whole=True)
             ts = time.perf_counter()
             st.t_guard += ts - tg

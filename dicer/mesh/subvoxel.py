@@ -333,25 +333,34 @@ def lift(sides: NodeSides, y: np.ndarray, floor: float, share: np.ndarray | None
         length = np.linalg.norm(e, axis=2)
         if sides.dim == 3:
             a, b, c = e[:, 0], e[:, 1], e[:, 2]
-            bc, ca, ab = np.cross(b, c), np.cross(c, a), np.cross(a, b)
+            bc = np.cross(b, c)
             f = np.einsum("ij,ij->i", a, bc)
-            grad = np.stack([-(bc + ca + ab), bc, ca, ab], axis=1)
         else:
             a, b = e[:, 0], e[:, 1]
             f = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+        scale = np.prod(length, axis=1)
+        need = target * scale - f
+        # the gradient of the corners below the target only: after the first rounds most active
+        # corners are above it (their neighbours moved, they did not need to)
+        low = np.flatnonzero(need > _LIFT_TOLERANCE * scale)
+        if sides.dim == 3:
+            a, b, c, bc = a[low], b[low], c[low], bc[low]
+            ca, ab = np.cross(c, a), np.cross(a, b)
+            grad = np.stack([-(bc + ca + ab), bc, ca, ab], axis=1)
+        else:
+            a, b = a[low], b[low]
             zero = np.zeros(len(a))
             ga = np.stack([b[:, 1], -b[:, 0], zero], axis=1)  # df/da
             gb = np.stack([-a[:, 1], a[:, 0], zero], axis=1)  # df/db
             grad = np.stack([-(ga + gb), ga, gb], axis=1)
-        grad = np.where(counted[active], grad, 0.0)
-        scale = np.prod(length, axis=1)
-        need = target * scale - f
+        grad = np.where(counted[active[low]], grad, 0.0)
         g2 = np.einsum("ijk,ijk->i", grad, grad)
-        go = (need > _LIFT_TOLERANCE * scale) & (g2 > 0)
+        go = g2 > 0
         if not go.any():
             break
-        rows = active[go]
-        step = np.where(free[rows], grad[go], 0.0) * (need[go] / g2[go])[:, None, None]
+        low = low[go]
+        rows = active[low]
+        step = np.where(free[rows], grad[go], 0.0) * (need[low] / g2[go])[:, None, None]
         flat = nodes[rows].ravel()
         moves = step.reshape(-1, 3)
         total = np.stack([np.bincount(flat, weights=moves[:, k], minlength=sides.b) for k in range(3)], axis=1)

@@ -1067,6 +1067,16 @@ a move under ``_RECHECK_MOVE`` changes a scaled Jacobian by less, so a stale val
 nothing a whole check would decide otherwise."""
 
 
+def _moved_farther(x: np.ndarray, start: np.ndarray, reach: float, or_as_far: bool = False) -> np.ndarray:
+    """(N,) bool: the nodes farther than ``reach`` (mm; or as far) from their ``start`` (N, 3).
+
+    Over all nodes: only the boundary and band nodes move, and whole contiguous arrays are
+    several times quicker than gathering those rows (4.6 M of the atlas's 6.4 M nodes)."""
+    step = x - start
+    d2 = np.einsum("ij,ij->i", step, step)
+    return d2 >= reach * reach if or_as_far else d2 > reach * reach
+
+
 def _rechecked(st: _Smoothing) -> tuple[np.ndarray, np.ndarray] | None:
     """The checked elements whose guard test a round must repeat (``_RECHECK_MOVE``,
     ``_RECHECK_MARGIN``): (C,) bool those holding a node that moved (or whose pull changed), and
@@ -1074,10 +1084,7 @@ def _rechecked(st: _Smoothing) -> tuple[np.ndarray, np.ndarray] | None:
     if st.sj is None or st.x_checked is None:
         return None
     reach = _RECHECK_MOVE * float(np.min(np.asarray(st.mesh.spacing, float)[: st.mesh.dim]))
-    moved = np.zeros(st.mesh.n_points, bool)
-    for ids in (st.bnodes, st.band_nodes):
-        step = st.x[ids] - st.x_checked[ids]
-        moved[ids[np.einsum("ij,ij->i", step, step) > reach * reach]] = True
+    moved = _moved_farther(st.x, st.x_checked, reach)
     if st.pull is not None:  # a node whose pull changed: its edges' test changes with it
         moved[st.bnodes[(st.pull.share > 0) != st.share_checked]] = True
     rows = st.checked.holding(moved)
@@ -1122,11 +1129,7 @@ def _check_quality(st: _Smoothing, whole: bool = False) -> bool:
         # an edge falls below _SHORTEST_EDGE of its length only when one of its ends moved at
         # least half the rest of it: the elements of such nodes only (a few of every check's)
         reach = 0.5 * (1 - _SHORTEST_EDGE) * float(np.min(np.asarray(st.mesh.spacing, float)[: st.mesh.dim]))
-        far = np.zeros(st.mesh.n_points, bool)
-        for ids in (st.bnodes, st.band_nodes):
-            step = st.x[ids] - st.x0[ids]
-            far[ids[np.einsum("ij,ij->i", step, step) >= reach * reach]] = True
-        pulled = np.flatnonzero(st.checked.holding(far))
+        pulled = np.flatnonzero(st.checked.holding(_moved_farther(st.x, st.x0, reach, True)))
         kept = None
         if again is not None and st.short is not None:  # the last check's verdicts where nothing moved
             rows, short = st.short

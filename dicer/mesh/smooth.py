@@ -246,12 +246,17 @@ class _BoundarySystem:
         lap = self.adj @ y - self.degree[:, None] * y  # float64: positions are large, differences small
         rhs = np.where(self.free, lap, 0.0).astype(np.float32)
         b = np.ascontiguousarray(rhs.T).ravel()
-        mat, diag, buf = self.mat, self.diag, np.empty_like(b)
+        diag, out = self.diag, np.empty_like(b)
+        blocks = _row_blocks(self.mat)
 
         def apply(v):
-            out = mat @ v
-            np.multiply(diag, v, out=buf)
-            np.subtract(buf, out, out=out)
+            def rows(job):
+                a, b, block = job
+                product = block @ v
+                np.multiply(diag[a:b], v[a:b], out=out[a:b])
+                np.subtract(out[a:b], product, out=out[a:b])
+
+            _side_by_side(rows, blocks, len(blocks))
             return out
 
         if start is not None:
@@ -372,20 +377,60 @@ along it; on the head CT's pull rounds 12 edges leave the whole band's rule met 
 one iteration (6: four to six more iterations)."""
 
 
+_SIDE_BY_SIDE_ENTRIES = 1 << 20
+"""Stored entries of a matrix from which its product is formed in row blocks side by side."""
+
+
+def _row_blocks(mat: sp.csr_matrix) -> list[tuple[int, int, sp.csr_matrix]]:
+    """``mat`` cut into row blocks of about equal stored entries, one per core the process may
+    use (``dicer.parallel.cores``, at most two), each sharing the matrix's arrays: (first row,
+    end row, block). Each row's sum is formed as in the whole matrix, so products built from
+    the blocks are the same to the bit."""
+    from dicer.parallel import MAX_WORKERS, cores
+
+    parts = min(MAX_WORKERS, cores()) if mat.nnz >= _SIDE_BY_SIDE_ENTRIES else 1
+    rows = [0, *(int(np.searchsorted(mat.indptr, mat.nnz * i // parts)) for i in range(1, parts)), mat.shape[0]]
+    blocks = []
+    for a, b in zip(rows[:-1], rows[1:]):
+        p, q = int(mat.indptr[a]), int(mat.indptr[b])
+        blocks.append((a, b, sp.csr_matrix((mat.data[p:q], mat.indices[p:q], mat.indptr[a:b + 1] - p),
+                                           shape=(b - a, mat.shape[1]), copy=False)))
+    return blocks
+
+
+def _side_by_side(work, items: list, blocks: int) -> None:
+    """``work(item)`` for every item: in threads (``dicer.parallel.ordered_map``) when the work
+    is cut into several ``blocks``, else here (a small system's solve calls it thousands of times)."""
+    from dicer.parallel import ordered_map
+
+    if blocks < 2:
+        for item in items:
+            work(item)
+        return
+    for _ in ordered_map(work, items):
+        pass
+
+
 def _laplace(m_bb: sp.csr_matrix, deg, free: np.ndarray | None):
     """The interior operator v -> deg v - free * (m_bb v) on the coordinates stacked x | y | z
-    ((3M,) float32; the returned array is reused by the next call)."""
+    ((3M,) float32; the returned array is reused by the next call). Its row blocks
+    (``_row_blocks``) are worked on side by side: the products are the band solve's main cost."""
     m = m_bb.shape[0]
-    out, buf = np.empty(3 * m, np.float32), np.empty(3 * m, np.float32)
+    out = np.empty(3 * m, np.float32)
+    blocks = _row_blocks(m_bb)
+    deg_rows = [deg if np.ndim(deg) == 0 else deg[a:b] for a, b, _ in blocks]
 
     def apply(v):
-        for d in range(3):
-            part = slice(d * m, (d + 1) * m)
-            np.multiply(v[part], deg, out=buf[part])
-            nbrs = m_bb @ v[part]
+        def rows(job):
+            d, (a, b, block), deg_ = job
+            at = slice(d * m + a, d * m + b)
+            nbrs = block @ v[d * m : (d + 1) * m]
             if free is not None:
-                nbrs *= free[d]
-            np.subtract(buf[part], nbrs, out=out[part])
+                nbrs *= free[d, a:b]
+            np.multiply(v[at], deg_, out=out[at])
+            np.subtract(out[at], nbrs, out=out[at])
+
+        _side_by_side(rows, [(d, blk, deg_) for d in range(3) for blk, deg_ in zip(blocks, deg_rows)], len(blocks))
         return out
 
     return apply

@@ -43,8 +43,9 @@ from scipy import ndimage, special
 
 from dicer.errors import DicerError
 from dicer.image import Volume
-from dicer.mesh.model import Mesh
+from dicer.mesh.model import Mesh, pieces
 from dicer.mesh.topology import HEX_CORNER_NEIGHBOURS, QUAD_CORNER_NEIGHBOURS
+from dicer.parallel import ordered_map
 
 __all__ = ["ImageSurface", "NodeSides", "check_thresholds_for_mesh", "lift", "pairs_not_helped", "project"]
 
@@ -288,6 +289,45 @@ class NodeSides:
         return nrm / np.where(ok, length, 1.0)[:, None], ok
 
 
+_LIFT_PIECE = 1 << 17  # corners per piece of a lift round
+
+
+def _corner_steps(y: np.ndarray, p: np.ndarray, ends: np.ndarray, active: np.ndarray, counted: np.ndarray,
+                  free: np.ndarray, target: float, dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """The corners ``active`` below ``target`` and their nodes' steps (:func:`lift`): (R,) corner
+    numbers and (R, 1 + dim, 3) steps, mm."""
+    e = y[ends[active]] - y[p[active]][:, None, :]  # (A, dim, 3)
+    length = np.linalg.norm(e, axis=2)
+    if dim == 3:
+        a, b, c = e[:, 0], e[:, 1], e[:, 2]
+        bc = np.cross(b, c)
+        f = np.einsum("ij,ij->i", a, bc)
+    else:
+        a, b = e[:, 0], e[:, 1]
+        f = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    scale = np.prod(length, axis=1)
+    need = target * scale - f
+    # the gradient of the corners below the target only: after the first rounds most active
+    # corners are above it (their neighbours moved, they did not need to)
+    low = np.flatnonzero(need > _LIFT_TOLERANCE * scale)
+    if dim == 3:
+        a, b, c, bc = a[low], b[low], c[low], bc[low]
+        ca, ab = np.cross(c, a), np.cross(a, b)
+        grad = np.stack([-(bc + ca + ab), bc, ca, ab], axis=1)
+    else:
+        a, b = a[low], b[low]
+        zero = np.zeros(len(a))
+        ga = np.stack([b[:, 1], -b[:, 0], zero], axis=1)  # df/da
+        gb = np.stack([-a[:, 1], a[:, 0], zero], axis=1)  # df/db
+        grad = np.stack([-(ga + gb), ga, gb], axis=1)
+    grad = np.where(counted[active[low]], grad, 0.0)
+    g2 = np.einsum("ijk,ijk->i", grad, grad)
+    go = g2 > 0
+    low = low[go]
+    rows = active[low]
+    return rows, np.where(free[rows], grad[go], 0.0) * (need[low] / g2[go])[:, None, None]
+
+
 def lift(sides: NodeSides, y: np.ndarray, floor: float, share: np.ndarray | None = None) -> np.ndarray:
     """Boundary positions with flattened corners sharpened to the quality floor.
 
@@ -329,38 +369,14 @@ def lift(sides: NodeSides, y: np.ndarray, floor: float, share: np.ndarray | None
     y = y.copy()
     active = np.arange(p.size)  # corners whose nodes moved since they were last checked
     for _ in range(_LIFT_ITERATIONS):
-        e = y[ends[active]] - y[p[active]][:, None, :]  # (A, dim, 3)
-        length = np.linalg.norm(e, axis=2)
-        if sides.dim == 3:
-            a, b, c = e[:, 0], e[:, 1], e[:, 2]
-            bc = np.cross(b, c)
-            f = np.einsum("ij,ij->i", a, bc)
-        else:
-            a, b = e[:, 0], e[:, 1]
-            f = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-        scale = np.prod(length, axis=1)
-        need = target * scale - f
-        # the gradient of the corners below the target only: after the first rounds most active
-        # corners are above it (their neighbours moved, they did not need to)
-        low = np.flatnonzero(need > _LIFT_TOLERANCE * scale)
-        if sides.dim == 3:
-            a, b, c, bc = a[low], b[low], c[low], bc[low]
-            ca, ab = np.cross(c, a), np.cross(a, b)
-            grad = np.stack([-(bc + ca + ab), bc, ca, ab], axis=1)
-        else:
-            a, b = a[low], b[low]
-            zero = np.zeros(len(a))
-            ga = np.stack([b[:, 1], -b[:, 0], zero], axis=1)  # df/da
-            gb = np.stack([-a[:, 1], a[:, 0], zero], axis=1)  # df/db
-            grad = np.stack([-(ga + gb), ga, gb], axis=1)
-        grad = np.where(counted[active[low]], grad, 0.0)
-        g2 = np.einsum("ijk,ijk->i", grad, grad)
-        go = g2 > 0
-        if not go.any():
+        # each corner's step depends on its own nodes only: pieces of the corners side by side,
+        # put together in order (the same arrays as in one piece)
+        found = list(ordered_map(lambda part: _corner_steps(y, p, ends, active[part], counted, free, target,
+                                                            sides.dim), pieces(active.size, _LIFT_PIECE)))
+        rows = np.concatenate([r for r, _ in found]) if found else np.zeros(0, np.int64)
+        if rows.size == 0:
             break
-        low = low[go]
-        rows = active[low]
-        step = np.where(free[rows], grad[go], 0.0) * (need[low] / g2[go])[:, None, None]
+        step = np.concatenate([st for _, st in found])
         flat = nodes[rows].ravel()
         moves = step.reshape(-1, 3)
         total = np.stack([np.bincount(flat, weights=moves[:, k], minlength=sides.b) for k in range(3)], axis=1)

@@ -520,3 +520,32 @@ def test_rounds_after_the_back_off_keep_the_failing_elements_as_they_were(monkey
     rounds = [r.getMessage() for r in caplog.records if "below smooth.min_scaled_jacobian=0.4: back-off round" in
               r.getMessage()]  # progress, a line a round
     assert len(rounds) == rep["backoff_rounds"] + rep["frozen_rounds"] and rounds[0].endswith("back-off round 1")
+
+
+@pytest.mark.parametrize("piece", [1, 7, 1 << 18])
+def test_guard_passes_in_pieces_match_one_pass(piece, monkeypatch):
+    """The guard's row-wise passes (the elements holding marked nodes, the nodes moved farther
+    than a reach, the edge lengths), in pieces side by side, equal the same work in one pass."""
+    import dicer.mesh.smooth as smooth_module
+    import dicer.parallel
+    from dicer.mesh.topology import HEX_EDGES
+
+    monkeypatch.setattr(smooth_module, "_PIECE", piece)
+    monkeypatch.setattr(smooth_module, "_EDGE_PIECE", piece)
+    monkeypatch.setattr(dicer.parallel, "cores", lambda: 2)
+    rng = np.random.default_rng(5)
+    mesh = voxel_mesh((rng.random((9, 8, 7)) < 0.6).astype(np.uint8))
+    cells = np.asarray(mesh.cells, np.int64)
+    elements = np.sort(rng.choice(mesh.n_cells, mesh.n_cells // 2, replace=False))
+    checked = smooth_module._Elements(cells, elements, mesh.n_points)
+    mark = rng.random(mesh.n_points) < 0.03
+    expected = mark[cells[elements]].any(axis=1)
+    assert 0 < expected.sum() < elements.size
+    assert np.array_equal(checked.holding(mark), expected)
+    x = mesh.points + rng.normal(0.0, 0.05, mesh.points.shape)
+    step2 = ((x - mesh.points) ** 2).sum(axis=1)
+    reach = float(np.sqrt(np.median(step2)))
+    assert np.array_equal(smooth_module._moved_farther(x, mesh.points, reach), step2 > reach**2)
+    assert np.array_equal(smooth_module._moved_farther(x, mesh.points, reach, True), step2 >= reach**2)
+    d = x[cells[:, HEX_EDGES[:, 1]]] - x[cells[:, HEX_EDGES[:, 0]]]
+    assert np.allclose(smooth_module._edge_lengths2(cells, x), (d * d).sum(axis=2), rtol=1e-15, atol=0)

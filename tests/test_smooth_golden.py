@@ -333,14 +333,18 @@ def test_checking_only_the_moved_elements_decides_as_checking_all(name, monkeypa
     assert smooth_digest(name) == recorded
 
 
-@pytest.mark.parametrize("name", ["ball", "cut_mirror", "disc_backoff", "graded", "ct3_image_pull_backoff"])
-def test_solves_in_row_blocks_side_by_side_are_byte_identical(name, monkeypatch):
-    """The solves' matrix products formed in two row blocks on two threads (the small meshes here
-    are below the size at which that starts) give the recorded results, byte for byte."""
+@pytest.mark.parametrize("name", ["ball", "cut_mirror", "disc_backoff", "graded", "ct3_image_pull_backoff",
+                                  "merged_defaults"])
+def test_work_side_by_side_is_byte_identical(name, monkeypatch):
+    """The solves' matrix products formed in two row blocks, and the guard's row-wise passes in
+    pieces of 5 rows, on two threads (the small meshes here are below the sizes at which that
+    starts), give the recorded results, byte for byte."""
     import dicer.mesh.smooth as smooth_module
     import dicer.parallel
 
     monkeypatch.setattr(smooth_module, "_SIDE_BY_SIDE_ENTRIES", 0)
+    monkeypatch.setattr(smooth_module, "_PIECE", 5)
+    monkeypatch.setattr(smooth_module, "_EDGE_PIECE", 5)
     monkeypatch.setattr(dicer.parallel, "cores", lambda: 2)
     mat = scipy.sparse.random(50, 50, density=0.2, format="csr", dtype=np.float32, random_state=1)
     blocks = smooth_module._row_blocks(mat)

@@ -58,7 +58,7 @@ from dicer.errors import DicerError
 from dicer.mesh.boundary import (NODE_CLASSES, BoundaryGraph, boundary_graph, bounding_planes, class_counts,
                                  mirror_share, mirror_weights, plane_axes, plane_bits)
 from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes, hex_scaled_jacobian_t, hex_volumes_t, scaled_jacobian
-from dicer.mesh.model import LEVEL_DATA, Mesh, pieces
+from dicer.mesh.model import CHUNK, LEVEL_DATA, Mesh, pieces
 from dicer.mesh.topology import HEX_CORNERS, HEX_EDGES, QUAD_CORNERS, QUAD_EDGES
 
 __all__ = ["DEFAULTS", "smooth_mesh", "smoothing_settings"]
@@ -411,6 +411,20 @@ def _side_by_side(work, items: list, blocks: int) -> None:
         pass
 
 
+_PIECE = CHUNK  # rows (nodes, elements) per piece of the guard's row-wise passes
+_EDGE_PIECE = 1 << 15  # elements per piece of the edge lengths: the corners gathered once, temporaries small
+
+
+def _in_pieces(n: int, work, size: int | None = None) -> None:
+    """``work(piece)`` for the slices of ``range(n)`` (``dicer.mesh.model.pieces``, ``_PIECE`` rows
+    each unless ``size``), side by side: for row-wise work writing its own rows of an output
+    (the same bits as one pass)."""
+    from dicer.parallel import ordered_map
+
+    for _ in ordered_map(work, pieces(n, _PIECE if size is None else size)):
+        pass
+
+
 def _laplace(m_bb: sp.csr_matrix, deg, free: np.ndarray | None):
     """The interior operator v -> deg v - free * (m_bb v) on the coordinates stacked x | y | z
     ((3M,) float32; the returned array is reused by the next call). Its row blocks
@@ -710,8 +724,13 @@ class _Elements:
             return mark[self.cells[self.elements]].any(axis=1)
         local = mark[self.nodes]
         out = np.zeros(self.elements.size, bool)
-        for corner in self.local:
-            out |= local[corner]
+
+        def rows(part):
+            piece = out[part]
+            for corner in self.local:
+                piece |= local[corner[part]]
+
+        _in_pieces(self.elements.size, rows)
         return out
 
     def columns(self, x: np.ndarray) -> list[np.ndarray]:
@@ -1081,10 +1100,13 @@ def _edge_lengths2(cells: np.ndarray, x: np.ndarray) -> np.ndarray:
     """(M, E) float64: the squared lengths of the elements' edges at positions ``x``."""
     edges = HEX_EDGES if cells.shape[1] == 8 else QUAD_EDGES
     out = np.empty((cells.shape[0], edges.shape[0]))
-    for part in pieces(cells.shape[0], 1 << 15):  # the corners gathered once a block, its temporaries small
+
+    def rows(part):
         corner = x[cells[part]]  # (b, k, 3)
         d = corner[:, edges[:, 1]] - corner[:, edges[:, 0]]
         out[part] = np.einsum("bei,bei->be", d, d)
+
+    _in_pieces(cells.shape[0], rows, _EDGE_PIECE)
     return out
 
 
@@ -1115,11 +1137,17 @@ nothing a whole check would decide otherwise."""
 def _moved_farther(x: np.ndarray, start: np.ndarray, reach: float, or_as_far: bool = False) -> np.ndarray:
     """(N,) bool: the nodes farther than ``reach`` (mm; or as far) from their ``start`` (N, 3).
 
-    Over all nodes: only the boundary and band nodes move, and whole contiguous arrays are
-    several times quicker than gathering those rows (4.6 M of the atlas's 6.4 M nodes)."""
-    step = x - start
-    d2 = np.einsum("ij,ij->i", step, step)
-    return d2 >= reach * reach if or_as_far else d2 > reach * reach
+    Over all nodes: only the boundary and band nodes move, and contiguous rows are several times
+    quicker than gathering those (4.6 M of the atlas's 6.4 M nodes)."""
+    out = np.empty(x.shape[0], bool)
+
+    def rows(part):
+        step = x[part] - start[part]
+        d2 = np.einsum("ij,ij->i", step, step)
+        out[part] = d2 >= reach * reach if or_as_far else d2 > reach * reach
+
+    _in_pieces(x.shape[0], rows)
+    return out
 
 
 def _rechecked(st: _Smoothing) -> tuple[np.ndarray, np.ndarray] | None:

@@ -1087,8 +1087,13 @@ def _solve_band(st: _Smoothing, xb: np.ndarray) -> None:
         start = None if st.x_band is None else st.x_band - st.x_band0
         u, it = st.interior.solve(xb - st.xb0, st.s["tolerance"], start)
         st.it_i += it
-        st.x_band = st.x_band0 + u
-        st.x[st.band_nodes] = st.x_band
+        st.x_band = x_band = np.empty_like(u)
+
+        def rows(part):  # the band's millions of rows: placed side by side
+            np.add(st.x_band0[part], u[part], out=x_band[part])
+            st.x[st.band_nodes[part]] = x_band[part]
+
+        _in_pieces(u.shape[0], rows)
 
 
 _SHORTEST_EDGE = 0.05

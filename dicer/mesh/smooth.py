@@ -256,7 +256,7 @@ class _BoundarySystem:
                 np.multiply(diag[a:b], v[a:b], out=out[a:b])
                 np.subtract(out[a:b], product, out=out[a:b])
 
-            _side_by_side(rows, blocks, len(blocks))
+            _side_by_side(rows, blocks, len(blocks) > 1)
             return out
 
         if start is not None:
@@ -398,16 +398,13 @@ def _row_blocks(mat: sp.csr_matrix) -> list[tuple[int, int, sp.csr_matrix]]:
     return blocks
 
 
-def _side_by_side(work, items: list, blocks: int) -> None:
-    """``work(item)`` for every item: in threads (``dicer.parallel.ordered_map``) when the work
-    is cut into several ``blocks``, else here (a small system's solve calls it thousands of times)."""
+def _side_by_side(work, items, threads: bool = True) -> None:
+    """``work(item)`` for every item, in threads (``dicer.parallel.ordered_map``), or here without
+    ``threads`` (a small system's solve calls it thousands of times). For work that writes its
+    own rows of an output: the same bits as one pass."""
     from dicer.parallel import ordered_map
 
-    if blocks < 2:
-        for item in items:
-            work(item)
-        return
-    for _ in ordered_map(work, items):
+    for _ in ordered_map(work, items, workers=None if threads else 1):
         pass
 
 
@@ -417,12 +414,8 @@ _EDGE_PIECE = 1 << 15  # elements per piece of the edge lengths: the corners gat
 
 def _in_pieces(n: int, work, size: int | None = None) -> None:
     """``work(piece)`` for the slices of ``range(n)`` (``dicer.mesh.model.pieces``, ``_PIECE`` rows
-    each unless ``size``), side by side: for row-wise work writing its own rows of an output
-    (the same bits as one pass)."""
-    from dicer.parallel import ordered_map
-
-    for _ in ordered_map(work, pieces(n, _PIECE if size is None else size)):
-        pass
+    each unless ``size``), side by side (``_side_by_side``)."""
+    _side_by_side(work, pieces(n, _PIECE if size is None else size))
 
 
 def _laplace(m_bb: sp.csr_matrix, deg, free: np.ndarray | None):
@@ -444,7 +437,8 @@ def _laplace(m_bb: sp.csr_matrix, deg, free: np.ndarray | None):
             np.multiply(v[at], deg_, out=out[at])
             np.subtract(out[at], nbrs, out=out[at])
 
-        _side_by_side(rows, [(d, blk, deg_) for d in range(3) for blk, deg_ in zip(blocks, deg_rows)], len(blocks))
+        _side_by_side(rows, [(d, blk, deg_) for d in range(3) for blk, deg_ in zip(blocks, deg_rows)],
+                      len(blocks) > 1)
         return out
 
     return apply

@@ -1220,8 +1220,15 @@ def cmd_phantom(args):
 
 RUN_OUTPUTS = ("labels.nii.gz", "materials.json", "segmentation.png", "segmentation.json", "thresholds.png", "labels_ds.nii.gz",
                "labels_fixed.nii.gz", "fix.json", "mesh.vtu", "merged.vtu", "merge.json", "smoothed.vtu",
-               "smooth.json", "model.inp", "model.vtu", "quality.json", "report.html", "jacobian.png", "model.png",
-               "node_classes.png")
+               "smooth.json", "model.inp", "model.vtu", "model.out", "model.neu", "model.k", "model.msh", "model.exo",
+               "model.e", "model.feb", "quality.json", "report.html", "jacobian.png", "model.png", "node_classes.png")
+"""Every file dicer run may write into its folder (the models: those workflow.exports names)."""
+
+
+def run_models(config: dict) -> list[str]:
+    """The model files ``dicer run`` exports: ``model.<ext>`` for each of ``workflow.exports``
+    (default inp and vtu), as the workflow does per patient."""
+    return [f"model.{ext}" for ext in dict.fromkeys(config["workflow"]["exports"])]
 
 
 def _cropped_voxels(voxels: int, spacing, crop: dict | None) -> int:
@@ -1338,7 +1345,7 @@ def cmd_run(args):
 
 
 def _run_chain(args):
-    """segment -> downsample -> fix -> mesh -> merge -> smooth -> export (.inp, .vtu) -> quality, into OUTDIR.
+    """segment -> downsample -> fix -> mesh -> merge -> smooth -> export (workflow.exports) -> quality, into OUTDIR.
 
     With --labels: labels (map the given label volume to materials) -> downsample (only when
     downsample.factor or voxel_size is set) -> fix -> ... as above.
@@ -1528,7 +1535,7 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
                 log.info("run: the quality report is made beside the exports (a second core)")
                 report = pool.submit(quality)
             step("export")
-            for name in ("model.inp", "model.vtu"):
+            for name in run_models(config):
                 do_export(str(path("smoothed.vtu")), path(name), config, mesh=mesh, neighbours=neighbours)
             step("quality")
             report.result() if report is not None else quality()
@@ -1557,7 +1564,8 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
         kept = _keep_failed(staging, failed)
         raise DicerError(f"{outdir}: cannot move the results into the folder ({exc.strerror}); "
                          + (f"they are in {failed}" if kept else "check the output folder")) from None
-    log.info("run: finished in %.1f s; model in %s", time.perf_counter() - t0, outdir / "model.inp")
+    log.info("run: finished in %.1f s; model in %s", time.perf_counter() - t0,
+             ", ".join(str(outdir / name) for name in run_models(config)))
 
 
 def _keep_failed(staging: Path, failed: Path) -> bool:
@@ -1637,7 +1645,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _add_image_commands(command) -> None:
     """run, segment, labels, downsample, fix: the commands that read images and label volumes."""
-    p = command("run", cmd_run, "the whole chain: image -> labels -> mesh -> model.inp, model.vtu, quality.json")
+    p = command("run", cmd_run, "the whole chain: image -> labels -> mesh -> model.inp, model.vtu (the formats "
+                "workflow.exports names), quality.json")
     p.add_argument("image", metavar="IMAGE", nargs="?", help="image file or DICOM/TIFF/PNG folder")
     p.add_argument("--labels", metavar="LABELS",
                    help="mesh this label volume (" + ", ".join(LABEL_SUFFIXES) + ") instead of segmenting an "

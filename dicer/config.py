@@ -480,7 +480,29 @@ def validate(config: dict, source: str = "config") -> dict:
     clash = name_clash(names, config.get("export", {}).get("sets", SET_KINDS))
     if clash:
         raise DicerError(f"{source}: key 'materials': {clash}")
+    _check_combinations(config, source)
     return config
+
+
+def _check_combinations(config: dict, source: str) -> None:
+    """Refuse settings that contradict each other, when the configuration is read rather than
+    at the stage that reads them (after the stages before it have run)."""
+    smooth = config.get("smooth", {})
+    if smooth.get("keep_bounding_planes") is False and smooth.get("bounding_planes", "mirror") != "free":
+        raise DicerError(f"{source}: key 'smooth.keep_bounding_planes': false lets plane nodes leave their plane, "
+                         "which only smooth.bounding_planes: free does; set smooth.bounding_planes: free with it, "
+                         "or keep_bounding_planes: true")
+    order = config.get("export", {}).get("order")
+    exports = config.get("workflow", {}).get("exports", ())
+    if order is not None and isinstance(exports, list):
+        from dicer.export.registry import BY_SUFFIX
+
+        for ext in exports:
+            fmt = BY_SUFFIX.get(f".{ext}")
+            if fmt is not None and order not in fmt.orders:
+                raise DicerError(f"{source}: key 'workflow.exports': {ext} ({fmt.name}) holds elements of order "
+                                 f"{', '.join(map(str, fmt.orders))} only, and export.order is {order}; drop {ext} "
+                                 f"from workflow.exports or set export.order: {fmt.orders[0]}")
 
 
 SET_KINDS = ("planes", "materials", "interfaces", "exterior")

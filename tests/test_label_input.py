@@ -339,6 +339,35 @@ def test_run_labels_all_dropped_is_one_error(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_run_writes_the_formats_workflow_exports_names(tmp_path):
+    src = tmp_path / "seg.nii.gz"
+    a = np.zeros((8, 8, 8), np.int16)
+    a[2:6, 2:6, 2:6] = 1
+    write_nifti(src, a)
+    out = tmp_path / "out"
+    assert _cli("run", "--labels", src, "-o", out, "-q", "--set", "workflow.exports=[inp,vtu,k,feb]") == 0
+    models = sorted(p.name for p in out.glob("model.*") if p.suffix != ".png")
+    assert models == ["model.feb", "model.inp", "model.k", "model.vtu"]
+    assert "*ELEMENT_SOLID" in (out / "model.k").read_text()
+    # a run without them: the models of the run before go, as the other stale results do
+    assert _cli("run", "--labels", src, "-o", out, "-q") == 0
+    assert sorted(p.name for p in out.glob("model.*") if p.suffix != ".png") == ["model.inp", "model.vtu"]
+
+
+@pytest.mark.parametrize("sets, key", [
+    (["workflow.exports=[inp,k]", "export.order=2"], "workflow.exports"),
+    (["smooth.keep_bounding_planes=false"], "smooth.keep_bounding_planes"),
+])
+def test_run_refuses_contradicting_settings_before_any_stage(tmp_path, capsys, sets, key):
+    src = tmp_path / "seg.nii.gz"
+    write_nifti(src, np.ones((4, 4, 4), np.int16))
+    out = tmp_path / "out"
+    assert _cli("run", "--labels", src, "-o", out, *[a for s in sets for a in ("--set", s)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: config with --set: key '{key}'")
+    assert not out.exists() and not (tmp_path / "out.failed").exists()
+
+
 def test_stage_commands_with_materials_file(labelled, tmp_path):
     src, config = labelled
     assert _cli("labels", src, "-o", tmp_path / "l.nii.gz", "--materials", tmp_path / "m.json",

@@ -1156,11 +1156,16 @@ def cmd_smooth(args):
         log.warning("smooth: --labels is read by smooth.surface_from_labels only, which is %s: %s is not read",
                     "not used beside the scan's surface (smooth.surface_from_image)" if scan_surface else "off",
                     args.labels)
-    if smooth["fit_to_scan"] and smooth["surface_from_labels"] and not scan_surface and (
-            args.labels is None or args.image is None):
+    fits_to_scan = smooth["fit_to_scan"] and smooth["surface_from_labels"] and not scan_surface
+    if fits_to_scan and (args.labels is None or args.image is None):
         log.warning("smooth: smooth.fit_to_scan places the labels' faces by the scan: it needs both --labels and "
                     "--image (with --thresholds); without %s the fit takes the %s", "--labels" if args.labels is None
-                    else "--image", "mesh's faces" if args.labels is None else "labels' faces as they are")
+                    else "--image", "mesh's faces, and the scan is not read" if args.labels is None
+                    else "labels' faces as they are")
+    elif args.image is not None and not scan_surface and not fits_to_scan:
+        log.warning("smooth: --image is read by smooth.surface_from_image (or smooth.fit_to_scan with --labels) "
+                    "only, which are off: %s is not read; set one of them to place the surface by the scan",
+                    args.image)
     do_smooth(args.mesh, _check_output(args.output, (".vtu",), "the mesh"), config, report,
               image_path=args.image, thresholds_path=args.thresholds, labels_path=args.labels)
 

@@ -420,6 +420,12 @@ def test_smooth_command_fits_the_labels_dicer_run_made(tmp_path, caplog, capsys)
                  "--set", "smooth.surface_from_labels=false"]) == 0
     assert any("--labels is read by smooth.surface_from_labels only, which is off" in r.getMessage()
                for r in caplog.records)
+    # --image without the scan's surface or fit_to_scan: said, not read (the output is the labels')
+    caplog.clear()
+    assert main(["smooth", str(run / "merged.vtu"), "-o", str(bad), "--image", str(tmp_path / "other.npy")]) == 0
+    assert [r.getMessage() for r in caplog.records if "--image" in r.getMessage()] == [
+        "smooth: --image is read by smooth.surface_from_image (or smooth.fit_to_scan with --labels) only, which are "
+        f"off: {tmp_path / 'other.npy'} is not read; set one of them to place the surface by the scan"]
 
 
 # --- the labels' faces placed by the scan (smooth.fit_to_scan) ---------------------------------

@@ -273,3 +273,9 @@ def test_a_layer_mostly_not_made_is_warned_of(tmp_path, capsys, caplog):
         assert warned == (["smooth: the pillow layer covers 0 of the 66 exterior faces (the others could not keep "
                            "smooth.min_scaled_jacobian with it); lower smooth.pillow_thickness (now 0.9) or "
                            "smooth.min_scaled_jacobian"] if said else [])
+
+
+def test_layer_over_the_labels_fit_reports_the_labels_as_its_surface():
+    mesh = voxel_mesh(shells(20, 3, [(0.0, 7.4, 1)]))
+    _, rep = smooth_mesh(mesh, {**ON, "surface_from_labels": True})
+    assert "surface_from_labels" in rep and rep["pillow"]["surface"] == "labels"

@@ -759,7 +759,8 @@ class _Pull:
 
     Attributes
     ----------
-    surface : ImageSurface
+    surface : ImageSurface or LabelSurface
+        The scan's iso-surfaces, or the fit of the labels' staircase.
     sides : NodeSides
         The materials on either side of each boundary node.
     share : (B,) float64
@@ -1592,7 +1593,10 @@ def _add_pillow(st: _Smoothing) -> None:
             drop = np.union1d(drop, np.flatnonzero(kept & under[faces].any(axis=1)))
         kept[drop] = False
     st.sj = np.concatenate([sj_under, sj_layer])
-    info = {"surface": "image" if st.pull is not None else "labels", "elements_added": int(cells.shape[0]),
+    from dicer.mesh.labelsurface import LabelSurface
+
+    from_scan = st.pull is not None and not isinstance(st.pull.surface, LabelSurface)
+    info = {"surface": "image" if from_scan else "labels", "elements_added": int(cells.shape[0]),
             "nodes_added": int(rows.size), "faces_without_layer": int(np.count_nonzero(~kept)),
             "thickness_voxels": float(s["pillow_thickness"]), "guard_rounds": rounds,
             "nodes_held_off_the_surface": 0 if st.surface is None else int(np.count_nonzero(share[rows] < 1.0)),

@@ -1553,8 +1553,14 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
             exc.add_note(f"{outdir} is unchanged; the finished stage files are in {failed}")
         if isinstance(exc, DicerError):
             where = f"; its finished stage files are in {failed}" if kept else ""
+            message = str(exc)
+            # a fault of the labels (what segment or labels made of the input, downsampled and
+            # fixed) is the input's: name the file the user gave
+            for name in ("labels.nii.gz", "labels_ds.nii.gz", "labels_fixed.nii.gz"):
+                if message.startswith(f"{staging / name}: "):
+                    message = f"{source}: {message[len(str(staging / name)) + 2:]}"
             # the stage named its file in the staging folder: name it where it now is
-            message = str(exc).replace(str(staging), str(failed)) if kept else str(exc)
+            message = message.replace(str(staging), str(failed)) if kept else message
             raise DicerError(f"{message} (dicer run stopped at the {stage} stage{where})") from None
         raise
     try:

@@ -339,6 +339,19 @@ def test_run_labels_all_dropped_is_one_error(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_run_names_the_given_file_for_a_fault_of_its_labels(tmp_path, capsys):
+    src = tmp_path / "seg.nii.gz"
+    a = np.zeros((6, 6, 6), np.int16)
+    a[2, 2, 2] = 1  # one voxel: smaller than fix.min_component_voxels
+    write_nifti(src, a)
+    out = tmp_path / "out"
+    assert _cli("run", "--labels", src, "-o", out) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"error: {src}: every part of the model is smaller than fix.min_component_voxels=64")
+    assert err[-1].endswith(f"(dicer run stopped at the fix stage; its finished stage files are in {out}.failed)")
+    assert not out.exists()
+
+
 def test_run_writes_the_formats_workflow_exports_names(tmp_path):
     src = tmp_path / "seg.nii.gz"
     a = np.zeros((8, 8, 8), np.int16)

@@ -101,6 +101,11 @@ def test_bad_image_or_thresholds():
         smooth_mesh(mesh, ON, image=Volume(image, (1.0, 1.0)), thresholds=[500.0, 100.0])
     with pytest.raises(DicerError, match="span"):
         smooth_mesh(mesh, ON, image=Volume(image[:30], (1.0, 1.0)), thresholds=[500.0])
+    # the same scan stored with its x axis flipped: the same place, another frame, said so
+    n = image.shape[0]
+    flipped = Volume(image[::-1].copy(), (1.0, 1.0), (float(n), 0.0), (-1.0, 0.0, 0.0, 1.0))
+    with pytest.raises(DicerError, match=r"axes are turned or flipped \(direction cosines \(-1, 0, 0, 1\)\)"):
+        smooth_mesh(mesh, ON, image=flipped, thresholds=[500.0])
     with pytest.raises(DicerError, match="2D image for a 3D mesh"):
         smooth_mesh(voxel_mesh(np.ones((4, 4, 4), np.uint8)), ON, image=Volume(image, (1.0, 1.0)),
                     thresholds=[500.0])

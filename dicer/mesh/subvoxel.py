@@ -149,6 +149,12 @@ class ImageSurface:
         pad = np.asarray(mesh.spacing, float)[:dim]
         if np.any(m_lo < i_lo - pad - tol) or np.any(m_hi > i_hi + pad + tol):
             fmt = lambda v: "(" + ", ".join(f"{c:g}" for c in v) + ")"  # noqa: E731
+            turned = image.direction is not None and not np.allclose(
+                np.asarray(image.direction, float).reshape(dim, dim), np.eye(dim), atol=1e-5)
+            if turned and mesh.direction is None:  # its span in the mesh's frame is not origin + shape
+                raise DicerError(f"{source}: the image's axes are turned or flipped (direction cosines "
+                                 f"{fmt(np.ravel(image.direction))}) against the mesh's grid; give the scan the mesh was segmented from, or resample this one onto "
+                                 "the labels' grid")
             raise DicerError(f"{source}: the image spans {fmt(i_lo)}..{fmt(i_hi)} mm, the mesh's grid "
                              f"{fmt(m_lo)}..{fmt(m_hi)} mm; give the scan the mesh was segmented from")
         self.dim = dim

@@ -543,15 +543,33 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
     _warn_of_volume_change(report, merged, settings, stage_kwargs(config, "smooth")["surface_from_labels"])
     _warn_of_flat_templates(report, merged)
     if report.get("method") == "templates" and report["elements_after"] >= report["elements_before"]:
-        # too small (or too finely divided) for coarser levels: only the transitions' worse shapes
-        log.warning("merge: the transition templates made no fewer elements (%d -> %d; min scaled Jacobian %.3f): "
-                    "the model is too small or its parts too thin for a coarser level, and the transitions only worsen "
-                    "the shapes; use merge.method: planes, or merge.templates.levels: 0 to keep the voxel mesh",
-                    report["elements_before"], report["elements_after"], report["min_scaled_jacobian"])
+        _warn_of_no_coarsening(report, settings["templates"], merged)
     log.info("merge: wrote %s (%d -> %d elements, %d -> %d nodes; volume %s)", out,
              report["elements_before"], report["elements_after"], report["nodes_before"],
              report["nodes_after"], brief_json(_stable(report["volume"]), sort_keys=True))
     return merged
+
+
+def _warn_of_no_coarsening(report: dict, templates: dict, merged) -> None:
+    """Say why the transition templates made no fewer elements, by the settings that kept the
+    voxels (levels 0, keep_fine naming every material, min_distance) or else the model's size."""
+    import numpy as np
+
+    counts = (report["elements_before"], report["elements_after"], report["min_scaled_jacobian"])
+    if int(templates["levels"]) == 0:
+        log.info("merge: merge.templates.levels is 0: the voxel mesh is kept")
+        return
+    materials = {int(m) for m in np.unique(merged.material)} if merged.n_cells else set()
+    if materials and materials <= {int(m) for m in templates["keep_fine"]}:
+        why = ("merge.templates.keep_fine lists every material of the model, so none may coarsen; leave out of it "
+               "the materials that may")
+    else:
+        why = (f"the model is too small or its parts too thin for a coarser level with "
+               f"merge.templates.min_distance={int(templates['min_distance'])} voxels of one material around a cell, "
+               "and the transitions only worsen the shapes; lower min_distance, use merge.method: planes, or "
+               "merge.templates.levels: 0 to keep the voxel mesh")
+    log.warning("merge: the transition templates made no fewer elements (%d -> %d; min scaled Jacobian %.3f): %s",
+                *counts, why)
 
 
 SMOOTH_BACKOFF_WARNING = 0.25

@@ -333,6 +333,24 @@ def test_templates_that_make_no_fewer_elements_are_warned_of(tmp_path, caplog):
                                       f"scaled Jacobian {report['min_scaled_jacobian']:.3f})")
         else:
             assert report["elements_after"] < 0.7 * report["elements_before"]  # 27,000 -> 17,880
+    # the 30^3 block again, kept fine by the settings: said by the setting that kept it
+    caplog.set_level("INFO", logger="dicer")
+    for sets, said_part in ((["merge.templates.keep_fine=[1]"], "merge.templates.keep_fine lists every material"),
+                            (["merge.templates.min_distance=20"], "merge.templates.min_distance=20 voxels"),
+                            (["merge.templates.levels=0"], "merge.templates.levels is 0: the voxel mesh is kept")):
+        caplog.clear()
+        assert main(["merge", str(path), "-o", str(tmp_path / "graded.vtu"), "--set", "merge.method=templates",
+                     *[a for s in sets for a in ("--set", s)]]) == 0
+        said = [r for r in caplog.records if said_part in r.getMessage()]
+        assert len(said) == 1 and said[0].levelname == ("INFO" if "levels is 0" in said_part else "WARNING")
+    # a whole number written as 2.0 is 2
+    assert main(["merge", str(path), "-o", str(tmp_path / "graded2.vtu"), "--set", "merge.method=templates",
+                 "--set", "merge.templates.levels=2.0"]) == 0
+    assert main(["merge", str(path), "-o", str(tmp_path / "graded_int.vtu"), "--set", "merge.method=templates",
+                 "--set", "merge.templates.levels=2"]) == 0
+    assert (tmp_path / "graded2.vtu").read_bytes() == (tmp_path / "graded_int.vtu").read_bytes()
+    with pytest.raises(DicerError, match="merge.templates.levels=2.5"):
+        coarsen_mesh(voxel_mesh(np.ones((4, 4, 4), np.uint8)), levels=2.5, min_distance=1, keep_fine=[])
 
 
 @st.composite

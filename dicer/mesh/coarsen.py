@@ -458,6 +458,13 @@ def _new_elements(decomposition: dict, shape: tuple):
     return np.concatenate(parts), np.concatenate(materials), np.concatenate(levels)
 
 
+def _whole(value) -> bool:
+    """An integer, or a float with a whole value (a config's 2.0): not a bool, not 2.5."""
+    if isinstance(value, bool):
+        return False
+    return isinstance(value, (int, np.integer)) or (isinstance(value, (float, np.floating)) and float(value).is_integer())
+
+
 def coarsen_mesh(mesh: Mesh, *, levels: int, min_distance: int, keep_fine) -> tuple[Mesh, dict]:
     """A graded mesh of a voxel mesh (see the module notes).
 
@@ -483,9 +490,9 @@ def coarsen_mesh(mesh: Mesh, *, levels: int, min_distance: int, keep_fine) -> tu
     report : dict
         Elements before and after, per material and level; volumes.
     """
-    if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or levels < 0:
+    if not _whole(levels) or levels < 0:
         raise DicerError(f"merge.templates.levels={levels!r}: give a whole number >= 0")
-    if isinstance(min_distance, bool) or not isinstance(min_distance, (int, np.integer)) or min_distance < 1:
+    if not _whole(min_distance) or min_distance < 1:
         raise DicerError(f"merge.templates.min_distance={min_distance!r}: give a whole number of voxels >= 1")
     _check_keep_fine(mesh, keep_fine)
     t0 = time.perf_counter()

@@ -663,8 +663,9 @@ def _warn_of_short_pull(report: dict) -> None:
         pull = report["surface_from_image"]
         on = pull["nodes_on_the_image_surface"]
         what = ("reach the scan's iso-surface, the others stop short of it (the quality guard held them back, or the "
-                f"scan shows no edge near them); smooth.image_sigma={pull['image_sigma']:g} may blur the edges away "
-                "(default 0.5), or the thresholds do not match the scan (--thresholds)")
+                f"scan shows no edge near them); smooth.image_sigma={pull['image_sigma']:g} may blur the edges away"
+                + (" (default 0.5)" if pull["image_sigma"] != 0.5 else "")
+                + ", or the thresholds do not match the scan (--thresholds)")
     elif "surface_from_labels" in report:
         pull = report["surface_from_labels"]
         on = pull["nodes_on_the_fitted_surface"]

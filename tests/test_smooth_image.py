@@ -113,6 +113,19 @@ def test_bad_image_or_thresholds():
         smooth_mesh(mesh, {"image_sigma": -1})
 
 
+def test_thresholds_outside_the_scans_values_are_said(caplog):
+    image = ct_ball(2, supersample=4)  # values about -30 to 1030
+    labels, _ = fix_connectivity((image >= 500).astype(np.uint8))
+    mesh = voxel_mesh(labels)
+    caplog.set_level("WARNING", logger="dicer")
+    smooth_mesh(mesh, ON, image=Volume(image, (1.0, 1.0)), thresholds=[5000.0], image_source="scan.nii.gz")
+    said = [r.getMessage() for r in caplog.records if "lie outside" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("smooth: the thresholds 5000 lie outside the values of scan.nii.gz")
+    caplog.clear()
+    smooth_mesh(mesh, ON, image=Volume(image, (1.0, 1.0)), thresholds=[500.0])
+    assert not [r for r in caplog.records if "lie outside" in r.getMessage()]
+
+
 def test_cli_smooth_with_image(tmp_path, capsys, caplog):
     image = ct_ball(2, supersample=4)
     labels, _ = fix_connectivity((image >= 500).astype(np.uint8))

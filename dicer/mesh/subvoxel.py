@@ -37,6 +37,8 @@ downsampled label volume samples the full-resolution scan it came from.
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import scipy.sparse as sp
 from scipy import ndimage, special
@@ -46,6 +48,8 @@ from dicer.image import Volume
 from dicer.mesh.model import Mesh, pieces
 from dicer.mesh.topology import HEX_CORNER_NEIGHBOURS, QUAD_CORNER_NEIGHBOURS
 from dicer.parallel import ordered_map
+
+log = logging.getLogger("dicer")
 
 __all__ = ["ImageSurface", "NodeSides", "check_thresholds_for_mesh", "lift", "pairs_not_helped", "project"]
 
@@ -171,6 +175,12 @@ class ImageSurface:
         sub = np.asarray(arr[tuple(slice(a, b) for a, b in zip(lo, hi))], np.float32)
         if not np.all(np.isfinite(sub)):
             raise DicerError(f"{source}: the image holds non-finite values near the mesh; check the file")
+        low, high = (float(sub.min()), float(sub.max())) if sub.size else (0.0, 0.0)
+        outside = [t for t in self.thresholds if not low < t <= high]
+        if outside:  # no iso-surface of these near the mesh: the thresholds of another scan, or of other units
+            log.warning("smooth: the thresholds %s lie outside the values of %s near the mesh (%g to %g), so it has no "
+                        "surface there; give this scan's thresholds (the segmentation.json of its dicer segment --info)",
+                        ", ".join(f"{t:g}" for t in outside), source, low, high)
         if self.sigma > 0:
             sub = ndimage.gaussian_filter(sub, sig_vox, mode="nearest")
         self.array = sub

@@ -526,6 +526,15 @@ case("3-traceback", "--set of an unknown key", lambda c: argv_for(c, "mesh", ext
      "mesh.colour")
 case("3-traceback", "--set YAML that does not parse", lambda c: argv_for(c, "mesh", extra=["--set", "fix.type_c=[1,"]),
      "fix.type_c")
+case("3-traceback", "run: keep_bounding_planes false without free planes (refused before any stage)",
+     lambda c: argv_for(c, "run", extra=["--set", "smooth.keep_bounding_planes=false"]),
+     "smooth.keep_bounding_planes")
+case("3-traceback", "run: workflow.exports with LS-DYNA at export.order 2 (refused before any stage)",
+     lambda c: argv_for(c, "run", extra=["--set", "workflow.exports=[inp,k]", "--set", "export.order=2"]),
+     "workflow.exports")
+case("3-traceback", "merge: merge.templates.levels 2.5",
+     lambda c: argv_for(c, "merge", extra=["--set", "merge.method=templates", "--set", "merge.templates.levels=2.5"]),
+     "merge.templates.levels")
 case("3-traceback", "config file that is YAML nonsense",
      lambda c: argv_for(c, "mesh", extra=["--config", text(c.t / "c.yaml", "segment: [1, 2\n  - :\n")]), "c.yaml")
 case("3-traceback", "config file that is a list",

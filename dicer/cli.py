@@ -1249,6 +1249,17 @@ RUN_OUTPUTS = ("labels.nii.gz", "materials.json", "segmentation.png", "segmentat
 """Every file dicer run may write into its folder (the models: those workflow.exports names)."""
 
 
+def _check_export_dims(config: dict, dim: int, source: str) -> None:
+    """Refuse a model of ``dim`` dimensions that a format of ``workflow.exports`` cannot hold."""
+    from dicer.export.registry import BY_SUFFIX
+
+    for ext in config["workflow"]["exports"]:
+        fmt = BY_SUFFIX[f".{ext}"]
+        if dim not in fmt.dims:
+            raise DicerError(f"{source}: a {dim}D image, and workflow.exports names {ext} ({fmt.name}), which holds "
+                             f"{' and '.join(f'{d}D' for d in fmt.dims)} models only; drop {ext} from workflow.exports")
+
+
 def run_models(config: dict) -> list[str]:
     """The model files ``dicer run`` exports: ``model.<ext>`` for each of ``workflow.exports``
     (default inp and vtu), as the workflow does per patient."""
@@ -1490,6 +1501,7 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
             fix_input = path("labels_ds.nii.gz")
         step("fix")
         fixed = do_fix(str(fix_input), path("labels_fixed.nii.gz"), config, path("fix.json"))
+        _check_export_dims(config, fixed.ndim, source)  # before the meshing, not after it
         step("mesh")
         elements = int(fixed.size - (fixed == 0).sum())  # one element per labelled voxel
         del fixed

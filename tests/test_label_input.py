@@ -367,6 +367,19 @@ def test_run_writes_the_formats_workflow_exports_names(tmp_path):
     assert sorted(p.name for p in out.glob("model.*") if p.suffix != ".png") == ["model.inp", "model.vtu"]
 
 
+def test_run_refuses_a_2d_model_for_a_3d_only_format_before_meshing(tmp_path, capsys):
+    src = tmp_path / "seg.npy"
+    a = np.zeros((24, 24), np.uint8)
+    a[3:19, 3:19] = 1
+    np.save(src, a)
+    out = tmp_path / "out"
+    assert _cli("run", "--labels", src, "-o", out, "--set", "workflow.exports=[inp,feb]") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"error: {src}: a 2D image, and workflow.exports names feb (febio), which holds 3D")
+    assert "stopped at the fix stage" in err[-1] and not out.exists()
+    assert not (tmp_path / "out.failed" / "mesh.vtu").exists()
+
+
 @pytest.mark.parametrize("sets, key", [
     (["workflow.exports=[inp,k]", "export.order=2"], "workflow.exports"),
     (["smooth.keep_bounding_planes=false"], "smooth.keep_bounding_planes"),

@@ -1452,23 +1452,58 @@ def _move_under_layer(st: _Smoothing, x: np.ndarray, xb: np.ndarray, b: np.ndarr
 
 
 _TAPER = 3  # surface edges over which the depth of the nodes under the layer grows from a gap in it
+_TAPER_SHEAR = 3.0
+"""A step of d voxels in the depth between two nodes of an element under the layer changes its
+scaled Jacobian by up to about this x d (measured up to 3.1 on the coarse head phantom: its
+staircase corners, flattened by the smoothing to just above the floor, have six or seven nodes
+on the surface and fail on a third of the default depth's step, 0.08 voxel)."""
+_TAPER_LEAST = 0.05  # the least share of the depth the taper grows by across an element
 
 
-def _taper(layered: np.ndarray, at: np.ndarray) -> np.ndarray:
+def _taper_graph(st: _Smoothing, at: np.ndarray, nodes: np.ndarray, sj: np.ndarray) -> sp.csr_matrix:
+    """(P, P) the steps of the taper: the share of the full depth by which it may grow between
+    two surface nodes (rows of ``nodes``). Two nodes of a face: 1 / _TAPER. Two nodes of a
+    checked element with less room above the floor (``sj``, the checked elements' scaled
+    Jacobian after the smoothing): that room / (``_TAPER_SHEAR`` x the depth in voxels), at
+    least ``_TAPER_LEAST`` (the smallest step between two nodes counts)."""
+    size = nodes.size
+    step = 1.0 / _TAPER
+    pair_a, pair_b = np.triu_indices(at.shape[1], 1)
+    a, b, w = at[:, pair_a].ravel(), at[:, pair_b].ravel(), np.full(at.shape[0] * pair_a.size, step)
+    room = (sj - float(st.s["min_scaled_jacobian"])) / (_TAPER_SHEAR * float(st.s["pillow_thickness"]))
+    allowed = np.clip(room, _TAPER_LEAST, step)
+    frail = np.flatnonzero(allowed < step)
+    if frail.size:
+        row = np.full(st.mesh.n_points, -1, np.int64)
+        row[nodes] = np.arange(size)
+        corner = row[st.mesh.cells[st.touched[frail]]]
+        pair_a, pair_b = np.triu_indices(corner.shape[1], 1)
+        ea, eb = corner[:, pair_a].ravel(), corner[:, pair_b].ravel()
+        ew = np.repeat(allowed[frail], pair_a.size)
+        both = (ea >= 0) & (eb >= 0)
+        a, b, w = np.r_[a, ea[both]], np.r_[b, eb[both]], np.r_[w, ew[both]]
+    a, b = np.minimum(a, b), np.maximum(a, b)
+    order = np.lexsort((w, b, a))
+    a, b, w = a[order], b[order], w[order]
+    first = np.r_[True, (a[1:] != a[:-1]) | (b[1:] != b[:-1])][: a.size]  # the smallest step of each pair
+    return sp.csr_matrix((w[first], (a[first], b[first])), shape=(size, size))
+
+
+def _taper(layered: np.ndarray, steps: sp.csr_matrix) -> np.ndarray:
     """(P,) the share of the full depth each surface node moves inward: 0 off the layer (a node
-    of faces without it), k / _TAPER at k edges from such a node, 1 from _TAPER edges on. A
-    depth that jumps between neighbours would shear the elements under them.
+    of faces without it), then growing by the ``steps`` (``_taper_graph``) along the shortest
+    way from such a node, 1 at most: k / _TAPER at k edges from a gap where the elements under
+    the surface can take it, less steep across those the smoothing left near the floor. A depth
+    that jumps between neighbours would shear the elements under them.
 
-    ``layered``: (P,) bool, nodes of faces with the layer; ``at``: (F, k) the faces' nodes."""
-    share = np.ones(layered.size)
-    near = ~layered
-    share[near] = 0.0
-    for step in range(1, _TAPER):
-        ring = np.zeros(layered.size, bool)
-        ring[at[near[at].any(axis=1)]] = True
-        ring &= ~near
-        share[ring] = step / _TAPER
-        near |= ring
+    ``layered``: (P,) bool, nodes of faces with the layer."""
+    from scipy.sparse.csgraph import dijkstra
+
+    if layered.all():
+        return np.ones(layered.size)
+    share = np.minimum(dijkstra(steps, directed=False, indices=np.flatnonzero(~layered), min_only=True,
+                                limit=1.0), 1.0)
+    share[~layered] = 0.0
     return share
 
 
@@ -1498,7 +1533,7 @@ def _add_pillow(st: _Smoothing) -> None:
     The surface nodes are copied: the copies become the surface, on the scan's iso-surface
     before ``lift`` (``st.surface``) or, without the scan, where the smoothing put the nodes;
     the nodes under them move inward along the surface direction by ``pillow_thickness``
-    voxels (less within ``_TAPER`` edges of a gap in the layer), and the interior band is
+    voxels (less near a gap in the layer: ``_taper``), and the interior band is
     solved again for that move. The guard checks the elements the move touches and the new
     ones: a failing new element's nodes take half their move onto the iso-surface (none
     below a tenth); a new element that fails with its nodes back on the smoothed surface
@@ -1536,13 +1571,14 @@ def _add_pillow(st: _Smoothing) -> None:
     floor = float(s["min_scaled_jacobian"])
     goal = st.xb[b] if st.surface is None else st.surface[b]  # without the scan: the smoothed surface
     solved = None
+    steps = _taper_graph(st, at, nodes, sj_accepted)
     for rounds in range(_PILLOW_ROUNDS + 1):
         kept = one_fan_per_node(faces, kept, mesh.material[owner])
         layered = np.zeros(nodes.size, bool)
         layered[at[kept]] = True
         rows = np.flatnonzero(layered)
         if solved is None or not np.array_equal(solved, layered):
-            depth = _taper(layered, at)[rows, None] * move[rows]
+            depth = _taper(layered, steps)[rows, None] * move[rows]
             sj_under = _move_under_layer(st, x, xb, b[rows], depth)
             # a layer thinner than a twentieth of a voxel is a sliver (an edge ratio of about 20);
             # where the taper leaves less depth than that, half of it
@@ -1566,6 +1602,15 @@ def _add_pillow(st: _Smoothing) -> None:
         # such a copy stops where the layer is still ``thinnest`` thick
         _hold_thickness(share, rows, xb[b[rows]], goal[rows], st.x[nodes[rows]], thinnest[rows])
         outer = xb[b[rows]] + share[rows, None] * (goal[rows] - xb[b[rows]])
+        # where the taper leaves the layer thinner than a twentieth of a voxel (a sliver), its
+        # copy stands that far out from its node instead: the surface moves out by less than that
+        least = _SHORTEST_EDGE * voxel[rows]
+        w = outer - st.x[nodes[rows]]
+        gap = np.einsum("ij,ij->i", w, w) - least * least
+        thin = np.flatnonzero(gap < 0)
+        if thin.size:  # out along the normal until the copy is that far from its node
+            up = np.einsum("ij,ij->i", w[thin], normal[rows[thin]])
+            outer[thin] += (np.sqrt(up * up - gap[thin]) - up)[:, None] * normal[rows[thin]]
         x_layer = np.concatenate([st.x, outer])
         sj_layer = scaled_jacobian(x_layer, cells)
         # an element under the layer may stay below the floor where the smoothing left it so

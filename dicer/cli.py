@@ -1586,9 +1586,10 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
             where = f"; its finished stage files are in {failed}" if kept else ""
             message = str(exc)
             # a fault of the labels (what segment or labels made of the input, downsampled and
-            # fixed) is the input's: name the file the user gave
+            # fixed) is the input's: name the file the user gave (not for a write that failed)
             for name in ("labels.nii.gz", "labels_ds.nii.gz", "labels_fixed.nii.gz"):
-                if message.startswith(f"{staging / name}: "):
+                if message.startswith(f"{staging / name}: ") and not message.startswith(
+                        f"{staging / name}: cannot write"):
                     message = f"{source}: {message[len(str(staging / name)) + 2:]}"
             # the stage named its file in the staging folder: name it where it now is
             message = message.replace(str(staging), str(failed)) if kept else message

@@ -211,8 +211,13 @@ def scan_input(wildcards):
 
 
 def scan_option(wildcards, input):
-    """params: --image SCAN --thresholds segmentation.json for a segmented patient, else nothing."""
+    """params: --image SCAN --thresholds segmentation.json for a segmented patient whose
+    smoothing reads the scan (smooth.surface_from_image, or fit_to_scan with the labels' fit),
+    else nothing."""
     if "image" not in input.keys():
+        return ""
+    smooth = stage_kwargs(patient_config(wildcards.patient), "smooth")
+    if not (smooth["surface_from_image"] or (smooth["fit_to_scan"] and smooth["surface_from_labels"])):
         return ""
     return f"--image {shlex.quote(input.image)} --thresholds {shlex.quote(input.thresholds)}"
 

@@ -1175,6 +1175,10 @@ def cmd_smooth(args):
         log.warning("smooth: --labels is read by smooth.surface_from_labels only, which is %s: %s is not read",
                     "not used beside the scan's surface (smooth.surface_from_image)" if scan_surface else "off",
                     args.labels)
+    if smooth["label_samples"] == "relaxed" and smooth["surface_from_labels"] and not scan_surface and \
+            args.labels is None:
+        log.warning("smooth: smooth.label_samples: relaxed relaxes the staircase of the label volume: give it with "
+                    "--labels (labels_fixed.nii.gz of dicer run); without it the fit takes the mesh's faces")
     fits_to_scan = smooth["fit_to_scan"] and smooth["surface_from_labels"] and not scan_surface
     if fits_to_scan and (args.labels is None or args.image is None):
         log.warning("smooth: smooth.fit_to_scan places the labels' faces by the scan: it needs both --labels and "

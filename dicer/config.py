@@ -492,6 +492,10 @@ def _check_combinations(config: dict, source: str) -> None:
         raise DicerError(f"{source}: key 'smooth.keep_bounding_planes': false lets plane nodes leave their plane, "
                          "which only smooth.bounding_planes: free does; set smooth.bounding_planes: free with it, "
                          "or keep_bounding_planes: true")
+    if smooth.get("label_samples") == "relaxed" and smooth.get("fit_to_scan") is True:
+        raise DicerError(f"{source}: key 'smooth.label_samples': relaxed and smooth.fit_to_scan both place the "
+                         "labels' samples within their voxels (by their smoothest surface, or by the scan); set one "
+                         "of them")
     order = config.get("export", {}).get("order")
     exports = config.get("workflow", {}).get("exports", ())
     if order is not None and isinstance(exports, list):

@@ -86,6 +86,20 @@ def test_lame_quarter_tube_from_labels_with_the_fitted_surface(tmp_path):
     assert e["bore_radius_mean"] == pytest.approx(7.044, abs=0.01)
 
 
+RELAXED = "smooth.label_samples=relaxed"
+
+
+def test_lame_quarter_tube_from_labels_relaxed_with_a_pillow_layer_meets_3_percent(tmp_path):
+    """The Lamé target from labels alone (inner radius 7 voxels, C3D8 and C3D20): the fit to the
+    staircase relaxed within its voxels, a pillow layer, no merging: the bore's mean hoop stress
+    +0.0 % and -0.6 % (measured; the faces' centres read -2.7 % and -4.9 %)."""
+    r = cases.lame(tmp_path, "quarter", [NO_MERGE, FIT, MIN_SJ_03, PILLOW, RELAXED], inner=7.0, outer=14.0)
+    assert r["inverted"] == 0 and r["min_sj"] >= 0.3
+    for order, measured in ((1, 0.0001), (2, -0.0058)):
+        assert r[order]["error_mean"] == pytest.approx(measured, abs=0.005)
+        assert abs(r[order]["error_mean"]) < 0.03
+
+
 @pytest.mark.parametrize("order,at_90", [(1, 3.0503), (2, 3.0213)])
 def test_kirsch_ogrid_reference(tmp_path, order, at_90):
     """An ideal mesh of dicer's element size (11 elements along the quarter rim, 1 voxel deep,

@@ -309,9 +309,13 @@ class LabelSurface:
     scan : dicer.mesh.subvoxel.ImageSurface, optional
         With ``labels``: the scan they were segmented from, which places each face sample
         within its voxel pair (:func:`scan_crossings`).
+    relaxed : bool, optional
+        With ``labels`` (and no ``scan``): the samples are the staircase's vertices relaxed to
+        its smoothest surface within their voxels (:func:`dicer.mesh.labelnet.relaxed_staircase`,
+        ``smooth.label_samples: relaxed``), not the faces' centres.
     """
 
-    def __init__(self, mesh: Mesh, radius: float, mirror: bool, labels=None, scan=None):
+    def __init__(self, mesh: Mesh, radius: float, mirror: bool, labels=None, scan=None, relaxed: bool = False):
         dim = mesh.dim
         self.dim = dim
         spacing = np.asarray(mesh.spacing, float)[:dim]
@@ -320,8 +324,14 @@ class LabelSurface:
         self.radius = float(radius) * float(spacing.min())
         reach = self.radius if mirror else 0.0
         self.placed = None
+        self.relaxed = bool(relaxed and labels is not None)
         if labels is None:
             samples = staircase_samples(mesh, reach)
+        elif relaxed:  # the staircase's vertices at its smoothest surface within their voxels
+            from dicer.mesh.labelnet import relaxed_staircase
+
+            samples = _mirrored(mesh, relaxed_staircase(np.asarray(labels.array), mesh.spacing[:dim], mesh.origin[:dim],
+                                                        mirror=mirror), reach)
         else:
             points, normals, kinds, weights = label_image_samples(labels, mesh)
             if scan is not None:  # placed before mirroring, so the mirror images are placed alike
@@ -331,7 +341,7 @@ class LabelSurface:
             samples = _mirrored(mesh, (points, normals, kinds, weights), reach)
         self.points, self.normals, kinds, self.weights = samples
         # the mesh's faces off the lattice's axes: merging's slopes (chamfers), off the labels' surface
-        self.sloped = int(np.count_nonzero(np.abs(self.normals).max(axis=1) < 1 - 1e-9))
+        self.sloped = 0 if labels is not None else int(np.count_nonzero(np.abs(self.normals).max(axis=1) < 1 - 1e-9))
         self.top = int(np.max(mesh.material, initial=0)) + 1
         # thresholds for NodeSides: one per material (the labels have no image values)
         self.thresholds = np.arange(1, self.top, dtype=float)
@@ -490,4 +500,5 @@ class LabelSurface:
         return y, {"nodes_moved": int(np.count_nonzero(fitted)), "nodes_between_two_kinds": int(sides.usable.sum()),
                    "label_surface_radius": self.radius / float(self.mesh_spacing.min()),
                    "samples": int(self.points.shape[0]), "samples_on_sloped_faces": self.sloped,
-                   **({} if self.placed is None else {"samples_placed_by_the_scan": self.placed})}
+                   **({} if self.placed is None else {"samples_placed_by_the_scan": self.placed}),
+                   **({"samples_relaxed": True} if self.relaxed else {})}

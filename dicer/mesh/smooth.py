@@ -73,7 +73,7 @@ _PULL_ROUNDS = 5  # guard rounds per solve that back off the pull onto the image
 
 @takes_settings("smooth", section=True)
 def smoothing_settings(*, surface_from_image, image_sigma, surface_from_labels, label_surface_radius, fit_to_scan,
-                       coefficient, coefficients, bounding_planes, keep_bounding_planes, interior, shrink_compensation,
+                       label_samples, coefficient, coefficients, bounding_planes, keep_bounding_planes, interior, shrink_compensation,
                        interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow,
                        pillow_thickness, tolerance) -> dict:
     """The ``smooth:`` settings as the solves read them: a coefficient per node class.
@@ -83,8 +83,8 @@ def smoothing_settings(*, surface_from_image, image_sigma, surface_from_labels, 
 
     Parameters
     ----------
-    surface_from_image, image_sigma, surface_from_labels, label_surface_radius, fit_to_scan, coefficient, \
-coefficients, bounding_planes, keep_bounding_planes, interior, shrink_compensation, interior_band, \
+    surface_from_image, image_sigma, surface_from_labels, label_surface_radius, fit_to_scan, label_samples, \
+coefficient, coefficients, bounding_planes, keep_bounding_planes, interior, shrink_compensation, interior_band, \
 min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance
         The ``smooth:`` config section (see the schema).
 
@@ -113,7 +113,7 @@ min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow, pillow_thicknes
     per_class = {c: float(coefficients[c] if coefficient is None else coefficient) for c in _CLASS_LETTERS}
     return {"surface_from_image": surface_from_image, "image_sigma": image_sigma,
             "surface_from_labels": surface_from_labels, "label_surface_radius": label_surface_radius,
-            "fit_to_scan": fit_to_scan, "coefficient": coefficient,
+            "fit_to_scan": fit_to_scan, "label_samples": label_samples, "coefficient": coefficient,
             "coefficients": per_class, "bounding_planes": bounding_planes,
             "keep_bounding_planes": keep_bounding_planes, "interior": interior,
             "shrink_compensation": shrink_compensation, "interior_band": interior_band,
@@ -871,8 +871,8 @@ def _pull_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str, lab
             check_labels_for_mesh(labels, mesh, labels_source)
             if image is not None and s["fit_to_scan"]:  # the scan places the labels' faces within their voxels
                 scan = _image_surface(mesh, s, image, thresholds, image_source)
-        return (LabelSurface(mesh, s["label_surface_radius"], s["bounding_planes"] == "mirror", labels, scan),
-                time.perf_counter() - t)
+        return (LabelSurface(mesh, s["label_surface_radius"], s["bounding_planes"] == "mirror", labels, scan,
+                             relaxed=s["label_samples"] == "relaxed"), time.perf_counter() - t)
     t = time.perf_counter()
     return _image_surface(mesh, s, image, thresholds, image_source), time.perf_counter() - t
 
@@ -1788,7 +1788,7 @@ def _report(st: _Smoothing, t0: float, labels=None) -> dict:
 
 @takes_settings("smooth", section=True)
 def smooth_mesh(mesh: Mesh, *, surface_from_image, image_sigma, surface_from_labels, label_surface_radius,
-                fit_to_scan, coefficient, coefficients, bounding_planes, keep_bounding_planes, interior,
+                fit_to_scan, label_samples, coefficient, coefficients, bounding_planes, keep_bounding_planes, interior,
                 shrink_compensation, interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow,
                 pillow_thickness, tolerance, image=None, thresholds=None, image_source: str = "image", labels=None,
                 labels_source: str = "labels") -> tuple[Mesh, dict]:
@@ -1803,8 +1803,8 @@ def smooth_mesh(mesh: Mesh, *, surface_from_image, image_sigma, surface_from_lab
     ----------
     mesh : Mesh
         A mesh made by 'dicer mesh' (voxel, plane-merged or graded), with ``lattice`` point data.
-    surface_from_image, image_sigma, surface_from_labels, label_surface_radius, fit_to_scan, coefficient, \
-coefficients, bounding_planes, keep_bounding_planes, interior, shrink_compensation, interior_band, \
+    surface_from_image, image_sigma, surface_from_labels, label_surface_radius, fit_to_scan, label_samples, \
+coefficient, coefficients, bounding_planes, keep_bounding_planes, interior, shrink_compensation, interior_band, \
 min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow, pillow_thickness, tolerance
         The ``smooth:`` config section (see the schema and :func:`smoothing_settings`).
     image : dicer.image.Volume, optional
@@ -1837,7 +1837,8 @@ min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow, pillow_thicknes
     """
     s = smoothing_settings.__wrapped__(
         surface_from_image=surface_from_image, image_sigma=image_sigma, surface_from_labels=surface_from_labels,
-        label_surface_radius=label_surface_radius, fit_to_scan=fit_to_scan, coefficient=coefficient,
+        label_surface_radius=label_surface_radius, fit_to_scan=fit_to_scan, label_samples=label_samples,
+        coefficient=coefficient,
         coefficients=coefficients,
         bounding_planes=bounding_planes, keep_bounding_planes=keep_bounding_planes, interior=interior,
         shrink_compensation=shrink_compensation, interior_band=interior_band,

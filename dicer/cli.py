@@ -989,8 +989,14 @@ def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_re
             raise DicerError(f"{path}: not a stage report (a JSON object, as dicer fix, merge and smooth write with "
                              "--report); give those files")
         # named by what it holds, not by its file name (which may carry a patient's code)
-        stage = next((s for s, key in _STAGE_REPORT_KEYS.items() if key in content), Path(path).name.split(".")[0])
-        stages[stage] = content
+        stage = next((s for s, keys in _STAGE_REPORT_KEYS.items() if keys <= content.keys()), None)
+        if stage is None:
+            raise DicerError(f"{path}: not a report of dicer fix, merge or smooth (it lacks their keys); give the "
+                             "--report files of those stages (fix.json, merge.json, smooth.json of dicer run)")
+        if stage in stages:
+            raise DicerError(f"{path}: a second {stage} report ({stages[stage][1]} is one); give one report per stage")
+        stages[stage] = (content, path)
+    stages = {stage: content for stage, (content, _) in stages.items()}
     if stages:
         report["stages"] = stages
     figures = _quality_figures(mesh, report, sj, dict(enumerate(settings["names"], start=1)), histogram,
@@ -1007,7 +1013,8 @@ def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_re
     return report
 
 
-_STAGE_REPORT_KEYS = {"fix": "type_a", "merge": "element_ratio", "smooth": "node_classes"}
+_STAGE_REPORT_KEYS = {"fix": {"type_a"}, "merge": {"element_ratio", "elements_before"},
+                      "smooth": {"node_classes", "boundary_iterations"}}
 """A key each stage's report holds and the others do not."""
 
 _PICTURE_CAPTIONS = {

@@ -239,7 +239,7 @@ def test_a_voxel_mesh_with_split_nodes_is_no_voxel_mesh():
     assert floating_parts(split) == _reference_parts(split)
 
 
-def test_stage_reports_and_pictures_are_named_by_content_not_by_file_name(tmp_path):
+def test_stage_reports_and_pictures_are_named_by_content_not_by_file_name(tmp_path, capsys):
     """A stage report was keyed by its file name up to the first dot and a picture captioned
     with its file name: patient-coded names (MRN4711.smooth.json, DOE_overlay.png) reached
     quality.json and report.html, and the same content under other names gave other bytes."""
@@ -270,6 +270,20 @@ def test_stage_reports_and_pictures_are_named_by_content_not_by_file_name(tmp_pa
     report = json.loads(outputs[1][0])
     assert sorted(report["stages"]) == ["fix", "merge", "smooth"]
     assert b"MRN4711" not in outputs[1][0] + outputs[1][1] and b"DOE" not in outputs[1][1]
+    # a report of no stage (filed under its file name before) and a second report of one stage: refused
+    base = ["quality", str(run / "smoothed.vtu"), "-o", str(tmp_path / "bad.json"), "-q"]
+    (tmp_path / "SMITH_JOHN_1970.json").write_text('{"anything": 1}')
+    for extra, said in ((["SMITH_JOHN_1970.json"], "SMITH_JOHN_1970.json: not a report of dicer fix, merge or smooth"),
+                        (["q.json"], "q.json: not a report of dicer fix, merge or smooth"),
+                        (["fix.json", "fix.json"], "fix.json: a second fix report")):
+        folder = tmp_path / "plain"
+        args = base + [a for name in extra for a in ("--stage-report", str(folder / name if name != "SMITH_JOHN_1970.json"
+                                                                               else tmp_path / name))]
+        capsys.readouterr()
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and said in err and err.count("\n") == 1
+        assert not (tmp_path / "bad.json").exists()
 
 
 def test_node_classes_in_the_report_count_the_irregular_ones():

@@ -854,6 +854,9 @@ def _check_original(original, path: str, mesh) -> None:
     import numpy as np
 
     dim = original.array.ndim
+    if dim != mesh.dim:
+        raise DicerError(f"{path}: a {dim}D segmentation for a {mesh.dim}D mesh; give the segmentation the mesh was "
+                         "made from with --original (labels.nii.gz of the run)")
     spacing, origin = np.asarray(mesh.spacing, float)[:dim], np.asarray(mesh.origin, float)[:dim]
     extent = np.asarray(mesh.grid_shape, float)[:dim] * spacing
     theirs = np.asarray(original.array.shape, float) * np.asarray(original.spacing, float)

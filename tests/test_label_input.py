@@ -484,6 +484,13 @@ def test_quality_and_surface_name_materials_as_the_mesh_does(labelled, tmp_path,
     assert "aseg.nii.gz: the original segmentation holds label 99, past the mesh's 4 materials" in capsys.readouterr().err
     assert _cli("quality", out / "smoothed.vtu", "-o", tmp_path / "q4.json", "--original", tmp_path / "other.nii.gz") == 2
     assert "other.nii.gz: the original segmentation spans 60 x 54 x 42 mm from" in capsys.readouterr().err
+    # a slice of it: its areas would be taken for volumes
+    from dicer.image import Volume
+    from dicer.io.images import write_image
+
+    write_image(Volume(seven_labels()[:, :, 0].astype(np.int16), (1.5, 1.5)), tmp_path / "slice.nii.gz")
+    assert _cli("quality", out / "smoothed.vtu", "-o", tmp_path / "q4.json", "--original", tmp_path / "slice.nii.gz") == 2
+    assert "slice.nii.gz: a 2D segmentation for a 3D mesh" in capsys.readouterr().err
     assert _cli("quality", out / "smoothed.vtu", "-o", tmp_path / "q4.json", "--original", out / "labels.nii.gz") == 0
     (tmp_path / "list.json").write_text("[1, 2, 3]")
     assert _cli("quality", out / "smoothed.vtu", "-o", tmp_path / "q3.json", "--html", tmp_path / "q3.html",

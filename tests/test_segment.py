@@ -664,3 +664,19 @@ def test_ball_morphology_by_distance_is_scipy_s(mask, radius):
     assert np.array_equal(dilate(mask, radius, by_distance=True), ndi.binary_dilation(mask, structure=fp))
     assert np.array_equal(erode(mask, radius, by_distance=True),
                           ndi.binary_erosion(mask, structure=fp, border_value=1))
+
+
+def test_ranges_outside_a_shifted_ct_name_the_lost_rescale_intercept():
+    import pytest as _pytest
+
+    from dicer.errors import DicerError
+    from dicer.segment.thresholds import check_ranges
+
+    names = ["soft_tissue", "bone"]
+    # a CT stored as HU + 1024 (0 .. 2089): the defaults' [-400, 0] lies below it
+    with _pytest.raises(DicerError, match=r"span 0 \.\. 2089; .* a CT stored as HU \+ 1024 .* 1024 subtracted"):
+        check_ranges([[-400.0, 0.0], [100.0, 1000.0]], 2, names, 0.0, 2089.0, "ct.nii.gz")
+    # a scan in HU whose range simply misses: no such guess
+    with _pytest.raises(DicerError) as info:
+        check_ranges([[-400.0, -300.0], [100.0, 1000.0]], 2, names, -200.0, 800.0, "ct.nii.gz")
+    assert "1024" not in str(info.value)

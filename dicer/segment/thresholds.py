@@ -245,8 +245,13 @@ def check_ranges(ranges, k: int, names: list[str], lo: float, hi: float, source:
         if not a < b:
             raise DicerError(f"{source}: {key} for class '{name}' is [{a:g}, {b:g}]; low must be below high")
         if b <= lo or a >= hi:
+            # no negative values up to a thousand and more: a CT whose rescale intercept was lost
+            # (stored as HU + 1024, air near 0) more often than not
+            shifted = ("; a CT stored as HU + 1024 (its rescale intercept lost: air near 0) needs 1024 subtracted, or "
+                       "ranges shifted by +1024 for every material; an MR needs ranges in its own values, or "
+                       "segment.method: multiotsu" if lo > -50 and hi > 1000 else "")
             raise DicerError(f"{source}: {key} for class '{name}' is [{a:g}, {b:g}] but the image's values span "
-                             f"{lo:g} .. {hi:g}; move the range inside the image's values")
+                             f"{lo:g} .. {hi:g}; move the range inside the image's values{shifted}")
         out.append((a, b))
     for i in range(1, k):
         if out[i][0] < out[i - 1][1]:

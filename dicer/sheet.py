@@ -114,7 +114,7 @@ _SEGMENTATION_ONLY = ("segment.method", "segment.thresholds", "segment.ranges", 
 section's morphology and priority still serve its downsampling)."""
 
 
-_SCAN_ONLY = ("smooth.surface_from_image", "smooth.image_sigma")
+_SCAN_ONLY = ("smooth.surface_from_image", "smooth.image_sigma", "smooth.fit_to_scan")
 """Smoothing settings that act only on a scan, which a label volume's smoothing has not."""
 
 

@@ -426,7 +426,7 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
             log.warning("fix: stopped at a round cap with %s left; raise fix.max_iterations or "
                         "fix.max_type_c_rounds", report["remaining"])
         _warn_of_fixed_volumes(labels.array, fixed, config)
-        _warn_of_fixed_shape(report)
+        _warn_of_fixed_shape(report, config)
         # same grid: the input's NIfTI header is kept, so the affine stays exactly the input's
         write_mapped_labels(Volume(fixed, labels.spacing, labels.origin, labels.direction), labels_path, out)
         _write_report(report_path, report)
@@ -455,12 +455,19 @@ def _warn_of_fixed_volumes(before: np.ndarray, after: np.ndarray, config: dict) 
                 "are removed: set fix.majority_rounds=0 (raise-only rounds) or lower fix.min_component_voxels to keep "
                 "them")
     else:
-        hint = ("the raise-only type C rounds thicken parts one voxel thin (a plate doubles): segment more finely "
-                "or lower downsample.factor, so that thin parts are two voxels thick")
+        hint = ("the raise-only type C rounds thicken parts one voxel thin (a plate doubles): "
+                f"{_finer_voxels(config)}, so that thin parts are two voxels thick")
     log.warning("%s; %s", said, hint)
 
 
-def _warn_of_fixed_shape(report: dict) -> None:
+def _finer_voxels(config: dict) -> str:
+    """The advice for parts one voxel thin: less downsampling, or (at the scan's own voxels) a finer scan."""
+    if downsample_applies(config):
+        return "segment more finely or lower downsample.factor (or downsample.voxel_size)"
+    return "a scan of finer voxels keeps them (or less downsampling, where these labels were downsampled)"
+
+
+def _warn_of_fixed_shape(report: dict, config: dict) -> None:
     """Warn when the connectivity fixes grew the model into the background by more than
     STAGE_VOLUME_WARNING percent, made it reach faces of the image it did not reach, or
     joined separate parts (a gap one voxel wide filled)."""
@@ -471,8 +478,8 @@ def _warn_of_fixed_shape(report: dict) -> None:
         reach = (f", and it now reaches the image's faces {', '.join(faces)} (the deck's node sets of those names "
                  "hold the grown material)" if faces else "")
         log.warning("fix: the model grew by %.1f %% into the background%s: the raise-only type C rounds thicken "
-                    "every part one voxel thin, so a layer or shell one voxel thick doubles; segment more finely or "
-                    "lower downsample.factor, so that layers are two voxels thick", grown, reach)
+                    "every part one voxel thin, so a layer or shell one voxel thick doubles; %s, so that layers are two "
+                    "voxels thick", grown, reach, _finer_voxels(config))
     if report["joined_parts"]:
         log.warning("fix: %d separate part(s) of the labels were joined to others: they touched only at an edge or "
                     "a corner, or a gap one voxel wide between them was filled (type C), so they are one body in the "

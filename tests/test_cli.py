@@ -261,6 +261,13 @@ def test_fix_warns_of_a_volume_it_changes_and_names_the_rounds_that_left_nothing
                    "fix.min_component_voxels=0", "--set", "fix.majority_rounds=0")[0] == 0
     warned = [r.getMessage() for r in caplog.records if r.getMessage().startswith("fix: material volume")]
     assert len(warned) == 1 and "(soft_tissue +100.0 %)" in warned[0] and "thicken" in warned[0]
+    # at the scan's own voxels there is no downsampling to lower: the advice is a finer scan
+    assert "a scan of finer voxels keeps them" in warned[0] and "lower downsample.factor" not in warned[0]
+    caplog.clear()
+    assert run_cli(capsys, "fix", tmp_path / "b.npy", "-o", tmp_path / "b.nii.gz", "-q", "--set",
+                   "fix.min_component_voxels=0", "--set", "fix.majority_rounds=0", "--set", "downsample.factor=2")[0] == 0
+    warned = [r.getMessage() for r in caplog.records if r.getMessage().startswith("fix: material volume")]
+    assert len(warned) == 1 and "lower downsample.factor" in warned[0]
 
 
 def test_fix_warns_of_parts_it_joins_and_of_a_model_grown_to_the_image_faces(tmp_path, capsys, caplog):

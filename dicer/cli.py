@@ -969,12 +969,26 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
                         "warnings)", len(report["materials_without_elements"]),
                         brief_names(report["materials_without_elements"]))
         if report["stretched_elements"]:  # a solver's stresses suffer in them long before it refuses them
-            log.warning("quality: %d element(s) have an edge ratio above %g (largest %.3g); elongated voxels "
-                        "(downsample with a factor per axis), merging across the long axis (merge.passes) or a thin "
-                        "pillow layer (smooth.pillow_thickness) make them; quality.stretched_edge_ratio sets the "
-                        "limit", report["stretched_elements"], report["stretched_threshold"],
-                        report["edge_ratio"]["max"])
+            log.warning("quality: %d element(s) have an edge ratio above %g (largest %.3g); %s make them; "
+                        "quality.stretched_edge_ratio sets the limit", report["stretched_elements"],
+                        report["stretched_threshold"], report["edge_ratio"]["max"], _stretch_causes(mesh, report))
     return report
+
+
+def _stretch_causes(mesh, report: dict) -> str:
+    """What makes elements long and thin in this model: elongated voxels (only when they are),
+    merging, a pillow layer (only when the smoothing report says there is one), smoothing."""
+    import numpy as np
+
+    spacing = np.asarray(mesh.spacing, float)[:mesh.dim]
+    causes = []
+    if spacing.max() > 1.5 * spacing.min():
+        causes.append("elongated voxels (downsample with a factor per axis)")
+    causes.append("merging across the long axis (merge.passes)")
+    if "pillow" in report.get("stages", {}).get("smooth", {}):
+        causes.append("a thin pillow layer (smooth.pillow_thickness)")
+    causes.append("smoothing that shortens an edge of a small part or a sharp fold")
+    return ", ".join(causes[:-1]) + " or " + causes[-1]
 
 
 def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_reports, html, pictures, histogram,

@@ -48,6 +48,17 @@ def test_stretched_elements_are_counted_against_the_edge_ratio_limit(tmp_path, c
                      "--set", "quality.stretched_edge_ratio=4.5"]) == 0
     said = [r.getMessage() for r in caplog.records if "edge ratio above" in r.getMessage()]
     assert len(said) == 1 and said[0].startswith("quality: 4 element(s) have an edge ratio above 4.5 (largest 6)")
+    assert "elongated voxels" in said[0] and "pillow" not in said[0]  # 0.2 x 1 x 1 mm voxels, no layer
+    # the same stretch on cubic voxels: not the voxels' doing
+    cubic = voxel_mesh(np.ones((4, 1, 1), np.uint8))
+    cubic.points[cubic.lattice[:, 0] == 4, 0] += 5.0
+    write_mesh(cubic, tmp_path / "c.vtu")
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        assert main(["quality", str(tmp_path / "c.vtu"), "-o", str(tmp_path / "q2.json"),
+                     "--set", "quality.stretched_edge_ratio=4.5"]) == 0
+    said = [r.getMessage() for r in caplog.records if "edge ratio above" in r.getMessage()]
+    assert len(said) == 1 and "elongated voxels" not in said[0] and "smoothing that shortens an edge" in said[0]
 
 
 def test_inverted_elements_are_counted_and_html_renders():

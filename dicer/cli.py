@@ -339,8 +339,13 @@ def do_downsample(labels_path: str, out: Path, config: dict):
     from dicer.labels import write_mapped_labels
 
     with _Stage("downsample"):
+        settings = stage_kwargs(config, "downsample")
+        factor = settings["factor"]
+        if settings["voxel_size"] is not None and any(f != 1 for f in (factor if isinstance(factor, list) else [factor])):
+            log.warning("downsample: downsample.voxel_size %s replaces downsample.factor %s, which is not used; give "
+                        "one of them", settings["voxel_size"], factor)
         labels = read_labels(labels_path, _npy_spacing(labels_path, config))
-        reduced, info = downsample(labels, **stage_kwargs(config, "downsample"), source=labels_path)
+        reduced, info = downsample(labels, **settings, source=labels_path)
         # factor 1 keeps the grid, and then the input's header (exactly its affine)
         write_mapped_labels(reduced, labels_path, out)
         log.info("downsample: wrote %s (%s)", out, json.dumps(info, sort_keys=True))

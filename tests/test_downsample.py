@@ -83,6 +83,18 @@ def test_voxel_size_wins_over_factor_and_padding():
     assert (out.array == 1).all()
 
 
+def test_a_factor_beside_a_voxel_size_is_said_to_be_unused(tmp_path, caplog):
+    from dicer.cli import main
+
+    np.save(tmp_path / "l.npy", np.ones((6, 6, 6), np.uint8))
+    for sets, said in ((["downsample.factor=3", "downsample.voxel_size=2"], 1), (["downsample.voxel_size=2"], 0)):
+        caplog.clear()
+        args = ["downsample", str(tmp_path / "l.npy"), "-o", str(tmp_path / "d.nii.gz"), "-q"]
+        assert main(args + [a for s in sets for a in ("--set", s)]) == 0
+        warned = [r for r in caplog.records if "replaces downsample.factor" in r.getMessage()]
+        assert len(warned) == said
+
+
 def test_priority_and_fallback():
     lab = np.zeros((4, 4), np.uint8)
     lab[:, :2] = 1

@@ -853,6 +853,12 @@ def do_surface(mesh_path: str, outdir: Path, config: dict, only: list[str] | Non
         mesh = read_mesh(mesh_path)
         refuse_inverted(mesh, mesh_path)
         info = write_surfaces(mesh, outdir, _mesh_names(mesh, config), only)
+        written = {v["file"] for v in info.values()}
+        others = sorted(p.name for p in outdir.glob("*.stl") if p.name not in written and not p.name.startswith("."))
+        if others:  # another mesh's surfaces beside these would be read as this model's
+            log.warning("surface: %s also holds %d .stl file(s) this mesh did not write (%s): another mesh's or "
+                        "material's; remove them, or write into an empty folder", outdir, len(others),
+                        brief_names(others))
         log.info("surface: wrote %s", ", ".join(f"{outdir / v['file']} ({v['triangles']} triangles, "
                                                  f"{v['volume_mm3']:.6g} mm^3)" for v in info.values()))
     return info

@@ -102,15 +102,21 @@ def test_edge_contact_is_refused_and_nothing_written(tmp_path):
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
 
 
-def test_cli_surface(tmp_path, capsys):
+def test_cli_surface(tmp_path, capsys, caplog):
     vtu = tmp_path / "mesh.vtu"
     write_mesh(voxel_mesh(shell_labels(10)), vtu)
     for out in ("a", "b"):
         assert main(["surface", str(vtu), "-o", str(tmp_path / out), "-q"]) == 0, capsys.readouterr().err
     for name in ("soft_tissue.stl", "bone.stl"):
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
+    caplog.clear()
     assert main(["surface", str(vtu), "-o", str(tmp_path / "c"), "--material", "bone", "-q"]) == 0
     assert [p.name for p in (tmp_path / "c").iterdir()] == ["bone.stl"]
+    assert not [r for r in caplog.records if "did not write" in r.getMessage()]
+    # into a folder holding surfaces it did not write: said (they would pass for this model's)
+    assert main(["surface", str(vtu), "-o", str(tmp_path / "a"), "--material", "bone", "-q"]) == 0
+    said = [r.getMessage() for r in caplog.records if "did not write" in r.getMessage()]
+    assert len(said) == 1 and "1 .stl file(s) this mesh did not write (soft_tissue.stl)" in said[0]
     code = main(["surface", str(vtu), "-o", str(tmp_path / "d"), "--material", "skull", "-q"])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "skull" in err and "soft_tissue, bone" in err

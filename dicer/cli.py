@@ -808,6 +808,7 @@ def do_mesh(labels_path: str, out: Path, config: dict, write=_now):
             log.warning("mesh: the 2D image's direction cosines (%s) are not applied: a 2D model lies in the "
                         "image's index frame, flipped or turned against the scanner's axes as they are "
                         "(docs/coordinates.md)", " ".join(f"{v:g}" for v in labels.direction))
+        _warn_of_long_voxels(labels.spacing)
         try:
             mesh = mesh_labels(labels, **stage_kwargs(config, "mesh"))
         except DicerError as exc:
@@ -815,6 +816,24 @@ def do_mesh(labels_path: str, out: Path, config: dict, write=_now):
         write(lambda: write_mesh(mesh, out))
         log.info("mesh: wrote %s (%d nodes, %d elements)", out, mesh.n_points, mesh.n_cells)
     return mesh
+
+
+LONG_VOXELS = 3.0
+"""A voxel this many times longer along one axis than along another makes elements a solver
+reads poorly (thick clinical slices); the mesh stage says so before it makes them."""
+
+
+def _warn_of_long_voxels(spacing) -> None:
+    """Warn of voxels LONG_VOXELS or more times longer along one axis, with a factor per axis that evens them."""
+    sizes = [float(v) for v in spacing]
+    if max(sizes) < LONG_VOXELS * min(sizes):
+        return
+    even = [max(1, int(round(max(sizes) / v))) if v < max(sizes) / 1.5 else 1 for v in sizes]
+    long_axes = [1 if v >= max(sizes) / 1.5 else 0 for v in sizes]
+    log.warning("mesh: the voxels are %s mm, %.0f times longer along one axis: every element is as long; a "
+                "downsample.factor per axis up to %s makes them nearer cubic (the larger, the more thin parts the "
+                "coarser grid loses), and merge.passes %s keeps merging off the long axis",
+                " x ".join(f"{v:g}" for v in sizes), max(sizes) / min(sizes), even, [0 if a else 1 for a in long_axes])
 
 
 def do_export(mesh_path: str, out: Path, config: dict, mesh=None, neighbours=None):

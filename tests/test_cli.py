@@ -320,6 +320,9 @@ def test_merge_warns_when_it_grows_a_material_across_thick_slices(tmp_path, caps
     ball = ((g[0] * 3 - 21) / 18) ** 2 + ((g[1] * 0.5 - 15) / 12) ** 2 + ((g[2] * 0.5 - 15) / 12) ** 2 < 1
     write_image(Volume(ball.astype(np.uint8), (3.0, 0.5, 0.5)), tmp_path / "l.nii.gz")
     assert run_cli(capsys, "mesh", tmp_path / "l.nii.gz", "-o", tmp_path / "m.vtu")[0] == 0
+    said = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]  # the mesh stage's, before merging
+    assert len(said) == 1 and "6 times longer" in said[0] and "merge.passes [0, 1, 1]" in said[0]
+    caplog.clear()
     code, _ = run_cli(capsys, "merge", tmp_path / "m.vtu", "-o", tmp_path / "g.vtu", "--report", tmp_path / "g.json")
     assert code == 0
     change = json.loads((tmp_path / "g.json").read_text())["volume"]["1"]["change_percent"]
@@ -524,3 +527,20 @@ def test_a_materials_file_takes_the_properties_of_the_materials_the_config_lists
     assert elastic("gel") == "5, 0.45" and elastic("shell") == "900, 0.25"
     assert run_cli(capsys, *argv, "--set", "materials=[{name: gel, youngs_modulus: 6}]")[0] == 0
     assert elastic("gel") == "6, 0.3" and elastic("shell") == "700, 0.3"
+
+
+def test_mesh_warns_of_long_voxels_with_a_factor_per_axis(tmp_path, caplog):
+    from dicer.image import Volume
+    from dicer.io.images import write_image
+
+    lab = np.zeros((12, 12, 4), np.uint8)
+    lab[2:10, 2:10, 1:3] = 1
+    for spacing, said in (((0.5, 0.5, 5.0), True), ((1.0, 1.0, 2.0), False)):
+        write_image(Volume(lab, spacing), tmp_path / "l.nii.gz")
+        caplog.clear()
+        assert main(["mesh", str(tmp_path / "l.nii.gz"), "-o", str(tmp_path / "m.vtu"), "-q"]) == 0
+        warned = [r.getMessage() for r in caplog.records if "times longer along one axis" in r.getMessage()]
+        assert len(warned) == int(said)
+        if said:
+            assert warned[0].startswith("mesh: the voxels are 0.5 x 0.5 x 5 mm, 10 times longer")
+            assert "up to [10, 10, 1]" in warned[0] and "merge.passes [1, 1, 0]" in warned[0]

@@ -73,8 +73,8 @@ _PULL_ROUNDS = 5  # guard rounds per solve that back off the pull onto the image
 
 @takes_settings("smooth", section=True)
 def smoothing_settings(*, surface_from_image, image_sigma, surface_from_labels, label_surface_radius, fit_to_scan,
-                       label_samples, coefficient, coefficients, bounding_planes, keep_bounding_planes, interior, shrink_compensation,
-                       interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow,
+                       label_samples, coefficient, coefficients, bounding_planes, keep_bounding_planes, interior,
+                       shrink_compensation, interior_band, min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow,
                        pillow_thickness, tolerance) -> dict:
     """The ``smooth:`` settings as the solves read them: a coefficient per node class.
 
@@ -98,11 +98,9 @@ min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow, pillow_thicknes
     Raises
     ------
     DicerError
-        ``keep_bounding_planes: false`` without ``bounding_planes: free``.
+        ``keep_bounding_planes: false`` without ``bounding_planes: free`` (checked with the
+        settings, :func:`dicer.config.validate`).
     """
-    if not keep_bounding_planes and bounding_planes != "free":
-        raise DicerError("smooth.keep_bounding_planes = false lets plane nodes leave their plane, which only "
-                         "bounding_planes: free does; set smooth.bounding_planes: free with it")
     # a map left at its defaults (config/config.yaml lists them) loses nothing to the one value
     mapped = [f"{c} {coefficients[c]:g}" for c in _CLASS_LETTERS
               if float(coefficients[c]) != float(DEFAULTS["coefficients"][c])]

@@ -328,8 +328,12 @@ def downsample_applies(config: dict) -> bool:
     volume given to 'dicer run --labels' is downsampled only then, since the stage's
     morphology would otherwise reshape a segmentation the user already made."""
     ds = config["downsample"]
-    factor = ds["factor"]
-    return ds["voxel_size"] is not None or any(f != 1 for f in (factor if isinstance(factor, list) else [factor]))
+    return ds["voxel_size"] is not None or _coarsening(ds["factor"])
+
+
+def _coarsening(factor) -> bool:
+    """Whether downsample.factor (one value or one per axis) is other than 1 anywhere."""
+    return any(f != 1 for f in (factor if isinstance(factor, list) else [factor]))
 
 
 def do_downsample(labels_path: str, out: Path, config: dict):
@@ -340,10 +344,9 @@ def do_downsample(labels_path: str, out: Path, config: dict):
 
     with _Stage("downsample"):
         settings = stage_kwargs(config, "downsample")
-        factor = settings["factor"]
-        if settings["voxel_size"] is not None and any(f != 1 for f in (factor if isinstance(factor, list) else [factor])):
+        if settings["voxel_size"] is not None and _coarsening(settings["factor"]):
             log.warning("downsample: downsample.voxel_size %s replaces downsample.factor %s, which is not used; give "
-                        "one of them", settings["voxel_size"], factor)
+                        "one of them", settings["voxel_size"], settings["factor"])
         labels = read_labels(labels_path, _npy_spacing(labels_path, config))
         reduced, info = downsample(labels, **settings, source=labels_path)
         # factor 1 keeps the grid, and then the input's header (exactly its affine)
@@ -483,8 +486,8 @@ def _warn_of_fixed_shape(report: dict, config: dict) -> None:
         reach = (f", and it now reaches the image's faces {', '.join(faces)} (the deck's node sets of those names "
                  "hold the grown material)" if faces else "")
         log.warning("fix: the model grew by %.1f %% into the background%s: the raise-only type C rounds thicken "
-                    "every part one voxel thin, so a layer or shell one voxel thick doubles; %s, so that layers are two "
-                    "voxels thick", grown, reach, _finer_voxels(config))
+                    "every part one voxel thin, so a layer or shell one voxel thick doubles; %s, so that layers are "
+                    "two voxels thick", grown, reach, _finer_voxels(config))
     if report["joined_parts"]:
         log.warning("fix: %d separate part(s) of the labels were joined to others: they touched only at an edge or "
                     "a corner, or a gap one voxel wide between them was filled (type C), so they are one body in the "
@@ -1033,7 +1036,7 @@ def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_re
     settings = {**stage_kwargs(config, "quality"), "names": _mesh_names(mesh, config)}
     report = quality_report(mesh, **settings, labels=labels, original=original, metrics=metrics,
                             neighbours=neighbours, parts=parts, voxel=voxel)
-    stages = {}
+    stages, given = {}, {}
     for path in stage_reports:
         try:
             content = json.loads(Path(path).read_text())
@@ -1047,10 +1050,9 @@ def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_re
         if stage is None:
             raise DicerError(f"{path}: not a report of dicer fix, merge or smooth (it lacks their keys); give the "
                              "--report files of those stages (fix.json, merge.json, smooth.json of dicer run)")
-        if stage in stages:
-            raise DicerError(f"{path}: a second {stage} report ({stages[stage][1]} is one); give one report per stage")
-        stages[stage] = (content, path)
-    stages = {stage: content for stage, (content, _) in stages.items()}
+        if stage in given:
+            raise DicerError(f"{path}: a second {stage} report ({given[stage]} is one); give one report per stage")
+        stages[stage], given[stage] = content, path
     if stages:
         report["stages"] = stages
     figures = _quality_figures(mesh, report, sj, dict(enumerate(settings["names"], start=1)), histogram,
@@ -1069,7 +1071,7 @@ def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_re
 
 _STAGE_REPORT_KEYS = {"fix": {"type_a"}, "merge": {"element_ratio", "elements_before"},
                       "smooth": {"node_classes", "boundary_iterations"}}
-"""A key each stage's report holds and the others do not."""
+"""The keys each stage's report holds and the others' (and quality.json) do not."""
 
 _PICTURE_CAPTIONS = {
     "segmentation.png": "Segmentation: the labels over the scan, three orthogonal slices",

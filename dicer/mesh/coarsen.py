@@ -462,7 +462,8 @@ def _whole(value) -> bool:
     """An integer, or a float with a whole value (a config's 2.0): not a bool, not 2.5."""
     if isinstance(value, bool):
         return False
-    return isinstance(value, (int, np.integer)) or (isinstance(value, (float, np.floating)) and float(value).is_integer())
+    return isinstance(value, (int, np.integer)) or (isinstance(value, (float, np.floating))
+                                                     and float(value).is_integer())
 
 
 def coarsen_mesh(mesh: Mesh, *, levels: int, min_distance: int, keep_fine) -> tuple[Mesh, dict]:

@@ -149,8 +149,7 @@ def relaxed_staircase(lab: np.ndarray, spacing, origin, mirror: bool = False
     if n == 0:
         return np.zeros((0, dim)), np.zeros((0, dim)), np.zeros((0, 2), np.int64), np.zeros(0)
     # the staircase's edges: consecutive corners of each face
-    a = inv.ravel()
-    b = np.roll(inv, -1, axis=1).ravel() if k > 2 else inv[:, ::-1].ravel()
+    a, b = inv.ravel(), np.roll(inv, -1, axis=1).ravel()
     adj = sp.coo_matrix((np.ones(a.size), (a, b)), shape=(n, n)).tocsr()
     adj = ((adj + adj.T) > 0).astype(float)
     degree = np.asarray(adj.sum(axis=1)).ravel()
@@ -166,9 +165,9 @@ def relaxed_staircase(lab: np.ndarray, spacing, origin, mirror: bool = False
     else:
         area = 0.5 * np.cross((x[inv[:, 2]] - x[inv[:, 0]]) * spacing, (x[inv[:, 3]] - x[inv[:, 1]]) * spacing)
     area *= np.sign(np.einsum("ij,ij->i", area, face_normal))[:, None]
-    summed = np.zeros((n, dim))
-    for j in range(k):
-        np.add.at(summed, inv[:, j], area / k)
+    at = inv.ravel()  # each face's area shared among its k vertices
+    summed = np.stack([np.bincount(at, weights=np.repeat(area[:, c] / k, k), minlength=n) for c in range(dim)],
+                      axis=1)
     size = np.linalg.norm(summed, axis=1)
     normals = summed / np.maximum(size, 1e-300)[:, None]
     kinds = np.stack([vpair // top, vpair % top], axis=1)

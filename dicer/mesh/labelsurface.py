@@ -330,8 +330,9 @@ class LabelSurface:
         elif relaxed:  # the staircase's vertices at its smoothest surface within their voxels
             from dicer.mesh.labelnet import relaxed_staircase
 
-            samples = _mirrored(mesh, relaxed_staircase(np.asarray(labels.array), mesh.spacing[:dim], mesh.origin[:dim],
-                                                        mirror=mirror), reach)
+            relaxed_samples = relaxed_staircase(np.asarray(labels.array), mesh.spacing[:dim], mesh.origin[:dim],
+                                                mirror=mirror)
+            samples = _mirrored(mesh, relaxed_samples, reach)
         else:
             points, normals, kinds, weights = label_image_samples(labels, mesh)
             if scan is not None:  # placed before mirroring, so the mirror images are placed alike

@@ -157,8 +157,8 @@ class ImageSurface:
                 np.asarray(image.direction, float).reshape(dim, dim), np.eye(dim), atol=1e-5)
             if turned and mesh.direction is None:  # its span in the mesh's frame is not origin + shape
                 raise DicerError(f"{source}: the image's axes are turned or flipped (direction cosines "
-                                 f"{fmt(np.ravel(image.direction))}) against the mesh's grid; give the scan the mesh was segmented from, or resample this one onto "
-                                 "the labels' grid")
+                                 f"{fmt(np.ravel(image.direction))}) against the mesh's grid; give the scan the mesh "
+                                 "was segmented from, or resample this one onto the labels' grid")
             raise DicerError(f"{source}: the image spans {fmt(i_lo)}..{fmt(i_hi)} mm, the mesh's grid "
                              f"{fmt(m_lo)}..{fmt(m_hi)} mm; give the scan the mesh was segmented from")
         self.dim = dim
@@ -178,9 +178,9 @@ class ImageSurface:
         low, high = (float(sub.min()), float(sub.max())) if sub.size else (0.0, 0.0)
         outside = [t for t in self.thresholds if not low < t <= high]
         if outside:  # no iso-surface of these near the mesh: the thresholds of another scan, or of other units
-            log.warning("smooth: the thresholds %s lie outside the values of %s near the mesh (%g to %g), so it has no "
-                        "surface there; give this scan's thresholds (the segmentation.json of its dicer segment --info)",
-                        ", ".join(f"{t:g}" for t in outside), source, low, high)
+            log.warning("smooth: the thresholds %s lie outside the values of %s near the mesh (%g to %g), so it has "
+                        "no surface there; give this scan's thresholds (the segmentation.json of its dicer segment "
+                        "--info)", ", ".join(f"{t:g}" for t in outside), source, low, high)
         if self.sigma > 0:
             sub = ndimage.gaussian_filter(sub, sig_vox, mode="nearest")
         self.array = sub

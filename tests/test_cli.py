@@ -544,3 +544,11 @@ def test_mesh_warns_of_long_voxels_with_a_factor_per_axis(tmp_path, caplog):
         if said:
             assert warned[0].startswith("mesh: the voxels are 0.5 x 0.5 x 5 mm, 10 times longer")
             assert "up to [10, 10, 1]" in warned[0] and "merge.passes [1, 1, 0]" in warned[0]
+
+
+def test_run_outputs_hold_every_model_format_workflow_exports_names():
+    from dicer.cli import RUN_OUTPUTS
+    from dicer.config import schema
+
+    formats = schema()["properties"]["workflow"]["properties"]["exports"]["items"]["enum"]
+    assert {n for n in RUN_OUTPUTS if n.startswith("model.") and n != "model.png"} == {f"model.{e}" for e in formats}

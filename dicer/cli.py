@@ -1228,7 +1228,7 @@ def cmd_merge(args):
 
 
 def cmd_smooth(args):
-    from dicer.config import stage_kwargs
+    from dicer.config import smoothing_reads_scan, stage_kwargs
 
     report = _check_output(args.report, (".json",), "the smoothing report") if args.report else None
     config = _config(args)
@@ -1248,7 +1248,7 @@ def cmd_smooth(args):
                     "--image (with --thresholds); without %s the fit takes the %s", "--labels" if args.labels is None
                     else "--image", "mesh's faces, and the scan is not read" if args.labels is None
                     else "labels' faces as they are")
-    elif args.image is not None and not scan_surface and not fits_to_scan:
+    elif args.image is not None and not smoothing_reads_scan(smooth):
         log.warning("smooth: --image is read by smooth.surface_from_image (or smooth.fit_to_scan with --labels) "
                     "only, which are off: %s is not read; set one of them to place the surface by the scan",
                     args.image)

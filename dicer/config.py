@@ -509,6 +509,12 @@ def _check_combinations(config: dict, source: str) -> None:
                                  f"from workflow.exports or set export.order: {fmt.orders[0]}")
 
 
+def smoothing_reads_scan(smooth: dict) -> bool:
+    """Whether the smooth stage with these settings (``stage_kwargs(config, "smooth")``) reads the
+    scan it is given: for the scan's iso-surfaces, or to place the labels' faces before their fit."""
+    return bool(smooth["surface_from_image"] or (smooth["fit_to_scan"] and smooth["surface_from_labels"]))
+
+
 SET_KINDS = ("planes", "materials", "interfaces", "exterior")
 """The kinds of node and element sets an export can write (``export.sets``)."""
 

@@ -10,7 +10,8 @@ from pathlib import Path
 from snakemake.exceptions import WorkflowError
 
 from dicer.cli import downsample_applies
-from dicer.config import deep_merge, for_label_volume, load_config, parse_set, stage_kwargs, stage_settings
+from dicer.config import (deep_merge, for_label_volume, load_config, parse_set, smoothing_reads_scan, stage_kwargs,
+                          stage_settings)
 from dicer.errors import DicerError
 from dicer.phantoms import PHANTOMS
 from dicer.sheet import beside_sheet, read_sheet
@@ -216,8 +217,7 @@ def scan_option(wildcards, input):
     else nothing."""
     if "image" not in input.keys():
         return ""
-    smooth = stage_kwargs(patient_config(wildcards.patient), "smooth")
-    if not (smooth["surface_from_image"] or (smooth["fit_to_scan"] and smooth["surface_from_labels"])):
+    if not smoothing_reads_scan(stage_kwargs(patient_config(wildcards.patient), "smooth")):
         return ""
     return f"--image {shlex.quote(input.image)} --thresholds {shlex.quote(input.thresholds)}"
 

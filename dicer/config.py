@@ -510,8 +510,19 @@ def _check_combinations(config: dict, source: str) -> None:
 
 
 def smoothing_reads_scan(smooth: dict) -> bool:
-    """Whether the smooth stage with these settings (``stage_kwargs(config, "smooth")``) reads the
-    scan it is given: for the scan's iso-surfaces, or to place the labels' faces before their fit."""
+    """Whether the smooth stage with these settings reads the scan it is given.
+
+    It reads it for the scan's iso-surfaces, or to place the labels' faces before their fit.
+
+    Parameters
+    ----------
+    smooth : dict
+        The smooth stage's settings (``stage_kwargs(config, "smooth")``).
+
+    Returns
+    -------
+    bool
+    """
     return bool(smooth["surface_from_image"] or (smooth["fit_to_scan"] and smooth["surface_from_labels"]))
 
 

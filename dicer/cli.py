@@ -839,7 +839,7 @@ def _warn_of_long_voxels(spacing) -> None:
                 " x ".join(f"{v:g}" for v in sizes), max(sizes) / min(sizes), even, [0 if a else 1 for a in long_axes])
 
 
-def do_export(mesh_path: str, out: Path, config: dict, mesh=None, neighbours=None):
+def do_export(mesh_path: str, out: Path, config: dict, mesh=None, neighbours=None, materials_path: str | None = None):
     from dicer.config import stage_kwargs
     from dicer.export import export_mesh
     from dicer.io.meshes import read_mesh, refuse_inverted
@@ -849,14 +849,34 @@ def do_export(mesh_path: str, out: Path, config: dict, mesh=None, neighbours=Non
         if mesh is None:  # (a mesh handed on by dicer run was checked by the stage that made it)
             mesh = read_mesh(mesh_path, mapped=True)
             refuse_inverted(mesh, mesh_path)
+        _check_materials_file("export", materials_path, mesh, mesh_path, config)
         named = [m["name"] for m in config["materials"]]
         if any(a != b for a, b in zip(mesh.names, named)):  # properties go by material number: the mesh's own names say which were meant
-            log.warning("export: the mesh names its materials %s, the config %s; the deck takes the config's names "
-                        "and properties by material number: give --materials materials.json (written by dicer "
-                        "labels / dicer run --labels) or a config with these materials",
-                        brief_names(mesh.names), brief_names(named[:len(mesh.names)]))
+            given = materials_path or "the config"
+            log.warning("export: the mesh names its materials %s, %s %s; the deck takes %s's names and properties "
+                        "by material number: give --materials materials.json (written by dicer labels / dicer run "
+                        "--labels) or a config with these materials", brief_names(mesh.names), given,
+                        brief_names(named[:len(mesh.names)]), given)
         info = export_mesh(mesh, out, **stage_kwargs(config, "export"), source=mesh_path, neighbours=neighbours)
         log.info("export: wrote %s (%s)", out, brief_json(info, sort_keys=True, whole_top=True))
+
+
+def _check_materials_file(stage: str, path: str | None, mesh, mesh_path: str, config: dict) -> None:
+    """Refuse a --materials file that lists fewer materials than the mesh's labels run to;
+    warn where a mesh that carries its own names is read with another file's (quality and
+    surface take the mesh's names, export the file's properties by material number)."""
+    if not path or not mesh.n_cells:
+        return
+    listed = [m["name"] for m in config["materials"]]
+    top = int(mesh.material.max(initial=0))
+    if len(listed) < top:
+        raise DicerError(f"{path}: lists {len(listed)} material(s) but {mesh_path} has material labels 1..{top}; "
+                         "give the materials.json written with this mesh's labels (dicer labels --materials, "
+                         "or the run's own)")
+    if stage != "export" and mesh.names and any(a != b for a, b in zip(mesh.names, listed)):
+        log.warning("%s: the mesh names its materials %s, %s %s; the %s the mesh's names (give the "
+                    "materials.json written with this mesh's labels)", stage, brief_names(mesh.names), path,
+                    brief_names(listed[:len(mesh.names)]), "report takes" if stage == "quality" else "surfaces take")
 
 
 def _mesh_names(mesh, config: dict) -> list[str]:
@@ -867,13 +887,15 @@ def _mesh_names(mesh, config: dict) -> list[str]:
     return names if names and len(names) >= top else [m["name"] for m in config["materials"]]
 
 
-def do_surface(mesh_path: str, outdir: Path, config: dict, only: list[str] | None = None) -> dict:
+def do_surface(mesh_path: str, outdir: Path, config: dict, only: list[str] | None = None,
+               materials_path: str | None = None) -> dict:
     from dicer.export.stl import write_surfaces
     from dicer.io.meshes import read_mesh, refuse_inverted
 
     with _Stage("surface"):
         mesh = read_mesh(mesh_path)
         refuse_inverted(mesh, mesh_path)
+        _check_materials_file("surface", materials_path, mesh, mesh_path, config)
         info = write_surfaces(mesh, outdir, _mesh_names(mesh, config), only)
         written = {v["file"] for v in info.values()}
         others = sorted(p.name for p in outdir.glob("*.stl") if p.name not in written and not p.name.startswith("."))
@@ -917,13 +939,14 @@ def _check_original(original, path: str, mesh) -> None:
 def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None = None, html: str | None = None,
                pictures: list[str] = (), stage_reports: list[str] = (), csv: Path | None = None,
                original_path: str | None = None, histogram: Path | None = None, model_picture: Path | None = None,
-               node_classes: Path | None = None, mesh=None, neighbours=None):
+               node_classes: Path | None = None, mesh=None, neighbours=None, materials_path: str | None = None):
     from dicer.io.atomic import in_this_block, write_bytes_atomic
     from dicer.io.meshes import read_mesh
 
     with _Stage("quality"):
         # the report only reads the mesh: its arrays stay in the page cache, mapped, not copied
         mesh = read_mesh(mesh_path, mapped=True) if mesh is None else mesh
+        _check_materials_file("quality", materials_path, mesh, mesh_path, config)
         labels = original = None
         if labels_path or original_path:
             import numpy as np
@@ -1271,7 +1294,8 @@ def cmd_export(args):
         from dicer.config import validate
 
         validate(config, "--order")
-    do_export(args.mesh, _check_output(args.output, EXPORT_SUFFIXES, "the model file"), config)
+    do_export(args.mesh, _check_output(args.output, EXPORT_SUFFIXES, "the model file"), config,
+              materials_path=args.materials)
 
 
 def cmd_quality(args):
@@ -1282,7 +1306,8 @@ def cmd_quality(args):
     html = _check_output(args.html, (".html", ".htm"), "the HTML report") if args.html else None
     do_quality(args.mesh, _check_output(args.output, (".json",), "the quality report"), _config(args),
                labels_path=args.labels, html=html, pictures=args.picture or [],
-               stage_reports=args.stage_report or [], csv=csv, original_path=args.original, **pngs)
+               stage_reports=args.stage_report or [], csv=csv, original_path=args.original, **pngs,
+               materials_path=args.materials)
 
 
 def cmd_cohort(args):
@@ -1292,7 +1317,7 @@ def cmd_cohort(args):
 
 
 def cmd_surface(args):
-    do_surface(args.mesh, Path(args.output), _config(args), args.material)
+    do_surface(args.mesh, Path(args.output), _config(args), args.material, materials_path=args.materials)
 
 
 def cmd_phantom(args):

@@ -415,6 +415,36 @@ def test_export_warns_when_the_mesh_names_other_materials_than_the_config(tmp_pa
     assert "ELSET=label_2" in (tmp_path / "m.inp").read_text()
 
 
+def test_a_materials_file_that_does_not_match_the_mesh_is_refused_or_warned_of(tmp_path, capsys, caplog):
+    """quality and surface took the mesh's own names and said nothing of a --materials file
+    naming others; export failed naming the output and 'the config'. A file shorter than the
+    mesh's labels is refused naming the file, by every command; other names are warned of."""
+    from dicer.io.meshes import write_mesh
+    from dicer.mesh.voxel import voxel_mesh
+
+    lab = np.ones((6, 6, 6), np.uint8)
+    lab[2:4, 2:4, 2:4] = 2
+    mesh = voxel_mesh(lab)
+    mesh.names = ["label_1", "label_2"]
+    write_mesh(mesh, tmp_path / "m.vtu")
+    short, other = tmp_path / "short.json", tmp_path / "other.json"
+    short.write_text(json.dumps({"materials": [{"name": "bone"}]}))
+    other.write_text(json.dumps({"materials": [{"name": "bone"}, {"name": "label_2"}]}))
+    outputs = {"quality": tmp_path / "q.json", "surface": tmp_path / "stl", "export": tmp_path / "m.inp"}
+    for stage, out in outputs.items():
+        code, err = run_cli(capsys, stage, tmp_path / "m.vtu", "-o", out, "--materials", short)
+        assert code == 2 and err.count("\n") == 1, (stage, err)
+        assert err.startswith(f"error: {short}: lists 1 material(s) but ") and "labels 1..2" in err, err
+        assert not out.exists()
+    for stage, out in outputs.items():
+        caplog.clear()
+        assert run_cli(capsys, stage, tmp_path / "m.vtu", "-o", out, "--materials", other)[0] == 0
+        warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+        assert len(warned) == 1 and f"names its materials label_1, label_2, {other} bone, label_2" in warned[0], warned
+    assert json.loads(outputs["quality"].read_text())["materials"].keys() == {"label_1", "label_2"}
+    assert "ELSET=bone" in outputs["export"].read_text()  # the deck takes the file's names, as it said
+
+
 def test_set_keys_a_stage_does_not_read_are_warned_of(tmp_path, capsys, caplog):
     """image.crop given to 'dicer mesh' (the crop is made by segment and labels) and
     mesh.coordinates to 'dicer export' (fixed when the mesh is made) did nothing, silently."""

@@ -157,10 +157,43 @@ def _check_row(row: dict, schema: dict, where: str) -> None:
                              "whole cohort's; set them in the config, not per patient")
         if keys.count(key) > 1:
             raise DicerError(f"{where}: patient {row['patient']!r}: override {key!r} is given twice; keep one")
+        clash = _sets_one_key_twice(key, row.get("overrides", ""))
+        if clash:  # a section and one of its keys: the later value would be dropped unsaid
+            raise DicerError(f"{where}: patient {row['patient']!r}: override {key!r} and {clash[0]!r} both set "
+                             f"{clash[1]}; keep one")
         unread = _unread_override(key, bool(row.get("labels")))
         if unread:
             raise DicerError(f"{where}: patient {row['patient']!r}: override {key!r} {unread}, so it would change "
                              "nothing: remove it, or move the file to the other column")
+
+
+def _leaves(tree, prefix: str = "") -> set[str]:
+    """The dotted names of the values a nested dict sets."""
+    if not isinstance(tree, dict) or not tree:
+        return {prefix}
+    return set().union(*(_leaves(v, f"{prefix}.{k}" if prefix else str(k)) for k, v in tree.items()))
+
+
+def _sets_one_key_twice(key: str, overrides: str) -> tuple[str, str] | None:
+    """(the other override, the key both set) when the override ``key`` is a section that
+    sets a key another override of the row sets (``downsample={factor: 2}`` and
+    ``downsample.factor=3``); else None."""
+    from dicer.config import parse_set
+
+    items = {}
+    for item in overrides.split(";"):
+        if item.strip():
+            try:
+                items.setdefault(item.split("=", 1)[0].strip(), _leaves(parse_set(item.strip())))
+            except DicerError:  # the override's own fault is said where the row's config is read
+                return None
+    for other, leaves in items.items():
+        if other.startswith(key + "."):
+            both = sorted(leaf for leaf in items.get(key, ()) if leaf == other or leaf.startswith(other + ".")
+                          or other.startswith(leaf + "."))
+            if both:
+                return other, both[0]
+    return None
 
 
 def beside_sheet(path: str | os.PathLike, sheet: str | os.PathLike) -> Path | None:

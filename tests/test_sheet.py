@@ -44,6 +44,11 @@ def test_rows_keep_their_line_numbers_across_blank_rows(tmp_path):
      r"line 2: patient 'A': override 'workflow.exports': the workflow settings are the whole cohort's"),
     (HEAD + "A\ta.nii.gz\tdownsample.factor=2;downsample.factor=1\n",
      r"line 2: patient 'A': override 'downsample.factor' is given twice"),
+    # a section and one of its keys, spelled differently: the key's value won unsaid
+    (HEAD + "A\ta.nii.gz\tdownsample={factor: 2};downsample.factor=3\n",
+     r"line 2: patient 'A': override 'downsample' and 'downsample.factor' both set downsample.factor; keep one"),
+    (HEAD + "A\ta.nii.gz\tsmooth.coefficients.A=0.5;smooth.coefficients={A: 0.8, B: 0.8}\n",
+     r"override 'smooth.coefficients' and 'smooth.coefficients.A' both set smooth.coefficients.A"),
     # the workflow's own names: Snakemake's ChildIOException, or a failure after every stage ran
     (HEAD + "cohort.html\ta.nii.gz\t\n", r"line 2: patient code 'cohort.html' is a name the workflow gives its own"),
     (HEAD + "Phantoms\ta.nii.gz\t\n", r"line 2: patient code 'Phantoms' is a name"),
@@ -72,6 +77,11 @@ def test_rows_keep_their_line_numbers_across_blank_rows(tmp_path):
 def test_bad_sheets_are_refused_naming_the_line(tmp_path, text, said):
     with pytest.raises(DicerError, match=said):
         _read(tmp_path, text)
+
+
+def test_a_section_and_a_key_it_does_not_set_are_both_taken(tmp_path):
+    text = HEAD + "A\ta.nii.gz\tsmooth={coefficient: 0.8};smooth.pillow=true;smooth.coefficients.A=0.5\n"
+    assert _read(tmp_path, text)[0][1]["overrides"].count("=") == 3
 
 
 def test_a_sheet_that_is_a_folder_or_missing(tmp_path):

@@ -789,6 +789,13 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
                     report["backoff_rounds"], settings["min_scaled_jacobian"], report["frozen_rounds"],
                     report["frozen_nodes"])
     _warn_of_short_pull(report)
+    if report["min_scaled_jacobian"] < settings["min_scaled_jacobian"] - 1e-6 and not report["inverted_elements"]:
+        # the guard keeps elements that came in below its floor no worse; it does not raise them
+        log.warning("smooth: the smallest scaled Jacobian is %.3f, under smooth.min_scaled_jacobian=%g: elements "
+                    "already under it in %s (merging's floor is merge.min_scaled_jacobian) are kept no worse, "
+                    "not raised; set merge.min_scaled_jacobian=%g too to keep every element at the floor",
+                    report["min_scaled_jacobian"], settings["min_scaled_jacobian"], Path(mesh_path).name,
+                    settings["min_scaled_jacobian"])
     layer = report.get("pillow")
     faces = layer["elements_added"] + layer["faces_without_layer"] if layer else 0
     if faces and layer["elements_added"] < 0.5 * faces:  # asked for, and mostly not made

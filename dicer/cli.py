@@ -1188,6 +1188,10 @@ def do_cohort(reports: list[str], out: Path, tsv: Path | None = None, benchmarks
                 bench[patient] = {stage: _read_benchmark(f) for stage, f in stages.items()}
         columns, rows = cohort_rows(quality, bench)
         poor = next((r.get("poor_threshold") for r in quality.values()), None)
+        if len({r.get("poor_threshold") for r in quality.values()} - {None}) > 1:  # patients' configs differ
+            log.info("cohort: the patients' poor thresholds differ (%s); a row counted below another threshold "
+                     "than the heading's shows its own", ", ".join(sorted({f"{r['poor_threshold']:g}" for r in
+                                                                       quality.values() if "poor_threshold" in r})))
         write_bytes_atomic(out, render_cohort_html(columns, rows, poor))
         if tsv:
             write_bytes_atomic(tsv, cohort_tsv(columns, rows))

@@ -109,7 +109,8 @@ def cohort_rows(reports: dict[str, dict], benchmarks: dict[str, dict[str, dict]]
     materials = _materials(reports)
     stages = _stages(benchmarks)
     columns = ["patient", "elements", "nodes", "min_scaled_jacobian", "p1_scaled_jacobian", "inverted", "poor",
-               "stretched", "parts", "floating_elements", "materials_without_elements", "topology_changed"]
+               "stretched", "parts", "floating_elements", "materials_without_elements", "topology_changed",
+               "poor_threshold", "stretched_threshold"]
     columns += [f"volume_change_percent:{m}" for m in materials]
     columns += [f"original_volume_change_percent:{m}" for m in materials]
     columns += [f"{kind}:{s}" for s in stages for kind in ("seconds", "peak_mb")]
@@ -122,6 +123,7 @@ def cohort_rows(reports: dict[str, dict], benchmarks: dict[str, dict[str, dict]]
         for key in ("materials_without_elements", "topology_changed"):  # None in reports made before
             names = r.get(key)
             row.append(None if names is None else " ".join(names))
+        row += [r.get("poor_threshold"), r.get("stretched_threshold")]  # a patient's config may set its own
         mats = r.get("materials", {})
         row += [mats.get(m, {}).get("volume_change_percent") for m in materials]
         row += [mats.get(m, {}).get("original_volume_change_percent") for m in materials]
@@ -153,6 +155,12 @@ def cohort_tsv(columns: list[str], rows: list[list]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _own(row: list, where: int | None, heading, sign: str) -> str:
+    """" (< t)": the row's own threshold where it is not the heading's."""
+    mine = None if where is None else row[where]
+    return "" if mine is None or mine == heading else f" ({sign} {mine:g})"
+
+
 def render_cohort_html(columns: list[str], rows: list[list], poor_threshold: float | None = None) -> str:
     """The cohort overview as one self-contained HTML table.
 
@@ -164,19 +172,24 @@ def render_cohort_html(columns: list[str], rows: list[list], poor_threshold: flo
     columns, rows : list
         From :func:`cohort_rows`.
     poor_threshold : float, optional
-        The scaled Jacobian below which an element counts as poor, shown in the heading.
+        The scaled Jacobian below which an element counts as poor, shown in the heading; a
+        row counted below another one (its column ``poor_threshold``) shows its own beside
+        its count, and so does a row whose ``stretched_threshold`` differs from the first row's.
 
     Returns
     -------
     str
     """
     at = {c: i for i, c in enumerate(columns)}
+    stretched_at = next((row[at["stretched_threshold"]] for row in rows if "stretched_threshold" in at
+                         and row[at["stretched_threshold"]] is not None), None)
     materials = [c.split(":", 1)[1] for c in columns if c.startswith("volume_change_percent:")]
     stages = [c.split(":", 1)[1] for c in columns if c.startswith("seconds:")]
     head1 = ("<tr><th rowspan='2'>patient</th><th rowspan='2'>elements</th><th rowspan='2'>nodes</th>"
              "<th colspan='2'>scaled Jacobian</th><th rowspan='2'>inverted</th><th rowspan='2'>poor"
              + (f" (&lt; {poor_threshold:g})" if poor_threshold is not None else "") + "</th>"
-             "<th rowspan='2'>stretched</th><th rowspan='2'>parts</th><th rowspan='2'>floating elements</th>"
+             "<th rowspan='2'>stretched" + (f" (edge ratio &gt; {stretched_at:g})" if stretched_at is not None else "")
+             + "</th><th rowspan='2'>parts</th><th rowspan='2'>floating elements</th>"
              "<th rowspan='2'>materials without elements</th><th rowspan='2'>surface topology changed</th>"
              + (f"<th colspan='{len(materials)}'>volume change, % (against meshed labels / original)</th>"
                 if materials else "")
@@ -189,7 +202,9 @@ def render_cohort_html(columns: list[str], rows: list[list], poor_threshold: flo
                 or bool(row[at["materials_without_elements"]]) or bool(row[at["topology_changed"]]))
         cells = [html.escape(str(row[at["patient"]])), _cell(row[at["elements"]]), _cell(row[at["nodes"]]),
                  _cell(row[at["min_scaled_jacobian"]], ".3f"), _cell(row[at["p1_scaled_jacobian"]], ".3f"),
-                 _cell(row[at["inverted"]]), _cell(row[at["poor"]]), _cell(row[at["stretched"]]),
+                 _cell(row[at["inverted"]]),
+                 _cell(row[at["poor"]]) + _own(row, at.get("poor_threshold"), poor_threshold, "&lt;"),
+                 _cell(row[at["stretched"]]) + _own(row, at.get("stretched_threshold"), stretched_at, "&gt;"),
                  _cell(row[at["parts"]]),
                  _cell(row[at["floating_elements"]]),
                  html.escape(_cell(row[at["materials_without_elements"]])),

@@ -239,6 +239,21 @@ def test_cohort_table_rows_and_columns():
     assert "<td>+1.5 / +23.0</td>" in page and "<td>1.2 / 300</td>" in page and "<td>0.5 / –</td>" in page
 
 
+def test_cohort_rows_counted_below_other_thresholds_show_their_own():
+    """One patient's config set quality.poor_threshold 0.9: its 32 poor elements sat under the
+    heading 'poor (< 0.2)' beside the others' counts, with nothing to tell them apart."""
+    other = dict(_report(100), poor_elements=32, poor_threshold=0.9, stretched_threshold=10.0)
+    columns, rows = cohort_rows({"p1": dict(_report(100), stretched_threshold=20.0), "p2": other})
+    at = {c: i for i, c in enumerate(columns)}
+    assert [row[at["poor_threshold"]] for row in rows] == [0.2, 0.9]
+    assert [row[at["stretched_threshold"]] for row in rows] == [20.0, 10.0]
+    page = render_cohort_html(columns, rows, 0.2)
+    assert "poor (&lt; 0.2)</th>" in page and "stretched (edge ratio &gt; 20)</th>" in page
+    assert "<td>2</td><td>3</td>" in page  # p1: the heading's thresholds, bare counts
+    assert "<td>32 (&lt; 0.9)</td><td>3 (&gt; 10)</td>" in page
+    assert cohort_tsv(columns, rows).splitlines()[0].split("\t")[12:14] == ["poor_threshold", "stretched_threshold"]
+
+
 def test_a_material_without_elements_is_named_in_the_report_the_page_and_the_cohort(tmp_path, caplog):
     # a class the segmentation left empty: the workflow logged the stage's warning only, and the
     # report, the page and the cohort table showed nothing (the cohort's "–" meant "not recorded")

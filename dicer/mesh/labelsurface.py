@@ -341,6 +341,7 @@ class LabelSurface:
                 points = placed
             samples = _mirrored(mesh, (points, normals, kinds, weights), reach)
         self.points, self.normals, kinds, self.weights = samples
+        self._points_normals = np.c_[self.points, self.normals]  # gathered together by the fit
         # the mesh's faces off the lattice's axes: merging's slopes (chamfers), off the labels' surface
         self.sloped = 0 if labels is not None else int(np.count_nonzero(np.abs(self.normals).max(axis=1) < 1 - 1e-9))
         self.top = int(np.max(mesh.material, initial=0)) + 1
@@ -440,8 +441,12 @@ class LabelSurface:
         idx[~ok] = 0
         # facing the node's side: a weight rising from 0 (edge-on) to 1 at _FACING, continuous so
         # that faces edge-on to the node (an axis-aligned normal) count alike in a mirrored model
-        facing = np.clip((self.normals[idx] * n[:, None, :]).sum(axis=2) / _FACING, 0.0, 1.0)
-        rel = self.points[idx] - p[:, None, :]
+        near = np.take(self._points_normals, idx, axis=0)  # (np.take gathers rows several times faster)
+        cos = near[..., dim] * n[:, None, 0]  # the sum over the axes in numpy's order, term by term
+        for a in range(1, dim):
+            cos += near[..., dim + a] * n[:, None, a]
+        facing = np.clip(cos / _FACING, 0.0, 1.0)
+        rel = near[..., :dim] - p[:, None, :]
         h = rel @ n[:, :, None]  # (P, k, 1)
         h = h[..., 0]
         if dim == 2:
@@ -459,7 +464,7 @@ class LabelSurface:
             basis = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1)
         q = d2 / (r * r)
         ok &= (q < 1.0) & (np.abs(h) < self.voxel * _SHEET + 0.5 * d2 / r)
-        w = np.where(ok, (1.0 - q) ** 2 * facing * self.weights[idx], 0.0)
+        w = np.where(ok, (1.0 - q) ** 2 * facing * np.take(self.weights, idx), 0.0)
         m = basis.shape[-1]
         coef = _weighted_fit(basis, w, h)
         # once more without the samples far off the first fit, for the nodes that had such

@@ -869,10 +869,37 @@ def _pull_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str, lab
             check_labels_for_mesh(labels, mesh, labels_source)
             if image is not None and s["fit_to_scan"]:  # the scan places the labels' faces within their voxels
                 scan = _image_surface(mesh, s, image, thresholds, image_source)
-        return (LabelSurface(mesh, s["label_surface_radius"], s["bounding_planes"] == "mirror", labels, scan,
-                             relaxed=s["label_samples"] == "relaxed"), time.perf_counter() - t)
+        def build():
+            t = time.perf_counter()
+            made = LabelSurface(mesh, s["label_surface_radius"], s["bounding_planes"] == "mirror", labels, scan,
+                                relaxed=s["label_samples"] == "relaxed")
+            return made, time.perf_counter() - t
+
+        from dicer.parallel import cores
+
+        if cores() > 1:  # built beside the classification of the nodes, which needs its thresholds only
+            return _SurfaceLater(build, int(np.max(mesh.material, initial=0)) + 1), time.perf_counter() - t
+        made, seconds = build()
+        return made, time.perf_counter() - t
     t = time.perf_counter()
     return _image_surface(mesh, s, image, thresholds, image_source), time.perf_counter() - t
+
+
+class _SurfaceLater:
+    """A ``LabelSurface`` being built in a thread; its ``thresholds`` (one per material) are
+    known at once, so the nodes' sides are set up meanwhile."""
+
+    def __init__(self, build, top: int):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.thresholds = np.arange(1, top, dtype=float)  # as LabelSurface has them
+        pool = ThreadPoolExecutor(1)
+        self._future = pool.submit(build)
+        pool.shutdown(wait=False)  # its thread ends with its one task
+
+    def result(self):
+        """(LabelSurface, seconds its building took); its exception, if it raised."""
+        return self._future.result()
 
 
 def _image_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str):
@@ -1036,6 +1063,9 @@ def _pull_onto_image(st: _Smoothing, xb_labels: np.ndarray) -> None:
     guard backs this move off first."""
     from dicer.mesh.subvoxel import ImageSurface, lift, pairs_not_helped, project
 
+    if isinstance(st.pull.surface, _SurfaceLater):
+        st.pull.surface, seconds = st.pull.surface.result()
+        st.timings["image"] += seconds
     if isinstance(st.pull.surface, ImageSurface):
         on_surface, st.pull.info = project(st.pull.surface, st.pull.sides, st.adj, st.degree, st.x0, st.bnodes,
                                            xb_labels)

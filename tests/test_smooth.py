@@ -177,6 +177,33 @@ def test_one_coefficient_beside_a_coefficients_map_is_warned_of(tmp_path, caplog
     assert caplog.text.count(said) == 1 and "given (E 0.6)" in caplog.text
 
 
+def test_the_labels_surface_built_beside_the_classification_gives_the_same_mesh(monkeypatch):
+    """With two cores the fit's surface is built in a thread while the nodes are classified;
+    one core builds it first. The smoothed nodes are the same bit for bit, and a fault of the
+    surface is raised where it is taken, not lost in the thread."""
+    import dicer.parallel
+    from dicer.image import Volume
+    from dicer.mesh import labelsurface
+
+    m = ball(n=24, radii=(9.3,), centre=CENTRE / 2)
+    lab = np.zeros(m.grid_shape, np.uint8)
+    lab[tuple(np.asarray(m.lattice)[np.asarray(m.cells)].min(axis=1).T)] = m.material
+    out = {}
+    for n in (2, 1):
+        monkeypatch.setattr(dicer.parallel, "cores", lambda n=n: n)
+        out[n] = smooth_mesh(m, {}, labels=Volume(lab, (1.0, 1.0, 1.0)))[0].points
+    assert np.array_equal(out[1], out[2])
+
+    def fails(*args, **kwargs):
+        raise DicerError("the surface failed")
+
+    monkeypatch.setattr(labelsurface, "LabelSurface", fails)
+    for n in (2, 1):
+        monkeypatch.setattr(dicer.parallel, "cores", lambda n=n: n)
+        with pytest.raises(DicerError, match="the surface failed"):
+            smooth_mesh(m, {})
+
+
 def test_guard_backs_off_locally():
     m = ball(n=24, radii=(8.3,), centre=np.array([12.2, 11.9, 12.1]))
     out, rep = smooth_mesh(m, {"min_scaled_jacobian": 0.6})

@@ -890,16 +890,28 @@ class _SurfaceLater:
     known at once, so the nodes' sides are set up meanwhile."""
 
     def __init__(self, build, top: int):
-        from concurrent.futures import ThreadPoolExecutor
+        import threading
 
         self.thresholds = np.arange(1, top, dtype=float)  # as LabelSurface has them
-        pool = ThreadPoolExecutor(1)
-        self._future = pool.submit(build)
-        pool.shutdown(wait=False)  # its thread ends with its one task
+        self._made = None
+
+        def run():
+            try:
+                self._made = (True, build())
+            except BaseException as exc:  # raised where the surface is taken
+                self._made = (False, exc)
+
+        # a daemon: a stop signal or an error meanwhile ends the process without waiting for it
+        self._thread = threading.Thread(target=run, name="label-surface", daemon=True)
+        self._thread.start()
 
     def result(self):
         """(LabelSurface, seconds its building took); its exception, if it raised."""
-        return self._future.result()
+        self._thread.join()
+        done, value = self._made
+        if not done:
+            raise value
+        return value
 
 
 def _image_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str):

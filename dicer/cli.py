@@ -1503,8 +1503,30 @@ def _run_chain(args):
     source = args.labels if args.image is None else args.image
     if not args.skip_memory_check:
         _check_memory(source, config)
-    with _output_lock(outdir):
+    with _output_lock(outdir), _logged_as_published(outdir.parent / f".{outdir.name}.partial", outdir):
         _run_staged(args, config, outdir, source)
+
+
+@contextlib.contextmanager
+def _logged_as_published(staging: Path, outdir: Path):
+    """Log lines name a staged file where the finished run puts it (OUTDIR/quality.json, not
+    .OUTDIR.partial/quality.json, which is gone when the run ends)."""
+    here, there = str(staging), str(outdir)
+
+    def rename(record: logging.LogRecord) -> bool:
+        text = record.getMessage()
+        if here in text:
+            record.msg, record.args = text.replace(here, there), None
+        return True
+
+    handlers = list(logging.getLogger().handlers)
+    for handler in handlers:
+        handler.addFilter(rename)
+    try:
+        yield
+    finally:
+        for handler in handlers:
+            handler.removeFilter(rename)
 
 
 @contextlib.contextmanager
@@ -1566,7 +1588,7 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
     # every stage writes into a staging folder beside OUTDIR; only a finished run moves its
     # files into OUTDIR (an existing OUTDIR keeps its old files until then), and a failed
     # one leaves its finished, checked stage files in OUTDIR.failed for a look or a report
-    staging = outdir.parent / f".{outdir.name}.partial"
+    staging = outdir.parent / f".{outdir.name}.partial"  # (as _logged_as_published names it)
     failed = outdir.parent / f"{outdir.name}.failed"
     try:
         if staging.exists():

@@ -512,6 +512,20 @@ def test_a_second_run_into_the_same_folder_is_refused_while_the_first_writes(tmp
     assert (tmp_path / "out" / "model.inp").exists()
 
 
+def test_run_logs_name_the_files_where_the_finished_run_puts_them(tmp_path, caplog):
+    """'wrote .out.partial/quality.json': a path gone once the run ends."""
+    np.save(tmp_path / "l.npy", np.pad(np.ones((6, 6, 6), np.uint8), 1))
+    caplog.set_level("INFO", logger="dicer")
+    assert main(["run", "--labels", str(tmp_path / "l.npy"), "-o", str(tmp_path / "out"),
+                 "--set", "image.spacing=[1,1,1]"]) == 0
+    said = [r.getMessage() for r in caplog.records]
+    assert not [m for m in said if ".partial" in m]
+    assert any(f"wrote {tmp_path / 'out' / 'quality.json'}" in m for m in said), said
+    caplog.clear()
+    assert main(["mesh", str(tmp_path / "l.npy"), "-o", str(tmp_path / "m.vtu"), "--set", "image.spacing=[1,1,1]"]) == 0
+    assert any(f"wrote {tmp_path / 'm.vtu'}" in r.getMessage() for r in caplog.records)  # the filter is gone
+
+
 def test_run_with_a_method_without_a_criterion_says_nothing_of_a_plot_it_was_not_asked_for(tmp_path, caplog):
     # 'dicer run' with multiotsu warned "--plot draws the criterion ... so .run.partial/thresholds.png is
     # not written", naming its staging folder; 'dicer segment --plot' still says it

@@ -561,7 +561,7 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
         _warn_of_no_coarsening(report, settings["templates"], merged)
     log.info("merge: wrote %s (%d -> %d elements, %d -> %d nodes; volume %s)", out,
              report["elements_before"], report["elements_after"], report["nodes_before"],
-             report["nodes_after"], brief_json(_stable(report["volume"]), sort_keys=True))
+             report["nodes_after"], brief_json(_stable(report["volume"])))  # materials in label order
     return merged
 
 
@@ -865,7 +865,7 @@ def do_export(mesh_path: str, out: Path, config: dict, mesh=None, neighbours=Non
                         "--labels) or a config with these materials", brief_names(mesh.names), given,
                         brief_names(named[:len(mesh.names)]), given)
         info = export_mesh(mesh, out, **stage_kwargs(config, "export"), source=mesh_path, neighbours=neighbours)
-        log.info("export: wrote %s (%s)", out, brief_json(info, sort_keys=True, whole_top=True))
+        log.info("export: wrote %s (%s)", out, brief_json(dict(sorted(info.items())), whole_top=True))  # materials in label order
 
 
 def _check_materials_file(stage: str, path: str | None, mesh, mesh_path: str, config: dict) -> None:

@@ -143,6 +143,10 @@ def _check_row(row: dict, schema: dict, where: str) -> None:
         if err.validator == "required":
             raise DicerError(f"{where}: {err.message}; every row needs a patient code")
         column = ".".join(map(str, err.path)) or "row"
+        if column == "patient" and err.validator == "pattern":  # the regular expression tells a user little
+            raise DicerError(f"{where}: column 'patient': {err.instance!r} is not a patient code: use letters, "
+                             "digits, '_', '.' and '-', starting with a letter or digit (no spaces, slashes or "
+                             "invisible characters)")
         raise DicerError(f"{where}: column {column!r}: {err.message}")
     if row["patient"].casefold() in RESERVED_PATIENTS:
         raise DicerError(f"{where}: patient code {row['patient']!r} is a name the workflow gives its own files "

@@ -62,7 +62,8 @@ def test_rows_keep_their_line_numbers_across_blank_rows(tmp_path):
     ("patient\tscan\nA\ta.nii.gz\n", r"line 1: unknown column 'scan'"),
     ("patient,image,overrides\nA,a.nii.gz,\n",
      r"line 1: unknown column 'patient,image,overrides' \(the sheet's columns are separated by tabs, not commas\)"),
-    (HEAD + "A/B\ta.nii.gz\t\n", r"line 2: column 'patient'"),
+    (HEAD + "A/B\ta.nii.gz\t\n", r"line 2: column 'patient': 'A/B' is not a patient code: use letters, digits"),
+    (HEAD + "P1\u200b\ta.nii.gz\t\n", r"line 2: column 'patient': 'P1.*' is not a patient code: .* invisible"),
     (HEAD + "A\t\t\n", r"line 2: patient 'A': give either an image or a labels file"),
     # overrides no stage of the patient reads were accepted and changed nothing
     (HEAD + "A\ta.nii.gz\tlabels.drop=[2]\n",

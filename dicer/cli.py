@@ -978,6 +978,10 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
                                      "but the mesh's "
                                      f"{' x '.join(f'{v:g}' for v in np.asarray(mesh.spacing)[:size.size])} mm; give "
                                      "the label volume the mesh was made from with --labels")
+                from dicer.mesh.labelsurface import check_labels_for_mesh
+
+                # a raw atlas, or labels mapped otherwise, on the same grid: wrong volumes, false topology flags
+                check_labels_for_mesh(labels, mesh, labels_path)
         # every element metric once: the report's, the figures' and the CSV's with skew
         from dicer.mesh.metrics import element_metrics
         from dicer.parallel import meanwhile

@@ -479,6 +479,12 @@ def test_quality_and_surface_name_materials_as_the_mesh_does(labelled, tmp_path,
     capsys.readouterr()
     assert _cli("quality", out / "smoothed.vtu", "-o", tmp_path / "q2.json", "--labels", tmp_path / "other.nii.gz") == 2
     assert "other.nii.gz: the labels' voxels are 3 x 3 x 3 mm but the mesh's 1.5 x 1.5 x 1.5 mm" in capsys.readouterr().err
+    # the raw atlas on the mesh's own grid (labels before labels.map): 0 voxels for most materials, exit 0
+    assert _cli("quality", out / "smoothed.vtu", "-o", tmp_path / "q2.json", "--labels", src) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {src}: ") and " elements of the mesh hold no voxel of their material in these " \
+        "labels, so it was not made from them; give the label volume the mesh was made from" in err
+    assert _cli("quality", out / "smoothed.vtu", "-o", tmp_path / "q5.json", "--labels", out / "labels_fixed.nii.gz") == 0
     # an original that is not the mesh's segmentation: the raw atlas, or another scan's labels
     assert _cli("quality", out / "smoothed.vtu", "-o", tmp_path / "q4.json", "--original", src) == 2
     assert "aseg.nii.gz: the original segmentation holds label 99, past the mesh's 4 materials" in capsys.readouterr().err

@@ -243,6 +243,9 @@ def check_labels_for_mesh(labels, mesh: Mesh, source: str) -> None:
     # the voxel inside each element at each of its corners: a merged box's are all its own, a
     # chamfer's or a filled notch's unmoved corners hold the voxel it was made from
     corners = np.asarray(mesh.lattice)[np.asarray(mesh.cells)[rows]][..., :dim]
+    # a pillow layer's elements (a smoothed mesh's) lie flat on the lattice, over no voxel of theirs
+    spans = np.all(corners.max(axis=1) > corners.min(axis=1), axis=1)
+    rows, corners = rows[spans], corners[spans]
     voxel = corners - (corners > corners.mean(axis=1, keepdims=True))
     np.clip(voxel, 0, np.array(grid) - 1, out=voxel)
     own = np.any(lab[tuple(np.moveaxis(voxel, -1, 0))] == np.asarray(mesh.material)[rows, None], axis=1)

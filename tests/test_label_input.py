@@ -503,3 +503,27 @@ def test_quality_and_surface_name_materials_as_the_mesh_does(labelled, tmp_path,
                 "--stage-report", tmp_path / "list.json") == 2
     assert "list.json: not a stage report (a JSON object" in capsys.readouterr().err
     assert not (tmp_path / "q2.json").exists() and not (tmp_path / "q3.json").exists()
+
+
+def test_a_layered_slicer_segmentation_is_refused_with_the_export_to_make(tmp_path, capsys):
+    """3D Slicer stores overlapping segments as layers, one per component of a 4D NRRD: the
+    error said 'colour or vector data ... convert it to greyscale', which would mix the layers."""
+    import gzip
+
+    layers = np.zeros((2, 6, 5, 4), np.uint8)  # layer, x, y, z
+    layers[0, 1:5, 1:4, 1:3] = 1
+    layers[1, 2:4, 2:3, 1:3] = 2
+    segments = "".join(f"Segment{i}_ID:=Segment_{i + 1}\nSegment{i}_LabelValue:={v}\nSegment{i}_Layer:={i}\n"
+                       f"Segment{i}_Name:={name}\n" for i, (v, name) in enumerate([(1, "femur"), (2, "tibia")]))
+    header = ("NRRD0004\ntype: uint8\ndimension: 4\nspace: left-posterior-superior\nsizes: 2 6 5 4\n"
+              "space directions: none (1,0,0) (0,1,0) (0,0,1)\nkinds: list domain domain domain\nencoding: gzip\n"
+              "space origin: (0,0,0)\n" + segments + "\n")
+    path = tmp_path / "bones.seg.nrrd"
+    path.write_bytes(header.encode() + gzip.compress(np.ascontiguousarray(layers.transpose(3, 2, 1, 0)).tobytes()))
+    capsys.readouterr()
+    assert _cli("run", "--labels", path, "-o", tmp_path / "out") == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"error: {path}: a segmentation in 2 layers of overlapping "
+                                                    "segments (2 segments; 3D Slicer's .seg.nrrd)"), err
+    assert "export it as one labelmap" in err and "greyscale" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bones.seg.nrrd"]

@@ -213,6 +213,13 @@ def _finish(array: np.ndarray, spacing, origin, path, dtype=np.float32, directio
     return Volume(contiguous(array, dtype), tuple(spacing), tuple(origin), direction)
 
 
+def _segmentation_layers(reader) -> int:
+    """The number of segments a 3D Slicer segmentation file (``Segment<i>_Layer`` keys) holds; 0
+    in any other image."""
+    keys = reader.GetMetaDataKeys()
+    return sum(1 for k in keys if k.startswith("Segment") and k.endswith("_Layer"))
+
+
 def _from_sitk(image: sitk.Image, path, spacing_arg=None, own_spacing=True, nifti=False,
                dtype=np.float32, keep_direction=False) -> Volume:
     """Convert a SimpleITK image to a Volume ([z,y,x] -> [x,y,z], centre origin -> corner).
@@ -729,6 +736,12 @@ def _read_file(path: Path, spacing_arg, dtype=np.float32, keep_direction=False) 
     try:
         with quiet_itk():
             reader.ReadImageInformation()
+            layers = _segmentation_layers(reader)
+            if reader.GetNumberOfComponents() != 1 and layers:
+                raise DicerError(
+                    f"{path}: a segmentation in {reader.GetNumberOfComponents()} layers of overlapping segments "
+                    f"({layers} segments; 3D Slicer's .seg.nrrd): dicer reads one label per voxel; export it as one "
+                    "labelmap (Slicer: Segmentations, Export to labelmap node) after resolving the overlaps")
             if reader.GetNumberOfComponents() != 1:
                 raise DicerError(
                     f"{path}: the image has {reader.GetNumberOfComponents()} components per voxel (colour or "

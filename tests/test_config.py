@@ -61,6 +61,10 @@ def test_material_defaults_filled_per_item():
         # label 0's name: a material called so was meshed, stiff, under a name saying it was not there
         ("labels.map={2: wm, 24: background}", ["labels.map", "value 24 is named 'background'", "labels.drop: [24]"]),
         ("materials=[{name: Background}]", ["the name Background is label 0's", "rename"]),
+        # clashes among labels.map's names blamed the label volume and key 'materials', at the labels stage
+        ("labels.map={1: Bone, 2: bone, 3: marrow}", ["key 'labels.map'", "Bone and bone", "upper case"]),
+        ("labels.map={1: a_b, 2: c, 3: a, 4: b_c}", ["key 'labels.map'", "a_b_c"]),
+        ("labels.map={4: EXTERIOR}", ["key 'labels.map'", "exterior face set"]),
         ("quality.stretched_edge_ratio=0.5", ["quality.stretched_edge_ratio", "1"]),
     ],
 )

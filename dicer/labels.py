@@ -114,6 +114,11 @@ def resolve_materials(values, *, materials: list[dict], map: dict, drop: list,  
                     "no labels.map entry (materials %s, default properties); check the label values",
                     brief_names(absent), brief_names(unnamed),
                     brief_names([f"label_{v}" for v in unnamed]))
+    not_dropped = sorted(set(drop) - present)
+    if not_dropped and unnamed:  # a typo in a value to drop: the meant one is meshed, with default properties
+        log.warning("labels: labels.drop names value(s) %s that the volume does not hold, while value(s) %s are "
+                    "meshed without a labels.map entry (materials %s, default properties); check the label values",
+                    brief_names(not_dropped), brief_names(unnamed), brief_names([f"label_{v}" for v in unnamed]))
     mapped = [n for n in defaulted if n in set(names.values())]
     unused = [m["name"] for m in given.values() if m["name"] not in number] if written else []
     if not names and unused:  # the entries were meant for the label values, in order (as a stage's mesh takes them)

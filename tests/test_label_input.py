@@ -210,6 +210,22 @@ def test_a_map_value_the_volume_lacks_beside_an_unnamed_value_is_warned_of(caplo
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
 
 
+def test_a_drop_value_the_volume_lacks_beside_an_unnamed_value_is_warned_of(caplog):
+    """labels.drop: [24] where the volume holds 42: label 42 was meshed at 1000 MPa, without a word."""
+    with caplog.at_level("INFO", logger="dicer"):
+        lut, materials = resolve_materials([0, 3, 42], load_config(settings={"labels": {"drop": [24]}}))
+    assert [m["name"] for m in materials] == ["label_3", "label_42"]
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warned == ["labels: labels.drop names value(s) 24 that the volume does not hold, while value(s) 3, 42 "
+                      "are meshed without a labels.map entry (materials label_3, label_42, default properties); "
+                      "check the label values"]
+    caplog.clear()
+    # a value to drop absent from this volume (a cohort config), every value present named: quiet
+    with caplog.at_level("INFO", logger="dicer"):
+        resolve_materials([0, 3], load_config(settings={"labels": {"drop": [24], "map": {"3": "bone"}}}))
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+
+
 def test_yaml_and_settings_keys_give_one_config(tmp_path):
     path = tmp_path / "c.yaml"
     path.write_text("labels:\n  map: {3: brain}\n")

@@ -133,7 +133,9 @@ def resolve_materials(values, *, materials: list[dict], map: dict, drop: list,  
                     "while the materials entries %s are used by no label; check the spelling of the names",
                     brief_names(mapped), DEFAULT_PROPERTIES["youngs_modulus"], brief_names(unused))
     elif defaulted:
-        log.info("labels: no materials entry for %s: default properties (E %g MPa, nu %g, density %g t/mm^3); "
+        # beside materials the user gave properties, one left out is likelier forgotten than meant
+        level = logging.WARNING if written and len(defaulted) < len(number) else logging.INFO
+        log.log(level, "labels: no materials entry for %s: default properties (E %g MPa, nu %g, density %g t/mm^3); "
                  "add materials entries of these names to set them", brief_names(defaulted),
                  DEFAULT_PROPERTIES["youngs_modulus"], DEFAULT_PROPERTIES["poissons_ratio"],
                  DEFAULT_PROPERTIES["density"])

@@ -226,6 +226,21 @@ def test_a_drop_value_the_volume_lacks_beside_an_unnamed_value_is_warned_of(capl
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
 
 
+def test_a_label_left_to_default_properties_beside_given_ones_is_warned_of(caplog):
+    """materials entries for label_2 and label_3 (E 5.5, 7.5 MPa) and none for label_1: it was
+    meshed at 1000 MPa, said at info level only, so -q showed nothing."""
+    given = {"materials": [{"name": "label_3", "youngs_modulus": 5.5}, {"name": "label_2", "youngs_modulus": 7.5}]}
+    with caplog.at_level("INFO", logger="dicer"):
+        lut, materials = resolve_materials([0, 1, 2, 3], load_config(settings=given))
+    assert [m["youngs_modulus"] for m in materials] == [1000.0, 7.5, 5.5]
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warned) == 1 and warned[0].startswith("labels: no materials entry for label_1: default properties")
+    caplog.clear()
+    with caplog.at_level("INFO", logger="dicer"):  # no entries written: every label at the defaults, said as info
+        resolve_materials([0, 1, 2, 3], load_config())
+    assert not [r for r in caplog.records if r.levelname == "WARNING" and "no materials entry" in r.getMessage()]
+
+
 def test_yaml_and_settings_keys_give_one_config(tmp_path):
     path = tmp_path / "c.yaml"
     path.write_text("labels:\n  map: {3: brain}\n")

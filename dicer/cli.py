@@ -236,7 +236,9 @@ def _check_labels(labels, path: str, config: dict) -> None:
     k = len(config["materials"])
     if top > k:
         raise DicerError(f"{path}: label {top} found but the config names only {k} material(s); "
-                         f"list one material per label 1..{top} under materials: in the config")
+                         f"list one material per label 1..{top} under materials: in the config, or, for a label "
+                         "volume made elsewhere (an atlas), map its values with dicer labels first (or dicer run "
+                         "--labels)")
 
 
 def _crop(volume, config: dict, source: str):

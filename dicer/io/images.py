@@ -1431,7 +1431,8 @@ def read_labels(path: str | os.PathLike, spacing=None) -> Volume:
                          "and 1..K for materials")
     dtype = np.uint8 if hi < 256 else np.int16 if hi <= np.iinfo(np.int16).max else np.int32
     if hi > np.iinfo(np.int32).max:
-        raise DicerError(f"{path}: label value {hi:g} is too large; number the classes 1..K")
+        raise DicerError(f"{path}: label value {int(hi)} is too large (at most {np.iinfo(np.int32).max}); number the "
+                         "classes 1..K")
     return Volume(array.astype(dtype, copy=False), volume.spacing, volume.origin, volume.direction)
 
 

@@ -107,6 +107,10 @@ def test_2d_nifti_and_singleton_axis(tmp_path, caplog):
     with caplog.at_level(logging.INFO, logger="dicer"):
         v = read_image(tmp_path / "one.nrrd")
     assert f"one.nrrd: one voxel along z ({SPACING[2]:g} mm): read as a 2D image" in caplog.text
+    # said once a process: dicer run reads its label files again at every stage (6 times a run)
+    with caplog.at_level(logging.INFO, logger="dicer"):
+        read_image(tmp_path / "one.nrrd")
+    assert caplog.text.count("one voxel along z") == 1
     assert v.array.shape == (7, 6) and v.spacing == SPACING[:2]
     np.testing.assert_allclose(v.origin, CORNER[:2])
 

@@ -170,14 +170,14 @@ def _check_finite(array: np.ndarray, path) -> None:
 _said: set[str] = set()
 
 
-def _warn_once(message: str, name: str, *args) -> None:
-    """A warning about how an image is taken (``message`` % (``name``, *``args``)), once per
-    process whatever the file's name: ``dicer run`` reads the label files it writes on the
-    input's header again at every stage."""
+def _warn_once(message: str, name: str, *args, level: int = logging.WARNING) -> None:
+    """A warning (or a note of ``level``) about how an image is taken (``message`` % (``name``,
+    *``args``)), once per process whatever the file's name: ``dicer run`` reads the label files
+    it writes on the input's header again at every stage."""
     said = message % ("", *args)
     if said not in _said:
         _said.add(said)
-        log.warning(message, name, *args)
+        log.log(level, message, name, *args)
 
 
 def _finish(array: np.ndarray, spacing, origin, path, dtype=np.float32, direction=None) -> Volume:
@@ -186,8 +186,9 @@ def _finish(array: np.ndarray, spacing, origin, path, dtype=np.float32, directio
     singles = [ax for ax, n in enumerate(array.shape) if n == 1]
     if array.ndim == 3 and len(singles) == 1:
         ax = singles[0]
-        log.info("%s: one voxel along %s (%g mm): read as a 2D image, meshed with quadrilaterals; the deck's "
-                 "section thickness is export.thickness, not this", Path(path).name, "xyz"[ax], spacing[ax])
+        _warn_once("%s: one voxel along %s (%g mm): read as a 2D image, meshed with quadrilaterals; the deck's "
+                   "section thickness is export.thickness, not this", Path(path).name, "xyz"[ax], spacing[ax],
+                   level=logging.INFO)
         turned = direction is not None and not np.allclose(np.reshape(direction, (3, 3)), np.eye(3))
         if ax != 2 or turned:  # a sagittal or coronal slice, or one the scanner holds flipped or oblique
             kept = [a for a in "ijk" if a != "ijk"[ax]]

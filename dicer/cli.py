@@ -1362,11 +1362,40 @@ def _check_export_dims(config: dict, dim: int, source: str) -> None:
     """Refuse a model of ``dim`` dimensions that a format of ``workflow.exports`` cannot hold."""
     from dicer.export.registry import BY_SUFFIX
 
-    for ext in config["workflow"]["exports"]:
-        fmt = BY_SUFFIX[f".{ext}"]
-        if dim not in fmt.dims:
-            raise DicerError(f"{source}: a {dim}D image, and workflow.exports names {ext} ({fmt.name}), which holds "
-                             f"{' and '.join(f'{d}D' for d in fmt.dims)} models only; drop {ext} from workflow.exports")
+    cannot = [(ext, BY_SUFFIX[f".{ext}"]) for ext in dict.fromkeys(config["workflow"]["exports"])
+              if dim not in BY_SUFFIX[f".{ext}"].dims]
+    if cannot:
+        named = ", ".join(f"{ext} ({fmt.name})" for ext, fmt in cannot)
+        them = " and ".join(ext for ext, _ in cannot)
+        raise DicerError(f"{source}: a {dim}D image, and workflow.exports names {named}, which hold"
+                         f"{'s' if len(cannot) == 1 else ''} {' and '.join(f'{d}D' for d in cannot[0][1].dims)} models only; drop "
+                         f"{them} from workflow.exports")
+
+
+def _input_dims(source: str) -> int | None:
+    """2 or 3: the model's dimension from the input's header (an image of one voxel along an
+    axis is read as 2D); None where the header does not tell (a folder of slices) or cannot be read."""
+    path = Path(source)
+    try:
+        if path.is_dir():
+            return None
+        if path.suffix == ".npy":
+            import numpy as np
+
+            shape = np.load(path, mmap_mode="r").shape
+        else:
+            from dicer.io.images import image_header
+
+            reader = image_header(path)
+            if reader is None:
+                return None
+            shape = reader.GetSize()
+    except (OSError, ValueError, EOFError):  # the first stage names the problem
+        return None
+    kept = [n for n in shape if n != 1]
+    if len(shape) == 2 or (len(shape) == 3 and len(kept) == 2):
+        return 2
+    return 3 if len(shape) == 3 else None
 
 
 def run_models(config: dict) -> list[str]:
@@ -1507,6 +1536,9 @@ def _run_chain(args):
     if (outdir.exists() or outdir.is_symlink()) and not outdir.is_dir():
         raise DicerError(f"{outdir}: exists and is not a folder; give an output folder with -o")
     source = args.labels if args.image is None else args.image
+    dim = _input_dims(source)
+    if dim is not None:  # before any stage (fix checks the labels it made again)
+        _check_export_dims(config, dim, source)
     if not args.skip_memory_check:
         _check_memory(source, config)
     with _output_lock(outdir), _logged_as_published(outdir.parent / f".{outdir.name}.partial", outdir):

@@ -398,7 +398,8 @@ def test_run_writes_the_formats_workflow_exports_names(tmp_path):
     assert sorted(p.name for p in out.glob("model.*") if p.suffix != ".png") == ["model.inp", "model.vtu"]
 
 
-def test_run_refuses_a_2d_model_for_a_3d_only_format_before_meshing(tmp_path, capsys):
+def test_run_refuses_a_2d_model_for_a_3d_only_format_before_any_stage(tmp_path, capsys):
+    """Refused at the fix stage, two stages in, with out.failed left, and one of two such formats named."""
     src = tmp_path / "seg.npy"
     a = np.zeros((24, 24), np.uint8)
     a[3:19, 3:19] = 1
@@ -406,9 +407,15 @@ def test_run_refuses_a_2d_model_for_a_3d_only_format_before_meshing(tmp_path, ca
     out = tmp_path / "out"
     assert _cli("run", "--labels", src, "-o", out, "--set", "workflow.exports=[inp,feb]") == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1].startswith(f"error: {src}: a 2D image, and workflow.exports names feb (febio), which holds 3D")
-    assert "stopped at the fix stage" in err[-1] and not out.exists()
-    assert not (tmp_path / "out.failed" / "mesh.vtu").exists()
+    assert err == [f"error: {src}: a 2D image, and workflow.exports names feb (febio), which holds 3D models only; "
+                   "drop feb from workflow.exports"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["seg.npy"]
+    np.save(src, a[None])  # one slice of a 3D array: read as 2D too
+    assert _cli("run", "--labels", src, "-o", out, "--set", "workflow.exports=[k,inp,feb]") == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"error: {src}: a 2D image, and workflow.exports names k (lsdyna), feb (febio), which hold 3D models only; "
+        "drop k and feb from workflow.exports")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["seg.npy"]
 
 
 @pytest.mark.parametrize("sets, key", [

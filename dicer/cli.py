@@ -435,7 +435,7 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
         if not report["converged"] and any(report["remaining"].values()):
             log.warning("fix: stopped at a round cap with %s left; raise fix.max_iterations or "
                         "fix.max_type_c_rounds", report["remaining"])
-        _warn_of_fixed_volumes(labels.array, fixed, config)
+        _warn_of_fixed_volumes(labels.array, fixed, config, report)
         _warn_of_fixed_shape(report, config)
         # same grid: the input's NIfTI header is kept, so the affine stays exactly the input's
         write_mapped_labels(Volume(fixed, labels.spacing, labels.origin, labels.direction), labels_path, out)
@@ -447,9 +447,9 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
     return fixed
 
 
-def _warn_of_fixed_volumes(before: np.ndarray, after: np.ndarray, config: dict) -> None:
+def _warn_of_fixed_volumes(before: np.ndarray, after: np.ndarray, config: dict, report: dict) -> None:
     """Warn when the connectivity fixes changed a material's voxels by more than
-    STAGE_VOLUME_WARNING percent (a plate one voxel thin filled by its neighbours' class)."""
+    STAGE_VOLUME_WARNING percent, naming the fixes that did (``report``: the fix's)."""
     from dicer.config import material_names
     from dicer.image import count_labels
 
@@ -460,14 +460,31 @@ def _warn_of_fixed_volumes(before: np.ndarray, after: np.ndarray, config: dict) 
     said = _volume_changes("fix", percent, [names.get(c, f"label_{c}") for c in range(1, k)])
     if said is None:
         return
-    if min(percent.values()) < -STAGE_VOLUME_WARNING:
-        hint = ("the type C majority rounds fill parts one voxel thin with their neighbours' class and small parts "
-                "are removed: set fix.majority_rounds=0 (raise-only rounds) or lower fix.min_component_voxels to keep "
-                "them")
-    else:
-        hint = ("the raise-only type C rounds thicken parts one voxel thin (a plate doubles): "
-                f"{_finer_voxels(config)}, so that thin parts are two voxels thick")
-    log.warning("%s; %s", said, hint)
+    removed = report.get("islands", {}).get("removed_by_material", {})
+    causes = []
+    for c, change in percent.items():
+        if abs(change) <= STAGE_VOLUME_WARNING:
+            continue
+        name = names.get(int(c), f"label_{c}")
+        if change > 0:
+            by_c = report["type_c"].get(name, 0)
+            causes.append("c_raise" if by_c >= report["type_a"].get(name, 0) + report["type_b"].get(name, 0)
+                          else "ab")
+        else:  # most of the loss in floating parts removed, or taken by the neighbours' class
+            lost = int(was[int(c)]) - int(now[int(c)])
+            causes.append("islands" if 2 * removed.get(name, 0) >= lost else "majority")
+    hints = {
+        "c_raise": ("the raise-only type C rounds thicken parts one voxel thin (a plate doubles): "
+                    f"{_finer_voxels(config)}, so that thin parts are two voxels thick"),
+        "ab": ("the type A and B fixes added voxels where parts touched along an edge or at a corner only (a "
+               "solid model needs face contacts); a finer segmentation has fewer such contacts"),
+        "majority": ("the type C majority rounds fill parts one voxel thin with their neighbours' class and small "
+                     "parts are removed: set fix.majority_rounds=0 (raise-only rounds) or lower "
+                     "fix.min_component_voxels to keep them"),
+        "islands": (f"floating parts smaller than fix.min_component_voxels="
+                    f"{report.get('islands', {}).get('min_component_voxels', 0)} were removed: lower it to keep them"),
+    }
+    log.warning("%s; %s", said, "; ".join(hints[c] for c in dict.fromkeys(causes)))
 
 
 def _finer_voxels(config: dict) -> str:

@@ -290,6 +290,29 @@ def test_fix_warns_of_a_volume_it_changes_and_names_the_rounds_that_left_nothing
                    "fix.min_component_voxels=0", "--set", "fix.majority_rounds=0", "--set", "downsample.factor=2")[0] == 0
     warned = [r.getMessage() for r in caplog.records if r.getMessage().startswith("fix: material volume")]
     assert len(warned) == 1 and "lower downsample.factor" in warned[0]
+    # the fixes that changed the volume are named: the type A fix alone (type C off) ...
+    c = np.zeros((10, 10, 10), np.uint8)
+    c[1:5, 1:5, 1:5] = 1
+    c[5:9, 5:9, 1:5] = 2  # two blocks touching along an edge only
+    np.save(tmp_path / "c.npy", c)
+    caplog.clear()
+    assert run_cli(capsys, "fix", tmp_path / "c.npy", "-o", tmp_path / "c.nii.gz", "-q", "--set", "fix.type_c=false",
+                   "--set", "fix.min_component_voxels=0")[0] == 0
+    warned = [r.getMessage() for r in caplog.records if r.getMessage().startswith("fix: material volume")]
+    assert len(warned) == 1 and "the type A and B fixes added voxels where parts touched along an edge" in warned[0]
+    assert "type C" not in warned[0]
+    # ... and a floating part removed, no majority round changing anything
+    d = np.zeros((12, 12, 12), np.uint8)
+    d[1:7, 1:7, 1:7] = 1
+    d[8:11, 8:11, 8:11] = 1  # 27 voxels apart from the block
+    np.save(tmp_path / "d.npy", d)
+    caplog.clear()
+    assert run_cli(capsys, "fix", tmp_path / "d.npy", "-o", tmp_path / "d.nii.gz", "-q",
+                   "--set", "fix.min_component_voxels=30")[0] == 0
+    warned = [r.getMessage() for r in caplog.records if r.getMessage().startswith("fix: material volume")]
+    assert len(warned) == 1 and "(soft_tissue -11.1 %)" in warned[0], warned
+    assert warned[0].endswith("; floating parts smaller than fix.min_component_voxels=30 were removed: lower it to "
+                              "keep them")
 
 
 def test_fix_warns_of_parts_it_joins_and_of_a_model_grown_to_the_image_faces(tmp_path, capsys, caplog):

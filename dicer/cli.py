@@ -308,7 +308,16 @@ def do_labels(labels_path: str, out: Path, config: dict, materials_path: Path | 
 
     with _Stage("labels"):
         labels, _ = _crop(read_labels(labels_path, config["image"]["spacing"]), config, labels_path)
-        mapped, materials, info = map_labels(labels, **stage_kwargs(config, "labels"), source=labels_path)
+        settings = stage_kwargs(config, "labels")
+        if not settings["map"]:  # a 3D Slicer segmentation names its segments: so are its materials
+            from dicer.io.images import segment_names
+            from dicer.labels import segment_map
+
+            settings["map"] = segment_map(segment_names(labels_path), labels_path)
+            if settings["map"]:
+                log.info("labels: the segment names of %s name its materials (%s); labels.map replaces them",
+                         labels_path, brief_json(settings["map"]))
+        mapped, materials, info = map_labels(labels, **settings, source=labels_path)
         write_mapped_labels(mapped, labels_path, out)
         if materials_path:
             written = [{"name": m["name"]} for m in materials] if names_only else materials

@@ -27,6 +27,43 @@ log = logging.getLogger("dicer")
 DEFAULT_PROPERTIES = material_defaults()
 
 
+def segment_map(segments: dict[int, str], source: str = "labels") -> dict[str, str]:
+    """A ``labels.map`` from a segmentation's own segment names (3D Slicer's ``.seg.nrrd``):
+    each name made a material name (letters, digits and ``_``, a letter first, 32 characters
+    at most: "Left femur" -> ``Left_femur``), or {} when the names cannot name materials
+    (two alike, a solver's set name, ``background``), which is logged.
+
+    Parameters
+    ----------
+    segments : dict
+        Label value -> segment name (:func:`dicer.io.images.segment_names`).
+    source : str, optional
+        The file's name, for messages.
+
+    Returns
+    -------
+    dict
+        ``{str(value): name}``, or {}.
+    """
+    import re
+
+    names = {}
+    for value, text in segments.items():
+        name = re.sub(r"[^A-Za-z0-9_]+", "_", text).strip("_")
+        if not name:
+            continue
+        names[str(value)] = (name if name[0].isalpha() else f"s_{name}")[:32]
+    if not names:
+        return {}
+    try:
+        validate({"labels": {"map": names}}, source)
+    except DicerError as exc:
+        log.warning("labels: the segment names of %s do not name the materials (%s); give labels.map to name "
+                    "them", source, str(exc).split("key 'labels.map': ", 1)[-1])
+        return {}
+    return names
+
+
 def _schema_materials() -> list[dict]:
     """The ``materials`` section's default, completed as a loaded config completes it."""
     from dicer.config import load_config

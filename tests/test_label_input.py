@@ -543,21 +543,32 @@ def test_quality_and_surface_name_materials_as_the_mesh_does(labelled, tmp_path,
     assert not (tmp_path / "q2.json").exists() and not (tmp_path / "q3.json").exists()
 
 
+def _slicer_nrrd(path: Path, array: np.ndarray, names: list[tuple[int, str]]) -> Path:
+    """A 3D Slicer segmentation file: ``array`` (x, y, z) or (layer, x, y, z) uint8, with
+    Slicer's segment fields for ``names`` [(label value, name)], one layer per segment when 4D."""
+    import gzip
+
+    layered = array.ndim == 4
+    segments = "".join(f"Segment{i}_ID:=Segment_{i + 1}\nSegment{i}_LabelValue:={v}\n"
+                       f"Segment{i}_Layer:={i if layered else 0}\nSegment{i}_Name:={name}\n"
+                       for i, (v, name) in enumerate(names))
+    sizes = " ".join(map(str, array.shape))
+    header = (f"NRRD0004\ntype: uint8\ndimension: {array.ndim}\nspace: left-posterior-superior\nsizes: {sizes}\n"
+              f"space directions: {'none ' if layered else ''}(1,0,0) (0,1,0) (0,0,1)\n"
+              f"kinds: {'list ' if layered else ''}domain domain domain\nencoding: gzip\nspace origin: (0,0,0)\n"
+              + segments + "\n")
+    data = np.ascontiguousarray(array.transpose(tuple(range(array.ndim))[::-1])).tobytes()
+    path.write_bytes(header.encode() + gzip.compress(data))
+    return path
+
+
 def test_a_layered_slicer_segmentation_is_refused_with_the_export_to_make(tmp_path, capsys):
     """3D Slicer stores overlapping segments as layers, one per component of a 4D NRRD: the
     error said 'colour or vector data ... convert it to greyscale', which would mix the layers."""
-    import gzip
-
     layers = np.zeros((2, 6, 5, 4), np.uint8)  # layer, x, y, z
     layers[0, 1:5, 1:4, 1:3] = 1
     layers[1, 2:4, 2:3, 1:3] = 2
-    segments = "".join(f"Segment{i}_ID:=Segment_{i + 1}\nSegment{i}_LabelValue:={v}\nSegment{i}_Layer:={i}\n"
-                       f"Segment{i}_Name:={name}\n" for i, (v, name) in enumerate([(1, "femur"), (2, "tibia")]))
-    header = ("NRRD0004\ntype: uint8\ndimension: 4\nspace: left-posterior-superior\nsizes: 2 6 5 4\n"
-              "space directions: none (1,0,0) (0,1,0) (0,0,1)\nkinds: list domain domain domain\nencoding: gzip\n"
-              "space origin: (0,0,0)\n" + segments + "\n")
-    path = tmp_path / "bones.seg.nrrd"
-    path.write_bytes(header.encode() + gzip.compress(np.ascontiguousarray(layers.transpose(3, 2, 1, 0)).tobytes()))
+    path = _slicer_nrrd(tmp_path / "bones.seg.nrrd", layers, [(1, "femur"), (2, "tibia")])
     capsys.readouterr()
     assert _cli("run", "--labels", path, "-o", tmp_path / "out") == 2
     err = capsys.readouterr().err
@@ -565,3 +576,32 @@ def test_a_layered_slicer_segmentation_is_refused_with_the_export_to_make(tmp_pa
                                                     "segments (2 segments; 3D Slicer's .seg.nrrd)"), err
     assert "export it as one labelmap" in err and "greyscale" not in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bones.seg.nrrd"]
+
+
+def test_a_slicer_segmentation_names_its_materials_after_its_segments(tmp_path, caplog):
+    """The segments' names (femur, tibia) were ignored: the materials came out as label_1, label_2."""
+    lab = np.zeros((12, 10, 8), np.uint8)
+    lab[1:11, 1:9, 1:4] = 1
+    lab[1:11, 1:9, 4:7] = 2
+    lab[4:7, 4:7, 7] = 3
+    path = _slicer_nrrd(tmp_path / "knee.seg.nrrd", lab, [(1, "Left femur"), (2, "tibia"), (3, "3rd (patella)")])
+    config = tmp_path / "c.yaml"
+    config.write_text("materials:\n  - {name: tibia, youngs_modulus: 17000}\n")
+    assert _cli("labels", path, "-o", tmp_path / "l.nii.gz", "--materials", tmp_path / "m.json", "--config",
+                config) == 0
+    materials = json.loads((tmp_path / "m.json").read_text())["materials"]
+    assert [(m["name"], m["youngs_modulus"]) for m in materials] == [
+        ("Left_femur", 1000.0), ("tibia", 17000.0), ("s_3rd_patella", 1000.0)]
+    # labels.map replaces the segments' names
+    assert _cli("labels", path, "-o", tmp_path / "l.nii.gz", "--materials", tmp_path / "m.json",
+                "--set", "labels.map={1: bone, 2: bone, 3: kneecap}") == 0
+    assert [m["name"] for m in json.loads((tmp_path / "m.json").read_text())["materials"]] == ["bone", "kneecap"]
+    # names that cannot name materials (alike but for case): said, and the values name them
+    _slicer_nrrd(path, lab, [(1, "Bone"), (2, "bone"), (3, "patella")])
+    caplog.clear()
+    assert _cli("labels", path, "-o", tmp_path / "l.nii.gz", "--materials", tmp_path / "m.json") == 0
+    assert [m["name"] for m in json.loads((tmp_path / "m.json").read_text())["materials"]] == [
+        "label_1", "label_2", "label_3"]
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warned) == 1 and warned[0].startswith(f"labels: the segment names of {path} do not name the "
+                                                     "materials (names Bone and bone differ only in case")

@@ -214,6 +214,34 @@ def _finish(array: np.ndarray, spacing, origin, path, dtype=np.float32, directio
     return Volume(contiguous(array, dtype), tuple(spacing), tuple(origin), direction)
 
 
+def segment_names(path: str | os.PathLike) -> dict[int, str]:
+    """The segment names a 3D Slicer segmentation (``.seg.nrrd``: ``Segment<i>_LabelValue``
+    and ``Segment<i>_Name`` header fields) gives its label values; empty for any other file.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Returns
+    -------
+    dict
+        Label value -> the segment's name as the file has it (not checked as a material name).
+    """
+    if not str(path).lower().endswith((".nrrd", ".nhdr")) or not os.path.isfile(path):
+        return {}
+    reader = image_header(path)
+    if reader is None:
+        return {}
+    fields = {k: reader.GetMetaData(k) for k in reader.GetMetaDataKeys() if k.startswith("Segment")}
+    names = {}
+    for key, value in fields.items():
+        number = key[len("Segment"):-len("_LabelValue")] if key.endswith("_LabelValue") else None
+        name = fields.get(f"Segment{number}_Name")
+        if number is not None and number.isdigit() and name and value.strip().isdigit():
+            names[int(value)] = name.strip()
+    return dict(sorted(names.items()))
+
+
 def _segmentation_layers(reader) -> int:
     """The number of segments a 3D Slicer segmentation file (``Segment<i>_Layer`` keys) holds; 0
     in any other image."""

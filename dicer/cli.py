@@ -562,11 +562,11 @@ def do_merge(mesh_path: str, out: Path, config: dict, report_path: Path | None =
     settings = stage_kwargs(config, "merge")
 
     def advised(exc: DicerError) -> DicerError:
-        floor = settings.get("min_scaled_jacobian", 0.2)
+        floor = settings.get("min_scaled_jacobian", 0.3)
         if settings.get("method") != "planes" or floor > 0 or "degenerate or inverted" not in str(exc):
             return exc
         return DicerError(f"{exc}: merge.min_scaled_jacobian={floor:g} let merging make flat or inverted corners, "
-                          "which no later stage or solver takes; give a value above 0 (default 0.2)")
+                          "which no later stage or solver takes; give a value above 0 (default 0.3)")
 
     def write_advised(job):  # the file's check may run beside the next stage: its error gets the advice too
         def checked():

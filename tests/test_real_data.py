@@ -327,11 +327,13 @@ def test_merged_bone_surface_stays_within_half_a_voxel():
     bone, _ = fix_connectivity(bone)
     mesh = voxel_mesh(bone, image.spacing)
     merged, report = merge_planes(mesh, passes=(1, 1, 1))
-    assert report["element_ratio"] >= 2.0
+    # thin cranial bone on 0.96 x 0.96 x 1.5 mm voxels: 1.749 at merging's floor 0.3 (1.796 at
+    # 0.2, the floor until 5 December 2026)
+    assert report["element_ratio"] >= 1.7
     assert abs(report["volume"]["1"]["change_percent"]) <= 10.0
     fine, _ = smooth_mesh(mesh, {})
     coarse, rep = smooth_mesh(merged, {})
-    assert rep["inverted_elements"] == 0 and rep["min_scaled_jacobian"] >= 0.2
+    assert rep["inverted_elements"] == 0 and rep["min_scaled_jacobian"] >= 0.3
     distances = _mean_distances(coarse, fine, _surface_faces(coarse.cells), _surface_faces(fine.cells),
                                 float(min(image.spacing)))
     assert max(distances) <= 0.5, distances

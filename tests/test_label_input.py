@@ -210,35 +210,34 @@ def test_a_map_value_the_volume_lacks_beside_an_unnamed_value_is_warned_of(caplo
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
 
 
+def _resolved(caplog, values, settings=None) -> tuple[list[dict], list[str]]:
+    """The materials ``resolve_materials`` makes of ``values`` under ``settings``, and its warnings."""
+    caplog.clear()
+    with caplog.at_level("INFO", logger="dicer"):
+        _, materials = resolve_materials(values, load_config(settings=settings))
+    return materials, [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+
+
 def test_a_drop_value_the_volume_lacks_beside_an_unnamed_value_is_warned_of(caplog):
     """labels.drop: [24] where the volume holds 42: label 42 was meshed at 1000 MPa, without a word."""
-    with caplog.at_level("INFO", logger="dicer"):
-        lut, materials = resolve_materials([0, 3, 42], load_config(settings={"labels": {"drop": [24]}}))
+    materials, warned = _resolved(caplog, [0, 3, 42], {"labels": {"drop": [24]}})
     assert [m["name"] for m in materials] == ["label_3", "label_42"]
-    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert warned == ["labels: labels.drop names value(s) 24 that the volume does not hold, while value(s) 3, 42 "
                       "are meshed without a labels.map entry (materials label_3, label_42, default properties); "
                       "check the label values"]
-    caplog.clear()
     # a value to drop absent from this volume (a cohort config), every value present named: quiet
-    with caplog.at_level("INFO", logger="dicer"):
-        resolve_materials([0, 3], load_config(settings={"labels": {"drop": [24], "map": {"3": "bone"}}}))
-    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+    assert _resolved(caplog, [0, 3], {"labels": {"drop": [24], "map": {"3": "bone"}}})[1] == []
 
 
 def test_a_label_left_to_default_properties_beside_given_ones_is_warned_of(caplog):
     """materials entries for label_2 and label_3 (E 5.5, 7.5 MPa) and none for label_1: it was
     meshed at 1000 MPa, said at info level only, so -q showed nothing."""
     given = {"materials": [{"name": "label_3", "youngs_modulus": 5.5}, {"name": "label_2", "youngs_modulus": 7.5}]}
-    with caplog.at_level("INFO", logger="dicer"):
-        lut, materials = resolve_materials([0, 1, 2, 3], load_config(settings=given))
+    materials, warned = _resolved(caplog, [0, 1, 2, 3], given)
     assert [m["youngs_modulus"] for m in materials] == [1000.0, 7.5, 5.5]
-    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert len(warned) == 1 and warned[0].startswith("labels: no materials entry for label_1: default properties")
-    caplog.clear()
-    with caplog.at_level("INFO", logger="dicer"):  # no entries written: every label at the defaults, said as info
-        resolve_materials([0, 1, 2, 3], load_config())
-    assert not [r for r in caplog.records if r.levelname == "WARNING" and "no materials entry" in r.getMessage()]
+    # no entries written: every label at the defaults, said as info
+    assert not [m for m in _resolved(caplog, [0, 1, 2, 3])[1] if "no materials entry" in m]
 
 
 def test_yaml_and_settings_keys_give_one_config(tmp_path):

@@ -875,43 +875,28 @@ def _pull_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str, lab
                                 relaxed=s["label_samples"] == "relaxed")
             return made, time.perf_counter() - t
 
-        from dicer.parallel import cores
+        from dicer.parallel import cores, meanwhile
 
         if cores() > 1:  # built beside the classification of the nodes, which needs its thresholds only
-            return _SurfaceLater(build, int(np.max(mesh.material, initial=0)) + 1), time.perf_counter() - t
-        made, seconds = build()
+            later = _SurfaceLater(meanwhile(build), int(np.max(mesh.material, initial=0)) + 1)
+            return later, time.perf_counter() - t
+        made, _ = build()
         return made, time.perf_counter() - t
     t = time.perf_counter()
     return _image_surface(mesh, s, image, thresholds, image_source), time.perf_counter() - t
 
 
+@dataclass
 class _SurfaceLater:
-    """A ``LabelSurface`` being built in a thread; its ``thresholds`` (one per material) are
-    known at once, so the nodes' sides are set up meanwhile."""
+    """A ``LabelSurface`` being built on a thread (``result``: :func:`dicer.parallel.meanwhile`'s,
+    giving the surface and the seconds it took); its ``thresholds`` (one per material, as
+    LabelSurface has them) are known at once, so the nodes' sides are set up meanwhile."""
 
-    def __init__(self, build, top: int):
-        import threading
+    result: object
+    top: int
 
-        self.thresholds = np.arange(1, top, dtype=float)  # as LabelSurface has them
-        self._made = None
-
-        def run():
-            try:
-                self._made = (True, build())
-            except BaseException as exc:  # raised where the surface is taken
-                self._made = (False, exc)
-
-        # a daemon: a stop signal or an error meanwhile ends the process without waiting for it
-        self._thread = threading.Thread(target=run, name="label-surface", daemon=True)
-        self._thread.start()
-
-    def result(self):
-        """(LabelSurface, seconds its building took); its exception, if it raised."""
-        self._thread.join()
-        done, value = self._made
-        if not done:
-            raise value
-        return value
+    def __post_init__(self):
+        self.thresholds = np.arange(1, self.top, dtype=float)
 
 
 def _image_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str):

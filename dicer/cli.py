@@ -893,7 +893,8 @@ def do_export(mesh_path: str, out: Path, config: dict, mesh=None, neighbours=Non
                         "--labels) or a config with these materials", brief_names(mesh.names), given,
                         brief_names(named[:len(mesh.names)]), given)
         info = export_mesh(mesh, out, **stage_kwargs(config, "export"), source=mesh_path, neighbours=neighbours)
-        log.info("export: wrote %s (%s)", out, brief_json(dict(sorted(info.items())), whole_top=True))  # materials in label order
+        # the summary's keys sorted, its materials in label order
+        log.info("export: wrote %s (%s)", out, brief_json(dict(sorted(info.items())), whole_top=True))
 
 
 def _check_materials_file(stage: str, path: str | None, mesh, mesh_path: str, config: dict) -> None:
@@ -1393,30 +1394,21 @@ def _check_export_dims(config: dict, dim: int, source: str) -> None:
     if cannot:
         named = ", ".join(f"{ext} ({fmt.name})" for ext, fmt in cannot)
         them = " and ".join(ext for ext, _ in cannot)
+        dims = " and ".join(f"{d}D" for d in cannot[0][1].dims)
         raise DicerError(f"{source}: a {dim}D image, and workflow.exports names {named}, which hold"
-                         f"{'s' if len(cannot) == 1 else ''} {' and '.join(f'{d}D' for d in cannot[0][1].dims)} models only; drop "
-                         f"{them} from workflow.exports")
+                         f"{'s' if len(cannot) == 1 else ''} {dims} models only; drop {them} from workflow.exports")
 
 
 def _input_dims(source: str) -> int | None:
     """2 or 3: the model's dimension from the input's header (an image of one voxel along an
     axis is read as 2D); None where the header does not tell (a folder of slices) or cannot be read."""
-    path = Path(source)
+    from dicer.resources import scan_shape
+
     try:
-        if path.is_dir():
-            return None
-        if path.suffix == ".npy":
-            import numpy as np
-
-            shape = np.load(path, mmap_mode="r").shape
-        else:
-            from dicer.io.images import image_header
-
-            reader = image_header(path)
-            if reader is None:
-                return None
-            shape = reader.GetSize()
-    except (OSError, ValueError, EOFError):  # the first stage names the problem
+        shape, _ = scan_shape(source)
+    except OSError:  # the first stage names the problem
+        return None
+    if shape is None:
         return None
     kept = [n for n in shape if n != 1]
     if len(shape) == 2 or (len(shape) == 3 and len(kept) == 2):

@@ -483,10 +483,7 @@ def validate(config: dict, source: str = "config") -> dict:
     # the names labels.map gives, in the order of their smallest value (as the labels stage numbers
     # them): a clash among them is the config's, said before any stage (a label volume's values
     # the map leaves out add names only the stage knows)
-    mapped = {}
-    for value, name in sorted(((int(k), v) for k, v in section.get("map", {}).items()
-                               if str(k).lstrip("-").isdigit() and isinstance(v, str)), key=lambda kv: kv[0]):
-        mapped.setdefault(name, value)
+    mapped = dict.fromkeys(name for _, name in sorted((int(k), v) for k, v in section.get("map", {}).items()))
     clash = name_clash(list(mapped), config.get("export", {}).get("sets", SET_KINDS))
     if clash:
         raise DicerError(f"{source}: key 'labels.map': {clash}")

@@ -35,17 +35,41 @@ def scan_header(path: str | os.PathLike) -> tuple[int, tuple[float, ...] | None]
     path = Path(path)
     if path.is_dir():
         return max(1, sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) // 2), None
+    shape, spacing = scan_shape(path)
+    if shape is None:  # not an image this reads (the stage will say why)
+        return max(1, path.stat().st_size // 2), None
+    return int(np.prod(shape)), spacing
+
+
+def scan_shape(path: str | os.PathLike) -> tuple[tuple[int, ...] | None, tuple[float, ...] | None]:
+    """Voxels per axis and voxel size of an image or label file, from its header.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A file: ``.npy`` (its array header) or what SimpleITK reads.
+
+    Returns
+    -------
+    shape : tuple of int or None
+        None for a folder or a file whose header cannot be read.
+    spacing : tuple of float or None
+        mm; None when the header does not say.
+    """
+    path = Path(path)
+    if path.is_dir():
+        return None, None
     if path.suffix == ".npy":
         try:
-            return int(np.prod(np.load(path, mmap_mode="r").shape)), None
+            return tuple(np.load(path, mmap_mode="r").shape), None
         except (OSError, ValueError, EOFError):  # EOFError: an empty file
-            return max(1, path.stat().st_size // 2), None
+            return None, None
     from dicer.io.images import image_header
 
     reader = image_header(path)
-    if reader is None:  # not an image SimpleITK reads (the stage will say why)
-        return max(1, path.stat().st_size // 2), None
-    return int(np.prod(reader.GetSize())), tuple(reader.GetSpacing())
+    if reader is None:
+        return None, None
+    return tuple(reader.GetSize()), tuple(reader.GetSpacing())
 
 
 def scan_voxels(path: str | os.PathLike) -> int:

@@ -155,16 +155,16 @@ def _check_row(row: dict, schema: dict, where: str) -> None:
         raise DicerError(f"{where}: patient {row['patient']!r}: give either an image or a labels file (a label "
                          "volume to mesh), not both and not neither")
     keys = [item.split("=", 1)[0].strip() for item in row.get("overrides", "").split(";") if item.strip()]
+    clash = _sets_one_key_twice(row.get("overrides", ""))
+    if clash:  # a section and one of its keys: the later value would be dropped unsaid
+        raise DicerError(f"{where}: patient {row['patient']!r}: override {clash[0]!r} and {clash[1]!r} both set "
+                         f"{clash[2]}; keep one")
     for key in keys:
         if key == "workflow" or key.startswith("workflow."):
             raise DicerError(f"{where}: patient {row['patient']!r}: override {key!r}: the workflow settings are the "
                              "whole cohort's; set them in the config, not per patient")
         if keys.count(key) > 1:
             raise DicerError(f"{where}: patient {row['patient']!r}: override {key!r} is given twice; keep one")
-        clash = _sets_one_key_twice(key, row.get("overrides", ""))
-        if clash:  # a section and one of its keys: the later value would be dropped unsaid
-            raise DicerError(f"{where}: patient {row['patient']!r}: override {key!r} and {clash[0]!r} both set "
-                             f"{clash[1]}; keep one")
         unread = _unread_override(key, bool(row.get("labels")))
         if unread:
             raise DicerError(f"{where}: patient {row['patient']!r}: override {key!r} {unread}, so it would change "
@@ -178,10 +178,10 @@ def _leaves(tree, prefix: str = "") -> set[str]:
     return set().union(*(_leaves(v, f"{prefix}.{k}" if prefix else str(k)) for k, v in tree.items()))
 
 
-def _sets_one_key_twice(key: str, overrides: str) -> tuple[str, str] | None:
-    """(the other override, the key both set) when the override ``key`` is a section that
-    sets a key another override of the row sets (``downsample={factor: 2}`` and
-    ``downsample.factor=3``); else None."""
+def _sets_one_key_twice(overrides: str) -> tuple[str, str, str] | None:
+    """(a section's override, an override of a key in it, the key both set) when a row's
+    overrides set one key two ways (``downsample={factor: 2}`` and ``downsample.factor=3``);
+    else None."""
     from dicer.config import parse_set
 
     items = {}
@@ -191,12 +191,12 @@ def _sets_one_key_twice(key: str, overrides: str) -> tuple[str, str] | None:
                 items.setdefault(item.split("=", 1)[0].strip(), _leaves(parse_set(item.strip())))
             except DicerError:  # the override's own fault is said where the row's config is read
                 return None
-    for other, leaves in items.items():
-        if other.startswith(key + "."):
-            both = sorted(leaf for leaf in items.get(key, ()) if leaf == other or leaf.startswith(other + ".")
+    for key, leaves in items.items():
+        for other in (k for k in items if k.startswith(key + ".")):
+            both = sorted(leaf for leaf in leaves if leaf == other or leaf.startswith(other + ".")
                           or other.startswith(leaf + "."))
             if both:
-                return other, both[0]
+                return key, other, both[0]
     return None
 
 

@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy import special
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
@@ -452,15 +453,22 @@ class _Scan:
 def test_the_scan_places_each_face_at_its_crossing_within_half_a_voxel(dim):
     spacing = (0.5, 1.0, 2.0)[:dim]
     centres = np.meshgrid(*[(np.arange(n) + 0.5) * h for n, h in zip((12, 5, 4)[:dim], spacing)], indexing="ij")
-    ramp = lambda p: 500.0 + 400.0 * (2.6 - p[..., 0])  # noqa: E731 - crosses 500 at x = 2.6 mm
-    lab = (ramp(np.stack(centres, axis=-1)) >= 500.0).astype(np.uint8)  # x < 2.6: the faces at x = 2.5
+    # a blurred step (sigma 0.4 mm) crossing 500 at x = 2.6 mm, 0.1 mm past the faces at x = 2.5
+    step = lambda p: 1000.0 * special.ndtr((2.6 - p[..., 0]) / 0.4)  # noqa: E731
+    lab = (step(np.stack(centres, axis=-1)) >= 500.0).astype(np.uint8)
     mesh = voxel_mesh(lab, spacing)
     volume = Volume(lab, spacing)
     plain = label_image_samples(volume, mesh)
-    placed = _placed(volume, mesh, _Scan(ramp))
+    placed = _placed(volume, mesh, _Scan(step))
     across = np.abs(plain[1][:, 0]) == 1  # the faces across x
-    assert np.allclose(plain[0][across, 0], 2.5) and np.allclose(placed[0][across, 0], 2.6)  # a ramp: exact
+    assert np.allclose(plain[0][across, 0], 2.5)
+    # on the step's own scale the crossing is the step's (measured 2.5999); the straight line
+    # between the centres' values (2.25 and 2.75 mm) would say 2.5895
+    assert np.allclose(placed[0][across, 0], 2.6, atol=2e-3)
     assert np.array_equal(placed[0][:, 1:], plain[0][:, 1:])  # along the normal only
+    # a ramp, whose values 2.5 voxels out do not level off: still between the centres, past the face
+    ramp = _placed(volume, mesh, _Scan(lambda p: 500.0 + 400.0 * (2.6 - p[..., 0])))
+    assert np.all((ramp[0][across, 0] > 2.5) & (ramp[0][across, 0] < 2.75))
     # a scan above the threshold on both sides (the segmentation's clean-up): the faces stay
     stay = _placed(volume, mesh, _Scan(lambda p: np.full(p.shape[0], 900.0)))
     assert np.array_equal(stay[0], plain[0])
@@ -482,15 +490,21 @@ def test_a_ct_ball_fitted_to_its_labels_placed_by_the_scan(dim):
     nodes = np.flatnonzero(boundary_graph(mesh).boundary)
 
     def error(out):
-        return np.abs(np.linalg.norm(out.points[nodes, :dim] - CT_CENTRE[:dim], axis=1) - CT_R).mean()
+        return np.linalg.norm(out.points[nodes, :dim] - CT_CENTRE[:dim], axis=1) - CT_R
 
     alone, _ = smooth_mesh(mesh, labels=labels, image=scan, thresholds=[500.0])  # fit_to_scan off: the labels'
     placed, report = smooth_mesh(mesh, {"fit_to_scan": True}, labels=labels, image=scan, thresholds=[500.0])
-    # measured: 3D 0.083 -> 0.067 (the pull onto the scan: 0.066), 2D 0.117 -> 0.055 (0.056)
-    assert error(alone) > (0.08 if dim == 3 else 0.11)
-    assert error(placed) < (0.07 if dim == 3 else 0.06)
+    # measured, mean |r - R|: 3D 0.083 -> 0.064 (the pull onto the scan: 0.066), 2D 0.117 -> 0.046 (0.056);
+    # largest 0.17 and 0.13; mean r - R +0.012 and +0.002 (without the blur's shift taken back -0.035
+    # and -0.022: the iso-surface of the blurred ball lies inside it by about s^2 / R)
+    assert np.abs(error(alone)).mean() > (0.08 if dim == 3 else 0.11)
+    assert np.abs(error(placed)).mean() < (0.066 if dim == 3 else 0.05)
+    assert np.abs(error(placed)).max() < (0.18 if dim == 3 else 0.14)
+    assert abs(error(placed).mean()) < (0.015 if dim == 3 else 0.005)
     fit = report["surface_from_labels"]
     assert fit["samples_placed_by_the_scan"] > 0.5 * fit["samples"]
+    # the edge's variance: 1/12 (partial volume) + 0.6^2 (the phantom's blur) + 0.5^2 (image_sigma)
+    assert fit["edge_variance_mm2"]["0|1"] == pytest.approx(1 / 12 + 0.36 + 0.25, rel=0.02)  # measured 0.691, 0.685
     assert report["min_scaled_jacobian"] >= 0.3 and report["inverted_elements"] == 0
     assert "samples_placed_by_the_scan" not in smooth_mesh(mesh, labels=labels)[1]["surface_from_labels"]
 

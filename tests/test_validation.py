@@ -465,14 +465,15 @@ def test_kirsch_plate_from_a_grey_value_image_at_todays_defaults(kirsch_scan_tod
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("part,cps4,cps8", [("quarter", (3.1486, 3.1486, 90.0), (3.3921, 3.3921, 90.0)),
-                                            ("full", (3.1101, 3.1370, 89.4), (3.2239, 3.3470, 89.4))])
+@pytest.mark.parametrize("part,cps4,cps8", [("quarter", (3.1265, 3.1265, 90.0), (3.3339, 3.3339, 90.0)),
+                                            ("full", (3.1102, 3.1208, 90.0), (3.2755, 3.3029, 89.4))])
 def test_kirsch_plate_from_a_grey_value_image_with_the_faces_placed_by_it(tmp_path, part, cps4, cps8):
-    """Today's defaults with smooth.fit_to_scan: the rim 0.078 / 0.103 voxel off the circle
-    (0.171 without), closer readings, still outside 3 %."""
+    """Today's defaults with smooth.fit_to_scan: the rim 0.102 / 0.116 voxel off the circle on
+    average (0.171 without), 0.29 at most (0.42), closer readings, still outside 3 %."""
     r = cases.kirsch(tmp_path, part, TODAY + [FIT_TO_SCAN], scan=True)
     kirsch_figures(r, 0.32, cps4, cps8)
-    assert r[1]["rim_radius_error_mean"] == pytest.approx(0.078 if part == "quarter" else 0.103, abs=0.01)
+    assert r[1]["rim_radius_error_mean"] == pytest.approx(0.102 if part == "quarter" else 0.116, abs=0.01)
+    assert r[1]["rim_radius_error_max"] == pytest.approx(0.287, abs=0.01)
 
 
 @pytest.mark.slow

@@ -25,6 +25,12 @@ quadric fitted by weighted least squares to those faces near it (moving least sq
 4. The node moves by c0 along n, at most the voxel's extent along n. A node with fewer than
    three samples per coefficient stays where the labels' smoothing put it.
 
+With the scan the labels came from (``smooth.fit_to_scan``) each face sample is first placed
+where the scan crosses its threshold within its voxel pair (:func:`scan_crossings`); blurring
+moves such an iso-surface towards its centres of curvature by s^2 H (s^2 the edge's variance
+in the smoothed scan, :func:`edge_variance`; H the mean curvature), so the node moves by
+c0 - s^2 (c3 + c5) (2D: c0 - s^2 c2), as the pull onto the scan takes the shift back.
+
 The fitted surface does not depend on the smoothing coefficients, so it is fitted once per
 stage; the quality guard then backs the move off as it backs off the pull onto a scan.
 """
@@ -32,6 +38,7 @@ stage; the quality guard then backs the move off as it backs off the pull onto a
 from __future__ import annotations
 
 import numpy as np
+from scipy import special
 from scipy.spatial import cKDTree
 
 from dicer.errors import DicerError
@@ -41,7 +48,8 @@ from dicer.mesh.model import Mesh
 from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
 from dicer.parallel import ordered_map
 
-__all__ = ["LabelSurface", "check_labels_for_mesh", "label_image_samples", "scan_crossings", "staircase_samples"]
+__all__ = ["LabelSurface", "check_labels_for_mesh", "edge_variance", "label_image_samples", "scan_crossings",
+           "staircase_samples"]
 
 _FACING = 0.1  # the cosine between a face's and the node's normals from which a face counts fully
 _SHEET = 2.0  # voxels off the tangent plane (besides the bend over r) where another sheet begins
@@ -49,6 +57,7 @@ _OUTLIER = 1.0  # voxels off the first fit: dropped from the second
 _PER_COEFFICIENT = 3  # samples needed per coefficient of the fit
 _CHUNK = 2048  # nodes fitted at a time: (chunk, k) temporaries, some 10 of them, k 180 or more
 _GROUPS = 4  # a chunk's nodes fitted in this many groups of like sample counts
+_FAR = 2.5  # voxels either side of a face where the scan's contrast across its edge is read
 _CHECKED = 200_000  # elements checked against a label volume at most (evenly spread)
 _AGREE = 0.9  # the share of them that must lie on voxels of their own material
 _GIVE = ("give the label volume the mesh was made from (labels_fixed.nii.gz of dicer run, or what dicer fix "
@@ -176,11 +185,14 @@ def scan_crossings(points: np.ndarray, normals: np.ndarray, kinds: np.ndarray, s
     """Face samples moved to where the scan crosses their threshold between the voxels' centres.
 
     A face between a voxel of the lower kind and one of the higher lies half a voxel from
-    each centre; where the (smoothed) scan is below the higher kind's threshold at the lower
-    centre and at or above it at the higher, the sample moves to the linear crossing between
-    them, at most half a voxel. Elsewhere (the segmentation's clean-up, noise across the
-    threshold) it stays on the face: the surface follows the labels, placed within the voxel
-    by the scan.
+    each centre; where the (smoothed) scan rises from the lower centre to the higher, the
+    sample moves to where it crosses the higher kind's threshold, at most half a voxel: the
+    crossing of the edge fitted through the two centres' values as a blurred step (the
+    normal distribution's integral between the values 2.5 voxels either side; the straight
+    line between them where those do not bracket the centres), or the nearer centre where
+    the threshold lies beyond it. Where the scan falls (noise across the threshold) the
+    sample stays on the face: the surface follows the labels, placed within the voxel by the
+    scan.
 
     Parameters
     ----------
@@ -198,12 +210,75 @@ def scan_crossings(points: np.ndarray, normals: np.ndarray, kinds: np.ndarray, s
     (S, dim) float64 ndarray
     """
     t = np.asarray(scan.thresholds, float)[np.clip(kinds[:, 1] - 1, 0, len(scan.thresholds) - 1)]
-    half = (0.5 * step)[:, None] * normals
-    below = scan.sample(points - half).astype(float)
-    above = scan.sample(points + half).astype(float)
-    across = (below < t) & (above >= t)
-    f = np.where(across, (t - below) / np.where(across, above - below, 1.0), 0.5)
+    at = lambda f: scan.sample(points + (f * step)[:, None] * normals).astype(float)  # noqa: E731
+    below, above = at(-0.5), at(0.5)
+    low = at(-_FAR)
+    contrast = at(_FAR) - low
+    # rising between the centres: the crossing, or the nearer centre where the threshold lies
+    # beyond it (the scan's own smoothing tips a voxel by the edge); falling (noise): the face
+    rising = above > below
+    f = np.where(rising, np.clip((t - below) / np.where(rising, above - below, 1.0), 0.0, 1.0), 0.5)
+    # a blurred edge rises as the normal distribution's integral: interpolated on its scale
+    # (probit of the level within the edge's contrast) the crossing is that of the edge itself,
+    # where the straight line between the centres leans towards the middle
+    edge = rising & (contrast > 0)
+    probit = lambda v: special.ndtri(np.clip((v - low) / np.where(edge, contrast, 1.0), 0.01, 0.99))  # noqa: E731
+    z_below, z_above = probit(below), probit(above)
+    edge &= z_above > z_below
+    f = np.where(edge, np.clip((probit(t) - z_below) / np.where(edge, z_above - z_below, 1.0), 0.0, 1.0), f)
     return points + ((f - 0.5) * step)[:, None] * normals
+
+
+def edge_variance(points: np.ndarray, kinds: np.ndarray, scan) -> dict:
+    """Each pair of kinds' edge width in the smoothed scan, as a Gaussian's variance.
+
+    Blurring moves the iso-surface of a curved body towards its centres of curvature by
+    this variance times the mean curvature, which the fit takes back. An edge of contrast
+    D blurred by a Gaussian of standard deviation s has, at its level q, the gradient
+    D phi(Phi^-1(q)) / s: measured at each sample the scan placed (central differences
+    over half a voxel along each axis, the contrast 2.5 voxels either side along the
+    gradient) and the median taken per pair, at most a voxel's width squared plus the
+    scan's own smoothing squared (a thin part's far side spoils D).
+
+    Parameters
+    ----------
+    points : (S, dim) float64 ndarray
+        Samples placed on the scan's crossings by :func:`scan_crossings`, mm.
+    kinds : (S, 2) int64 ndarray
+        Lower and higher kind.
+    scan : dicer.mesh.subvoxel.ImageSurface
+
+    Returns
+    -------
+    dict
+        ``(lower, higher) -> variance`` in mm^2, for the pairs with samples.
+    """
+    dim = points.shape[1]
+    spacing = np.asarray(scan.spacing, float)[:dim]
+    t = np.asarray(scan.thresholds, float)[np.clip(kinds[:, 1] - 1, 0, len(scan.thresholds) - 1)]
+    grad = np.empty_like(points)
+    for d in range(dim):
+        h = np.zeros(dim)
+        h[d] = 0.25 * spacing[d]
+        grad[:, d] = (scan.sample(points + h) - scan.sample(points - h)).astype(float) / (2 * h[d])
+    slope = np.linalg.norm(grad, axis=1)
+    up = grad / np.maximum(slope, 1e-30)[:, None]
+    far = _FAR * float(np.max(spacing))
+    low = scan.sample(points - far * up).astype(float)
+    contrast = scan.sample(points + far * up).astype(float) - low
+    level = np.clip((t - low) / np.where(contrast > 0, contrast, 1.0), 0.05, 0.95)
+    density = np.exp(-0.5 * special.ndtri(level) ** 2) / np.sqrt(2 * np.pi)
+    good = (slope > 0) & (contrast > 0)
+    # the interpolated scan's gradient is a chord between voxel centres: to first order a box
+    # of a voxel along u more blur, whose variance (sum u_d^2 h_d^2 / 12) is taken off
+    chord = (up * up) @ (spacing * spacing) / 12.0
+    var = np.maximum((contrast * density / np.where(good, slope, 1.0)) ** 2 - chord, 0.0)
+    cap = float(np.max(spacing)) ** 2 + (scan.sigma * float(np.min(spacing))) ** 2
+    out = {}
+    for a, b in np.unique(kinds[good], axis=0):
+        these = good & (kinds[:, 0] == a) & (kinds[:, 1] == b)
+        out[(int(a), int(b))] = min(float(np.median(var[these])), cap)
+    return out
 
 
 def check_labels_for_mesh(labels, mesh: Mesh, source: str) -> None:
@@ -327,6 +402,8 @@ class LabelSurface:
         self.radius = float(radius) * float(spacing.min())
         reach = self.radius if mirror else 0.0
         self.placed = None
+        self.top = int(np.max(mesh.material, initial=0)) + 1
+        blur = {}  # (lower, higher) -> the scan's edge variance, mm^2: the blur's shift taken back
         self.relaxed = bool(relaxed and labels is not None)
         if labels is None:
             samples = staircase_samples(mesh, reach)
@@ -339,21 +416,25 @@ class LabelSurface:
         else:
             points, normals, kinds, weights = label_image_samples(labels, mesh)
             if scan is not None:  # placed before mirroring, so the mirror images are placed alike
-                placed = scan_crossings(points, normals, kinds, np.abs(normals) @ spacing, scan)
-                self.placed = int(np.count_nonzero(np.any(placed != points, axis=1)))
+                step = np.abs(normals) @ spacing
+                placed = scan_crossings(points, normals, kinds, step, scan)
+                moved = np.any(placed != points, axis=1)
+                self.placed = int(np.count_nonzero(moved))
+                blur = edge_variance(placed[moved], kinds[moved], scan)
                 points = placed
             samples = _mirrored(mesh, (points, normals, kinds, weights), reach)
         self.points, self.normals, kinds, self.weights = samples
         self._points_normals = np.c_[self.points, self.normals]  # gathered together by the fit
         # the mesh's faces off the lattice's axes: merging's slopes (chamfers), off the labels' surface
         self.sloped = 0 if labels is not None else int(np.count_nonzero(np.abs(self.normals).max(axis=1) < 1 - 1e-9))
-        self.top = int(np.max(mesh.material, initial=0)) + 1
         # thresholds for NodeSides: one per material (the labels have no image values)
         self.thresholds = np.arange(1, self.top, dtype=float)
         # each pair of kinds in a space of its own: a fourth coordinate, the pair's rank times
         # more than the radius, so a query finds its own pair's samples only (an atlas's
         # thousands of pairs would otherwise crowd each other's neighbourhoods)
         self.pairs, rank = np.unique(kinds[:, 0] * self.top + kinds[:, 1], return_inverse=True)
+        self.blur = blur
+        self._pair_blur = np.array([blur.get((int(c) // self.top, int(c) % self.top), 0.0) for c in self.pairs])
         self._apart = 4.0 * self.radius
         self.tree = cKDTree(np.c_[self.points, rank * self._apart]) if self.points.shape[0] else None
         # the samples a disc of the radius holds on a staircase (sqrt 3 its area), and more (a thin
@@ -424,6 +505,8 @@ class LabelSurface:
     def _fit(self, p: np.ndarray, n: np.ndarray, pair: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(P,) heights and fitted flags of the points ``p`` (P, dim) with normals ``n`` (P, dim)."""
         dist, idx = self._neighbours(p, pair)
+        rank = np.minimum(np.searchsorted(self.pairs, pair), max(self.pairs.size - 1, 0))
+        blur = np.where(self.pairs[rank] == pair, self._pair_blur[rank], 0.0) if self.pairs.size else np.zeros(p.shape[0])
         # in groups of like sample counts, each as wide as its fullest row: the counts vary
         # twofold (a thin plate's both sides), and the temporaries are that wide
         count = np.count_nonzero(np.isfinite(dist), axis=1)
@@ -432,13 +515,15 @@ class LabelSurface:
         for g in np.array_split(order, _GROUPS):
             if g.size:
                 width = max(int(count[g].max()), 1)
-                height[g], fitted[g] = self._fit_samples(p[g], n[g], dist[g, :width], idx[g, :width])
+                height[g], fitted[g] = self._fit_samples(p[g], n[g], dist[g, :width], idx[g, :width], blur[g])
         return height, fitted
 
-    def _fit_samples(self, p: np.ndarray, n: np.ndarray, dist: np.ndarray, idx: np.ndarray
+    def _fit_samples(self, p: np.ndarray, n: np.ndarray, dist: np.ndarray, idx: np.ndarray, blur: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray]:
         """The fit of points ``p`` (P, dim) with normals ``n`` to their samples (``dist``, ``idx``:
-        (P, k), inf where none)."""
+        (P, k), inf where none); ``blur`` (P,): the scan's edge variance (mm^2) whose shift of a
+        curved iso-surface (towards its centres of curvature, by the variance times the mean
+        curvature) is taken back, 0 for the labels."""
         dim, r = self.dim, self.radius
         ok = np.isfinite(dist)
         idx[~ok] = 0
@@ -477,7 +562,10 @@ class LabelSurface:
         if again.size:
             coef[again] = _weighted_fit(basis[again], kept[again], h[again])
         fitted = np.count_nonzero(kept, axis=1) >= _PER_COEFFICIENT * m
-        return np.where(fitted, coef[:, 0], 0.0), fitted
+        # the mean curvature towards n: c2 (2D), c3 + c5 (3D); the blurred iso-surface lies that
+        # times the variance further along n than the surface
+        bend = coef[:, 2] if dim == 2 else coef[:, 3] + coef[:, 5]
+        return np.where(fitted, coef[:, 0] - blur * bend, 0.0), fitted
 
     def project(self, sides, x: np.ndarray, bnodes: np.ndarray, xb: np.ndarray) -> tuple[np.ndarray, dict]:
         """The boundary positions moved onto the fitted surface (before ``subvoxel.lift``).
@@ -509,5 +597,7 @@ class LabelSurface:
         return y, {"nodes_moved": int(np.count_nonzero(fitted)), "nodes_between_two_kinds": int(sides.usable.sum()),
                    "label_surface_radius": self.radius / float(self.mesh_spacing.min()),
                    "samples": int(self.points.shape[0]), "samples_on_sloped_faces": self.sloped,
-                   **({} if self.placed is None else {"samples_placed_by_the_scan": self.placed}),
+                   **({} if self.placed is None else {"samples_placed_by_the_scan": self.placed,
+                                                      "edge_variance_mm2": {f"{a}|{b}": round(v, 6) for (a, b), v
+                                                                            in sorted(self.blur.items())}}),
                    **({"samples_relaxed": True} if self.relaxed else {})}

@@ -29,9 +29,10 @@ DEFAULT_PROPERTIES = material_defaults()
 
 def segment_map(segments: dict[int, str], source: str = "labels") -> dict[str, str]:
     """A ``labels.map`` from a segmentation's own segment names (3D Slicer's ``.seg.nrrd``):
-    each name made a material name (letters, digits and ``_``, a letter first, 32 characters
-    at most: "Left femur" -> ``Left_femur``), or {} when the names cannot name materials
-    (two alike, a solver's set name, ``background``), which is logged.
+    each name made a material name (letters without accents, digits and ``_``, a letter first,
+    32 characters at most: "Left femur" -> ``Left_femur``; segments named apart that come out
+    alike take their label value, ``Muskel_1``, which is logged), or {} when the names cannot
+    name materials (alike but for case, a solver's set name, ``background``), which is logged.
 
     Parameters
     ----------
@@ -46,13 +47,29 @@ def segment_map(segments: dict[int, str], source: str = "labels") -> dict[str, s
         ``{str(value): name}``, or {}.
     """
     import re
+    import unicodedata
 
-    names = {}
+    names, texts = {}, {}
     for value, text in segments.items():
-        name = re.sub(r"[^A-Za-z0-9_]+", "_", text).strip("_")
+        plain = "".join(c for c in unicodedata.normalize("NFKD", text) if not unicodedata.combining(c))  # Ä -> A
+        name = re.sub(r"[^A-Za-z0-9_]+", "_", plain).strip("_")
         if not name:
             continue
         names[str(value)] = (name if name[0].isalpha() else f"s_{name}")[:32]
+        texts[str(value)] = " ".join(text.split())
+    # segments named apart that come out alike (letters dropped, names cut at 32 characters)
+    # stay apart: each takes its label value; segments of one name share their material
+    apart = {}
+    for value, name in names.items():
+        apart.setdefault(name, set()).add(texts[value])
+    renamed = []
+    for value, name in names.items():
+        if len(apart[name]) > 1:
+            names[value] = f"{name[:31 - len(value)].rstrip('_')}_{value}"
+            renamed.append(f"{texts[value]!r} -> {names[value]}")
+    if renamed:
+        log.warning("labels: segments of %s named apart come out alike as material names, so each takes its "
+                    "label value: %s; give labels.map to name them", source, brief_names(renamed))
     if not names:
         return {}
     try:

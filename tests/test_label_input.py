@@ -577,6 +577,28 @@ def test_a_layered_slicer_segmentation_is_refused_with_the_export_to_make(tmp_pa
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bones.seg.nrrd"]
 
 
+def test_slicer_segments_named_apart_stay_apart(caplog):
+    """Segments whose names differ only in letters outside ASCII or past 32 characters became one
+    material without a word: two tissues with one set of properties and no interface."""
+    from dicer.labels import segment_map
+
+    long = "Left hippocampus subfield CA1 head "
+    caplog.clear()
+    assert segment_map({1: "Muskel Ä", 2: "Muskel Ö", 3: "Knochen", 4: "Ünïcode/name"}, "k.seg.nrrd") == {
+        "1": "Muskel_A", "2": "Muskel_O", "3": "Knochen", "4": "Unicode_name"}
+    assert caplog.records == []
+    assert segment_map({1: long + "part", 2: long + "tail", 3: "Amygdala", 12: long + "x"}, "h.seg.nrrd") == {
+        "1": "Left_hippocampus_subfield_CA1_1", "2": "Left_hippocampus_subfield_CA1_2", "3": "Amygdala",
+        "12": "Left_hippocampus_subfield_CA1_12"}
+    assert [r.getMessage() for r in caplog.records] == [
+        "labels: segments of h.seg.nrrd named apart come out alike as material names, so each takes its label "
+        "value: 'Left hippocampus subfield CA1 head part' -> Left_hippocampus_subfield_CA1_1, 'Left hippocampus "
+        "subfield CA1 head tail' -> Left_hippocampus_subfield_CA1_2, 'Left hippocampus subfield CA1 head x' -> "
+        "Left_hippocampus_subfield_CA1_12; give labels.map to name them"]
+    # segments of one name share their material
+    assert segment_map({1: "Bone", 2: "Bone", 3: "Skin"}) == {"1": "Bone", "2": "Bone", "3": "Skin"}
+
+
 def test_a_slicer_segmentation_names_its_materials_after_its_segments(tmp_path, caplog):
     """The segments' names (femur, tibia) were ignored: the materials came out as label_1, label_2."""
     lab = np.zeros((12, 10, 8), np.uint8)

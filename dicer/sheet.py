@@ -19,7 +19,7 @@ from pathlib import Path
 
 from dicer.errors import DicerError
 
-RESERVED_PATIENTS = ("phantoms", "cohort.html", "cohort.tsv", "cohort.log")
+RESERVED_PATIENTS = ("phantoms", "logs", "benchmarks", "cohort.html", "cohort.tsv", "cohort.log")
 """Names the workflow gives its own files and folders beside the patients' folders."""
 
 

@@ -107,11 +107,11 @@ def test_cohort_on_slurm_with_a_bad_scan_then_the_rerun(slurm, tmp_path):
         assert report["elements"] > 50 and report["inverted_elements"] == 0
         assert (folder / "model.inp").stat().st_size > 0
         for stage in ("segment", "downsample", "fix", "mesh", "merge", "smooth", "export_inp", "quality"):
-            header, values = (workdir / "benchmarks" / patient / f"{stage}.tsv").read_text().splitlines()[:2]
+            header, values = (workdir / "results" / "benchmarks" / patient / f"{stage}.tsv").read_text().splitlines()[:2]
             assert dict(zip(header.split("\t"), values.split("\t")))["s"] != "NA"
     # the bad scan failed in segment, with its one-line error shown in Snakemake's output
     assert not (workdir / "results" / "bad" / "labels.nii.gz").exists()
-    errors = [line for line in (workdir / "logs" / "bad" / "segment.log").read_text().splitlines()
+    errors = [line for line in (workdir / "results" / "logs" / "bad" / "segment.log").read_text().splitlines()
               if line.startswith("error:")]
     assert len(errors) == 1 and "broken.nii.gz" in errors[0]
     assert errors[0] in out

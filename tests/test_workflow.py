@@ -85,8 +85,23 @@ def test_every_output_per_patient(cohort):
         assert set(report["materials"]) == {"soft_tissue", "bone"}
         assert set(report["stages"]) == {"fix", "merge", "smooth"}
         for rule in ("segment", "downsample", "fix", "mesh", "merge", "smooth", "export_inp", "export_vtu", "quality"):
-            assert (cohort / "logs" / patient / f"{rule}.log").exists()
+            assert (cohort / "results" / "logs" / patient / f"{rule}.log").exists()
     assert not (cohort / "results" / "absent").exists()
+
+
+def test_a_results_folder_holds_its_own_logs_and_one_spelling_of_it_its_records(cohort):
+    """Logs and benchmarks lay in the working folder, so a second results folder overwrote the
+    first's (and the cohort table then showed the other run's seconds); the absolute path of the
+    results folder was a folder of its own to Snakemake, with no record of past runs."""
+    assert not (cohort / "logs" / "head").exists() and not (cohort / "benchmarks" / "head").exists()
+    same = _snakemake(cohort, "-n", "--config", f"workflow={{results: {cohort / 'results'}}}")
+    assert "Nothing to be done" in same.stdout + same.stderr
+    other = _snakemake(cohort, "-n", "-p", "--config", "workflow={results: elsewhere}")
+    assert "elsewhere/logs/head/mesh.log" in other.stdout and " logs/head/" not in other.stdout
+    refused = _snakemake(cohort, "-n", "--config", "workflow={results: .}", check=False)
+    assert refused.returncode != 0
+    assert "config: key 'workflow.results': '.' is the working folder itself; give a folder for the results" in (
+        refused.stdout + refused.stderr)
 
 
 def test_patient_overrides_apply(cohort):
@@ -305,7 +320,7 @@ def test_benchmarks_and_resources_per_stage(cohort):
         coarse = voxels // factor // factor // factor  # the downsampled grid, from the scan's header and the factor
         elements = mesh_elements(cohort / "results" / patient / "mesh.vtu")
         for stage in stages:
-            header, values = (cohort / "benchmarks" / patient / f"{stage}.tsv").read_text().splitlines()[:2]
+            header, values = (cohort / "results" / "benchmarks" / patient / f"{stage}.tsv").read_text().splitlines()[:2]
             bench = dict(zip(header.split("\t"), values.split("\t")))
             assert float(bench["s"]) > 0
             # both patients are segmented scans: smooth reads the scan too
@@ -316,15 +331,15 @@ def test_benchmarks_and_resources_per_stage(cohort):
 def test_the_cohort_table_leaves_out_a_stage_the_model_no_longer_goes_through(cohort):
     """An earlier run's benchmark file of a stage since dropped (say downsample, after its
     override went) showed in the table as if the model went through it."""
-    stale = cohort / "benchmarks" / "head" / "export_feb.tsv"
+    stale = cohort / "results" / "benchmarks" / "head" / "export_feb.tsv"
     stale.write_text("s\tmax_rss\n7.5\t100\n")
     try:
         _snakemake(cohort, "--forcerun", "cohort")
         header = (cohort / "results" / "cohort.tsv").read_text().splitlines()[0].split("\t")
         assert "seconds:export_feb" not in header and "seconds:export_inp" in header and "seconds:mesh" in header
-        arguments = (cohort / "logs" / "cohort.args").read_text().splitlines()
+        arguments = (cohort / "results" / "logs" / "cohort.args").read_text().splitlines()
         assert arguments[:2] == ["results/head/quality.json", "results/bone/quality.json"]
-        assert "benchmarks/head/mesh.tsv" in arguments and "benchmarks/head/export_feb.tsv" not in arguments
+        assert "results/benchmarks/head/mesh.tsv" in arguments and "results/benchmarks/head/export_feb.tsv" not in arguments
     finally:
         stale.unlink()
 
@@ -454,15 +469,15 @@ def test_deleted_benchmarks_rerun_nothing_and_a_rewritten_input_reruns_its_patie
     file changed inside a scan folder left a stale model (Snakemake compares the input's own
     time only)."""
     saved = cohort.parent / (cohort.name + "_benchmarks")
-    shutil.copytree(cohort / "benchmarks", saved)
+    shutil.copytree(cohort / "results" / "benchmarks", saved)
     try:
-        shutil.rmtree(cohort / "benchmarks")
+        shutil.rmtree(cohort / "results" / "benchmarks")
         assert _planned_jobs(_snakemake(cohort, "-n")) == {}
         # and a change of the exports re-runs them alone, as with the files there
         test_changing_export_settings_reruns_only_export_and_later(cohort)
     finally:
-        shutil.rmtree(cohort / "benchmarks", ignore_errors=True)
-        shutil.copytree(saved, cohort / "benchmarks")
+        shutil.rmtree(cohort / "results" / "benchmarks", ignore_errors=True)
+        shutil.copytree(saved, cohort / "results" / "benchmarks")
         shutil.rmtree(saved)
     # a label patient whose volume is replaced by one of the same name with an older time
     work = cohort.parent / (cohort.name + "_labels")

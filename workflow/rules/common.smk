@@ -24,7 +24,14 @@ try:
 except DicerError as exc:
     raise WorkflowError(str(exc) if str(exc).startswith("config") else f"config: {exc}")
 
-RESULTS = CONFIG["workflow"]["results"]
+# one spelling per folder: Snakemake keys its records of past runs by the path as written, so
+# "results" and its absolute path would not share them (a later change would leave stale models)
+RESULTS = os.path.normpath(CONFIG["workflow"]["results"])
+if os.path.isabs(RESULTS) and os.path.relpath(RESULTS).split(os.sep)[0] != os.pardir:
+    RESULTS = os.path.relpath(RESULTS)
+if RESULTS == os.curdir:
+    raise WorkflowError(f"config: key 'workflow.results': {CONFIG['workflow']['results']!r} is the working folder "
+                        "itself; give a folder for the results (default: results)")
 PHANTOM_DIR = "resources/phantoms"
 # the environment every rule runs in (used with --software-deployment-method conda); its
 # post-deploy script installs dicer from this checkout, found through DICER_SOURCE
@@ -252,7 +259,7 @@ def all_outputs():
 
 
 def patient_stages(patient):
-    """The stages a patient's model goes through, as named in benchmarks/<patient>/<stage>.tsv."""
+    """The stages a patient's model goes through, as named in <results>/benchmarks/<patient>/<stage>.tsv."""
     first = ["labels"] if patient in LABEL_PATIENTS else ["segment"]
     if patient not in LABEL_PATIENTS or downsample_applies(patient_config(patient)):
         first.append("downsample")

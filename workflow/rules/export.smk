@@ -19,7 +19,7 @@ rule export:
     benchmark:
         benchmark_file("export_{ext}"),
     log:
-        "logs/{patient}/export_{ext}.log",
+        log_file("export_{ext}"),
     wildcard_constraints:
         ext="inp|vtu|out|neu|k|msh|exo|e|feb",
     shell:
@@ -77,7 +77,7 @@ rule quality:
     benchmark:
         benchmark_file("quality"),
     log:
-        "logs/{patient}/quality.log",
+        log_file("quality"),
     shell:
         "dicer quality {input.mesh:q} --labels {input.labels:q} --original {input.original:q} -o {output.json:q}"
         " --html {output.html:q} --histogram {output.histogram:q} --model-picture {output.model:q}"

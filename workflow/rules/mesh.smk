@@ -19,7 +19,7 @@ rule mesh:
     benchmark:
         benchmark_file("mesh"),
     log:
-        "logs/{patient}/mesh.log",
+        log_file("mesh"),
     shell:
         "dicer mesh {input.labels:q} -o {output:q} {params.materials} --settings {params.settings:q} > {log:q} 2>&1"
 
@@ -41,7 +41,7 @@ rule merge:
     benchmark:
         benchmark_file("merge"),
     log:
-        "logs/{patient}/merge.log",
+        log_file("merge"),
     shell:
         "dicer merge {input:q} -o {output.mesh:q} --report {output.report:q}"
         " --settings {params.settings:q} > {log:q} 2>&1"
@@ -68,7 +68,7 @@ rule smooth:
     benchmark:
         benchmark_file("smooth"),
     log:
-        "logs/{patient}/smooth.log",
+        log_file("smooth"),
     shell:
         "dicer smooth {input.mesh:q} -o {output.mesh:q} --report {output.report:q} {params.labels}"
         " {params.scan}"

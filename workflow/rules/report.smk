@@ -32,7 +32,7 @@ rule cohort:
         mem_mb=300,
         runtime=5,
     log:
-        "logs/cohort.log",
+        os.path.join(RESULTS, "logs", "cohort.log"),
     script:
         # dicer cohort with the paths in an argument file: a cohort's would pass a shell
         # command's 128 KB

@@ -79,5 +79,11 @@ def runtime(stage):
 
 
 def benchmark_file(stage):
-    """benchmark: seconds and peak memory of one stage of one patient."""
-    return os.path.join("benchmarks", "{patient}", f"{stage}.tsv")
+    """benchmark: seconds and peak memory of one stage of one patient, in its results folder (two
+    results folders in one working folder keep their own)."""
+    return os.path.join(RESULTS, "benchmarks", "{patient}", f"{stage}.tsv")
+
+
+def log_file(stage):
+    """log: the output and errors of one stage of one patient, in its results folder."""
+    return os.path.join(RESULTS, "logs", "{patient}", f"{stage}.log")

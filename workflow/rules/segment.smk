@@ -46,7 +46,7 @@ rule segment:
     benchmark:
         benchmark_file("segment"),
     log:
-        "logs/{patient}/segment.log",
+        log_file("segment"),
     wildcard_constraints:
         patient=IMAGE_PATIENTS,
     shell:
@@ -72,7 +72,7 @@ rule labels:
     benchmark:
         benchmark_file("labels"),
     log:
-        "logs/{patient}/labels.log",
+        log_file("labels"),
     wildcard_constraints:
         patient=LABELS_PATIENTS,
     shell:
@@ -98,7 +98,7 @@ rule downsample:
     benchmark:
         benchmark_file("downsample"),
     log:
-        "logs/{patient}/downsample.log",
+        log_file("downsample"),
     shell:
         "dicer downsample {input.labels:q} -o {output:q} {params.materials} --settings {params.settings:q}"
         " > {log:q} 2>&1"
@@ -123,7 +123,7 @@ rule fix:
     benchmark:
         benchmark_file("fix"),
     log:
-        "logs/{patient}/fix.log",
+        log_file("fix"),
     shell:
         "dicer fix {input.labels:q} -o {output.labels:q} --report {output.report:q} {params.materials}"
         " --settings {params.settings:q} > {log:q} 2>&1"

@@ -42,7 +42,10 @@ def _config(args) -> dict:
             raise DicerError(f"--settings: not valid JSON ({exc.msg}); pass a JSON object") from None
         if not isinstance(settings, dict):
             raise DicerError("--settings: pass a JSON object of config sections")
-    config = load_config(args.config, args.set or (), settings)
+    sets = list(args.set or ())
+    if getattr(args, "order", None) is not None:  # dicer export --order: read with the rest, so the element type fits it
+        sets.append(f"export.order={args.order}")
+    config = load_config(args.config, sets, settings)
     if getattr(args, "materials", None):
         # the file gives the materials of the mapped labels, in order; a material the user's
         # own config also lists takes its properties from there (the workflow's label patients:
@@ -1332,12 +1335,7 @@ def cmd_mesh(args):
 def cmd_export(args):
     from dicer.export import EXPORT_SUFFIXES
 
-    config = _config(args)
-    if args.order is not None:
-        config["export"]["order"] = args.order
-        from dicer.config import validate
-
-        validate(config, "--order")
+    config = _config(args)  # with --order
     do_export(args.mesh, _check_output(args.output, EXPORT_SUFFIXES, "the model file"), config,
               materials_path=args.materials)
 

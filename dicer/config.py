@@ -190,10 +190,31 @@ class DuplicateKey(Exception):
         self.key, self.line, self.first = key, line, first
 
 
-_Loader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
-    list("-+0123456789"))
+_EXPONENT_FLOAT = re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$")
+_Loader.add_implicit_resolver("tag:yaml.org,2002:float", _EXPONENT_FLOAT, list("-+0123456789"))
+
+
+def exponent_floats(tree):
+    """A parsed configuration with the strings YAML 1.1 leaves of floats in exponent form without
+    a dot (``1e-9``) made numbers, as dicer's own reader reads them (Snakemake reads its config
+    files as YAML 1.1, so a config the command line takes failed the schema in the workflow).
+
+    Parameters
+    ----------
+    tree : dict, list or scalar
+        As a YAML reader gives it.
+
+    Returns
+    -------
+    The same structure, such strings as floats.
+    """
+    if isinstance(tree, dict):
+        return {k: exponent_floats(v) for k, v in tree.items()}
+    if isinstance(tree, list):
+        return [exponent_floats(v) for v in tree]
+    if isinstance(tree, str) and _EXPONENT_FLOAT.match(tree):
+        return float(tree.replace("_", ""))
+    return tree
 
 # integers as YAML 1.2 reads them: 010 is ten (YAML 1.1: octal eight, so a labels.map key
 # 010 named label 8), 1:30 is a string (YAML 1.1: sexagesimal 90); 0o17 and 0x1F stay
@@ -504,6 +525,16 @@ def _check_combinations(config: dict, source: str) -> None:
                          "labels' samples within their voxels (by their smoothest surface, or by the scan); set one "
                          "of them")
     order = config.get("export", {}).get("order")
+    etype = config.get("export", {}).get("element_type")
+    if order is not None and etype is not None:
+        from dicer.export.model import ELEMENT_TYPES
+
+        dim, etype_order = ELEMENT_TYPES.get(etype, (None, order))
+        if etype_order != order:
+            kinds = [t for t, (d, o) in ELEMENT_TYPES.items() if d == dim and o == order]
+            raise DicerError(f"{source}: key 'export.element_type': {etype} has order {etype_order} and export.order "
+                             f"is {order}; set export.order: {etype_order}, or an element type of order {order} "
+                             f"({', '.join(kinds)})")
     exports = config.get("workflow", {}).get("exports", ())
     if order is not None and isinstance(exports, list):
         from dicer.export.registry import BY_SUFFIX

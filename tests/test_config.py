@@ -193,6 +193,33 @@ def test_exponent_floats_without_a_dot_are_numbers(tmp_path):
     assert load_config(sets=["segment.method=otsu"])["segment"]["method"] == "otsu"
 
 
+def test_the_workflow_reads_exponent_floats_as_dicer_does():
+    """Snakemake reads its config as YAML 1.1, where 1e-9 is a string: a config that dicer run
+    took failed the workflow's check ('1e-9' is not of type 'number')."""
+    import yaml
+
+    from dicer.config import exponent_floats
+
+    parsed = yaml.safe_load("materials:\n  - {name: bone, density: 1e-9, youngs_modulus: 2E+4}\nsmooth:\n"
+                            "  tolerance: 1e-5\nworkflow:\n  results: out1e5\n")
+    assert parsed["materials"][0]["density"] == "1e-9"  # YAML 1.1
+    fixed = exponent_floats(parsed)
+    assert fixed["materials"][0] == {"name": "bone", "density": 1e-9, "youngs_modulus": 2e4}
+    assert fixed["smooth"]["tolerance"] == 1e-5 and fixed["workflow"]["results"] == "out1e5"
+    assert load_config(settings=fixed)["materials"][0]["density"] == 1e-9
+
+
+def test_an_element_type_of_another_order_is_refused_when_the_config_is_read():
+    """It was refused at export, after every stage before it had run (and in the workflow, after
+    a patient's whole chain)."""
+    with pytest.raises(DicerError, match=r"key 'export.element_type': C3D20R has order 2 and export.order is 1; "
+                                         r"set export.order: 2, or an element type of order 1 \(C3D8, C3D8R, C3D8I\)"):
+        load_config(sets=["export.element_type=C3D20R"])
+    assert load_config(sets=["export.element_type=C3D20R", "export.order=2"])["export"]["order"] == 2
+    with pytest.raises(DicerError, match="CPS8 has order 2 and export.order is 1"):
+        load_config(settings={"export": {"element_type": "CPS8"}})
+
+
 def test_label_values_read_as_decimal_and_once(tmp_path):
     # YAML 1.1 reads 010 as octal 8: labels.map would name label 8 and leave 10 unnamed
     path = tmp_path / "c.yaml"

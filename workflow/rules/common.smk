@@ -10,8 +10,8 @@ from pathlib import Path
 from snakemake.exceptions import WorkflowError
 
 from dicer.cli import downsample_applies
-from dicer.config import (deep_merge, for_label_volume, load_config, parse_set, smoothing_reads_scan, stage_kwargs,
-                          stage_settings)
+from dicer.config import (deep_merge, exponent_floats, for_label_volume, load_config, parse_set, smoothing_reads_scan,
+                          stage_kwargs, stage_settings)
 from dicer.errors import DicerError
 from dicer.phantoms import PHANTOMS
 from dicer.sheet import beside_sheet, read_sheet
@@ -19,6 +19,7 @@ from dicer.sheet import beside_sheet, read_sheet
 # the rules call the `dicer` installed beside this Snakemake
 os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", "")
 
+config.update(exponent_floats(config))  # 1e-9 is a number to dicer's reader, a string to Snakemake's
 try:
     CONFIG = load_config(settings=config)
 except DicerError as exc:

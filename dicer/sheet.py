@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+import re
 from pathlib import Path
 
 from dicer.errors import DicerError
@@ -222,3 +223,43 @@ def beside_sheet(path: str | os.PathLike, sheet: str | os.PathLike) -> Path | No
     if here.exists() and os.path.samefile(here, beside):
         return None
     return beside
+
+
+def scan_files(path: str | os.PathLike) -> list[Path]:
+    """The files that hold a scan or label volume: a folder's files (a DICOM series, a TIFF
+    stack), or the file and the data file its detached header names (MetaImage
+    ``ElementDataFile``, NRRD ``data file``, Analyze ``.img``) — not other files that share its
+    name's stem (``ct.v2.nii.gz`` beside ``ct.v1.nii.gz``).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The image or labels path of a sheet's row.
+
+    Returns
+    -------
+    list of Path
+        Sorted; those that exist.
+    """
+    path = Path(path)
+    if path.is_dir():
+        return sorted(f for f in path.rglob("*") if f.is_file())
+    return sorted(f for f in {path, *_data_files(path)} if f.is_file())
+
+
+def _data_files(header: Path) -> list[Path]:
+    """The data files a detached header names, beside it (none for other files)."""
+    name = header.name.lower()
+    if name.endswith(".hdr"):
+        return [header.with_suffix(".img"), header.with_suffix(".img.gz")]
+    if not name.endswith((".mhd", ".nhdr")):
+        return []
+    try:
+        text = header.read_bytes()[:65536].decode("latin-1")
+    except OSError:
+        return []
+    key = (r"^\s*ElementDataFile\s*=\s*(.+?)\s*$" if name.endswith(".mhd") else r"^\s*data ?file\s*:\s*(.+?)\s*$")
+    found = re.search(key, text, re.IGNORECASE | re.MULTILINE)
+    if found is None or found.group(1).split()[0].upper() in ("LOCAL", "LIST"):
+        return []
+    return [header.parent / found.group(1).split()[0]]

@@ -104,3 +104,28 @@ def test_paths_are_the_working_folders_and_the_sheets_folder_is_named_when_it_di
     assert beside_sheet("scans/P1.nii.gz", "patients.tsv") is None  # the sheet in the working folder
     assert beside_sheet(str(tmp_path / "scans" / "P1.nii.gz"), sheet) is None
     assert beside_sheet("scans/P2.nii.gz", sheet) is None
+
+
+def test_a_scans_files_are_its_own_and_its_headers_data_file(tmp_path):
+    """The workflow watched every file whose name shares the scan's stem: another scan or a note
+    beside it (ct.v2.nii.gz, ct.v1.notes.txt) re-ran the patient's whole chain."""
+    from dicer.sheet import scan_files
+
+    for name in ("ct.v1.nii.gz", "ct.v2.nii.gz", "ct.v1.notes.txt", "head.mhd", "head.raw", "head.zraw", "knee.nhdr",
+                 "knee_voxels.raw.gz", "knee.raw", "old.hdr", "old.img", "one.mha"):
+        (tmp_path / name).write_bytes(b"x")
+    (tmp_path / "head.mhd").write_text("NDims = 3\nElementType = MET_SHORT\nElementDataFile = head.raw\n")
+    (tmp_path / "knee.nhdr").write_text("NRRD0004\ntype: short\ndata file: knee_voxels.raw.gz\n")
+    (tmp_path / "one.mha").write_text("NDims = 3\nElementDataFile = LOCAL\n")
+    names = lambda path: [f.name for f in scan_files(tmp_path / path)]  # noqa: E731
+    assert names("ct.v1.nii.gz") == ["ct.v1.nii.gz"]
+    assert names("head.mhd") == ["head.mhd", "head.raw"]
+    assert names("knee.nhdr") == ["knee.nhdr", "knee_voxels.raw.gz"]
+    assert names("old.hdr") == ["old.hdr", "old.img"]
+    assert names("one.mha") == ["one.mha"]
+    (tmp_path / "dicom").mkdir()
+    for i in (2, 1):
+        (tmp_path / "dicom" / f"{i}.dcm").write_bytes(b"x")
+    assert names("dicom") == ["1.dcm", "2.dcm"]
+    assert names("missing.nii.gz") == []
+

@@ -14,7 +14,7 @@ from dicer.config import (deep_merge, exponent_floats, for_label_volume, load_co
                           stage_kwargs, stage_settings)
 from dicer.errors import DicerError
 from dicer.phantoms import PHANTOMS
-from dicer.sheet import beside_sheet, read_sheet
+from dicer.sheet import beside_sheet, read_sheet, scan_files
 
 # the rules call the `dicer` installed beside this Snakemake
 os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", "")
@@ -161,17 +161,12 @@ def input_fingerprint(path):
     leaves the folder's own time, and a file copied in with its older time (cp -p, rsync -a,
     tar) looks older than the results; both left a stale model. Phantoms are the workflow's
     own outputs and need none."""
-    import glob
     import hashlib
 
     path = Path(path)
     if path.parent == Path(PHANTOM_DIR):
         return ""
-    if path.is_dir():
-        files = sorted(f for f in path.rglob("*") if f.is_file())
-    else:  # ct.mhd and its ct.raw, ct.nhdr and its ct.raw.gz
-        stem = path.name.split(".")[0]
-        files = sorted(f for f in path.parent.glob(glob.escape(stem) + ".*") if f.is_file())
+    files = scan_files(path)
     entries = [[str(f.relative_to(path if path.is_dir() else path.parent)), f.stat().st_size, f.stat().st_mtime_ns]
                for f in files]
     return hashlib.sha256(json.dumps(entries).encode()).hexdigest()[:16]

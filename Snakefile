@@ -26,3 +26,11 @@ rule all:
     input:
         all_outputs(),
     default_target: True
+
+
+onsuccess:
+    say_skipped()
+
+
+onerror:
+    say_skipped()

@@ -67,7 +67,8 @@ def _planned_jobs(proc: subprocess.CompletedProcess) -> dict[str, int]:
 @pytest.fixture(scope="module")
 def cohort(tmp_path_factory):
     workdir = _cohort(tmp_path_factory.mktemp("cohort"))
-    _snakemake(workdir)
+    first = _snakemake(workdir)
+    (workdir.parent / "first_run.err").write_text(first.stderr)
     return workdir
 
 
@@ -102,6 +103,15 @@ def test_a_results_folder_holds_its_own_logs_and_one_spelling_of_it_its_records(
     assert refused.returncode != 0
     assert "config: key 'workflow.results': '.' is the working folder itself; give a folder for the results" in (
         refused.stdout + refused.stderr)
+
+
+def test_skipped_patients_are_said_again_when_the_run_ends(cohort):
+    """With workflow.skip_missing a mistyped path dropped its patient, said only in the run's
+    first lines."""
+    said = (cohort.parent / "first_run.err").read_text().splitlines()
+    summary = ("dicer workflow: 1 patient(s) skipped, their input not found: absent (no/such/scan.nii.gz, line 4); "
+               "fix the paths, or set workflow.skip_missing: false to stop on them")
+    assert summary in said and said.index(summary) > len(said) - 5  # at the end, after the jobs
 
 
 def test_patient_overrides_apply(cohort):

@@ -77,7 +77,19 @@ def _available(row, number, sheet):
         raise WorkflowError(f"{where}: {image} not found{hint}; fix the path, or set workflow.skip_missing: true to "
                             "skip such rows")
     print(f"dicer workflow: skipping patient {row['patient']}: {image} not found{hint}", file=sys.stderr)
+    SKIPPED.append(f"{row['patient']} ({image}, line {number})")
     return False
+
+
+SKIPPED = []  # patients left out by workflow.skip_missing, said again when the run ends
+
+
+def say_skipped():
+    """onsuccess/onerror: the patients left out, so a mistyped path is not lost in the run's
+    first lines (the cohort table has no row for them)."""
+    if SKIPPED:
+        print(f"dicer workflow: {len(SKIPPED)} patient(s) skipped, their input not found: {', '.join(SKIPPED)}; "
+              "fix the paths, or set workflow.skip_missing: false to stop on them", file=sys.stderr)
 
 
 SHEET = _read_patients(CONFIG["workflow"]["patients"])

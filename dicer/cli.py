@@ -1552,6 +1552,11 @@ def _run_chain(args):
     if (outdir.exists() or outdir.is_symlink()) and not outdir.is_dir():
         raise DicerError(f"{outdir}: exists and is not a folder; give an output folder with -o")
     source = args.labels if args.image is None else args.image
+    smooth = config["smooth"]
+    if args.image is None and smooth["fit_to_scan"] and smooth["surface_from_labels"]:
+        log.warning("smooth: smooth.fit_to_scan places the labels' faces by the scan they were segmented from, and a "
+                    "label volume input comes without one: the fit takes the labels' faces as they are (dicer smooth "
+                    "--labels … --image SCAN --thresholds … places them)")
     dim = _input_dims(source)
     if dim is not None:  # before any stage (fix checks the labels it made again)
         _check_export_dims(config, dim, source)

@@ -534,3 +534,11 @@ def test_dicer_run_on_a_scan_places_the_faces_by_it(tmp_path, caplog):
     assert [r.getMessage() for r in caplog.records if "fit_to_scan" in r.getMessage()] == [
         "smooth: smooth.fit_to_scan places the labels' faces by the scan: it needs both --labels and --image (with "
         "--thresholds); without --image the fit takes the labels' faces as they are"]
+    # dicer run --labels: no scan to place the faces by, said once before the stages
+    caplog.clear()
+    assert main(["run", "--labels", str(run / "labels_fixed.nii.gz"), "-o", str(tmp_path / "from_labels"), "--config",
+                 str(tmp_path / "c.yaml"), "--set", "smooth.fit_to_scan=true"]) == 0
+    assert [r.getMessage() for r in caplog.records if "fit_to_scan" in r.getMessage()] == [
+        "smooth: smooth.fit_to_scan places the labels' faces by the scan they were segmented from, and a label "
+        "volume input comes without one: the fit takes the labels' faces as they are (dicer smooth --labels … "
+        "--image SCAN --thresholds … places them)"]

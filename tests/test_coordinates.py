@@ -258,6 +258,18 @@ def test_forms_that_differ_are_warned_of_by_how_far_the_corners_move(tmp_path, c
     expected = np.linalg.norm(rotation([0, 0, 1], 0.4) @ far - far)
     assert len(said) == 1 and "(code 1) and qform (code 1)" in said[0]
     assert f"corners up to {expected:.3g} mm apart" in said[0]
+    # forms apart by less than a tenth of a voxel (a float32 quaternion of a tilted scan: up to
+    # 0.02 mm at a head's corners): header precision, no word
+    caplog.clear()
+    small = float(np.min(SPACING)) * 0.05 / np.linalg.norm(far)  # the far corner moves 0.05 voxel
+    sform[:3, :3] = rotation([0, 0, 1], small) * np.asarray(SPACING)
+    write_raw_nifti(path, labels_array(), sform, (0.0, 0.0, 0.0, 5.0, 6.0, 7.0), scode=1)
+    read_labels(path)
+    assert "place the image differently" not in caplog.text
+    sform[:3, :3] = rotation([0, 0, 1], 4 * small) * np.asarray(SPACING)  # 0.2 voxel: said
+    write_raw_nifti(path, labels_array(), sform, (0.0, 0.0, 0.0, 5.0, 6.0, 7.0), scode=1)
+    read_labels(path)
+    assert "place the image differently" in caplog.text
 
 
 def _run(*argv) -> None:

@@ -28,7 +28,7 @@ from dicer.pages import LARGE_JOB, large_job, ordinary_pages, reuse_freed_memory
 
 log = logging.getLogger("dicer")
 
-LABEL_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".mha", ".mhd", ".npy")
+LABEL_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".npy")
 
 
 def _config(args) -> dict:
@@ -321,6 +321,13 @@ def do_labels(labels_path: str, out: Path, config: dict, materials_path: Path | 
                 log.info("labels: the segment names of %s name its materials (%s); labels.map replaces them",
                          labels_path, brief_json(settings["map"]))
         mapped, materials, info = map_labels(labels, **settings, source=labels_path)
+        if mapped.array.size > 1 and mapped.array.min() > 0:  # a box of solid: its background given a value
+            import numpy as np
+
+            values = np.unique(labels.array)
+            log.warning("labels: every voxel of %s is a material (values %s), so the model fills the whole image "
+                        "box; if the background has a value of its own (a header's scl_inter, an atlas's 'unknown'), "
+                        "set labels.drop: [value]", labels_path, brief_names([f"{v:g}" for v in values.tolist()]))
         write_mapped_labels(mapped, labels_path, out)
         if materials_path:
             written = [{"name": m["name"]} for m in materials] if names_only else materials

@@ -626,3 +626,46 @@ def test_a_slicer_segmentation_names_its_materials_after_its_segments(tmp_path, 
     warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert len(warned) == 1 and warned[0].startswith(f"labels: the segment names of {path} do not name the "
                                                      "materials (names Bone and bone differ only in case")
+
+
+def test_label_volumes_of_the_wrong_kind_say_what_they_look_like(tmp_path, capsys, caplog):
+    """A CT given as labels, a label volume given as the image, labels resampled by linear
+    interpolation and a volume with no background were refused or meshed with advice that did
+    not name the likely cause."""
+    import SimpleITK as sitk
+
+    from dicer.image import Volume
+    from dicer.io.images import write_image
+
+    lab = np.zeros((10, 9, 8), np.float32)
+    lab[2:8, 2:7, 2:6] = 1
+    lab[4:6, 4:6, 3:5] = 2
+    # a detached NRRD header (.nhdr and its .raw), as images are read
+    sitk.WriteImage(sitk.GetImageFromArray(lab.astype(np.uint8).T), str(tmp_path / "knee.nhdr"))
+    assert np.array_equal(read_labels(tmp_path / "knee.nhdr").array, lab.astype(np.uint8))
+    # resampled by linear interpolation
+    smooth = lab.copy()
+    smooth[5, 5, 4] = 1.9999998
+    write_image(Volume(smooth, (1.0, 1.0, 1.0)), tmp_path / "resampled.nii.gz")
+    with pytest.raises(DicerError, match=r"resampled.nii.gz: 1 of 720 labels are not whole numbers \(e.g. 1.99999976\)"
+                                         r": a label volume resampled or smoothed by linear interpolation mixes its "
+                                         r"classes; resample it by nearest neighbour, or round it"):
+        read_labels(tmp_path / "resampled.nii.gz")
+    # a CT
+    write_image(Volume(np.full((6, 6, 6), -1000.0, np.float32), (1.0, 1.0, 1.0)), tmp_path / "ct.nii.gz")
+    with pytest.raises(DicerError, match="min -1000.*a CT's air is near -1000.*are segmented from the IMAGE of dicer "
+                                         "run"):
+        read_labels(tmp_path / "ct.nii.gz")
+    # a label volume as the image
+    write_image(Volume(lab, (1.0, 1.0, 1.0)), tmp_path / "labels.nii.gz")
+    assert _cli("run", tmp_path / "labels.nii.gz", "-o", tmp_path / "out") == 2
+    assert "the image's values span 0 .. 2; move the range inside the image's values; an image of the few whole " \
+           "values 0 .. 255 is most likely a label volume: give it with --labels" in capsys.readouterr().err
+    # no background: the whole box is solid, said
+    write_image(Volume(lab + 10, (1.0, 1.0, 1.0)), tmp_path / "shifted.nii.gz")
+    caplog.clear()
+    assert _cli("labels", tmp_path / "shifted.nii.gz", "-o", tmp_path / "l.nii.gz") == 0
+    assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == [
+        f"labels: every voxel of {tmp_path / 'shifted.nii.gz'} is a material (values 10, 11, 12), so the model fills "
+        "the whole image box; if the background has a value of its own (a header's scl_inter, an atlas's 'unknown'), "
+        "set labels.drop: [value]"]

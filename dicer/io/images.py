@@ -52,7 +52,7 @@ sitk = _SimpleITKOnFirstUse()
 #: single-file image formats (lower-case name endings)
 IMAGE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".npy", ".tif", ".tiff", ".png", ".dcm")
 #: label volume formats
-LABEL_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".mha", ".mhd", ".npy")
+LABEL_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".npy")
 #: formats ``write_image`` writes
 WRITE_IMAGE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".mha")
 #: formats ``write_labels`` writes
@@ -1451,8 +1451,15 @@ def read_labels(path: str | os.PathLike, spacing=None) -> Volume:
     volume = _read_file(path, spacing, dtype=None, keep_direction=True)
     array = volume.array
     if array.dtype.kind == "f":
-        if not np.all(np.isfinite(array)) or not np.array_equal(array, np.round(array)):
-            raise DicerError(f"{path}: the labels are not whole numbers; save integer class labels "
+        if not np.all(np.isfinite(array)):
+            raise DicerError(f"{path}: the labels hold NaN or infinite values; save integer class labels "
+                             "(0 = background, 1..K = materials)")
+        off = array != np.round(array)
+        if off.any():
+            example = array[off].flat[0].item()
+            raise DicerError(f"{path}: {np.count_nonzero(off)} of {array.size} labels are not whole numbers (e.g. "
+                             f"{example:.9g}): a label volume resampled or smoothed by linear interpolation mixes its "
+                             "classes; resample it by nearest neighbour, or round it, and save integer class labels "
                              "(0 = background, 1..K = materials)")
     elif array.dtype.kind == "b":
         array = array.astype(np.uint8)
@@ -1460,7 +1467,9 @@ def read_labels(path: str | os.PathLike, spacing=None) -> Volume:
     lo, hi = (array.min().item(), array.max().item()) if array.size else (0, 0)
     if lo < 0:
         raise DicerError(f"{path}: the labels contain negative values (min {lo:g}); use 0 for background "
-                         "and 1..K for materials")
+                         "and 1..K for materials" + ("; a scan's values (a CT's air is near -1000) are segmented "
+                                                     "from the IMAGE of dicer run (or dicer segment), not given "
+                                                     "as labels" if lo <= -100 else ""))
     dtype = np.uint8 if hi < 256 else np.int16 if hi <= np.iinfo(np.int16).max else np.int32
     if hi > np.iinfo(np.int32).max:
         raise DicerError(f"{path}: label value {int(hi)} is too large (at most {np.iinfo(np.int32).max}); number the "

@@ -249,7 +249,10 @@ def check_ranges(ranges, k: int, names: list[str], lo: float, hi: float, source:
             # (stored as HU + 1024, air near 0) more often than not
             shifted = ("; a CT stored as HU + 1024 (its rescale intercept lost: air near 0) needs 1024 subtracted, or "
                        "ranges shifted by +1024 for every material; an MR needs ranges in its own values, or "
-                       "segment.method: multiotsu" if lo > -50 and hi > 1000 else "")
+                       "segment.method: multiotsu" if lo > -50 and hi > 1000 else
+                       "; an image of the few whole values 0 .. 255 is most likely a label volume: give it with "
+                       "--labels (dicer run --labels, dicer labels)" if lo == 0 and hi <= 255 and float(hi).is_integer()
+                       else "")
             raise DicerError(f"{source}: {key} for class '{name}' is [{a:g}, {b:g}] but the image's values span "
                              f"{lo:g} .. {hi:g}; move the range inside the image's values{shifted}")
         out.append((a, b))

@@ -456,6 +456,22 @@ def test_bad_override_stops_the_run_naming_the_sheet_line_without_traceback(tmp_
     assert "Traceback" not in out and "InputFunctionException" not in out
 
 
+def test_a_rows_file_of_another_kind_stops_the_run_naming_the_sheet_line(tmp_path):
+    """A text file as the image, or a folder as the label volume, was found inside the patient's
+    first job, named by its path alone."""
+    workdir = _cohort(tmp_path)
+    (workdir / "notes.txt").write_text("not a scan\n")
+    (workdir / "seg").mkdir()
+    for column, path, said in (("image", "notes.txt", "notes.txt: unknown image format '.txt'; supported inputs"),
+                               ("labels", "seg", "seg: label volumes must be one of .nii, .nii.gz")):
+        (workdir / "config" / "patients.tsv").write_text(f"patient\t{column}\toverrides\np1\t{path}\t\n")
+        proc = _snakemake(workdir, "-n", check=False)
+        out = proc.stdout + proc.stderr
+        assert proc.returncode != 0
+        assert f"patients.tsv, line 2: patient 'p1': {said}" in out
+        assert "Traceback" not in out
+
+
 def test_a_cropped_patient_pulled_onto_its_scan_matches_dicer_run(tmp_path):
     """The smooth rule was given the smooth section only: the pull read the uncropped scan
     against the cropped mesh (nodes up to 7.6 mm from dicer run's, exit 0)."""

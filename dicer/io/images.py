@@ -77,6 +77,32 @@ def _suffix(path: Path) -> str:
     return path.suffix.lower()
 
 
+def check_input_kind(path: str | os.PathLike, labels: bool = False) -> None:
+    """Refuse a path that cannot be a scan (or a label volume) by its name alone, before any
+    stage: the workflow's sheet is checked so, naming its line, rather than in the first job.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        An existing file or folder.
+    labels : bool, optional
+        A label volume (one file of :data:`LABEL_SUFFIXES`), not a scan.
+
+    Raises
+    ------
+    DicerError
+        A folder given as a label volume, or a file of another format.
+    """
+    path = Path(path)
+    if labels:
+        if path.is_dir() or not path.name.lower().endswith(LABEL_SUFFIXES):
+            raise DicerError(f"{path}: label volumes must be one of {', '.join(LABEL_SUFFIXES)}; convert the labels to "
+                             "NIfTI (.nii.gz), or give a scan in the image column")
+        return
+    if path.is_file() and _suffix(path) not in IMAGE_SUFFIXES and not _dicom_preamble(path):
+        raise DicerError(f"{path}: unknown image format {_suffix(path) or '(no extension)'!r}; {_SUPPORTED}")
+
+
 def _natural_key(name: str):
     # "slice2.png" before "slice10.png"
     return [(0, int(t), "") if t.isdigit() else (1, 0, t.lower()) for t in re.split(r"(\d+)", name)]

@@ -13,6 +13,7 @@ from dicer.cli import downsample_applies
 from dicer.config import (deep_merge, exponent_floats, for_label_volume, load_config, parse_set, smoothing_reads_scan,
                           stage_kwargs, stage_settings)
 from dicer.errors import DicerError
+from dicer.io.images import check_input_kind
 from dicer.phantoms import PHANTOMS
 from dicer.sheet import beside_sheet, read_sheet, scan_files
 
@@ -68,6 +69,10 @@ def _available(row, number, sheet):
         return True
     other = beside_sheet(image, sheet)
     if Path(image).exists():
+        try:  # a file of another kind: said here, naming the line, not in the patient's first job
+            check_input_kind(image, labels=not row.get("image"))
+        except DicerError as exc:
+            raise WorkflowError(f"{where}: {exc}")
         if other is not None:
             print(f"dicer workflow: {where}: reading {image} from the working folder, not {other} beside the sheet "
                   "(paths in the sheet are taken from the working folder)", file=sys.stderr)

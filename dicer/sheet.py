@@ -155,6 +155,10 @@ def _check_row(row: dict, schema: dict, where: str) -> None:
     if bool(row.get("image")) == bool(row.get("labels")):
         raise DicerError(f"{where}: patient {row['patient']!r}: give either an image or a labels file (a label "
                          "volume to mesh), not both and not neither")
+    glued = re.search(r",\s*([A-Za-z_]\w*(?:\.\w+)+)\s*=", row.get("overrides", ""))
+    if glued:  # "downsample.factor=2,segment.keep=largest": the second became part of the first's value
+        raise DicerError(f"{where}: patient {row['patient']!r}: overrides are separated by ';', not ',' (before "
+                         f"{glued.group(1)!r}); write KEY=VALUE;KEY=VALUE")
     keys = [item.split("=", 1)[0].strip() for item in row.get("overrides", "").split(";") if item.strip()]
     clash = _sets_one_key_twice(row.get("overrides", ""))
     if clash:  # a section and one of its keys: the later value would be dropped unsaid

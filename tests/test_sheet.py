@@ -42,6 +42,9 @@ def test_rows_keep_their_line_numbers_across_blank_rows(tmp_path):
     # the workflow's settings per patient were checked, then ignored
     (HEAD + "A\ta.nii.gz\tworkflow.exports=[inp,feb]\n",
      r"line 2: patient 'A': override 'workflow.exports': the workflow settings are the whole cohort's"),
+    # overrides glued with a comma: the second became part of the first's value ("2,segment.keep=largest")
+    (HEAD + "A\ta.nii.gz\tdownsample.factor=2,segment.keep=largest\n",
+     r"line 2: patient 'A': overrides are separated by ';', not ',' \(before 'segment.keep'\); write KEY=VALUE;KEY=VALUE"),
     (HEAD + "A\ta.nii.gz\tdownsample.factor=2;downsample.factor=1\n",
      r"line 2: patient 'A': override 'downsample.factor' is given twice"),
     # a section and one of its keys, spelled differently: the key's value won unsaid

@@ -98,12 +98,13 @@ def save_overlay_png(image: Volume, labels: Volume, path, title: str = "", n_cla
     sp = image.spacing
     centre = slice_centre(lab)
     if img.ndim == 2:
-        views = [((slice(None), slice(None)), (0, 1), "x-y")]
+        views = [((slice(None), slice(None)), (0, 1), "i-j")]
     else:
         cx, cy, cz = centre
-        views = [((slice(None), slice(None), cz), (0, 1), f"x-y at z={cz}"),
-                 ((slice(None), cy, slice(None)), (0, 2), f"x-z at y={cy}"),
-                 ((cx, slice(None), slice(None)), (1, 2), f"y-z at x={cx}")]
+        # the image's index axes i, j, k (the scanner's x, y, z only for an unturned scan)
+        views = [((slice(None), slice(None), cz), (0, 1), f"i-j at k={cz}"),
+                 ((slice(None), cy, slice(None)), (0, 2), f"i-k at j={cy}"),
+                 ((cx, slice(None), slice(None)), (1, 2), f"j-k at i={cx}")]
     fig = Figure(figsize=(4.2 * len(views), 4.6))
     for i, (sl, (a0, a1), label) in enumerate(views):
         ax = fig.add_subplot(1, len(views), i + 1)
@@ -113,8 +114,8 @@ def save_overlay_png(image: Volume, labels: Volume, path, title: str = "", n_cla
         ax.imshow(lab[sl].T, cmap=cmap, vmin=-0.5, vmax=k + 0.5, alpha=0.45, origin="lower",
                   extent=extent, interpolation="nearest")
         ax.set_title(label, fontsize=9)
-        ax.set_xlabel("xyz"[a0] + " (mm)", fontsize=8)
-        ax.set_ylabel("xyz"[a1] + " (mm)", fontsize=8)
+        ax.set_xlabel("ijk"[a0] + " (mm from voxel 0's corner)", fontsize=8)
+        ax.set_ylabel("ijk"[a1] + " (mm from voxel 0's corner)", fontsize=8)
         ax.tick_params(labelsize=7)
     if names:
         from matplotlib.patches import Patch

@@ -103,12 +103,12 @@ def test_lame_quarter_tube_from_labels_relaxed_with_a_pillow_layer_meets_3_perce
 def test_lame_quarter_tube_from_a_grey_value_image_with_the_faces_placed_by_it_meets_3_percent(tmp_path):
     """The Lamé target from the CT-like image (inner radius 7 voxels, C3D8 and C3D20): the fit to
     the threshold's labels with their faces placed by the scan (smooth.fit_to_scan), a pillow
-    layer, no merging, the floor 0.3: the bore's mean hoop stress +1.9 % and +1.0 % (measured;
-    its mean radius 7.023; at a = 14 +1.0 % and +0.2 %)."""
+    layer, no merging, the floor 0.3: the bore's mean hoop stress +1.6 % and +0.7 % (measured;
+    its mean radius 7.023; at a = 14 +0.8 % and +0.0 %)."""
     r = cases.lame(tmp_path, "quarter", ["smooth.surface_from_image=false", FIT, FIT_TO_SCAN, NO_MERGE, MIN_SJ_03,
                                          PILLOW], inner=7.0, outer=14.0, scan=True)
     assert r["inverted"] == 0 and r["min_sj"] >= 0.3
-    for order, measured in ((1, 0.0189), (2, 0.0103)):
+    for order, measured in ((1, 0.0155), (2, 0.0066)):
         assert r[order]["error_mean"] == pytest.approx(measured, abs=0.005)
         assert abs(r[order]["error_mean"]) < 0.03
     assert r[1]["bore_radius_mean"] == pytest.approx(7.023, abs=0.005)

@@ -185,14 +185,15 @@ def scan_crossings(points: np.ndarray, normals: np.ndarray, kinds: np.ndarray, s
     """Face samples moved to where the scan crosses their threshold between the voxels' centres.
 
     A face between a voxel of the lower kind and one of the higher lies half a voxel from
-    each centre; where the (smoothed) scan rises from the lower centre to the higher, the
-    sample moves to where it crosses the higher kind's threshold, at most half a voxel: the
-    crossing of the edge fitted through the two centres' values as a blurred step (the
-    normal distribution's integral between the values 2.5 voxels either side; the straight
-    line between them where those do not bracket the centres), or the nearer centre where
-    the threshold lies beyond it. Where the scan falls (noise across the threshold) the
-    sample stays on the face: the surface follows the labels, placed within the voxel by the
-    scan.
+    each centre; where an edge of the (smoothed) scan passes there (it rises from the lower
+    centre to the higher, and the higher kind's threshold lies between its values 2.5 voxels
+    either side), the sample moves to where the edge crosses the threshold, at most half a
+    voxel: the crossing of the edge fitted through the two centres' values as a blurred step
+    (the normal distribution's integral between those far values; the straight line between
+    the centres where the far values do not bracket theirs), or the nearer centre where the
+    threshold lies beyond it. Elsewhere (the segmentation's clean-up, noise across the
+    threshold) the sample stays on the face: the surface follows the labels, placed within the
+    voxel by the scan.
 
     Parameters
     ----------
@@ -214,18 +215,23 @@ def scan_crossings(points: np.ndarray, normals: np.ndarray, kinds: np.ndarray, s
     below, above = at(-0.5), at(0.5)
     low = at(-_FAR)
     contrast = at(_FAR) - low
-    # rising between the centres: the crossing, or the nearer centre where the threshold lies
-    # beyond it (the scan's own smoothing tips a voxel by the edge); falling (noise): the face
-    rising = above > below
-    f = np.where(rising, np.clip((t - below) / np.where(rising, above - below, 1.0), 0.0, 1.0), 0.5)
+    # an edge through the threshold here: the scan rises across it between the centres, or past
+    # a centre that the smoothing tipped over it while the scan crosses it further out that way
+    # (where both sides lie above it, the segmentation's clean-up or the fix made the face, and
+    # noise alone would move it)
+    edge = (above > below) & (((below < t) & (t <= above)) | ((below >= t) & (low < t))
+                              | ((above < t) & (low + contrast >= t)))
+    f = np.where(edge, np.clip((t - below) / np.where(edge, above - below, 1.0), 0.0, 1.0), 0.5)
     # a blurred edge rises as the normal distribution's integral: interpolated on its scale
     # (probit of the level within the edge's contrast) the crossing is that of the edge itself,
-    # where the straight line between the centres leans towards the middle
-    edge = rising & (contrast > 0)
-    probit = lambda v: special.ndtri(np.clip((v - low) / np.where(edge, contrast, 1.0), 0.01, 0.99))  # noqa: E731
-    z_below, z_above = probit(below), probit(above)
-    edge &= z_above > z_below
-    f = np.where(edge, np.clip((probit(t) - z_below) / np.where(edge, z_above - z_below, 1.0), 0.0, 1.0), f)
+    # where the straight line between the centres leans towards the middle; only where the far
+    # values bracket the centres' (a plate of a few voxels: its far side spoils them)
+    level = lambda v: (v - low) / np.where(edge, contrast, 1.0)  # noqa: E731
+    q_below, q_above = level(below), level(above)
+    bracketed = edge & (q_below > 0.01) & (q_above < 0.99)
+    z_below, z_above = special.ndtri(np.clip(q_below, 0.01, 0.99)), special.ndtri(np.clip(q_above, 0.01, 0.99))
+    z_t = special.ndtri(np.clip(level(t), 0.01, 0.99))
+    f = np.where(bracketed, np.clip((z_t - z_below) / np.where(bracketed, z_above - z_below, 1.0), 0.0, 1.0), f)
     return points + ((f - 0.5) * step)[:, None] * normals
 
 
@@ -274,10 +280,15 @@ def edge_variance(points: np.ndarray, kinds: np.ndarray, scan) -> dict:
     chord = (up * up) @ (spacing * spacing) / 12.0
     var = np.maximum((contrast * density / np.where(good, slope, 1.0)) ** 2 - chord, 0.0)
     cap = float(np.max(spacing)) ** 2 + (scan.sigma * float(np.min(spacing))) ** 2
+    # medians per pair, by one sort (an atlas has thousands of pairs)
+    codes = np.unique(kinds[good], axis=0)  # in the order of their codes below
     out = {}
-    for a, b in np.unique(kinds[good], axis=0):
-        these = good & (kinds[:, 0] == a) & (kinds[:, 1] == b)
-        out[(int(a), int(b))] = min(float(np.median(var[these])), cap)
+    if codes.size:
+        key = kinds[good, 0].astype(np.int64) * (int(kinds[:, 1].max()) + 1) + kinds[good, 1]
+        order = np.argsort(key, kind="stable")
+        groups = np.split(var[good][order], np.flatnonzero(np.diff(key[order])) + 1)
+        for (a, b), values in zip(codes, groups):
+            out[(int(a), int(b))] = min(float(np.median(values)), cap)
     return out
 
 

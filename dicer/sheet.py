@@ -264,6 +264,8 @@ def _data_files(header: Path) -> list[Path]:
         return []
     key = (r"^\s*ElementDataFile\s*=\s*(.+?)\s*$" if name.endswith(".mhd") else r"^\s*data ?file\s*:\s*(.+?)\s*$")
     found = re.search(key, text, re.IGNORECASE | re.MULTILINE)
-    if found is None or found.group(1).split()[0].upper() in ("LOCAL", "LIST"):
+    # one file, named whole (spaces and all; absolute or beside the header); not the voxels in
+    # the header itself (LOCAL), a list of files (LIST) or a numbered pattern (%03d)
+    if found is None or found.group(1).split()[0].upper() in ("LOCAL", "LIST") or "%" in found.group(1):
         return []
-    return [header.parent / found.group(1).split()[0]]
+    return [header.parent / found.group(1)]

@@ -131,4 +131,12 @@ def test_a_scans_files_are_its_own_and_its_headers_data_file(tmp_path):
         (tmp_path / "dicom" / f"{i}.dcm").write_bytes(b"x")
     assert names("dicom") == ["1.dcm", "2.dcm"]
     assert names("missing.nii.gz") == []
+    # a data file named with a space, or by its absolute path elsewhere
+    (tmp_path / "my scan.raw").write_bytes(b"x")
+    (tmp_path / "head.mhd").write_text("NDims = 3\nElementDataFile = my scan.raw\n")
+    assert names("head.mhd") == ["head.mhd", "my scan.raw"]
+    (tmp_path / "far").mkdir()
+    (tmp_path / "far" / "v.raw").write_bytes(b"x")
+    (tmp_path / "knee.nhdr").write_text(f"NRRD0004\ndata file: {tmp_path / 'far' / 'v.raw'}\n")
+    assert scan_files(tmp_path / "knee.nhdr") == [tmp_path / "far" / "v.raw", tmp_path / "knee.nhdr"]
 

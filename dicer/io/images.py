@@ -476,15 +476,16 @@ def _check_nifti_complete(path: Path) -> tuple[float, ...] | None:
     return spatial
 
 
-def _corners_apart(a: tuple, b: tuple, spatial: tuple[float, ...], head: bytes, n: int) -> float:
+def _corners_apart(a: tuple, b: tuple, spacing_mm, head: bytes, n: int) -> tuple[float, float]:
     """The largest distance (mm) between the image's corner voxel centres placed by ``a`` and by
-    ``b`` (each (direction, origin) as :func:`_nifti_placement` returns them)."""
+    ``b`` (each (direction, origin) as :func:`_nifti_placement` returns them), and the largest
+    distance of a corner from voxel 0 (mm)."""
     found = _nifti_header(head)
     dims = np.asarray(found[0][1 : n + 1] if found else (1,) * n, float)
     corners = np.array(np.meshgrid(*[[0.0, max(d - 1, 0)] for d in dims], indexing="ij")).reshape(n, -1)
-    steps = corners * np.abs(np.asarray(spatial, float))[:, None]
+    steps = corners * np.abs(np.asarray(spacing_mm, float))[:, None]
     at = [np.asarray(d, float).reshape(n, n) @ steps + np.asarray(o, float)[:, None] for d, o in (a, b)]
-    return float(np.max(np.linalg.norm(at[0] - at[1], axis=0)))
+    return float(np.max(np.linalg.norm(at[0] - at[1], axis=0))), float(np.max(np.linalg.norm(steps, axis=0)))
 
 
 def _nifti_placement(path: Path, spatial: tuple[float, ...]):
@@ -557,11 +558,12 @@ def _nifti_placement(path: Path, spatial: tuple[float, ...]):
         # where those tools show the scan and the label files dicer writes with its header
         sform = (tuple((lps @ unit)[:n, :n].ravel()), tuple((lps @ affine[:, 3])[:n] * to_mm))
         qform = _qform_placement(quat, qfac, n, to_mm)
-        apart = _corners_apart(sform, qform, spatial, head, n)
+        spacing_mm = np.abs(np.asarray(spatial[:n], float)) * to_mm
+        apart, reach = _corners_apart(sform, qform, spacing_mm, head, n)
         # a qform's quaternion in float32 turns the image by up to about 6e-4 rad where its
-        # first component is near 0 (a tilt about the left-right axis): 0.02 mm at a head's
-        # corners, header precision, not forms that disagree
-        if apart > 0.1 * float(np.min(np.abs(spatial[:n]))) * to_mm:
+        # first component is near 0 (a scan tilted about left-right): 0.2 mm at the corners of a
+        # 300 mm image, header precision, not forms that disagree
+        if apart > max(0.1 * float(spacing_mm.min()), 1e-3 * reach):
             _warn_once("%s: its sform (code %d) and qform (code %d) place the image differently (its corners up to "
                        "%.3g mm apart): meshing at the sform, where nibabel and FSL show it", path.name, scode, qcode,
                        apart)

@@ -184,8 +184,8 @@ def input_fingerprint(path):
     if path.parent == Path(PHANTOM_DIR):
         return ""
     files = scan_files(path)
-    entries = [[str(f.relative_to(path if path.is_dir() else path.parent)), f.stat().st_size, f.stat().st_mtime_ns]
-               for f in files]
+    base = path if path.is_dir() else path.parent  # a header's data file may lie elsewhere
+    entries = [[os.path.relpath(f, base), f.stat().st_size, f.stat().st_mtime_ns] for f in files]
     return hashlib.sha256(json.dumps(entries).encode()).hexdigest()[:16]
 
 

@@ -49,27 +49,40 @@ def segment_map(segments: dict[int, str], source: str = "labels") -> dict[str, s
     import re
     import unicodedata
 
+    # letters NFKD does not take apart (Ø, ß, Æ, Ł)
+    spelled = str.maketrans({"ß": "ss", "Ø": "O", "ø": "o", "Æ": "AE", "æ": "ae", "Œ": "OE", "œ": "oe",
+                             "Ł": "L", "ł": "l", "Đ": "D", "đ": "d", "Þ": "Th", "þ": "th"})
     names, texts = {}, {}
     for value, text in segments.items():
-        plain = "".join(c for c in unicodedata.normalize("NFKD", text) if not unicodedata.combining(c))  # Ä -> A
+        plain = "".join(c for c in unicodedata.normalize("NFKD", text.translate(spelled))
+                        if not unicodedata.combining(c))  # Ä -> A
         name = re.sub(r"[^A-Za-z0-9_]+", "_", plain).strip("_")
         if not name:
             continue
         names[str(value)] = (name if name[0].isalpha() else f"s_{name}")[:32]
-        texts[str(value)] = " ".join(text.split())
+        texts[str(value)] = " ".join(text.split())  # "Bone " and "Bone" are one segment name
     # segments named apart that come out alike (letters dropped, names cut at 32 characters)
-    # stay apart: each takes its label value; segments of one name share their material
-    apart = {}
+    # stay apart: each name takes its smallest label value; segments of one name share it
+    apart: dict[str, dict[str, int]] = {}
     for value, name in names.items():
-        apart.setdefault(name, set()).add(texts[value])
+        first = apart.setdefault(name, {}).setdefault(texts[value], int(value))
+        apart[name][texts[value]] = min(first, int(value))
     renamed = []
     for value, name in names.items():
         if len(apart[name]) > 1:
-            names[value] = f"{name[:31 - len(value)].rstrip('_')}_{value}"
+            tag = str(apart[name][texts[value]])
+            names[value] = f"{name[:31 - len(tag)].rstrip('_')}_{tag}"
             renamed.append(f"{texts[value]!r} -> {names[value]}")
     if renamed:
+        taken = {}
+        for value, name in names.items():
+            taken.setdefault(name, set()).add(texts[value])
+        if any(len(t) > 1 for t in taken.values()):  # a new name another segment already had
+            log.warning("labels: the segment names of %s do not name the materials (two come out alike even with "
+                        "their label values); give labels.map to name them", source)
+            return {}
         log.warning("labels: segments of %s named apart come out alike as material names, so each takes its "
-                    "label value: %s; give labels.map to name them", source, brief_names(renamed))
+                    "label value: %s; give labels.map to name them", source, brief_names(sorted(set(renamed))))
     if not names:
         return {}
     try:

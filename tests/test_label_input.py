@@ -595,8 +595,17 @@ def test_slicer_segments_named_apart_stay_apart(caplog):
         "value: 'Left hippocampus subfield CA1 head part' -> Left_hippocampus_subfield_CA1_1, 'Left hippocampus "
         "subfield CA1 head tail' -> Left_hippocampus_subfield_CA1_2, 'Left hippocampus subfield CA1 head x' -> "
         "Left_hippocampus_subfield_CA1_12; give labels.map to name them"]
-    # segments of one name share their material
+    # segments of one name share their material ("Bone " is "Bone"), and take its smallest value
     assert segment_map({1: "Bone", 2: "Bone", 3: "Skin"}) == {"1": "Bone", "2": "Bone", "3": "Skin"}
+    assert segment_map({1: "Bone", 2: "Bone ", 3: "Bone."}) == {"1": "Bone_1", "2": "Bone_1", "3": "Bone_3"}
+    # letters NFKD keeps whole are spelled, not dropped
+    assert segment_map({1: "Øre", 2: "Straße"}) == {"1": "Ore", "2": "Strasse"}
+    # a new name another segment has already: the label values name the materials
+    caplog.clear()
+    assert segment_map({1: "Muscle", 2: "Muscle!", 3: "Muscle_1"}, "m.seg.nrrd") == {}
+    assert [r.getMessage() for r in caplog.records] == [
+        "labels: the segment names of m.seg.nrrd do not name the materials (two come out alike even with their "
+        "label values); give labels.map to name them"]
 
 
 def test_a_slicer_segmentation_names_its_materials_after_its_segments(tmp_path, caplog):

@@ -183,3 +183,13 @@ def test_a_mm_box_on_an_oblique_scan_keeps_the_smallest_index_box_of_its_centres
     assert inside.sum() > 100
     assert start.tolist() == index[:, inside].min(axis=1).tolist()
     assert stop.tolist() == (index[:, inside].max(axis=1) + 1).tolist()
+    # 2D, turned the other way
+    turn2 = turn[:2, :2].T
+    flat = Volume(np.zeros((50, 30), np.int16), (0.7, 1.1), (4.0, -9.0), tuple(turn2.ravel()))
+    start, stop = crop_box(flat, {"unit": "mm", "min": [6.0, -20.0], "max": [30.0, 5.0]}, "oblique 2D")
+    index = np.stack(np.meshgrid(np.arange(50), np.arange(30), indexing="ij")).reshape(2, -1)
+    centres = (np.asarray(flat.origin) + np.array([0.35, 0.55]))[:, None] + turn2 @ (index * np.array([[0.7], [1.1]]))
+    inside = np.all((centres >= np.array([[6.0], [-20.0]])) & (centres <= np.array([[30.0], [5.0]])), axis=0)
+    assert inside.sum() > 50
+    assert start.tolist() == index[:, inside].min(axis=1).tolist()
+    assert stop.tolist() == (index[:, inside].max(axis=1) + 1).tolist()

@@ -668,8 +668,8 @@ def test_label_volumes_of_the_wrong_kind_say_what_they_look_like(tmp_path, capsy
     # a label volume as the image
     write_image(Volume(lab, (1.0, 1.0, 1.0)), tmp_path / "labels.nii.gz")
     assert _cli("run", tmp_path / "labels.nii.gz", "-o", tmp_path / "out") == 2
-    assert "the image's values span 0 .. 2; move the range inside the image's values; an image of the few whole " \
-           "values 0 .. 255 is most likely a label volume: give it with --labels" in capsys.readouterr().err
+    assert "the image's values span 0 .. 2; move the range inside the image's values; an image of 3 whole values " \
+           "from 0 is most likely a label volume: give it with --labels" in capsys.readouterr().err
     # no background: the whole box is solid, said
     write_image(Volume(lab + 10, (1.0, 1.0, 1.0)), tmp_path / "shifted.nii.gz")
     caplog.clear()

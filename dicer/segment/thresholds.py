@@ -207,7 +207,17 @@ def thresholds_in_a_mode(values: np.ndarray, thresholds) -> list[int]:
 # --- shape connectivity (Lie) -------------------------------------------------------------
 
 
-def check_ranges(ranges, k: int, names: list[str], lo: float, hi: float, source: str) -> list[tuple[float, float]]:
+def _few_whole_values(values, lo: float, hi: float) -> int:
+    """How many distinct whole values an image of 0 .. 255 holds when they are few (64 at most,
+    as a label volume's), else 0."""
+    if values is None or lo != 0 or hi > 255 or not float(hi).is_integer():
+        return 0
+    distinct = np.unique(np.asarray(values))
+    return int(distinct.size) if distinct.size <= 64 and np.array_equal(distinct, np.round(distinct)) else 0
+
+
+def check_ranges(ranges, k: int, names: list[str], lo: float, hi: float, source: str,
+                 values: np.ndarray | None = None) -> list[tuple[float, float]]:
     """Validate the shape-connectivity search ranges against the classes and the image.
 
     Parameters
@@ -250,8 +260,8 @@ def check_ranges(ranges, k: int, names: list[str], lo: float, hi: float, source:
             shifted = ("; a CT stored as HU + 1024 (its rescale intercept lost: air near 0) needs 1024 subtracted, or "
                        "ranges shifted by +1024 for every material; an MR needs ranges in its own values, or "
                        "segment.method: multiotsu" if lo > -50 and hi > 1000 else
-                       "; an image of the few whole values 0 .. 255 is most likely a label volume: give it with "
-                       "--labels (dicer run --labels, dicer labels)" if lo == 0 and hi <= 255 and float(hi).is_integer()
+                       f"; an image of {few} whole values from 0 is most likely a label volume: give it with "
+                       "--labels (dicer run --labels, dicer labels)" if (few := _few_whole_values(values, lo, hi))
                        else "")
             raise DicerError(f"{source}: {key} for class '{name}' is [{a:g}, {b:g}] but the image's values span "
                              f"{lo:g} .. {hi:g}; move the range inside the image's values{shifted}")
@@ -528,6 +538,9 @@ def shape_connectivity_thresholds(array: np.ndarray, ranges, names: list[str], s
     max_sweeps : int
         Upper bound on the coordinate sweeps.
 
+    values : ndarray, optional
+        The image's values: for the advice when no range fits (few whole values: a label
+        volume given as the image).
     Returns
     -------
     thresholds : list of K float
@@ -539,7 +552,7 @@ def shape_connectivity_thresholds(array: np.ndarray, ranges, names: list[str], s
     t0 = time.perf_counter()
     k = len(names)
     lo, hi = value_range(array)
-    checked = check_ranges(ranges, k, names, lo, hi, source)
+    checked = check_ranges(ranges, k, names, lo, hi, source, array)
     whole = whole_valued(array)
     cands, cand_idx, edges = _candidate_bins(checked, int(bins), whole)
     nbins = edges.size + 1

@@ -42,10 +42,11 @@ def _config(args) -> dict:
             raise DicerError(f"--settings: not valid JSON ({exc.msg}); pass a JSON object") from None
         if not isinstance(settings, dict):
             raise DicerError("--settings: pass a JSON object of config sections")
-    sets = list(args.set or ())
+    sets, named = list(args.set or ()), "--set"
     if getattr(args, "order", None) is not None:  # dicer export --order: read with the rest, so the element type fits it
         sets.append(f"export.order={args.order}")
-    config = load_config(args.config, sets, settings)
+        named = "--set and --order" if args.set else "--order"
+    config = load_config(args.config, sets, settings, sets_named=named)
     if getattr(args, "materials", None):
         # the file gives the materials of the mapped labels, in order; a material the user's
         # own config also lists takes its properties from there (the workflow's label patients:

@@ -648,7 +648,8 @@ def _label_keys(user: dict) -> dict:
     return user
 
 
-def load_config(path: str | Path | None = None, sets: list[str] | tuple = (), settings: dict | None = None) -> dict:
+def load_config(path: str | Path | None = None, sets: list[str] | tuple = (), settings: dict | None = None,
+                sets_named: str = "--set") -> dict:
     """The configuration: defaults <- YAML file <- ``settings`` <- ``--set`` items.
 
     Parameters
@@ -659,6 +660,8 @@ def load_config(path: str | Path | None = None, sets: list[str] | tuple = (), se
         ``--set`` items (:func:`parse_set`).
     settings : dict, optional
         Settings merged over the file.
+    sets_named : str, optional
+        What the ``sets`` are called in messages (a command's own option given as an item).
 
     Returns
     -------
@@ -679,7 +682,7 @@ def load_config(path: str | Path | None = None, sets: list[str] | tuple = (), se
         user = deep_merge(user, settings)
     for item in sets:
         user = deep_merge(user, parse_set(item))
-        source = f"{source} with --set" if "--set" not in source else source
+        source = f"{source} with {sets_named}" if sets_named not in source else source
     user = _label_keys(user)
     validate(user, source)  # unknown keys and types, before defaults hide nothing
     config = _fill(copy.deepcopy(user), schema())

@@ -220,6 +220,19 @@ def test_an_element_type_of_another_order_is_refused_when_the_config_is_read():
         load_config(settings={"export": {"element_type": "CPS8"}})
 
 
+
+def test_dicer_export_order_is_named_as_given(tmp_path, capsys):
+    """dicer export --order 2 beside a config's C3D8 was said to come from --set."""
+    from dicer.cli import main
+
+    (tmp_path / "c.yaml").write_text("export:\n  element_type: C3D8\n")
+    assert main(["export", str(tmp_path / "none.vtu"), "-o", str(tmp_path / "o.inp"), "--config",
+                 str(tmp_path / "c.yaml"), "--order", "2"]) == 2
+    assert capsys.readouterr().err.strip().endswith(
+        "c.yaml with --order: key 'export.element_type': C3D8 has order 1 and export.order is 2; set export.order: "
+        "1, or an element type of order 2 (C3D20, C3D20R)")
+
+
 def test_label_values_read_as_decimal_and_once(tmp_path):
     # YAML 1.1 reads 010 as octal 8: labels.map would name label 8 and leave 10 unnamed
     path = tmp_path / "c.yaml"

@@ -45,6 +45,8 @@ def test_rows_keep_their_line_numbers_across_blank_rows(tmp_path):
     # overrides glued with a comma: the second became part of the first's value ("2,segment.keep=largest")
     (HEAD + "A\ta.nii.gz\tdownsample.factor=2,segment.keep=largest\n",
      r"line 2: patient 'A': overrides are separated by ';', not ',' \(before 'segment.keep'\); write KEY=VALUE;KEY=VALUE"),
+    (HEAD + "A\ta.nii.gz\tdownsample.factor=2,smooth={pillow: true}\n",
+     r"line 2: patient 'A': overrides are separated by ';', not ',' \(before 'smooth'\)"),
     (HEAD + "A\ta.nii.gz\tdownsample.factor=2;downsample.factor=1\n",
      r"line 2: patient 'A': override 'downsample.factor' is given twice"),
     # a section and one of its keys, spelled differently: the key's value won unsaid

@@ -148,6 +148,21 @@ def test_cut_model_layer_mirrors_the_whole():
     assert diff < 1e-6
 
 
+def test_fixed_bounding_planes_keep_their_nodes_under_a_layer():
+    """With bounding_planes: fixed the layer moved plane nodes within their plane by the layer's
+    thickness (78 of 505 on an octant ball), which fixed planes promise to keep."""
+    lab = shells(24, 3, [(0.0, 9.3, 1)])[12:, 12:, 12:]  # an octant of a ball: three cut planes
+    mesh = voxel_mesh(lab)
+    out, report = smooth_mesh(mesh, {"pillow": True, "bounding_planes": "fixed"})
+    without, _ = smooth_mesh(mesh, {"bounding_planes": "fixed"})
+    on_plane = bounding_planes(mesh, mesh.points).any(axis=1)
+    assert on_plane.sum() > 100
+    assert np.array_equal(out.points[:mesh.n_points][on_plane], without.points[on_plane])
+    assert np.array_equal(without.points[on_plane], mesh.points[on_plane])
+    assert report["pillow"]["elements_added"] == 150 and report["pillow"]["faces_without_layer"] == 51  # measured
+    assert scaled_jacobian(out.points, out.cells).min() >= 0.3
+
+
 def test_layer_leaves_gaps_where_it_cannot_keep_the_floor():
     # no smoothing (every element a unit cube) and a floor of 0.5: grown along the surface's
     # diagonal directions at the staircase's corners, the layer's elements there shear below

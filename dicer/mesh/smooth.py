@@ -1583,6 +1583,7 @@ def _add_pillow(st: _Smoothing) -> None:
     at = np.searchsorted(nodes, faces)  # the faces' nodes as rows of nodes
     b = st.boundary_position()[nodes]  # every exterior node is a boundary node
     held = bounding_planes(mesh, st.x0[nodes])  # the layer meets a bounding plane at right angles
+    on_plane = held.any(axis=1)
     held[:, 2] |= dim == 2
     normal = outward_normals(st.x, faces, nodes, held)
     spacing = np.asarray(mesh.spacing, float)
@@ -1591,7 +1592,9 @@ def _add_pillow(st: _Smoothing) -> None:
     move = -(float(s["pillow_thickness"]) * voxel)[:, None] * normal
     # the share of its move onto st.surface a copy makes (without the scan: no move)
     share = np.zeros(nodes.size) if st.surface is None else np.ones(nodes.size)
-    kept = np.ones(faces.shape[0], bool)  # faces with an element of the layer
+    # faces with an element of the layer; with bounding_planes: fixed, none at a plane's nodes,
+    # which keep their place (the layer ends short of the plane, its side there the surface)
+    kept = ~on_plane[at].any(axis=1) if s["bounding_planes"] == "fixed" else np.ones(faces.shape[0], bool)
     x, xb, sj_accepted = st.x, st.xb, st.sj
     floor = float(s["min_scaled_jacobian"])
     goal = st.xb[b] if st.surface is None else st.surface[b]  # without the scan: the smoothed surface

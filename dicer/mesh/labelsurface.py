@@ -329,8 +329,13 @@ def check_labels_for_mesh(labels, mesh: Mesh, source: str) -> None:
     # the voxel inside each element at each of its corners: a merged box's are all its own, a
     # chamfer's or a filled notch's unmoved corners hold the voxel it was made from
     corners = np.asarray(mesh.lattice)[np.asarray(mesh.cells)[rows]][..., :dim]
-    # a pillow layer's elements (a smoothed mesh's) lie flat on the lattice, over no voxel of theirs
+    # a pillow layer's elements (a smoothed mesh's) sit on no voxel of theirs: their copies keep
+    # the lattice points of the face under them (flat, or on a merged mesh's sloped face)
     spans = np.all(corners.max(axis=1) > corners.min(axis=1), axis=1)
+    k = corners.shape[1]
+    for a in range(k):
+        for b in range(a + 1, k):
+            spans &= np.any(corners[:, a] != corners[:, b], axis=1)
     rows, corners = rows[spans], corners[spans]
     voxel = corners - (corners > corners.mean(axis=1, keepdims=True))
     np.clip(voxel, 0, np.array(grid) - 1, out=voxel)

@@ -47,6 +47,10 @@ def _config(args) -> dict:
         sets.append(f"export.order={args.order}")
         named = "--set and --order" if args.set else "--order"
     config = load_config(args.config, sets, settings, sets_named=named)
+    from dicer.config import unused_smooth_settings
+
+    for sentence in unused_smooth_settings(config["smooth"]):
+        log.warning("smooth: %s", sentence)
     if getattr(args, "materials", None):
         # the file gives the materials of the mapped labels, in order; a material the user's
         # own config also lists takes its properties from there (the workflow's label patients:

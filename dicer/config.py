@@ -547,6 +547,37 @@ def _check_combinations(config: dict, source: str) -> None:
                                  f"from workflow.exports or set export.order: {fmt.orders[0]}")
 
 
+def unused_smooth_settings(smooth: dict) -> list[str]:
+    """The smooth settings given other values than their defaults that the others leave
+    unused (they were ignored without a word), each as a sentence.
+
+    Parameters
+    ----------
+    smooth : dict
+        A loaded configuration's ``smooth`` section.
+
+    Returns
+    -------
+    list of str
+    """
+    default = section_defaults("smooth")
+    changed = {k for k, v in smooth.items() if k in default and v != default[k]}
+    out = []
+
+    def unused(key, why):
+        if key in changed:
+            out.append(f"smooth.{key}={json.dumps(smooth[key])} is not used: {why}")
+
+    if not (smooth.get("surface_from_image") or smooth.get("fit_to_scan")):
+        unused("image_sigma", "it smooths the scan for smooth.surface_from_image or smooth.fit_to_scan, both off")
+    if not smooth.get("pillow"):
+        unused("pillow_thickness", "it is the thickness of the layer smooth.pillow adds, which is off")
+    if not smooth.get("surface_from_labels"):
+        for key in ("label_samples", "label_surface_radius", "fit_to_scan"):
+            unused(key, "it shapes the fit of smooth.surface_from_labels, which is off")
+    return out
+
+
 def smoothing_reads_scan(smooth: dict) -> bool:
     """Whether the smooth stage with these settings reads the scan it is given.
 

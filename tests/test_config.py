@@ -315,3 +315,23 @@ def test_poissons_ratio_that_a_deck_prints_as_a_limit_is_refused(nu, ok):
 def test_a_list_item_set_by_its_number_says_how_to_set_the_list():
     with pytest.raises(DicerError, match=r"key 'materials': a list is set whole, not item by item: give all of it"):
         load_config(sets=["materials.0.name=x"])
+
+
+def test_smooth_settings_the_others_leave_unused_are_said():
+    """image_sigma without a scan's surface, pillow_thickness without the layer, the fit's settings
+    without the fit: ignored without a word (the smoothed mesh byte for byte the defaults')."""
+    from dicer.config import unused_smooth_settings
+
+    assert unused_smooth_settings(load_config()["smooth"]) == []
+    sets = ["smooth.image_sigma=1", "smooth.pillow_thickness=0.5", "smooth.surface_from_labels=false",
+            "smooth.label_surface_radius=8", "smooth.label_samples=relaxed"]
+    assert unused_smooth_settings(load_config(sets=sets)["smooth"]) == [
+        "smooth.image_sigma=1 is not used: it smooths the scan for smooth.surface_from_image or smooth.fit_to_scan, "
+        "both off",
+        "smooth.pillow_thickness=0.5 is not used: it is the thickness of the layer smooth.pillow adds, which is off",
+        "smooth.label_samples=\"relaxed\" is not used: it shapes the fit of smooth.surface_from_labels, which is off",
+        "smooth.label_surface_radius=8 is not used: it shapes the fit of smooth.surface_from_labels, which is off"]
+    # used: said of nothing
+    used = ["smooth.image_sigma=1", "smooth.fit_to_scan=true", "smooth.pillow=true", "smooth.pillow_thickness=0.5"]
+    assert unused_smooth_settings(load_config(sets=used)["smooth"]) == []
+

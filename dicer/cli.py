@@ -714,9 +714,10 @@ def _read_thresholds(path: str | None, config: dict, image_path: str) -> list:
     return thresholds
 
 
-def _warn_of_short_pull(report: dict) -> None:
+def _warn_of_short_pull(report: dict, settings: dict) -> None:
     """Warn when under half the boundary nodes between two materials reach the surface they were
-    pulled onto (the scan's iso-surface, or the fit of the labels' staircase)."""
+    pulled onto (the scan's iso-surface, or the fit of the labels' staircase), naming the
+    likeliest cause: a coefficient of 0, too few samples for the fit, small parts or the guard."""
     if "surface_from_image" in report:
         pull = report["surface_from_image"]
         on = pull["nodes_on_the_image_surface"]
@@ -727,10 +728,17 @@ def _warn_of_short_pull(report: dict) -> None:
     elif "surface_from_labels" in report:
         pull = report["surface_from_labels"]
         on = pull["nodes_on_the_fitted_surface"]
-        what = ("reach the surface fitted to the labels (smooth.surface_from_labels), the others stay where the labels' "
-                "smoothing put them (parts too small for a fit within smooth.label_surface_radius="
-                f"{pull['label_surface_radius']:g} voxels, or the quality guard held them back); a smaller "
-                "smooth.label_surface_radius fits smaller parts")
+        radius = f"smooth.label_surface_radius={pull['label_surface_radius']:g}"
+        what = "reach the surface fitted to the labels (smooth.surface_from_labels), the others stay where the labels' "
+        if settings.get("coefficient") == 0:
+            what += "smoothing put them: smooth.coefficient=0 holds every boundary node where it is"
+        elif pull["nodes_moved"] < 0.5 * pull["nodes_between_two_kinds"]:
+            what += (f"smoothing put them: only {pull['nodes_moved']} had samples enough for a fit within {radius} "
+                     "voxels (three per coefficient of the quadric; fewer lie in the window on elongated voxels or in "
+                     "2D): a larger smooth.label_surface_radius (3 or more) fits them")
+        else:
+            what += (f"smoothing put them (parts too small for a fit within {radius} voxels, or the quality guard held "
+                     "them back); a smaller smooth.label_surface_radius fits smaller parts")
     else:
         return
     if on < 0.5 * pull["nodes_between_two_kinds"]:
@@ -804,7 +812,12 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
     said = _volume_changes("smooth", {k: 100 * v for k, v in report.get(
         "volume_change_from_labels_by_material" if from_labels else "volume_change_by_material", {}).items()},
         smoothed.names)
-    if said and from_labels:  # parts too small for the fit, or held back by the quality guard
+    if said and from_labels and "samples_placed_by_the_scan" in fit:  # the scan moved the fitted surface
+        log.warning("%s from the labels' voxels; the labels' faces placed by the scan (smooth.fit_to_scan) move the "
+                    "surface to the scan's iso-surfaces where they lie away from the labels' (the segmentation's "
+                    "clean-up, or smooth.image_sigma %g blurring thin parts): check smooth.image_sigma, or set "
+                    "smooth.fit_to_scan: false to follow the labels", said, settings["image_sigma"])
+    elif said and from_labels:  # parts too small for the fit, or held back by the quality guard
         log.warning("%s from the labels' voxels; parts a few voxels across shrink most (the fit needs "
                     "smooth.label_surface_radius voxels of surface): lower smooth.coefficient or "
                     "smooth.label_surface_radius, or merge less (merge.passes, merge.min_thickness)", said)
@@ -831,7 +844,7 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
                     "smooth.min_scaled_jacobian or raise smooth.max_backoff_rounds to smooth them",
                     report["backoff_rounds"], settings["min_scaled_jacobian"], report["frozen_rounds"],
                     report["frozen_nodes"])
-    _warn_of_short_pull(report)
+    _warn_of_short_pull(report, settings)
     if report["min_scaled_jacobian"] < settings["min_scaled_jacobian"] - 1e-6 and not report["inverted_elements"]:
         # the guard keeps elements that came in below its floor no worse; it does not raise them
         log.warning("smooth: the smallest scaled Jacobian is %.3f, under smooth.min_scaled_jacobian=%g: elements "

@@ -563,3 +563,24 @@ def test_dicer_run_on_a_scan_places_the_faces_by_it(tmp_path, caplog):
         "smooth: smooth.fit_to_scan places the labels' faces by the scan they were segmented from, and a label "
         "volume input comes without one: the fit takes the labels' faces as they are (dicer smooth --labels … "
         "--image SCAN --thresholds … places them)"]
+
+
+def test_a_short_fit_is_said_with_its_cause(tmp_path, caplog):
+    """The fit that reached no node was blamed on small parts with 'a smaller radius fits smaller
+    parts', at the smallest radius (too few samples in the window) and at a coefficient of 0."""
+    from dicer.io.images import write_image
+
+    g = np.arange(24) + 0.5
+    r = np.sqrt(sum(x**2 for x in np.meshgrid(g - 12.3, g - 12.3, indexing="ij")))
+    write_image(Volume((r < 8.0).astype(np.uint8), (1.0, 1.0)), tmp_path / "disc.nii.gz")
+    said = {}
+    for name, value in (("radius", "smooth.label_surface_radius=2"), ("still", "smooth.coefficient=0")):
+        caplog.clear()
+        assert main(["run", "--labels", str(tmp_path / "disc.nii.gz"), "-o", str(tmp_path / name), "--set",
+                     value]) == 0
+        said[name] = [m for m in (r.getMessage() for r in caplog.records) if "boundary nodes between" in m]
+    assert len(said["radius"]) == 1 and said["radius"][0].endswith(
+        "within smooth.label_surface_radius=2 voxels (three per coefficient of the quadric; fewer lie in the window on "
+        "elongated voxels or in 2D): a larger smooth.label_surface_radius (3 or more) fits them")
+    assert len(said["still"]) == 1 and said["still"][0].endswith("smooth.coefficient=0 holds every boundary node where "
+                                                                 "it is")

@@ -218,6 +218,8 @@ def test_patran_round_trip(tmp_path, mesh, order):
     assert np.allclose(got["points"], model.points, rtol=1e-8, atol=1e-9)
     assert np.array_equal(got["cells"], model.cells) and np.array_equal(got["material"], mesh.material)
     assert got["title"].startswith("dicer ") and "scan.nii" not in got["title"]
+    # the file holds no node sets or faces (packets 25, 26, 01, 02, 21, 99): its summary listed them
+    assert "node_sets" not in info and "exterior_faces" not in info
 
 
 def test_patran_cards_and_20_node_order(tmp_path, mesh):

@@ -327,4 +327,4 @@ def check_patran(path: str | Path, model) -> None:
 
 
 
-FORMAT = Format("patran", (".out", ".neu"), write_patran, check_patran, digits=(9,))  # E16.9
+FORMAT = Format("patran", (".out", ".neu"), write_patran, check_patran, digits=(9,), holds_sets=False)  # E16.9; no sets

@@ -43,14 +43,15 @@ def _config(args) -> dict:
         if not isinstance(settings, dict):
             raise DicerError("--settings: pass a JSON object of config sections")
     sets, named = list(args.set or ()), "--set"
-    if getattr(args, "order", None) is not None:  # dicer export --order: read with the rest, so the element type fits it
+    if getattr(args, "order", None) is not None:  # dicer export --order: read with the rest (the element type fits it)
         sets.append(f"export.order={args.order}")
         named = "--set and --order" if args.set else "--order"
     config = load_config(args.config, sets, settings, sets_named=named)
-    from dicer.config import unused_smooth_settings
+    if getattr(args, "command", None) in ("smooth", "run"):  # the commands that smooth
+        from dicer.config import unused_smooth_settings
 
-    for sentence in unused_smooth_settings(config["smooth"]):
-        log.warning("smooth: %s", sentence)
+        for sentence in unused_smooth_settings(config["smooth"]):
+            log.warning("smooth: %s", sentence)
     if getattr(args, "materials", None):
         # the file gives the materials of the mapped labels, in order; a material the user's
         # own config also lists takes its properties from there (the workflow's label patients:
@@ -730,8 +731,10 @@ def _warn_of_short_pull(report: dict, settings: dict) -> None:
         on = pull["nodes_on_the_fitted_surface"]
         radius = f"smooth.label_surface_radius={pull['label_surface_radius']:g}"
         what = "reach the surface fitted to the labels (smooth.surface_from_labels), the others stay where the labels' "
-        if settings.get("coefficient") == 0:
-            what += "smoothing put them: smooth.coefficient=0 holds every boundary node where it is"
+        if settings.get("coefficient") == 0 or (report.get("coefficients")
+                                                  and not any(report["coefficients"].values())):
+            what += ("smoothing put them: a coefficient of 0 (smooth.coefficient or smooth.coefficients) holds every "
+                     "boundary node where it is")
         elif pull["nodes_moved"] < 0.5 * pull["nodes_between_two_kinds"]:
             what += (f"smoothing put them: only {pull['nodes_moved']} had samples enough for a fit within {radius} "
                      "voxels (three per coefficient of the quadric; fewer lie in the window on elongated voxels or in "
@@ -812,7 +815,9 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
     said = _volume_changes("smooth", {k: 100 * v for k, v in report.get(
         "volume_change_from_labels_by_material" if from_labels else "volume_change_by_material", {}).items()},
         smoothed.names)
-    if said and from_labels and "samples_placed_by_the_scan" in fit:  # the scan moved the fitted surface
+    grew = any(v > 0 for v in report.get("volume_change_from_labels_by_material", {}).values()
+               if abs(v) > STAGE_VOLUME_WARNING / 100)  # the fit alone shrinks small parts; the scan can grow one
+    if said and from_labels and fit.get("samples_placed_by_the_scan") and grew:  # the scan moved the fitted surface
         log.warning("%s from the labels' voxels; the labels' faces placed by the scan (smooth.fit_to_scan) move the "
                     "surface to the scan's iso-surfaces where they lie away from the labels' (the segmentation's "
                     "clean-up, or smooth.image_sigma %g blurring thin parts): check smooth.image_sigma, or set "
@@ -853,10 +858,12 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
                     report["min_scaled_jacobian"], settings["min_scaled_jacobian"], Path(mesh_path).name,
                     settings["min_scaled_jacobian"])
     layer = report.get("pillow")
-    faces = layer["elements_added"] + layer["faces_without_layer"] if layer else 0
+    # the faces at fixed bounding planes go without the layer by design: not counted against it
+    faces = layer["elements_added"] + layer["faces_without_layer"] - layer.get("faces_at_fixed_planes", 0) \
+        if layer else 0
     if faces and layer["elements_added"] < 0.5 * faces:  # asked for, and mostly not made
-        log.warning("smooth: the pillow layer covers %d of the %d exterior faces (the others could not keep "
-                    "smooth.min_scaled_jacobian with it); lower smooth.pillow_thickness (now %g) or "
+        log.warning("smooth: the pillow layer covers %d of the %d exterior faces it could cover (the others could not "
+                    "keep smooth.min_scaled_jacobian with it); lower smooth.pillow_thickness (now %g) or "
                     "smooth.min_scaled_jacobian", layer["elements_added"], faces, layer["thickness_voxels"])
     return smoothed
 

@@ -155,8 +155,9 @@ def _check_row(row: dict, schema: dict, where: str) -> None:
     if bool(row.get("image")) == bool(row.get("labels")):
         raise DicerError(f"{where}: patient {row['patient']!r}: give either an image or a labels file (a label "
                          "volume to mesh), not both and not neither")
-    glued = re.search(r",\s*([A-Za-z_]\w*(?:\.\w+)*)\s*=", row.get("overrides", ""))
-    if glued and glued.group(1).split(".")[0] in _config_sections():  # "downsample.factor=2,segment.keep=largest": the second became part of the first's value
+    glued = next((m for m in re.finditer(r",\s*([A-Za-z_]\w*(?:\.\w+)*)\s*=", row.get("overrides", ""))
+                  if "." in m.group(1) or m.group(1) in _config_sections()), None)
+    if glued:  # "downsample.factor=2,segment.keep=largest": the second became part of the first's value
         raise DicerError(f"{where}: patient {row['patient']!r}: overrides are separated by ';', not ',' (before "
                          f"{glued.group(1)!r}); write KEY=VALUE;KEY=VALUE")
     keys = [item.split("=", 1)[0].strip() for item in row.get("overrides", "").split(";") if item.strip()]

@@ -335,3 +335,17 @@ def test_smooth_settings_the_others_leave_unused_are_said():
     used = ["smooth.image_sigma=1", "smooth.fit_to_scan=true", "smooth.pillow=true", "smooth.pillow_thickness=0.5"]
     assert unused_smooth_settings(load_config(sets=used)["smooth"]) == []
 
+
+def test_unused_smooth_settings_are_said_by_the_commands_that_smooth_only(tmp_path, caplog):
+    from dicer.cli import main
+
+    caplog.clear()
+    assert main(["export", str(tmp_path / "none.vtu"), "-o", str(tmp_path / "m.inp"), "--set",
+                 "smooth.pillow_thickness=0.5"]) == 2
+    assert not [r for r in caplog.records if "is not used" in r.getMessage()]
+    assert main(["smooth", str(tmp_path / "none.vtu"), "-o", str(tmp_path / "s.vtu"), "--set",
+                 "smooth.pillow_thickness=0.5"]) == 2
+    assert [r.getMessage() for r in caplog.records if "is not used" in r.getMessage()] == [
+        "smooth: smooth.pillow_thickness=0.5 is not used: it is the thickness of the layer smooth.pillow adds, which "
+        "is off"]
+

@@ -160,6 +160,7 @@ def test_fixed_bounding_planes_keep_their_nodes_under_a_layer():
     assert np.array_equal(out.points[:mesh.n_points][on_plane], without.points[on_plane])
     assert np.array_equal(without.points[on_plane], mesh.points[on_plane])
     assert report["pillow"]["elements_added"] == 150 and report["pillow"]["faces_without_layer"] == 51  # measured
+    assert report["pillow"]["faces_at_fixed_planes"] == 51  # all left out by design, none for the floor
     assert scaled_jacobian(out.points, out.cells).min() >= 0.3
 
 
@@ -286,9 +287,9 @@ def test_a_layer_mostly_not_made_is_warned_of(tmp_path, capsys, caplog):
                      "--set", "smooth.pillow=true", "--set", f"smooth.pillow_thickness={thickness}",
                      "--set", f"smooth.min_scaled_jacobian={floor}"]) == 0
         warned = [r.getMessage() for r in caplog.records if "pillow layer covers" in r.getMessage()]
-        assert warned == (["smooth: the pillow layer covers 18 of the 66 exterior faces (the others could not keep "
-                           "smooth.min_scaled_jacobian with it); lower smooth.pillow_thickness (now 0.9) or "
-                           "smooth.min_scaled_jacobian"] if said else [])
+        assert warned == (["smooth: the pillow layer covers 18 of the 66 exterior faces it could cover (the others "
+                           "could not keep smooth.min_scaled_jacobian with it); lower smooth.pillow_thickness (now "
+                           "0.9) or smooth.min_scaled_jacobian"] if said else [])
 
 
 def test_layer_over_the_labels_fit_reports_the_labels_as_its_surface():

@@ -47,6 +47,10 @@ def test_rows_keep_their_line_numbers_across_blank_rows(tmp_path):
      r"line 2: patient 'A': overrides are separated by ';', not ',' \(before 'segment.keep'\); write KEY=VALUE;KEY=VALUE"),
     (HEAD + "A\ta.nii.gz\tdownsample.factor=2,smooth={pillow: true}\n",
      r"line 2: patient 'A': overrides are separated by ';', not ',' \(before 'smooth'\)"),
+    (HEAD + "A\ta.nii.gz\tdownsample.factor=2,segmnt.keep=1\n",
+     r"line 2: patient 'A': overrides are separated by ';', not ',' \(before 'segmnt.keep'\)"),
+    (HEAD + "A\ta.nii.gz\tlabels.map={1: x, y=2},smooth.pillow=true\n",
+     r"line 2: patient 'A': overrides are separated by ';', not ',' \(before 'smooth.pillow'\)"),
     (HEAD + "A\ta.nii.gz\tdownsample.factor=2;downsample.factor=1\n",
      r"line 2: patient 'A': override 'downsample.factor' is given twice"),
     # a section and one of its keys, spelled differently: the key's value won unsaid

@@ -226,9 +226,10 @@ def scan_crossings(points: np.ndarray, normals: np.ndarray, kinds: np.ndarray, s
     # (probit of the level within the edge's contrast) the crossing is that of the edge itself,
     # where the straight line between the centres leans towards the middle; only where the far
     # values bracket the centres' (a plate of a few voxels: its far side spoils them)
-    level = lambda v: (v - low) / np.where(edge, contrast, 1.0)  # noqa: E731
+    rises = edge & (contrast > 0)  # the far values: a scale only where the higher side's is higher
+    level = lambda v: (v - low) / np.where(rises, contrast, 1.0)  # noqa: E731
     q_below, q_above = level(below), level(above)
-    bracketed = edge & (q_below > 0.01) & (q_above < 0.99)
+    bracketed = rises & (q_below > 0.01) & (q_above < 0.99)
     z_below, z_above = special.ndtri(np.clip(q_below, 0.01, 0.99)), special.ndtri(np.clip(q_above, 0.01, 0.99))
     z_t = special.ndtri(np.clip(level(t), 0.01, 0.99))
     f = np.where(bracketed, np.clip((z_t - z_below) / np.where(bracketed, z_above - z_below, 1.0), 0.0, 1.0), f)
@@ -332,10 +333,8 @@ def check_labels_for_mesh(labels, mesh: Mesh, source: str) -> None:
     # a pillow layer's elements (a smoothed mesh's) sit on no voxel of theirs: their copies keep
     # the lattice points of the face under them (flat, or on a merged mesh's sloped face)
     spans = np.all(corners.max(axis=1) > corners.min(axis=1), axis=1)
-    k = corners.shape[1]
-    for a in range(k):
-        for b in range(a + 1, k):
-            spans &= np.any(corners[:, a] != corners[:, b], axis=1)
+    key = np.sort(np.ravel_multi_index(tuple(np.moveaxis(corners + 1, -1, 0)), tuple(np.array(grid) + 3)), axis=1)
+    spans &= np.all(key[:, 1:] != key[:, :-1], axis=1)  # no two corners on one lattice point
     rows, corners = rows[spans], corners[spans]
     voxel = corners - (corners > corners.mean(axis=1, keepdims=True))
     np.clip(voxel, 0, np.array(grid) - 1, out=voxel)

@@ -1595,6 +1595,7 @@ def _add_pillow(st: _Smoothing) -> None:
     # faces with an element of the layer; with bounding_planes: fixed, none at a plane's nodes,
     # which keep their place (the layer ends short of the plane, its side there the surface)
     kept = ~on_plane[at].any(axis=1) if s["bounding_planes"] == "fixed" else np.ones(faces.shape[0], bool)
+    at_fixed_planes = int(np.count_nonzero(~kept))
     x, xb, sj_accepted = st.x, st.xb, st.sj
     floor = float(s["min_scaled_jacobian"])
     goal = st.xb[b] if st.surface is None else st.surface[b]  # without the scan: the smoothed surface
@@ -1671,6 +1672,7 @@ def _add_pillow(st: _Smoothing) -> None:
     from_scan = st.pull is not None and not isinstance(st.pull.surface, LabelSurface)
     info = {"surface": "image" if from_scan else "labels", "elements_added": int(cells.shape[0]),
             "nodes_added": int(rows.size), "faces_without_layer": int(np.count_nonzero(~kept)),
+            "faces_at_fixed_planes": at_fixed_planes,
             "thickness_voxels": float(s["pillow_thickness"]), "guard_rounds": rounds,
             "nodes_held_off_the_surface": 0 if st.surface is None else int(np.count_nonzero(share[rows] < 1.0)),
             "min_scaled_jacobian": float(sj_layer.min()) if sj_layer.size else 1.0}

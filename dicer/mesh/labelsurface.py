@@ -185,15 +185,15 @@ def scan_crossings(points: np.ndarray, normals: np.ndarray, kinds: np.ndarray, s
     """Face samples moved to where the scan crosses their threshold between the voxels' centres.
 
     A face between a voxel of the lower kind and one of the higher lies half a voxel from
-    each centre; where an edge of the (smoothed) scan passes there (it rises from the lower
-    centre to the higher, and the higher kind's threshold lies between its values 2.5 voxels
-    either side), the sample moves to where the edge crosses the threshold, at most half a
-    voxel: the crossing of the edge fitted through the two centres' values as a blurred step
-    (the normal distribution's integral between those far values; the straight line between
-    the centres where the far values do not bracket theirs), or the nearer centre where the
-    threshold lies beyond it. Elsewhere (the segmentation's clean-up, noise across the
-    threshold) the sample stays on the face: the surface follows the labels, placed within the
-    voxel by the scan.
+    each centre; where an edge of the (smoothed) scan passes there (it rises across the higher
+    kind's threshold between the two centres, or past a centre that the smoothing tipped over
+    it while the scan crosses it further out that way), the sample moves to where the edge
+    crosses the threshold, at most half a voxel: the crossing of the edge fitted through the
+    two centres' values as a blurred step (the normal distribution's integral between the
+    values 2.5 voxels either side, where those rise and bracket the centres'; else the straight
+    line between the centres), or the nearer centre where the threshold lies beyond it.
+    Elsewhere (the segmentation's clean-up, noise across the threshold) the sample stays on
+    the face: the surface follows the labels, placed within the voxel by the scan.
 
     Parameters
     ----------

@@ -230,6 +230,11 @@ def check_ranges(ranges, k: int, names: list[str], lo: float, hi: float, source:
         Class names, for messages.
     lo, hi : float
         The image's smallest and largest finite value.
+    source : str
+        File named in error messages.
+    values : ndarray, optional
+        The image's values: for the advice when no range fits (few whole values: a label
+        volume given as the image).
 
     Returns
     -------
@@ -538,9 +543,6 @@ def shape_connectivity_thresholds(array: np.ndarray, ranges, names: list[str], s
     max_sweeps : int
         Upper bound on the coordinate sweeps.
 
-    values : ndarray, optional
-        The image's values: for the advice when no range fits (few whole values: a label
-        volume given as the image).
     Returns
     -------
     thresholds : list of K float

@@ -246,30 +246,12 @@ def scan_files(path: str | os.PathLike) -> list[Path]:
     list of Path
         Sorted; those that exist.
     """
+    from dicer.io.images import header_data_file
+
     path = Path(path)
     if path.is_dir():
         return sorted(f for f in path.rglob("*") if f.is_file())
-    return sorted(f for f in {path, *_data_files(path)} if f.is_file())
-
-
-def _data_files(header: Path) -> list[Path]:
-    """The data files a detached header names, beside it (none for other files)."""
-    name = header.name.lower()
-    if name.endswith(".hdr"):
-        return [header.with_suffix(".img"), header.with_suffix(".img.gz")]
-    if not name.endswith((".mhd", ".nhdr")):
-        return []
-    try:
-        text = header.read_bytes()[:65536].decode("latin-1")
-    except OSError:
-        return []
-    key = (r"^\s*ElementDataFile\s*=\s*(.+?)\s*$" if name.endswith(".mhd") else r"^\s*data ?file\s*:\s*(.+?)\s*$")
-    found = re.search(key, text, re.IGNORECASE | re.MULTILINE)
-    # one file, named whole (spaces and all; absolute or beside the header); not the voxels in
-    # the header itself (LOCAL), a list of files (LIST) or a numbered pattern (%03d)
-    if found is None or found.group(1).split()[0].upper() in ("LOCAL", "LIST") or "%" in found.group(1):
-        return []
-    return [header.parent / found.group(1)]
+    return sorted(f for f in {path, header_data_file(path)} if f is not None and f.is_file())
 
 
 def _config_sections() -> set[str]:

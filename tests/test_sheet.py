@@ -145,4 +145,6 @@ def test_a_scans_files_are_its_own_and_its_headers_data_file(tmp_path):
     (tmp_path / "far" / "v.raw").write_bytes(b"x")
     (tmp_path / "knee.nhdr").write_text(f"NRRD0004\ndata file: {tmp_path / 'far' / 'v.raw'}\n")
     assert scan_files(tmp_path / "knee.nhdr") == [tmp_path / "far" / "v.raw", tmp_path / "knee.nhdr"]
+    (tmp_path / "head.mhd").write_bytes(b"NDims = 3\r\nElementDataFile = head.raw\r\n")  # Windows line ends
+    assert names("head.mhd") == ["head.mhd", "head.raw"]
 

@@ -643,6 +643,42 @@ def _nrrd_fields(head: bytes) -> tuple[dict[str, str], re.Match | None]:
     return fields, match
 
 
+def header_data_file(header: str | os.PathLike) -> Path | None:
+    """The one file a detached header names for its voxels: MetaImage ``ElementDataFile``,
+    NRRD ``data file`` (absolute, or beside the header), Analyze ``.img``.
+
+    Parameters
+    ----------
+    header : str or os.PathLike
+        A ``.mhd``, ``.nhdr`` or ``.hdr`` file (others name none).
+
+    Returns
+    -------
+    Path or None
+        None where the header holds its voxels (LOCAL), names several files (LIST, a
+        numbered pattern) or none, or cannot be read.
+    """
+    header = Path(header)
+    name = header.name.lower()
+    if name.endswith(".hdr"):
+        img = header.with_suffix(".img")
+        return img if img.exists() or not header.with_suffix(".img.gz").exists() else header.with_suffix(".img.gz")
+    if not name.endswith((".mhd", ".nhdr")):
+        return None
+    try:
+        head = _read_header_text(header)
+    except DicerError:
+        return None
+    if name.endswith(".nhdr"):
+        value = _nrrd_fields(head)[0].get("datafile")
+    else:
+        found = re.search(rb"^[ \t]*ElementDataFile[ \t]*=[ \t]*([^\r\n]*?)[ \t]*\r?$", head, re.M)
+        value = found.group(1).decode("latin-1") if found else None
+    if not value or value.split()[0].upper() in ("LOCAL", "LIST") or "%" in value:
+        return None
+    return header.parent / value
+
+
 def _nrrd_to_mm(path: Path) -> float:
     """The factor from an NRRD header's ``space units`` to mm (1 without the field): ITK
     reads spacings and origins as mm whatever the unit (a micro-CT in microns came out

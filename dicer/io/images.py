@@ -96,8 +96,8 @@ def check_input_kind(path: str | os.PathLike, labels: bool = False) -> None:
     path = Path(path)
     if labels:
         if path.is_dir() or not path.name.lower().endswith(LABEL_SUFFIXES):
-            raise DicerError(f"{path}: label volumes must be one of {', '.join(LABEL_SUFFIXES)}; convert the labels to "
-                             "NIfTI (.nii.gz), or give a scan in the image column")
+            raise DicerError(f"{path}: label volumes must be one of {', '.join(LABEL_SUFFIXES)}; "
+                             "convert the labels to NIfTI (.nii.gz)")
         return
     if path.is_file() and _suffix(path) not in IMAGE_SUFFIXES and not _dicom_preamble(path):
         raise DicerError(f"{path}: unknown image format {_suffix(path) or '(no extension)'!r}; {_SUPPORTED}")
@@ -1507,9 +1507,7 @@ def read_labels(path: str | os.PathLike, spacing=None) -> Volume:
     path = Path(path)
     if not path.exists():
         raise DicerError(f"{path}: no such file; check the path to the label volume")
-    if path.is_dir() or not path.name.lower().endswith(LABEL_SUFFIXES):
-        raise DicerError(f"{path}: label volumes must be one of {', '.join(LABEL_SUFFIXES)}; "
-                         "convert the labels to NIfTI (.nii.gz)")
+    check_input_kind(path, labels=True)
     if spacing is None and path.suffix.lower() == ".npy":
         spacing = 1.0
     volume = _read_file(path, spacing, dtype=None, keep_direction=True)

@@ -63,10 +63,9 @@ def segment_map(segments: dict[int, str], source: str = "labels") -> dict[str, s
         texts[str(value)] = " ".join(text.split())  # "Bone " and "Bone" are one segment name
     # segments named apart that come out alike (letters dropped, names cut at 32 characters)
     # stay apart: each name takes its smallest label value; segments of one name share it
-    apart: dict[str, dict[str, int]] = {}
-    for value, name in names.items():
-        first = apart.setdefault(name, {}).setdefault(texts[value], int(value))
-        apart[name][texts[value]] = min(first, int(value))
+    apart: dict[str, dict[str, int]] = {}  # name -> segment name -> its smallest label value
+    for value in sorted(names, key=int):
+        apart.setdefault(names[value], {}).setdefault(texts[value], int(value))
     renamed = []
     for value, name in names.items():
         if len(apart[name]) > 1:

@@ -527,14 +527,13 @@ def _check_combinations(config: dict, source: str) -> None:
     order = config.get("export", {}).get("order")
     etype = config.get("export", {}).get("element_type")
     if order is not None and etype is not None:
-        from dicer.export.model import ELEMENT_TYPES
+        from dicer.export.model import ELEMENT_TYPES, element_types
 
         dim, etype_order = ELEMENT_TYPES.get(etype, (None, order))
         if etype_order != order:
-            kinds = [t for t, (d, o) in ELEMENT_TYPES.items() if d == dim and o == order]
             raise DicerError(f"{source}: key 'export.element_type': {etype} has order {etype_order} and export.order "
                              f"is {order}; set export.order: {etype_order}, or an element type of order {order} "
-                             f"({', '.join(kinds)})")
+                             f"({', '.join(element_types(dim, order))})")
     exports = config.get("workflow", {}).get("exports", ())
     if order is not None and isinstance(exports, list):
         from dicer.export.registry import BY_SUFFIX

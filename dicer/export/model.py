@@ -39,6 +39,23 @@ ELEMENT_TYPES = {
 DEFAULT_TYPES = {(3, 1): "C3D8", (3, 2): "C3D20", (2, 1): "CPS4", (2, 2): "CPS8"}
 
 
+def element_types(dim: int, order: int) -> list[str]:
+    """The Abaqus element names of one dimension and order, as listed.
+
+    Parameters
+    ----------
+    dim : int
+        2 or 3.
+    order : int
+        1 or 2.
+
+    Returns
+    -------
+    list of str
+    """
+    return [t for t, (d, o) in ELEMENT_TYPES.items() if d == dim and o == order]
+
+
 class _AfterSets:
     """An attribute of the surface sets: reading or setting it waits for sets in the making
     (:meth:`SolverModel.sets_meanwhile`); the value lives in ``_<name>``."""
@@ -217,13 +234,11 @@ def resolve_element_type(mesh: Mesh, order: int, element_type: str | None, path:
         return DEFAULT_TYPES[(mesh.dim, order)], order
     dim, etype_order = ELEMENT_TYPES[etype]
     if dim != mesh.dim:
-        kinds = [t for t, (d, o) in ELEMENT_TYPES.items() if d == mesh.dim and o == order]
         raise DicerError(f"{path}: element type {etype} is for {dim}D meshes but the mesh is {mesh.dim}D; "
-                         f"use one of {', '.join(kinds)}")
+                         f"use one of {', '.join(element_types(mesh.dim, order))}")
     if etype_order != order:
-        kinds = [t for t, (d, o) in ELEMENT_TYPES.items() if d == mesh.dim and o == order]
         raise DicerError(f"{path}: export.order is {order} but element type {etype} has order {etype_order}; "
-                         f"use one of {', '.join(kinds)} or set export.order={etype_order}")
+                         f"use one of {', '.join(element_types(mesh.dim, order))} or set export.order={etype_order}")
     return etype, order
 
 

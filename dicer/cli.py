@@ -752,7 +752,7 @@ def _warn_of_short_pull(report: dict, settings: dict) -> None:
 def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None = None,
               image_path: str | None = None, thresholds_path: str | None = None, mesh=None, write=_now,
               labels_path: str | None = None):
-    from dicer.config import stage_kwargs
+    from dicer.config import places_faces_by_scan, stage_kwargs
     from dicer.mesh.smooth import smooth_mesh
 
     settings = stage_kwargs(config, "smooth")
@@ -771,7 +771,11 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
         log.warning("smooth: smooth.surface_from_image is set, but there is no scan to take the surface from (a label "
                     "volume input, or dicer smooth without --image): the surface is smoothed from the labels alone")
     # the scan: for its surface, or to place the labels' faces for the fit
-    fit_to_scan = fits_labels and settings["fit_to_scan"] and labels is not None
+    fit_to_scan = fits_labels and places_faces_by_scan(settings) and labels is not None
+    if image_path is not None and fits_labels and settings["fit_to_scan"] and settings["label_samples"] == "relaxed":
+        log.warning("smooth: smooth.label_samples: relaxed takes the labels' staircase relaxed within its voxels, and "
+                    "reads no scan: the faces' placement by the scan (smooth.fit_to_scan) is not made; set "
+                    "label_samples: faces to place them by %s", image_path)
     if image_path is not None and (settings["surface_from_image"] or fit_to_scan):
         from dicer.io.images import read_image
 
@@ -819,9 +823,15 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
                if abs(v) > STAGE_VOLUME_WARNING / 100)  # the fit alone shrinks small parts; the scan can grow one
     if said and from_labels and fit.get("samples_placed_by_the_scan") and grew:  # the scan moved the fitted surface
         log.warning("%s from the labels' voxels; the labels' faces placed by the scan (smooth.fit_to_scan) move the "
-                    "surface to the scan's iso-surfaces where they lie away from the labels' (the segmentation's "
-                    "clean-up, or smooth.image_sigma %g blurring thin parts): check smooth.image_sigma, or set "
-                    "smooth.fit_to_scan: false to follow the labels", said, settings["image_sigma"])
+                    "surface to the scan's iso-surfaces where they lie away from the labels' (a threshold low in a "
+                    "thin part's edge puts its surface outside it; the segmentation's clean-up; smooth.image_sigma %g "
+                    "blurring thin parts): check the thresholds and smooth.image_sigma, or set smooth.fit_to_scan: "
+                    "false to follow the labels", said, settings["image_sigma"])
+    elif said and from_labels and fit.get("samples_placed_by_the_scan"):  # shrank: the scan, or the fit
+        log.warning("%s from the labels' voxels; the labels' faces placed by the scan (smooth.fit_to_scan) take the "
+                    "surface in to the scan's iso-surfaces where the labels lie outside them (parts that downsampling "
+                    "or the segmentation's clean-up enlarged), and parts a few voxels across shrink in the fit: set "
+                    "smooth.fit_to_scan: false to follow the labels, or lower smooth.label_surface_radius", said)
     elif said and from_labels:  # parts too small for the fit, or held back by the quality guard
         log.warning("%s from the labels' voxels; parts a few voxels across shrink most (the fit needs "
                     "smooth.label_surface_radius voxels of surface): lower smooth.coefficient or "
@@ -1330,7 +1340,7 @@ def cmd_merge(args):
 
 
 def cmd_smooth(args):
-    from dicer.config import smoothing_reads_scan, stage_kwargs
+    from dicer.config import places_faces_by_scan, smoothing_reads_scan, stage_kwargs
 
     report = _check_output(args.report, (".json",), "the smoothing report") if args.report else None
     config = _config(args)
@@ -1344,16 +1354,14 @@ def cmd_smooth(args):
             args.labels is None:
         log.warning("smooth: smooth.label_samples: relaxed relaxes the staircase of the label volume: give it with "
                     "--labels (labels_fixed.nii.gz of dicer run); without it the fit takes the mesh's faces")
-    fits_to_scan = smooth["fit_to_scan"] and smooth["surface_from_labels"] and not scan_surface
-    if fits_to_scan and (args.labels is None or args.image is None):
-        log.warning("smooth: smooth.fit_to_scan places the labels' faces by the scan: it needs both --labels and "
-                    "--image (with --thresholds); without %s the fit takes the %s", "--labels" if args.labels is None
-                    else "--image", "mesh's faces, and the scan is not read" if args.labels is None
-                    else "labels' faces as they are")
+    if args.image is not None and args.labels is None and not scan_surface and places_faces_by_scan(smooth):
+        log.warning("smooth: smooth.fit_to_scan places the labels' faces by the scan: it needs --labels beside "
+                    "--image (labels_fixed.nii.gz of dicer run); without it the fit takes the mesh's faces, and the "
+                    "scan is not read")
     elif args.image is not None and not smoothing_reads_scan(smooth):
-        log.warning("smooth: --image is read by smooth.surface_from_image (or smooth.fit_to_scan with --labels) "
-                    "only, which are off: %s is not read; set one of them to place the surface by the scan",
-                    args.image)
+        log.warning("smooth: --image is read by smooth.surface_from_image, or by smooth.fit_to_scan with --labels "
+                    "(the fit's faces placed by the scan; not with smooth.label_samples: relaxed), and these settings "
+                    "use neither: %s is not read", args.image)
     do_smooth(args.mesh, _check_output(args.output, (".vtu",), "the mesh"), config, report,
               image_path=args.image, thresholds_path=args.thresholds, labels_path=args.labels)
 
@@ -1584,11 +1592,6 @@ def _run_chain(args):
     if (outdir.exists() or outdir.is_symlink()) and not outdir.is_dir():
         raise DicerError(f"{outdir}: exists and is not a folder; give an output folder with -o")
     source = args.labels if args.image is None else args.image
-    smooth = config["smooth"]
-    if args.image is None and smooth["fit_to_scan"] and smooth["surface_from_labels"]:
-        log.warning("smooth: smooth.fit_to_scan places the labels' faces by the scan they were segmented from, and a "
-                    "label volume input comes without one: the fit takes the labels' faces as they are (dicer smooth "
-                    "--labels … --image SCAN --thresholds … places them)")
     dim = _input_dims(source)
     if dim is not None:  # before any stage (fix checks the labels it made again)
         _check_export_dims(config, dim, source)

@@ -520,10 +520,6 @@ def _check_combinations(config: dict, source: str) -> None:
         raise DicerError(f"{source}: key 'smooth.keep_bounding_planes': false lets plane nodes leave their plane, "
                          "which only smooth.bounding_planes: free does; set smooth.bounding_planes: free with it, "
                          "or keep_bounding_planes: true")
-    if smooth.get("label_samples") == "relaxed" and smooth.get("fit_to_scan") is True:
-        raise DicerError(f"{source}: key 'smooth.label_samples': relaxed and smooth.fit_to_scan both place the "
-                         "labels' samples within their voxels (by their smoothest surface, or by the scan); set one "
-                         "of them")
     order = config.get("export", {}).get("order")
     etype = config.get("export", {}).get("element_type")
     if order is not None and etype is not None:
@@ -572,7 +568,7 @@ def unused_smooth_settings(smooth: dict) -> list[str]:
     if not smooth.get("pillow"):
         unused("pillow_thickness", "it is the thickness of the layer smooth.pillow adds, which is off")
     if not smooth.get("surface_from_labels"):
-        for key in ("label_samples", "label_surface_radius", "fit_to_scan"):
+        for key in ("label_samples", "label_surface_radius"):  # fit_to_scan: false there turns nothing off
             unused(key, "it shapes the fit of smooth.surface_from_labels, which is off")
     return out
 
@@ -591,7 +587,25 @@ def smoothing_reads_scan(smooth: dict) -> bool:
     -------
     bool
     """
-    return bool(smooth["surface_from_image"] or (smooth["fit_to_scan"] and smooth["surface_from_labels"]))
+    return bool(smooth["surface_from_image"] or places_faces_by_scan(smooth))
+
+
+def places_faces_by_scan(smooth: dict) -> bool:
+    """Whether the labels' faces, given a scan, are placed by it before the fit.
+
+    ``smooth.fit_to_scan`` places the faces' centres; ``label_samples: relaxed`` takes the
+    staircase's relaxed vertices instead and reads no scan.
+
+    Parameters
+    ----------
+    smooth : dict
+        The smooth stage's settings (``stage_kwargs(config, "smooth")``).
+
+    Returns
+    -------
+    bool
+    """
+    return bool(smooth["fit_to_scan"] and smooth["surface_from_labels"] and smooth["label_samples"] == "faces")
 
 
 SET_KINDS = ("planes", "materials", "interfaces", "exterior")

@@ -324,15 +324,15 @@ def test_smooth_settings_the_others_leave_unused_are_said():
 
     assert unused_smooth_settings(load_config()["smooth"]) == []
     sets = ["smooth.image_sigma=1", "smooth.pillow_thickness=0.5", "smooth.surface_from_labels=false",
-            "smooth.label_surface_radius=8", "smooth.label_samples=relaxed"]
+            "smooth.label_surface_radius=8", "smooth.label_samples=relaxed", "smooth.fit_to_scan=false"]
     assert unused_smooth_settings(load_config(sets=sets)["smooth"]) == [
         "smooth.image_sigma=1 is not used: it smooths the scan for smooth.surface_from_image or smooth.fit_to_scan, "
         "both off",
         "smooth.pillow_thickness=0.5 is not used: it is the thickness of the layer smooth.pillow adds, which is off",
         "smooth.label_samples=\"relaxed\" is not used: it shapes the fit of smooth.surface_from_labels, which is off",
         "smooth.label_surface_radius=8 is not used: it shapes the fit of smooth.surface_from_labels, which is off"]
-    # used: said of nothing
-    used = ["smooth.image_sigma=1", "smooth.fit_to_scan=true", "smooth.pillow=true", "smooth.pillow_thickness=0.5"]
+    # used: said of nothing (image_sigma smooths the scan for fit_to_scan, on by default)
+    used = ["smooth.image_sigma=1", "smooth.pillow=true", "smooth.pillow_thickness=0.5"]
     assert unused_smooth_settings(load_config(sets=used)["smooth"]) == []
 
 

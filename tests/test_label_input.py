@@ -420,7 +420,6 @@ def test_run_refuses_a_2d_model_for_a_3d_only_format_before_any_stage(tmp_path, 
 @pytest.mark.parametrize("sets, key", [
     (["workflow.exports=[inp,k]", "export.order=2"], "workflow.exports"),
     (["smooth.keep_bounding_planes=false"], "smooth.keep_bounding_planes"),
-    (["smooth.label_samples=relaxed", "smooth.fit_to_scan=true"], "smooth.label_samples"),
 ])
 def test_run_refuses_contradicting_settings_before_any_stage(tmp_path, capsys, sets, key):
     src = tmp_path / "seg.nii.gz"

@@ -435,7 +435,11 @@ class LabelSurface:
                 placed = scan_crossings(points, normals, kinds, step, scan)
                 moved = np.any(placed != points, axis=1)
                 self.placed = int(np.count_nonzero(moved))
-                blur = edge_variance(placed[moved], kinds[moved], scan)
+                # the edge's width where the scan crosses between the centres: a sample sent to a
+                # centre lies off the edge (a part the labels or their downsampling made larger
+                # than the scan's), where the gradient is flatter and would widen it
+                between = moved & (np.abs(np.einsum("ij,ij->i", placed - points, normals)) < 0.5 * step * (1 - 1e-9))
+                blur = edge_variance(placed[between], kinds[between], scan)
                 points = placed
             samples = _mirrored(mesh, (points, normals, kinds, weights), reach)
         self.points, self.normals, kinds, self.weights = samples
@@ -578,8 +582,12 @@ class LabelSurface:
             coef[again] = _weighted_fit(basis[again], kept[again], h[again])
         fitted = np.count_nonzero(kept, axis=1) >= _PER_COEFFICIENT * m
         # the mean curvature towards n: c2 (2D), c3 + c5 (3D); the blurred iso-surface lies that
-        # times the variance further along n than the surface
-        bend = coef[:, 2] if dim == 2 else coef[:, 3] + coef[:, 5]
+        # times the variance further along n than the surface. At most a circle's (sphere's) of
+        # the window's radius: a part smaller than the window gives the fit samples from beyond
+        # its equator, which read it more curved than it is (a CT-like ball of radius 3.5 voxels
+        # came out +20 % in volume, +2.8 % with the limit)
+        limit = (0.5 if dim == 2 else 1.0) / r
+        bend = np.clip(coef[:, 2] if dim == 2 else coef[:, 3] + coef[:, 5], -limit, limit)
         return np.where(fitted, coef[:, 0] - blur * bend, 0.0), fitted
 
     def project(self, sides, x: np.ndarray, bnodes: np.ndarray, xb: np.ndarray) -> tuple[np.ndarray, dict]:

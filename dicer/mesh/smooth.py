@@ -867,7 +867,7 @@ def _pull_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str, lab
         scan = None
         if labels is not None:
             check_labels_for_mesh(labels, mesh, labels_source)
-            if image is not None and s["fit_to_scan"]:  # the scan places the labels' faces within their voxels
+            if image is not None and s["fit_to_scan"] and s["label_samples"] == "faces":  # the scan places them
                 scan = _image_surface(mesh, s, image, thresholds, image_source)
         def build():
             t = time.perf_counter()

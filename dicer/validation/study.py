@@ -42,6 +42,7 @@ PILLOW = "smooth.pillow=true"  # a layer of elements over the surface (docs/smoo
 FIT = "smooth.surface_from_labels=true"  # the surface fitted to the labels' staircase (docs/smoothing.md §3c)
 TODAY = ["smooth.surface_from_image=false", FIT, MIN_SJ_03]  # the scan's settings changed back to today's defaults
 FIT_TO_SCAN = "smooth.fit_to_scan=true"  # the labels' faces placed within their voxels by the scan (§3c)
+UNPLACED = "smooth.fit_to_scan=false"  # the labels' faces as they are (the scan's default until 5 December 2026)
 SCAN_NOISE = 30.0  # the grey-value images' noise on a contrast of 1000 (the ``-clean`` parts: none)
 ORDER_NAMES = {"kirsch": {1: "CPS4", 2: "CPS8"}, "lame": {1: "C3D8", 2: "C3D20"}}
 
@@ -85,8 +86,8 @@ def scan_settings(part: str = "quarter") -> dict[str, list[str]]:
     wider image smoothing and the whole default chain (the full plate, four times the
     elements, at the first two and the last only); ``today's defaults``: ``dicer run`` on the
     image at its defaults since 5 December 2026 (no pull onto the image: the surface fitted to
-    the segmentation's labels, the floor 0.3, plane merging); ``fit_to_scan``: those with the
-    labels' faces placed by the scan before the fit.
+    the segmentation's labels with their faces placed by the scan, the floor 0.3, plane
+    merging); ``fit_to_scan=false``: those with the labels' faces as they are.
 
     Parameters
     ----------
@@ -103,7 +104,7 @@ def scan_settings(part: str = "quarter") -> dict[str, list[str]]:
         out["image_sigma=1"] = [NO_MERGE, "smooth.image_sigma=1.0"]
     out["defaults+merge"] = []
     out["today's defaults"] = list(TODAY)
-    out["fit_to_scan"] = list(TODAY) + [FIT_TO_SCAN]
+    out["fit_to_scan=false"] = list(TODAY) + [UNPLACED]
     out["pillow"] = [NO_MERGE, PILLOW]
     out["pillow, min SJ 0.3"] = [NO_MERGE, PILLOW, MIN_SJ_03]
     return out
@@ -200,5 +201,11 @@ def _run_scans(work: Path, results: dict, log) -> None:
     r = cases.lame(work / "lame_scan_7_merge", "quarter", [], inner=LAME_SCAN_RADII[0], outer=2 * LAME_SCAN_RADII[0],
                    scan=True)
     rows[f"a={LAME_SCAN_RADII[0]:g}+merge"] = _named(r, "lame")
+    for a in LAME_SCAN_RADII:  # dicer run's defaults, and the labels' faces as they are
+        for suffix, sets in (("+today", TODAY), ("+today, fit_to_scan=false", TODAY + [UNPLACED])):
+            r = cases.lame(work / f"lame_scan_{a:g}{suffix.replace('+', '_').replace(', ', '_')}", "quarter", sets,
+                           inner=a, outer=2 * a, scan=True)
+            rows[f"a={a:g}{suffix}"] = _named(r, "lame")
+            log(f"lame scan a={a:g}{suffix}: C3D8 {r[1]['error_mean']:+.4f} C3D20 {r[2]['error_mean']:+.4f}")
     results["lame-scan"] = rows
     log(f"lame scans: {time.perf_counter() - t0:.0f} s")

@@ -563,8 +563,9 @@ def unused_smooth_settings(smooth: dict) -> list[str]:
         if key in changed:
             out.append(f"smooth.{key}={json.dumps(smooth[key])} is not used: {why}")
 
-    if not (smooth.get("surface_from_image") or smooth.get("fit_to_scan")):
-        unused("image_sigma", "it smooths the scan for smooth.surface_from_image or smooth.fit_to_scan, both off")
+    if not (smooth.get("surface_from_image") or places_faces_by_scan(smooth)):
+        unused("image_sigma", "it smooths the scan for smooth.surface_from_image or smooth.fit_to_scan, which these "
+                              "settings leave unused")
     if not smooth.get("pillow"):
         unused("pillow_thickness", "it is the thickness of the layer smooth.pillow adds, which is off")
     if not smooth.get("surface_from_labels"):

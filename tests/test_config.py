@@ -324,16 +324,20 @@ def test_smooth_settings_the_others_leave_unused_are_said():
 
     assert unused_smooth_settings(load_config()["smooth"]) == []
     sets = ["smooth.image_sigma=1", "smooth.pillow_thickness=0.5", "smooth.surface_from_labels=false",
-            "smooth.label_surface_radius=8", "smooth.label_samples=relaxed", "smooth.fit_to_scan=false"]
+            "smooth.label_surface_radius=8", "smooth.label_samples=relaxed"]
     assert unused_smooth_settings(load_config(sets=sets)["smooth"]) == [
         "smooth.image_sigma=1 is not used: it smooths the scan for smooth.surface_from_image or smooth.fit_to_scan, "
-        "both off",
+        "which these settings leave unused",
         "smooth.pillow_thickness=0.5 is not used: it is the thickness of the layer smooth.pillow adds, which is off",
         "smooth.label_samples=\"relaxed\" is not used: it shapes the fit of smooth.surface_from_labels, which is off",
         "smooth.label_surface_radius=8 is not used: it shapes the fit of smooth.surface_from_labels, which is off"]
     # used: said of nothing (image_sigma smooths the scan for fit_to_scan, on by default)
     used = ["smooth.image_sigma=1", "smooth.pillow=true", "smooth.pillow_thickness=0.5"]
     assert unused_smooth_settings(load_config(sets=used)["smooth"]) == []
+    # relaxed samples read no scan, nor does a fit_to_scan turned off: image_sigma unused
+    for off in ("smooth.label_samples=relaxed", "smooth.fit_to_scan=false"):
+        assert unused_smooth_settings(load_config(sets=["smooth.image_sigma=1", off])["smooth"])[0].startswith(
+            "smooth.image_sigma=1 is not used")
 
 
 def test_unused_smooth_settings_are_said_by_the_commands_that_smooth_only(tmp_path, caplog):

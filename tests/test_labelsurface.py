@@ -647,7 +647,42 @@ def test_dicer_run_on_a_scan_places_the_faces_by_it(tmp_path, caplog):
     assert [r.getMessage() for r in caplog.records if "fit_to_scan" in r.getMessage()] == [
         "smooth: smooth.label_samples: relaxed takes the labels' staircase relaxed within its voxels, and reads no "
         "scan: the faces' placement by the scan (smooth.fit_to_scan) is not made; set label_samples: faces to place "
-        f"them by {tmp_path / 'ball.nii.gz'}"]
+        f"them by {tmp_path / 'ball.nii.gz'}, or smooth.fit_to_scan: false"]
+    # dicer smooth with --labels and --image: said once, the same
+    caplog.clear()
+    assert main(["smooth", str(run / "merged.vtu"), "-o", str(tmp_path / "r.vtu"), "--labels",
+                 str(run / "labels_fixed.nii.gz"), "--image", str(tmp_path / "ball.nii.gz"), "--config",
+                 str(tmp_path / "c.yaml"), "--set", "smooth.label_samples=relaxed", "-q"]) == 0
+    assert len([r for r in caplog.records if "--image" in r.getMessage() or "reads no scan" in r.getMessage()]) == 1
+
+
+def test_stage_by_stage_on_a_scan_gives_the_run_bytes(tmp_path):
+    """The README's stages on a scan (segment --info, ..., smooth --labels --image --thresholds)
+    write dicer run's files: the faces placed by the scan alike."""
+    from dicer.io.images import write_image
+    from tests.test_smooth_image import ct_ball
+
+    write_image(Volume(ct_ball(3), (1.0, 1.0, 1.0)), tmp_path / "ball.nii.gz")
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("materials:\n  - {name: solid, youngs_modulus: 1000, poissons_ratio: 0.3}\n"
+                   "segment: {method: manual, thresholds: [500], opening_radius: 0, closing_radius: 0, keep: all}\n")
+    run = tmp_path / "run"
+    assert main(["run", str(tmp_path / "ball.nii.gz"), "-o", str(run), "--config", str(cfg), "-q"]) == 0
+    t = tmp_path
+
+    def stage(*args):
+        assert main([*map(str, args), "--config", str(cfg), "-q"]) == 0
+
+    stage("segment", t / "ball.nii.gz", "-o", t / "labels.nii.gz", "--info", t / "segmentation.json")
+    stage("downsample", t / "labels.nii.gz", "-o", t / "labels_ds.nii.gz")
+    stage("fix", t / "labels_ds.nii.gz", "-o", t / "labels_fixed.nii.gz")
+    stage("mesh", t / "labels_fixed.nii.gz", "-o", t / "mesh.vtu")
+    stage("merge", t / "mesh.vtu", "-o", t / "merged.vtu")
+    stage("smooth", t / "merged.vtu", "-o", t / "smoothed.vtu", "--labels", t / "labels_fixed.nii.gz",
+          "--image", t / "ball.nii.gz", "--thresholds", t / "segmentation.json")
+    stage("export", t / "smoothed.vtu", "-o", t / "model.inp")
+    for name in ("labels_fixed.nii.gz", "merged.vtu", "smoothed.vtu", "model.inp"):
+        assert (t / name).read_bytes() == (run / name).read_bytes(), name
 
 
 def test_a_short_fit_is_said_with_its_cause(tmp_path, caplog):

@@ -28,8 +28,9 @@ quadric fitted by weighted least squares to those faces near it (moving least sq
 With the scan the labels came from (``smooth.fit_to_scan``) each face sample is first placed
 where the scan crosses its threshold within its voxel pair (:func:`scan_crossings`); blurring
 moves such an iso-surface towards its centres of curvature by s^2 H (s^2 the edge's variance
-in the smoothed scan, :func:`edge_variance`; H the mean curvature), so the node moves by
-c0 - s^2 (c3 + c5) (2D: c0 - s^2 c2), as the pull onto the scan takes the shift back.
+in the smoothed scan, :func:`edge_variance`; H the mean curvature, at most a sphere's of the
+window's radius), so the node moves by c0 - s^2 (c3 + c5) (2D: c0 - s^2 c2), as the pull onto
+the scan takes the shift back.
 
 The fitted surface does not depend on the smoothing coefficients, so it is fitted once per
 stage; the quality guard then backs the move off as it backs off the pull onto a scan.

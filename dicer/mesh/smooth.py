@@ -1841,7 +1841,8 @@ min_scaled_jacobian, backoff_factor, max_backoff_rounds, pillow, pillow_thicknes
         The scan the labels were segmented from; with ``surface_from_image`` the boundary nodes
         move onto its iso-surfaces after the boundary solve (``dicer.mesh.subvoxel``). Without
         it, ``surface_from_labels`` moves them onto a fit of the labels' staircase
-        (``dicer.mesh.labelsurface``).
+        (``dicer.mesh.labelsurface``), whose faces the scan places within their voxels first
+        (``fit_to_scan``, with ``labels`` and ``label_samples`` faces).
     thresholds : sequence of float, optional
         The lower bound of each material 1..K in the image's units, as segmentation chose them.
     image_source : str

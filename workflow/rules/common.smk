@@ -223,8 +223,8 @@ def materials_option(wildcards, input):
 
 def scan_input(wildcards):
     """The scan and its segmentation.json for a segmented patient (the smooth stage places
-    the surface on the scan's iso-surfaces, smooth.surface_from_image); none for a
-    label-volume patient."""
+    the labels' faces by it, smooth.fit_to_scan, or the surface on its iso-surfaces,
+    smooth.surface_from_image); none for a label-volume patient."""
     if wildcards.patient in LABEL_PATIENTS:
         return {}
     return {"image": patient_image(wildcards),

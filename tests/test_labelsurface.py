@@ -583,6 +583,19 @@ def test_the_edge_is_measured_where_the_scan_crosses_between_the_centres(dim):
     assert report["surface_from_labels"]["edge_variance_mm2"]["0|1"] == pytest.approx(1 / 12 + 0.36 + 0.25, rel=0.02)
 
 
+def test_an_edge_wider_than_a_voxel_takes_no_shift_back():
+    """A ball blurred by 2 voxels (an MR image's shading, not a scanner's step): its edge reads
+    wider than a voxel squared plus image_sigma squared, so no blur's shift is taken back (0)."""
+    from tests.test_smooth_image import ct_ball
+
+    image = ct_ball(3, blur=2.0, noise=0.0)
+    lab = fix_connectivity((image >= 500).astype(np.uint8))[0]
+    _, report = smooth_mesh(voxel_mesh(lab), labels=Volume(lab, (1.0,) * 3), image=Volume(image, (1.0,) * 3),
+                            thresholds=[500.0])
+    fit = report["surface_from_labels"]
+    assert fit["samples_placed_by_the_scan"] > 0.5 * fit["samples"] and fit["edge_variance_mm2"]["0|1"] == 0.0
+
+
 def test_labels_larger_than_the_scan_shrink_and_the_warning_names_the_scan(tmp_path, caplog, monkeypatch):
     """Labels a voxel larger than the scan's ball of radius 8 all round (as a coarse downsampling
     makes a thin part): the faces placed by the scan take the surface back in, by half a voxel at

@@ -245,8 +245,9 @@ def edge_variance(points: np.ndarray, kinds: np.ndarray, scan) -> dict:
     D blurred by a Gaussian of standard deviation s has, at its level q, the gradient
     D phi(Phi^-1(q)) / s: measured at each sample the scan placed (central differences
     over half a voxel along each axis, the contrast 2.5 voxels either side along the
-    gradient) and the median taken per pair, at most a voxel's width squared plus the
-    scan's own smoothing squared (a thin part's far side spoils D).
+    gradient) and the median taken per pair. An edge wider than a voxel's width squared plus
+    the scan's own smoothing squared is no blurred step (a thin part's far side spoils D; an
+    MR image's shading rises over many voxels): 0 there, no shift taken back.
 
     Parameters
     ----------
@@ -290,7 +291,8 @@ def edge_variance(points: np.ndarray, kinds: np.ndarray, scan) -> dict:
         order = np.argsort(key, kind="stable")
         groups = np.split(var[good][order], np.flatnonzero(np.diff(key[order])) + 1)
         for (a, b), values in zip(codes, groups):
-            out[(int(a), int(b))] = min(float(np.median(values)), cap)
+            median = float(np.median(values))
+            out[(int(a), int(b))] = median if median <= cap else 0.0
     return out
 
 

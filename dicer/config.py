@@ -600,11 +600,12 @@ def places_faces_by_scan(smooth: dict) -> bool:
     Parameters
     ----------
     smooth : dict
-        The smooth stage's settings (``stage_kwargs(config, "smooth")``).
+        The smooth section with every key (a loaded config's, or the stage's keyword arguments).
 
     Returns
     -------
     bool
+        True where a scan given to the stage places the faces of the labels' fit.
     """
     return bool(smooth["fit_to_scan"] and smooth["surface_from_labels"] and smooth["label_samples"] == "faces")
 

@@ -171,7 +171,10 @@ def _check_row(row: dict, schema: dict, where: str) -> None:
                              "whole cohort's; set them in the config, not per patient")
         if keys.count(key) > 1:
             raise DicerError(f"{where}: patient {row['patient']!r}: override {key!r} is given twice; keep one")
-        unread = _unread_override(key, bool(row.get("labels")))
+    for key, leaves in _override_leaves(row.get("overrides", "")).items():
+        # each value it sets: a section given whole (smooth={fit_to_scan: false}) as its keys
+        whys = (_unread_override(leaf, bool(row.get("labels"))) for leaf in sorted(leaves or {key}))
+        unread = next((why for why in whys if why), None)
         if unread:
             raise DicerError(f"{where}: patient {row['patient']!r}: override {key!r} {unread}, so it would change "
                              "nothing: remove it, or move the file to the other column")
@@ -184,19 +187,30 @@ def _leaves(tree, prefix: str = "") -> set[str]:
     return set().union(*(_leaves(v, f"{prefix}.{k}" if prefix else str(k)) for k, v in tree.items()))
 
 
-def _sets_one_key_twice(overrides: str) -> tuple[str, str, str] | None:
-    """(a section's override, an override of a key in it, the key both set) when a row's
-    overrides set one key two ways (``downsample={factor: 2}`` and ``downsample.factor=3``);
-    else None."""
+def _override_leaves(overrides: str) -> dict[str, set[str] | None]:
+    """Each override's key -> the dotted keys of the values it sets (a section given whole
+    sets several), None for one that does not parse (its own fault is said where the row's
+    config is read)."""
     from dicer.config import parse_set
 
     items = {}
     for item in overrides.split(";"):
         if item.strip():
+            key = item.split("=", 1)[0].strip()
             try:
-                items.setdefault(item.split("=", 1)[0].strip(), _leaves(parse_set(item.strip())))
-            except DicerError:  # the override's own fault is said where the row's config is read
-                return None
+                items.setdefault(key, _leaves(parse_set(item.strip())))
+            except DicerError:
+                items.setdefault(key, None)
+    return items
+
+
+def _sets_one_key_twice(overrides: str) -> tuple[str, str, str] | None:
+    """(a section's override, an override of a key in it, the key both set) when a row's
+    overrides set one key two ways (``downsample={factor: 2}`` and ``downsample.factor=3``);
+    else None."""
+    items = _override_leaves(overrides)
+    if None in items.values():
+        return None
     for key, leaves in items.items():
         for other in (k for k in items if k.startswith(key + ".")):
             both = sorted(leaf for leaf in leaves if leaf == other or leaf.startswith(other + ".")

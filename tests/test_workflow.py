@@ -247,6 +247,10 @@ def test_labels_column_meshes_a_label_volume(tmp_path):
     deck = (brain / "model.inp").read_text()
     block = deck[deck.index("*MATERIAL, NAME=cerebellum"):]
     assert block.split("*ELASTIC\n", 1)[1].startswith("4321.5,")
+    # the scan's smoothing settings: a label volume's smoothing reads no scan, so nothing re-runs
+    config.setdefault("smooth", {}).update({"image_sigma": 0.7, "fit_to_scan": False})
+    config_path.write_text(yaml.safe_dump(config, sort_keys=False))
+    assert _planned_jobs(_snakemake(workdir, "-n")) == {}
 
 
 def test_row_with_image_and_labels_is_refused(tmp_path):

@@ -144,7 +144,8 @@ _check_overrides()
 
 
 # what smooth reads of the scan's settings, which a label-volume patient's smoothing (no scan) does not
-SCAN_KEYS = {"segment": ("method", "thresholds"), "image": ("crop", "allow_irregular_slices")}
+SCAN_KEYS = {"segment": ("method", "thresholds"), "image": ("crop", "allow_irregular_slices"),
+             "smooth": ("fit_to_scan", "image_sigma")}
 
 
 def settings(stage):
@@ -234,10 +235,12 @@ def scan_input(wildcards):
 def scan_option(wildcards, input):
     """params: --image SCAN --thresholds segmentation.json for a segmented patient whose
     smoothing reads the scan (smooth.surface_from_image, or fit_to_scan with the labels' fit),
-    else nothing."""
+    or would but for label_samples: relaxed (the stage then says it reads none, as dicer run
+    does), else nothing."""
     if "image" not in input.keys():
         return ""
-    if not smoothing_reads_scan(stage_kwargs(patient_config(wildcards.patient), "smooth")):
+    smooth = stage_kwargs(patient_config(wildcards.patient), "smooth")
+    if not (smoothing_reads_scan(smooth) or (smooth["fit_to_scan"] and smooth["surface_from_labels"])):
         return ""
     return f"--image {shlex.quote(input.image)} --thresholds {shlex.quote(input.thresholds)}"
 

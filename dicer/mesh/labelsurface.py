@@ -438,6 +438,7 @@ class LabelSurface:
                 placed = scan_crossings(points, normals, kinds, step, scan)
                 moved = np.any(placed != points, axis=1)
                 self.placed = int(np.count_nonzero(moved))
+                self.placed_share = self.placed / max(points.shape[0], 1)  # of the labels' faces, before mirroring
                 # the edge's width where the scan crosses between the centres: a sample sent to a
                 # centre lies off the edge (a part the labels or their downsampling made larger
                 # than the scan's), where the gradient is flatter and would widen it
@@ -624,6 +625,7 @@ class LabelSurface:
                    "label_surface_radius": self.radius / float(self.mesh_spacing.min()),
                    "samples": int(self.points.shape[0]), "samples_on_sloped_faces": self.sloped,
                    **({} if self.placed is None else {"samples_placed_by_the_scan": self.placed,
+                                                      "share_of_faces_placed_by_the_scan": round(self.placed_share, 4),
                                                       "edge_variance_mm2": {f"{a}|{b}": round(v, 6) for (a, b), v
                                                                             in sorted(self.blur.items())}}),
                    **({"samples_relaxed": True} if self.relaxed else {})}

@@ -478,3 +478,25 @@ def test_templates_refuse_elements_outside_the_image():
     voxel.material[0] = 0
     with pytest.raises(DicerError, match="element lattice indices lie outside"):
         coarsen_mesh(voxel, levels=1, min_distance=1, keep_fine=())
+
+
+def test_templates_under_the_smoothing_floor_are_said_as_the_templates_shapes(tmp_path, caplog):
+    """A two-material ball on 1 x 1 x 1.5 mm voxels, graded: transition templates reach 0.286
+    (under the floor 0.3) on the elongated lattice, and the smooth stage said to set
+    merge.min_scaled_jacobian, plane merging's floor, which graded coarsening does not read."""
+    from dicer.cli import main
+    from dicer.image import Volume
+    from dicer.io.images import write_image
+
+    g = np.indices((40, 40, 30)).astype(float)
+    c = np.array([19.5, 19.5, 14.5])[:, None, None, None]
+    r = np.sqrt((((g - c) * np.array([1.0, 1.0, 1.5])[:, None, None, None]) ** 2).sum(0))
+    write_image(Volume((r < 17).astype(np.uint8) + (r < 8).astype(np.uint8), (1.0, 1.0, 1.5)),
+                tmp_path / "ball.nii.gz")
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        assert main(["run", "--labels", str(tmp_path / "ball.nii.gz"), "-o", str(tmp_path / "out"), "-q",
+                     "--set", "merge.method=templates"]) == 0
+    said = [r.getMessage() for r in caplog.records if "smallest scaled Jacobian" in r.getMessage()]
+    assert len(said) == 1 and "transition templates of graded coarsening" in said[0]
+    assert "merge.min_scaled_jacobian" not in said[0]

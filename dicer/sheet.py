@@ -125,7 +125,7 @@ def _unread_override(key: str, label_volume: bool) -> str | None:
         return "is read only for a label volume (the labels column), and this row's image is segmented"
     if label_volume and any(key == k or key.startswith(k + ".") for k in _SEGMENTATION_ONLY):
         return "sets the threshold search, which this row's label volume (the labels column) skips"
-    if label_volume and key in _SCAN_ONLY:
+    if label_volume and any(key == k or key.startswith(k + ".") for k in _SCAN_ONLY):
         return "acts on the scan a segmented row's smoothing is given, and this row's label volume has none"
     return None
 
@@ -172,12 +172,13 @@ def _check_row(row: dict, schema: dict, where: str) -> None:
         if keys.count(key) > 1:
             raise DicerError(f"{where}: patient {row['patient']!r}: override {key!r} is given twice; keep one")
     for key, leaves in _override_leaves(row.get("overrides", "")).items():
-        # each value it sets: a section given whole (smooth={fit_to_scan: false}) as its keys
-        whys = (_unread_override(leaf, bool(row.get("labels"))) for leaf in sorted(leaves or {key}))
-        unread = next((why for why in whys if why), None)
-        if unread:
-            raise DicerError(f"{where}: patient {row['patient']!r}: override {key!r} {unread}, so it would change "
-                             "nothing: remove it, or move the file to the other column")
+        # each value it sets: a section given whole (smooth={fit_to_scan: false}) by its keys
+        for leaf in sorted(leaves or {key}):
+            unread = _unread_override(leaf, bool(row.get("labels")))
+            if unread:
+                what = f"override {key!r}" if leaf == key else f"override {key!r} sets {leaf!r}, which"
+                raise DicerError(f"{where}: patient {row['patient']!r}: {what} {unread}, so it would change "
+                                 "nothing: remove it, or move the file to the other column")
 
 
 def _leaves(tree, prefix: str = "") -> set[str]:

@@ -722,6 +722,17 @@ def test_a_scan_that_is_not_the_labels_own_is_said(tmp_path, caplog):
     assert said["own"] == [] and said["own_share"] > 0.95
     assert said["moved_share"] < 0.4 and len(said["moved"]) == 1
     assert said["moved"][0].startswith("smooth: the scan crosses its thresholds between the voxels of only ")
+    # labels with no face between two kinds (a crop within one material): nothing to place, nothing said
+    block = np.ones((12, 12, 12), np.uint8)
+    write_mesh(voxel_mesh(block), tmp_path / "block.vtu")
+    write_image(Volume(block, (1.0,) * 3), tmp_path / "block_labels.nii.gz")
+    write_image(Volume(np.full(block.shape, 900.0, np.float32), (1.0,) * 3), tmp_path / "block.nii.gz")
+    caplog.clear()
+    assert main(["smooth", str(tmp_path / "block.vtu"), "-o", str(tmp_path / "b.vtu"), "--labels",
+                 str(tmp_path / "block_labels.nii.gz"), "--image", str(tmp_path / "block.nii.gz"), "--set",
+                 "segment.method=manual", "--set", "segment.thresholds=[500]", "--report", str(tmp_path / "b.json")]) == 0
+    assert not [r for r in caplog.records if "may not be theirs" in r.getMessage()]
+    assert "share_of_faces_placed_by_the_scan" not in json.loads((tmp_path / "b.json").read_text())["surface_from_labels"]
 
 
 def test_a_short_fit_is_said_with_its_cause(tmp_path, caplog):

@@ -85,9 +85,10 @@ def test_rows_keep_their_line_numbers_across_blank_rows(tmp_path):
      r"line 2: patient 'A': override 'smooth.fit_to_scan' acts on the scan .* label volume has none"),
     # a section given whole: its keys checked alike
     ("patient\timage\tlabels\toverrides\nA\t\tl.nii.gz\tsmooth={pillow: true, fit_to_scan: false}\n",
-     r"line 2: patient 'A': override 'smooth' acts on the scan .* label volume has none"),
-    ("patient\timage\tlabels\toverrides\nA\t\tl.nii.gz\tsegment={thresholds: [0, 300]}\n",
-     r"line 2: patient 'A': override 'segment' sets the threshold search"),
+     r"line 2: patient 'A': override 'smooth' sets 'smooth.fit_to_scan', which acts on the scan .* label volume "
+     r"has none, so it would change nothing: remove it"),
+    ("patient\timage\tlabels\toverrides\nA\t\tl.nii.gz\tsegment={morphology: false, thresholds: [0, 300]}\n",
+     r"line 2: patient 'A': override 'segment' sets 'segment.thresholds', which sets the threshold search"),
 ])
 def test_bad_sheets_are_refused_naming_the_line(tmp_path, text, said):
     with pytest.raises(DicerError, match=said):

@@ -419,7 +419,7 @@ class LabelSurface:
         self.voxel = float(spacing.max())
         self.radius = float(radius) * float(spacing.min())
         reach = self.radius if mirror else 0.0
-        self.placed = None
+        self.placed = self.placed_share = None
         self.top = int(np.max(mesh.material, initial=0)) + 1
         blur = {}  # (lower, higher) -> the scan's edge variance, mm^2: the blur's shift taken back
         self.relaxed = bool(relaxed and labels is not None)
@@ -438,7 +438,8 @@ class LabelSurface:
                 placed = scan_crossings(points, normals, kinds, step, scan)
                 moved = np.any(placed != points, axis=1)
                 self.placed = int(np.count_nonzero(moved))
-                self.placed_share = self.placed / max(points.shape[0], 1)  # of the labels' faces, before mirroring
+                # of the labels' faces, before mirroring (none: a crop within one material)
+                self.placed_share = self.placed / points.shape[0] if points.shape[0] else None
                 # the edge's width where the scan crosses between the centres: a sample sent to a
                 # centre lies off the edge (a part the labels or their downsampling made larger
                 # than the scan's), where the gradient is flatter and would widen it
@@ -625,7 +626,9 @@ class LabelSurface:
                    "label_surface_radius": self.radius / float(self.mesh_spacing.min()),
                    "samples": int(self.points.shape[0]), "samples_on_sloped_faces": self.sloped,
                    **({} if self.placed is None else {"samples_placed_by_the_scan": self.placed,
-                                                      "share_of_faces_placed_by_the_scan": round(self.placed_share, 4),
+                                                      **({} if self.placed_share is None else
+                                                         {"share_of_faces_placed_by_the_scan":
+                                                          round(self.placed_share, 4)}),
                                                       "edge_variance_mm2": {f"{a}|{b}": round(v, 6) for (a, b), v
                                                                             in sorted(self.blur.items())}}),
                    **({"samples_relaxed": True} if self.relaxed else {})}

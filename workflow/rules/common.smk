@@ -144,6 +144,7 @@ _check_overrides()
 
 
 # what smooth reads of the scan's settings, which a label-volume patient's smoothing (no scan) does not
+# (so a change of them re-runs no such patient; its log then has no "image_sigma is not used")
 SCAN_KEYS = {"segment": ("method", "thresholds"), "image": ("crop", "allow_irregular_slices"),
              "smooth": ("fit_to_scan", "image_sigma")}
 

@@ -253,6 +253,25 @@ def test_labels_column_meshes_a_label_volume(tmp_path):
     assert _planned_jobs(_snakemake(workdir, "-n")) == {}
 
 
+def test_the_scan_goes_to_smooth_where_its_settings_read_it(tmp_path):
+    """A segmented patient's smooth rule is given the scan (the labels' faces placed by it, the
+    default), also with label_samples: relaxed, which then says it reads none, as dicer run
+    does; with smooth.fit_to_scan: false it is not."""
+    workdir = _cohort(tmp_path)
+    (workdir / "config" / "patients.tsv").write_text(
+        "patient\timage\toverrides\n"
+        "head\tresources/phantoms/head.nii.gz\t\n"
+        "relaxed\tresources/phantoms/head.nii.gz\tsmooth.label_samples=relaxed\n"
+        "off\tresources/phantoms/head.nii.gz\tsmooth.fit_to_scan=false\n"
+    )
+    text = _snakemake(workdir, "-n", "-p").stdout
+    smooth = {m.group(1): m.group(0) for m in re.finditer(r"dicer smooth \S*results/(\w+)/merged\.vtu.*", text)}
+    assert set(smooth) == {"head", "relaxed", "off"}
+    for patient, given in (("head", True), ("relaxed", True), ("off", False)):
+        assert ("--image" in smooth[patient]) is given, smooth[patient]
+        assert "--labels" in smooth[patient]
+
+
 def test_row_with_image_and_labels_is_refused(tmp_path):
     workdir = _cohort(tmp_path)
     (workdir / "config" / "patients.tsv").write_text(

@@ -23,12 +23,11 @@ from pathlib import Path
 from dicer import __version__
 from dicer.brief import brief_json, brief_names
 from dicer.errors import DicerError
+from dicer.io import LABEL_SUFFIXES
 from dicer.io.atomic import all_or_nothing, check_stop, stop_requested
 from dicer.pages import LARGE_JOB, large_job, ordinary_pages, reuse_freed_memory
 
 log = logging.getLogger("dicer")
-
-LABEL_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".npy")
 
 
 def _config(args) -> dict:
@@ -757,9 +756,8 @@ def _warn_of_short_pull(report: dict, settings: dict) -> None:
 def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None = None,
               image_path: str | None = None, thresholds_path: str | None = None, mesh=None, write=_now,
               labels_path: str | None = None):
-    import numpy as np
-
     from dicer.config import places_faces_by_scan, stage_kwargs
+    from dicer.mesh.model import is_graded
     from dicer.mesh.smooth import smooth_mesh
 
     settings = stage_kwargs(config, "smooth")
@@ -874,16 +872,14 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
                     report["backoff_rounds"], settings["min_scaled_jacobian"], report["frozen_rounds"],
                     report["frozen_nodes"])
     _warn_of_short_pull(report, settings)
-    graded = np.any(np.asarray(smoothed.cell_data.get("coarsening_level", 0)) > 0)
-    if report["min_scaled_jacobian"] < settings["min_scaled_jacobian"] - 1e-6 and not report["inverted_elements"] \
-            and graded:  # merge.min_scaled_jacobian is plane merging's: the templates keep their own shapes
+    under = report["min_scaled_jacobian"] < settings["min_scaled_jacobian"] - 1e-6 and not report["inverted_elements"]
+    if under and is_graded(smoothed):  # merge.min_scaled_jacobian is plane merging's: the templates keep their shapes
         log.warning("smooth: the smallest scaled Jacobian is %.3f, under smooth.min_scaled_jacobian=%g: the "
                     "transition templates of graded coarsening (merge.method: templates) in %s keep the shapes they "
                     "have on the lattice (0.23 at worst, less on elongated voxels), and their nodes are held; plane "
                     "merging (merge.method: planes) keeps the floor", report["min_scaled_jacobian"],
                     settings["min_scaled_jacobian"], Path(mesh_path).name)
-    elif report["min_scaled_jacobian"] < settings["min_scaled_jacobian"] - 1e-6 and not report["inverted_elements"]:
-        # the guard keeps elements that came in below its floor no worse; it does not raise them
+    elif under:  # the guard keeps elements that came in below its floor no worse; it does not raise them
         log.warning("smooth: the smallest scaled Jacobian is %.3f, under smooth.min_scaled_jacobian=%g: elements "
                     "already under it in %s (merging's floor is merge.min_scaled_jacobian) are kept no worse, "
                     "not raised; set merge.min_scaled_jacobian=%g too to keep every element at the floor",

@@ -161,7 +161,8 @@ def _check_row(row: dict, schema: dict, where: str) -> None:
         raise DicerError(f"{where}: patient {row['patient']!r}: overrides are separated by ';', not ',' (before "
                          f"{glued.group(1)!r}); write KEY=VALUE;KEY=VALUE")
     keys = [item.split("=", 1)[0].strip() for item in row.get("overrides", "").split(";") if item.strip()]
-    clash = _sets_one_key_twice(row.get("overrides", ""))
+    leaves_of = _override_leaves(row.get("overrides", ""))
+    clash = _sets_one_key_twice(leaves_of)
     if clash:  # a section and one of its keys: the later value would be dropped unsaid
         raise DicerError(f"{where}: patient {row['patient']!r}: override {clash[0]!r} and {clash[1]!r} both set "
                          f"{clash[2]}; keep one")
@@ -171,7 +172,7 @@ def _check_row(row: dict, schema: dict, where: str) -> None:
                              "whole cohort's; set them in the config, not per patient")
         if keys.count(key) > 1:
             raise DicerError(f"{where}: patient {row['patient']!r}: override {key!r} is given twice; keep one")
-    for key, leaves in _override_leaves(row.get("overrides", "")).items():
+    for key, leaves in leaves_of.items():
         # each value it sets: a section given whole (smooth={fit_to_scan: false}) by its keys
         for leaf in sorted(leaves or {key}):
             unread = _unread_override(leaf, bool(row.get("labels")))
@@ -205,11 +206,10 @@ def _override_leaves(overrides: str) -> dict[str, set[str] | None]:
     return items
 
 
-def _sets_one_key_twice(overrides: str) -> tuple[str, str, str] | None:
+def _sets_one_key_twice(items: dict[str, set[str] | None]) -> tuple[str, str, str] | None:
     """(a section's override, an override of a key in it, the key both set) when a row's
-    overrides set one key two ways (``downsample={factor: 2}`` and ``downsample.factor=3``);
-    else None."""
-    items = _override_leaves(overrides)
+    overrides (:func:`_override_leaves`) set one key two ways (``downsample={factor: 2}`` and
+    ``downsample.factor=3``); else None."""
     if None in items.values():
         return None
     for key, leaves in items.items():

@@ -30,6 +30,7 @@ import numpy as np
 
 from dicer.errors import DicerError
 from dicer.image import MAX_LABEL, Volume
+from dicer.io import LABEL_SUFFIXES
 from dicer.io.atomic import atomic_path, captured_stderr, disk_full
 from dicer.parallel import contiguous
 
@@ -51,8 +52,6 @@ sitk = _SimpleITKOnFirstUse()
 
 #: single-file image formats (lower-case name endings)
 IMAGE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".npy", ".tif", ".tiff", ".png", ".dcm")
-#: label volume formats
-LABEL_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".npy")
 #: formats ``write_image`` writes
 WRITE_IMAGE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".mha")
 #: formats ``write_labels`` writes

@@ -182,6 +182,11 @@ def label_image_samples(labels, mesh: Mesh, mirror_reach: float = 0.0
     return _mirrored(mesh, samples, mirror_reach)
 
 
+def _thresholds_of(kinds: np.ndarray, scan) -> np.ndarray:
+    """(S,) the scan's threshold of each sample's pair: the higher kind's lower bound."""
+    return np.asarray(scan.thresholds, float)[np.clip(kinds[:, 1] - 1, 0, len(scan.thresholds) - 1)]
+
+
 def scan_crossings(points: np.ndarray, normals: np.ndarray, kinds: np.ndarray, step: np.ndarray, scan) -> np.ndarray:
     """Face samples moved to where the scan crosses their threshold between the voxels' centres.
 
@@ -211,7 +216,7 @@ def scan_crossings(points: np.ndarray, normals: np.ndarray, kinds: np.ndarray, s
     -------
     (S, dim) float64 ndarray
     """
-    t = np.asarray(scan.thresholds, float)[np.clip(kinds[:, 1] - 1, 0, len(scan.thresholds) - 1)]
+    t = _thresholds_of(kinds, scan)
     at = lambda f: scan.sample(points + (f * step)[:, None] * normals).astype(float)  # noqa: E731
     below, above = at(-0.5), at(0.5)
     low = at(-_FAR)
@@ -264,7 +269,7 @@ def edge_variance(points: np.ndarray, kinds: np.ndarray, scan) -> dict:
     """
     dim = points.shape[1]
     spacing = np.asarray(scan.spacing, float)[:dim]
-    t = np.asarray(scan.thresholds, float)[np.clip(kinds[:, 1] - 1, 0, len(scan.thresholds) - 1)]
+    t = _thresholds_of(kinds, scan)
     grad = np.empty_like(points)
     for d in range(dim):
         h = np.zeros(dim)

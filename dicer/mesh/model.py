@@ -138,6 +138,22 @@ class Mesh(Sized):
         )
 
 
+def is_graded(mesh: "Mesh") -> bool:
+    """Whether a mesh has coarse cells or transition templates (graded coarsening).
+
+    Parameters
+    ----------
+    mesh : Mesh
+
+    Returns
+    -------
+    bool
+        True where any element's :data:`LEVEL_DATA` is above 0.
+    """
+    level = mesh.cell_data.get(LEVEL_DATA)
+    return level is not None and bool(np.any(np.asarray(level) > 0))
+
+
 def nodes_off_lattice(mesh: "Mesh") -> int:
     """How many nodes lie away from their lattice point (``origin + spacing * lattice``):
     none in a voxel or plane-merged mesh, most boundary nodes of a smoothed one. Nodes

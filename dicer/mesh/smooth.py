@@ -58,7 +58,7 @@ from dicer.errors import DicerError
 from dicer.mesh.boundary import (NODE_CLASSES, BoundaryGraph, boundary_graph, bounding_planes, class_counts,
                                  mirror_share, mirror_weights, plane_axes, plane_bits)
 from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes, hex_scaled_jacobian_t, hex_volumes_t, scaled_jacobian
-from dicer.mesh.model import CHUNK, LEVEL_DATA, Mesh, pieces
+from dicer.mesh.model import CHUNK, LEVEL_DATA, Mesh, is_graded, pieces
 from dicer.mesh.topology import HEX_CORNERS, HEX_EDGES, QUAD_CORNERS, QUAD_EDGES
 
 __all__ = ["DEFAULTS", "smooth_mesh", "smoothing_settings"]
@@ -648,12 +648,6 @@ class _InteriorGraph(_Interior):
         self._mirror(np.zeros(m, np.uint8) if planes is None else planes[band_nodes])
 
 
-def _graded(mesh: Mesh) -> bool:
-    """True for a mesh with coarse cells or transition templates (see LEVEL_DATA)."""
-    level = mesh.cell_data.get(LEVEL_DATA)
-    return level is not None and bool(np.any(np.asarray(level) > 0))
-
-
 def _template_nodes(mesh: Mesh, x0: np.ndarray) -> np.ndarray:
     """(N,) bool: the nodes of transition template elements (graded elements that are not
     boxes). The interior solve holds them where the templates put them: their quality on
@@ -997,7 +991,7 @@ def _set_up(mesh: Mesh, s: dict, surface, t0: float, t_img: float) -> _Smoothing
     ``t_img``: seconds taken by the surfaces (both for the timings).
     """
     x0 = np.asarray(mesh.points, float)
-    graded = _graded(mesh)
+    graded = is_graded(mesh)
     g, slots, t_slots, t_classify = _classify(mesh, s, x0, graded)
     timings = {"classify": t_classify}
     bnodes = np.flatnonzero(g.boundary)

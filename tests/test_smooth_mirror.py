@@ -118,7 +118,7 @@ def test_graph_interior_solve_mirrors_alike(ball, monkeypatch):
     # the interior solve of graded meshes (from element edges) mirrors like the lattice one
     part = voxel_mesh(ball[16:, 16:, 16:])
     lattice, _ = smooth_mesh(part, {})
-    monkeypatch.setattr(smooth_module, "_graded", lambda mesh: True)
+    monkeypatch.setattr(smooth_module, "is_graded", lambda mesh: True)
     graph, rep = smooth_mesh(part, {})
     assert rep["interior_nodes_solved"] > 0
     assert np.abs(graph.points - lattice.points).max() < 1e-6

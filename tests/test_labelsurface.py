@@ -109,9 +109,9 @@ def plane_fit(n, offset):
     surface = LabelSurface(voxel_mesh(((x - 12.0) @ n < offset).astype(np.uint8)), 5.0, mirror=False)
     p = surface.points[np.all(np.abs(surface.points - 12.0) < 5.0, axis=1)]
     normal = np.tile(-n, (p.shape[0], 1))  # into the material
-    height, fitted = surface.offsets(p, normal, np.ones(p.shape[0], np.int64))
+    height, fitted, direction = surface.offsets(p, normal, np.ones(p.shape[0], np.int64))
     assert fitted.all()
-    fit = p + height[:, None] * normal
+    fit = p + height[:, None] * direction
     return (p - 12.0) @ n - offset, (fit - 12.0) @ n - offset, fit
 
 
@@ -756,3 +756,36 @@ def test_a_short_fit_is_said_with_its_cause(tmp_path, caplog):
     assert len(said["still"]) == 1 and said["still"][0].endswith(
         "a coefficient of 0 (smooth.coefficient or smooth.coefficients) holds every boundary node where it is")
     assert said["each"] == said["still"]
+
+
+@pytest.mark.parametrize("part", ["quarter", "full"])
+def test_a_node_in_the_middle_of_a_flat_run_is_fitted(part, monkeypatch):
+    """The Kirsch plate's hole (radius 7 voxels) in its CT-like image: at the middle of a flat run
+    of the staircase the smoothed mesh's normal stands on the run, 25 degrees off the circle's, and
+    the fit along it faces too few of the placed faces. It is fitted again along the staircase's
+    mean normal about it: every node between the kinds fitted (measured before: 13 of 15, 55 of
+    56), the fitted rim within 0.032 / 0.078 voxel of the circle (before: 0.233 and 0.235, the
+    node left at the labels' smoothing)."""
+    import dicer.mesh.subvoxel as subvoxel
+    from dicer.validation import geometry
+
+    image = geometry.kirsch_scan(7.0, 70 if part == "quarter" else 140, part)
+    lab = fix_connectivity((image >= 500).astype(np.uint8))[0]
+    targets = []
+    lift = subvoxel.lift
+
+    def capture(sides, on_surface, floor, weight):
+        targets.append(on_surface.copy())
+        return lift(sides, on_surface, floor, weight)
+
+    monkeypatch.setattr(subvoxel, "lift", capture)
+    out, report = smooth_mesh(voxel_mesh(lab), labels=Volume(lab, (1.0, 1.0)), image=Volume(image, (1.0, 1.0)),
+                              thresholds=[500.0])
+    fit = report["surface_from_labels"]
+    assert fit["nodes_moved"] == fit["nodes_between_two_kinds"] == (15 if part == "quarter" else 56)
+    centre = np.zeros(2) if part == "quarter" else np.array(lab.shape) / 2
+    radius = np.linalg.norm(targets[0][:, :2] - centre, axis=1)
+    rim = np.abs(radius[radius < 8.5] - 7.0)
+    assert rim.size == fit["nodes_between_two_kinds"]
+    assert rim.max() < (0.04 if part == "quarter" else 0.09) and rim.mean() < 0.04
+    assert report["min_scaled_jacobian"] >= 0.3 and report["inverted_elements"] == 0

@@ -252,7 +252,7 @@ GOLDEN_SMOOTH = {
     "ball_defaults": "a54c7269cfc30a97 1f5beaadf21a4d22 c1dc1f10ec2aa04c 0 0",
     "merged_defaults": "59140031ad15e30e 67b2f02161168701 1d0c09f1304e05c4 0 0",
     "graded_defaults": "14fd52e3a34a5945 156f82b159a44490 05d791d6e1437602 0 0",
-    "quarter_disc_defaults": "e3f81019fb27d9b8 38bd4ad4a81d2134 f1185d51a9f63a48 0 0",
+    "quarter_disc_defaults": "98a71c4e374c0f2a 38bd4ad4a81d2134 a3582a9c97823b2e 0 0",
     "ct3_image_defaults": "3436875fcff2a2fb 93a92adc8d68ce10 b9c343707e7246fc 0 0",
     "stripes_defaults": "3bd0aab08e389022 efe7c648830f56d4 5f973112c709be81 0 1",
     "ball": "ba013ac9a35f2ac0 1f5beaadf21a4d22 f215aed5abb1a541 0 -",
@@ -282,7 +282,7 @@ GOLDEN_SMOOTH = {
     "cut_fit": "b6296e87b98bcb5b 56e6b73b7f51e9c6 e4f4297a10c046d0 0 0",
     "merged_fit": "2754c666342bedc9 67b2f02161168701 ffbc5bcef47464ab 0 0",
     "graded_fit": "e3d891f2947f9950 156f82b159a44490 3a1f66dc1b7efc5c 0 0",
-    "quarter_disc_fit": "28291658670af99a 38bd4ad4a81d2134 73efb9e3dd169e74 0 0",
+    "quarter_disc_fit": "4877825f623e620a 38bd4ad4a81d2134 25caef92eeaf24c2 0 0",
 }
 
 GOLDEN_GRAPH = {

@@ -382,6 +382,15 @@ def _mirrored(mesh: Mesh, samples: tuple, mirror_reach: float) -> tuple:
     return points, normals, kinds, weights
 
 
+def _cosines(near: np.ndarray, n: np.ndarray, dim: int) -> np.ndarray:
+    """(P, k) cosines between the gathered samples' normals ``near[..., dim:]`` and ``n`` (P, dim),
+    summed over the axes in numpy's order, term by term (a mirrored model sums alike)."""
+    cos = near[..., dim] * n[:, None, 0]
+    for a in range(1, dim):
+        cos += near[..., dim + a] * n[:, None, a]
+    return cos
+
+
 def _weighted_fit(basis: np.ndarray, w: np.ndarray, h: np.ndarray) -> np.ndarray:
     """(P, m) least-squares coefficients of ``h`` (P, k) in ``basis`` (P, k, m) with weights
     ``w`` (P, k); a relative 1e-9 on the diagonal keeps a degenerate row solvable."""
@@ -471,7 +480,8 @@ class LabelSurface:
         r = float(radius)
         self.k = int(np.ceil(3.0 * np.pi * r * r if dim == 3 else 6.0 * r)) + 8
 
-    def offsets(self, y: np.ndarray, normal: np.ndarray, pair: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def offsets(self, y: np.ndarray, normal: np.ndarray, pair: np.ndarray, fixed: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The fitted surface's height above each node along its normal.
 
         Parameters
@@ -482,25 +492,33 @@ class LabelSurface:
             Unit normals into the higher kind.
         pair : (P,) int64 ndarray
             Each node's kinds, lower * ``top`` + higher.
+        fixed : (P, 3) bool ndarray, optional
+            Coordinates the nodes keep (a plane's axis): the fit's normal has none along them.
 
         Returns
         -------
         height : (P,) float64 ndarray
-            mm along the normal, 0 where no fit.
+            mm along ``direction``, 0 where no fit.
         fitted : (P,) bool ndarray
             Nodes with enough samples for the fit.
+        direction : (P, 3) float64 ndarray
+            Unit normals the heights lie along: ``normal``, or where the fit along it failed, the
+            staircase's mean normal about the node.
         """
         height = np.zeros(y.shape[0])
         fitted = np.zeros(y.shape[0], bool)
+        direction = np.array(normal, float, copy=True)
         if self.tree is None or y.shape[0] == 0:
-            return height, fitted
+            return height, fitted, direction
+        free = np.ones((y.shape[0], self.dim)) if fixed is None else (~fixed[:, :self.dim]).astype(float)
 
         def fit(part: slice) -> None:
-            height[part], fitted[part] = self._fit(y[part, :self.dim], normal[part, :self.dim], pair[part])
+            height[part], fitted[part], direction[part, :self.dim] = self._fit(
+                y[part, :self.dim], direction[part, :self.dim], pair[part], free[part])
 
         for _ in ordered_map(fit, [slice(s, s + _CHUNK) for s in range(0, y.shape[0], _CHUNK)]):
             pass
-        return height, fitted
+        return height, fitted, direction
 
     def _neighbours(self, p: np.ndarray, pair: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every sample of the pair within the radius of each point: (P, k) distances (inf: none)
@@ -531,8 +549,10 @@ class LabelSurface:
         width = max(int(np.count_nonzero(np.isfinite(dist), axis=1).max(initial=0)), 1)
         return dist[:, :width], idx[:, :width]
 
-    def _fit(self, p: np.ndarray, n: np.ndarray, pair: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(P,) heights and fitted flags of the points ``p`` (P, dim) with normals ``n`` (P, dim)."""
+    def _fit(self, p: np.ndarray, n: np.ndarray, pair: np.ndarray, free: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(P,) heights, fitted flags and (P, dim) normals of the fit of the points ``p`` (P, dim)
+        with normals ``n`` (P, dim); ``free`` (P, dim): 1 where a normal may have a component."""
         dist, idx = self._neighbours(p, pair)
         rank = np.minimum(np.searchsorted(self.pairs, pair), max(self.pairs.size - 1, 0))
         blur = np.where(self.pairs[rank] == pair, self._pair_blur[rank], 0.0) if self.pairs.size else np.zeros(p.shape[0])
@@ -540,29 +560,56 @@ class LabelSurface:
         # twofold (a thin plate's both sides), and the temporaries are that wide
         count = np.count_nonzero(np.isfinite(dist), axis=1)
         order = np.argsort(count, kind="stable")
-        height, fitted = np.zeros(p.shape[0]), np.zeros(p.shape[0], bool)
+        height, fitted, direction = np.zeros(p.shape[0]), np.zeros(p.shape[0], bool), n.copy()
         for g in np.array_split(order, _GROUPS):
             if g.size:
                 width = max(int(count[g].max()), 1)
-                height[g], fitted[g] = self._fit_samples(p[g], n[g], dist[g, :width], idx[g, :width], blur[g])
-        return height, fitted
+                height[g], fitted[g], direction[g] = self._fit_samples(p[g], n[g], dist[g, :width], idx[g, :width],
+                                                                       blur[g], free[g])
+        return height, fitted, direction
 
-    def _fit_samples(self, p: np.ndarray, n: np.ndarray, dist: np.ndarray, idx: np.ndarray, blur: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray]:
+    def _fit_samples(self, p: np.ndarray, n: np.ndarray, dist: np.ndarray, idx: np.ndarray, blur: np.ndarray,
+                     free: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The fit of points ``p`` (P, dim) with normals ``n`` to their samples (``dist``, ``idx``:
         (P, k), inf where none); ``blur`` (P,): the scan's edge variance (mm^2) whose shift of a
         curved iso-surface (towards its centres of curvature, by the variance times the mean
-        curvature) is taken back, 0 for the labels."""
-        dim, r = self.dim, self.radius
+        curvature) is taken back, 0 for the labels; ``free`` (P, dim): 1 where the normal may
+        have a component. Returns heights, fitted flags and the normals they lie along.
+
+        The smoothed mesh's normal ``n`` can miss the surface's by 25 degrees and more in the middle
+        of a flat run of the staircase (its elements there stand square); facing too few samples
+        the fit along it fails, and the node would keep the labels' smoothing. Such nodes are
+        fitted again along the staircase's mean normal about them."""
         ok = np.isfinite(dist)
         idx[~ok] = 0
+        near = np.take(self._points_normals, idx, axis=0)  # (np.take gathers rows several times faster)
+        weights = np.take(self.weights, idx)
+        height, fitted = self._fit_in_frame(p, n, near, ok, weights, blur)
+        lost = np.flatnonzero(~fitted)
+        if not lost.size:
+            return height, fitted, n
+        # the faces on the node's side (edge-on ones too), nearer ones more
+        r, dim = self.radius, self.dim
+        q = np.where(ok[lost], dist[lost] * dist[lost] / (r * r), 1.0)
+        w = np.where(_cosines(near[lost], n[lost], dim) > -_FACING, (1.0 - np.minimum(q, 1.0)) ** 2 * weights[lost], 0.0)
+        mean = np.stack([np.einsum("ij,ij->i", w, near[lost, :, dim + a]) for a in range(dim)], axis=1) * free[lost]
+        length = np.linalg.norm(mean, axis=1)
+        lost, mean = lost[length > 1e-9], mean[length > 1e-9] / length[length > 1e-9, None]
+        h2, f2 = self._fit_in_frame(p[lost], mean, near[lost], ok[lost], weights[lost], blur[lost])
+        n = n.copy()
+        take = lost[f2]
+        height[take], fitted[take], n[take] = h2[f2], True, mean[f2]
+        return height, fitted, n
+
+    def _fit_in_frame(self, p: np.ndarray, n: np.ndarray, near: np.ndarray, ok: np.ndarray, weights: np.ndarray,
+                      blur: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The quadric fit of ``p`` (P, dim) along ``n`` (P, dim) to the gathered samples ``near``
+        (P, k, 2 dim: positions and normals; ``ok`` (P, k), ``weights`` (P, k)): heights and
+        fitted flags."""
+        dim, r = self.dim, self.radius
         # facing the node's side: a weight rising from 0 (edge-on) to 1 at _FACING, continuous so
         # that faces edge-on to the node (an axis-aligned normal) count alike in a mirrored model
-        near = np.take(self._points_normals, idx, axis=0)  # (np.take gathers rows several times faster)
-        cos = near[..., dim] * n[:, None, 0]  # the sum over the axes in numpy's order, term by term
-        for a in range(1, dim):
-            cos += near[..., dim + a] * n[:, None, a]
-        facing = np.clip(cos / _FACING, 0.0, 1.0)
+        facing = np.clip(_cosines(near, n, dim) / _FACING, 0.0, 1.0)
         rel = near[..., :dim] - p[:, None, :]
         h = rel @ n[:, :, None]  # (P, k, 1)
         h = h[..., 0]
@@ -580,8 +627,8 @@ class LabelSurface:
             d2 = u * u + v * v
             basis = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1)
         q = d2 / (r * r)
-        ok &= (q < 1.0) & (np.abs(h) < self.voxel * _SHEET + 0.5 * d2 / r)
-        w = np.where(ok, (1.0 - q) ** 2 * facing * np.take(self.weights, idx), 0.0)
+        ok = ok & (q < 1.0) & (np.abs(h) < self.voxel * _SHEET + 0.5 * d2 / r)
+        w = np.where(ok, (1.0 - q) ** 2 * facing * weights, 0.0)
         m = basis.shape[-1]
         coef = _weighted_fit(basis, w, h)
         # once more without the samples far off the first fit, for the nodes that had such
@@ -622,11 +669,11 @@ class LabelSurface:
         normal, defined = sides.normals(xs, xb)
         sel = np.flatnonzero(defined)
         lo, hi = sides.pair[sel] // sides.top, sides.pair[sel] % sides.top
-        height, fitted = self.offsets(xb[sel], normal[sel], lo * self.top + hi)
-        limit = np.abs(normal[sel, :self.dim]) @ self.mesh_spacing
+        height, fitted, normal = self.offsets(xb[sel], normal[sel], lo * self.top + hi, sides.fixed[sel])
+        limit = np.abs(normal[:, :self.dim]) @ self.mesh_spacing
         height = np.clip(height, -limit, limit)
         y = xb.copy()
-        y[sel] += height[:, None] * normal[sel]
+        y[sel] += height[:, None] * normal
         return y, {"nodes_moved": int(np.count_nonzero(fitted)), "nodes_between_two_kinds": int(sides.usable.sum()),
                    "label_surface_radius": self.radius / float(self.mesh_spacing.min()),
                    "samples": int(self.points.shape[0]), "samples_on_sloped_faces": self.sloped,

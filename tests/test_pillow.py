@@ -278,7 +278,7 @@ def test_a_layer_mostly_not_made_is_warned_of(tmp_path, capsys, caplog):
 
     np.save(tmp_path / "wedge.npy", _wedge())
     caplog.set_level("WARNING", logger="dicer")
-    # the thick layer under a floor of 0.7 is made on 18 of the 66 faces (measured; none before
+    # the thick layer under a floor of 0.7 is made on 24 of the 66 faces (measured; none before
     # the taper followed the room of the elements it crosses); the defaults' floor (0.3) lets
     # the thick layer cover 60 of the 66 faces (measured), the thin one all
     for thickness, floor, said in (("0.9", "0.7", True), ("0.9", "0.3", False), ("0.25", "0.3", False)):
@@ -287,7 +287,7 @@ def test_a_layer_mostly_not_made_is_warned_of(tmp_path, capsys, caplog):
                      "--set", "smooth.pillow=true", "--set", f"smooth.pillow_thickness={thickness}",
                      "--set", f"smooth.min_scaled_jacobian={floor}"]) == 0
         warned = [r.getMessage() for r in caplog.records if "pillow layer covers" in r.getMessage()]
-        assert warned == (["smooth: the pillow layer covers 18 of the 66 exterior faces it could cover (the others "
+        assert warned == (["smooth: the pillow layer covers 24 of the 66 exterior faces it could cover (the others "
                            "could not keep smooth.min_scaled_jacobian with it); lower smooth.pillow_thickness (now "
                            "0.9) or smooth.min_scaled_jacobian"] if said else [])
 

@@ -55,6 +55,7 @@ __all__ = ["LabelSurface", "check_labels_for_mesh", "edge_variance", "label_imag
 _FACING = 0.1  # the cosine between a face's and the node's normals from which a face counts fully
 _SHEET = 2.0  # voxels off the tangent plane (besides the bend over r) where another sheet begins
 _OUTLIER = 1.0  # voxels off the first fit: dropped from the second
+_LEAN = 0.1  # the fit's slope at its node (about 6 degrees) from which it is fitted again along its own normal
 _PER_COEFFICIENT = 3  # samples needed per coefficient of the fit
 _CHUNK = 2048  # nodes fitted at a time: (chunk, k) temporaries, some 10 of them, k 180 or more
 _GROUPS = 4  # a chunk's nodes fitted in this many groups of like sample counts
@@ -391,6 +392,12 @@ def _cosines(near: np.ndarray, n: np.ndarray, dim: int) -> np.ndarray:
     return cos
 
 
+def _unit(v: np.ndarray) -> np.ndarray:
+    """Rows of ``v`` scaled to length 1 (a zero row stays zero)."""
+    length = np.linalg.norm(v, axis=1)
+    return v / np.where(length > 0, length, 1.0)[:, None]
+
+
 def _weighted_fit(basis: np.ndarray, w: np.ndarray, h: np.ndarray) -> np.ndarray:
     """(P, m) least-squares coefficients of ``h`` (P, k) in ``basis`` (P, k, m) with weights
     ``w`` (P, k); a relative 1e-9 on the diagonal keeps a degenerate row solvable."""
@@ -502,8 +509,8 @@ class LabelSurface:
         fitted : (P,) bool ndarray
             Nodes with enough samples for the fit.
         direction : (P, 3) float64 ndarray
-            Unit normals the heights lie along: ``normal``, or where the fit along it failed, the
-            staircase's mean normal about the node.
+            Unit normals the heights lie along: ``normal``, or where the fit along it leaned, its
+            own normal, or where it failed, the staircase's mean normal about the node.
         """
         height = np.zeros(y.shape[0])
         fitted = np.zeros(y.shape[0], bool)
@@ -577,35 +584,46 @@ class LabelSurface:
         have a component. Returns heights, fitted flags and the normals they lie along.
 
         The smoothed mesh's normal ``n`` can miss the surface's by 25 degrees and more in the middle
-        of a flat run of the staircase (its elements there stand square); facing too few samples
-        the fit along it fails, and the node would keep the labels' smoothing. Such nodes are
-        fitted again along the staircase's mean normal about them."""
+        of a flat run of the staircase (its elements there stand square): the fit along it then
+        leans, or facing too few samples fails and the node would keep the labels' smoothing. A
+        leaning node is fitted again along the first fit's own normal, a failed one along the
+        staircase's mean normal about it."""
         ok = np.isfinite(dist)
         idx[~ok] = 0
         near = np.take(self._points_normals, idx, axis=0)  # (np.take gathers rows several times faster)
         weights = np.take(self.weights, idx)
-        height, fitted = self._fit_in_frame(p, n, near, ok, weights, blur)
+        height, fitted, slope, _ = self._fit_in_frame(p, n, near, ok, weights, blur)
+        n = n.copy()
+        # leaning: fitted again along the fit's own normal at the node, kept where the surface
+        # found is no more curved than the blur's shift allows (a part smaller than the window,
+        # fitted beyond its equator, reads otherwise in every frame)
+        lean = np.flatnonzero(fitted & (np.einsum("ij,ij->i", slope, slope) > _LEAN * _LEAN))
+        if lean.size:
+            h2, f2, _, mild = self._fit_in_frame(p[lean], _unit((n[lean] - slope[lean]) * free[lean]), near[lean],
+                                                 ok[lean], weights[lean], blur[lean])
+            take = f2 & mild
+            height[lean[take]], n[lean[take]] = h2[take], _unit((n[lean] - slope[lean]) * free[lean])[take]
         lost = np.flatnonzero(~fitted)
         if not lost.size:
             return height, fitted, n
-        # the faces on the node's side (edge-on ones too), nearer ones more
+        # failed: the faces on the node's side (edge-on ones too), nearer ones more
         r, dim = self.radius, self.dim
         q = np.where(ok[lost], dist[lost] * dist[lost] / (r * r), 1.0)
         w = np.where(_cosines(near[lost], n[lost], dim) > -_FACING, (1.0 - np.minimum(q, 1.0)) ** 2 * weights[lost], 0.0)
         mean = np.stack([np.einsum("ij,ij->i", w, near[lost, :, dim + a]) for a in range(dim)], axis=1) * free[lost]
         length = np.linalg.norm(mean, axis=1)
         lost, mean = lost[length > 1e-9], mean[length > 1e-9] / length[length > 1e-9, None]
-        h2, f2 = self._fit_in_frame(p[lost], mean, near[lost], ok[lost], weights[lost], blur[lost])
-        n = n.copy()
+        h2, f2, _, _ = self._fit_in_frame(p[lost], mean, near[lost], ok[lost], weights[lost], blur[lost])
         take = lost[f2]
         height[take], fitted[take], n[take] = h2[f2], True, mean[f2]
         return height, fitted, n
 
     def _fit_in_frame(self, p: np.ndarray, n: np.ndarray, near: np.ndarray, ok: np.ndarray, weights: np.ndarray,
-                      blur: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                      blur: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The quadric fit of ``p`` (P, dim) along ``n`` (P, dim) to the gathered samples ``near``
-        (P, k, 2 dim: positions and normals; ``ok`` (P, k), ``weights`` (P, k)): heights and
-        fitted flags."""
+        (P, k, 2 dim: positions and normals; ``ok`` (P, k), ``weights`` (P, k)): heights, fitted
+        flags, (P, dim) the fitted surface's slope at the node (its normal is n - slope, not
+        scaled) and whether its curvature lies within the blur's limit."""
         dim, r = self.dim, self.radius
         # facing the node's side: a weight rising from 0 (edge-on) to 1 at _FACING, continuous so
         # that faces edge-on to the node (an axis-aligned normal) count alike in a mirrored model
@@ -644,8 +662,14 @@ class LabelSurface:
         # its equator, which read it more curved than it is (a CT-like ball of radius 3.5 voxels
         # came out +20 % in volume, +2.8 % with the limit)
         limit = (0.5 if dim == 2 else 1.0) / r
-        bend = np.clip(coef[:, 2] if dim == 2 else coef[:, 3] + coef[:, 5], -limit, limit)
-        return np.where(fitted, coef[:, 0] - blur * bend, 0.0), fitted
+        curvature = coef[:, 2] if dim == 2 else coef[:, 3] + coef[:, 5]
+        bend = np.clip(curvature, -limit, limit)
+        if dim == 2:
+            slope = coef[:, 1, None] * np.stack([-n[:, 1], n[:, 0]], axis=1)
+        else:
+            slope = coef[:, 1, None] * t1 + coef[:, 2, None] * t2
+        return (np.where(fitted, coef[:, 0] - blur * bend, 0.0), fitted, np.where(fitted[:, None], slope, 0.0),
+                np.abs(curvature) < limit)
 
     def project(self, sides, x: np.ndarray, bnodes: np.ndarray, xb: np.ndarray) -> tuple[np.ndarray, dict]:
         """The boundary positions moved onto the fitted surface (before ``subvoxel.lift``).

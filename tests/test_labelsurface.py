@@ -351,7 +351,7 @@ def test_a_merged_ball_fitted_to_its_labels_keeps_their_surface(dim):
     on_labels, report = smooth_mesh(merged, labels=Volume(lab, (1.0,) * dim))
     # measured: the merged mesh's faces (chamfers fill steps, +5.5 % / +2.3 % volume) put the
     # surface 0.327 / 0.224 voxel off the sphere on average, +4.8 % / +2.2 % volume; the labels
-    # 0.110 / 0.114, -0.54 % / -0.07 % (the voxel mesh's own fit: 0.075 / 0.098); in 3D the
+    # 0.111 / 0.114, -0.55 % / -0.06 % (the voxel mesh's own fit: 0.075 / 0.098); in 3D the
     # sphere-from-labels target of docs/validation.md (0.12) at dicer run's defaults, merging on
     faces_error, labels_error = radial(merged, on_faces, dim), radial(merged, on_labels, dim)
     assert faces_error[0] > 0.2 and labels_error[0] < (0.113 if dim == 3 else 0.118) and labels_error[1] < 0.55
@@ -793,9 +793,9 @@ def test_a_node_in_the_middle_of_a_flat_run_is_fitted(part, monkeypatch):
 
 def test_a_leaning_fit_is_fitted_again_along_its_own_normal():
     """The CT-like ball (radius 16.3) plane-merged as dicer run merges it, fitted to its labels
-    placed by the scan at the floor 0.3: a node whose fit leans more than 6 degrees from the mesh's
+    placed by the scan at the floor 0.3: a node whose fit leans more than 17 degrees from the mesh's
     normal is fitted again along the fit's own normal. Measured: the nodes' largest |r - R| 0.259
-    voxel, mean 0.101, 76 nodes more than 0.2 off (fitted along the mesh's normals only: 0.724,
+    voxel, mean 0.101, 82 nodes more than 0.2 off (fitted along the mesh's normals only: 0.724,
     0.108, 150); a part smaller than the window keeps its first fit (the small-part test above)."""
     from tests.test_smooth_image import CENTRE as CT_CENTRE, R as CT_R, ct_ball
 

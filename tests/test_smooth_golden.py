@@ -250,10 +250,10 @@ GOLDEN_MESHES = {
 }
 
 GOLDEN_SMOOTH = {
-    "ball_defaults": "8878a06359061fa6 1f5beaadf21a4d22 7fea8d6fc9a97134 0 0",
-    "merged_defaults": "5d3f4f2f66f73c64 67b2f02161168701 ea4fbe0e9de005da 0 0",
-    "graded_defaults": "69588fae3ebeb365 156f82b159a44490 49ed2f78970c0917 0 0",
-    "quarter_disc_defaults": "c6840c1eca54e8aa 38bd4ad4a81d2134 2727ec6cc05041f3 0 0",
+    "ball_defaults": "8c0f818ee80a6add 1f5beaadf21a4d22 0fe0c9d20864c0e5 0 0",
+    "merged_defaults": "19df1f37584f16e2 67b2f02161168701 f7696e13d1abd5a1 0 0",
+    "graded_defaults": "23106755909649ce 156f82b159a44490 e2795d76f03df2dd 0 0",
+    "quarter_disc_defaults": "bfe356b73ee8ab37 38bd4ad4a81d2134 e8d34f73d38ab6e7 0 0",
     "ct3_image_defaults": "3436875fcff2a2fb 93a92adc8d68ce10 b9c343707e7246fc 0 0",
     "stripes_defaults": "0f5f175b13d4ea62 efe7c648830f56d4 a5f165cc904f2602 0 0",
     "ball": "ba013ac9a35f2ac0 1f5beaadf21a4d22 f215aed5abb1a541 0 -",
@@ -280,11 +280,11 @@ GOLDEN_SMOOTH = {
     "ct3_image_pull_backoff": "fe21a258ebc83167 93a92adc8d68ce10 1f3bc14a0ebc7df2 2 9",
     "ct2_image": "20a4427f63fee62f 77d80cb3dfef2a0c 9d96b6678735d9a8 0 3",
     "ct3_image_off": "5a5c7c82f3759ea5 93a92adc8d68ce10 c7cb80870a7f9182 0 -",
-    "cut_fit": "307517ad0b3ef78a 56e6b73b7f51e9c6 7a89ac37dfd9a80e 0 0",
-    "merged_fit": "a7a4258c410bc640 67b2f02161168701 c955eda3a4fa5bfe 0 0",
-    "graded_fit": "700bf49ea2ecec37 156f82b159a44490 bcd0463f45278605 0 0",
-    "quarter_disc_fit": "d7428d2f9eef7190 38bd4ad4a81d2134 99e7aed6eb8288a6 0 0",
-    "ball_fit_pull_backoff": "96327db2b0135844 1f5beaadf21a4d22 68af61100d5ff62c 0 3",
+    "cut_fit": "09e4795206461fb2 56e6b73b7f51e9c6 5b658654e2b5c2dd 0 0",
+    "merged_fit": "ca163d57838fa098 67b2f02161168701 62a4d7a07da097cb 0 0",
+    "graded_fit": "bcb35a8aea1f055b 156f82b159a44490 c1006b5ac17a02a8 0 0",
+    "quarter_disc_fit": "40f14344fef875d5 38bd4ad4a81d2134 319f90018ecce3c8 0 0",
+    "ball_fit_pull_backoff": "29c45160ea46cb50 1f5beaadf21a4d22 3ed9cffa351325a4 0 3",
 }
 
 GOLDEN_GRAPH = {

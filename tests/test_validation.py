@@ -227,8 +227,8 @@ def kirsch_fit(tmp_path_factory):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("merge,cps4,cps8", [(False, (3.1254, 3.1874, 82.4), (2.9119, 3.2252, 75.3)),
-                                             (True, (3.2383, 3.2383, 90.0), (3.1859, 3.1859, 90.0))])
+@pytest.mark.parametrize("merge,cps4,cps8", [(False, (3.1262, 3.1789, 82.5), (2.9369, 3.2377, 75.3)),
+                                             (True, (3.2391, 3.2391, 90.0), (3.1872, 3.1872, 90.0))])
 def test_kirsch_plate_from_labels_with_the_fitted_surface(kirsch_fit, merge, cps4, cps8):
     q, f = kirsch_fit[("quarter", merge)], kirsch_fit[("full", merge)]
     for r in (q, f):
@@ -261,7 +261,7 @@ def test_lame_from_labels_with_the_fitted_surface_refined(tmp_path, a, c3d8, c3d
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("a,c3d8,c3d20", [(7.0, -0.0958, -0.1439), (14.0, -0.0793, -0.1088)])
+@pytest.mark.parametrize("a,c3d8,c3d20", [(7.0, -0.0960, -0.1499), (14.0, -0.0785, -0.1083)])
 def test_lame_at_todays_defaults(tmp_path, a, c3d8, c3d20):
     """dicer run's defaults (the labels' fit, the floor 0.3, plane merging: 33 and 125 elements);
     fitted to the merged mesh's faces, before the fit took the labels, a = 7 read -13.1 % / -15.7 %."""
@@ -445,8 +445,8 @@ def test_target_kirsch_within_3_percent(kirsch_defaults, order):
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="target: bore hoop within 3 %; measured at today's defaults (the labels' fit, "
-                   "min SJ 0.3, plane merging: 33 elements) mean -9.6 % (C3D8), -14.4 % (C3D20); without merging "
-                   "(floor 0.2) -8.2 % / -10.1 %; the labels' smoothing alone -14.2 % / -20.6 %")
+                   "min SJ 0.3, plane merging: 33 elements) mean -9.6 % (C3D8), -15.0 % (C3D20); without merging "
+                   "(floor 0.2) -8.2 % / -10.2 %; the labels' smoothing alone -14.2 % / -20.6 %")
 def test_target_lame_within_3_percent(tmp_path):
     r = cases.lame(tmp_path, "quarter", [FIT, MIN_SJ_03], inner=7.0, outer=14.0)
     assert abs(r[1]["error_mean"]) <= 0.03 and abs(r[2]["error_mean"]) <= 0.03
@@ -472,20 +472,20 @@ def kirsch_scan_today(tmp_path_factory):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("part,cps4,cps8", [("quarter", (3.1128, 3.1128, 90.0), (3.3662, 3.3662, 90.0)),
-                                            ("full", (3.0929, 3.1014, 89.4), (3.3073, 3.3342, 89.4))])
+@pytest.mark.parametrize("part,cps4,cps8", [("quarter", (3.1364, 3.1364, 90.0), (3.3401, 3.3401, 90.0)),
+                                            ("full", (3.1134, 3.1310, 90.0), (3.2892, 3.3241, 89.4))])
 def test_kirsch_plate_from_a_grey_value_image_at_todays_defaults(kirsch_scan_today, part, cps4, cps8):
-    """The rim 0.102 / 0.115 voxel off the circle on average, 0.31 at most (with the labels'
-    faces as they are: 0.175, 0.43), closer readings, still outside 3 %."""
+    """The rim 0.103 / 0.117 voxel off the circle on average, 0.30 at most (with the labels'
+    faces as they are: 0.172, 0.41), closer readings, still outside 3 %."""
     r = kirsch_scan_today[part]
     kirsch_figures(r, 0.32, cps4, cps8)
-    assert r[1]["rim_radius_error_mean"] == pytest.approx(0.102 if part == "quarter" else 0.115, abs=0.01)
-    assert r[1]["rim_radius_error_max"] == pytest.approx(0.311, abs=0.01)
+    assert r[1]["rim_radius_error_mean"] == pytest.approx(0.103 if part == "quarter" else 0.117, abs=0.01)
+    assert r[1]["rim_radius_error_max"] == pytest.approx(0.303, abs=0.01)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("part,cps4,cps8", [("quarter", (3.3056, 3.3056, 90.0), (3.8047, 3.8047, 90.0)),
-                                            ("full", (3.2378, 3.2725, 89.4), (3.3083, 3.4872, 89.4))])
+@pytest.mark.parametrize("part,cps4,cps8", [("quarter", (3.3463, 3.3463, 90.0), (3.8421, 3.8421, 90.0)),
+                                            ("full", (3.2469, 3.2915, 89.4), (3.3151, 3.4993, 89.4))])
 def test_kirsch_plate_from_a_grey_value_image_with_the_labels_faces_as_they_are(tmp_path, part, cps4, cps8):
     """Today's defaults with smooth.fit_to_scan: false (the defaults until 5 December 2026): the
     noisy threshold's labels put the top of the hole outward, and the merged rim's corner kinks
@@ -496,15 +496,15 @@ def test_kirsch_plate_from_a_grey_value_image_with_the_labels_faces_as_they_are(
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="target from a grey-value image at today's defaults: CPS4 sigma_x(90) "
-                   "quarter / full 3.113 / 3.093 (+3.8 / +3.1 %), CPS8 3.366 / 3.307 (+12.2 / +10.2 %), largest "
+                   "quarter / full 3.136 / 3.113 (+4.5 / +3.8 %), CPS8 3.340 / 3.289 (+11.3 / +9.6 %), largest "
                    "rim stress at 89-90 deg: the merged rim's corner kinks under the floor, and the noise's "
-                   "0.04 voxel on the rim; quarter and full 0.6 % (CPS4) and 1.8 % (CPS8) apart")
+                   "0.04 voxel on the rim; quarter and full 0.7 % (CPS4) and 1.5 % (CPS8) apart")
 @pytest.mark.parametrize("order", [1, 2])
 def test_target_kirsch_from_a_grey_value_image_at_todays_defaults(kirsch_scan_today, order):
     kirsch_target(kirsch_scan_today["quarter"], kirsch_scan_today["full"], order, 0.03)
 
 
-@pytest.mark.parametrize("a,c3d8,c3d20,radius", [(7.0, -0.1113, -0.1333, 6.891), (14.0, -0.0510, -0.0827, 13.977)])
+@pytest.mark.parametrize("a,c3d8,c3d20,radius", [(7.0, -0.1111, -0.1356, 6.893), (14.0, -0.0510, -0.0826, 13.977)])
 def test_lame_from_a_grey_value_image_at_todays_defaults(tmp_path, a, c3d8, c3d20, radius):
     """dicer run's defaults on the CT-like image (the threshold's labels fitted with their faces
     placed by the scan, the floor 0.3, plane merging: 33 and 125 elements); with the labels' faces

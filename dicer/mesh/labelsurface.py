@@ -599,10 +599,10 @@ class LabelSurface:
         # fitted beyond its equator, reads otherwise in every frame)
         lean = np.flatnonzero(fitted & (np.einsum("ij,ij->i", slope, slope) > _LEAN * _LEAN))
         if lean.size:
-            h2, f2, _, mild = self._fit_in_frame(p[lean], _unit((n[lean] - slope[lean]) * free[lean]), near[lean],
-                                                 ok[lean], weights[lean], blur[lean])
+            own = _unit((n[lean] - slope[lean]) * free[lean])
+            h2, f2, _, mild = self._fit_in_frame(p[lean], own, near[lean], ok[lean], weights[lean], blur[lean])
             take = f2 & mild
-            height[lean[take]], n[lean[take]] = h2[take], _unit((n[lean] - slope[lean]) * free[lean])[take]
+            height[lean[take]], n[lean[take]] = h2[take], own[take]
         lost = np.flatnonzero(~fitted)
         if not lost.size:
             return height, fitted, n
@@ -611,8 +611,8 @@ class LabelSurface:
         q = np.where(ok[lost], dist[lost] * dist[lost] / (r * r), 1.0)
         w = np.where(_cosines(near[lost], n[lost], dim) > -_FACING, (1.0 - np.minimum(q, 1.0)) ** 2 * weights[lost], 0.0)
         mean = np.stack([np.einsum("ij,ij->i", w, near[lost, :, dim + a]) for a in range(dim)], axis=1) * free[lost]
-        length = np.linalg.norm(mean, axis=1)
-        lost, mean = lost[length > 1e-9], mean[length > 1e-9] / length[length > 1e-9, None]
+        some = np.linalg.norm(mean, axis=1) > 1e-9
+        lost, mean = lost[some], _unit(mean[some])
         h2, f2, _, _ = self._fit_in_frame(p[lost], mean, near[lost], ok[lost], weights[lost], blur[lost])
         take = lost[f2]
         height[take], fitted[take], n[take] = h2[f2], True, mean[f2]

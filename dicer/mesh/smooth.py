@@ -53,7 +53,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from dicer.config import section_defaults, takes_settings
+from dicer.config import places_faces_by_scan, section_defaults, takes_settings
 from dicer.errors import DicerError
 from dicer.mesh.boundary import (NODE_CLASSES, BoundaryGraph, boundary_graph, bounding_planes, class_counts,
                                  mirror_share, mirror_weights, plane_axes, plane_bits)
@@ -861,7 +861,7 @@ def _pull_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str, lab
         scan = None
         if labels is not None:
             check_labels_for_mesh(labels, mesh, labels_source)
-            if image is not None and s["fit_to_scan"] and s["label_samples"] == "faces":  # the scan places them
+            if image is not None and places_faces_by_scan(s):  # the scan places the faces within their voxels
                 scan = _image_surface(mesh, s, image, thresholds, image_source)
         def build():
             t = time.perf_counter()

@@ -535,17 +535,18 @@ def multi_material_volumes(draw, dim):
 
 
 # Before merging refused a node at the same corner of two elements, about 1 example in 30
-# (2D) and 1 in 10 (3D) failed, so these counts catch it nearly always (about 10 s each).
+# (2D) and 1 in 10 (3D) failed: these counts miss it with odds of 1 in 900 (2D) and 1 in
+# 37,000 (3D), in about 10 s each.
 _SMOOTHABLE = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much])
 
 
-@settings(max_examples=400, **_SMOOTHABLE)
+@settings(max_examples=200, **_SMOOTHABLE)
 @given(multi_material_volumes(2), st.tuples(st.integers(1, 2), st.integers(1, 2)), st.booleans())
 def test_random_2d_volumes_merge_to_smoothable_meshes(labels, passes, y_first):
     assert_merges_and_smooths(labels, passes=passes, axes=(1, 0, 2) if y_first else (0, 1, 2))
 
 
-@settings(max_examples=150, **_SMOOTHABLE)
+@settings(max_examples=100, **_SMOOTHABLE)
 @given(multi_material_volumes(3), st.tuples(*[st.integers(1, 2)] * 3), st.permutations([0, 1, 2]), st.booleans())
 def test_random_3d_volumes_merge_to_smoothable_meshes(labels, passes, axes, rim_moves):
     assert_merges_and_smooths(labels, passes=passes, axes=tuple(axes), rim_moves=rim_moves)

@@ -4,8 +4,9 @@ Skipped when the shared data folder is not beside the repository (a clone withou
 
 Default suite: the segmentation acceptance on the real scan and a coarse (factor 8) run whose
 ``model.inp`` CalculiX solves. ``-m slow``: the literal acceptance run at full resolution with
-the default configuration, and CalculiX (iterative solver) on that deck and on the factor-2 deck,
-the largest one seen solved within minutes on two shared cores.
+the default configuration, every fourth slice (6 mm) through the default chain, and CalculiX
+(iterative solver) on that deck and on the factor-2 deck, the largest one seen solved within
+minutes on two shared cores.
 
 Load case for CalculiX: the head stands on its cut plane (``Z0``, the skull base: the only
 bounding plane the scan's body touches at every resolution), clamped there, under its own
@@ -358,6 +359,7 @@ def test_merged_head_surfaces_stay_within_half_a_voxel(full_run):
     assert max(outer) <= 0.5 and max(interface) <= 0.5, (outer, interface)
 
 
+@pytest.mark.slow  # the whole head CT through dicer run: about a minute
 def test_six_mm_slices_merge_in_bounded_rounds_and_smooth_at_defaults(tmp_path):
     """Every fourth slice of the head CT (0.96 x 0.96 x 6 mm) with the default chain: a
     merge step moved rim nodes and back a few a round, 282 rounds (22 s), and smoothing

@@ -163,6 +163,17 @@ def test_kirsch_quarter_plate_against_the_coefficient(tmp_path, k, min_sj, cps4,
     assert r[2]["sigma_x_90"] == pytest.approx(cps8, abs=0.02)
 
 
+def test_kirsch_cps8_with_curved_mid_edge_nodes_at_todays_defaults_from_labels(tmp_path):
+    """dicer run --labels at its defaults (plane merging, the labels' fit, the floor 0.3) and
+    export.midside_nodes: curved, which on the merged mesh puts the rim's mid-edge nodes on
+    arcs through the next rim nodes (docs/validation.md §1c); with midpoints 3.187 (+6.2 %)."""
+    r = cases.kirsch(tmp_path, "quarter", [FIT, MIN_SJ_03, "export.midside_nodes=curved"], orders=(2,))
+    assert r["min_sj"] == pytest.approx(0.319, abs=0.005) and r["inverted"] == 0
+    assert r[2]["sigma_x_90"] == pytest.approx(3.057, abs=0.01)  # +1.9 %
+    assert r[2]["peak"] == pytest.approx(3.112, abs=0.01) and r[2]["peak_angle_deg"] == pytest.approx(82, abs=3)
+    assert r[2]["rim_fit_90"] == pytest.approx(3.034, abs=0.01)
+
+
 @pytest.mark.slow
 def test_kirsch_quarter_plate_dicer_run_defaults(tmp_path):
     # the whole default chain, plane merging included: the merged rim smooths inward at 90 deg

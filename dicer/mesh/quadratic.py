@@ -91,6 +91,16 @@ def mesh_edges(cells: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray
     return edges, index.reshape(keys.shape)
 
 
+def _boundary_edges(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_faces: np.ndarray) -> np.ndarray:
+    """(E,) bool: the edge lies on a boundary face."""
+    slots = HEX_FACE_EDGES if mesh.dim == 3 else QUAD_SIDE_EDGES
+    on_boundary = np.zeros(edges.shape[0], bool)
+    for f in range(slots.shape[0]):
+        e = np.flatnonzero(boundary_faces[:, f])
+        on_boundary[index[e[:, None], slots[f]].ravel()] = True
+    return on_boundary
+
+
 def curved_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_faces: np.ndarray) -> np.ndarray:
     """Mid-edge node positions with boundary edges bent onto the curve of the boundary.
 
@@ -115,11 +125,7 @@ def curved_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_
     """
     x = mesh.points
     mid = 0.5 * (x[edges[:, 0]] + x[edges[:, 1]])
-    slots = HEX_FACE_EDGES if mesh.dim == 3 else QUAD_SIDE_EDGES
-    on_boundary = np.zeros(edges.shape[0], bool)
-    for f in range(slots.shape[0]):
-        e = np.flatnonzero(boundary_faces[:, f])
-        on_boundary[index[e[:, None], slots[f]].ravel()] = True
+    on_boundary = _boundary_edges(mesh, edges, index, boundary_faces)
     n = mesh.n_points
     lo, hi = np.minimum(edges[:, 0], edges[:, 1]), np.maximum(edges[:, 0], edges[:, 1])
     keys = lo * np.int64(n) + hi
@@ -156,6 +162,111 @@ def curved_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_
     mid[cand[one]] = (6.0 * x[a[one]] + 3.0 * x[b[one]] - x[ap[one]]) / 8.0
     one = has_b & ~has_a
     mid[cand[one]] = (3.0 * x[a[one]] + 6.0 * x[b[one]] - x[bp[one]]) / 8.0
+    return mid
+
+
+_ARC_TURN = 45.0
+"""Largest turn (degrees) from a boundary edge to the next one that :func:`arc_midpoints`
+follows as one curve; a sharper turn is a crease, not a curve."""
+
+
+def _grouped_pairs(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every ordered pair (i, j), i != j, of entries with the same key."""
+    order = np.argsort(keys, kind="stable")
+    first = np.searchsorted(keys[order], keys, "left")
+    counts = np.searchsorted(keys[order], keys, "right") - first
+    i = np.repeat(np.arange(keys.size), counts)
+    within = np.arange(i.size) - np.repeat(np.cumsum(counts) - counts, counts)
+    j = order[np.repeat(first, counts) + within]
+    keep = i != j
+    return i[keep], j[keep]
+
+
+def _sagitta(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(K, 3): from the midpoint of chord a-b to the middle of its arc on the circle through
+    p, a and b (p beyond a or b); zero where the three are in a line. Rows are points, mm."""
+    chord = b - a
+    length = np.linalg.norm(chord, axis=1)
+    along = chord / np.maximum(length, 1e-300)[:, None]
+    w = p - 0.5 * (a + b)
+    across = w - np.sum(w * along, axis=1)[:, None] * along  # the circle's centre side of the chord
+    width = np.linalg.norm(across, axis=1)
+    # curvature 1/R = 2 sin(angle at a) / |p - b|, the angle between p - a and the chord
+    u = p - a
+    sine = np.linalg.norm(np.cross(u, chord), axis=1) / np.maximum(np.linalg.norm(u, axis=1) * length, 1e-300)
+    k = 2.0 * sine / np.maximum(np.linalg.norm(p - b, axis=1), 1e-300)
+    half = np.minimum(0.5 * k * length, 1.0)
+    depth = 0.5 * half * length / (1.0 + np.sqrt(1.0 - half * half))
+    straight = width <= 1e-12 * np.maximum(length, 1e-300)
+    return np.where(straight[:, None], 0.0, -(depth / np.where(straight, 1.0, width))[:, None] * across)
+
+
+def arc_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_faces: np.ndarray) -> np.ndarray:
+    """Mid-edge node positions with boundary edges bent onto the boundary's curve, on any mesh.
+
+    For meshes whose edges leave the lattice lines (plane merging's chamfers, graded
+    templates, a pillow layer) and whose edge lengths vary. A boundary edge a-b continues
+    beyond a along the boundary edge a-a' most nearly opposite to it (turning by at most
+    ``_ARC_TURN``, 45 degrees, a' on every bounding plane a and b share); beyond a bounding plane that a lies
+    on and b does not, along b's mirror image in it. The mid-edge node goes to the middle of
+    the arc of the circle through a', a and b, and of the one through a, b and b', averaged
+    where both exist; a boundary edge with no continuation, and every other edge, keeps its
+    midpoint. Nodes in a line keep the midpoint, so flat faces and cut planes stay flat; on a
+    circle the nodes lie on, the mid-edge nodes do too.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    edges, index : ndarray
+        From :func:`mesh_edges`.
+    boundary_faces : (M, F) bool ndarray
+        The element faces on a boundary.
+
+    Returns
+    -------
+    (E, 3) float64 ndarray
+        mm.
+    """
+    from dicer.mesh.boundary import plane_bits
+
+    x = mesh.points
+    mid = 0.5 * (x[edges[:, 0]] + x[edges[:, 1]])
+    cand = np.flatnonzero(_boundary_edges(mesh, edges, index, boundary_faces))
+    if cand.size == 0:
+        return mid
+    # directed boundary edges src -> dst; for each, the continuation beyond src
+    src = np.concatenate([edges[cand, 0], edges[cand, 1]])
+    dst = np.concatenate([edges[cand, 1], edges[cand, 0]])
+    bits = plane_bits(mesh)
+    i, j = _grouped_pairs(src)
+    shared = bits[src[i]] & bits[dst[i]]
+    ok = (shared & ~bits[dst[j]]) == 0
+    i, j = i[ok], j[ok]
+    beyond = [x[dst[j]]]
+    owner = [i]
+    # mirror images across the planes src lies on and dst does not (the mirrored model's edges)
+    xs, xd = x[src], x[dst]
+    for axis in range(mesh.dim):
+        for high in (0, 3):
+            bit = np.uint8(1 << (axis + high))
+            on = np.flatnonzero((bits[src] & bit).astype(bool) & ~(bits[dst] & bit).astype(bool))
+            image = xd[on].copy()
+            image[:, axis] = 2.0 * xs[on, axis] - image[:, axis]
+            beyond.append(image)
+            owner.append(on)
+    beyond, owner = np.concatenate(beyond), np.concatenate(owner)
+    u, v = beyond - xs[owner], xd[owner] - xs[owner]
+    cosine = np.sum(u * v, axis=1) / np.maximum(np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1), 1e-300)
+    first = np.lexsort((cosine, owner))  # per directed edge, the most nearly opposite first
+    best = first[np.r_[True, owner[first][1:] != owner[first][:-1]]]
+    best = best[cosine[best] <= -np.cos(np.radians(_ARC_TURN))]
+    offset = np.zeros((src.size, 3))
+    found = np.zeros(src.size, bool)
+    offset[owner[best]] = _sagitta(xs[owner[best]], xd[owner[best]], beyond[best])
+    found[owner[best]] = True
+    both = offset[: cand.size] + offset[cand.size:]
+    count = found[: cand.size].astype(np.int64) + found[cand.size:]
+    mid[cand] += both / np.maximum(count, 1)[:, None]
     return mid
 
 
@@ -203,12 +314,13 @@ largest, that keeps its curved mid-edge nodes (the quality guard's kind of margi
 solver needs det J > 0 at every integration point)."""
 
 
-def _failing(points: np.ndarray, cells: np.ndarray, grads: np.ndarray, dim: int) -> np.ndarray:
-    """(M,) bool: quadratic elements (``cells`` (M, K), node positions ``points`` mm) whose
-    Jacobian determinant at the check points falls below ``_CURVED_FLOOR`` of their largest."""
+def _det_ratio(points: np.ndarray, cells: np.ndarray, grads: np.ndarray, dim: int) -> np.ndarray:
+    """(M,) float: the smallest Jacobian determinant of each quadratic element (``cells``
+    (M, K), node positions ``points`` mm) over the check points, relative to its largest;
+    -inf where the largest is not positive."""
     p, k = grads.shape[0], grads.shape[1]
     rows = grads.transpose(0, 2, 1).reshape(p * dim, k)  # (P d, K): one matrix product per block
-    out = np.empty(cells.shape[0], bool)
+    out = np.empty(cells.shape[0])
     for start in range(0, cells.shape[0], 4096):
         jac = (rows @ points[cells[start:start + 4096], :dim]).reshape(-1, p, dim, dim)  # dx_c / dxi_a
         if dim == 3:
@@ -219,15 +331,30 @@ def _failing(points: np.ndarray, cells: np.ndarray, grads: np.ndarray, dim: int)
         else:
             det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
         big = det.max(axis=1)
-        out[start:start + 4096] = ~(det.min(axis=1) >= _CURVED_FLOOR * np.maximum(big, 0)) | (big <= 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out[start:start + 4096] = np.where(big > 0, det.min(axis=1) / np.where(big > 0, big, 1.0), -np.inf)
     return out
+
+
+def _failing(points: np.ndarray, cells: np.ndarray, grads: np.ndarray, dim: int,
+             straight: np.ndarray | None = None) -> np.ndarray:
+    """(M,) bool: quadratic elements whose Jacobian determinant at the check points falls
+    below ``_CURVED_FLOOR`` of their largest (:func:`_det_ratio`) and, given ``straight`` (the
+    same elements' ratios with every mid-edge node at its midpoint), below that too: an
+    element the linear mesh already has under the floor (plane merging's chamfers next to
+    short edges) may keep curved nodes that do not make it worse."""
+    ratio = _det_ratio(points, cells, grads, dim)
+    fails = ~(ratio >= _CURVED_FLOOR)
+    if straight is not None:
+        fails &= ~(ratio >= straight)
+    return fails
 
 
 def _straighten_folds(mesh: Mesh, edges: np.ndarray, index: np.ndarray, mid: np.ndarray) -> np.ndarray:
     """``mid`` with the curved mid-edge nodes of elements that the curve folds put back at
-    their edge's midpoint, until no element with a curved node fails (:func:`_failing`);
-    an element whose mid-edge nodes are all midpoints is the linear mesh's, which the
-    smoothing's guard checked. After the first pass only the elements around the nodes put
+    their edge's midpoint, until no element with a curved node fails (:func:`_failing`: under
+    the floor and worse than with straight edges); an element whose mid-edge nodes are all
+    midpoints is the linear mesh's, which the smoothing's guard checked. After the first pass only the elements around the nodes put
     back are checked again (the others did not change)."""
     x = mesh.points
     straight = 0.5 * (x[edges[:, 0]] + x[edges[:, 1]])
@@ -242,7 +369,8 @@ def _straighten_folds(mesh: Mesh, edges: np.ndarray, index: np.ndarray, mid: np.
         if holding.size == 0:
             break
         cells = np.concatenate([mesh.cells[holding], index[holding] + n], axis=1)
-        bad = holding[_failing(np.concatenate([x, mid]), cells, grads, dim)]
+        linear = _det_ratio(np.concatenate([x, straight]), cells, grads, dim)
+        bad = holding[_failing(np.concatenate([x, mid]), cells, grads, dim, linear)]
         if bad.size == 0:
             break
         back = np.unique(index[bad])
@@ -266,7 +394,8 @@ def quadratic_mesh(mesh: Mesh, boundary_faces: np.ndarray | None = None) -> tupl
     mesh : Mesh
     boundary_faces : (M, F) bool ndarray, optional
         The element faces (2D: edges) on a boundary (exterior or material interface), in
-        Abaqus face order; their edges get :func:`curved_midpoints` placement. None: every
+        Abaqus face order; their edges get :func:`curved_midpoints` placement (every edge
+        along a lattice line) or :func:`arc_midpoints` (any other mesh). None: every
         mid-edge node at its edge's midpoint.
 
     Returns
@@ -283,15 +412,10 @@ def quadratic_mesh(mesh: Mesh, boundary_faces: np.ndarray | None = None) -> tupl
     n = mesh.n_points
     found = _edges_by_lattice(mesh, cells)
     edges, index = found if found is not None else mesh_edges(cells, n)
-    if boundary_faces is not None and found is not None:  # lattice lines needed for the continuation
-        mid_points = _straighten_folds(mesh, edges, index, curved_midpoints(mesh, edges, index, boundary_faces))
+    if boundary_faces is not None:  # along lattice lines where every edge runs on one, else by arcs
+        place = curved_midpoints if found is not None else arc_midpoints
+        mid_points = _straighten_folds(mesh, edges, index, place(mesh, edges, index, boundary_faces))
     else:
-        if boundary_faces is not None:
-            logging.getLogger("dicer").warning(
-                "export: export.midside_nodes curved places mid-edge nodes along lattice lines, and this mesh has "
-                "edges off them (the chamfers of plane merging, graded templates, a pillow layer): every mid-edge "
-                "node is at its edge's midpoint; for curved ones export a mesh smoothed without merging "
-                "(merge.passes=[0, 0, 0]) and without a pillow layer (smooth.pillow: false)")
         mid_points = 0.5 * (mesh.points[edges[:, 0]] + mesh.points[edges[:, 1]])
     points = np.concatenate([mesh.points, mid_points])
     lattice2 = np.concatenate([2 * mesh.lattice, mesh.lattice[edges[:, 0]] + mesh.lattice[edges[:, 1]]])

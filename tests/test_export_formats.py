@@ -107,12 +107,9 @@ def test_curved_mid_edge_nodes_keep_flat_faces_flat(mesh):
     assert set(moved) <= set(np.concatenate([d.node_sets["EXTERIOR"], d.node_sets["soft_tissue_bone"]]))
 
 
-def test_curved_mid_edge_nodes_follow_a_smoothed_sphere():
-    smooth = pytest.importorskip("dicer.mesh.smooth")
-    from dicer.phantoms import sphere_labels
-
-    volume = sphere_labels(24)
-    mesh, _ = smooth.smooth_mesh(voxel_mesh(volume.array, volume.spacing), load_config().get("smooth"))
+def _sagged(mesh):
+    """Mean radius of a ball's exterior corner nodes less that of its exterior mid-edge
+    nodes, with ``midpoint`` and ``curved`` mid-edge nodes; and the curved model."""
     centre = mesh.points.mean(axis=0)
     sag = {}
     for mode in ("midpoint", "curved"):
@@ -120,6 +117,20 @@ def test_curved_mid_edge_nodes_follow_a_smoothed_sphere():
         ext = model.node_sets["EXTERIOR"]
         r = np.linalg.norm(model.points[ext] - centre, axis=1)
         sag[mode] = r[ext < mesh.n_points].mean() - r[ext >= mesh.n_points].mean()
+        interior = np.setdiff1d(np.arange(mesh.n_points, model.n_points), ext)
+        if mode == "curved":  # only boundary edges bend
+            assert np.array_equal(model.points[interior], plain.points[interior])
+        plain = model
+    return sag, model
+
+
+def test_curved_mid_edge_nodes_follow_a_smoothed_sphere():
+    smooth = pytest.importorskip("dicer.mesh.smooth")
+    from dicer.phantoms import sphere_labels
+
+    volume = sphere_labels(24)
+    mesh, _ = smooth.smooth_mesh(voxel_mesh(volume.array, volume.spacing), load_config().get("smooth"))
+    sag, _ = _sagged(mesh)
     # chords cut inside a convex surface; bending boundary edges takes back part of that sag
     assert 0 < sag["curved"] < 0.8 * sag["midpoint"]
 
@@ -171,18 +182,8 @@ def test_curved_mid_edge_nodes_on_a_merged_mesh_follow_the_sphere(caplog):
     merged, _ = merge_mesh(voxel_mesh(volume.array, volume.spacing), {})
     mesh, _ = smooth_mesh(merged, load_config().get("smooth"))
     assert quadratic._edges_by_lattice(mesh, np.asarray(mesh.cells, np.int64)) is None  # off the lattice lines
-    centre = mesh.points.mean(axis=0)
     caplog.set_level("INFO", logger="dicer")
-    sag = {}
-    for mode in ("midpoint", "curved"):
-        model = prepare_model(mesh, cfg(order=2, midside_nodes=mode))
-        ext = model.node_sets["EXTERIOR"]
-        r = np.linalg.norm(model.points[ext] - centre, axis=1)
-        sag[mode] = r[ext < mesh.n_points].mean() - r[ext >= mesh.n_points].mean()
-        interior = np.setdiff1d(np.arange(mesh.n_points, model.n_points), ext)
-        if mode == "curved":  # only boundary edges bend
-            assert np.array_equal(model.points[interior], plain.points[interior])
-        plain = model
+    sag, model = _sagged(mesh)
     # chords cut inside a convex surface; the arcs take back part of it (measured 0.0440 and
     # 0.0389 mm: this small merged ball's smoothed surface is uneven, 0.3 mm rms in radius,
     # and arcs that would fold or worsen an element below the floor go back to midpoints)

@@ -17,7 +17,7 @@ import pytest
 from calculix import needs_ccx
 
 from dicer.validation import cases, geometry, reference
-from dicer.validation.study import FIT, FIT_TO_SCAN, MIN_SJ_03, NO_MERGE, OFFSET, PILLOW, TODAY, UNPLACED
+from dicer.validation.study import CURVED, FIT, FIT_TO_SCAN, MIN_SJ_03, NO_MERGE, OFFSET, PILLOW, TODAY, UNPLACED
 
 pytestmark = [pytest.mark.calculix, needs_ccx]
 
@@ -167,7 +167,7 @@ def test_kirsch_cps8_with_curved_mid_edge_nodes_at_todays_defaults_from_labels(t
     """dicer run --labels at its defaults (plane merging, the labels' fit, the floor 0.3) and
     export.midside_nodes: curved, which on the merged mesh puts the rim's mid-edge nodes on
     arcs through the next rim nodes (docs/validation.md §1c); with midpoints 3.187 (+6.2 %)."""
-    r = cases.kirsch(tmp_path, "quarter", [FIT, MIN_SJ_03, "export.midside_nodes=curved"], orders=(2,))
+    r = cases.kirsch(tmp_path, "quarter", [FIT, MIN_SJ_03, CURVED], orders=(2,))
     assert r["min_sj"] == pytest.approx(0.319, abs=0.005) and r["inverted"] == 0
     assert r[2]["sigma_x_90"] == pytest.approx(3.057, abs=0.01)  # +1.9 %
     assert r[2]["peak"] == pytest.approx(3.112, abs=0.01) and r[2]["peak_angle_deg"] == pytest.approx(82, abs=3)
@@ -492,6 +492,19 @@ def test_kirsch_plate_from_a_grey_value_image_at_todays_defaults(kirsch_scan_tod
     kirsch_figures(r, 0.32, cps4, cps8)
     assert r[1]["rim_radius_error_mean"] == pytest.approx(0.103 if part == "quarter" else 0.117, abs=0.01)
     assert r[1]["rim_radius_error_max"] == pytest.approx(0.303, abs=0.01)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("part,noise,cps4,cps8", [
+    ("quarter", 30.0, (3.1364, 3.1364, 90.0), (3.2027, 3.2027, 90.0)),
+    ("full", 30.0, (3.1134, 3.1310, 90.0), (3.1661, 3.1971, 89.4)),
+    ("quarter", 0.0, (3.0940, 3.0940, 90.0), (3.0923, 3.0923, 90.0))])
+def test_kirsch_plate_from_a_grey_value_image_at_todays_defaults_curved(tmp_path, part, noise, cps4, cps8):
+    """Today's defaults with export.midside_nodes: curved: the merged rim's mid-edge nodes on
+    arcs (CPS8 3.340 / 3.289 / 3.212 with midpoints); the linear deck unchanged."""
+    r = cases.kirsch(tmp_path, part, TODAY + [CURVED], scan=True, noise=noise)
+    kirsch_figures(r, 0.32, cps4, cps8)
+    assert r[2]["rim_fit_90"] == pytest.approx(3.0503 if part == "quarter" and noise else 3.029, abs=0.01)
 
 
 @pytest.mark.slow

@@ -42,6 +42,7 @@ PILLOW = "smooth.pillow=true"  # a layer of elements over the surface (docs/smoo
 FIT = "smooth.surface_from_labels=true"  # the surface fitted to the labels' staircase (docs/smoothing.md §3c)
 TODAY = ["smooth.surface_from_image=false", FIT, MIN_SJ_03]  # the scan's settings changed back to today's defaults
 FIT_TO_SCAN = "smooth.fit_to_scan=true"  # the labels' faces placed within their voxels by the scan (§3c)
+CURVED = "export.midside_nodes=curved"  # order 2: boundary mid-edge nodes on the surface's curve (arcs on merged meshes)
 UNPLACED = "smooth.fit_to_scan=false"  # the labels' faces as they are (the scan's default until 5 December 2026)
 SCAN_NOISE = 30.0  # the grey-value images' noise on a contrast of 1000 (the ``-clean`` parts: none)
 ORDER_NAMES = {"kirsch": {1: "CPS4", 2: "CPS8"}, "lame": {1: "C3D8", 2: "C3D20"}}
@@ -63,7 +64,8 @@ def _named(result: dict, case: str) -> dict:
 
 def kirsch_settings() -> dict[str, list[str]]:
     """The settings of the Kirsch sweep: the coefficient, the defaults (without and with plane
-    merging) and the surface fitted to the labels' staircase (``labels fit``).
+    merging) and the surface fitted to the labels' staircase (``labels fit``); ``curved``: the
+    quadratic deck with ``export.midside_nodes: curved``.
 
     Returns
     -------
@@ -77,6 +79,7 @@ def kirsch_settings() -> dict[str, list[str]]:
     out["labels fit, min SJ 0.3"] = [NO_MERGE, FIT, MIN_SJ_03]
     out["labels fit+merge"] = [FIT]
     out["labels fit+merge, min SJ 0.3"] = [FIT, MIN_SJ_03]
+    out["labels fit+merge, min SJ 0.3, curved"] = [FIT, MIN_SJ_03, CURVED]
     out["labels fit, pillow, min SJ 0.3"] = [NO_MERGE, FIT, PILLOW, MIN_SJ_03]
     return out
 
@@ -87,7 +90,8 @@ def scan_settings(part: str = "quarter") -> dict[str, list[str]]:
     elements, at the first two and the last only); ``today's defaults``: ``dicer run`` on the
     image at its defaults since 5 December 2026 (no pull onto the image: the surface fitted to
     the segmentation's labels with their faces placed by the scan, the floor 0.3, plane
-    merging); ``fit_to_scan=false``: those with the labels' faces as they are.
+    merging); ``today's defaults, curved``: those with ``export.midside_nodes: curved``;
+    ``fit_to_scan=false``: those with the labels' faces as they are.
 
     Parameters
     ----------
@@ -104,6 +108,7 @@ def scan_settings(part: str = "quarter") -> dict[str, list[str]]:
         out["image_sigma=1"] = [NO_MERGE, "smooth.image_sigma=1.0"]
     out["defaults+merge"] = []
     out["today's defaults"] = list(TODAY)
+    out["today's defaults, curved"] = list(TODAY) + [CURVED]
     out["fit_to_scan=false"] = list(TODAY) + [UNPLACED]
     out["pillow"] = [NO_MERGE, PILLOW]
     out["pillow, min SJ 0.3"] = [NO_MERGE, PILLOW, MIN_SJ_03]
@@ -156,9 +161,11 @@ def run_study(work: str | os.PathLike, log=print) -> dict:
                    outer=2 * LAME_RADII[0])
     results["lame"][f"a={LAME_RADII[0]:g}+fit+pillow"] = _named(r, "lame")
     for a in LAME_RADII[:2]:  # dicer run's defaults: the labels' fit, the floor 0.3, plane merging
-        r = cases.lame(work / f"lame_{a:g}_today", "quarter", [FIT, MIN_SJ_03], inner=a, outer=2 * a)
-        results["lame"][f"a={a:g}+today"] = _named(r, "lame")
-        log(f"lame a={a:g}+today: C3D8 {r[1]['error_mean']:+.4f} C3D20 {r[2]['error_mean']:+.4f}")
+        for suffix, sets in (("+today", [FIT, MIN_SJ_03]), ("+today, curved", [FIT, MIN_SJ_03, CURVED])):
+            r = cases.lame(work / f"lame_{a:g}{suffix.replace('+', '_').replace(', ', '_')}", "quarter", sets,
+                           inner=a, outer=2 * a)
+            results["lame"][f"a={a:g}{suffix}"] = _named(r, "lame")
+            log(f"lame a={a:g}{suffix}: C3D8 {r[1]['error_mean']:+.4f} C3D20 {r[2]['error_mean']:+.4f}")
     log(f"lame: {time.perf_counter() - t0:.0f} s")
     _run_scans(work, results, log)
     return _rounded(results)
@@ -182,7 +189,8 @@ def _run_scans(work: Path, results: dict, log) -> None:
     results["kirsch-reference"] = {ORDER_NAMES["kirsch"][o]: reference.kirsch_ogrid(work / "kirsch_ogrid", o)
                                    for o in (1, 2)}
     clean = {name: sets for name, sets in scan_settings("quarter").items()
-             if name in ("defaults", "min SJ 0.3", "pillow", "pillow, min SJ 0.3")}
+             if name in ("defaults", "min SJ 0.3", "pillow", "pillow, min SJ 0.3", "today's defaults",
+                         "today's defaults, curved")}
     full_clean = {name: clean[name] for name in ("min SJ 0.3", "pillow, min SJ 0.3")}
     for key, part, noise, settings in (("quarter-scan", "quarter", SCAN_NOISE, scan_settings("quarter")),
                                        ("full-scan", "full", SCAN_NOISE, scan_settings("full")),
@@ -202,7 +210,8 @@ def _run_scans(work: Path, results: dict, log) -> None:
                    scan=True)
     rows[f"a={LAME_SCAN_RADII[0]:g}+merge"] = _named(r, "lame")
     for a in LAME_SCAN_RADII:  # dicer run's defaults, and the labels' faces as they are
-        for suffix, sets in (("+today", TODAY), ("+today, fit_to_scan=false", TODAY + [UNPLACED])):
+        for suffix, sets in (("+today", TODAY), ("+today, curved", TODAY + [CURVED]),
+                             ("+today, fit_to_scan=false", TODAY + [UNPLACED])):
             r = cases.lame(work / f"lame_scan_{a:g}{suffix.replace('+', '_').replace(', ', '_')}", "quarter", sets,
                            inner=a, outer=2 * a, scan=True)
             rows[f"a={a:g}{suffix}"] = _named(r, "lame")

@@ -21,6 +21,7 @@ import logging
 
 import numpy as np
 
+from dicer.mesh.boundary import plane_bits
 from dicer.mesh.model import Mesh
 from dicer.mesh.topology import HEX_EDGE_AXES, HEX_EDGES, HEX_FACE_EDGES, QUAD_EDGE_AXES, QUAD_EDGES, QUAD_SIDE_EDGES
 
@@ -173,8 +174,9 @@ follows as one curve; a sharper turn is a crease, not a curve."""
 def _grouped_pairs(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Every ordered pair (i, j), i != j, of entries with the same key."""
     order = np.argsort(keys, kind="stable")
-    first = np.searchsorted(keys[order], keys, "left")
-    counts = np.searchsorted(keys[order], keys, "right") - first
+    ranked = keys[order]
+    first = np.searchsorted(ranked, keys, "left")
+    counts = np.searchsorted(ranked, keys, "right") - first
     i = np.repeat(np.arange(keys.size), counts)
     within = np.arange(i.size) - np.repeat(np.cumsum(counts) - counts, counts)
     j = order[np.repeat(first, counts) + within]
@@ -207,8 +209,8 @@ def arc_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_fac
     For meshes whose edges leave the lattice lines (plane merging's chamfers, graded
     templates, a pillow layer) and whose edge lengths vary. A boundary edge a-b continues
     beyond a along the boundary edge a-a' most nearly opposite to it (turning by at most
-    ``_ARC_TURN``, 45 degrees, a' on every bounding plane a and b share); beyond a bounding plane that a lies
-    on and b does not, along b's mirror image in it. The mid-edge node goes to the middle of
+    ``_ARC_TURN``, 45 degrees, a' on every bounding plane a and b share); beyond a bounding
+    plane that a lies on and b does not, along b's mirror image in it. The mid-edge node goes to the middle of
     the arc of the circle through a', a and b, and of the one through a, b and b', averaged
     where both exist; a boundary edge with no continuation, and every other edge, keeps its
     midpoint. Nodes in a line keep the midpoint, so flat faces and cut planes stay flat; on a
@@ -227,8 +229,6 @@ def arc_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_fac
     (E, 3) float64 ndarray
         mm.
     """
-    from dicer.mesh.boundary import plane_bits
-
     x = mesh.points
     mid = 0.5 * (x[edges[:, 0]] + x[edges[:, 1]])
     cand = np.flatnonzero(_boundary_edges(mesh, edges, index, boundary_faces))
@@ -242,10 +242,10 @@ def arc_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_fac
     shared = bits[src[i]] & bits[dst[i]]
     ok = (shared & ~bits[dst[j]]) == 0
     i, j = i[ok], j[ok]
-    beyond = [x[dst[j]]]
+    xs, xd = x[src], x[dst]
+    beyond = [xd[j]]
     owner = [i]
     # mirror images across the planes src lies on and dst does not (the mirrored model's edges)
-    xs, xd = x[src], x[dst]
     for axis in range(mesh.dim):
         for high in (0, 3):
             bit = np.uint8(1 << (axis + high))
@@ -331,8 +331,7 @@ def _det_ratio(points: np.ndarray, cells: np.ndarray, grads: np.ndarray, dim: in
         else:
             det = jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
         big = det.max(axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            out[start:start + 4096] = np.where(big > 0, det.min(axis=1) / np.where(big > 0, big, 1.0), -np.inf)
+        out[start:start + 4096] = np.where(big > 0, det.min(axis=1) / np.where(big > 0, big, 1.0), -np.inf)
     return out
 
 
@@ -340,13 +339,14 @@ def _failing(points: np.ndarray, cells: np.ndarray, grads: np.ndarray, dim: int,
              straight: np.ndarray | None = None) -> np.ndarray:
     """(M,) bool: quadratic elements whose Jacobian determinant at the check points falls
     below ``_CURVED_FLOOR`` of their largest (:func:`_det_ratio`) and, given ``straight`` (the
-    same elements' ratios with every mid-edge node at its midpoint), below that too: an
-    element the linear mesh already has under the floor (plane merging's chamfers next to
-    short edges) may keep curved nodes that do not make it worse."""
+    node positions with every mid-edge node at its midpoint), below the same element's ratio
+    with straight edges too: an element the linear mesh already has under the floor (plane
+    merging's chamfers next to short edges) may keep curved nodes that do not make it worse."""
     ratio = _det_ratio(points, cells, grads, dim)
     fails = ~(ratio >= _CURVED_FLOOR)
-    if straight is not None:
-        fails &= ~(ratio >= straight)
+    if straight is not None and fails.any():
+        under = np.flatnonzero(fails)
+        fails[under] = ~(ratio[under] >= _det_ratio(straight, cells[under], grads, dim))
     return fails
 
 
@@ -354,14 +354,15 @@ def _straighten_folds(mesh: Mesh, edges: np.ndarray, index: np.ndarray, mid: np.
     """``mid`` with the curved mid-edge nodes of elements that the curve folds put back at
     their edge's midpoint, until no element with a curved node fails (:func:`_failing`: under
     the floor and worse than with straight edges); an element whose mid-edge nodes are all
-    midpoints is the linear mesh's, which the smoothing's guard checked. After the first pass only the elements around the nodes put
-    back are checked again (the others did not change)."""
+    midpoints is the linear mesh's, which the smoothing's guard checked. After the first pass
+    only the elements around the nodes put back are checked again (the others did not change)."""
     x = mesh.points
     straight = 0.5 * (x[edges[:, 0]] + x[edges[:, 1]])
     curved = np.any(mid != straight, axis=1)
     dim = mesh.dim
     grads = _serendipity_gradients(_HEX_NODES if dim == 3 else _QUAD_NODES, _check_points(dim))
     n = mesh.n_points
+    linear = np.concatenate([x, straight])  # every mid-edge node at its midpoint
     changed = curved  # the mid-edge nodes whose elements are (re)checked
     reset = 0
     while True:
@@ -369,7 +370,6 @@ def _straighten_folds(mesh: Mesh, edges: np.ndarray, index: np.ndarray, mid: np.
         if holding.size == 0:
             break
         cells = np.concatenate([mesh.cells[holding], index[holding] + n], axis=1)
-        linear = _det_ratio(np.concatenate([x, straight]), cells, grads, dim)
         bad = holding[_failing(np.concatenate([x, mid]), cells, grads, dim, linear)]
         if bad.size == 0:
             break

@@ -154,7 +154,8 @@ def test_curved_mid_edge_nodes_never_fold_an_element(tmp_path, caplog):
 
     # without the check: the curve folds some elements
     nb = neighbour_materials(mesh)
-    edges, index = quadratic._edges_by_lattice(mesh, np.asarray(mesh.cells, np.int64))
+    edges, index, along_lines = quadratic.edges_by_lattice(mesh, np.asarray(mesh.cells, np.int64))
+    assert along_lines
     raw = quadratic.curved_midpoints(mesh, edges, index, nb != mesh.material[:, None].astype(nb.dtype))
     cells = np.concatenate([mesh.cells, index + mesh.n_points], axis=1)
     assert np.count_nonzero(smallest_det(np.concatenate([mesh.points, raw]), cells) <= 0) > 0
@@ -181,7 +182,7 @@ def test_curved_mid_edge_nodes_on_a_merged_mesh_follow_the_sphere(caplog):
     volume = sphere_labels(24)
     merged, _ = merge_mesh(voxel_mesh(volume.array, volume.spacing), {})
     mesh, _ = smooth_mesh(merged, load_config().get("smooth"))
-    assert quadratic._edges_by_lattice(mesh, np.asarray(mesh.cells, np.int64)) is None  # off the lattice lines
+    assert not quadratic.edges_by_lattice(mesh, np.asarray(mesh.cells, np.int64))[2]  # off the lattice lines
     caplog.set_level("INFO", logger="dicer")
     sag, model = _sagged(mesh)
     # chords cut inside a convex surface; the arcs take back part of it (measured 0.0440 and
@@ -216,6 +217,49 @@ def test_an_arc_midpoint_lies_on_the_circle_of_its_three_nodes(radius, step_a, s
     # three nodes in a line: the midpoint
     line = quadratic._sagitta(a[None], b[None], (2 * a - b)[None])
     assert np.abs(line).max() < 1e-9
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([2, 3]), st.sampled_from(["voxels", "planes", "templates", "pillow"]))
+def test_edges_found_by_the_lattice_are_the_meshes_edges(seed, dim, kind):
+    """The lattice lookup of mid-edge nodes finds each edge of the mesh once, and every element
+    edge slot points to its own pair of nodes: on voxel meshes, plane merging's chamfers,
+    graded templates, and a pillow layer, whose copies share their nodes' lattice indices."""
+    from dicer.connectivity import fix_connectivity
+    from dicer.mesh.merge import merge_mesh
+    from dicer.mesh.smooth import smooth_mesh
+
+    rng = np.random.default_rng(seed)
+    shape = (14, 12, 10)[:dim]
+    g = np.meshgrid(*[np.arange(s) + 0.5 for s in shape], indexing="ij")
+    r = np.sqrt(sum((x - s / 2 - rng.uniform(-1, 1)) ** 2 for x, s in zip(g, shape)))
+    labels = (r < rng.uniform(3.0, 5.0)).astype(np.uint8) + (r < rng.uniform(1.0, 2.5)).astype(np.uint8)
+    labels[rng.random(shape) < 0.03] = 0
+    labels, _ = fix_connectivity(labels)
+    mesh = voxel_mesh(labels)
+    if kind in ("planes", "templates"):
+        mesh, _ = merge_mesh(mesh, {"method": kind})
+    elif kind == "pillow":
+        mesh, _ = smooth_mesh(mesh, {"pillow": True})
+    cells = np.asarray(mesh.cells, np.int64)
+    edges, index, along_lines = quadratic.edges_by_lattice(mesh, cells)
+    table = HEX_EDGES if dim == 3 else QUAD_EDGES
+    a, b = cells[:, table[:, 0]], cells[:, table[:, 1]]
+    assert np.array_equal(edges[index, 0], np.minimum(a, b)) and np.array_equal(edges[index, 1], np.maximum(a, b))
+    pairs, _ = quadratic.mesh_edges(cells, mesh.n_points)
+    assert edges.shape == pairs.shape and np.array_equal(np.unique(edges, axis=0), pairs)
+    assert np.array_equal(np.unique(index), np.arange(edges.shape[0]))
+    assert along_lines == np.array_equal(*_box_edges(mesh, table))
+    assert along_lines or kind != "voxels"
+
+
+def _box_edges(mesh, table):
+    """Each element edge's lattice axis, and the axis its slot has in a box element."""
+    from dicer.mesh.topology import HEX_EDGE_AXES, QUAD_EDGE_AXES
+
+    step = mesh.lattice[mesh.cells[:, table[:, 1]]] - mesh.lattice[mesh.cells[:, table[:, 0]]]
+    axis = np.where(np.count_nonzero(step, axis=2) == 1, np.argmax(step != 0, axis=2), -1)
+    return axis, np.broadcast_to(HEX_EDGE_AXES if mesh.dim == 3 else QUAD_EDGE_AXES, axis.shape)
 
 
 def test_arcs_keep_mid_edge_nodes_of_bounding_plane_edges_on_the_plane():

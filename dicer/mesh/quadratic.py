@@ -7,12 +7,13 @@ mid-edge nodes in VTK order, which is also Abaqus's: bottom edges 0-1, 1-2, 2-3,
 end nodes, on the (smoothed) geometry of the linear mesh, and are numbered after
 the corner nodes.
 
-Edges are identified once for the whole mesh. When every element is an axis-aligned
-box of the lattice (voxel and plane-merged meshes; smoothing moves points, not lattice
-indices), an edge is the pair (axis, doubled lattice index of its midpoint), looked up
-in one dense grid per axis: mid-edge nodes are then numbered by axis (x, y, z) and in
-C order of that grid. Other meshes fall back to sorting the end-node pairs (numbering
-in ascending order of the pair). Either way the result depends only on the mesh.
+Edges are identified once for the whole mesh. An edge along a lattice axis (smoothing
+moves points, not lattice indices) is the pair (axis, doubled lattice index of its
+midpoint), looked up in one dense grid per axis; mid-edge nodes are numbered by axis
+(x, y, z) and in C order of that grid. Only the edges off the lattice lines (plane
+merging's chamfers, graded templates) or sharing a grid slot (a pillow layer's copies)
+are sorted by their end-node pair, and numbered after the others in ascending order of
+the pair. The result depends only on the mesh.
 """
 
 from __future__ import annotations
@@ -26,46 +27,102 @@ from dicer.mesh.model import Mesh
 from dicer.mesh.topology import HEX_EDGE_AXES, HEX_EDGES, HEX_FACE_EDGES, QUAD_EDGE_AXES, QUAD_EDGES, QUAD_SIDE_EDGES
 
 
-def _edges_by_lattice(mesh: Mesh, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """(edges, index) as :func:`mesh_edges` gives them, from per-axis grids of edge midpoints;
-    None unless every element edge runs along its axis on the lattice."""
+def edges_by_lattice(mesh: Mesh, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Unique edges of a mesh, found through the lattice indices of their end nodes.
+
+    An edge whose ends differ in one lattice index is the pair (axis, doubled lattice index
+    of its midpoint), looked up in one dense grid per axis: no sort. Edges that run off the
+    lattice lines (plane merging's chamfers, graded templates) and edges whose grid slot another
+    edge already holds (a pillow layer's copies share their nodes' indices) are sorted by their
+    end-node pair. Numbering: the grid edges by axis (x, y, z) and in C order of the grid, then
+    the others in ascending order of the pair. Depends only on the mesh.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    cells : (M, 8) or (M, 4) int64 ndarray
+        ``mesh.cells``.
+
+    Returns
+    -------
+    edges : (E, 2) int64 ndarray
+        End nodes, smaller first.
+    index : (M, 12) or (M, 4) int64 ndarray
+        The edge of each element edge slot.
+    along_lines : bool
+        Every element edge runs along its own lattice axis (voxel and plane-merged meshes
+        without chamfers): :func:`curved_midpoints` applies.
+    """
     dim = mesh.dim
-    table, axes = (HEX_EDGES, HEX_EDGE_AXES) if dim == 3 else (QUAD_EDGES, QUAD_EDGE_AXES)
+    table, slot_axes = (HEX_EDGES, HEX_EDGE_AXES) if dim == 3 else (QUAD_EDGES, QUAD_EDGE_AXES)
+    n = mesh.n_points
     lattice = mesh.lattice
     shape = np.asarray(mesh.grid_shape, np.int64).copy()
     if dim == 2:
         shape[2] = 0
-    if lattice.min() < 0 or np.any(lattice.max(axis=0) > shape):
-        return None
-    index = np.empty((cells.shape[0], table.shape[0]), np.int64)
-    edges = []
-    offset = 0
+    if n == 0 or cells.shape[0] == 0 or lattice.min() < 0 or np.any(lattice.max(axis=0) > shape) \
+            or shape.max() >= 2**20:
+        edges, index = mesh_edges(cells, n)
+        return edges, index, False
+    m, slots = cells.shape[0], table.shape[0]
+    lattice_code = (lattice[:, 0] << 42) | (lattice[:, 1] << 21) | lattice[:, 2]  # one gather per end node
+    grids = []  # grid a: doubled index along a, plain ones across; laid end to end
     for a in range(dim):
         gshape = shape + 1
         gshape[a] = 2 * shape[a] + 1
-        strides = np.array([gshape[1] * gshape[2], gshape[2], 1], np.int64)
-        slots = np.flatnonzero(axes == a)
-        keys = np.empty((cells.shape[0], slots.size), np.int64)
-        for j, s in enumerate(slots):
-            p, q = lattice[cells[:, table[s, 0]]], lattice[cells[:, table[s, 1]]]
-            others = [b for b in range(3) if b != a]
-            if np.any(p[:, others] != q[:, others]) or np.any(p[:, a] == q[:, a]):
-                return None
-            mid = p.copy()
-            mid[:, a] += q[:, a]  # doubled midpoint along the edge's axis
-            keys[:, j] = mid @ strides
-        used = np.zeros(int(np.prod(gshape)), bool)
-        used[keys.ravel()] = True
-        count = int(np.count_nonzero(used))
-        number = np.cumsum(used, dtype=np.int64 if used.size >= 2**31 else np.int32) - 1
-        ends = np.empty((count, 2), np.int64)
-        for j, s in enumerate(slots):
-            k = number[keys[:, j]]
-            index[:, s] = offset + k
-            ends[k, 0], ends[k, 1] = cells[:, table[s, 0]], cells[:, table[s, 1]]
-        edges.append(ends)
-        offset += count
-    return np.concatenate(edges), index
+        grids.append(gshape)
+    base = np.cumsum([0] + [int(np.prod(g)) for g in grids])
+    key = np.empty((m, slots), np.int64)  # grid slot of each element edge, -1 off the lattice lines
+    used = np.zeros(int(base[-1]), bool)
+    along_lines = True
+    for c in range(0, m, _CHUNK):  # chunks keep the temporaries in cache
+        ends = lattice_code[cells[c:c + _CHUNK][:, table]]
+        total = ends[..., 0] + ends[..., 1]  # no carry: every index < 2 ** 20
+        moved = [((ends[..., 0] ^ ends[..., 1]) >> shift) & _FIELD for shift in (42, 21, 0)]
+        doubled = [(total >> shift) & _FIELD for shift in (42, 21, 0)]
+        k = np.full(total.shape, -1, np.int64)
+        for a in range(dim):
+            on = (moved[a] != 0) & (moved[(a + 1) % 3] == 0) & (moved[(a + 2) % 3] == 0)
+            g = grids[a]
+            x = [doubled[d] if d == a else doubled[d] >> 1 for d in range(3)]  # across: both ends alike
+            np.copyto(k, base[a] + (x[0] * g[1] + x[1]) * g[2] + x[2], where=on)
+            along_lines = along_lines and bool(np.all(on == (slot_axes == a)))
+        key[c:c + _CHUNK] = k
+        used[k[k >= 0]] = True
+    count = int(np.count_nonzero(used))
+    number = np.cumsum(used, dtype=np.int64 if used.size >= 2**31 else np.int32) - 1
+    del used
+    index = np.empty((m, slots), np.int64)
+    edges = np.empty((count + 1, 2), np.int64)  # row count: a sink for the edges off the lines
+    for c in range(0, m, _CHUNK):
+        ends = cells[c:c + _CHUNK][:, table]
+        k = key[c:c + _CHUNK]
+        i = np.where(k >= 0, number[np.maximum(k, 0)], count)
+        index[c:c + _CHUNK] = i
+        edges[i, 0], edges[i, 1] = ends.min(axis=2), ends.max(axis=2)
+    rest = []
+    for c in range(0, m, _CHUNK):  # off the lines, or another pair holds the grid slot (copies share indices)
+        ends = cells[c:c + _CHUNK][:, table]
+        i = index[c:c + _CHUNK]
+        held = (edges[i, 0] != ends.min(axis=2)) | (edges[i, 1] != ends.max(axis=2)) | (i == count)
+        rows, cols = np.nonzero(held)
+        rest.append((rows + c) * slots + cols)
+    rest = np.concatenate(rest)
+    edges = [edges[:count]]
+    if rest.size:
+        along_lines = False
+        e, s = np.divmod(rest, slots)
+        lo = np.minimum(cells[e, table[s, 0]], cells[e, table[s, 1]])
+        hi = np.maximum(cells[e, table[s, 0]], cells[e, table[s, 1]])
+        unique, inverse = np.unique(lo * np.int64(n) + hi, return_inverse=True)
+        index.reshape(-1)[rest] = count + inverse.ravel()
+        edges.append(np.column_stack([unique // n, unique % n]))
+    return np.concatenate(edges), index, along_lines
+
+
+_FIELD = (1 << 21) - 1  # one lattice index (doubled: < 2 ** 21) in a packed node code
+_CHUNK = 1 << 15
+"""Elements per chunk of :func:`edges_by_lattice` (about 10 MB of temporaries)."""
 
 
 def mesh_edges(cells: np.ndarray, n_points: int) -> tuple[np.ndarray, np.ndarray]:
@@ -410,10 +467,9 @@ def quadratic_mesh(mesh: Mesh, boundary_faces: np.ndarray | None = None) -> tupl
     """
     cells = np.asarray(mesh.cells, dtype=np.int64)
     n = mesh.n_points
-    found = _edges_by_lattice(mesh, cells)
-    edges, index = found if found is not None else mesh_edges(cells, n)
+    edges, index, along_lines = edges_by_lattice(mesh, cells)
     if boundary_faces is not None:  # along lattice lines where every edge runs on one, else by arcs
-        place = curved_midpoints if found is not None else arc_midpoints
+        place = curved_midpoints if along_lines else arc_midpoints
         mid_points = _straighten_folds(mesh, edges, index, place(mesh, edges, index, boundary_faces))
     else:
         mid_points = 0.5 * (mesh.points[edges[:, 0]] + mesh.points[edges[:, 1]])

@@ -124,6 +124,19 @@ def test_kirsch_ogrid_reference(tmp_path, order, at_90):
     assert r["sigma_x_90"] == pytest.approx(3.0, rel=0.03)
 
 
+def test_the_cases_square_plate_under_tension_reads_above_kirschs_value(tmp_path):
+    """The finite plate the Kirsch cases solve (L = 20 a, uniform tension on X1) on a mapped
+    8-node mesh: converged to 3.09, not Kirsch's 3.0 (measured 3.0861, 3.0931, 3.0949 at 32, 64
+    and 128 elements along the quarter rim): the cases are read against 3.0 with Kirsch's
+    displacements on their outer edges (cases.kirsch_edges)."""
+    coarse = reference.kirsch_square(tmp_path / "coarse", n=32)
+    fine = reference.kirsch_square(tmp_path / "fine", n=64)
+    assert coarse["elements"] == 1024 and fine["elements"] == 4096
+    assert fine["sigma_x_90"] == pytest.approx(3.0931, abs=0.001)
+    assert coarse["sigma_x_90"] < fine["sigma_x_90"] < 3.1  # from below, by less each time
+    assert fine["sigma_x_90"] - 3.0 > 0.03  # outside a 1 % tolerance about Kirsch's 3.0
+
+
 def test_kirsch_displacement_is_kirsch():
     # at the rim: u_r = sigma0 a / E (1 + 2 cos 2 theta) in plane stress
     t = np.linspace(0.0, np.pi / 2, 7)
@@ -172,6 +185,11 @@ def test_kirsch_cps8_with_curved_mid_edge_nodes_at_todays_defaults_from_labels(t
     assert r[2]["sigma_x_90"] == pytest.approx(3.057, abs=0.01)  # +1.9 %
     assert r[2]["peak"] == pytest.approx(3.112, abs=0.01) and r[2]["peak_angle_deg"] == pytest.approx(82, abs=3)
     assert r[2]["rim_fit_90"] == pytest.approx(3.034, abs=0.01)
+    # against Kirsch's own field (his displacements on the outer edges): the finite plate's
+    # 3.2 % gone, 2.965 (-1.2 %) at 90 deg, the largest 3.020 at 82 deg
+    e = r[2]["kirsch_edges"]
+    assert e["sigma_x_90"] == pytest.approx(2.965, abs=0.01) and e["sigma_x_90"] < r[2]["sigma_x_90"] - 0.07
+    assert e["peak"] == pytest.approx(3.020, abs=0.01) and e["peak_angle_deg"] == pytest.approx(82, abs=3)
 
 
 @pytest.mark.slow
@@ -205,16 +223,19 @@ def test_lame_refined(tmp_path, a, c3d8, c3d20):
     assert abs(r[1]["error_wall_fit"]) < 0.01 and abs(r[2]["error_wall_fit"]) < 0.015
 
 
-def kirsch_target(quarter: dict, full: dict, order: int, rel: float) -> None:
+def kirsch_target(quarter: dict, full: dict, order: int, rel: float, edges: bool = False) -> None:
     """The Kirsch target (docs/validation.md): sigma_x at 90 deg and the largest rim stress
     within ``rel`` of 3.0, the largest at 90 +- 10 deg, min SJ >= 0.3, 0 inverted, quarter and
-    full plate within 1 %."""
+    full plate within 1 %; ``edges``: read with Kirsch's displacements on the outer edges (exact
+    3.0), else under the uniform tension (the finite plate: exact 3.095)."""
     for r in (quarter, full):
         assert r["min_sj"] >= 0.3 and r["inverted"] == 0
-        assert r[order]["sigma_x_90"] == pytest.approx(3.0, rel=rel)
-        assert r[order]["peak"] == pytest.approx(3.0, rel=rel)
-        assert abs(r[order]["peak_angle_deg"] - 90.0) <= 10.0
-    assert quarter[order]["sigma_x_90"] == pytest.approx(full[order]["sigma_x_90"], rel=0.01)
+        e = r[order]["kirsch_edges"] if edges else r[order]
+        assert e["sigma_x_90"] == pytest.approx(3.0, rel=rel)
+        assert e["peak"] == pytest.approx(3.0, rel=rel)
+        assert abs(e["peak_angle_deg"] - 90.0) <= 10.0
+    q, f = (quarter[order], full[order]) if not edges else (quarter[order]["kirsch_edges"], full[order]["kirsch_edges"])
+    assert q["sigma_x_90"] == pytest.approx(f["sigma_x_90"], rel=0.01)
 
 
 def kirsch_figures(r: dict, min_sj: float, cps4: tuple, cps8: tuple, peak_abs: float = 0.02) -> None:
@@ -260,6 +281,17 @@ def test_target_kirsch_from_labels_with_the_fitted_surface(kirsch_fit, order):
     smoothing alone at 0.2 read 2.619, -12.7 %). Without plane merging the CPS8 largest rim stress sits at 72-75 deg (two rim
     nodes read within 0.001 of each other)."""
     kirsch_target(kirsch_fit[("quarter", True)], kirsch_fit[("full", True)], order, 0.08)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("order,at_90", [(1, 3.150), (2, 3.094)])
+def test_kirsch_from_labels_at_todays_defaults_against_kirschs_field(kirsch_fit, order, at_90):
+    """The same decks with Kirsch's displacements on the outer edges (exact 3.0): CPS4 +5.0 %,
+    CPS8 +3.1 % (under the finite plate's tension +8.0 / +6.2 % against 3.0, +4.7 / +3.0 %
+    against its own 3.095), quarter and full alike."""
+    kirsch_target(kirsch_fit[("quarter", True)], kirsch_fit[("full", True)], order, 0.08, edges=True)
+    for part in ("quarter", "full"):
+        assert kirsch_fit[(part, True)][order]["kirsch_edges"]["sigma_x_90"] == pytest.approx(at_90, abs=0.01)
 
 
 @pytest.mark.slow
@@ -492,19 +524,58 @@ def test_kirsch_plate_from_a_grey_value_image_at_todays_defaults(kirsch_scan_tod
     kirsch_figures(r, 0.32, cps4, cps8)
     assert r[1]["rim_radius_error_mean"] == pytest.approx(0.103 if part == "quarter" else 0.117, abs=0.01)
     assert r[1]["rim_radius_error_max"] == pytest.approx(0.303, abs=0.01)
+    # Kirsch's displacements on the outer edges: 3.054 / 3.030 (CPS4), 3.247 / 3.197 (CPS8)
+    edges = {1: 3.054 if part == "quarter" else 3.030, 2: 3.247 if part == "quarter" else 3.197}
+    for order, at_90 in edges.items():
+        assert r[order]["kirsch_edges"]["sigma_x_90"] == pytest.approx(at_90, abs=0.01)
+
+
+@pytest.fixture(scope="module")
+def kirsch_scan_today_curved(tmp_path_factory):
+    """Today's defaults with export.midside_nodes: curved, by (part, noise), made once each."""
+    made = {}
+
+    def get(part: str, noise: float) -> dict:
+        if (part, noise) not in made:
+            made[(part, noise)] = cases.kirsch(tmp_path_factory.mktemp(f"kirsch_curved_{part}"), part,
+                                               TODAY + [CURVED], scan=True, noise=noise)
+        return made[(part, noise)]
+    return get
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("part,noise,cps4,cps8", [
-    ("quarter", 30.0, (3.1364, 3.1364, 90.0), (3.2027, 3.2027, 90.0)),
-    ("full", 30.0, (3.1134, 3.1310, 90.0), (3.1661, 3.1971, 89.4)),
-    ("quarter", 0.0, (3.0940, 3.0940, 90.0), (3.0923, 3.0923, 90.0))])
-def test_kirsch_plate_from_a_grey_value_image_at_todays_defaults_curved(tmp_path, part, noise, cps4, cps8):
+@pytest.mark.parametrize("part,noise,cps4,cps8,edges", [
+    ("quarter", 30.0, (3.1364, 3.1364, 90.0), (3.2027, 3.2027, 90.0), (3.054, 3.111)),
+    ("full", 30.0, (3.1134, 3.1310, 90.0), (3.1661, 3.1971, 89.4), (3.030, 3.075)),
+    ("quarter", 0.0, (3.0940, 3.0940, 90.0), (3.0923, 3.0923, 90.0), (3.012, 3.003))])
+def test_kirsch_plate_from_a_grey_value_image_at_todays_defaults_curved(kirsch_scan_today_curved, part, noise, cps4,
+                                                                        cps8, edges):
     """Today's defaults with export.midside_nodes: curved: the merged rim's mid-edge nodes on
-    arcs (CPS8 3.340 / 3.289 / 3.212 with midpoints); the linear deck unchanged."""
-    r = cases.kirsch(tmp_path, part, TODAY + [CURVED], scan=True, noise=noise)
+    arcs (CPS8 3.340 / 3.289 / 3.212 with midpoints); the linear deck unchanged. ``edges``:
+    sigma_x at 90 deg with Kirsch's displacements on the outer edges (CPS4, CPS8)."""
+    r = kirsch_scan_today_curved(part, noise)
     kirsch_figures(r, 0.32, cps4, cps8)
     assert r[2]["rim_fit_90"] == pytest.approx(3.0503 if part == "quarter" and noise else 3.029, abs=0.01)
+    for order, at_90 in zip((1, 2), edges):
+        assert r[order]["kirsch_edges"]["sigma_x_90"] == pytest.approx(at_90, abs=0.01)
+
+
+@pytest.mark.slow
+def test_target_kirsch_cps4_from_a_grey_value_image_at_todays_defaults_against_kirschs_field(kirsch_scan_today):
+    """The Kirsch target from a grey-value image at dicer run's defaults, read against Kirsch's
+    own field (his displacements on the outer edges; under the finite plate's uniform tension
+    the exact value is 3.095, not 3.0): CPS4 3.054 / 3.030 (quarter / full, +1.8 / +1.0 %), the
+    largest rim stress 3.054 / 3.047 at 90 deg, quarter and full 0.8 % apart, min SJ 0.32."""
+    kirsch_target(kirsch_scan_today["quarter"], kirsch_scan_today["full"], 1, 0.03, edges=True)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="CPS8 with curved mid-edge nodes, against Kirsch's field: quarter / full "
+                   "3.111 / 3.075 (+3.7 / +2.5 %), largest 3.111 / 3.105 at 90 / 89 deg, 1.2 % apart: the noise's "
+                   "dent in the rim, which the arcs through single rim nodes follow (without noise 3.003, +0.1 %)")
+def test_target_kirsch_cps8_from_a_grey_value_image_at_todays_defaults_against_kirschs_field(kirsch_scan_today_curved):
+    kirsch_target(kirsch_scan_today_curved("quarter", 30.0), kirsch_scan_today_curved("full", 30.0), 2, 0.03,
+                  edges=True)
 
 
 @pytest.mark.slow
@@ -519,10 +590,11 @@ def test_kirsch_plate_from_a_grey_value_image_with_the_labels_faces_as_they_are(
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="target from a grey-value image at today's defaults: CPS4 sigma_x(90) "
+@pytest.mark.xfail(strict=True, reason="target from a grey-value image at today's defaults under the finite "
+                   "plate's uniform tension, whose own exact value is 3.095 (+3.2 % over 3.0): CPS4 sigma_x(90) "
                    "quarter / full 3.136 / 3.113 (+4.5 / +3.8 %), CPS8 3.340 / 3.289 (+11.3 / +9.6 %), largest "
-                   "rim stress at 89-90 deg: the merged rim's corner kinks under the floor, and the noise's "
-                   "0.04 voxel on the rim; quarter and full 0.7 % (CPS4) and 1.5 % (CPS8) apart")
+                   "rim stress at 89-90 deg; quarter and full 0.7 % (CPS4) and 1.5 % (CPS8) apart; against "
+                   "Kirsch's own field CPS4 meets the target (the test above)")
 @pytest.mark.parametrize("order", [1, 2])
 def test_target_kirsch_from_a_grey_value_image_at_todays_defaults(kirsch_scan_today, order):
     kirsch_target(kirsch_scan_today["quarter"], kirsch_scan_today["full"], order, 0.03)

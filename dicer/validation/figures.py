@@ -192,6 +192,41 @@ def kirsch_table(results: dict, part: str) -> str:
     return head + "\n".join(lines) + "\n"
 
 
+def kirsch_edges_table(results: dict, part: str) -> str:
+    """Markdown rows of a Kirsch part solved with Kirsch's displacements on the outer edges.
+
+    Setting, then per element type sigma_x at 90 deg (error % against 3.0, exact for this
+    loading), the largest rim stress (error %, angle) and the rim fit at 90 deg.
+
+    Parameters
+    ----------
+    results : dict
+    part : str
+        As :func:`kirsch_table`.
+
+    Returns
+    -------
+    str
+    """
+    head = ("| setting | CPS4 σx(90°) | error % | CPS4 largest (angle) | CPS8 σx(90°) | error % | "
+            "CPS8 largest (angle) | rim fit at 90° CPS4 / CPS8 |\n" + "|---" * 8 + "|\n")
+    rows = results["kirsch"][part]
+    order = scan_settings("quarter") if "-scan" in part else kirsch_settings()
+    lines = []
+    for name in [n for n in order if n in rows and "kirsch_edges" in rows[n]["CPS4"]]:
+        cells = [name]
+        for etype in ("CPS4", "CPS8"):
+            e = rows[name][etype]["kirsch_edges"]
+            each = e["sigma_x_90_each"]
+            both = f" ({each[0]:.3f} / {each[1]:.3f})" if len(each) == 2 and abs(each[0] - each[1]) > 5e-4 else ""
+            cells += [f"{e['sigma_x_90']:.3f}{both}", _pct(e["sigma_x_90"], KIRSCH_EXACT),
+                      f"{e['peak']:.3f} ({_pct(e['peak'], KIRSCH_EXACT)} %, {e['peak_angle_deg']:.0f}°)"]
+        cells.append(f"{rows[name]['CPS4']['kirsch_edges']['rim_fit_90']:.3f} / "
+                     f"{rows[name]['CPS8']['kirsch_edges']['rim_fit_90']:.3f}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return head + "\n".join(lines) + "\n"
+
+
 def reference_table(results: dict) -> str:
     """Markdown rows of the O-grid reference (``reference.kirsch_ogrid``): sigma_x at 90 deg.
 
@@ -206,6 +241,10 @@ def reference_table(results: dict) -> str:
     rows = results.get("kirsch-reference", {})
     lines = [f"| {etype} | {r['elements']} | {r['sigma_x_90']:.3f} | {_pct(r['sigma_x_90'], KIRSCH_EXACT)} |"
              for etype, r in rows.items()]
+    square = results.get("kirsch-square")
+    if square:  # the cases' finite plate under uniform tension, converged: its own exact value
+        lines.append(f"| CPS8, the cases' square plate (L = 20 a) under uniform tension | {square['elements']} | "
+                     f"{square['sigma_x_90']:.3f} | {_pct(square['sigma_x_90'], KIRSCH_EXACT)} |")
     return "| element | elements | σx(90°) | error % |\n|---|---|---|---|\n" + "\n".join(lines) + "\n"
 
 
@@ -241,6 +280,12 @@ def lame_table(results: dict, key: str = "lame") -> str:
     return head + "\n".join(lines) + "\n"
 
 
+_EDGE_PARTS = (("quarter", "quarter plate"), ("full", "full plate"), ("quarter-scan", "grey-value image, quarter plate"),
+               ("full-scan", "grey-value image, full plate"),
+               ("quarter-scan-clean", "grey-value image without noise, quarter plate"),
+               ("full-scan-clean", "grey-value image without noise, full plate"))
+
+
 def write_all(results: dict, folder: str | os.PathLike) -> str:
     """Write kirsch.png, kirsch_rim.png and lame.png into a folder.
 
@@ -269,5 +314,7 @@ def write_all(results: dict, folder: str | os.PathLike) -> str:
             + "\n### Kirsch from a grey-value image without noise, full plate\n\n"
             + kirsch_table(results, "full-scan-clean")
             + "\n### Kirsch, the O-grid reference (infinite plate, exact 3.0)\n\n" + reference_table(results)
+            + "".join(f"\n### Kirsch's displacements on the outer edges (exact 3.0), {title}\n\n"
+                      + kirsch_edges_table(results, part) for part, title in _EDGE_PARTS if part in results["kirsch"])
             + "\n### Lamé, quarter cylinder\n\n" + lame_table(results)
             + "\n### Lamé from a grey-value image, quarter cylinder\n\n" + lame_table(results, "lame-scan"))

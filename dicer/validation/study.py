@@ -18,7 +18,10 @@ the same bytes):
   settings ``pillow`` (and ``lame`` ``a=7+pillow``, ``lame-scan`` ``a=<inner>+pillow``) add
   the pillow layer over the surface (``smooth.pillow``, docs/smoothing.md §3b).
 * ``kirsch-reference``: {"CPS4": {...}, "CPS8": {...}}, the ideal O-grid mesh of dicer's
-  element size (``reference.kirsch_ogrid``).
+  element size (``reference.kirsch_ogrid``); ``kirsch-square``: the cases' finite plate under
+  uniform tension on a converged mesh (``reference.kirsch_square``), its own exact value.
+* Every Kirsch order also gives ``kirsch_edges``: the deck solved with Kirsch's displacements
+  on the plate's outer edges (``cases.kirsch_edges``), whose exact answer is 3.0.
 """
 
 from __future__ import annotations
@@ -188,6 +191,7 @@ def _run_scans(work: Path, results: dict, log) -> None:
     t0 = time.perf_counter()
     results["kirsch-reference"] = {ORDER_NAMES["kirsch"][o]: reference.kirsch_ogrid(work / "kirsch_ogrid", o)
                                    for o in (1, 2)}
+    results["kirsch-square"] = reference.kirsch_square(work / "kirsch_square")
     clean = {name: sets for name, sets in scan_settings("quarter").items()
              if name in ("defaults", "min SJ 0.3", "pillow", "pillow, min SJ 0.3", "today's defaults",
                          "today's defaults, curved")}

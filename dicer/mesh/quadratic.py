@@ -172,7 +172,7 @@ def curved_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_
     ----------
     mesh : Mesh
     edges, index : ndarray
-        From :func:`mesh_edges`.
+        From :func:`edges_by_lattice`.
     boundary_faces : (M, F) bool ndarray
         The element faces on a boundary.
 
@@ -277,7 +277,7 @@ def arc_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_fac
     ----------
     mesh : Mesh
     edges, index : ndarray
-        From :func:`mesh_edges`.
+        From :func:`edges_by_lattice`.
     boundary_faces : (M, F) bool ndarray
         The element faces on a boundary.
 

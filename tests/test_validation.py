@@ -60,8 +60,8 @@ def test_lame_quarter_tube_from_a_grey_value_image(tmp_path):
     assert r["inverted"] == 0 and r["min_sj"] == pytest.approx(0.22, abs=0.005)
     e = r[1]
     assert e["error_mean"] == pytest.approx(-0.043, abs=0.01)  # from labels: -0.1415
-    assert e["error_wall_fit"] == pytest.approx(-0.018, abs=0.01)
-    assert e["bore_radius_mean"] == pytest.approx(6.976, abs=0.01)
+    assert e["error_wall_fit"] == pytest.approx(-0.008, abs=0.01)
+    assert e["bore_radius_mean"] == pytest.approx(6.982, abs=0.01)
 
 
 def test_lame_quarter_tube_from_a_grey_value_image_with_a_pillow_layer(tmp_path):
@@ -304,15 +304,17 @@ def test_lame_from_labels_with_the_fitted_surface_refined(tmp_path, a, c3d8, c3d
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("a,c3d8,c3d20", [(7.0, -0.0960, -0.1499), (14.0, -0.0785, -0.1083)])
+@pytest.mark.parametrize("a,c3d8,c3d20", [(7.0, -0.0482, -0.0685), (14.0, -0.0773, -0.1073)])
 def test_lame_at_todays_defaults(tmp_path, a, c3d8, c3d20):
     """dicer run's defaults (the labels' fit, the floor 0.3, plane merging: 33 and 125 elements);
-    fitted to the merged mesh's faces, before the fit took the labels, a = 7 read -13.1 % / -15.7 %."""
+    fitted to the merged mesh's faces, before the fit took the labels, a = 7 read -13.1 % / -15.7 %;
+    until the fit mirrored the normals of plane nodes (6 December 2026) -9.6 % / -15.0 %, the
+    bore's nodes on the planes 0.3 voxel inside the hole."""
     r = cases.lame(tmp_path, "quarter", [FIT, MIN_SJ_03], inner=a, outer=2 * a)
     assert r["inverted"] == 0 and r["min_sj"] >= 0.3
     assert r[1]["error_mean"] == pytest.approx(c3d8, abs=0.01)
     assert r[2]["error_mean"] == pytest.approx(c3d20, abs=0.01)
-    assert r[1]["bore_radius_mean"] == pytest.approx(a, abs=0.1)  # measured 6.926 and 13.98
+    assert r[1]["bore_radius_mean"] == pytest.approx(a, abs=0.1)  # measured 7.044 and 13.99
 
 
 # --- from a grey-value image: dicer run on a CT-like image, the rim on its iso-line ---------
@@ -488,7 +490,7 @@ def test_target_kirsch_within_3_percent(kirsch_defaults, order):
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="target: bore hoop within 3 %; measured at today's defaults (the labels' fit, "
-                   "min SJ 0.3, plane merging: 33 elements) mean -9.6 % (C3D8), -15.0 % (C3D20); without merging "
+                   "min SJ 0.3, plane merging: 33 elements) mean -4.8 % (C3D8), -6.9 % (C3D20); without merging "
                    "(floor 0.2) -8.2 % / -10.2 %; the labels' smoothing alone -14.2 % / -20.6 %")
 def test_target_lame_within_3_percent(tmp_path):
     r = cases.lame(tmp_path, "quarter", [FIT, MIN_SJ_03], inner=7.0, outer=14.0)
@@ -612,12 +614,13 @@ def test_target_kirsch_from_a_grey_value_image_at_todays_defaults(kirsch_scan_to
     kirsch_target(kirsch_scan_today["quarter"], kirsch_scan_today["full"], order, 0.03)
 
 
-@pytest.mark.parametrize("a,c3d8,c3d20,radius", [(7.0, -0.1111, -0.1356, 6.893), (14.0, -0.0510, -0.0826, 13.977)])
+@pytest.mark.parametrize("a,c3d8,c3d20,radius", [(7.0, -0.0757, -0.0695, 7.017), (14.0, -0.0509, -0.0824, 13.999)])
 def test_lame_from_a_grey_value_image_at_todays_defaults(tmp_path, a, c3d8, c3d20, radius):
     """dicer run's defaults on the CT-like image (the threshold's labels fitted with their faces
     placed by the scan, the floor 0.3, plane merging: 33 and 125 elements); with the labels' faces
     as they are (the defaults until 5 December 2026) a = 7 read -9.1 % / -15.6 %, a = 14 -7.1 % /
-    -10.6 %."""
+    -10.6 %; until the fit mirrored the normals of plane nodes (6 December 2026) a = 7 read
+    -11.1 % / -13.6 %, the bore's radius 6.893."""
     r = cases.lame(tmp_path, "quarter", TODAY, inner=a, outer=2 * a, scan=True)
     assert r["inverted"] == 0 and r["min_sj"] >= 0.3
     assert r[1]["error_mean"] == pytest.approx(c3d8, abs=0.005)

@@ -301,7 +301,10 @@ class NodeSides:
         nrm = np.stack([np.bincount(self.rows, weights=v[:, d], minlength=self.b) for d in range(3)], axis=1)
         nrm[self.fixed] = 0.0  # plane nodes stay in their planes (and z in 2D)
         length = np.linalg.norm(nrm, axis=1)
-        ok = self.usable & (length > 0.5)  # a sum of unit vectors that nearly cancels has no direction
+        # a sum of unit vectors that nearly cancels has no direction; at a mirror plane the sum
+        # is the mirrored model's, whose images of the node's elements add alike (2^k of them)
+        whole = length * (1 << self.mirrored[:, :self.dim].sum(axis=1))
+        ok = self.usable & (whole > 0.5)
         return nrm / np.where(ok, length, 1.0)[:, None], ok
 
 

@@ -101,6 +101,19 @@ def test_multiotsu_two_classes_noisy():
     assert dice(labels.array == 2, truth == 2) > 0.99
 
 
+def test_thresholds_of_an_image_in_tiny_units_are_written_as_found():
+    # an ADC map in m2/s: values about 1e-9. segmentation.json's thresholds are what the
+    # smoothing reads back; rounded to 4 decimals they were both 0.0
+    image, truth = head_like(32, noise=60, seed=3)
+    scaled = Volume((image.array * 1e-12).astype(np.float32), image.spacing)
+    labels, info = segment(scaled, config(method="multiotsu"), "adc.nii.gz")
+    reference, ref_info = segment(image, config(method="multiotsu"), "head.nii.gz")
+    t1, t2 = info["thresholds"]
+    assert t1 < t2 and t1 != 0.0
+    assert np.allclose(info["thresholds"], np.array(ref_info["thresholds"]) * 1e-12, rtol=1e-4)
+    assert np.array_equal(labels.array, reference.array)
+
+
 def test_multiotsu_warns_when_it_cuts_one_tissue_in_two():
     image, truth = head_like(32, noise=60, seed=3)
     _, info = segment(image, config(method="multiotsu"), "head.nii.gz")

@@ -348,7 +348,8 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
         thresholds, search = shape_connectivity_thresholds(array, ranges, names, source, bins=int(bins))
         info.update({key: value for key, value in search.items() if key != "seconds"})
         info["search_seconds"] = search["seconds"]
-    info["thresholds"] = [round(float(t), 4) for t in thresholds]
+    # nine significant digits: the smoothing reads them back (an ADC map's 1e-9 mm2/s would round to 0)
+    info["thresholds"] = [float(f"{float(t):.9g}") for t in thresholds]
     t_threshold = time.perf_counter()
 
     searched, array = array, image.array

@@ -342,6 +342,14 @@ def test_bad_passes_are_errors(passes):
         merge_planes(voxel_mesh(np.ones((2, 2, 2), np.uint8)), passes=passes)
 
 
+def test_two_passes_for_a_3d_mesh_are_an_error_but_do_for_2d():
+    # [1, 1] on a 3D mesh read as [1, 1, 0] left z unmerged without a word
+    with pytest.raises(DicerError, match="merge.passes=.1, 1.: 2 values for a 3D mesh; give three"):
+        merge_planes(voxel_mesh(np.ones((4, 4, 4), np.uint8)), passes=(1, 1))
+    merged, report = merge_planes(voxel_mesh(np.ones((4, 4), np.uint8)), passes=(1, 1))
+    assert merged.n_cells == 4 and report["passes"] == [1, 1, 0]
+
+
 def test_bad_options_are_errors():
     mesh = voxel_mesh(np.ones((2, 2, 2), np.uint8))
     with pytest.raises(DicerError, match="granularity"):

@@ -149,7 +149,11 @@ def _any_at(mask: np.ndarray, index: np.ndarray) -> np.ndarray:
 
 
 def _check_passes(passes, dim: int) -> tuple[int, int, int]:
-    """Merges per axis as three ints (the schema checked the values): z is 0 for a 2D mesh."""
+    """Merges per axis as three ints (the schema checked the values): z is 0 for a 2D mesh;
+    a 3D mesh needs all three (two would leave z unmerged without a word)."""
+    if dim == 3 and len(passes) < 3:
+        raise DicerError(f"merge.passes={[int(p) for p in passes]}: {len(passes)} values for a 3D mesh; "
+                         "give three, one per axis [x, y, z] (0 leaves an axis alone)")
     values = ([int(p) for p in passes] + [0])[:3]
     if dim == 2:
         values[2] = 0  # a quad mesh has no element layers along z

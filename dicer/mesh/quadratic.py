@@ -359,10 +359,20 @@ def _serendipity_gradients(nodes: np.ndarray, at: np.ndarray) -> np.ndarray:
 
 def _check_points(dim: int) -> np.ndarray:
     """The points where a quadratic element's Jacobian must stay positive: the 3^d Gauss
-    points of full integration, the 2^d of reduced integration and the corners."""
+    points of full integration, the 2^d of reduced integration, the nodes (corners, mid-edge
+    and face centres: a curve folds an element at its faces first) and the 3^(d-1) Gauss
+    points of each face, where a pressure load is integrated."""
     g3, g2 = np.sqrt(0.6), 1 / np.sqrt(3.0)
-    axes = [np.array([-g3, 0.0, g3]), np.array([-g2, g2]), np.array([-1.0, 1.0])]
-    return np.concatenate([np.stack(np.meshgrid(*[v] * dim, indexing="ij"), axis=-1).reshape(-1, dim) for v in axes])
+    axes = [np.array([-g3, 0.0, g3]), np.array([-g2, g2]), np.array([-1.0, 0.0, 1.0])]
+    grids = [np.stack(np.meshgrid(*[v] * dim, indexing="ij"), axis=-1).reshape(-1, dim) for v in axes]
+    face = grids[0][:, None, :].repeat(dim, axis=1)  # (P, dim, dim): the face points of each axis
+    sides = []
+    for a in range(dim):
+        for side in (-1.0, 1.0):
+            pts = face[:, a].copy()
+            pts[:, a] = side
+            sides.append(np.unique(pts, axis=0))
+    return np.concatenate(grids + sides)
 
 
 _CURVED_FLOOR = 0.1

@@ -699,6 +699,21 @@ def _moved_labels(c: Ctx) -> Path:
 case("5-inputs", "smooth --labels: labels of another scan",
      lambda c: argv_for(c, "smooth", extra=["--labels", _moved_labels(c)]), "moved.nii.gz",
      "hold no voxel of their material")
+def _shifted_labels(c: Ctx) -> Path:
+    """The base labels shifted by one voxel along x: the mesh's grid, the anatomy a slip away (a
+    few per cent of the elements miss their material)."""
+    from dicer.image import Volume
+    from dicer.io.images import read_labels, write_labels
+
+    labels = read_labels(c.b / "labels.nii.gz")
+    write_labels(Volume(np.roll(labels.array, 1, axis=0), labels.spacing, labels.origin, labels.direction),
+                 c.t / "shifted.nii.gz")
+    return c.t / "shifted.nii.gz"
+
+
+case("5-inputs", "smooth --labels: the labels shifted by a voxel (exit 0 until 6 December 2026)",
+     lambda c: argv_for(c, "smooth", extra=["--labels", _shifted_labels(c)]), "shifted.nii.gz",
+     "hold no voxel of their material")
 case("5-inputs", "smooth --labels: the scan instead of its labels",
      lambda c: argv_for(c, "smooth", extra=["--labels", c.copy("head.nii.gz")]), "head.nii.gz")
 case("5-inputs", "smooth --labels: a float label volume with NaN",
@@ -770,6 +785,8 @@ case("6-cohort", "sheet with a missing image, skip_missing: true (good)",
 
 # 7. errors that must blame the right thing ----------------------------------------------------
 
+case("7-blame", "merge: two passes for a 3D mesh (read as z unmerged until 6 December 2026)",
+     lambda c: argv_for(c, "merge", extra=["--set", "merge.passes=[1,1]"]), "merge.passes=[1, 1]", "give three")
 case("7-blame", "downsample: factor larger than the image",
      lambda c: argv_for(c, "downsample", extra=["--set", "downsample.factor=50"]), "labels.nii.gz", "factor")
 case("7-blame", "downsample: voxel_size larger than the image",

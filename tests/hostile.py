@@ -685,35 +685,23 @@ for command in ("quality", "export", "surface", "smooth", "merge"):
                                                                       _nan_point)))(command), "n.vtu")
 case("5-inputs", "smooth --labels: labels of another grid",
      lambda c: argv_for(c, "smooth", extra=["--labels", c.copy("big_ones.npy")]), "big_ones.npy", "110x110x110")
-def _moved_labels(c: Ctx) -> Path:
-    """The base labels moved by 6 voxels along x: the mesh's grid, another anatomy."""
+def _moved_labels(c: Ctx, voxels: int, name: str) -> Path:
+    """The base labels moved by ``voxels`` along x: the mesh's grid, another anatomy (6) or the
+    same a slip away (1: a few per cent of the elements miss their material)."""
     from dicer.image import Volume
     from dicer.io.images import read_labels, write_labels
 
     labels = read_labels(c.b / "labels.nii.gz")
-    write_labels(Volume(np.roll(labels.array, 6, axis=0), labels.spacing, labels.origin, labels.direction),
-                 c.t / "moved.nii.gz")
-    return c.t / "moved.nii.gz"
+    write_labels(Volume(np.roll(labels.array, voxels, axis=0), labels.spacing, labels.origin, labels.direction),
+                 c.t / name)
+    return c.t / name
 
 
-case("5-inputs", "smooth --labels: labels of another scan",
-     lambda c: argv_for(c, "smooth", extra=["--labels", _moved_labels(c)]), "moved.nii.gz",
-     "hold no voxel of their material")
-def _shifted_labels(c: Ctx) -> Path:
-    """The base labels shifted by one voxel along x: the mesh's grid, the anatomy a slip away (a
-    few per cent of the elements miss their material)."""
-    from dicer.image import Volume
-    from dicer.io.images import read_labels, write_labels
-
-    labels = read_labels(c.b / "labels.nii.gz")
-    write_labels(Volume(np.roll(labels.array, 1, axis=0), labels.spacing, labels.origin, labels.direction),
-                 c.t / "shifted.nii.gz")
-    return c.t / "shifted.nii.gz"
-
-
-case("5-inputs", "smooth --labels: the labels shifted by a voxel (exit 0 until 6 December 2026)",
-     lambda c: argv_for(c, "smooth", extra=["--labels", _shifted_labels(c)]), "shifted.nii.gz",
-     "hold no voxel of their material")
+for label, voxels, name in (("labels of another scan", 6, "moved.nii.gz"),
+                            ("the labels shifted by a voxel (exit 0 until 6 December 2026)", 1, "shifted.nii.gz")):
+    case("5-inputs", f"smooth --labels: {label}",
+         (lambda voxels, name: lambda c: argv_for(c, "smooth", extra=["--labels", _moved_labels(c, voxels, name)]))(
+             voxels, name), name, "hold no voxel of their material")
 case("5-inputs", "smooth --labels: the scan instead of its labels",
      lambda c: argv_for(c, "smooth", extra=["--labels", c.copy("head.nii.gz")]), "head.nii.gz")
 case("5-inputs", "smooth --labels: a float label volume with NaN",

@@ -249,7 +249,8 @@ def downsample(labels: Volume, *, names: list[str], factor, voxel_size, min_frac
     coarse = _thin_class_vote(array, factor, k, float(min_fraction), options["priority"],
                               plurality=vote == "plurality")  # null: a scan's default (for_label_volume)
     if morphology:
-        cleaned, _ = clean_labels(coarse, **options)
+        cleaned, _ = clean_labels(coarse, **options,
+                                  spacing=[v * f for v, f in zip(labels.spacing, factor)])
         if coarse.any() and not cleaned.any():
             raise DicerError(f"{source}: the morphology after downsampling removed every voxel; lower "
                              "segment.opening_radius or the downsample factor, or set downsample.morphology=false")

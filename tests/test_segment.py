@@ -630,23 +630,40 @@ def test_a_threshold_plot_without_a_criterion_is_said_not_to_be_written(tmp_path
     assert "segment.method multiotsu has none, so" in caplog.text and not (tmp_path / "t.png").exists()
 
 
-def test_an_opening_that_removes_much_of_a_class_is_warned_of():
-    """On 5 mm slices a 10 mm bone plate is two voxels thick: the opening removed it whole
-    (64 % of the bone) without a word."""
+def test_the_opening_keeps_its_size_in_mm_on_thick_slices():
+    """On 5 mm slices a 10 mm bone plate is two voxels thick: a ball of one voxel along every
+    axis (15 mm across the slices) removed it whole, 64 % of the bone (until 6 December 2026);
+    a ball of one voxel of the finest axis, 0.5 mm, is one slice thick."""
     image = np.full((40, 40, 12), -1000.0)
     image[5:35, 5:35, 2:10] = 40.0
     image[10:26, 10:30, 5:7] = 1000.0  # the plate: 2 slices
     image[28:31, 28:31, 2:10] = 1000.0  # a rod along z, 3 voxels across
-    labels, info = segment(Volume(image, (0.5, 0.5, 5.0)), {"segment": {"method": "manual",
-                                                                        "thresholds": [-300, 300]}})
+    thick = Volume(image, (0.5, 0.5, 5.0))
+    manual = {"segment": {"method": "manual", "thresholds": [-300, 300]}}
+    labels, info = segment(thick, manual)
+    assert info["removed_by_opening"]["bone"] == 0 and "warnings" not in info
+    assert (labels.array[10:26, 10:30, 5:7] == 2).all() and (labels.array[28:31, 28:31, 2:10] == 2).all()
+    # the same voxels on an isotropic grid: the ball is one voxel along z too, the plate goes
+    _, iso = segment(Volume(image, (0.5, 0.5, 0.5)), manual)
+    assert iso["removed_by_opening"]["bone"] == 640
+
+
+def test_an_opening_that_removes_much_of_a_class_is_warned_of():
+    """A wall 1 mm thick (two 0.5 mm voxels) goes whole, 82 % of the bone, and is said with
+    the ball's size per axis."""
+    image = np.full((40, 40, 12), -1000.0)
+    image[5:35, 5:35, 2:10] = 40.0
+    image[10:12, 10:30, 2:10] = 1000.0  # the wall
+    image[28:31, 28:31, 2:10] = 1000.0  # a rod along z, 3 voxels across
+    manual = {"segment": {"method": "manual", "thresholds": [-300, 300]}}
+    labels, info = segment(Volume(image, (0.5, 0.5, 5.0)), manual)
     said = [w for w in info.get("warnings", []) if w.startswith("the opening removed")]
-    assert said == [f"the opening removed 640 of the 712 thresholded voxels of 'bone' (90 %): parts thinner than 3 "
-                    "voxels (1.5 x 1.5 x 15 mm) go; on thick slices that is a thick part along them: lower "
-                    "segment.opening_radius"]
-    # a tenth is said (a head's one-slice skull caps on 5 mm slices: 14 %, which a quarter let pass)
-    image[10:26, 10:30, 5:7] = 40.0
-    image[10:12, 10:17, 5] = 1000.0  # a cap one slice thick: 14 voxels beside the rod's 72
-    _, info = segment(Volume(image, (0.5, 0.5, 5.0)), {"segment": {"method": "manual", "thresholds": [-300, 300]}})
+    assert said == ["the opening removed 320 of the 392 thresholded voxels of 'bone' (82 %): parts narrower than "
+                    "1.5 x 1.5 x 5 mm (3x3x1 voxels) go; lower segment.opening_radius"]
+    # a tenth is said (a quarter let 14 % pass)
+    image[10:12, 10:30, 2:10] = 40.0
+    image[10:12, 10:17, 5] = 1000.0  # a patch two voxels wide: 14 voxels beside the rod's 72
+    _, info = segment(Volume(image, (0.5, 0.5, 5.0)), manual)
     assert info["removed_by_opening"]["bone"] == 14 and info["thresholded"]["bone"] == 86
     assert [w for w in info["warnings"] if w.startswith("the opening removed 14 of the 86")]
 
@@ -676,6 +693,26 @@ def test_ball_morphology_by_distance_is_scipy_s(mask, radius):
     fp = ball(radius, mask.ndim)
     assert np.array_equal(dilate(mask, radius, by_distance=True), ndi.binary_dilation(mask, structure=fp))
     assert np.array_equal(erode(mask, radius, by_distance=True),
+                          ndi.binary_erosion(mask, structure=fp, border_value=1))
+
+
+@settings(max_examples=150, deadline=None)
+@given(mask=st.integers(2, 3).flatmap(lambda dim: arrays(bool, st.tuples(*[st.integers(1, 12)] * dim))),
+       radius=st.integers(1, 7), spacing=st.lists(st.sampled_from([0.3, 0.5, 0.96, 1.0, 1.5, 2.5, 5.0]),
+                                                  min_size=3, max_size=3))
+def test_ellipsoid_morphology_by_distance_is_scipy_s(mask, radius, spacing):
+    """On anisotropic voxels the ball keeps its size in mm: per-axis radii, an ellipsoid in
+    voxels; by the distance transform (axes scaled) the same voxels as scipy's by the element."""
+    from dicer.segment.morphology import axis_radii, ball, dilate, ellipsoid, erode
+
+    radii = axis_radii(radius, spacing, mask.ndim)
+    assert min(radii) >= 0 and max(radii) == radius
+    fp = ellipsoid(radii)
+    assert fp.shape == tuple(2 * r + 1 for r in radii) and fp[tuple(radii)]
+    if len(set(radii)) == 1:
+        assert np.array_equal(fp, ball(radius, mask.ndim))
+    assert np.array_equal(dilate(mask, radii, by_distance=True), ndi.binary_dilation(mask, structure=fp))
+    assert np.array_equal(erode(mask, radii, by_distance=True),
                           ndi.binary_erosion(mask, structure=fp, border_value=1))
 
 

@@ -15,7 +15,7 @@ import numpy as np
 from dicer.config import takes_settings
 from dicer.errors import DicerError
 from dicer.image import Volume, count_labels
-from dicer.segment.morphology import clean_labels
+from dicer.segment.morphology import axis_radii, clean_labels
 from dicer.segment.thresholds import (
     check_thresholds,
     classify,
@@ -362,7 +362,7 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
     options = morphology_options(names, opening_radius=opening_radius, closing_radius=closing_radius, keep=keep,
                                  min_component_size=min_component_size, priority=priority, source=source)
     check_radii(options, raw.shape, source)
-    labels, minfo = clean_labels(raw, **options)
+    labels, minfo = clean_labels(raw, **options, spacing=image.spacing)
     if not labels.any():
         raise DicerError(f"{source}: the morphology removed every voxel (segment.opening_radius="
                          f"{options['opening_radius']} drops parts thinner than {2 * options['opening_radius'] + 1} "
@@ -376,12 +376,11 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
     for name, removed in info["removed_by_opening"].items():
         kept, thresholded = info["classes"][name]["voxels"], info["thresholded"][name]
         if kept and removed >= OPENED_AWAY * thresholded:  # an empty class has its own warning
-            radius = options["opening_radius"]
-            across = " x ".join(f"{(2 * radius + 1) * sp:g}" for sp in image.spacing)
+            radii = axis_radii(options["opening_radius"], image.spacing, image.array.ndim)
+            across = " x ".join(f"{(2 * r + 1) * sp:g}" for r, sp in zip(radii, image.spacing))
             warnings.append(f"the opening removed {removed} of the {thresholded} thresholded voxels of '{name}' "
-                            f"({100 * removed / thresholded:.0f} %): parts thinner than {2 * radius + 1} voxels "
-                            f"({across} mm) go; on thick slices that is a thick part along them: lower "
-                            "segment.opening_radius")
+                            f"({100 * removed / thresholded:.0f} %): parts narrower than {across} mm "
+                            f"({'x'.join(str(2 * r + 1) for r in radii)} voxels) go; lower segment.opening_radius")
     for c, p in minfo["removed_parts"].items():
         # keep 'largest' (keep: body) drops the headrest and the table; a part of a size like
         # the one kept is more likely a second leg or hand scanned beside the first

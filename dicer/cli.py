@@ -45,7 +45,8 @@ def _config(args) -> dict:
     if getattr(args, "order", None) is not None:  # dicer export --order: read with the rest (the element type fits it)
         sets.append(f"export.order={args.order}")
         named = "--set and --order" if args.set else "--order"
-    config = load_config(args.config, sets, settings, sets_named=named)
+    config = load_config(args.config, sets, settings, sets_named=named,
+                         properties_used=getattr(args, "command", None) in ("run", "export", "labels"))
     if getattr(args, "command", None) in ("smooth", "run"):  # the commands that smooth
         from dicer.config import unused_smooth_settings
 

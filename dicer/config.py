@@ -11,6 +11,7 @@ import functools
 import hashlib
 import inspect
 import json
+import logging
 import math
 import re
 from collections import Counter
@@ -126,6 +127,49 @@ def material_defaults() -> dict:
     """
     items = _schema()["properties"]["materials"]["items"]["properties"]
     return {k: copy.deepcopy(v["default"]) for k, v in items.items() if "default" in v}
+
+
+def materials_left_to_defaults(user: dict) -> list[tuple[str, list[str]]]:
+    """The ``materials`` entries a configuration lists without some of their properties.
+
+    Parameters
+    ----------
+    user : dict
+        A configuration as given (before :func:`load_config` fills in the defaults).
+
+    Returns
+    -------
+    list of (str, list of str)
+        Each such entry's name and the properties it leaves out, in list order.
+    """
+    given = user.get("materials")
+    if not isinstance(given, list):
+        return []
+    properties = list(material_defaults())
+    out = []
+    for entry in given:
+        if isinstance(entry, dict):
+            missing = [key for key in properties if key not in entry]
+            if missing:
+                out.append((str(entry.get("name")), missing))
+    return out
+
+
+def _say_defaulted_properties(user: dict, source: str) -> None:
+    """Warn of listed materials whose properties the schema's defaults fill in: the default
+    soft tissue (E 1 MPa, nu 0.45) listed by name alone became 1000 times stiffer without a word."""
+    from dicer.brief import brief_names
+
+    left = materials_left_to_defaults(user)
+    if not left:
+        return
+    default = material_defaults()
+    which = brief_names(f"{name} ({', '.join(keys)})" for name, keys in left)
+    logging.getLogger("dicer").warning(
+        "%s: properties left out of materials: %s; they take the defaults (E %g MPa, nu %g, density %g t/mm^3), "
+        "not the default config's soft_tissue and bone properties: give each listed material its youngs_modulus, "
+        "poissons_ratio and density", source, which, default["youngs_modulus"], default["poissons_ratio"],
+        default["density"])
 
 
 def default_config() -> dict:
@@ -695,7 +739,7 @@ def _label_keys(user: dict) -> dict:
 
 
 def load_config(path: str | Path | None = None, sets: list[str] | tuple = (), settings: dict | None = None,
-                sets_named: str = "--set") -> dict:
+                sets_named: str = "--set", properties_used: bool = False) -> dict:
     """The configuration: defaults <- YAML file <- ``settings`` <- ``--set`` items.
 
     Parameters
@@ -708,6 +752,9 @@ def load_config(path: str | Path | None = None, sets: list[str] | tuple = (), se
         Settings merged over the file.
     sets_named : str, optional
         What the ``sets`` are called in messages (a command's own option given as an item).
+    properties_used : bool, optional
+        The caller writes the materials' properties (a deck, materials.json): warn of listed
+        materials that leave some out (:func:`materials_left_to_defaults`).
 
     Returns
     -------
@@ -731,6 +778,8 @@ def load_config(path: str | Path | None = None, sets: list[str] | tuple = (), se
         source = f"{source} with {sets_named}" if sets_named not in source else source
     user = _label_keys(user)
     validate(user, source)  # unknown keys and types, before defaults hide nothing
+    if properties_used:
+        _say_defaulted_properties(user, source)
     config = _fill(copy.deepcopy(user), schema())
     return validate(config, source)
 

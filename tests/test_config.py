@@ -353,3 +353,30 @@ def test_unused_smooth_settings_are_said_by_the_commands_that_smooth_only(tmp_pa
         "smooth: smooth.pillow_thickness=0.5 is not used: it is the thickness of the layer smooth.pillow adds, which "
         "is off"]
 
+
+
+def test_materials_listed_without_their_properties_are_said_by_the_commands_that_write_them(tmp_path, caplog):
+    """Listed by name alone, soft tissue took E 1000 MPa from the schema (the default config's
+    is 1 MPa) without a word; a property left out takes the schema's default, and is said."""
+    from dicer.cli import main
+    from dicer.config import load_config, materials_left_to_defaults
+
+    given = {"materials": [{"name": "soft_tissue", "youngs_modulus": 2.0}, {"name": "bone"},
+                           {"name": "marrow", "youngs_modulus": 50.0, "poissons_ratio": 0.4, "density": 1e-9}]}
+    assert materials_left_to_defaults(given) == [("soft_tissue", ["poissons_ratio", "density"]),
+                                                 ("bone", ["youngs_modulus", "poissons_ratio", "density"])]
+    assert materials_left_to_defaults({}) == [] and materials_left_to_defaults({"materials": given["materials"][2:]}) == []
+    config = load_config(settings=given)
+    assert config["materials"][0] == {"name": "soft_tissue", "youngs_modulus": 2.0, "poissons_ratio": 0.3,
+                                      "density": 1e-9}
+    said = "properties left out of materials: soft_tissue (poissons_ratio, density), bone (youngs_modulus, "
+    caplog.clear()
+    load_config(settings=given)  # a stage that reads the names only: not said
+    assert not [r for r in caplog.records if said in r.getMessage()]
+    sets = ["--set", "materials=[{name: soft_tissue, youngs_modulus: 2.0}, {name: bone}]"]
+    assert main(["export", str(tmp_path / "none.vtu"), "-o", str(tmp_path / "m.inp"), *sets]) == 2  # no mesh
+    assert [r.getMessage() for r in caplog.records if said in r.getMessage()] == [
+        "config with --set: properties left out of materials: soft_tissue (poissons_ratio, density), bone "
+        "(youngs_modulus, poissons_ratio, density); they take the defaults (E 1000 MPa, nu 0.3, density 1e-09 "
+        "t/mm^3), not the default config's soft_tissue and bone properties: give each listed material its "
+        "youngs_modulus, poissons_ratio and density"]

@@ -22,7 +22,7 @@ os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + os.environ.g
 
 config.update(exponent_floats(config))  # 1e-9 is a number to dicer's reader, a string to Snakemake's
 try:
-    CONFIG = load_config(settings=config)
+    CONFIG = load_config(settings=config, properties_used=True)
 except DicerError as exc:
     raise WorkflowError(str(exc) if str(exc).startswith("config") else f"config: {exc}")
 
@@ -121,7 +121,8 @@ def patient_config(patient):
     for item in overrides:
         merged = deep_merge(merged, parse_set(item, source=f"patients.tsv overrides of {patient}"))
     try:
-        loaded = load_config(settings=merged)
+        # the materials a patient's overrides list are said of (the workflow's own once, above)
+        loaded = load_config(settings=merged, properties_used=any(item.startswith("materials") for item in overrides))
     except DicerError as exc:
         raise WorkflowError(f"patient {patient}: {exc}")
     return for_label_volume(loaded) if PATIENTS[patient].get("labels") else loaded

@@ -189,6 +189,19 @@ def test_missing_image_stops_the_run_unless_skipped(tmp_path):
     assert "workflow.skip_missing" in out
 
 
+def test_a_sheet_whose_every_patient_is_skipped_stops_the_run(tmp_path):
+    """With workflow.skip_missing (the default) a sheet of mistyped paths made nothing and
+    ended as a success (exit 0)."""
+    workdir = _cohort(tmp_path)
+    (workdir / "config" / "patients.tsv").write_text("patient\timage\nabsent\tno/such/scan.nii.gz\n"
+                                                     "gone\tno/such/other.nii.gz\n")
+    proc = _snakemake(workdir, "-n", check=False)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode != 0
+    assert ("config/patients.tsv: every patient was skipped, their input not found: absent (no/such/scan.nii.gz, "
+            "line 2), gone (no/such/other.nii.gz, line 3); fix the paths") in out
+
+
 def test_sheet_with_a_byte_order_mark_and_a_bad_column(tmp_path):
     workdir = _cohort(tmp_path)
     sheet = workdir / "config" / "patients.tsv"

@@ -99,6 +99,9 @@ def say_skipped():
 
 SHEET = _read_patients(CONFIG["workflow"]["patients"])
 PATIENTS = {row["patient"]: row for number, row in SHEET if _available(row, number, CONFIG["workflow"]["patients"])}
+if SHEET and not PATIENTS:  # a run that makes nothing would end as a success
+    raise WorkflowError(f"{CONFIG['workflow']['patients']}: every patient was skipped, their input not found: "
+                        f"{', '.join(SKIPPED)}; fix the paths (taken from the working folder, not the sheet's)")
 
 
 def _one_of(names):

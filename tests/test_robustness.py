@@ -392,6 +392,27 @@ def test_allow_irregular_slices_through_the_command(tmp_path, caplog):
     assert "resampled its 6 slices to 7 uniform slices of 2 mm" in caplog.text
 
 
+def test_dicom_objects_without_an_image_beside_the_slices_are_left_out(tmp_path, caplog):
+    """A dose report (SR) or a presentation state beside the slices, as PACS exports put them,
+    was refused as a damaged slice ("copy it again from the scanner")."""
+    from pydicom.data import get_testdata_file
+
+    from dicer.io.images import read_image
+
+    folder = write_dicom_series(tmp_path / "series", np.arange(6) * 2.0, shape=(16, 14))
+    alone = read_image(folder)
+    shutil.copy(get_testdata_file("test-SR.dcm"), folder / "SR0001.dcm")
+    caplog.set_level("INFO", logger="dicer")
+    with_report = read_image(folder)
+    assert np.array_equal(with_report.array, alone.array) and with_report.spacing == alone.spacing
+    assert "SR0001.dcm: a DICOM Comprehensive SR Storage object, no image: left out of the series" in caplog.text
+    # a damaged slice is still one
+    data = (folder / "im003.dcm").read_bytes()
+    (folder / "im003.dcm").write_bytes(data[: len(data) - 60])
+    with pytest.raises(Exception, match="im003.dcm: this slice of the DICOM series cannot be read"):
+        read_image(folder)
+
+
 def test_a_usage_error_is_one_error_line(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
     proc = subprocess.run([sys.executable, "-m", "dicer", "export", "m.vtu", "-o", "m.inp", "--order", "3"],

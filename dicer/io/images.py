@@ -1091,6 +1091,21 @@ def _meant_as_dicom(path: Path) -> bool:
     return _dicom_preamble(path, unreadable=True)
 
 
+def _non_image_object(path: Path) -> str | None:
+    """What a valid DICOM file without an image is (a dose report, a presentation state, a key
+    object: PACS exports put them beside the slices), by its SOP class; None for anything else."""
+    import pydicom
+
+    try:
+        ds = pydicom.dcmread(path, stop_before_pixels=True)
+    except Exception:  # noqa: BLE001 -- damaged or not DICOM: the slice error says so
+        return None
+    if "Rows" in ds or "Columns" in ds or "SOPClassUID" not in ds:
+        return None  # an image GDCM could not read, or no DICOM object at all
+    uid = ds.SOPClassUID
+    return str(getattr(uid, "name", "") or uid)
+
+
 def _slice_error(path: str, detail: str) -> DicerError:
     return DicerError(f"{path}: this slice of the DICOM series cannot be read ({detail}); the file is truncated "
                       "or damaged: copy it again from the scanner or archive")
@@ -1406,7 +1421,10 @@ def _dicom_series_slices(folder: Path, required: bool):
     for path in sorted(folder.iterdir(), key=lambda p: _natural_key(p.name)):
         if (path.is_file() and not path.name.startswith(".") and path.name not in known
                 and _meant_as_dicom(path)):
-            raise _slice_error(str(path), "not a DICOM file GDCM can parse")
+            kind = _non_image_object(path)
+            if kind is None:
+                raise _slice_error(str(path), "not a DICOM file GDCM can parse")
+            log.info("%s: a DICOM %s object, no image: left out of the series", path.name, kind)
     names = list(members[chosen])
     counts = [c for c, _ in candidates]
     if len(names) == 1 and _frames(names[0]) > 1:  # one multi-frame file: read as the file it is

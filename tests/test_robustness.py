@@ -392,7 +392,7 @@ def test_allow_irregular_slices_through_the_command(tmp_path, caplog):
     assert "resampled its 6 slices to 7 uniform slices of 2 mm" in caplog.text
 
 
-def test_dicom_objects_without_an_image_beside_the_slices_are_left_out(tmp_path, caplog):
+def test_dicom_objects_without_an_image_are_left_out_and_image_spacing_is_said_unused(tmp_path, caplog):
     """A dose report (SR) or a presentation state beside the slices, as PACS exports put them,
     was refused as a damaged slice ("copy it again from the scanner")."""
     from pydicom.data import get_testdata_file
@@ -406,6 +406,10 @@ def test_dicom_objects_without_an_image_beside_the_slices_are_left_out(tmp_path,
     with_report = read_image(folder)
     assert np.array_equal(with_report.array, alone.array) and with_report.spacing == alone.spacing
     assert "SR0001.dcm: a DICOM Comprehensive SR Storage object, no image: left out of the series" in caplog.text
+    # image.spacing does not rescale a series (its slices place themselves): said, as for a file
+    assert read_image(folder, spacing=[0.5, 0.5, 0.5]).spacing == alone.spacing
+    assert ("series: image.spacing is set ([0.5, 0.5, 0.5]), but the DICOM series carries its own voxel size "
+            "(0.7 x 0.7 x 2 mm), which is used") in caplog.text
     # a damaged slice is still one
     data = (folder / "im003.dcm").read_bytes()
     (folder / "im003.dcm").write_bytes(data[: len(data) - 60])

@@ -1013,6 +1013,11 @@ def _read_folder(folder: Path, spacing_arg, allow_irregular: bool = False) -> Vo
         # other files: a DICOM series wins over stray previews (.png) beside it
         volume = _read_dicom_series(folder, required=not (tiffs or pngs), allow_irregular=allow_irregular)
         if volume is not None:
+            if spacing_arg is not None:  # a series places its slices itself, as a header does
+                _warn_once("%s: image.spacing is set (%s), but the DICOM series carries its own voxel size (%s mm), "
+                           "which is used: image.spacing applies to .npy, TIFF and PNG inputs and to header spacings "
+                           "that are zero, negative or not finite", folder.name, spacing_arg,
+                           " x ".join(f"{v:g}" for v in volume.spacing))
             return volume
     if tiffs and pngs:
         raise DicerError(f"{folder}: the folder mixes TIFF and PNG slices; keep one kind of slice per folder")

@@ -410,6 +410,10 @@ def test_dicom_objects_without_an_image_are_left_out_and_image_spacing_is_said_u
     assert read_image(folder, spacing=[0.5, 0.5, 0.5]).spacing == alone.spacing
     assert ("series: image.spacing is set ([0.5, 0.5, 0.5]), but the DICOM series carries its own voxel size "
             "(0.7 x 0.7 x 2 mm), which is used") in caplog.text
+    # one slice of the series given: a 2D image, and the series said
+    assert read_image(folder / "im002.dcm").array.ndim == 2
+    assert "im002.dcm: one slice of a series of 6 in its folder, read as a 2D image; give the folder (series)" \
+        in caplog.text
     # a damaged slice is still one
     data = (folder / "im003.dcm").read_bytes()
     (folder / "im003.dcm").write_bytes(data[: len(data) - 60])

@@ -1500,7 +1500,25 @@ def read_image(path: str | os.PathLike, spacing=None, allow_irregular_slices: bo
         raise DicerError(f"{path}: no such file or folder; check the path (and the image column of the patient sheet)")
     if path.is_dir():
         return _read_folder(path, spacing, allow_irregular_slices)
-    return _read_file(path, spacing, keep_direction=True)
+    volume = _read_file(path, spacing, keep_direction=True)
+    if volume.array.ndim == 2 and (_suffix(path) == ".dcm" or _dicom_preamble(path)):
+        _say_series_of_slice(path)
+    return volume
+
+
+def _say_series_of_slice(path: Path) -> None:
+    """Warn when a DICOM file read as a 2D image is one slice of a series in its folder: a
+    slice given for the series made a 2D model with a note only."""
+    try:
+        folder = str(path.parent)
+        for sid in sitk.ImageSeriesReader.GetGDCMSeriesIDs(folder):
+            names = sitk.ImageSeriesReader.GetGDCMSeriesFileNames(folder, sid)
+            if len(names) > 1 and any(Path(n).name == path.name for n in names):
+                log.warning("%s: one slice of a series of %d in its folder, read as a 2D image; give the folder "
+                            "(%s) to read the series as a volume", path.name, len(names), path.parent.name or ".")
+                return
+    except RuntimeError:  # GDCM could not scan the folder: nothing to say
+        return
 
 
 def read_labels(path: str | os.PathLike, spacing=None) -> Volume:

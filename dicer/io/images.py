@@ -1514,8 +1514,8 @@ def _say_series_of_slice(path: Path) -> None:
         for sid in sitk.ImageSeriesReader.GetGDCMSeriesIDs(folder):
             names = sitk.ImageSeriesReader.GetGDCMSeriesFileNames(folder, sid)
             if len(names) > 1 and any(Path(n).name == path.name for n in names):
-                log.warning("%s: one slice of a series of %d in its folder, read as a 2D image; give the folder "
-                            "(%s) to read the series as a volume", path.name, len(names), path.parent.name or ".")
+                _warn_once("%s: one slice of a series of %d in its folder, read as a 2D image; give the folder "
+                           "(%s) to read the series as a volume", path.name, len(names), path.parent.name or ".")
                 return
     except RuntimeError:  # GDCM could not scan the folder: nothing to say
         return

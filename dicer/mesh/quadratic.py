@@ -363,16 +363,16 @@ def _check_points(dim: int) -> np.ndarray:
     and face centres: a curve folds an element at its faces first) and the 3^(d-1) Gauss
     points of each face, where a pressure load is integrated."""
     g3, g2 = np.sqrt(0.6), 1 / np.sqrt(3.0)
-    axes = [np.array([-g3, 0.0, g3]), np.array([-g2, g2]), np.array([-1.0, 0.0, 1.0])]
-    grids = [np.stack(np.meshgrid(*[v] * dim, indexing="ij"), axis=-1).reshape(-1, dim) for v in axes]
-    face = grids[0][:, None, :].repeat(dim, axis=1)  # (P, dim, dim): the face points of each axis
-    sides = []
-    for a in range(dim):
-        for side in (-1.0, 1.0):
-            pts = face[:, a].copy()
-            pts[:, a] = side
-            sides.append(np.unique(pts, axis=0))
-    return np.concatenate(grids + sides)
+    gauss = np.array([-g3, 0.0, g3])
+
+    def grid(values: np.ndarray, d: int) -> np.ndarray:
+        return np.stack(np.meshgrid(*[values] * d, indexing="ij"), axis=-1).reshape(-1, d)
+
+    face = grid(gauss, dim - 1)
+    sides = [np.insert(face, a, side, axis=1) for a in range(dim) for side in (-1.0, 1.0)]
+    # once each: the face centres are nodes too
+    return np.unique(np.concatenate([grid(gauss, dim), grid(np.array([-g2, g2]), dim),
+                                     grid(np.array([-1.0, 0.0, 1.0]), dim), *sides]), axis=0)
 
 
 _CURVED_FLOOR = 0.1

@@ -825,9 +825,11 @@ def test_a_pillow_layer_puts_the_merged_ct_ball_on_its_sphere(dim):
     """The surface target of docs/validation.md (mean |r - R| <= 0.05 voxel, largest <= 0.2,
     volume within 0.5 %) at dicer run's defaults on the scan but smooth.pillow: the CT-like ball
     plane-merged, its labels' faces placed by the scan, the floor 0.3. The layer's outer nodes lie
-    on the fitted surface, which no element with two faces on it bends away. Measured 0.013 /
-    0.08, -0.41 % (3D), 0.026 / 0.09, -0.20 % (2D); without the layer 0.101 / 0.26 and 0.071 /
-    0.14 (the floor's corner sharpening)."""
+    on the fitted surface, which no element with two faces on it bends away, but where the layer
+    would be thinner than an eighth of a voxel. Measured 0.022 / 0.155, -0.30 % (3D), 0.025 /
+    0.088, -0.19 % (2D); 0.013 / 0.08, -0.40 % (3D) while copies could come within a twentieth of
+    a voxel of their nodes; without the layer 0.101 / 0.26 and 0.071 / 0.14 (the floor's corner
+    sharpening)."""
     from tests.test_smooth_image import CENTRE as CT_CENTRE, R as CT_R, ct_ball
 
     image = ct_ball(dim)
@@ -840,6 +842,6 @@ def test_a_pillow_layer_puts_the_merged_ct_ball_on_its_sphere(dim):
     error = np.linalg.norm(out.points[surface, :dim] - CT_CENTRE[:dim], axis=1) - CT_R
     exact = 4 / 3 * np.pi * CT_R**3 if dim == 3 else np.pi * CT_R**2
     volume = element_volumes(out.points, out.cells).sum() / exact - 1
-    assert np.abs(error).mean() <= (0.02 if dim == 3 else 0.03) and np.abs(error).max() <= 0.1
+    assert np.abs(error).mean() <= 0.03 and np.abs(error).max() <= (0.17 if dim == 3 else 0.1)
     assert abs(volume) <= 0.005
     assert report["min_scaled_jacobian"] >= 0.3 and report["inverted_elements"] == 0

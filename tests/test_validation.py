@@ -114,12 +114,14 @@ def test_lame_quarter_tube_from_a_grey_value_image_with_the_faces_placed_by_it_m
     assert r[1]["bore_radius_mean"] == pytest.approx(7.018, abs=0.005)
 
 
-@pytest.mark.parametrize("scan,c3d8,c3d20", [(False, -0.0113, -0.0229), (True, -0.0061, 0.0149)],
+@pytest.mark.parametrize("scan,c3d8,c3d20", [(False, -0.0155, -0.0296), (True, -0.0065, 0.0073)],
                          ids=["labels", "image"])
 def test_lame_quarter_tube_at_todays_defaults_with_a_pillow_layer_meets_3_percent(tmp_path, scan, c3d8, c3d20):
     """dicer run's defaults (plane merging: 53 elements with the layer, the labels' fit, the floor
     0.3) and smooth.pillow: the bore within 3 %, C3D8 and C3D20, from labels and from the image
-    (measured; at a = 14 -0.3 / -1.5 % and +0.4 / +0.7 %). Until plane nodes' normals counted their
+    (measured; at a = 14 -0.4 / -2.2 % and +0.2 / -0.0 %; -1.1 / -2.3 % and -0.6 / +1.5 % at a = 7
+    while the layer's copies could come within a twentieth of a voxel of their nodes, not an
+    eighth). Until plane nodes' normals counted their
     mirror images (6 December 2026) the quarter's bore nodes on the planes stayed inside the hole:
     -6.1 / -13.8 % and -5.6 / -9.2 %."""
     r = cases.lame(tmp_path, "quarter", TODAY + [PILLOW], inner=7.0, outer=14.0, scan=scan)

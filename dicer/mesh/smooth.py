@@ -1432,7 +1432,10 @@ def _solve_with_guard(st: _Smoothing) -> None:
 
 _PILLOW_ROUNDS = 40  # guard rounds of the layer
 _PILLOW_ROOM = 0.02  # with the layer the smoothing keeps its elements this far above the floor: room for the move
-_PILLOW_THINNEST = 0.5  # where the taper makes the layer thinner than _SHORTEST_EDGE voxel, it keeps this share
+_PILLOW_THINNEST = (0.5, 0.125)
+"""No copy comes closer to its node than the first share of smooth.pillow_thickness or the
+second of a voxel, whichever is less: an edge ratio of at most about 8 on a voxel's face
+(a copy pulled inward holds there; near a gap in the layer it stands out so far)."""
 
 
 @dataclass
@@ -1603,10 +1606,9 @@ def _add_pillow(st: _Smoothing) -> None:
         if solved is None or not np.array_equal(solved, layered):
             depth = _taper(layered, steps)[rows, None] * move[rows]
             sj_under = _move_under_layer(st, x, xb, b[rows], depth)
-            # a layer thinner than a twentieth of a voxel is a sliver (an edge ratio of about 20);
-            # where the taper leaves less depth than that, half of it
+            # the layer's least thickness (_PILLOW_THINNEST)
             thinnest = np.zeros(nodes.size)
-            thinnest[rows] = np.minimum(_SHORTEST_EDGE * voxel[rows], _PILLOW_THINNEST * np.linalg.norm(depth, axis=1))
+            thinnest[rows] = min(_PILLOW_THINNEST[0] * float(s["pillow_thickness"]), _PILLOW_THINNEST[1]) * voxel[rows]
             # the elements under the layer whose edges its move brought together (not those the
             # smoothing left so), and the copies' start: where their nodes were
             moved = np.zeros(n, bool)
@@ -1621,13 +1623,14 @@ def _add_pillow(st: _Smoothing) -> None:
         new_id[nodes[rows]] = n + np.arange(rows.size)
         cells = pillow_cells(faces[kept], new_id)
         # a copy pulled onto an iso-surface below the smoothed one thins the layer, and a sliver
-        # passes the scaled Jacobian (its corners stay square) but not a solver's conditioning:
-        # such a copy stops where the layer is still ``thinnest`` thick
+        # passes the scaled Jacobian (its corners stay square) but not a solver's conditioning
+        # nor an explicit solver's time step: such a copy stops where the layer is still
+        # ``thinnest`` thick
         _hold_thickness(share, rows, xb[b[rows]], goal[rows], st.x[nodes[rows]], thinnest[rows])
         outer = xb[b[rows]] + share[rows, None] * (goal[rows] - xb[b[rows]])
-        # where the taper leaves the layer thinner than a twentieth of a voxel (a sliver), its
-        # copy stands that far out from its node instead: the surface moves out by less than that
-        least = _SHORTEST_EDGE * voxel[rows]
+        # where the taper leaves the layer thinner than that (near a gap), its copy stands that
+        # far out from its node instead: the surface moves out by less than that
+        least = thinnest[rows]
         w = outer - st.x[nodes[rows]]
         gap = np.einsum("ij,ij->i", w, w) - least * least
         thin = np.flatnonzero(gap < 0)

@@ -23,7 +23,7 @@ from dicer.errors import DicerError
 from dicer.mesh.topology import HEX20_FACES, HEX_FACES, QUAD8_SIDES, QUAD_EDGES
 from dicer.validation.geometry import THRESHOLD
 
-E_MODULUS, POISSON = 1000.0, 0.3  # MPa, -; stress ratios do not depend on them
+E_MODULUS, POISSON, DENSITY = 1000.0, 0.3, 1e-9  # MPa, -, t/mm^3; stress ratios do not depend on them
 
 BASE_SMOOTHING = """\
 smooth:  # the study's base, the smoothing defaults until 5 December 2026: a row's --set changes it
@@ -37,14 +37,14 @@ CONFIG = f"""\
 labels:
   map: {{1: solid}}
 materials:
-  - {{name: solid, youngs_modulus: {E_MODULUS}, poissons_ratio: {POISSON}}}
+  - {{name: solid, youngs_modulus: {E_MODULUS}, poissons_ratio: {POISSON}, density: {DENSITY}}}
 export:
   thickness: 1.0
 {BASE_SMOOTHING}"""
 
 SCAN_CONFIG = f"""\
 materials:
-  - {{name: solid, youngs_modulus: {E_MODULUS}, poissons_ratio: {POISSON}}}
+  - {{name: solid, youngs_modulus: {E_MODULUS}, poissons_ratio: {POISSON}, density: {DENSITY}}}
 segment:
   method: manual
   thresholds: [{THRESHOLD}]

@@ -329,8 +329,10 @@ def test_a_merge_whose_check_beside_the_smoothing_fails_is_named_before_the_smoo
 
     x, y, z = np.meshgrid(*[np.arange(48) + 0.5] * 3, indexing="ij")
     plates = np.zeros((48, 48, 48), np.uint8)
-    plates[np.abs((0.3 * x + 0.5 * y + 0.81 * z) / np.linalg.norm([0.3, 0.5, 0.81]) - 30) < 0.6] = 1
-    plates[np.abs((0.7 * x - 0.4 * y + 0.2 * z) / np.linalg.norm([0.7, -0.4, 0.2]) - 10) < 1.0] = 2
+    # (offsets 30 and 10 until the merge counted mirror images at the image's planes: it now
+    # refuses the flat corners those plates had at the planes)
+    plates[np.abs((0.3 * x + 0.5 * y + 0.81 * z) / np.linalg.norm([0.3, 0.5, 0.81]) - 28) < 0.6] = 1
+    plates[np.abs((0.7 * x - 0.4 * y + 0.2 * z) / np.linalg.norm([0.7, -0.4, 0.2]) - 12) < 1.0] = 2
     np.save(tmp_path / "plates.npy", plates)
     monkeypatch.setattr(cli, "_side_by_side", lambda source, elements: True)
     out = tmp_path / "out"

@@ -242,7 +242,7 @@ def test_lattice_box_quality_closed_form_only_for_lattice_boxes():
     rng = np.random.default_rng(0)
     labels = rng.integers(0, 3, (4, 8)).astype(np.uint8)
     labels.flat[0] = 1
-    merged, _ = merge_mesh(voxel_mesh(labels, spacing=(1.0, 1.5)), {})
+    merged, _ = merge_mesh(voxel_mesh(np.pad(labels, 1), spacing=(1.0, 1.5)), {})
     loop = quality_arrays(merged.points, merged.cells)
     trapezoids = np.flatnonzero(loop["scaled_jacobian"] < 1)
     assert trapezoids.size

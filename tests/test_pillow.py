@@ -278,8 +278,8 @@ def test_a_layer_mostly_not_made_is_warned_of(tmp_path, capsys, caplog):
 
     np.save(tmp_path / "wedge.npy", _wedge())
     caplog.set_level("WARNING", logger="dicer")
-    # the thick layer under a floor of 0.8 is made on 18 of the 66 faces, under 0.7 on 36
-    # (measured); the defaults' floor (0.3) lets the thick layer and the thin one cover 60
+    # the thick layer under a floor of 0.8 is made on 6 of the 60 faces, under 0.7 and the
+    # defaults' floor (0.3) on all, and so is the thin one (measured)
     for thickness, floor, said in (("0.9", "0.8", True), ("0.9", "0.7", False), ("0.9", "0.3", False),
                                    ("0.25", "0.3", False)):
         caplog.clear()
@@ -287,7 +287,7 @@ def test_a_layer_mostly_not_made_is_warned_of(tmp_path, capsys, caplog):
                      "--set", "smooth.pillow=true", "--set", f"smooth.pillow_thickness={thickness}",
                      "--set", f"smooth.min_scaled_jacobian={floor}"]) == 0
         warned = [r.getMessage() for r in caplog.records if "pillow layer covers" in r.getMessage()]
-        assert warned == (["smooth: the pillow layer covers 18 of the 66 exterior faces it could cover (the others "
+        assert warned == (["smooth: the pillow layer covers 6 of the 60 exterior faces it could cover (the others "
                            "could not keep smooth.min_scaled_jacobian with it); lower smooth.pillow_thickness (now "
                            "0.9) or smooth.min_scaled_jacobian"] if said else [])
 

@@ -19,7 +19,9 @@ The trial mesh of every step is checked where it changed (Box 2 steps 12-14, wid
 no node with more than 6 (2D: 4) neighbours or in more than 8 (4) elements, no face of
 three elements, no node that is the same corner of two elements, no two elements of one
 material touching along an edge only, and no element whose corner scaled Jacobian on the
-lattice falls below ``min_scaled_jacobian``. A failing
+lattice falls below ``min_scaled_jacobian``; at the image's bounding planes they count the
+mirror images, as smoothing mirrors there, so a model cut at its symmetry planes merges as
+the whole one. A failing
 element is first repaired through its *rim nodes* (plane nodes on one side only): each
 moves one lattice step across the plane, or joins the node already at that corner, so
 the element fills the empty voxel beside it. What still fails makes its merge region
@@ -479,14 +481,18 @@ def _shared_corners(local: np.ndarray, k: int, changed: np.ndarray) -> np.ndarra
     return np.flatnonzero(_any(clash[key]))
 
 
-def _pinches(sub: np.ndarray, material: np.ndarray, inside: np.ndarray, changed: np.ndarray, dim: int) -> np.ndarray:
+def _pinches(sub: np.ndarray, material: np.ndarray, inside: np.ndarray, changed: np.ndarray, dim: int,
+             local: np.ndarray | None = None, bits: np.ndarray | None = None) -> np.ndarray:
     """Rows of ``sub`` (R, c) where two elements of one material touch along an edge only
     (2D: at a node only), at an edge (node) of a ``changed`` row ((R,) bool).
 
     Such a contact leaves the material's surface open (four of its faces at one edge), as
     ``dicer fix`` removes it from the labels. Counted at the edges with both ends
     ``inside`` ((N,) bool): every element at them is in ``sub``, so the count is exact.
-    ``material`` (R,) gives each row's material.
+    ``material`` (R,) gives each row's material. With ``bits`` ((k,) uint8 ``_plane_bits``
+    of the nodes ``local`` (R, c) numbers) counted in the model mirrored at the bounding
+    planes: a face on a plane meets its mirror image (not surface), an edge on planes
+    has 2^planes images of every other face at it.
     """
     facets = sub[:, HEX_FACES] if dim == 3 else sub[:, QUAD_EDGES]  # (R, F, k)
     per = facets.shape[1]
@@ -513,6 +519,12 @@ def _pinches(sub: np.ndarray, material: np.ndarray, inside: np.ndarray, changed:
         ridge = facets.reshape(-1, 2)[outer].ravel().astype(np.int64)
         ok = inside[ridge]
         owner = np.repeat(outer, 2)
+    weight = None
+    if bits is not None:
+        lf = (local[:, HEX_FACES] if dim == 3 else local[:, QUAD_EDGES]).reshape(-1, facets.shape[2])[outer]
+        flat = np.bitwise_and.reduce(bits[lf], axis=1) != 0  # the face lies on a bounding plane
+        on = bits[lf] & bits[lf[:, [1, 2, 3, 0]]] if dim == 3 else bits[lf]  # the planes each ridge lies on
+        weight = np.where(np.repeat(flat, lf.shape[1]), 0, np.left_shift(1, _POPCOUNT[on.ravel()]))[ok]
     ridge, owner = ridge[ok], owner[ok] // per
     if ridge.size == 0:
         return np.empty(0, dtype=np.int64)
@@ -521,17 +533,35 @@ def _pinches(sub: np.ndarray, material: np.ndarray, inside: np.ndarray, changed:
     ridge, owner, rmat = ridge[order], owner[order], rmat[order]
     start = np.r_[True, (ridge[1:] != ridge[:-1]) | (rmat[1:] != rmat[:-1])]
     group = np.cumsum(start) - 1
-    size = np.bincount(group)
+    size = np.bincount(group) if weight is None else np.bincount(group, weights=weight[order])
     touched = np.bincount(group, weights=changed[owner]) > 0
     pinched = (size[group] > 2) & touched[group]
     return _unique(owner[pinched])
 
 
-def _degrees(sub: np.ndarray, nodes_mask: np.ndarray, edges: np.ndarray):
+_POPCOUNT = np.array([bin(i).count("1") for i in range(64)], dtype=np.int64)
+
+
+def _plane_bits(lat: np.ndarray, high: np.ndarray, dim: int) -> np.ndarray:
+    """(K,) uint8 for lattice positions ``lat`` (K, 3): bit a set on the image's low bounding
+    plane normal to axis a (index 0), bit 3 + a on the high one (index ``high[a]``), as
+    ``dicer.mesh.boundary.plane_bits``. Smoothing mirrors the model there (a cut model is
+    a part of the whole one), so the merge's checks count the mirror images too."""
+    bits = np.zeros(lat.shape[0], dtype=np.uint8)
+    for a in range(dim):
+        bits |= (lat[:, a] == 0).astype(np.uint8) << np.uint8(a)
+        bits |= (lat[:, a] == high[a]).astype(np.uint8) << np.uint8(a + 3)
+    return bits
+
+
+def _degrees(sub: np.ndarray, nodes_mask: np.ndarray, edges: np.ndarray, bits: np.ndarray | None = None):
     """Distinct edge neighbours and element count of the nodes of the elements ``sub`` (R, c).
 
     Returns (R, c) node numbers local to ``sub`` (0 .. k-1, in node id order) and, per local
     node, its degree and count (0 for nodes outside ``nodes_mask``, which is (n,) bool).
+    ``bits`` (k,) uint8, the local nodes' ``_plane_bits``: counted in the model mirrored at
+    the bounding planes (a node on k planes is in 2^k times the elements; an edge has one
+    image per plane its node lies on and its other end does not).
     """
     ids = _unique(sub)
     local = np.searchsorted(ids, sub)
@@ -543,7 +573,15 @@ def _degrees(sub: np.ndarray, nodes_mask: np.ndarray, edges: np.ndarray):
     e = local[:, edges].reshape(-1, 2)
     key = _unique(np.minimum(e[:, 0], e[:, 1]).astype(np.int64) * k + np.maximum(e[:, 0], e[:, 1]))
     a, b = key // k, key % k
-    degree = np.bincount(a, minlength=ids.size) + np.bincount(b[b != a], minlength=ids.size)
+    if bits is None:
+        degree = np.bincount(a, minlength=ids.size) + np.bincount(b[b != a], minlength=ids.size)
+    else:
+        count = count << _POPCOUNT[bits]
+        wa = np.left_shift(1, _POPCOUNT[bits[a] & ~bits[b]])
+        two = b != a
+        wb = np.left_shift(1, _POPCOUNT[bits[b[two]] & ~bits[a[two]]])
+        degree = (np.bincount(a, weights=wa, minlength=ids.size)
+                  + np.bincount(b[two], weights=wb, minlength=ids.size)).astype(np.int64)
     degree[~inside] = 0  # counted for the nodes of nodes_mask only
     return local, degree, count
 
@@ -650,6 +688,10 @@ class _Settings:
         Repair failing elements through their rim nodes before refusing their regions.
     spacing : (3,) float64 ndarray
         Voxel size, mm.
+    mirror_planes : (3,) int64 ndarray or None
+        Lattice index of the image's high bounding plane along each axis (the low one is 0)
+        when a node lies on a bounding plane, else None: the checks count the mirror images
+        there (``_plane_bits``).
     """
 
     dim: int
@@ -657,6 +699,7 @@ class _Settings:
     min_scaled_jacobian: float
     rim_moves: bool
     spacing: np.ndarray
+    mirror_planes: np.ndarray | None = None
 
     @property
     def min_corner(self) -> float:
@@ -921,7 +964,7 @@ def _merge_step(work: _Work, settings: _Settings, axis: int, g: int, s: int
     n = int(work.lattice.shape[0])
     info = dict.fromkeys(_STEP_FIGURES, 0)
     keep = np.ones(work.cells.shape[0], dtype=bool)
-    plane = _find_merge_nodes(work, settings.dim, axis, g, s)
+    plane = _find_merge_nodes(work, settings.dim, axis, g, s, settings.mirror_planes)
     if plane is None:
         return keep, np.zeros(n, dtype=bool), np.zeros(n, dtype=np.int8), info
     _find_merge_pairs(plane, work, settings)
@@ -953,7 +996,8 @@ def _merge_step(work: _Work, settings: _Settings, axis: int, g: int, s: int
     return outcome
 
 
-def _find_merge_nodes(work: _Work, dim: int, axis: int, g: int, s: int) -> _Plane | None:
+def _find_merge_nodes(work: _Work, dim: int, axis: int, g: int, s: int,
+                      mirror_planes: np.ndarray | None = None) -> _Plane | None:
     """Box 2 steps 4-8: the elements either side of the merge planes, the nodes to delete
     (top of one axis edge, bottom of another) and the far ends of their edges.
 
@@ -963,6 +1007,8 @@ def _find_merge_nodes(work: _Work, dim: int, axis: int, g: int, s: int) -> _Plan
         The mesh, ``work.layer`` set for ``axis``.
     dim, axis, g, s : int
         Dimension, merge axis, group size in layers, the layer merged.
+    mirror_planes : (3,) int64 ndarray or None
+        ``_Settings.mirror_planes``.
 
     Returns
     -------
@@ -1012,6 +1058,12 @@ def _find_merge_nodes(work: _Work, dim: int, axis: int, g: int, s: int) -> _Plan
     bent = np.zeros(n, dtype=bool)
     for far in (upn, down):
         bent[cidx] |= np.any(lattice[far[cidx]][:, other] != lattice[cidx][:, other], axis=1)
+    if mirror_planes is not None and cidx.size:
+        # a bent edge leaving a mirror plane that its node lies on has a mirror image, a
+        # second far end: the whole mirrored model finds the node inconsistent
+        on = _plane_bits(lattice[cidx], mirror_planes, dim)
+        for far in (upn, down):
+            inconsistent[cidx] |= (on & ~_plane_bits(lattice[far[cidx]], mirror_planes, dim)) != 0
     unit = np.zeros(3, dtype=np.int64)
     unit[axis] = 1
     return _Plane(axis, s, n, in_group, lo, up, tc, bc, l_top, l_bot, u_bot, u_top, cand,
@@ -1165,7 +1217,15 @@ def _check_trial(plane: _Plane, trial: _Trial, work: _Work, settings: _Settings,
     rows = np.flatnonzero(trial.keep & _any_at(in_s, cells))
     sub = cells[rows]
     crowded = meanwhile(_crowded_faces, sub, n, dim)  # faces of three or more elements
-    local, degree, count = _degrees(sub, in_s, HEX_EDGES if dim == 3 else QUAD_EDGES)
+    bits = None
+    if settings.mirror_planes is not None:  # a cut model is checked as the whole mirrored one
+        ids = _unique(sub)
+        lat = work.lattice[ids]
+        lat[:, plane.axis] += trial.shift[ids]  # where the trial puts moved rim nodes
+        bits = _plane_bits(lat, settings.mirror_planes, dim)
+        if not bits.any():
+            bits = None
+    local, degree, count = _degrees(sub, in_s, HEX_EDGES if dim == 3 else QUAD_EDGES, bits)
     bad_node = (degree > max_neighbours) | (count > max_elements)
     crowded = crowded()
     info["crowded_faces"] += int(crowded.size)
@@ -1195,7 +1255,7 @@ def _check_trial(plane: _Plane, trial: _Trial, work: _Work, settings: _Settings,
         # A chamfer or a moved rim node can leave two elements of one material touching
         # along an edge only, a contact ``dicer fix`` took out: the material's surface
         # would not be closed there.
-        pinched = _pinches(sub, work.material[rows], in_s, changed, dim)
+        pinched = _pinches(sub, work.material[rows], in_s, changed, dim, local, bits)
         info["pinched_edges"] += int(pinched.size)
         bad_rows = rows[pinched]
     return bad_rows
@@ -1353,8 +1413,13 @@ def _check_settings(mesh: Mesh, passes, granularity, min_scaled_jacobian, rim_mo
         raise DicerError("the mesh has no elements; nothing to merge")
     if int(mesh.material.min()) < 0:
         raise DicerError("the mesh has negative material labels; materials are numbered 1..K")
+    # Nodes move only within the mesh's extent (a rim node to the next plane of its group),
+    # so a mesh off every bounding plane stays off them: its checks need no mirror images.
+    high = np.asarray(mesh.grid_shape, dtype=np.int64)
+    lat = mesh.lattice[:, :mesh.dim]
+    touches = bool(((lat.min(axis=0) == 0) | (lat.max(axis=0) == high[:mesh.dim])).any())
     return counts, _Settings(mesh.dim, granularity, float(min_scaled_jacobian), bool(rim_moves),
-                             np.asarray(mesh.spacing, dtype=np.float64))
+                             np.asarray(mesh.spacing, dtype=np.float64), high if touches else None)
 
 
 def _apply_step(work: _Work, keep: np.ndarray, delete: np.ndarray, shift: np.ndarray, axis: int,

@@ -765,3 +765,17 @@ def test_a_floor_that_lets_merging_flatten_corners_is_named_when_the_mesh_is_ref
     assert code == 2 and len(err) == 1 and not (tmp_path / "merged.vtu").exists()
     assert "degenerate or inverted element(s)" in err[0]
     assert f"merge.min_scaled_jacobian={floor} let merging make flat or inverted corners" in err[0]
+
+
+@pytest.mark.parametrize("pad", [((0, 2),) * 3, ((2, 0),) * 3, 2], ids=["low planes", "high planes", "none"])
+def test_a_graded_mesh_at_the_image_planes_is_checked_with_its_mirror_images(pad):
+    """A graded mesh's nodes between lattice points have lattice -1: the planes it touches are
+    still found (by its nodes at 0 or at the grid's size), so its merge counts mirror images."""
+    from dicer.mesh import merge
+    from dicer.mesh.coarsen import coarsen_mesh
+
+    graded, _ = coarsen_mesh(voxel_mesh(np.pad(np.ones((12, 12, 12), np.uint8), pad)), levels=1, min_distance=1,
+                             keep_fine=[])
+    assert (graded.lattice == -1).any()
+    _, checks = merge._check_settings(graded, (1, 1, 1), "region", 0.2, True, (0, 1, 2))
+    assert (checks.mirror_planes is None) == (pad == 2)

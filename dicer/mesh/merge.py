@@ -1417,7 +1417,7 @@ def _check_settings(mesh: Mesh, passes, granularity, min_scaled_jacobian, rim_mo
     # so a mesh off every bounding plane stays off them: its checks need no mirror images.
     high = np.asarray(mesh.grid_shape, dtype=np.int64)
     lat = mesh.lattice[:, :mesh.dim]
-    touches = bool(((lat.min(axis=0) == 0) | (lat.max(axis=0) == high[:mesh.dim])).any())
+    touches = bool(((lat == 0) | (lat == high[:mesh.dim])).any())  # (graded meshes: -1 between lattice points)
     return counts, _Settings(mesh.dim, granularity, float(min_scaled_jacobian), bool(rim_moves),
                              np.asarray(mesh.spacing, dtype=np.float64), high if touches else None)
 

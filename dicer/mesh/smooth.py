@@ -1533,7 +1533,8 @@ def _hold_thickness(share: np.ndarray, rows: np.ndarray, start: np.ndarray, goal
                     thinnest: np.ndarray) -> None:
     """Lower ``share[rows]`` where a copy at ``start + share (goal - start)`` would lie closer than
     ``thinnest`` to its node at ``under`` (all (R, 3), mm): to the first share at which its
-    distance falls to 1.001 ``thinnest`` (``start`` lies farther: the layer's depth)."""
+    distance falls to 1.001 ``thinnest``; to 0 where ``start`` already lies that close (near a
+    gap the taper's depth is less: the copy is then pushed out along the normal instead)."""
     d = goal - start
     w = start - under
     a = np.einsum("ij,ij->i", d, d)
@@ -1545,7 +1546,7 @@ def _hold_thickness(share: np.ndarray, rows: np.ndarray, start: np.ndarray, goal
     if not close.any():
         return
     a, half_b, c = a[close], half_b[close], c[close]
-    first = (-half_b - np.sqrt(np.maximum(half_b * half_b - a * c, 0.0))) / a  # the smaller root, c > 0
+    first = (-half_b - np.sqrt(np.maximum(half_b * half_b - a * c, 0.0))) / a  # the smaller root (< 0 if c < 0)
     share[rows[close]] = np.clip(first, 0.0, s[close])
 
 

@@ -15,12 +15,12 @@ import numpy as np
 from dicer import __version__
 from dicer.config import takes_settings
 from dicer.image import count_labels
-from dicer.mesh.metrics import element_metrics
+from dicer.mesh.metrics import characteristic_length, element_metrics
 from dicer.mesh.model import Mesh
 
 _PERCENTILES = (1, 5, 25, 50, 75, 95, 99)
 _NODE_CLASSES = "ABCDEFX"  # X: irregular nodes (dicer.mesh.boundary.NODE_CLASSES)
-REPORT_METRICS = ("scaled_jacobian", "edge_ratio", "volume")
+REPORT_METRICS = ("scaled_jacobian", "edge_ratio", "volume", "characteristic_length")
 """The element metrics :func:`quality_report` uses."""
 
 
@@ -399,6 +399,9 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stre
         f"element_volume_{unit}": {**_stats(vol), "total": _r(vol.sum())},
         "scaled_jacobian": _stats(sj),
         "edge_ratio": _stats(er),
+        # an explicit solver's stable time step is the smallest of these over the wave speed
+        "characteristic_length_mm": _stats(metrics["characteristic_length"] if "characteristic_length" in metrics
+                                           else characteristic_length(mesh.points, mesh.cells)),
         "inverted_elements": int(np.count_nonzero(sj <= 0)),
         "poor_elements": int(np.count_nonzero(sj < poor)),
         "poor_threshold": poor,
@@ -589,7 +592,8 @@ def render_html(report: dict, pictures: list[tuple[str, bytes]] = ()) -> str:
     parts.append("<h2>Materials</h2>")
     for name, entry in report["materials"].items():
         parts.append(f"<h3>{html.escape(name)}</h3>" + _table(list(entry.items())))
-    for key in sorted(k for k in report if k.startswith(("scaled_jacobian", "edge_ratio", "element_volume"))):
+    figures = ("scaled_jacobian", "edge_ratio", "element_volume", "characteristic_length")
+    for key in sorted(k for k in report if k.startswith(figures)):
         parts.append(f"<h2>{html.escape(key)}</h2>" + _table(list(report[key].items())))
     if "node_classes" in report:
         parts.append("<h2>Boundary node classes</h2>" + _table(list(report["node_classes"].items())))

@@ -130,7 +130,7 @@ def test_skew():
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_element_metrics_in_one_pass_equal_each_metric_bit_for_bit(dim):
-    from dicer.mesh.metrics import element_metrics
+    from dicer.mesh.metrics import characteristic_length, element_metrics
     from dicer.mesh.voxel import voxel_mesh
 
     rng = np.random.default_rng(3)
@@ -139,11 +139,14 @@ def test_element_metrics_in_one_pass_equal_each_metric_bit_for_bit(dim):
     points = mesh.points + rng.normal(0, 0.15, mesh.points.shape) * (np.arange(3) < dim)
     one = element_metrics(points, mesh.cells, chunk=17)  # blocks that split the mesh unevenly
     each = {"scaled_jacobian": scaled_jacobian(points, mesh.cells), "edge_ratio": edge_ratio(points, mesh.cells),
-            "skew": skew(points, mesh.cells), "volume": element_volumes(points, mesh.cells)}
+            "skew": skew(points, mesh.cells), "volume": element_volumes(points, mesh.cells),
+            "characteristic_length": characteristic_length(points, mesh.cells)}
     assert list(one) == list(each)
     for k in each:
         assert one[k].tobytes() == each[k].tobytes(), k
     assert list(element_metrics(points, mesh.cells, ("volume",))) == ["volume"]
+    alone = element_metrics(points, mesh.cells, ("characteristic_length",), chunk=17)["characteristic_length"]
+    assert alone.tobytes() == each["characteristic_length"].tobytes()
     with pytest.raises(ValueError, match="unknown metric"):
         element_metrics(points, mesh.cells, ("warp",))
 
@@ -265,3 +268,32 @@ def test_corner_jacobian_sign_is_the_scaled_jacobians(seed, noise):
     det = hex_min_jacobian_t(columns, cells.T)
     sj = scaled_jacobian(points, cells)
     assert np.array_equal(det <= 0, sj <= 0) and det[0] <= 0
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.lists(st.floats(0.05, 5.0), min_size=3, max_size=3), st.integers(0, 2**32 - 1))
+def test_characteristic_length_of_a_turned_box_is_its_shortest_side(sides, seed):
+    """A box's volume over its largest face is its shortest side, wherever it lies (a rotation
+    and a shift of the nodes change nothing); a quad's area over its longest side likewise."""
+    from scipy.spatial.transform import Rotation
+
+    from dicer.mesh.metrics import characteristic_length
+
+    rng = np.random.default_rng(seed)
+    box = np.asarray(HEX_CORNERS, float) * sides
+    turned = box @ Rotation.random(random_state=rng).as_matrix().T + rng.normal(0, 100, 3)
+    cells = np.arange(8)[None]
+    assert characteristic_length(turned, cells)[0] == pytest.approx(min(sides), rel=1e-9)
+    quad = np.c_[np.asarray(QUAD_CORNERS, float)[:, :2] * sides[:2], np.zeros(4)]
+    assert characteristic_length(quad, np.arange(4)[None])[0] == pytest.approx(min(sides[:2]), rel=1e-9)
+
+
+def test_characteristic_length_of_a_sheared_and_a_flat_hexahedron():
+    from dicer.mesh.metrics import characteristic_length
+
+    box = np.asarray(HEX_CORNERS, float)
+    sheared = box.copy()
+    sheared[4:, 0] += 2.0  # top face slid by 2 along x: volume 1, faces 1 and sqrt(5)
+    flat = box * [1.0, 1.0, 0.0]
+    got = characteristic_length(np.r_[sheared, flat], np.array([np.arange(8), np.arange(8, 16)]))
+    assert got[0] == pytest.approx(1 / np.sqrt(5), rel=1e-12) and got[1] == 0.0

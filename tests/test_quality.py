@@ -25,6 +25,10 @@ def test_report_counts_and_metrics():
     assert report["scaled_jacobian"]["max"] == pytest.approx(1.0)
     assert report["edge_ratio"]["max"] == pytest.approx(2.0)
     assert report["element_volume_mm^3"]["total"] == pytest.approx(96.0 + 8.0)
+    # volume over largest face: 1 mm for the 1 x 1 x 2 mm voxels, as for the stretched ones
+    assert report["characteristic_length_mm"]["min"] == pytest.approx(1.0)
+    assert report["characteristic_length_mm"]["max"] == pytest.approx(1.0)
+    assert "<h2>characteristic_length_mm</h2>" in render_html(report)
 
 
 def test_stretched_elements_are_counted_against_the_edge_ratio_limit(tmp_path, caplog):

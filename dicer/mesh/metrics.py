@@ -13,7 +13,7 @@ import numpy as np
 from dicer.mesh.boxes import box_flags, linear_index
 from dicer.mesh.model import pieces
 from dicer.parallel import ordered_map
-from dicer.mesh.topology import (HEX_AXIS_CORNERS, HEX_CORNER_NEIGHBOURS, HEX_EDGES, QUAD_AXIS_CORNERS,
+from dicer.mesh.topology import (HEX_AXIS_CORNERS, HEX_CORNER_NEIGHBOURS, HEX_EDGES, HEX_FACES, QUAD_AXIS_CORNERS,
                                  QUAD_CORNER_NEIGHBOURS, QUAD_EDGES)
 
 
@@ -316,6 +316,50 @@ def edge_ratio(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np
     return out
 
 
+def characteristic_length(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np.ndarray:
+    """An explicit solver's length of each element: a hexahedron's volume over its largest
+    face's area, a quad's area over its longest edge (LS-DYNA's defaults for solids and
+    shells). The stable time step is this length over the material's wave speed, so the
+    model's smallest one sets it.
+
+    Parameters
+    ----------
+    points, cells, chunk
+        As in :func:`edge_ratio`.
+
+    Returns
+    -------
+    (M,) float64 ndarray
+        mm; the edge length for a cube or a square, 0 for a flat element.
+    """
+    columns = point_columns(points)
+    if cells.shape[1] == 8:
+        return _per_block(_hex_length, columns, cells.T, chunk, None)
+    out = np.empty(cells.shape[0])
+    for part in pieces(cells.shape[0], chunk):
+        x, y = (col[cells[part].T] for col in columns[:2])  # (4, block)
+        area = 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=0) - np.roll(x, -1, axis=0) * y, axis=0))
+        longest = np.sqrt((np.diff(x, axis=0, append=x[:1]) ** 2 + np.diff(y, axis=0, append=y[:1]) ** 2).max(axis=0))
+        out[part] = np.divide(area, longest, out=np.zeros_like(area), where=longest > 0)
+    return out
+
+
+def _hex_length(x: list[np.ndarray], volume: np.ndarray | None = None) -> np.ndarray:
+    """characteristic_length of hexahedra from their corner coordinates, three (8, m) arrays
+    (and their ``_hex_volume``, if already computed): a face's area is half the cross product
+    of its diagonals (exact for a flat face)."""
+    largest = None
+    for a, b, c, d in HEX_FACES:
+        p = [col[c] - col[a] for col in x]
+        q = [col[d] - col[b] for col in x]
+        area2 = ((p[1] * q[2] - p[2] * q[1]) ** 2 + (p[2] * q[0] - p[0] * q[2]) ** 2
+                 + (p[0] * q[1] - p[1] * q[0]) ** 2)
+        largest = area2 if largest is None else np.maximum(largest, area2)
+    area = 0.5 * np.sqrt(largest)
+    volume = np.abs(_hex_volume(x) if volume is None else volume)
+    return np.divide(volume, area, out=np.zeros_like(volume), where=area > 0)
+
+
 def skew(points: np.ndarray, cells: np.ndarray, chunk: int = _BLOCK) -> np.ndarray:
     """Skew per element (verdict): the largest |cos| of the angles between its principal axes.
 
@@ -393,7 +437,7 @@ def _hex_volume(x: list[np.ndarray]) -> np.ndarray:
     return vol / 64.0
 
 
-METRICS = ("scaled_jacobian", "edge_ratio", "skew", "volume")
+METRICS = ("scaled_jacobian", "edge_ratio", "skew", "volume", "characteristic_length")
 
 
 def element_metrics(points: np.ndarray, cells: np.ndarray, names=METRICS, chunk: int = _BLOCK
@@ -401,8 +445,8 @@ def element_metrics(points: np.ndarray, cells: np.ndarray, names=METRICS, chunk:
     """Several metrics of every element in one pass.
 
     A block's corner coordinates are gathered once and every metric is computed from
-    them: the same values as :func:`scaled_jacobian`, :func:`edge_ratio`, :func:`skew`
-    and :func:`element_volumes`, bit for bit.
+    them: the same values as :func:`scaled_jacobian`, :func:`edge_ratio`, :func:`skew`,
+    :func:`element_volumes` and :func:`characteristic_length`, bit for bit.
 
     Parameters
     ----------
@@ -428,7 +472,7 @@ def element_metrics(points: np.ndarray, cells: np.ndarray, names=METRICS, chunk:
         raise ValueError(f"unknown metric(s) {sorted(unknown)}; use {', '.join(METRICS)}")
     if cells.shape[1] != 8:
         funcs = {"scaled_jacobian": scaled_jacobian, "edge_ratio": edge_ratio, "skew": skew,
-                 "volume": element_volumes}
+                 "volume": element_volumes, "characteristic_length": characteristic_length}
         return {k: funcs[k](points, cells) for k in names}
     funcs = {"scaled_jacobian": _hex_min_scaled_jacobian, "edge_ratio": _hex_edge_ratio, "skew": _hex_skew,
              "volume": _hex_volume}
@@ -444,13 +488,17 @@ def element_metrics(points: np.ndarray, cells: np.ndarray, names=METRICS, chunk:
             part = slice(rows.start + part.start, rows.start + part.stop)
             block = cells_t[:, part]
             x = [c[block] for c in columns]
-            edges = None
+            edges = volume = None
             for k in names:
                 if k in shared:
                     if edges is None:
                         e = _hex_edges(x)
                         edges = (e, _squared_lengths(e))
                     out[k][part] = shared[k](*edges)
+                elif k in ("volume", "characteristic_length"):  # the length is the volume over a face
+                    if volume is None:
+                        volume = _hex_volume(x)
+                    out[k][part] = volume if k == "volume" else _hex_length(x, volume)
                 else:
                     out[k][part] = funcs[k](x)
 

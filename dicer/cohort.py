@@ -56,6 +56,7 @@ def report_problem(report) -> str | None:
         return "no element count"
     parts = report.get("parts", {})
     sections = {"scaled_jacobian": report.get("scaled_jacobian", {}), "parts": parts,
+                "characteristic_length_mm": report.get("characteristic_length_mm", {}),
                 "materials": report.get("materials", {}),
                 "parts.model": parts.get("model", {}) if isinstance(parts, dict) else {}}
     for name, value in sections.items():
@@ -64,6 +65,7 @@ def report_problem(report) -> str | None:
     numbers = {k: report.get(k) for k in ("elements", "nodes", "inverted_elements", "poor_elements",
                                           "stretched_elements")}
     numbers |= {f"scaled_jacobian.{k}": sections["scaled_jacobian"].get(k) for k in ("min", "p1")}
+    numbers["characteristic_length_mm.min"] = sections["characteristic_length_mm"].get("min")
     numbers |= {f"parts.model.{k}": sections["parts.model"].get(k) for k in ("parts", "floating_elements")}
     for name, material in sections["materials"].items():
         if not isinstance(material, dict):
@@ -87,7 +89,9 @@ def cohort_rows(reports: dict[str, dict], benchmarks: dict[str, dict[str, dict]]
     poor, stretched (edge ratio above the quality stage's limit; missing in reports made
     before it was counted), parts (face-connected parts of the model), floating_elements,
     materials_without_elements and topology_changed (material names, space-separated; missing
-    in reports made before they were listed), per material
+    in reports made before they were listed), poor_threshold, stretched_threshold,
+    min_characteristic_length_mm (the smallest element length, which sets an explicit solver's
+    time step; missing in reports made before it was measured), per material
     ``volume_change_percent:<name>`` (against the meshed labels) and
     ``original_volume_change_percent:<name>`` (against the full-resolution segmentation),
     per stage ``seconds:<stage>`` and ``peak_mb:<stage>``.
@@ -110,7 +114,7 @@ def cohort_rows(reports: dict[str, dict], benchmarks: dict[str, dict[str, dict]]
     stages = _stages(benchmarks)
     columns = ["patient", "elements", "nodes", "min_scaled_jacobian", "p1_scaled_jacobian", "inverted", "poor",
                "stretched", "parts", "floating_elements", "materials_without_elements", "topology_changed",
-               "poor_threshold", "stretched_threshold"]
+               "poor_threshold", "stretched_threshold", "min_characteristic_length_mm"]
     columns += [f"volume_change_percent:{m}" for m in materials]
     columns += [f"original_volume_change_percent:{m}" for m in materials]
     columns += [f"{kind}:{s}" for s in stages for kind in ("seconds", "peak_mb")]
@@ -124,6 +128,7 @@ def cohort_rows(reports: dict[str, dict], benchmarks: dict[str, dict[str, dict]]
             names = r.get(key)
             row.append(None if names is None else " ".join(names))
         row += [r.get("poor_threshold"), r.get("stretched_threshold")]  # a patient's config may set its own
+        row.append(r.get("characteristic_length_mm", {}).get("min"))
         mats = r.get("materials", {})
         row += [mats.get(m, {}).get("volume_change_percent") for m in materials]
         row += [mats.get(m, {}).get("original_volume_change_percent") for m in materials]
@@ -191,6 +196,7 @@ def render_cohort_html(columns: list[str], rows: list[list], poor_threshold: flo
              "<th rowspan='2'>stretched" + (f" (edge ratio &gt; {stretched_at:g})" if stretched_at is not None else "")
              + "</th><th rowspan='2'>parts</th><th rowspan='2'>floating elements</th>"
              "<th rowspan='2'>materials without elements</th><th rowspan='2'>surface topology changed</th>"
+             "<th rowspan='2'>smallest element length, mm</th>"
              + (f"<th colspan='{len(materials)}'>volume change, % (against meshed labels / original)</th>"
                 if materials else "")
              + (f"<th colspan='{len(stages)}'>seconds / peak MB per stage</th>" if stages else "") + "</tr>")
@@ -208,7 +214,8 @@ def render_cohort_html(columns: list[str], rows: list[list], poor_threshold: flo
                  _cell(row[at["parts"]]),
                  _cell(row[at["floating_elements"]]),
                  html.escape(_cell(row[at["materials_without_elements"]])),
-                 html.escape(_cell(row[at["topology_changed"]]))]
+                 html.escape(_cell(row[at["topology_changed"]])),
+                 _cell(row[at["min_characteristic_length_mm"]], ".3f")]
         cells += [f"{_cell(row[at[f'volume_change_percent:{m}']], '+.1f')} / "
                   f"{_cell(row[at[f'original_volume_change_percent:{m}']], '+.1f')}" for m in materials]
         cells += [f"{_cell(row[at[f'seconds:{s}']], '.1f')} / {_cell(row[at[f'peak_mb:{s}']], '.0f')}"
@@ -218,6 +225,7 @@ def render_cohort_html(columns: list[str], rows: list[list], poor_threshold: flo
             f"<style>{STYLE}</style></head><body><h1>Cohort overview</h1>"
             f"<p>{len(rows)} patient(s). Parts: the model's face-connected parts (more than one: a part "
             "floats). Volume change: the mesh against the voxels it was made from, and against the "
-            "original full-resolution segmentation. Seconds and peak memory: Snakemake's benchmark of "
+            "original full-resolution segmentation. Smallest element length: its volume over its largest "
+            "face, which sets an explicit solver's time step. Seconds and peak memory: Snakemake's benchmark of "
             "each stage (– where none was recorded).</p>"
             f"<table>{head1}{head2}{''.join(body)}</table></body></html>\n")

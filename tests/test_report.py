@@ -394,3 +394,20 @@ def test_the_palette_tells_an_atlas_s_neighbours_apart():
     colours = [material_colour(k) for k in range(1, 21)]
     assert len(set(colours)) == 20
     assert material_colour(1) == "#e6550d" and material_colour(21) == material_colour(1)
+
+
+def test_cohort_gives_each_patient_s_smallest_element_length():
+    """An explicit solver's time step follows the smallest element length: the cohort lists it
+    (– for a report made before quality.json gave it) and refuses a report where it is no
+    number."""
+    from dicer.cohort import report_problem
+
+    measured = dict(_report(100), characteristic_length_mm={"min": 0.1541, "mean": 0.9})
+    columns, rows = cohort_rows({"p1": measured, "p2": _report(200)})
+    at = columns.index("min_characteristic_length_mm")
+    assert [row[at] for row in rows] == [0.1541, None]
+    assert cohort_tsv(columns, rows).splitlines()[1].split("\t")[at] == "0.1541"
+    page = render_cohort_html(columns, rows, 0.2)
+    assert "smallest element length, mm</th>" in page and "<td>0.154</td>" in page
+    assert report_problem(dict(measured, characteristic_length_mm={"min": "small"})) == (
+        "'characteristic_length_mm.min' is 'small', not a number")

@@ -57,7 +57,8 @@ from dicer.config import places_faces_by_scan, section_defaults, takes_settings
 from dicer.errors import DicerError
 from dicer.mesh.boundary import (NODE_CLASSES, BoundaryGraph, boundary_graph, bounding_planes, class_counts,
                                  mirror_share, mirror_weights, plane_axes, plane_bits)
-from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes, hex_scaled_jacobian_t, hex_volumes_t, scaled_jacobian
+from dicer.mesh.metrics import (characteristic_length, corner_scaled_jacobians, element_volumes, hex_scaled_jacobian_t,
+                                hex_volumes_t, scaled_jacobian)
 from dicer.mesh.model import CHUNK, LEVEL_DATA, Mesh, is_graded, pieces
 from dicer.mesh.topology import HEX_CORNERS, HEX_EDGES, QUAD_CORNERS, QUAD_EDGES
 
@@ -1436,6 +1437,10 @@ _PILLOW_THINNEST = (0.5, 0.125)
 """No copy comes closer to its node than the first share of smooth.pillow_thickness or the
 second of a voxel, whichever is less: an edge ratio of at most about 8 on a voxel's face
 (a copy pulled inward holds there; near a gap in the layer it stands out so far)."""
+_PILLOW_LENGTH = 0.8
+"""A new element's characteristic length (volume over largest face) is at least this share of
+its nodes' least thickness: a sheared one is thinner than its nodes' distances from their
+copies, and an explicit solver's time step follows the thinnest element."""
 
 
 @dataclass
@@ -1646,6 +1651,9 @@ def _add_pillow(st: _Smoothing) -> None:
         bad_layer = (sj_layer < floor) | (sj_layer <= 0)
         # and edges brought together on the copies' face
         bad_layer |= _short_edges(cells, x_layer, x0_layer, np.ones(x_layer.shape[0], bool)).any(axis=1)
+        least_at = np.zeros(n)
+        least_at[nodes[rows]] = thinnest[rows]
+        bad_layer |= characteristic_length(x_layer, cells) < _PILLOW_LENGTH * least_at[faces[kept]].min(axis=1)
         if not (bad_under.any() or bad_layer.any()):
             break
         if rounds == _PILLOW_ROUNDS:

@@ -554,16 +554,18 @@ def _plane_bits(lat: np.ndarray, high: np.ndarray, dim: int) -> np.ndarray:
     return bits
 
 
-def _degrees(sub: np.ndarray, nodes_mask: np.ndarray, edges: np.ndarray, bits: np.ndarray | None = None):
+def _degrees(sub: np.ndarray, nodes_mask: np.ndarray, edges: np.ndarray, bits: np.ndarray | None = None,
+             ids: np.ndarray | None = None):
     """Distinct edge neighbours and element count of the nodes of the elements ``sub`` (R, c).
 
     Returns (R, c) node numbers local to ``sub`` (0 .. k-1, in node id order) and, per local
     node, its degree and count (0 for nodes outside ``nodes_mask``, which is (n,) bool).
     ``bits`` (k,) uint8, the local nodes' ``_plane_bits``: counted in the model mirrored at
     the bounding planes (a node on k planes is in 2^k times the elements; an edge has one
-    image per plane its node lies on and its other end does not).
+    image per plane its node lies on and its other end does not). ``ids``: ``sub``'s node ids,
+    ascending, if the caller has them.
     """
-    ids = _unique(sub)
+    ids = _unique(sub) if ids is None else ids
     local = np.searchsorted(ids, sub)
     k = np.int64(ids.size)
     inside = nodes_mask[ids]
@@ -1217,7 +1219,7 @@ def _check_trial(plane: _Plane, trial: _Trial, work: _Work, settings: _Settings,
     rows = np.flatnonzero(trial.keep & _any_at(in_s, cells))
     sub = cells[rows]
     crowded = meanwhile(_crowded_faces, sub, n, dim)  # faces of three or more elements
-    bits = None
+    bits = ids = None
     if settings.mirror_planes is not None:  # a cut model is checked as the whole mirrored one
         ids = _unique(sub)
         lat = work.lattice[ids]
@@ -1225,7 +1227,7 @@ def _check_trial(plane: _Plane, trial: _Trial, work: _Work, settings: _Settings,
         bits = _plane_bits(lat, settings.mirror_planes, dim)
         if not bits.any():
             bits = None
-    local, degree, count = _degrees(sub, in_s, HEX_EDGES if dim == 3 else QUAD_EDGES, bits)
+    local, degree, count = _degrees(sub, in_s, HEX_EDGES if dim == 3 else QUAD_EDGES, bits, ids)
     bad_node = (degree > max_neighbours) | (count > max_elements)
     crowded = crowded()
     info["crowded_faces"] += int(crowded.size)

@@ -332,16 +332,12 @@ def characteristic_length(points: np.ndarray, cells: np.ndarray, chunk: int = _B
     (M,) float64 ndarray
         mm; the edge length for a cube or a square, 0 for a flat element.
     """
-    columns = point_columns(points)
     if cells.shape[1] == 8:
-        return _per_block(_hex_length, columns, cells.T, chunk, None)
-    out = np.empty(cells.shape[0])
-    for part in pieces(cells.shape[0], chunk):
-        x, y = (col[cells[part].T] for col in columns[:2])  # (4, block)
-        area = 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=0) - np.roll(x, -1, axis=0) * y, axis=0))
-        longest = np.sqrt((np.diff(x, axis=0, append=x[:1]) ** 2 + np.diff(y, axis=0, append=y[:1]) ** 2).max(axis=0))
-        out[part] = np.divide(area, longest, out=np.zeros_like(area), where=longest > 0)
-    return out
+        return _per_block(_hex_length, point_columns(points), cells.T, chunk, None)
+    area = np.abs(element_volumes(points, cells))
+    corners = points[cells]  # (M, 4, 3): a 2D mesh's quads
+    longest = np.linalg.norm(np.roll(corners, -1, axis=1) - corners, axis=2).max(axis=1)
+    return np.divide(area, longest, out=np.zeros_like(area), where=longest > 0)
 
 
 def _hex_length(x: list[np.ndarray], volume: np.ndarray | None = None) -> np.ndarray:

@@ -1467,15 +1467,32 @@ def _layer_mesh(st: _Smoothing, nodes: np.ndarray, outer: np.ndarray, cells: np.
                 mesh.grid_shape.copy(), point_data, cell_data, list(mesh.names))
 
 
-def _move_under_layer(st: _Smoothing, x: np.ndarray, xb: np.ndarray, b: np.ndarray, move: np.ndarray) -> np.ndarray:
+def _move_under_layer(st: _Smoothing, x: np.ndarray, xb: np.ndarray, b: np.ndarray, move: np.ndarray) -> None:
     """Move the boundary nodes ``b`` (numbers among the boundary nodes) by ``move`` (mm) from the
     smoothed positions ``x``, ``xb``, solve the interior band for it; sets ``st.x``, ``st.xb``,
-    ``st.x_band`` and returns the checked elements' scaled Jacobian."""
+    ``st.x_band``."""
     inner = xb.copy()
     inner[b] += move
     st.x = x.copy()
     _solve_band(st, inner)
-    return st.checked.scaled_jacobian(st.x)
+
+
+def _under_layer_sj(st: _Smoothing, last: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """(C,) the checked elements' scaled Jacobian at ``st.x``: recomputed for those holding a
+    node moved more than ``_RECHECK_MOVE`` since ``last`` (positions (N, 3) and their values)
+    or within ``_RECHECK_MARGIN`` + ``_NEAR_FLOOR`` of the floor, as the guard's rounds do; the
+    others keep their value (None: all computed). A round of the layer changes the depth near
+    a few new gaps, and the band moves by its solve's tolerance elsewhere."""
+    if last is None:
+        return st.checked.scaled_jacobian(st.x)
+    x_last, sj = last
+    reach = _RECHECK_MOVE * float(np.min(np.asarray(st.mesh.spacing, float)[: st.mesh.dim]))
+    again = st.checked.holding(_moved_farther(st.x, x_last, reach))
+    again |= sj < float(st.s["min_scaled_jacobian"]) + _RECHECK_MARGIN + _NEAR_FLOOR
+    sj = sj.copy()
+    which = np.flatnonzero(again)
+    sj[which] = st.checked.scaled_jacobian(st.x, which)
+    return sj
 
 
 _TAPER = 3  # surface edges over which the depth of the nodes under the layer grows from a gap in it
@@ -1532,6 +1549,15 @@ def _taper(layered: np.ndarray, steps: sp.csr_matrix) -> np.ndarray:
                                 limit=1.0), 1.0)
     share[~layered] = 0.0
     return share
+
+
+def _fails_under_layer(sj: np.ndarray, sj_accepted: np.ndarray, floor: float, shrunk: np.ndarray) -> np.ndarray:
+    """(C,) bool: the checked elements the layer's move fails: below the floor (or inverted)
+    and worse than the smoothing left them (an element may stay below the floor where the
+    smoothing left it so), or with an edge it shrank (``shrunk``, their rows)."""
+    bad = ((sj < floor) | (sj <= 0)) & (sj < sj_accepted - 1e-12)
+    bad[shrunk] = True
+    return bad
 
 
 def _hold_thickness(share: np.ndarray, rows: np.ndarray, start: np.ndarray, goal: np.ndarray, under: np.ndarray,
@@ -1604,6 +1630,19 @@ def _add_pillow(st: _Smoothing) -> None:
     goal = st.xb[b] if st.surface is None else st.surface[b]  # without the scan: the smoothed surface
     solved = None
     steps = _taper_graph(st, at, nodes, sj_accepted)
+    # the elements under the layer that any copy's node is in, and their edges before the
+    # layer (at x) and before smoothing (at st.x0): a round measures only their edges at st.x
+    surface = np.zeros(n, bool)
+    surface[nodes] = True
+    near_all = np.flatnonzero(st.checked.holding(surface))
+    near_all_cells = mesh.cells[st.touched[near_all]]
+    lengths0 = _edge_lengths2(near_all_cells, st.x0)
+    short_before = _edge_lengths2(near_all_cells, x) < _SHORTEST_EDGE**2 * lengths0
+    del surface
+    edges = HEX_EDGES if dim == 3 else QUAD_EDGES
+    # every face's element of the layer before smoothing: a copy's position then is its node's
+    layer_lengths0 = _edge_lengths2(pillow_cells(faces, np.arange(n)), st.x0)
+    last = None  # the positions and values of the last scaled Jacobian of the elements under the layer
     for rounds in range(_PILLOW_ROUNDS + 1):
         kept = one_fan_per_node(faces, kept, mesh.material[owner])
         layered = np.zeros(nodes.size, bool)
@@ -1611,7 +1650,9 @@ def _add_pillow(st: _Smoothing) -> None:
         rows = np.flatnonzero(layered)
         if solved is None or not np.array_equal(solved, layered):
             depth = _taper(layered, steps)[rows, None] * move[rows]
-            sj_under = _move_under_layer(st, x, xb, b[rows], depth)
+            _move_under_layer(st, x, xb, b[rows], depth)
+            sj_under, whole = _under_layer_sj(st, last), last is None
+            last = (st.x, sj_under)
             # the layer's least thickness (_PILLOW_THINNEST)
             thinnest = np.zeros(nodes.size)
             thinnest[rows] = min(_PILLOW_THINNEST[0] * float(s["pillow_thickness"]), _PILLOW_THINNEST[1]) * voxel[rows]
@@ -1619,11 +1660,10 @@ def _add_pillow(st: _Smoothing) -> None:
             # smoothing left so), and the copies' start: where their nodes were
             moved = np.zeros(n, bool)
             moved[nodes[rows]] = True
-            near = np.flatnonzero(moved[mesh.cells[st.touched]].any(axis=1))
-            near_cells = mesh.cells[st.touched[near]]
-            shrunk = near[(_short_edges(near_cells, st.x, st.x0, moved)
-                           & ~_short_edges(near_cells, x, st.x0, moved)).any(axis=1)]
-            x0_layer = np.concatenate([st.x0, st.x0[nodes[rows]]])
+            sub = np.flatnonzero(moved[near_all_cells].any(axis=1))
+            ends = moved[near_all_cells[sub]]
+            shrunk = near_all[sub[((_edge_lengths2(near_all_cells[sub], st.x) < _SHORTEST_EDGE**2 * lengths0[sub])
+                                   & ~short_before[sub] & (ends[:, edges[:, 0]] | ends[:, edges[:, 1]])).any(axis=1)]]
             solved = layered
         new_id = np.full(n, -1, np.int64)
         new_id[nodes[rows]] = n + np.arange(rows.size)
@@ -1645,15 +1685,17 @@ def _add_pillow(st: _Smoothing) -> None:
             outer[thin] += (np.sqrt(up * up - gap[thin]) - up)[:, None] * normal[rows[thin]]
         x_layer = np.concatenate([st.x, outer])
         sj_layer = scaled_jacobian(x_layer, cells)
-        # an element under the layer may stay below the floor where the smoothing left it so
-        bad_under = ((sj_under < floor) | (sj_under <= 0)) & (sj_under < sj_accepted - 1e-12)
-        bad_under[shrunk] = True
+        bad_under = _fails_under_layer(sj_under, sj_accepted, floor, shrunk)
         bad_layer = (sj_layer < floor) | (sj_layer <= 0)
         # and edges brought together on the copies' face
-        bad_layer |= _short_edges(cells, x_layer, x0_layer, np.ones(x_layer.shape[0], bool)).any(axis=1)
+        bad_layer |= (_edge_lengths2(cells, x_layer) < _SHORTEST_EDGE**2 * layer_lengths0[kept]).any(axis=1)
         least_at = np.zeros(n)
         least_at[nodes[rows]] = thinnest[rows]
         bad_layer |= characteristic_length(x_layer, cells) < _PILLOW_LENGTH * least_at[faces[kept]].min(axis=1)
+        if not (bad_under.any() or bad_layer.any() or whole):  # the layer is accepted on a whole check only
+            sj_under, whole = st.checked.scaled_jacobian(st.x), True
+            last = (st.x, sj_under)
+            bad_under = _fails_under_layer(sj_under, sj_accepted, floor, shrunk)
         if not (bad_under.any() or bad_layer.any()):
             break
         if rounds == _PILLOW_ROUNDS:

@@ -75,6 +75,27 @@ def test_tables_of_a_voxel_and_a_square():
     assert faces_shared(np.concatenate([sq.cells, quads]), 2, 8) == 4
 
 
+@pytest.mark.parametrize("dim", [3, 2])
+def test_surface_faces_found_among_the_boundary_s_elements_alone(dim):
+    """Given nodes among which every exterior node is and the elements holding them, the faces
+    are those of the whole mesh: an element there with a face off those nodes (whose element
+    across is not given) gets no face from it."""
+    from dicer.mesh.merge import merge_planes
+
+    lab = shells(14, dim, [(0.0, 3.6, 2), (3.6, 5.9, 1)])
+    mesh, _ = merge_planes(voxel_mesh(lab))
+    planes = plane_bits(mesh)
+    faces, owner = surface_faces(mesh.cells, dim, mesh.n_points, planes)
+    extra = np.random.default_rng(0).choice(mesh.n_points, mesh.n_points // 10, replace=False)
+    nodes = np.union1d(np.unique(faces), extra)
+    mark = np.zeros(mesh.n_points, bool)
+    mark[nodes] = True
+    elements = np.flatnonzero(mark[mesh.cells].any(axis=1))
+    assert elements.size < mesh.n_cells
+    found, found_owner = surface_faces(mesh.cells, dim, mesh.n_points, planes, (nodes, elements))
+    assert faces.shape[0] > 0 and np.array_equal(found, faces) and np.array_equal(found_owner, owner)
+
+
 def test_faces_in_bounding_planes_get_no_element():
     lab = np.ones((4, 3, 2), np.uint8)
     lab[3, :, :] = 0  # exterior faces at x = 3 only; the rest lie in the image's planes

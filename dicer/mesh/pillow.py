@@ -22,7 +22,8 @@ from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
 __all__ = ["surface_faces", "outward_normals", "pillow_cells", "one_fan_per_node"]
 
 
-def surface_faces(cells: np.ndarray, dim: int, n_points: int, planes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def surface_faces(cells: np.ndarray, dim: int, n_points: int, planes: np.ndarray,
+                  boundary: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The exterior faces that lie in no bounding plane, wound outward.
 
     Parameters
@@ -35,6 +36,10 @@ def surface_faces(cells: np.ndarray, dim: int, n_points: int, planes: np.ndarray
         Number of nodes.
     planes : (N,) uint8 ndarray
         Bounding planes of every node (:func:`dicer.mesh.boundary.plane_bits`).
+    boundary : ((B,) int ndarray, (E,) int ndarray), optional
+        Nodes among which every exterior node is, and the sorted elements holding one of
+        them: the faces whose nodes are all such nodes are found among those elements alone,
+        as every element at such a face holds it (None: all elements).
 
     Returns
     -------
@@ -44,11 +49,22 @@ def surface_faces(cells: np.ndarray, dim: int, n_points: int, planes: np.ndarray
     owner : (F,) int64 ndarray
         The element each face belongs to.
     """
-    cells = np.asarray(cells, np.int64)
     table = HEX_FACES if dim == 3 else QUAD_EDGES
-    owner, slot = np.nonzero(face_neighbours(cells, dim, n_points) < 0)
+    if boundary is None:
+        cells = np.asarray(cells, np.int64)
+        owner, slot = np.nonzero(face_neighbours(cells, dim, n_points) < 0)
+    else:
+        nodes, elements = boundary
+        cells = np.asarray(cells[elements], np.int64)
+        owner, slot = np.nonzero(face_neighbours(cells, dim, n_points) < 0)
+        mark = np.zeros(n_points, bool)
+        mark[nodes] = True
+        whole = mark[cells[owner[:, None], table[slot]]].all(axis=1)
+        owner, slot = owner[whole], slot[whole]
     faces = cells[owner[:, None], table[slot]]
     in_plane = np.bitwise_and.reduce(planes[faces], axis=1) != 0
+    if boundary is not None:
+        owner = np.asarray(boundary[1], np.int64)[owner]
     return faces[~in_plane], owner[~in_plane]
 
 

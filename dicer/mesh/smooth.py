@@ -1607,7 +1607,7 @@ def _add_pillow(st: _Smoothing) -> None:
     t0 = time.perf_counter()
     mesh, s = st.mesh, st.s
     dim, n = mesh.dim, mesh.n_points
-    faces, owner = surface_faces(mesh.cells, dim, n, plane_bits(mesh, st.x0))
+    faces, owner = surface_faces(mesh.cells, dim, n, plane_bits(mesh, st.x0), (st.bnodes, st.g.boundary_cells))
     nodes = np.unique(faces)
     at = np.searchsorted(nodes, faces)  # the faces' nodes as rows of nodes
     b = st.boundary_position()[nodes]  # every exterior node is a boundary node

@@ -1533,20 +1533,29 @@ def _taper_graph(st: _Smoothing, at: np.ndarray, nodes: np.ndarray, sj: np.ndarr
     return sp.csr_matrix((w[first], (a[first], b[first])), shape=(size, size))
 
 
-def _taper(layered: np.ndarray, steps: sp.csr_matrix) -> np.ndarray:
+_HALF_DEPTH = 0.5
+"""The share of the full depth a node under the layer keeps where an element under it failed
+at the full depth (before the layer's faces there are dropped)."""
+
+
+def _taper(layered: np.ndarray, steps: sp.csr_matrix, halved: np.ndarray | None = None) -> np.ndarray:
     """(P,) the share of the full depth each surface node moves inward: 0 off the layer (a node
-    of faces without it), then growing by the ``steps`` (``_taper_graph``) along the shortest
-    way from such a node, 1 at most: k / _TAPER at k edges from a gap where the elements under
-    the surface can take it, less steep across those the smoothing left near the floor. A depth
-    that jumps between neighbours would shear the elements under them.
+    of faces without it), ``_HALF_DEPTH`` at the ``halved`` nodes ((P,) bool), then growing by
+    the ``steps`` (``_taper_graph``) along the shortest way from such a node, 1 at most: k /
+    _TAPER at k edges from a gap where the elements under the surface can take it, less steep
+    across those the smoothing left near the floor. A depth that jumps between neighbours would
+    shear the elements under them.
 
     ``layered``: (P,) bool, nodes of faces with the layer."""
     from scipy.sparse.csgraph import dijkstra
 
-    if layered.all():
-        return np.ones(layered.size)
-    share = np.minimum(dijkstra(steps, directed=False, indices=np.flatnonzero(~layered), min_only=True,
-                                limit=1.0), 1.0)
+    share = np.ones(layered.size)
+    if not layered.all():
+        share = np.minimum(dijkstra(steps, directed=False, indices=np.flatnonzero(~layered), min_only=True,
+                                    limit=1.0), 1.0)
+    if halved is not None and halved.any():
+        share = np.minimum(share, _HALF_DEPTH + dijkstra(steps, directed=False, indices=np.flatnonzero(halved),
+                                                         min_only=True, limit=1.0 - _HALF_DEPTH))
     share[~layered] = 0.0
     return share
 
@@ -1643,13 +1652,14 @@ def _add_pillow(st: _Smoothing) -> None:
     # every face's element of the layer before smoothing: a copy's position then is its node's
     layer_lengths0 = _edge_lengths2(pillow_cells(faces, np.arange(n)), st.x0)
     last = None  # the positions and values of the last scaled Jacobian of the elements under the layer
+    halved = np.zeros(nodes.size, bool)  # surface nodes at _HALF_DEPTH
     for rounds in range(_PILLOW_ROUNDS + 1):
         kept = one_fan_per_node(faces, kept, mesh.material[owner])
         layered = np.zeros(nodes.size, bool)
         layered[at[kept]] = True
         rows = np.flatnonzero(layered)
-        if solved is None or not np.array_equal(solved, layered):
-            depth = _taper(layered, steps)[rows, None] * move[rows]
+        if solved is None or not (np.array_equal(solved[0], layered) and np.array_equal(solved[1], halved)):
+            depth = _taper(layered, steps, halved)[rows, None] * move[rows]
             _move_under_layer(st, x, xb, b[rows], depth)
             sj_under, whole = _under_layer_sj(st, last), last is None
             last = (st.x, sj_under)
@@ -1664,7 +1674,7 @@ def _add_pillow(st: _Smoothing) -> None:
             ends = moved[near_all_cells[sub]]
             shrunk = near_all[sub[((_edge_lengths2(near_all_cells[sub], st.x) < _SHORTEST_EDGE**2 * lengths0[sub])
                                    & ~short_before[sub] & (ends[:, edges[:, 0]] | ends[:, edges[:, 1]])).any(axis=1)]]
-            solved = layered
+            solved = (layered, halved.copy())
         new_id = np.full(n, -1, np.int64)
         new_id[nodes[rows]] = n + np.arange(rows.size)
         cells = pillow_cells(faces[kept], new_id)
@@ -1708,11 +1718,15 @@ def _add_pillow(st: _Smoothing) -> None:
         drop = failing[(share[at[failing]] == 0).all(axis=1)]
         if bad_under.any():
             # the layer's faces near the failing elements: at their nodes and those of the
-            # elements around them (the band's nodes move with the surface's)
+            # elements around them (the band's nodes move with the surface's). Their nodes go
+            # to half the depth first; faces whose nodes all were there already leave the layer
             under = np.zeros(n, bool)
             under[mesh.cells[st.touched[bad_under]]] = True
             under[mesh.cells[_touching(mesh.cells, under)]] = True
-            drop = np.union1d(drop, np.flatnonzero(kept & under[faces].any(axis=1)))
+            near = np.flatnonzero(kept & under[faces].any(axis=1))
+            full = ~halved[at[near]].all(axis=1)
+            halved[at[near[full]]] = True
+            drop = np.union1d(drop, near[~full])
         kept[drop] = False
     st.sj = np.concatenate([sj_under, sj_layer])
     from dicer.mesh.labelsurface import LabelSurface
@@ -1723,6 +1737,7 @@ def _add_pillow(st: _Smoothing) -> None:
             "faces_at_fixed_planes": at_fixed_planes,
             "thickness_voxels": float(s["pillow_thickness"]), "guard_rounds": rounds,
             "nodes_held_off_the_surface": 0 if st.surface is None else int(np.count_nonzero(share[rows] < 1.0)),
+            "nodes_at_half_depth": int(np.count_nonzero(halved[rows])),
             "min_scaled_jacobian": float(sj_layer.min()) if sj_layer.size else 1.0}
     st.layer = _Layer(_layer_mesh(st, nodes[rows], outer, cells, owner[kept]), info)
     st.timings["pillow"] = time.perf_counter() - t0

@@ -366,7 +366,7 @@ def test_a_gap_does_not_strip_a_coarse_thin_walled_model(tmp_path):
     rep = json.loads((out / "smooth.json").read_text())
     layer = rep["pillow"]
     faces = layer["elements_added"] + layer["faces_without_layer"]
-    assert layer["faces_without_layer"] < 0.05 * faces  # measured 67 of 4,600 (1.5 %)
+    assert layer["faces_without_layer"] < 0.05 * faces  # measured 2 of 4,600
     assert layer["min_scaled_jacobian"] >= 0.3 and rep["inverted_elements"] == 0
     mesh = read_mesh(str(out / "smoothed.vtu"))
     cells = np.asarray(mesh.cells)[-layer["elements_added"]:]

@@ -1718,15 +1718,18 @@ def _add_pillow(st: _Smoothing) -> None:
         drop = failing[(share[at[failing]] == 0).all(axis=1)]
         if bad_under.any():
             # the layer's faces near the failing elements: at their nodes and those of the
-            # elements around them (the band's nodes move with the surface's). Their nodes go
-            # to half the depth first; faces whose nodes all were there already leave the layer
-            under = np.zeros(n, bool)
-            under[mesh.cells[st.touched[bad_under]]] = True
+            # elements around them (the band's nodes move with the surface's) go to half the
+            # depth; where they were all there already, the faces at a failing element's own
+            # nodes leave the layer
+            own = np.zeros(n, bool)
+            own[mesh.cells[st.touched[bad_under]]] = True
+            under = own.copy()
             under[mesh.cells[_touching(mesh.cells, under)]] = True
             near = np.flatnonzero(kept & under[faces].any(axis=1))
             full = ~halved[at[near]].all(axis=1)
             halved[at[near[full]]] = True
-            drop = np.union1d(drop, near[~full])
+            again = near[~full]
+            drop = np.union1d(drop, again[own[faces[again]].any(axis=1)])
         kept[drop] = False
     st.sj = np.concatenate([sj_under, sj_layer])
     from dicer.mesh.labelsurface import LabelSurface

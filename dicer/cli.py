@@ -891,9 +891,14 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
     faces = layer["elements_added"] + layer["faces_without_layer"] - layer.get("faces_at_fixed_planes", 0) \
         if layer else 0
     if faces and layer["elements_added"] < 0.5 * faces:  # asked for, and mostly not made
+        if layer["thickness_voxels"] < 0.25:  # under the default: thinner layers stretch under merged faces
+            fix = (", or would be over 20 times longer than thick under long merged faces); raise smooth.pillow_thickness "
+                   "(now %g) or lower smooth.min_scaled_jacobian")
+        else:
+            fix = "); lower smooth.pillow_thickness (now %g) or smooth.min_scaled_jacobian"
         log.warning("smooth: the pillow layer covers %d of the %d exterior faces it could cover (the others could not "
-                    "keep smooth.min_scaled_jacobian with it); lower smooth.pillow_thickness (now %g) or "
-                    "smooth.min_scaled_jacobian", layer["elements_added"], faces, layer["thickness_voxels"])
+                    "keep smooth.min_scaled_jacobian with it" + fix, layer["elements_added"], faces,
+                    layer["thickness_voxels"])
     return smoothed
 
 

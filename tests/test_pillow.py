@@ -8,6 +8,7 @@ from hypothesis import strategies as st
 
 from dicer.connectivity import fix_connectivity
 from dicer.errors import DicerError
+from dicer.image import Volume
 from dicer.mesh.boundary import bounding_planes, plane_bits
 from dicer.mesh.faces import face_neighbours
 from dicer.mesh.metrics import characteristic_length, edge_ratio, element_volumes, scaled_jacobian
@@ -337,6 +338,31 @@ def test_a_layer_mostly_not_made_is_warned_of(tmp_path, capsys, caplog):
         assert warned == (["smooth: the pillow layer covers 6 of the 60 exterior faces it could cover (the others "
                            "could not keep smooth.min_scaled_jacobian with it); lower smooth.pillow_thickness (now "
                            "0.9) or smooth.min_scaled_jacobian"] if said else [])
+
+
+def test_a_thin_layer_under_long_merged_faces_is_not_made_stretched(tmp_path, caplog):
+    """A layer a tenth of a voxel thick under a merged ball's faces (up to four voxels long)
+    would be up to 40 times longer than thick (measured: 376 of its 414 elements above an edge
+    ratio of 20): those faces go without it, no new element is stretched, and the warning says
+    to raise the thickness."""
+    from dicer.cli import main
+    from dicer.mesh.merge import merge_planes
+
+    lab = shells(24, 3, [(0.0, 9.3, 1)])
+    merged, _ = merge_planes(voxel_mesh(lab))
+    for thickness in (0.1, 0.25):
+        out, rep = smooth_mesh(merged, {"pillow": True, "pillow_thickness": thickness}, labels=Volume(lab, (1.0,) * 3))
+        layer = out.cells[merged.n_cells:]
+        assert layer.shape[0] == rep["pillow"]["elements_added"]
+        assert layer.shape[0] == 0 or edge_ratio(out.points, layer).max() <= 20.0
+        assert rep["pillow"]["elements_added"] == (0 if thickness == 0.1 else 414)  # measured
+    np.save(tmp_path / "ball.npy", lab)
+    caplog.set_level("WARNING", logger="dicer")
+    assert main(["run", "--labels", str(tmp_path / "ball.npy"), "-o", str(tmp_path / "out"), "-q",
+                 "--set", "smooth.pillow=true", "--set", "smooth.pillow_thickness=0.1"]) == 0
+    warned = [r.getMessage() for r in caplog.records if "pillow layer covers" in r.getMessage()]
+    assert len(warned) == 1 and "over 20 times longer than thick" in warned[0]
+    assert "raise smooth.pillow_thickness (now 0.1)" in warned[0]
 
 
 def test_layer_over_the_labels_fit_reports_the_labels_as_its_surface():

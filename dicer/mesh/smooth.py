@@ -1437,6 +1437,9 @@ _PILLOW_THINNEST = (0.5, 0.125)
 """No copy comes closer to its node than the first share of smooth.pillow_thickness or the
 second of a voxel, whichever is less: an edge ratio of at most about 8 on a voxel's face
 (a copy pulled inward holds there; near a gap in the layer it stands out so far)."""
+_PILLOW_STRETCH = 20.0
+"""A new element's longest edge is at most this many times its shortest: the edge ratio above
+which the quality report calls an element stretched (quality.stretched_edge_ratio's default)."""
 _PILLOW_LENGTH = 0.8
 """A new element's characteristic length (volume over largest face) is at least this share of
 its nodes' least thickness: a sheared one is thinner than its nodes' distances from their
@@ -1698,7 +1701,10 @@ def _add_pillow(st: _Smoothing) -> None:
         bad_under = _fails_under_layer(sj_under, sj_accepted, floor, shrunk)
         bad_layer = (sj_layer < floor) | (sj_layer <= 0)
         # and edges brought together on the copies' face
-        bad_layer |= (_edge_lengths2(cells, x_layer) < _SHORTEST_EDGE**2 * layer_lengths0[kept]).any(axis=1)
+        lengths = _edge_lengths2(cells, x_layer)
+        bad_layer |= (lengths < _SHORTEST_EDGE**2 * layer_lengths0[kept]).any(axis=1)
+        # and no new element stretched (a thin layer under a long merged face)
+        bad_layer |= lengths.max(axis=1) > _PILLOW_STRETCH**2 * lengths.min(axis=1)
         least_at = np.zeros(n)
         least_at[nodes[rows]] = thinnest[rows]
         bad_layer |= characteristic_length(x_layer, cells) < _PILLOW_LENGTH * least_at[faces[kept]].min(axis=1)

@@ -1726,7 +1726,8 @@ def _add_pillow(st: _Smoothing) -> None:
             # the layer's faces near the failing elements: at their nodes and those of the
             # elements around them (the band's nodes move with the surface's) go to half the
             # depth; where they were all there already, the faces at a failing element's own
-            # nodes leave the layer
+            # nodes leave the layer (all of those faces, where no failing element has a node on
+            # them: an element a layer deeper)
             own = np.zeros(n, bool)
             own[mesh.cells[st.touched[bad_under]]] = True
             under = own.copy()
@@ -1735,7 +1736,8 @@ def _add_pillow(st: _Smoothing) -> None:
             full = ~halved[at[near]].all(axis=1)
             halved[at[near[full]]] = True
             again = near[~full]
-            drop = np.union1d(drop, again[own[faces[again]].any(axis=1)])
+            at_own = again[own[faces[again]].any(axis=1)]
+            drop = np.union1d(drop, at_own if at_own.size else again)
         kept[drop] = False
     st.sj = np.concatenate([sj_under, sj_layer])
     from dicer.mesh.labelsurface import LabelSurface

@@ -1656,8 +1656,11 @@ def _add_pillow(st: _Smoothing) -> None:
     layer_lengths0 = _edge_lengths2(pillow_cells(faces, np.arange(n)), st.x0)
     last = None  # the positions and values of the last scaled Jacobian of the elements under the layer
     halved = np.zeros(nodes.size, bool)  # surface nodes at _HALF_DEPTH
+    fanned = None  # the faces one_fan_per_node last returned: unchanged, it returns them again
     for rounds in range(_PILLOW_ROUNDS + 1):
-        kept = one_fan_per_node(faces, kept, mesh.material[owner])
+        if fanned is None or not np.array_equal(fanned, kept):
+            kept = one_fan_per_node(faces, kept, mesh.material[owner])
+            fanned = kept.copy()
         layered = np.zeros(nodes.size, bool)
         layered[at[kept]] = True
         rows = np.flatnonzero(layered)

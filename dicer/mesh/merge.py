@@ -42,6 +42,7 @@ import numpy as np
 from dicer.config import section_defaults, takes_settings
 from dicer.errors import DicerError
 from dicer.parallel import import_meanwhile, meanwhile, ordered_map
+from dicer.mesh.boundary import mirror_share, mirror_weights
 from dicer.mesh.metrics import corner_scaled_jacobians, element_volumes
 from dicer.mesh.model import CHUNK, Mesh, nodes_off_lattice, pieces
 from dicer.mesh.topology import (HEX_AXIS_CORNERS, HEX_CORNERS, HEX_EDGES, HEX_FACES, QUAD_AXIS_CORNERS,
@@ -524,7 +525,7 @@ def _pinches(sub: np.ndarray, material: np.ndarray, inside: np.ndarray, changed:
         lf = (local[:, HEX_FACES] if dim == 3 else local[:, QUAD_EDGES]).reshape(-1, facets.shape[2])[outer]
         flat = np.bitwise_and.reduce(bits[lf], axis=1) != 0  # the face lies on a bounding plane
         on = bits[lf] & bits[lf[:, [1, 2, 3, 0]]] if dim == 3 else bits[lf]  # the planes each ridge lies on
-        weight = np.where(np.repeat(flat, lf.shape[1]), 0, np.left_shift(1, _POPCOUNT[on.ravel()]))[ok]
+        weight = np.where(np.repeat(flat, lf.shape[1]), 0.0, mirror_weights(on.ravel(), np.uint8(0)))[ok]
     ridge, owner = ridge[ok], owner[ok] // per
     if ridge.size == 0:
         return np.empty(0, dtype=np.int64)
@@ -537,9 +538,6 @@ def _pinches(sub: np.ndarray, material: np.ndarray, inside: np.ndarray, changed:
     touched = np.bincount(group, weights=changed[owner]) > 0
     pinched = (size[group] > 2) & touched[group]
     return _unique(owner[pinched])
-
-
-_POPCOUNT = np.array([bin(i).count("1") for i in range(64)], dtype=np.int64)
 
 
 def _plane_bits(lat: np.ndarray, high: np.ndarray, dim: int) -> np.ndarray:
@@ -578,10 +576,10 @@ def _degrees(sub: np.ndarray, nodes_mask: np.ndarray, edges: np.ndarray, bits: n
     if bits is None:
         degree = np.bincount(a, minlength=ids.size) + np.bincount(b[b != a], minlength=ids.size)
     else:
-        count = count << _POPCOUNT[bits]
-        wa = np.left_shift(1, _POPCOUNT[bits[a] & ~bits[b]])
+        count = (count / mirror_share(bits)).astype(count.dtype)  # 2^planes images of each element
+        wa = mirror_weights(bits[a], bits[b])
         two = b != a
-        wb = np.left_shift(1, _POPCOUNT[bits[b[two]] & ~bits[a[two]]])
+        wb = mirror_weights(bits[b[two]], bits[a[two]])
         degree = (np.bincount(a, weights=wa, minlength=ids.size)
                   + np.bincount(b[two], weights=wb, minlength=ids.size)).astype(np.int64)
     degree[~inside] = 0  # counted for the nodes of nodes_mask only

@@ -236,6 +236,7 @@ def test_random_volumes_get_a_valid_conforming_layer(seed, dim, kinds):
     added = out.n_cells - mesh.n_cells
     assert added == info["elements_added"] and added + info["faces_without_layer"] == faces.shape[0]
     assert mesh.n_points + info["nodes_added"] == out.n_points and info["nodes_added"] <= nodes.size
+    assert info["nodes_at_half_depth"] + info["nodes_at_quarter_depth"] <= info["nodes_added"]
     sj = scaled_jacobian(out.points, out.cells)
     assert sj.min() >= 0.2 and rep["inverted_elements"] == 0  # every voxel starts at 1: no exemption
     # every new element has the material of an element with an exterior face, and volume
@@ -252,6 +253,28 @@ def test_random_volumes_get_a_valid_conforming_layer(seed, dim, kinds):
     sides = nb_out[mesh.n_cells:, 2:] if dim == 3 else nb_out[mesh.n_cells:, [1, 3]]  # S3-S6; 2D: a-a', b'-b
     assert table.shape[0] > 0
     assert int(np.count_nonzero(nb_out < 0)) == faces.shape[0] + in_plane + int(np.count_nonzero(sides < 0))
+
+
+def test_the_depth_steps_down_to_half_and_a_quarter_and_grows_from_there():
+    """_taper on a line of 8 surface nodes, a third of the depth per edge: a node at the first
+    step (half the depth) and one at the second (a quarter) lower their neighbours' depth as a
+    gap does, from their own share; a node off the layer (a gap) moves not at all."""
+    import scipy.sparse as sp
+
+    from dicer.mesh.smooth import _DEPTHS, _taper
+
+    assert _DEPTHS == (1.0, 0.5, 0.25)
+    size = 8
+    steps = sp.csr_matrix((np.full(size - 1, 1 / 3), (np.arange(size - 1), np.arange(1, size))), shape=(size, size))
+    layered = np.ones(size, bool)
+    level = np.zeros(size, np.int8)
+    assert np.array_equal(_taper(layered, steps, level), np.ones(size))
+    level[1], level[6] = 2, 1
+    share = _taper(layered, steps, level)
+    assert share == pytest.approx([0.25 + 1 / 3, 0.25, 0.25 + 1 / 3, 0.25 + 2 / 3, 1.0, 0.5 + 1 / 3, 0.5, 0.5 + 1 / 3])
+    layered[4] = False
+    share = _taper(layered, steps, level)
+    assert share[4] == 0.0 and share[3] == pytest.approx(1 / 3) and share[5] == pytest.approx(1 / 3)
 
 
 @pytest.mark.parametrize("seed,dim", [(0, 3), (19, 3), (36, 3), (3, 2)])
@@ -325,9 +348,10 @@ def test_a_layer_mostly_not_made_is_warned_of(tmp_path, capsys, caplog):
 
     np.save(tmp_path / "wedge.npy", _wedge())
     caplog.set_level("WARNING", logger="dicer")
-    # the thick layer under a floor of 0.85 is made on 6 of the 60 faces, under 0.8 on 36 (its
-    # nodes at half the depth where the full depth fails an element under it: 6 before), under
-    # 0.7 and the defaults' floor (0.3) on all, and so is the thin one (measured)
+    # the thick layer under a floor of 0.85 is made on 12 of the 60 faces, under 0.8 on 36 (its
+    # nodes at half, then a quarter of the depth where the full depth fails an element under
+    # it; 6 with half alone), under 0.7 and the defaults' floor (0.3) on
+    # all, and so is the thin one (measured)
     for thickness, floor, said in (("0.9", "0.85", True), ("0.9", "0.8", False), ("0.9", "0.7", False),
                                    ("0.9", "0.3", False), ("0.25", "0.3", False)):
         caplog.clear()
@@ -335,7 +359,7 @@ def test_a_layer_mostly_not_made_is_warned_of(tmp_path, capsys, caplog):
                      "--set", "smooth.pillow=true", "--set", f"smooth.pillow_thickness={thickness}",
                      "--set", f"smooth.min_scaled_jacobian={floor}"]) == 0
         warned = [r.getMessage() for r in caplog.records if "pillow layer covers" in r.getMessage()]
-        assert warned == (["smooth: the pillow layer covers 6 of the 60 exterior faces it could cover (the others "
+        assert warned == (["smooth: the pillow layer covers 12 of the 60 exterior faces it could cover (the others "
                            "could not keep smooth.min_scaled_jacobian with it); lower smooth.pillow_thickness (now "
                            "0.9) or smooth.min_scaled_jacobian"] if said else [])
 

@@ -1536,18 +1536,22 @@ def _taper_graph(st: _Smoothing, at: np.ndarray, nodes: np.ndarray, sj: np.ndarr
     return sp.csr_matrix((w[first], (a[first], b[first])), shape=(size, size))
 
 
-_HALF_DEPTH = 0.5
-"""The share of the full depth a node under the layer keeps where an element under it failed
-at the full depth (before the layer's faces there are dropped)."""
+_DEPTHS = (1.0, 0.5, 0.25)
+"""The shares of the full depth a node under the layer steps down through, a step a round,
+where an element under it fails, before the layer's faces there are dropped. A copy keeps
+``_PILLOW_THINNEST`` from its node (at a quarter of the default depth: up to a sixteenth of a
+voxel beyond where the smoothing put the surface). On the head CT a quarter of the depth covers 94 % of
+the exterior faces where half covers 90 %, in 11 rounds instead of 13, with the copies
+0.031 voxel from the fitted surface on average either way; an eighth covers 95 % at 0.033."""
 
 
-def _taper(layered: np.ndarray, steps: sp.csr_matrix, halved: np.ndarray | None = None) -> np.ndarray:
+def _taper(layered: np.ndarray, steps: sp.csr_matrix, level: np.ndarray | None = None) -> np.ndarray:
     """(P,) the share of the full depth each surface node moves inward: 0 off the layer (a node
-    of faces without it), ``_HALF_DEPTH`` at the ``halved`` nodes ((P,) bool), then growing by
-    the ``steps`` (``_taper_graph``) along the shortest way from such a node, 1 at most: k /
-    _TAPER at k edges from a gap where the elements under the surface can take it, less steep
-    across those the smoothing left near the floor. A depth that jumps between neighbours would
-    shear the elements under them.
+    of faces without it), ``_DEPTHS[level]`` at each node ((P,) int, steps down the ladder),
+    then growing by the ``steps`` (``_taper_graph``) along the shortest way from such a node, 1
+    at most: k / _TAPER at k edges from a gap where the elements under the surface can take it,
+    less steep across those the smoothing left near the floor. A depth that jumps between
+    neighbours would shear the elements under them.
 
     ``layered``: (P,) bool, nodes of faces with the layer."""
     from scipy.sparse.csgraph import dijkstra
@@ -1556,9 +1560,12 @@ def _taper(layered: np.ndarray, steps: sp.csr_matrix, halved: np.ndarray | None 
     if not layered.all():
         share = np.minimum(dijkstra(steps, directed=False, indices=np.flatnonzero(~layered), min_only=True,
                                     limit=1.0), 1.0)
-    if halved is not None and halved.any():
-        share = np.minimum(share, _HALF_DEPTH + dijkstra(steps, directed=False, indices=np.flatnonzero(halved),
-                                                         min_only=True, limit=1.0 - _HALF_DEPTH))
+    if level is not None:
+        for k in range(1, len(_DEPTHS)):
+            if (level == k).any():
+                start = _DEPTHS[k]
+                share = np.minimum(share, start + dijkstra(steps, directed=False, indices=np.flatnonzero(level == k),
+                                                           min_only=True, limit=1.0 - start))
     share[~layered] = 0.0
     return share
 
@@ -1655,7 +1662,7 @@ def _add_pillow(st: _Smoothing) -> None:
     # every face's element of the layer before smoothing: a copy's position then is its node's
     layer_lengths0 = _edge_lengths2(pillow_cells(faces, np.arange(n)), st.x0)
     last = None  # the positions and values of the last scaled Jacobian of the elements under the layer
-    halved = np.zeros(nodes.size, bool)  # surface nodes at _HALF_DEPTH
+    level = np.zeros(nodes.size, np.int8)  # the surface nodes' steps down _DEPTHS
     fanned = None  # the faces one_fan_per_node last returned: unchanged, it returns them again
     for rounds in range(_PILLOW_ROUNDS + 1):
         if fanned is None or not np.array_equal(fanned, kept):
@@ -1664,8 +1671,8 @@ def _add_pillow(st: _Smoothing) -> None:
         layered = np.zeros(nodes.size, bool)
         layered[at[kept]] = True
         rows = np.flatnonzero(layered)
-        if solved is None or not (np.array_equal(solved[0], layered) and np.array_equal(solved[1], halved)):
-            depth = _taper(layered, steps, halved)[rows, None] * move[rows]
+        if solved is None or not (np.array_equal(solved[0], layered) and np.array_equal(solved[1], level)):
+            depth = _taper(layered, steps, level)[rows, None] * move[rows]
             _move_under_layer(st, x, xb, b[rows], depth)
             sj_under, whole = _under_layer_sj(st, last), last is None
             last = (st.x, sj_under)
@@ -1680,7 +1687,7 @@ def _add_pillow(st: _Smoothing) -> None:
             ends = moved[near_all_cells[sub]]
             shrunk = near_all[sub[((_edge_lengths2(near_all_cells[sub], st.x) < _SHORTEST_EDGE**2 * lengths0[sub])
                                    & ~short_before[sub] & (ends[:, edges[:, 0]] | ends[:, edges[:, 1]])).any(axis=1)]]
-            solved = (layered, halved.copy())
+            solved = (layered, level.copy())
         new_id = np.full(n, -1, np.int64)
         new_id[nodes[rows]] = n + np.arange(rows.size)
         cells = pillow_cells(faces[kept], new_id)
@@ -1736,9 +1743,10 @@ def _add_pillow(st: _Smoothing) -> None:
             under = own.copy()
             under[mesh.cells[_touching(mesh.cells, under)]] = True
             near = np.flatnonzero(kept & under[faces].any(axis=1))
-            full = ~halved[at[near]].all(axis=1)
-            halved[at[near[full]]] = True
-            again = near[~full]
+            lower = (level[at[near]] < len(_DEPTHS) - 1).any(axis=1)
+            stepped = at[near[lower]].ravel()
+            level[stepped] = np.minimum(level[stepped] + 1, len(_DEPTHS) - 1)
+            again = near[~lower]
             at_own = again[own[faces[again]].any(axis=1)]
             drop = np.union1d(drop, at_own if at_own.size else again)
         kept[drop] = False
@@ -1751,7 +1759,8 @@ def _add_pillow(st: _Smoothing) -> None:
             "faces_at_fixed_planes": at_fixed_planes,
             "thickness_voxels": float(s["pillow_thickness"]), "guard_rounds": rounds,
             "nodes_held_off_the_surface": 0 if st.surface is None else int(np.count_nonzero(share[rows] < 1.0)),
-            "nodes_at_half_depth": int(np.count_nonzero(halved[rows])),
+            "nodes_at_half_depth": int(np.count_nonzero(level[rows] == 1)),
+            "nodes_at_quarter_depth": int(np.count_nonzero(level[rows] == 2)),
             "min_scaled_jacobian": float(sj_layer.min()) if sj_layer.size else 1.0}
     st.layer = _Layer(_layer_mesh(st, nodes[rows], outer, cells, owner[kept]), info)
     st.timings["pillow"] = time.perf_counter() - t0

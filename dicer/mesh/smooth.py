@@ -1540,9 +1540,10 @@ _DEPTHS = (1.0, 0.5, 0.25)
 """The shares of the full depth a node under the layer steps down through, a step a round,
 where an element under it fails, before the layer's faces there are dropped. A copy keeps
 ``_PILLOW_THINNEST`` from its node (at a quarter of the default depth: up to a sixteenth of a
-voxel beyond where the smoothing put the surface). On the head CT a quarter of the depth covers 94 % of
-the exterior faces where half covers 90 %, in 11 rounds instead of 13, with the copies
-0.031 voxel from the fitted surface on average either way; an eighth covers 95 % at 0.033."""
+voxel beyond where the smoothing put the surface). On the head CT a quarter of the depth
+covers 94 % of the exterior faces where half covers 90 %, in 11 rounds instead of 13, with the
+copies 0.031 voxel from the fitted surface on average either way; an eighth covers 95 % at
+0.033."""
 
 
 def _taper(layered: np.ndarray, steps: sp.csr_matrix, level: np.ndarray | None = None) -> np.ndarray:
@@ -1610,9 +1611,10 @@ def _add_pillow(st: _Smoothing) -> None:
     solved again for that move. The guard checks the elements the move touches and the new
     ones: a failing new element's nodes take half their move onto the iso-surface (none
     below a tenth); a new element that fails with its nodes back on the smoothed surface
-    loses its place in the layer, and so do the layer's faces around a failing element under
-    it (their nodes then stay where the smoothing put them: on thin or sharply folded parts
-    the layer leaves gaps, its sides there part of the surface). The smoothing before it kept
+    loses its place in the layer; around a failing element under it the nodes go less deep
+    (``_DEPTHS``), then the layer's faces there leave it (their nodes then stay where the
+    smoothing put them: on thin or sharply folded parts the layer leaves gaps, its sides there
+    part of the surface). The smoothing before it kept
     its elements ``_PILLOW_ROOM`` above the floor. Sets ``st.layer``, and ``st.x``, ``st.xb``,
     ``st.x_band``, ``st.sj`` (the checked elements, then the new ones) for the report.
 
@@ -1734,10 +1736,10 @@ def _add_pillow(st: _Smoothing) -> None:
         drop = failing[(share[at[failing]] == 0).all(axis=1)]
         if bad_under.any():
             # the layer's faces near the failing elements: at their nodes and those of the
-            # elements around them (the band's nodes move with the surface's) go to half the
-            # depth; where they were all there already, the faces at a failing element's own
-            # nodes leave the layer (all of those faces, where no failing element has a node on
-            # them: an element a layer deeper)
+            # elements around them (the band's nodes move with the surface's) go a step down
+            # _DEPTHS; where they were all at its last already, the faces at a failing
+            # element's own nodes leave the layer (all of those faces, where no failing element
+            # has a node on them: an element a layer deeper)
             own = np.zeros(n, bool)
             own[mesh.cells[st.touched[bad_under]]] = True
             under = own.copy()

@@ -1437,9 +1437,9 @@ _PILLOW_THINNEST = (0.5, 0.125)
 """No copy comes closer to its node than the first share of smooth.pillow_thickness or the
 second of a voxel, whichever is less: an edge ratio of at most about 8 on a voxel's face
 (a copy pulled inward holds there; near a gap in the layer it stands out so far)."""
-_PILLOW_STRETCH = 20.0
+_PILLOW_STRETCH = float(section_defaults("quality")["stretched_edge_ratio"])
 """A new element's longest edge is at most this many times its shortest: the edge ratio above
-which the quality report calls an element stretched (quality.stretched_edge_ratio's default)."""
+which the quality report calls an element stretched (quality.stretched_edge_ratio's default, 20)."""
 _PILLOW_LENGTH = 0.8
 """A new element's characteristic length (volume over largest face) is at least this share of
 its nodes' least thickness: a sheared one is thinner than its nodes' distances from their
@@ -1660,7 +1660,6 @@ def _add_pillow(st: _Smoothing) -> None:
     lengths0 = _edge_lengths2(near_all_cells, st.x0)
     short_before = _edge_lengths2(near_all_cells, x) < _SHORTEST_EDGE**2 * lengths0
     del surface
-    edges = HEX_EDGES if dim == 3 else QUAD_EDGES
     # every face's element of the layer before smoothing: a copy's position then is its node's
     layer_lengths0 = _edge_lengths2(pillow_cells(faces, np.arange(n)), st.x0)
     last = None  # the positions and values of the last scaled Jacobian of the elements under the layer
@@ -1686,9 +1685,8 @@ def _add_pillow(st: _Smoothing) -> None:
             moved = np.zeros(n, bool)
             moved[nodes[rows]] = True
             sub = np.flatnonzero(moved[near_all_cells].any(axis=1))
-            ends = moved[near_all_cells[sub]]
-            shrunk = near_all[sub[((_edge_lengths2(near_all_cells[sub], st.x) < _SHORTEST_EDGE**2 * lengths0[sub])
-                                   & ~short_before[sub] & (ends[:, edges[:, 0]] | ends[:, edges[:, 1]])).any(axis=1)]]
+            shrunk = near_all[sub[(_short_edges(near_all_cells[sub], st.x, None, moved, lengths0[sub])
+                                   & ~short_before[sub]).any(axis=1)]]
             solved = (layered, level.copy())
         new_id = np.full(n, -1, np.int64)
         new_id[nodes[rows]] = n + np.arange(rows.size)

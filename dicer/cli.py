@@ -1171,8 +1171,10 @@ def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_re
     from dicer.quality import quality_report, render_html
 
     settings = {**stage_kwargs(config, "quality"), "names": _mesh_names(mesh, config)}
+    # the properties the decks give each material number: the explicit time step's wave speeds
     report = quality_report(mesh, **settings, labels=labels, original=original, metrics=metrics,
-                            neighbours=neighbours, parts=parts, voxel=voxel)
+                            neighbours=neighbours, parts=parts, voxel=voxel,
+                            properties=stage_kwargs(config, "export")["materials"])
     stages, given = {}, {}
     for path in stage_reports:
         try:

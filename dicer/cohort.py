@@ -57,6 +57,7 @@ def report_problem(report) -> str | None:
     parts = report.get("parts", {})
     sections = {"scaled_jacobian": report.get("scaled_jacobian", {}), "parts": parts,
                 "characteristic_length_mm": report.get("characteristic_length_mm", {}),
+                "explicit_time_step": report.get("explicit_time_step", {}),
                 "materials": report.get("materials", {}),
                 "parts.model": parts.get("model", {}) if isinstance(parts, dict) else {}}
     for name, value in sections.items():
@@ -66,6 +67,7 @@ def report_problem(report) -> str | None:
                                           "stretched_elements")}
     numbers |= {f"scaled_jacobian.{k}": sections["scaled_jacobian"].get(k) for k in ("min", "p1")}
     numbers["characteristic_length_mm.min"] = sections["characteristic_length_mm"].get("min")
+    numbers["explicit_time_step.smallest_s"] = sections["explicit_time_step"].get("smallest_s")
     numbers |= {f"parts.model.{k}": sections["parts.model"].get(k) for k in ("parts", "floating_elements")}
     for name, material in sections["materials"].items():
         if not isinstance(material, dict):
@@ -91,7 +93,9 @@ def cohort_rows(reports: dict[str, dict], benchmarks: dict[str, dict[str, dict]]
     materials_without_elements and topology_changed (material names, space-separated; missing
     in reports made before they were listed), poor_threshold, stretched_threshold,
     min_characteristic_length_mm (the smallest element length, which sets an explicit solver's
-    time step; missing in reports made before it was measured), per material
+    time step; missing in reports made before it was measured), explicit_time_step_s (that step
+    with the materials' wave speeds, the smallest over the elements; missing in reports made
+    before it was given), per material
     ``volume_change_percent:<name>`` (against the meshed labels) and
     ``original_volume_change_percent:<name>`` (against the full-resolution segmentation),
     per stage ``seconds:<stage>`` and ``peak_mb:<stage>``.
@@ -114,7 +118,7 @@ def cohort_rows(reports: dict[str, dict], benchmarks: dict[str, dict[str, dict]]
     stages = _stages(benchmarks)
     columns = ["patient", "elements", "nodes", "min_scaled_jacobian", "p1_scaled_jacobian", "inverted", "poor",
                "stretched", "parts", "floating_elements", "materials_without_elements", "topology_changed",
-               "poor_threshold", "stretched_threshold", "min_characteristic_length_mm"]
+               "poor_threshold", "stretched_threshold", "min_characteristic_length_mm", "explicit_time_step_s"]
     columns += [f"volume_change_percent:{m}" for m in materials]
     columns += [f"original_volume_change_percent:{m}" for m in materials]
     columns += [f"{kind}:{s}" for s in stages for kind in ("seconds", "peak_mb")]
@@ -129,6 +133,7 @@ def cohort_rows(reports: dict[str, dict], benchmarks: dict[str, dict[str, dict]]
             row.append(None if names is None else " ".join(names))
         row += [r.get("poor_threshold"), r.get("stretched_threshold")]  # a patient's config may set its own
         row.append(r.get("characteristic_length_mm", {}).get("min"))
+        row.append(r.get("explicit_time_step", {}).get("smallest_s"))
         mats = r.get("materials", {})
         row += [mats.get(m, {}).get("volume_change_percent") for m in materials]
         row += [mats.get(m, {}).get("original_volume_change_percent") for m in materials]
@@ -196,7 +201,7 @@ def render_cohort_html(columns: list[str], rows: list[list], poor_threshold: flo
              "<th rowspan='2'>stretched" + (f" (edge ratio &gt; {stretched_at:g})" if stretched_at is not None else "")
              + "</th><th rowspan='2'>parts</th><th rowspan='2'>floating elements</th>"
              "<th rowspan='2'>materials without elements</th><th rowspan='2'>surface topology changed</th>"
-             "<th rowspan='2'>smallest element length, mm</th>"
+             "<th rowspan='2'>smallest element length, mm</th><th rowspan='2'>explicit time step, s</th>"
              + (f"<th colspan='{len(materials)}'>volume change, % (against meshed labels / original)</th>"
                 if materials else "")
              + (f"<th colspan='{len(stages)}'>seconds / peak MB per stage</th>" if stages else "") + "</tr>")
@@ -215,7 +220,8 @@ def render_cohort_html(columns: list[str], rows: list[list], poor_threshold: flo
                  _cell(row[at["floating_elements"]]),
                  html.escape(_cell(row[at["materials_without_elements"]])),
                  html.escape(_cell(row[at["topology_changed"]])),
-                 _cell(row[at["min_characteristic_length_mm"]], ".3f")]
+                 _cell(row[at["min_characteristic_length_mm"]], ".3f"),
+                 _cell(row[at["explicit_time_step_s"]], ".3g")]
         cells += [f"{_cell(row[at[f'volume_change_percent:{m}']], '+.1f')} / "
                   f"{_cell(row[at[f'original_volume_change_percent:{m}']], '+.1f')}" for m in materials]
         cells += [f"{_cell(row[at[f'seconds:{s}']], '.1f')} / {_cell(row[at[f'peak_mb:{s}']], '.0f')}"
@@ -226,6 +232,7 @@ def render_cohort_html(columns: list[str], rows: list[list], poor_threshold: flo
             f"<p>{len(rows)} patient(s). Parts: the model's face-connected parts (more than one: a part "
             "floats). Volume change: the mesh against the voxels it was made from, and against the "
             "original full-resolution segmentation. Smallest element length: its volume over its largest "
-            "face, which sets an explicit solver's time step. Seconds and peak memory: Snakemake's benchmark of "
+            "face; over the material's wave speed, it gives an element's stable explicit time step, the "
+            "smallest of which is the model's (before the solver's safety factor). Seconds and peak memory: Snakemake's benchmark of "
             "each stage (– where none was recorded).</p>"
             f"<table>{head1}{head2}{''.join(body)}</table></body></html>\n")

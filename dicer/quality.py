@@ -38,6 +38,75 @@ def _stats(values: np.ndarray) -> dict:
     return out
 
 
+def wave_speeds(materials: list[dict]) -> np.ndarray:
+    """Each material's dilatational wave speed, sqrt(E (1 - nu) / (rho (1 + nu) (1 - 2 nu))):
+    what an explicit solver's stable time step of a solid element divides its length by.
+
+    Parameters
+    ----------
+    materials : list of dict
+        Label 1 first: ``youngs_modulus`` (MPa), ``poissons_ratio``, ``density`` (t/mm^3).
+
+    Returns
+    -------
+    (K + 1,) float64 ndarray
+        mm/s, indexed by label (0: nan).
+    """
+    e, nu, rho = (np.array([float(m[k]) for m in materials]) for k in ("youngs_modulus", "poissons_ratio", "density"))
+    return np.r_[np.nan, np.sqrt(e * (1.0 - nu) / (rho * (1.0 + nu) * (1.0 - 2.0 * nu)))]
+
+
+MASS_SCALING_STEPS = (1.5, 2.0, 4.0)
+"""Time steps, as multiples of the model's smallest, at which the report gives the mass that
+mass scaling (LS-DYNA's DT2MS, Abaqus' fixed mass scaling) adds to reach them."""
+
+
+def explicit_time_step(length: np.ndarray, volume: np.ndarray, material: np.ndarray, speeds: np.ndarray,
+                       densities: np.ndarray) -> dict:
+    """An explicit solver's stable time step and what mass scaling to longer ones costs.
+
+    Each element's step is its characteristic length over its material's wave speed; the
+    model's is the smallest (before the solver's safety factor, LS-DYNA's TSSFAC 0.9). Mass
+    scaling gives each element faster than a target step the mass that slows it to it:
+    (target / step)^2 times its own.
+
+    Parameters
+    ----------
+    length, volume : (M,) float64 ndarray
+        mm (:func:`dicer.mesh.metrics.characteristic_length`) and mm^3 (mm^2 in 2D: per mm of
+        thickness).
+    material : (M,) int ndarray
+        Labels, 1..K.
+    speeds, densities : (K + 1,) float64 ndarray
+        mm/s (:func:`wave_speeds`) and t/mm^3, indexed by label.
+
+    Returns
+    -------
+    dict
+        ``smallest_s``, ``element`` (numbered from 1 in mesh order, as the decks number them),
+        ``material`` (its label), ``mass_scaling``: for each of ``MASS_SCALING_STEPS``,
+        ``{"times_smallest", "time_step_s", "mass_added_percent", "elements_scaled"}``, and
+        ``smallest_by_material``: label -> that material's smallest step.
+    """
+    step = length / speeds[material]
+    worst = int(np.argmin(step))
+    smallest = float(step[worst])
+    mass = densities[material] * np.abs(volume)
+    total = float(mass.sum())
+    scaling = []
+    for times in MASS_SCALING_STEPS:
+        target = times * smallest
+        slow = step < target
+        added = float(np.sum(mass[slow] * ((target / step[slow]) ** 2 - 1.0)))
+        scaling.append({"times_smallest": times, "time_step_s": _r(target),
+                        "mass_added_percent": _r(100.0 * added / total), "elements_scaled": int(np.count_nonzero(slow))})
+    by_label = np.full(speeds.size, np.inf)
+    np.minimum.at(by_label, material, step)
+    return {"smallest_s": _r(smallest), "element": worst + 1, "material": int(material[worst]),
+            "mass_scaling": scaling,
+            "smallest_by_material": {int(k): _r(by_label[k]) for k in np.flatnonzero(np.isfinite(by_label))}}
+
+
 def _material_counts(mesh: Mesh, sj: np.ndarray, vol: np.ndarray) -> dict[str, np.ndarray]:
     """Per material present, ascending: ``label``, ``elements``, ``nodes``, ``volume`` and
     ``min_scaled_jacobian``, each (K,), in passes over all elements (none per material)."""
@@ -310,7 +379,7 @@ def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None, voxel: np.n
 @takes_settings("quality")
 def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stretched_edge_ratio: float,
                    labels=None, original=None, metrics: dict | None = None, neighbours: np.ndarray | None = None,
-                   parts: dict | None = None, voxel: np.ndarray | None = None) -> dict:
+                   parts: dict | None = None, voxel: np.ndarray | None = None, properties: list | None = None) -> dict:
     """Quality figures of a mesh as a JSON-ready dict.
 
     Settings come as keywords (:func:`dicer.config.stage_kwargs` of ``quality``); a
@@ -346,6 +415,11 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stre
     voxel : (M,) int64 ndarray, optional
         :func:`dicer.mesh.faces.voxel_elements` of the mesh, already computed (None: made
         here when needed).
+    properties : list of dict, optional
+        The materials' properties, label 1 first (the config's ``materials``, as the decks
+        take them); adds an explicit solver's stable time step (:func:`explicit_time_step`),
+        each material's smallest, and the mass that scaling to longer ones adds. Left out
+        when the mesh has an inverted element or a label the list does not reach.
 
     Returns
     -------
@@ -389,6 +463,8 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stre
         materials[names.get(label, f"material_{label}")] = entry
 
     meshed = set(per["label"].tolist())
+    length = metrics["characteristic_length"] if "characteristic_length" in metrics \
+        else characteristic_length(mesh.points, mesh.cells)
     report = {
         "dicer_version": __version__,
         "dimension": mesh.dim,
@@ -400,8 +476,7 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stre
         "scaled_jacobian": _stats(sj),
         "edge_ratio": _stats(er),
         # an explicit solver's stable time step is the smallest of these over the wave speed
-        "characteristic_length_mm": _stats(metrics["characteristic_length"] if "characteristic_length" in metrics
-                                           else characteristic_length(mesh.points, mesh.cells)),
+        "characteristic_length_mm": _stats(length),
         "inverted_elements": int(np.count_nonzero(sj <= 0)),
         "poor_elements": int(np.count_nonzero(sj < poor)),
         "poor_threshold": poor,
@@ -440,6 +515,14 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stre
                     if voxels[label] != value:
                         changed.append(names.get(label, f"material_{label}"))
         report["topology_changed"] = changed
+    if (properties and mesh.n_cells and int(per["label"].max()) <= len(properties) and not report["inverted_elements"]
+            and float(length.min()) > 0):  # an inverted element stops an explicit solver at once
+        step = explicit_time_step(length, vol, np.asarray(mesh.material, np.int64), wave_speeds(properties),
+                                  np.r_[np.nan, [float(m["density"]) for m in properties]])
+        for label, smallest in step.pop("smallest_by_material").items():
+            report["materials"][names.get(label, f"material_{label}")]["smallest_time_step_s"] = smallest
+        step["material"] = names.get(step["material"], f"material_{step['material']}")
+        report["explicit_time_step"] = step
     parts = floating_parts(mesh, neighbours, voxel) if parts is None else parts
     report["parts"] = {"model": parts["model"],
                        "materials": {names.get(k, f"material_{k}"): v for k, v in parts["materials"].items()}}
@@ -595,6 +678,14 @@ def render_html(report: dict, pictures: list[tuple[str, bytes]] = ()) -> str:
     figures = ("scaled_jacobian", "edge_ratio", "element_volume", "characteristic_length")
     for key in sorted(k for k in report if k.startswith(figures)):
         parts.append(f"<h2>{html.escape(key)}</h2>" + _table(list(report[key].items())))
+    step = report.get("explicit_time_step")
+    if step:
+        rows = [("smallest stable time step, s", step["smallest_s"]), ("its element", step["element"]),
+                ("its material", step["material"])]
+        rows += [(f"mass scaling to {m['times_smallest']:g} times it ({m['time_step_s']:.3g} s)",
+                  f"+{m['mass_added_percent']:.3g} % mass on {m['elements_scaled']} element(s)")
+                 for m in step["mass_scaling"]]
+        parts.append("<h2>Explicit time step</h2>" + _table(rows))
     if "node_classes" in report:
         parts.append("<h2>Boundary node classes</h2>" + _table(list(report["node_classes"].items())))
     for stage, entry in report.get("stages", {}).items():

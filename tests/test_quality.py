@@ -344,3 +344,72 @@ def test_a_hole_that_merging_closes_is_reported_as_a_change_of_topology(dim):
     mesh = voxel_mesh(nested)
     counted = surface_euler(mesh, element_neighbours(mesh)) if dim == 3 else region_euler(mesh)
     assert counted == voxel_euler(nested, [1, 2]) == ({1: 4, 2: 4} if dim == 3 else {1: 0, 2: 0})
+
+
+def _two_materials(e_bone):
+    """A 4 x 2 x 2 bar of 1 mm voxels: soft tissue (E 1000 MPa) at x < 2, bone (E ``e_bone``) at
+    x >= 2, both nu 0.3 and rho 1e-9 t/mm^3."""
+    labels = np.ones((4, 2, 2), np.uint8)
+    labels[2:] = 2
+    mesh = voxel_mesh(labels)
+    props = [{"name": "soft_tissue", "youngs_modulus": 1000.0, "poissons_ratio": 0.3, "density": 1e-9},
+             {"name": "bone", "youngs_modulus": e_bone, "poissons_ratio": 0.3, "density": 1e-9}]
+    return mesh, props
+
+
+def test_wave_speed_is_the_dilatational_one():
+    from dicer.quality import wave_speeds
+
+    c = wave_speeds([{"youngs_modulus": 1000.0, "poissons_ratio": 0.3, "density": 1e-9},
+                     {"youngs_modulus": 15000.0, "poissons_ratio": 0.0, "density": 2e-9}])
+    assert np.isnan(c[0])
+    assert c[1] == pytest.approx(np.sqrt(1000.0 * 0.7 / (1e-9 * 1.3 * 0.4)), rel=1e-12)  # 1.160e6 mm/s
+    assert c[2] == pytest.approx(np.sqrt(15000.0 / 2e-9), rel=1e-12)  # nu = 0: the bar speed
+
+
+def test_explicit_time_step_and_the_mass_that_scaling_adds():
+    """Bone four times as stiff: waves twice as fast, its 1 mm elements' step half the soft
+    tissue's. Scaling to 1.5 and 2 times the smallest step slows only the bone's 8 elements
+    (mass x 2.25 and x 4: +62.5 % and +150 % of their half of the mass); to 4 times, the soft
+    tissue's too (x 4)."""
+    from dicer.quality import wave_speeds
+
+    mesh, props = _two_materials(4000.0)
+    report = quality_report(mesh, load_config(), properties=props)
+    step = report["explicit_time_step"]
+    soft = 1.0 / wave_speeds(props)[1]
+    assert step["smallest_s"] == pytest.approx(soft / 2, rel=1e-5) and step["material"] == "bone"
+    assert 9 <= step["element"] <= 16  # numbered from 1 in mesh order: the bone's are the second half
+    assert report["materials"]["soft_tissue"]["smallest_time_step_s"] == pytest.approx(soft, rel=1e-5)
+    assert report["materials"]["bone"]["smallest_time_step_s"] == pytest.approx(soft / 2, rel=1e-5)
+    got = [(m["times_smallest"], m["elements_scaled"], m["mass_added_percent"]) for m in step["mass_scaling"]]
+    assert got == [(1.5, 8, pytest.approx(0.5 * 125.0)), (2.0, 8, pytest.approx(0.5 * 300.0)),
+                   (4.0, 16, pytest.approx(0.5 * 1500.0 + 0.5 * 300.0))]
+    page = render_html(report)
+    assert "<h2>Explicit time step</h2>" in page and "+62.5 % mass on 8 element(s)" in page
+
+
+def test_a_thin_element_sets_the_time_step():
+    """One voxel layer squeezed to a tenth of its thickness: its elements' length, and the
+    step, a tenth; scaling to twice that step costs them x4 of their (tenth) mass."""
+    mesh = voxel_mesh(np.ones((3, 3, 3), np.uint8))
+    top = mesh.lattice[:, 2] == 3
+    mesh.points[top, 2] = 2.1
+    props = [{"name": "soft_tissue", "youngs_modulus": 1000.0, "poissons_ratio": 0.3, "density": 1e-9}]
+    step = quality_report(mesh, load_config(), properties=props)["explicit_time_step"]
+    from dicer.quality import wave_speeds
+
+    assert step["smallest_s"] == pytest.approx(0.1 / wave_speeds(props)[1], rel=1e-5)
+    twice = step["mass_scaling"][1]
+    assert twice["elements_scaled"] == 9
+    assert twice["mass_added_percent"] == pytest.approx(100.0 * 9 * 0.1 * 3.0 / (18 + 0.9), rel=1e-5)
+
+
+def test_no_time_step_without_properties_for_every_label_or_with_an_inverted_element():
+    mesh, props = _two_materials(4000.0)
+    assert "explicit_time_step" not in quality_report(mesh, load_config())
+    assert "explicit_time_step" not in quality_report(mesh, load_config(), properties=props[:1])
+    centre = np.flatnonzero((mesh.lattice == [1, 1, 1]).all(axis=1))[0]
+    mesh.points[centre] = [3.6, 2.6, 2.6]
+    report = quality_report(mesh, load_config(), properties=props)
+    assert report["inverted_elements"] >= 1 and "explicit_time_step" not in report

@@ -411,3 +411,26 @@ def test_cohort_gives_each_patient_s_smallest_element_length():
     assert "smallest element length, mm</th>" in page and "<td>0.154</td>" in page
     assert report_problem(dict(measured, characteristic_length_mm={"min": "small"})) == (
         "'characteristic_length_mm.min' is 'small', not a number")
+
+
+def test_cohort_gives_each_patient_s_explicit_time_step(tmp_path):
+    """`dicer quality` gives the step from the config's materials (the decks' properties); the
+    cohort lists it (– for a report made before) and refuses one where it is no number."""
+    from dicer.cli import main
+    from dicer.cohort import report_problem
+    from dicer.quality import wave_speeds
+
+    np.save(tmp_path / "bar.npy", np.ones((3, 2, 2), np.uint8))
+    assert main(["mesh", str(tmp_path / "bar.npy"), "-o", str(tmp_path / "bar.vtu")]) == 0
+    assert main(["quality", str(tmp_path / "bar.vtu"), "-o", str(tmp_path / "q.json"),
+                 "--set", "materials=[{name: soft_tissue, youngs_modulus: 2000, poissons_ratio: 0.25, "
+                 "density: 1.5e-9}]"]) == 0
+    report = json.loads((tmp_path / "q.json").read_text())
+    speed = wave_speeds([{"youngs_modulus": 2000.0, "poissons_ratio": 0.25, "density": 1.5e-9}])[1]
+    assert report["explicit_time_step"]["smallest_s"] == pytest.approx(1.0 / speed, rel=1e-5)
+    columns, rows = cohort_rows({"p1": report, "p2": _report(200)})
+    at = columns.index("explicit_time_step_s")
+    assert rows[0][at] == pytest.approx(1.0 / speed, rel=1e-5) and rows[1][at] is None
+    assert "explicit time step, s</th>" in render_cohort_html(columns, rows, 0.2)
+    assert report_problem(dict(report, explicit_time_step={"smallest_s": "short"})) == (
+        "'explicit_time_step.smallest_s' is 'short', not a number")

@@ -1117,8 +1117,10 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
             if table is not None:
                 table.result()
         write_bytes_atomic(out, json.dumps(report, indent=2, sort_keys=True) + "\n")
-        log.info("quality: wrote %s (min scaled Jacobian %.3f, %d inverted, %d part(s))", out,
-                 report["scaled_jacobian"]["min"], report["inverted_elements"], report["parts"]["model"]["parts"])
+        step = report.get("explicit_time_step")
+        log.info("quality: wrote %s (min scaled Jacobian %.3f, %d inverted, %d part(s)%s)", out,
+                 report["scaled_jacobian"]["min"], report["inverted_elements"], report["parts"]["model"]["parts"],
+                 f", explicit time step {step['smallest_s']:.3g} s in {step['material']}" if step else "")
         whole = report["parts"]["model"]
         if whole["parts"] > 1:  # each part needs supports of its own, else a static solve is singular
             log.warning("quality: the model is %d parts joined by no face: %d element(s) float free of the largest "

@@ -34,13 +34,14 @@ STAGE_SECTIONS = {
     "merge": ("merge",),
     "smooth": ("smooth",),
     "export": ("materials", "export"),
-    "quality": ("materials", "quality"),  # the report names the materials
+    "quality": ("materials", "quality"),  # the report names the materials; their properties: its time step
 }
 
 # The stages that read only the materials' names (and order): a change of a material's
-# properties re-runs the exports alone (the labels stage's materials.json then holds the
-# names alone, and the export takes the properties from its own settings by name)
-NAMES_ONLY = ("segment", "labels", "downsample", "fix", "mesh", "quality")
+# properties re-runs the exports and the quality report alone (the labels stage's
+# materials.json then holds the names alone, the export takes the properties from its own
+# settings by name, and the report's explicit time step follows them)
+NAMES_ONLY = ("segment", "labels", "downsample", "fix", "mesh")
 
 # Keys of other sections a stage reads too (the workflow passes them with the sections): the
 # spacing of a .npy volume; smooth's scan, read as segment read it (spacing, slices, crop), and

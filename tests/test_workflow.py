@@ -146,12 +146,13 @@ def test_changing_export_settings_reruns_only_export_and_later(cohort):
         jobs = _planned_jobs(_snakemake(cohort, "-n"))
         assert jobs.get("segment") == 2 and jobs.get("mesh") == 2 and "phantom" not in jobs
 
-        # a material's stiffness: the exports alone (the stages before read only the names)
+        # a material's stiffness: the exports and the quality report (its explicit time step)
+        # alone (the stages before read only the names)
         config = yaml.safe_load(original)
         config["materials"][1]["youngs_modulus"] = 12000.0
         config_path.write_text(yaml.safe_dump(config, sort_keys=False))
         jobs = _planned_jobs(_snakemake(cohort, "-n"))
-        assert jobs == {"export": 4, "cohort": 1, "all": 1}
+        assert jobs == {"export": 4, "quality": 2, "cohort": 1, "all": 1}
 
         config = yaml.safe_load(original)
         config["smooth"] = {"coefficient": 0.8}
@@ -244,8 +245,9 @@ def test_labels_column_meshes_a_label_volume(tmp_path):
     report = json.loads((brain / "quality.json").read_text())
     assert set(report["materials"]) == {"white_matter", "grey_matter", "label_4", "cerebellum"}
     assert _planned_jobs(_snakemake(workdir, "-n")) == {}
-    # a stiffness study re-runs the exports alone (the labels stage wrote the properties into
-    # materials.json, and every stage after it ran again), and the deck takes the new value
+    # a stiffness study re-runs the exports and the quality report alone (the labels stage wrote
+    # the properties into materials.json, and every stage after it ran again), and the deck
+    # takes the new value
     config_path = workdir / "config" / "config.yaml"
     config = yaml.safe_load(config_path.read_text())
     config["materials"].append({"name": "cerebellum", "youngs_modulus": 0.002, "poissons_ratio": 0.49})
@@ -253,7 +255,7 @@ def test_labels_column_meshes_a_label_volume(tmp_path):
     _snakemake(workdir)
     config["materials"][-1]["youngs_modulus"] = 4321.5
     config_path.write_text(yaml.safe_dump(config, sort_keys=False))
-    assert _planned_jobs(_snakemake(workdir, "-n")) == {"export": 4, "cohort": 1, "all": 1}
+    assert _planned_jobs(_snakemake(workdir, "-n")) == {"export": 4, "quality": 2, "cohort": 1, "all": 1}
     _snakemake(workdir)
     listed = json.loads((brain / "materials.json").read_text())["materials"]
     assert listed == [{"name": n} for n in ("white_matter", "grey_matter", "label_4", "cerebellum")]

@@ -447,7 +447,10 @@ class LabelSurface:
         spacing = np.asarray(mesh.spacing, float)[:dim]
         self.mesh_spacing = spacing
         self.voxel = float(spacing.max())
-        self.radius = float(radius) * float(spacing.min())
+        # the fit works in units of the finest voxel, so a volume whose voxels are micrometres or
+        # metres fits as one of 1 mm voxels (the least-squares damping is relative to its terms)
+        self.unit = float(spacing.min())
+        self.radius = float(radius) * self.unit
         reach = self.radius if mirror else 0.0
         self.placed = self.placed_share = None
         self.top = int(np.max(mesh.material, initial=0)) + 1
@@ -620,7 +623,7 @@ class LabelSurface:
         q = np.where(ok[lost], dist[lost] * dist[lost] / (r * r), 1.0)
         w = np.where(_cosines(near[lost], n[lost], dim) > -_FACING, (1.0 - np.minimum(q, 1.0)) ** 2 * weights[lost], 0.0)
         mean = np.stack([np.einsum("ij,ij->i", w, near[lost, :, dim + a]) for a in range(dim)], axis=1) * free[lost]
-        some = np.linalg.norm(mean, axis=1) > 1e-9
+        some = np.linalg.norm(mean, axis=1) > 1e-9 * w.sum(axis=1)  # relative: the weights are areas, mm^2
         lost, mean = lost[some], _unit(mean[some])
         h2, f2, _, _ = self._fit_in_frame(p[lost], mean, near[lost], ok[lost], weights[lost], blur[lost])
         take = lost[f2]
@@ -633,11 +636,12 @@ class LabelSurface:
         (P, k, 2 dim: positions and normals; ``ok`` (P, k), ``weights`` (P, k)): heights, fitted
         flags, (P, dim) the fitted surface's slope at the node (its normal is n - slope, not
         scaled) and whether its curvature lies within the blur's limit."""
-        dim, r = self.dim, self.radius
+        dim, unit = self.dim, self.unit
+        r, voxel = self.radius / unit, self.voxel / unit  # lengths below in units of the finest voxel
         # facing the node's side: a weight rising from 0 (edge-on) to 1 at _FACING, continuous so
         # that faces edge-on to the node (an axis-aligned normal) count alike in a mirrored model
         facing = np.clip(_cosines(near, n, dim) / _FACING, 0.0, 1.0)
-        rel = near[..., :dim] - p[:, None, :]
+        rel = (near[..., :dim] - p[:, None, :]) / unit
         h = rel @ n[:, :, None]  # (P, k, 1)
         h = h[..., 0]
         if dim == 2:
@@ -654,13 +658,13 @@ class LabelSurface:
             d2 = u * u + v * v
             basis = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1)
         q = d2 / (r * r)
-        ok = ok & (q < 1.0) & (np.abs(h) < self.voxel * _SHEET + 0.5 * d2 / r)
+        ok = ok & (q < 1.0) & (np.abs(h) < voxel * _SHEET + 0.5 * d2 / r)
         w = np.where(ok, (1.0 - q) ** 2 * facing * weights, 0.0)
         m = basis.shape[-1]
         coef = _weighted_fit(basis, w, h)
         # once more without the samples far off the first fit, for the nodes that had such
         residual = h - (basis @ coef[..., None])[..., 0]
-        kept = np.where(np.abs(residual) < _OUTLIER * self.voxel, w, 0.0)
+        kept = np.where(np.abs(residual) < _OUTLIER * voxel, w, 0.0)
         again = np.flatnonzero(np.any(kept != w, axis=1))
         if again.size:
             coef[again] = _weighted_fit(basis[again], kept[again], h[again])
@@ -677,8 +681,9 @@ class LabelSurface:
             slope = coef[:, 1, None] * np.stack([-n[:, 1], n[:, 0]], axis=1)
         else:
             slope = coef[:, 1, None] * t1 + coef[:, 2, None] * t2
-        return (np.where(fitted, coef[:, 0] - blur * bend, 0.0), fitted, np.where(fitted[:, None], slope, 0.0),
-                np.abs(curvature) < limit)
+        # back to mm: the height times the unit, the curvature (1/unit) over it
+        return (np.where(fitted, unit * coef[:, 0] - blur * (bend / unit), 0.0), fitted,
+                np.where(fitted[:, None], slope, 0.0), np.abs(curvature) < limit)
 
     def project(self, sides, x: np.ndarray, bnodes: np.ndarray, xb: np.ndarray) -> tuple[np.ndarray, dict]:
         """The boundary positions moved onto the fitted surface (before ``subvoxel.lift``).

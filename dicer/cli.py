@@ -1457,6 +1457,16 @@ RUN_OUTPUTS = ("labels.nii.gz", "materials.json", "segmentation.png", "segmentat
 """Every file dicer run may write into its folder (the models: those workflow.exports names)."""
 
 
+def _check_priority(config: dict, source: str) -> None:
+    """``fix.priority``'s names against the materials, before the stages that come before the fix."""
+    from dicer.connectivity import check_priority
+
+    try:
+        check_priority([m["name"] for m in config["materials"]], config["fix"]["priority"] or [])
+    except DicerError as exc:
+        raise DicerError(f"{source}: {exc}") from None
+
+
 def _check_export_dims(config: dict, dim: int, source: str) -> None:
     """Refuse a model of ``dim`` dimensions that a format of ``workflow.exports`` cannot hold."""
     from dicer.export.registry import BY_SUFFIX
@@ -1629,6 +1639,8 @@ def _run_chain(args):
     dim = _input_dims(source)
     if dim is not None:  # before any stage (fix checks the labels it made again)
         _check_export_dims(config, dim, source)
+    if args.labels is None:  # the segmentation's materials are the config's: a misspelt name stops here
+        _check_priority(config, source)
     if not args.skip_memory_check:
         _check_memory(source, config)
     with _output_lock(outdir), _logged_as_published(outdir.parent / f".{outdir.name}.partial", outdir):
@@ -1743,6 +1755,7 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
 
             config = for_label_volume(config)
             config["materials"] = do_labels(args.labels, path("labels.nii.gz"), config, path("materials.json"))
+            _check_priority(config, source)  # the label volume's materials: known once it is mapped
         else:
             step("segment")
             do_segment(args.image, path("labels.nii.gz"), config, overlay=path("segmentation.png"),

@@ -38,7 +38,7 @@ from dicer.errors import DicerError
 from dicer.image import count_labels
 
 __all__ = ["fix_connectivity", "fix_stage", "connectivity_defects", "boundary_edge_counts", "remove_islands",
-           "joined_parts", "faces_reached", "priority_order"]
+           "joined_parts", "faces_reached", "priority_order", "check_priority"]
 
 
 # --- helpers -----------------------------------------------------------------------------
@@ -817,6 +817,20 @@ def fix_stage(labels: np.ndarray, *, names: dict[str, str], min_component_voxels
     return fixed, report
 
 
+def check_priority(materials: list[str], priority: list[str]) -> None:
+    """Refuse a ``fix.priority`` that names no material of ``materials`` (names, label 1 first).
+
+    Raises
+    ------
+    DicerError
+        Naming the unknown names and the materials.
+    """
+    unknown = [n for n in priority if n not in materials]
+    if unknown:
+        raise DicerError(f"fix.priority names {', '.join(map(repr, unknown))}, which the materials do not hold "
+                         f"(they are {', '.join(materials)}); list material names")
+
+
 def priority_order(labels: np.ndarray, names: dict[str, str], priority: list[str]) -> tuple[np.ndarray, np.ndarray]:
     """The labels renumbered so that the fixes' order of classes is ``priority``'s.
 
@@ -848,10 +862,7 @@ def priority_order(labels: np.ndarray, names: dict[str, str], priority: list[str
     for v, n in names.items():
         if int(v) != 0:
             by_name.setdefault(n, []).append(int(v))
-    unknown = [n for n in priority if n not in by_name]
-    if unknown:
-        raise DicerError(f"fix.priority names {', '.join(map(repr, unknown))}, which the materials do not hold "
-                         f"(they are {', '.join(by_name)}); list material names")
+    check_priority(list(by_name), priority)
     present = _present(labels)
     # a name of several labels: the highest of them first, as without a priority
     listed = [v for n in priority for v in sorted(by_name[n], reverse=True)]

@@ -837,6 +837,9 @@ case("7-blame", "fix: min_component_voxels removes every part",
      lambda c: argv_for(c, "fix", extra=["--set", "fix.min_component_voxels=1000000"]), "min_component_voxels")
 case("7-blame", "fix: fix.priority names no material",
      lambda c: argv_for(c, "fix", extra=["--set", "fix.priority=[skull]"]), "fix.priority names 'skull'")
+case("7-blame", "run: fix.priority names no material (found at the fix stage, after segment and downsample wrote "
+     "OUT.failed)", lambda c: ["run", c.copy("head48.nii.gz"), "-o", c.t / "out", "--set", "fix.priority=[skull]"],
+     "head48.nii.gz: fix.priority names 'skull'")
 case("7-blame", "run: image.crop with two values in min and three in max (a traceback from the memory check)",
      lambda c: ["run", c.copy("head48.nii.gz"), "-o", c.t / "out", "--set",
                 "image.crop={unit: mm, min: [0,0], max: [10,10,10]}"], "image.crop gives 2 and 3 values")

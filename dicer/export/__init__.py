@@ -94,7 +94,7 @@ def _check_printed_digits(fmt: Format, model: SolverModel, mesh: Mesh, digits: i
     printed = digits if digits in fmt.digits else fmt.digits[0]
     if printed != digits:
         log.warning("export: %s prints coordinates with %d significant digits (its fixed columns); export.digits %d "
-                    "applies to .inp and .feb", path.name, printed, digits)
+                    "applies to .inp and .feb", path, printed, digits)
     reach = max(float(model.points.max()), -float(model.points.min()))
     shift = reach * 10.0 ** (1 - printed) / 2  # half a unit in the last digit of the largest coordinate
     voxel = float(np.min(np.asarray(mesh.spacing, float)[:mesh.dim]))

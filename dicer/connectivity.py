@@ -818,7 +818,18 @@ def fix_stage(labels: np.ndarray, *, names: dict[str, str], min_component_voxels
 
 
 def check_priority(materials: list[str], priority: list[str]) -> None:
-    """Refuse a ``fix.priority`` that names no material of ``materials`` (names, label 1 first).
+    """Refuse a ``fix.priority`` that names anything but materials.
+
+    Parameters
+    ----------
+    materials : list of str
+        The material names, label 1 first.
+    priority : list of str
+        ``fix.priority``: material names, the first the highest class.
+
+    Returns
+    -------
+    None
 
     Raises
     ------

@@ -132,6 +132,19 @@ def test_npy_spacing_argument_and_default_warning(tmp_path, caplog):
         read_image(tmp_path / "a.npy", spacing=[1, 1])
 
 
+def test_npy_with_one_channel_first_or_last_is_its_3d_volume(tmp_path):
+    """A segmentation saved with its channel axis, (1, x, y, z) as deep-learning tools write it
+    or (x, y, z, 1): the volume. A 4D array of more channels, or one elsewhere, is refused."""
+    np.save(tmp_path / "first.npy", HU[None].astype(np.int16))
+    np.save(tmp_path / "last.npy", HU[..., None].astype(np.int16))
+    for name in ("first", "last"):
+        v = read_image(tmp_path / f"{name}.npy", spacing=[0.5, 0.5, 2.0])
+        np.testing.assert_array_equal(v.array, HU)
+    np.save(tmp_path / "middle.npy", HU[:, None].astype(np.int16))
+    with pytest.raises(DicerError, match=r"middle.npy: the array is 4D \(7x1x6x5\).*one channel first or last"):
+        read_image(tmp_path / "middle.npy")
+
+
 def test_multipage_tiff_is_3d_single_page_is_2d(tmp_path):
     stack = HU.astype(np.int16)
     tifffile.imwrite(tmp_path / "stack.tif", np.ascontiguousarray(stack.T))  # pages = z, rows = y

@@ -988,10 +988,12 @@ def _read_npy(path: Path, spacing_arg, dtype) -> Volume:
         raise DicerError(f"{path}: the array has dtype {array.dtype}; save a numeric (integer or float) array")
     if array.ndim == 4 and array.shape[3] == 1:
         array = array[..., 0]
+    elif array.ndim == 4 and array.shape[0] == 1:  # a channel first, as deep-learning tools save one
+        array = array[0]
     if array.ndim not in (2, 3):
         raise DicerError(
-            f"{path}: the array is {array.ndim}D; dicer reads 2D and 3D arrays indexed [x, y(, z)]: "
-            "save one 2D or 3D array"
+            f"{path}: the array is {array.ndim}D ({'x'.join(map(str, array.shape))}); dicer reads 2D and 3D arrays "
+            "indexed [x, y(, z)], and a 4D one with one channel first or last: save one 2D or 3D array"
         )
     spacing = _default_spacing(spacing_arg, array.shape, path)
     return _finish(array, spacing, (0.0,) * array.ndim, path, dtype=dtype)

@@ -1356,6 +1356,10 @@ def _warn_of_config_numbering(args, config: dict, stage: str) -> None:
 
 def cmd_downsample(args):
     config = _config(args)
+    if args.materials:  # a label volume dicer labels mapped: downsampled as dicer run --labels does
+        from dicer.config import for_label_volume
+
+        config = for_label_volume(config)
     _warn_of_config_numbering(args, config, "downsample")
     do_downsample(args.labels, _check_output(args.output, (".nii", ".nii.gz"), "the label volume"), config)
 

@@ -349,6 +349,25 @@ def test_run_labels_with_downsample_keeps_placement(labelled, tmp_path):
     assert ds["srow"][0::5] == (3.0, 3.0, 3.0) and ds["pixdim"] == (3.0, 3.0, 3.0)
 
 
+def test_downsample_with_the_materials_file_downsamples_as_run_labels_does(labelled, tmp_path):
+    """`dicer labels`, then `dicer downsample --materials`: the label volume's defaults
+    (no morphology, the plurality vote), as `dicer run --labels` takes them. Until 6 December
+    2026 the stage took a scan's (opening and closing, the priority vote): 1,748 of 20,480
+    voxels other than the run's on a 64^3 two-label volume, 29 of an atlas's parcels lost."""
+    src, config = labelled
+    out = tmp_path / "out"
+    assert _cli("run", "--labels", src, "-o", out, "--config", config, "--set", "downsample.factor=2") == 0
+    assert _cli("labels", src, "-o", tmp_path / "l.nii.gz", "--materials", tmp_path / "m.json",
+                "--config", config) == 0
+    assert _cli("downsample", tmp_path / "l.nii.gz", "-o", tmp_path / "d.nii.gz", "--materials", tmp_path / "m.json",
+                "--config", config, "--set", "downsample.factor=2") == 0
+    assert (tmp_path / "d.nii.gz").read_bytes() == (out / "labels_ds.nii.gz").read_bytes()
+    # without the file: a scan's segmentation, the scan's defaults
+    assert _cli("downsample", tmp_path / "l.nii.gz", "-o", tmp_path / "s.nii.gz", "--config", config,
+                "--set", "downsample.factor=2", "--set", "materials=[{name: a}, {name: b}, {name: c}, {name: d}]") == 0
+    assert (tmp_path / "s.nii.gz").read_bytes() != (out / "labels_ds.nii.gz").read_bytes()
+
+
 def test_run_needs_image_or_labels(labelled, tmp_path, capsys):
     src, config = labelled
     assert _cli("run", "-o", tmp_path / "o") == 2

@@ -99,7 +99,7 @@ def _warn_of_unused_settings(args) -> None:
 def _read_materials(path: str) -> list[dict]:
     """The materials list of a materials file written by ``dicer labels`` (--materials)."""
     try:
-        data = json.loads(Path(path).read_text())
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise DicerError(f"{path}: materials file not found; write it with dicer labels --materials") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -708,7 +708,7 @@ def _read_thresholds(path: str | None, config: dict, image_path: str) -> list:
         raise DicerError(f"{image_path}: --image needs the thresholds segmentation chose; give --thresholds "
                          "segmentation.json (written by dicer segment --info)")
     try:
-        data = json.loads(Path(path).read_text())
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise DicerError(f"{path}: thresholds file not found; write it with dicer segment --info") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -1180,7 +1180,7 @@ def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_re
     stages, given = {}, {}
     for path in stage_reports:
         try:
-            content = json.loads(Path(path).read_text())
+            content = json.loads(Path(path).read_text(encoding="utf-8"))
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise DicerError(f"{path}: cannot read the stage report ({exc}); rerun that stage") from None
         if not isinstance(content, dict):
@@ -1247,7 +1247,7 @@ def _quality_figures(mesh, report: dict, sj, names: dict, histogram: Path | None
 def _read_benchmark(path: Path) -> dict:
     """A Snakemake benchmark file's first line as a dict (s, max_rss, ...)."""
     try:
-        lines = path.read_text().splitlines()
+        lines = path.read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise DicerError(f"{path}: cannot read the benchmark file ({exc}); rerun that stage") from None
     if len(lines) < 2 or "s" not in lines[0].split("\t"):
@@ -1285,7 +1285,7 @@ def do_cohort(reports: list[str], out: Path, tsv: Path | None = None, benchmarks
                 raise DicerError(f"{path}: a second report of patient {patient!r} (patients are named by the "
                                  "report's folder); give one quality.json per patient folder")
             try:
-                quality[patient] = json.loads(Path(path).read_text())
+                quality[patient] = json.loads(Path(path).read_text(encoding="utf-8"))
             except FileNotFoundError:
                 raise DicerError(f"{path}: quality report not found; run dicer quality first") from None
             except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:

@@ -70,7 +70,7 @@ def schema() -> dict:
 def _schema() -> dict:
     # parsed once per process (with libyaml when present): every config load and each
     # Snakemake job's start-up reads it
-    text = resources.files("dicer").joinpath("schemas/config.schema.yaml").read_text()
+    text = resources.files("dicer").joinpath("schemas/config.schema.yaml").read_text(encoding="utf-8")
     return yaml.load(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
 
 

@@ -29,7 +29,7 @@ def cores() -> int:
     else:
         limits = [os.cpu_count() or 1]
     try:  # cgroup v2: "<quota> <period>" in microseconds, or "max <period>"
-        quota, period = Path("/sys/fs/cgroup/cpu.max").read_text().split()[:2]
+        quota, period = Path("/sys/fs/cgroup/cpu.max").read_text(encoding="ascii").split()[:2]
         if quota != "max" and int(period) > 0:
             limits.append(math.ceil(int(quota) / int(period)))
     except (OSError, ValueError):

@@ -282,7 +282,7 @@ def machine_memory_mb() -> int | None:
         pass
     for name in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
         try:
-            text = Path(name).read_text().strip()
+            text = Path(name).read_text(encoding="utf-8").strip()
         except OSError:
             continue
         if text.isdigit() and int(text) < 2**60:

@@ -639,3 +639,23 @@ def test_run_outputs_hold_every_model_format_workflow_exports_names():
 
     formats = schema()["properties"]["workflow"]["properties"]["exports"]["items"]["enum"]
     assert {n for n in RUN_OUTPUTS if n.startswith("model.") and n != "model.png"} == {f"model.{e}" for e in formats}
+
+
+def test_an_ascii_locale_reads_the_schema_and_the_stage_reports(tmp_path):
+    """Under LC_ALL=C without Python's UTF-8 coercion every command stopped with a traceback:
+    the schema (which holds non-ASCII characters) and the JSON files dicer writes were read in
+    the locale's encoding. They are UTF-8, read as such."""
+    env = {**os.environ, "LC_ALL": "C", "LANG": "C", "PYTHONCOERCECLOCALE": "0", "PYTHONUTF8": "0"}
+    labels = np.zeros((6, 6, 6), np.uint8)
+    labels[1:5, 1:5, 1:5] = 1
+    np.save(tmp_path / "l.npy", labels)
+
+    def dicer(*args):
+        return subprocess.run([sys.executable, "-m", "dicer", *map(str, args), "-q"], capture_output=True, text=True,
+                              env=env, timeout=120)
+
+    assert dicer("fix", tmp_path / "l.npy", "-o", tmp_path / "f.nii.gz", "--report", tmp_path / "fix.json").returncode == 0
+    assert dicer("mesh", tmp_path / "f.nii.gz", "-o", tmp_path / "m.vtu").returncode == 0
+    done = dicer("quality", tmp_path / "m.vtu", "-o", tmp_path / "q.json", "--stage-report", tmp_path / "fix.json")
+    assert done.returncode == 0, done.stderr
+    assert "fix" in json.loads((tmp_path / "q.json").read_text(encoding="utf-8"))["stages"]

@@ -118,8 +118,8 @@ def build(labels: np.ndarray, folder: str | os.PathLike, sets: list[str] = (), o
                                 "--config", str(folder / "config.yaml"), *export_sets, "-q"]) != 0:
             raise DicerError(f"{folder}: dicer export --order {order} failed")
         decks[order] = deck
-    return {"decks": decks, "quality": json.loads((out / "quality.json").read_text()),
-            "smooth": json.loads((out / "smooth.json").read_text())}
+    return {"decks": decks, "quality": json.loads((out / "quality.json").read_text(encoding="utf-8")),
+            "smooth": json.loads((out / "smooth.json").read_text(encoding="utf-8"))}
 
 
 @dataclass
@@ -226,7 +226,7 @@ def write_moved(deck_path: str | os.PathLike, points: np.ndarray, out_path: str 
     """
     import io
 
-    text = Path(deck_path).read_text()
+    text = Path(deck_path).read_text(encoding="utf-8")
     start = text.index("*NODE\n") + len("*NODE\n")
     end = text.index("\n*", start) + 1
     rows = io.StringIO()

@@ -11,8 +11,8 @@ arguments = log.with_suffix(".args")
 arguments.parent.mkdir(parents=True, exist_ok=True)
 benchmarks = [b for b in smk.params.benchmarks if Path(b).is_file()]  # a deleted one leaves its cells empty
 arguments.write_text("".join(f"{a}\n" for a in [*smk.input.reports, *(["--benchmarks", *benchmarks] if benchmarks
-                                                                      else [])]))
-with open(log, "w") as out:
+                                                                      else [])]), encoding="utf-8")
+with open(log, "w", encoding="utf-8") as out:
     done = subprocess.run(["dicer", "cohort", f"@{arguments}", "-o", smk.output.html, "--tsv", smk.output.tsv],
                           stdout=out, stderr=subprocess.STDOUT)
 raise SystemExit(done.returncode)

@@ -20,7 +20,7 @@ from dicer.resources import SIZE_OF  # noqa: E402
 
 def fit(path: str) -> dict[str, tuple[float, float, float, float]]:
     rows = defaultdict(list)
-    with open(path) as handle:
+    with open(path, encoding="utf-8") as handle:
         for row in csv.DictReader((line for line in handle if not line.startswith("#")), delimiter="\t"):
             rows[row["stage"]].append(row)
     table = {}

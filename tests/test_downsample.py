@@ -313,11 +313,16 @@ def test_label_volumes_made_elsewhere_are_downsampled_without_the_scans_morpholo
     fine = read_labels(tmp_path / "out" / "labels.nii.gz").array
     coarse = read_labels(tmp_path / "out" / "labels_ds.nii.gz").array
     assert np.array_equal(coarse, fine[::2, ::2, ::2]) and np.unique(coarse).size == 40
-    caplog.clear()
-    # 'dicer downsample' alone cannot tell an atlas from a scan's labels: on, and said
-    assert main(["downsample", str(tmp_path / "out" / "labels.nii.gz"), "-o", str(tmp_path / "d.nii.gz"),
+    # 'dicer downsample' given the materials file of a mapped label volume: as the run does
+    assert main(["downsample", str(tmp_path / "out" / "labels.nii.gz"), "-o", str(tmp_path / "same.nii.gz"),
                  "--materials", str(tmp_path / "out" / "materials.json"), "--set", "downsample.factor=2",
                  "-q"]) == 0
+    assert (tmp_path / "same.nii.gz").read_bytes() == (tmp_path / "out" / "labels_ds.nii.gz").read_bytes()
+    caplog.clear()
+    # with the scan's morphology: most parcels go, and each is named
+    assert main(["downsample", str(tmp_path / "out" / "labels.nii.gz"), "-o", str(tmp_path / "d.nii.gz"),
+                 "--materials", str(tmp_path / "out" / "materials.json"), "--set", "downsample.factor=2",
+                 "--set", "downsample.morphology=true", "--set", "downsample.vote=priority", "-q"]) == 0
     left = np.unique(read_labels(tmp_path / "d.nii.gz").array)
     lost = [r.getMessage() for r in caplog.records if "have no voxels left" in r.getMessage()]
     assert left.size == 23 and len(lost) == 1  # measured: 17 of 40 parcels lost

@@ -1173,10 +1173,12 @@ def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_re
     from dicer.quality import quality_report, render_html
 
     settings = {**stage_kwargs(config, "quality"), "names": _mesh_names(mesh, config)}
-    # the properties the decks give each material number: the explicit time step's wave speeds
+    # the properties the decks give each material number, and a 2D deck's plane stress or
+    # strain: the explicit time step's wave speeds
+    export = stage_kwargs(config, "export")
     report = quality_report(mesh, **settings, labels=labels, original=original, metrics=metrics,
-                            neighbours=neighbours, parts=parts, voxel=voxel,
-                            properties=stage_kwargs(config, "export")["materials"])
+                            neighbours=neighbours, parts=parts, voxel=voxel, properties=export["materials"],
+                            plane_stress=not str(export["element_type"] or "CPS").startswith("CPE"))
     stages, given = {}, {}
     for path in stage_reports:
         try:

@@ -38,14 +38,17 @@ def _stats(values: np.ndarray) -> dict:
     return out
 
 
-def wave_speeds(materials: list[dict]) -> np.ndarray:
-    """Each material's dilatational wave speed, sqrt(E (1 - nu) / (rho (1 + nu) (1 - 2 nu))):
-    what an explicit solver's stable time step of a solid element divides its length by.
+def wave_speeds(materials: list[dict], plane_stress: bool = False) -> np.ndarray:
+    """Each material's wave speed that an explicit solver's stable time step divides an
+    element's length by: the dilatational one, sqrt(E (1 - nu) / (rho (1 + nu) (1 - 2 nu))),
+    for solids and plane strain; sqrt(E / (rho (1 - nu^2))) for plane stress.
 
     Parameters
     ----------
     materials : list of dict
         Label 1 first: ``youngs_modulus`` (MPa), ``poissons_ratio``, ``density`` (t/mm^3).
+    plane_stress : bool, optional
+        2D elements in plane stress (CPS4, CPS8: the 2D default).
 
     Returns
     -------
@@ -53,6 +56,8 @@ def wave_speeds(materials: list[dict]) -> np.ndarray:
         mm/s, indexed by label (0: nan).
     """
     e, nu, rho = (np.array([float(m[k]) for m in materials]) for k in ("youngs_modulus", "poissons_ratio", "density"))
+    if plane_stress:
+        return np.r_[np.nan, np.sqrt(e / (rho * (1.0 - nu * nu)))]
     return np.r_[np.nan, np.sqrt(e * (1.0 - nu) / (rho * (1.0 + nu) * (1.0 - 2.0 * nu)))]
 
 
@@ -379,7 +384,8 @@ def floating_parts(mesh: Mesh, neighbours: np.ndarray | None = None, voxel: np.n
 @takes_settings("quality")
 def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stretched_edge_ratio: float,
                    labels=None, original=None, metrics: dict | None = None, neighbours: np.ndarray | None = None,
-                   parts: dict | None = None, voxel: np.ndarray | None = None, properties: list | None = None) -> dict:
+                   parts: dict | None = None, voxel: np.ndarray | None = None, properties: list | None = None,
+                   plane_stress: bool = True) -> dict:
     """Quality figures of a mesh as a JSON-ready dict.
 
     Settings come as keywords (:func:`dicer.config.stage_kwargs` of ``quality``); a
@@ -420,6 +426,9 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stre
         take them); adds an explicit solver's stable time step (:func:`explicit_time_step`),
         each material's smallest, and the mass that scaling to longer ones adds. Left out
         when the mesh has an inverted element or a label the list does not reach.
+    plane_stress : bool, optional
+        A 2D mesh's elements are in plane stress (CPS4, CPS8, the default), not plane strain:
+        the time step's wave speed (:func:`wave_speeds`). 3D meshes ignore it.
 
     Returns
     -------
@@ -517,7 +526,8 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stre
         report["topology_changed"] = changed
     if (properties and mesh.n_cells and int(per["label"].max()) <= len(properties) and not report["inverted_elements"]
             and float(length.min()) > 0):  # an inverted element stops an explicit solver at once
-        step = explicit_time_step(length, vol, np.asarray(mesh.material, np.int64), wave_speeds(properties),
+        speeds = wave_speeds(properties, plane_stress=mesh.dim == 2 and plane_stress)
+        step = explicit_time_step(length, vol, np.asarray(mesh.material, np.int64), speeds,
                                   np.r_[np.nan, [float(m["density"]) for m in properties]])
         for label, smallest in step.pop("smallest_by_material").items():
             report["materials"][names.get(label, f"material_{label}")]["smallest_time_step_s"] = smallest

@@ -1,3 +1,5 @@
+import json
+
 import numpy as np
 import pytest
 
@@ -413,3 +415,26 @@ def test_no_time_step_without_properties_for_every_label_or_with_an_inverted_ele
     mesh.points[centre] = [3.6, 2.6, 2.6]
     report = quality_report(mesh, load_config(), properties=props)
     assert report["inverted_elements"] >= 1 and "explicit_time_step" not in report
+
+
+def test_a_2d_model_in_plane_stress_or_strain_takes_that_wave_speed(tmp_path):
+    """Quads of 1 mm (length: area over longest edge, 1 mm): plane stress (CPS4, the 2D
+    default) sqrt(E / (rho (1 - nu^2))), plane strain (CPE4) the dilatational speed; the command
+    takes the deck's element type."""
+    from dicer.cli import main
+    from dicer.quality import wave_speeds
+
+    props = [{"name": "soft_tissue", "youngs_modulus": 1000.0, "poissons_ratio": 0.3, "density": 1e-9}]
+    mesh = voxel_mesh(np.ones((3, 2), np.uint8))
+    stress = quality_report(mesh, load_config(), properties=props)["explicit_time_step"]["smallest_s"]
+    strain = quality_report(mesh, load_config(), properties=props, plane_stress=False)["explicit_time_step"]
+    assert stress == pytest.approx(1.0 / np.sqrt(1000.0 / (1e-9 * 0.91)), rel=1e-5)
+    assert strain["smallest_s"] == pytest.approx(1.0 / wave_speeds(props)[1], rel=1e-5)
+    np.save(tmp_path / "s.npy", np.ones((3, 2), np.uint8))
+    assert main(["mesh", str(tmp_path / "s.npy"), "-o", str(tmp_path / "s.vtu"), "-q"]) == 0
+    for etype, expected in (("CPS4", stress), ("CPE4", strain["smallest_s"])):
+        assert main(["quality", str(tmp_path / "s.vtu"), "-o", str(tmp_path / f"{etype}.json"), "-q",
+                     "--set", f"export.element_type={etype}", "--set",
+                     "materials=[{name: soft_tissue, youngs_modulus: 1000, poissons_ratio: 0.3, density: 1e-9}]"]) == 0
+        report = json.loads((tmp_path / f"{etype}.json").read_text(encoding="utf-8"))
+        assert report["explicit_time_step"]["smallest_s"] == pytest.approx(expected, rel=1e-5)

@@ -51,7 +51,7 @@ STAGE_KEYS = {
     "fix": ("image.spacing",),
     "mesh": ("image.spacing",),
     "smooth": ("image.spacing", "image.allow_irregular_slices", "image.crop", "segment.method", "segment.thresholds"),
-    "quality": ("image.spacing",),
+    "quality": ("image.spacing", "export.element_type"),  # a 2D model's plane stress or strain: its time step
 }
 
 

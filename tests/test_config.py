@@ -114,7 +114,8 @@ def test_stage_settings_only_hold_their_sections():
     assert set(stage_settings(config, "export")) == {"materials", "export"}
     assert set(stage_settings(config, "mesh")) == {"materials", "mesh", "image"}  # names go into the mesh
     assert set(stage_settings(config, "mesh")["image"]) == {"spacing"}  # of a .npy volume
-    assert set(stage_settings(config, "quality")) == {"materials", "quality", "image"}  # the report names them
+    assert set(stage_settings(config, "quality")) == {"materials", "quality", "image", "export"}  # the report names them
+    assert set(stage_settings(config, "quality")["export"]) == {"element_type"}  # a 2D deck's plane stress or strain
     changed = load_config(sets=["export.thickness=3"])
     assert stage_settings(changed, "segment") == stage_settings(config, "segment")
     assert stage_settings(changed, "export") != stage_settings(config, "export")

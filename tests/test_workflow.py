@@ -136,9 +136,9 @@ def test_changing_export_settings_reruns_only_export_and_later(cohort):
         config["export"]["element_type"] = "C3D8R"
         config_path.write_text(yaml.safe_dump(config, sort_keys=False))
         jobs = _planned_jobs(_snakemake(cohort, "-n"))
-        # both patients: the .inp and .vtu exports; nothing upstream (quality reads the smoothed mesh);
-        # the cohort table, which shows the exports' seconds
-        assert jobs == {"export": 4, "cohort": 1, "all": 1}
+        # both patients: the .inp and .vtu exports and the quality report (a 2D deck's element type
+        # gives its time step plane stress or strain); nothing upstream; the cohort table
+        assert jobs == {"export": 4, "quality": 2, "cohort": 1, "all": 1}
 
         config = yaml.safe_load(original)
         config["segment"]["closing_radius"] = 2

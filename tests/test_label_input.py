@@ -339,6 +339,27 @@ def test_a_npy_label_volume_takes_image_spacing(tmp_path, dim):
     assert points.max(axis=0) == pytest.approx(np.multiply([18, 14, 6][:dim], spacing).tolist())
 
 
+def test_a_npy_label_volume_without_image_spacing_is_warned_of(tmp_path, caplog):
+    """A .npy label volume without image.spacing is meshed at 1 mm voxels, and the log says so
+    once per read, naming the file, as for a .npy scan (it was said of a scan only: a 0.5 mm
+    segmentation came out twice its size without a word)."""
+    a = np.zeros((12, 10, 8), np.uint8)
+    a[2:10, 2:8, 2:6] = 1
+    np.save(tmp_path / "seg.npy", a)
+    warning = "seg.npy: the file carries no voxel size; using 1 mm per axis (set image.spacing to override)"
+    caplog.set_level("WARNING", logger="dicer")
+    assert _cli("run", "--labels", tmp_path / "seg.npy", "-o", tmp_path / "out") == 0
+    assert caplog.text.count(warning) == 1
+    assert read_labels(tmp_path / "out" / "labels.nii.gz").spacing == pytest.approx([1.0, 1.0, 1.0])
+    for stage, output in (("mesh", "m.vtu"), ("fix", "f.nii.gz")):
+        caplog.clear()
+        assert _cli(stage, tmp_path / "seg.npy", "-o", tmp_path / output) == 0
+        assert caplog.text.count(warning) == 1, stage
+    caplog.clear()
+    assert read_labels(tmp_path / "seg.npy", spacing=0.5).spacing == pytest.approx([0.5, 0.5, 0.5])
+    assert "voxel size" not in caplog.text
+
+
 def test_run_labels_with_downsample_keeps_placement(labelled, tmp_path):
     src, config = labelled
     out = tmp_path / "out"

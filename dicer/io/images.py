@@ -1531,7 +1531,7 @@ def read_labels(path: str | os.PathLike, spacing=None) -> Volume:
     path : str or path-like
         .nii, .nii.gz, .nrrd, .mha/.mhd or .npy (indexed [x, y(, z)], origin 0).
     spacing : None, float or sequence of float, optional
-        Voxel size in mm (``image.spacing``): a .npy's (default 1 mm), or in place of
+        Voxel size in mm (``image.spacing``): a .npy's (default 1 mm, with a warning), or in place of
         a header spacing that is zero, negative or not finite (without it such a header
         is an error); a header's own spacing is kept, with a warning.
 
@@ -1550,8 +1550,6 @@ def read_labels(path: str | os.PathLike, spacing=None) -> Volume:
     if not path.exists():
         raise DicerError(f"{path}: no such file; check the path to the label volume")
     check_input_kind(path, labels=True)
-    if spacing is None and path.suffix.lower() == ".npy":
-        spacing = 1.0
     volume = _read_file(path, spacing, dtype=None, keep_direction=True)
     array = volume.array
     if array.dtype.kind == "f":

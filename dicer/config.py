@@ -51,7 +51,8 @@ STAGE_KEYS = {
     "fix": ("image.spacing",),
     "mesh": ("image.spacing",),
     "smooth": ("image.spacing", "image.allow_irregular_slices", "image.crop", "segment.method", "segment.thresholds"),
-    "quality": ("image.spacing", "export.element_type"),  # a 2D model's plane stress or strain: its time step
+    # a 2D model's plane stress or strain: its time step (the type is checked against the order)
+    "quality": ("image.spacing", "export.order", "export.element_type"),
 }
 
 

@@ -115,7 +115,8 @@ def test_stage_settings_only_hold_their_sections():
     assert set(stage_settings(config, "mesh")) == {"materials", "mesh", "image"}  # names go into the mesh
     assert set(stage_settings(config, "mesh")["image"]) == {"spacing"}  # of a .npy volume
     assert set(stage_settings(config, "quality")) == {"materials", "quality", "image", "export"}  # the report names them
-    assert set(stage_settings(config, "quality")["export"]) == {"element_type"}  # a 2D deck's plane stress or strain
+    # a 2D deck's plane stress or strain, and the order the element type is checked against
+    assert set(stage_settings(config, "quality")["export"]) == {"order", "element_type"}
     changed = load_config(sets=["export.thickness=3"])
     assert stage_settings(changed, "segment") == stage_settings(config, "segment")
     assert stage_settings(changed, "export") != stage_settings(config, "export")
@@ -132,6 +133,19 @@ def test_stage_settings_only_hold_their_sections():
         assert stage_settings(stiffer, stage) == stage_settings(config, stage)
     for stage in ("export", "quality"):
         assert stage_settings(stiffer, stage) != stage_settings(config, stage)
+
+
+@pytest.mark.parametrize("sets", [["export.order=2", "export.element_type=C3D20R"],
+                                  ["export.order=2", "export.element_type=CPS8"],
+                                  ["export.element_type=CPE4"]])
+def test_every_stage_takes_its_own_settings(sets):
+    """What the workflow passes a rule (--settings, the stage's sections and keys) is a
+    configuration the stage accepts: the quality rule had the element type without the order,
+    and refused C3D20R as order 1 for every patient."""
+    config = load_config(sets=sets)
+    for stage in ("segment", "labels", "downsample", "fix", "mesh", "merge", "smooth", "export", "quality"):
+        assert stage_settings(load_config(settings=stage_settings(config, stage)), stage) == \
+            stage_settings(config, stage), stage
 
 
 def test_config_hash_is_stable_and_sensitive():

@@ -974,19 +974,24 @@ def do_export(mesh_path: str, out: Path, config: dict, mesh=None, neighbours=Non
 def _check_materials_file(stage: str, path: str | None, mesh, mesh_path: str, config: dict) -> None:
     """Refuse a --materials file that lists fewer materials than the mesh's labels run to;
     warn where a mesh that carries its own names is read with another file's (quality and
-    surface take the mesh's names, export the file's properties by material number)."""
-    if not path or not mesh.n_cells:
+    surface take the mesh's names, export the file's properties by material number), and
+    where quality reads it with the config's other names (its time step takes their properties)."""
+    if not mesh.n_cells or not (path or stage == "quality"):
         return
     listed = [m["name"] for m in config["materials"]]
     top = int(mesh.material.max(initial=0))
-    if len(listed) < top:
+    if path and len(listed) < top:
         raise DicerError(f"{path}: lists {len(listed)} material(s) but {mesh_path} has material labels 1..{top}; "
                          "give the materials.json written with this mesh's labels (dicer labels --materials, "
                          "or the run's own)")
     if stage != "export" and mesh.names and any(a != b for a, b in zip(mesh.names, listed)):
-        log.warning("%s: the mesh names its materials %s, %s %s; the %s the mesh's names (give the "
-                    "materials.json written with this mesh's labels)", stage, brief_names(mesh.names), path,
-                    brief_names(listed[:len(mesh.names)]), "report takes" if stage == "quality" else "surfaces take")
+        # the report's explicit time step takes the properties by material number, as the decks do
+        what = ("report takes the mesh's names, and its explicit time step the properties of "
+                f"{brief_names(listed[:len(mesh.names)])} by material number, as the decks do"
+                if stage == "quality" else "surfaces take the mesh's names")
+        log.warning("%s: the mesh names its materials %s, %s %s; the %s (give the materials.json written with "
+                    "this mesh's labels%s)", stage, brief_names(mesh.names), path or "the config",
+                    brief_names(listed[:len(mesh.names)]), what, ", or a config with these materials" if not path else "")
 
 
 def _mesh_names(mesh, config: dict) -> list[str]:

@@ -438,3 +438,31 @@ def test_a_2d_model_in_plane_stress_or_strain_takes_that_wave_speed(tmp_path):
                      "materials=[{name: soft_tissue, youngs_modulus: 1000, poissons_ratio: 0.3, density: 1e-9}]"]) == 0
         report = json.loads((tmp_path / f"{etype}.json").read_text(encoding="utf-8"))
         assert report["explicit_time_step"]["smallest_s"] == pytest.approx(expected, rel=1e-5)
+
+
+def test_a_mesh_named_otherwise_than_the_config_is_warned_of(tmp_path, caplog):
+    """A label volume's mesh (label_3, label_7) read with the config's materials (soft_tissue,
+    bone): the report keeps the mesh's names, and its time step the config's properties by
+    material number, as the decks do; it said nothing, so a step put under label_3 was soft
+    tissue's (53 times slower waves than bone's). With the run's materials.json no word."""
+    from dicer.cli import main
+
+    labels = np.zeros((10, 8, 6), np.uint8)
+    labels[1:9, 1:7, 1:5] = 3
+    labels[3:6, 2:5, 2:4] = 7
+    np.save(tmp_path / "b.npy", labels)
+    out = tmp_path / "out"
+    assert main(["run", "--labels", str(tmp_path / "b.npy"), "-o", str(out), "-q"]) == 0
+    said = "the mesh names its materials label_3, label_7, the config soft_tissue, bone"
+    with caplog.at_level("WARNING"):
+        assert main(["quality", str(out / "smoothed.vtu"), "-o", str(tmp_path / "q.json")]) == 0
+    assert caplog.text.count(said) == 1
+    assert "explicit time step the properties of soft_tissue, bone by material number" in caplog.text
+    report = json.loads((tmp_path / "q.json").read_text(encoding="utf-8"))
+    assert report["explicit_time_step"]["material"] == "label_7"  # material 2: bone's properties
+    assert set(report["materials"]) == {"label_3", "label_7"}
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        assert main(["quality", str(out / "smoothed.vtu"), "-o", str(tmp_path / "q2.json"),
+                     "--materials", str(out / "materials.json")]) == 0
+    assert "names its materials" not in caplog.text

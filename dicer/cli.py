@@ -46,7 +46,7 @@ def _config(args) -> dict:
         sets.append(f"export.order={args.order}")
         named = "--set and --order" if args.set else "--order"
     config = load_config(args.config, sets, settings, sets_named=named,
-                         properties_used=getattr(args, "command", None) in ("run", "export", "labels"))
+                         properties_used=getattr(args, "command", None) in ("run", "export", "labels", "quality"))
     if getattr(args, "command", None) in ("smooth", "run"):  # the commands that smooth
         from dicer.config import unused_smooth_settings
 

@@ -397,3 +397,6 @@ def test_materials_listed_without_their_properties_are_said_by_the_commands_that
         "(youngs_modulus, poissons_ratio, density); they take the defaults (E 1000 MPa, nu 0.3, density 1e-09 "
         "t/mm^3), not the default config's soft_tissue and bone properties: give each listed material its "
         "youngs_modulus, poissons_ratio and density"]
+    caplog.clear()  # the quality report too: its explicit time step takes the properties
+    assert main(["quality", str(tmp_path / "none.vtu"), "-o", str(tmp_path / "q.json"), *sets]) == 2
+    assert len([r for r in caplog.records if said in r.getMessage()]) == 1

@@ -743,7 +743,8 @@ def _warn_of_short_pull(report: dict, settings: dict) -> None:
         elif pull["nodes_moved"] < 0.5 * pull["nodes_between_two_kinds"]:
             what += (f"smoothing put them: only {pull['nodes_moved']} had samples enough for a fit within {radius} "
                      "voxels (three per coefficient of the quadric; fewer lie in the window on elongated voxels or in "
-                     "2D): a larger smooth.label_surface_radius (3 or more) fits them")
+                     f"2D): a larger smooth.label_surface_radius (more than {pull['label_surface_radius']:g}) fits "
+                     "them")
         else:
             what += (f"smoothing put them (parts too small for a fit within {radius} voxels, or the quality guard held "
                      "them back); a smaller smooth.label_surface_radius fits smaller parts")

@@ -762,7 +762,7 @@ def test_a_short_fit_is_said_with_its_cause(tmp_path, caplog):
         said[name] = [m for m in (r.getMessage() for r in caplog.records) if "boundary nodes between" in m]
     assert len(said["radius"]) == 1 and said["radius"][0].endswith(
         "within smooth.label_surface_radius=2 voxels (three per coefficient of the quadric; fewer lie in the window on "
-        "elongated voxels or in 2D): a larger smooth.label_surface_radius (3 or more) fits them")
+        "elongated voxels or in 2D): a larger smooth.label_surface_radius (more than 2) fits them")
     assert len(said["still"]) == 1 and said["still"][0].endswith(
         "a coefficient of 0 (smooth.coefficient or smooth.coefficients) holds every boundary node where it is")
     assert said["each"] == said["still"]

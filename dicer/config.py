@@ -240,26 +240,53 @@ _EXPONENT_FLOAT = re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9
 _Loader.add_implicit_resolver("tag:yaml.org,2002:float", _EXPONENT_FLOAT, list("-+0123456789"))
 
 
-def exponent_floats(tree):
-    """A parsed configuration with the strings YAML 1.1 leaves of floats in exponent form without
-    a dot (``1e-9``) made numbers, as dicer's own reader reads them (Snakemake reads its config
-    files as YAML 1.1, so a config the command line takes failed the schema in the workflow).
+def workflow_config(files: list, items: dict) -> dict:
+    """The configuration Snakemake was given, read as dicer reads it.
+
+    Snakemake reads its config files as YAML 1.1: 041 is octal 33 (a labels.map key or a crop
+    bound changed without a word), 1e-9 a string, and a key given twice keeps its last value;
+    and its ``--config`` items' nested values as text. dicer reads 041 as 41 and 1e-9 as a
+    number, and refuses a repeated key naming its lines, so a cohort and ``dicer run --config``
+    give one model.
 
     Parameters
     ----------
-    tree : dict, list or scalar
-        As a YAML reader gives it.
+    files : list of str or Path
+        The config files in the order Snakemake merges them (the workflow's own, then
+        ``--configfile``'s).
+    items : dict
+        Snakemake's ``--config`` items as it parsed them; each text in them is read as one YAML
+        value, as ``--set`` reads it (``smooth={coefficient: 0.5}``: 0.5, not "0.5").
 
     Returns
     -------
-    The same structure, such strings as floats.
+    dict
+        The files merged in order, then the items.
+
+    Raises
+    ------
+    DicerError
+        A file dicer cannot read (bad YAML, a key given twice, not a mapping).
     """
+    merged: dict = {}
+    for path in files:
+        merged = deep_merge(merged, read_config_file(path))
+    return deep_merge(merged, _texts_read(items))
+
+
+def _texts_read(tree):
+    """``tree`` with each text read as one YAML scalar (a text that reads as a mapping or list
+    stays text: Snakemake parsed the structure already)."""
     if isinstance(tree, dict):
-        return {k: exponent_floats(v) for k, v in tree.items()}
+        return {k: _texts_read(v) for k, v in tree.items()}
     if isinstance(tree, list):
-        return [exponent_floats(v) for v in tree]
-    if isinstance(tree, str) and _EXPONENT_FLOAT.match(tree):
-        return float(tree.replace("_", ""))
+        return [_texts_read(v) for v in tree]
+    if isinstance(tree, str):
+        try:
+            value = _yaml(tree, "--config") if tree.strip() else None
+        except DicerError:  # not one YAML value: the text itself
+            return tree
+        return tree if isinstance(value, (dict, list)) else value
     return tree
 
 # integers as YAML 1.2 reads them: 010 is ten (YAML 1.1: octal eight, so a labels.map key

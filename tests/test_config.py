@@ -236,20 +236,33 @@ def test_exponent_floats_without_a_dot_are_numbers(tmp_path):
     assert load_config(sets=["segment.method=otsu"])["segment"]["method"] == "otsu"
 
 
-def test_the_workflow_reads_exponent_floats_as_dicer_does():
-    """Snakemake reads its config as YAML 1.1, where 1e-9 is a string: a config that dicer run
-    took failed the workflow's check ('1e-9' is not of type 'number')."""
+def test_the_workflow_reads_its_config_as_dicer_does(tmp_path):
+    """Snakemake reads its config as YAML 1.1, where 1e-9 is a string ('1e-9' is not of type
+    'number'), 041 octal 33 (a labels.map key went to another label) and a key given twice
+    keeps its last; its --config items' nested values come as text."""
     import yaml
 
-    from dicer.config import exponent_floats
+    from dicer.config import workflow_config
 
-    parsed = yaml.safe_load("materials:\n  - {name: bone, density: 1e-9, youngs_modulus: 2E+4}\nsmooth:\n"
-                            "  tolerance: 1e-5\nworkflow:\n  results: out1e5\n")
-    assert parsed["materials"][0]["density"] == "1e-9"  # YAML 1.1
-    fixed = exponent_floats(parsed)
-    assert fixed["materials"][0] == {"name": "bone", "density": 1e-9, "youngs_modulus": 2e4}
-    assert fixed["smooth"]["tolerance"] == 1e-5 and fixed["workflow"]["results"] == "out1e5"
-    assert load_config(settings=fixed)["materials"][0]["density"] == 1e-9
+    text = ("materials:\n  - {name: bone, density: 1e-9, youngs_modulus: 2E+4}\nsmooth:\n  tolerance: 1e-5\n"
+            "workflow:\n  results: out1e5\nlabels:\n  map: {041: bone, 010: bone}\n")
+    (tmp_path / "a.yaml").write_text(text)
+    parsed = yaml.safe_load(text)
+    assert parsed["materials"][0]["density"] == "1e-9" and set(parsed["labels"]["map"]) == {33, 8}  # YAML 1.1
+    read = workflow_config([tmp_path / "a.yaml"], {})
+    assert read["materials"][0] == {"name": "bone", "density": 1e-9, "youngs_modulus": 2e4}
+    assert read["smooth"]["tolerance"] == 1e-5 and read["workflow"]["results"] == "out1e5"
+    assert set(read["labels"]["map"]) == {41, 10}
+    assert load_config(settings=read)["materials"][0]["density"] == 1e-9
+    # later files and then the items win; the items' texts read as --set reads a value
+    (tmp_path / "b.yaml").write_text("smooth:\n  tolerance: 2e-5\n  pillow: true\n")
+    items = {"smooth": {"coefficient": "0.5", "pillow": "false"}, "segment": {"method": "otsu", "keep": "[1, 2]"}}
+    read = workflow_config([tmp_path / "a.yaml", tmp_path / "b.yaml"], items)
+    assert read["smooth"] == {"tolerance": 2e-5, "pillow": False, "coefficient": 0.5}
+    assert read["segment"] == {"method": "otsu", "keep": "[1, 2]"}  # structure is Snakemake's to parse
+    (tmp_path / "c.yaml").write_text("smooth:\n  coefficient: 0.6\nsmooth:\n  pillow: true\n")
+    with pytest.raises(DicerError, match=r"c.yaml: key 'smooth' is given twice \(lines 1 and 3\)"):
+        workflow_config([tmp_path / "c.yaml"], {})
 
 
 def test_an_element_type_of_another_order_is_refused_when_the_config_is_read():

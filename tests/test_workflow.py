@@ -3,6 +3,7 @@
 import json
 import os
 import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -285,6 +286,37 @@ def test_the_scan_goes_to_smooth_where_its_settings_read_it(tmp_path):
     for patient, given in (("head", True), ("relaxed", True), ("off", False)):
         assert ("--image" in smooth[patient]) is given, smooth[patient]
         assert "--labels" in smooth[patient]
+
+
+def test_the_workflow_reads_its_config_files_as_dicer_does(tmp_path):
+    """Snakemake reads config files as YAML 1.1: labels.map key 041 went to label 33 (the model
+    then differed from dicer run's with the same file, exit 0), a section given twice kept its
+    last (a pasted `smooth: {pillow: true}` dropped smooth.coefficient), and --config's nested
+    values came as text ("0.5" refused)."""
+    from test_label_input import seven_labels, write_nifti
+
+    workdir = _cohort(tmp_path)
+    (workdir / "data").mkdir()
+    labels = seven_labels()
+    labels[labels == 4] = 41
+    write_nifti(workdir / "data" / "aseg.nii.gz", labels)
+    (workdir / "config" / "patients.tsv").write_text("patient\timage\tlabels\nbrain\t\tdata/aseg.nii.gz\n")
+    (workdir / "extra.yaml").write_text("labels:\n  map: {041: bone, 2: soft_tissue, 3: soft_tissue}\n"
+                                         "  drop: [7, 8, 98, 99]\n")
+    files = [str(workdir / "config" / "config.yaml"), str(workdir / "extra.yaml")]
+    proc = _snakemake(workdir, "-n", "-p", "--configfile", *files, "--config", "smooth={coefficient: 0.5}")
+    out = proc.stdout + proc.stderr
+    commands = [shlex.split(line.partition("Shell command: ")[2]) for line in out.splitlines()
+                if line.startswith("Shell command: dicer ")]
+    settings = [json.loads(args[args.index("--settings") + 1]) for args in commands if "--settings" in args]
+    labels_settings = next(s for s in settings if "labels" in s)
+    assert labels_settings["labels"]["map"] == {"2": "soft_tissue", "3": "soft_tissue", "41": "bone"}
+    assert next(s for s in settings if "smooth" in s)["smooth"]["coefficient"] == 0.5
+    (workdir / "extra.yaml").write_text("smooth:\n  coefficient: 0.6\nsmooth:\n  pillow: true\n")
+    proc = _snakemake(workdir, "-n", "--configfile", *files, check=False)
+    assert proc.returncode != 0
+    assert f"{files[1]}: key 'smooth' is given twice (lines 1 and 3) in one section; keep one" in \
+        proc.stdout + proc.stderr
 
 
 def test_row_with_image_and_labels_is_refused(tmp_path):

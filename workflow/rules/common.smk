@@ -10,8 +10,8 @@ from pathlib import Path
 from snakemake.exceptions import WorkflowError
 
 from dicer.cli import downsample_applies
-from dicer.config import (deep_merge, exponent_floats, for_label_volume, load_config, parse_set, smoothing_reads_scan,
-                          stage_kwargs, stage_settings)
+from dicer.config import (deep_merge, for_label_volume, load_config, parse_set, smoothing_reads_scan, stage_kwargs,
+                          stage_settings, workflow_config)
 from dicer.errors import DicerError
 from dicer.io.images import check_input_kind
 from dicer.phantoms import PHANTOMS
@@ -20,8 +20,22 @@ from dicer.sheet import beside_sheet, read_sheet, scan_files
 # the rules call the `dicer` installed beside this Snakemake
 os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", "")
 
-config.update(exponent_floats(config))  # 1e-9 is a number to dicer's reader, a string to Snakemake's
+
+def _as_dicer_reads():
+    """The config files Snakemake read (this workflow's, unless --replace-workflow-config, then
+    --configfile's) and its --config items, read again as dicer reads them: Snakemake's YAML 1.1
+    gave labels.map key 041 to label 33 and kept the last of a key given twice, without a word."""
+    given = workflow.config_settings
+    cli = [str(path) for path in given.configfiles or ()]
+    own = [] if given.replace_workflow_config else [str(path) for path in workflow.configfiles
+                                                    if os.path.abspath(path) not in map(os.path.abspath, cli)]
+    return workflow_config(own + cli, dict(given.config or {}))
+
+
 try:
+    _read = _as_dicer_reads()
+    config.clear()
+    config.update(_read)
     CONFIG = load_config(settings=config, properties_used=True)
 except DicerError as exc:
     raise WorkflowError(str(exc) if str(exc).startswith("config") else f"config: {exc}")

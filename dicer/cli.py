@@ -45,8 +45,10 @@ def _config(args) -> dict:
     if getattr(args, "order", None) is not None:  # dicer export --order: read with the rest (the element type fits it)
         sets.append(f"export.order={args.order}")
         named = "--set and --order" if args.set else "--order"
-    config = load_config(args.config, sets, settings, sets_named=named,
-                         properties_used=getattr(args, "command", None) in ("run", "export", "labels", "quality"))
+    command = getattr(args, "command", None)
+    # the workflow's labels rule gives the names alone: its materials.json holds no properties
+    used = command in ("run", "export", "quality") or (command == "labels" and not _names_only(args))
+    config = load_config(args.config, sets, settings, sets_named=named, properties_used=used)
     if getattr(args, "command", None) in ("smooth", "run"):  # the commands that smooth
         from dicer.config import unused_smooth_settings
 

@@ -1,4 +1,5 @@
 import itertools
+import json
 import re
 
 import pytest
@@ -439,3 +440,17 @@ def test_materials_listed_without_their_properties_are_said_by_the_commands_that
     caplog.clear()  # the quality report too: its explicit time step takes the properties
     assert main(["quality", str(tmp_path / "none.vtu"), "-o", str(tmp_path / "q.json"), *sets]) == 2
     assert len([r for r in caplog.records if said in r.getMessage()]) == 1
+    # the workflow's labels rule gives the names alone (its materials.json holds no properties):
+    # its log said every label patient's materials took 1000 MPa
+    import numpy as np
+
+    from dicer.image import Volume
+    from dicer.io.images import write_image
+
+    write_image(Volume(np.pad(np.ones((4, 4, 4), np.uint8), 1), (1.0, 1.0, 1.0)), tmp_path / "seg.nii.gz")
+    for listed, warned in (([{"name": "soft_tissue"}, {"name": "bone"}], False),
+                           ([{"name": "soft_tissue", "youngs_modulus": 2.0}, {"name": "bone"}], True)):
+        caplog.clear()
+        assert main(["labels", str(tmp_path / "seg.nii.gz"), "-o", str(tmp_path / "l.nii.gz"), "--materials",
+                     str(tmp_path / "m.json"), "--settings", json.dumps({"materials": listed})]) == 0
+        assert any("properties left out of materials" in r.getMessage() for r in caplog.records) == warned

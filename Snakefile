@@ -30,7 +30,9 @@ rule all:
 
 onsuccess:
     say_skipped()
+    say_stale()
 
 
 onerror:
     say_skipped()
+    say_stale()

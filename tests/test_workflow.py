@@ -115,6 +115,21 @@ def test_skipped_patients_are_said_again_when_the_run_ends(cohort):
     assert summary in said and said.index(summary) > len(said) - 5  # at the end, after the jobs
 
 
+def test_model_files_the_exports_no_longer_name_are_said_when_the_run_ends(cohort):
+    """A model.feb left from a run with feb among workflow.exports is not updated after a change
+    of the config (it kept the old stiffness) and was left without a word."""
+    stale = cohort / "results" / "head" / "model.feb"
+    stale.write_text("<febio_spec/>\n")
+    try:
+        proc = _snakemake(cohort)
+        assert ("dicer workflow: results/head/model.feb: not among workflow.exports (inp, vtu), so the workflow no "
+                "longer updates them and they may describe an older model; delete them, or name their formats in "
+                "workflow.exports again") in proc.stderr
+    finally:
+        stale.unlink()
+    assert "not among workflow.exports" not in _snakemake(cohort).stderr
+
+
 def test_patient_overrides_apply(cohort):
     from dicer.io.images import read_labels
 

@@ -111,6 +111,28 @@ def say_skipped():
               "fix the paths, or set workflow.skip_missing: false to stop on them", file=sys.stderr)
 
 
+def stale_models():
+    """Model files in a patient's results folder of a format workflow.exports no longer names:
+    the workflow does not update them, so after a change of the config they describe an older
+    model (dicer run, which writes its folder afresh, leaves none)."""
+    from dicer.export.registry import BY_SUFFIX
+
+    made = {f".{ext}" for ext in CONFIG["workflow"]["exports"]}
+    return [path for patient in PATIENTS for suffix in BY_SUFFIX if suffix not in made
+            for path in [os.path.join(RESULTS, patient, f"model{suffix}")] if os.path.exists(path)]
+
+
+def say_stale():
+    """At the start (the main process: not each cluster job) and at the end of a run: the model
+    files the workflow no longer updates."""
+    stale = stale_models()
+    if stale:
+        shown = ", ".join(stale[:5]) + (f" and {len(stale) - 5} more" if len(stale) > 5 else "")
+        print(f"dicer workflow: {shown}: not among workflow.exports ({', '.join(CONFIG['workflow']['exports'])}), so "
+              "the workflow no longer updates them and they may describe an older model; delete them, or name their "
+              "formats in workflow.exports again", file=sys.stderr)
+
+
 SHEET = _read_patients(CONFIG["workflow"]["patients"])
 PATIENTS = {row["patient"]: row for number, row in SHEET if _available(row, number, CONFIG["workflow"]["patients"])}
 if SHEET and not PATIENTS:  # a run that makes nothing would end as a success
@@ -159,6 +181,8 @@ def _check_overrides():
 
 
 _check_overrides()
+if workflow.is_main_process:
+    say_stale()
 
 
 # what smooth reads of the scan's settings, which a label-volume patient's smoothing (no scan) does not

@@ -1655,6 +1655,13 @@ def _run_chain(args):
         _check_export_dims(config, dim, source)
     if args.labels is None:  # the segmentation's materials are the config's: a misspelt name stops here
         _check_priority(config, source)
+    if args.set:
+        from dicer.config import for_label_volume
+        from dicer.sheet import unread_settings
+
+        label_volume = args.labels is not None
+        for key, why in unread_settings(args.set, for_label_volume(config) if label_volume else config, label_volume):
+            log.warning("run: --set %s %s, so it changes nothing", key, why)
     if not args.skip_memory_check:
         _check_memory(source, config)
     with _output_lock(outdir), _logged_as_published(outdir.parent / f".{outdir.name}.partial", outdir):

@@ -130,6 +130,50 @@ def _unread_override(key: str, label_volume: bool) -> str | None:
     return None
 
 
+_LABEL_MORPHOLOGY = ("segment.opening_radius", "segment.closing_radius", "segment.keep", "segment.min_component_size")
+"""The segment section's morphology, which a label volume's downsampling applies again only
+with downsample.morphology: true."""
+
+
+def unread_settings(items, config: dict, label_volume: bool) -> list[tuple[str, str]]:
+    """The settings of ``items`` (``KEY=VALUE`` overrides or ``--set`` items) that no stage reads
+    under ``config``, each with why: the downsampling's own settings act only with a
+    downsample.factor other than 1 or a voxel_size; a label volume's morphology and vote
+    (segment.priority orders it, and breaks a plurality's ties) only when it is downsampled, its
+    morphology only with downsample.morphology: true (a floating part "dropped" by
+    segment.keep=largest stayed without a word).
+
+    Parameters
+    ----------
+    items : iterable of str
+    config : dict
+        Loaded (a label volume's by :func:`dicer.config.for_label_volume`).
+    label_volume : bool
+        A label volume made elsewhere, not a segmented scan.
+
+    Returns
+    -------
+    list of (key, reason)
+        In the items' order, a leaf each.
+    """
+    from dicer.cli import downsample_applies
+    from dicer.config import parse_set
+
+    downsampled, morphology = downsample_applies(config), config["downsample"]["morphology"]
+    found = []
+    for item in items:
+        for key in sorted(_leaves(parse_set(item.strip()))):
+            in_downsample = key.startswith("downsample.") and key not in ("downsample.factor", "downsample.voxel_size")
+            serves_it = label_volume and (key in _LABEL_MORPHOLOGY or key == "segment.priority")
+            if not downsampled and (in_downsample or serves_it):
+                found.append((key, "acts when the labels are downsampled, and these are not (downsample.factor 1, "
+                                   "no downsample.voxel_size)"))
+            elif downsampled and label_volume and key in _LABEL_MORPHOLOGY and not morphology:
+                found.append((key, "sets the morphology a label volume's downsampling applies only with "
+                                   "downsample.morphology: true"))
+    return found
+
+
 def _check_row(row: dict, schema: dict, where: str) -> None:
     """One row against the schema and the rules a schema cannot say, naming the column."""
     import jsonschema

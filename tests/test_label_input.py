@@ -360,6 +360,20 @@ def test_a_npy_label_volume_without_image_spacing_is_warned_of(tmp_path, caplog)
     assert "voxel size" not in caplog.text
 
 
+def test_run_labels_says_settings_it_does_not_read(tmp_path, caplog):
+    """--set segment.keep=largest on a label volume not downsampled drops no floating part: said."""
+    a = np.zeros((12, 10, 8), np.uint8)
+    a[1:6, 1:9, 1:7] = 1
+    a[8:11, 2:8, 2:6] = 1  # a second part
+    np.save(tmp_path / "seg.npy", a)
+    caplog.set_level("WARNING", logger="dicer")
+    assert _cli("run", "--labels", tmp_path / "seg.npy", "-o", tmp_path / "out", "--set", "image.spacing=[1, 1, 1]",
+                "--set", "segment.keep=largest", "--set", "fix.min_component_voxels=0") == 0
+    assert ("run: --set segment.keep acts when the labels are downsampled, and these are not (downsample.factor 1, "
+            "no downsample.voxel_size), so it changes nothing") in caplog.text
+    assert json.loads((tmp_path / "out" / "quality.json").read_text())["parts"]["model"]["parts"] == 2
+
+
 def test_run_labels_with_downsample_keeps_placement(labelled, tmp_path):
     src, config = labelled
     out = tmp_path / "out"

@@ -154,3 +154,29 @@ def test_a_scans_files_are_its_own_and_its_headers_data_file(tmp_path):
     (tmp_path / "head.mhd").write_bytes(b"NDims = 3\r\nElementDataFile = head.raw\r\n")  # Windows line ends
     assert names("head.mhd") == ["head.mhd", "head.raw"]
 
+
+
+@pytest.mark.parametrize("label_volume,sets,unread", [
+    # a label volume at factor 1 is not downsampled: its morphology, vote and their order unread
+    (True, ["segment.keep=largest", "downsample.min_fraction=0.6", "segment.priority=[bone]"],
+     ["segment.keep", "downsample.min_fraction", "segment.priority"]),
+    (True, ["downsample.factor=2", "segment.keep=largest", "segment.priority=[bone]"], ["segment.keep"]),
+    (True, ["downsample.factor=2", "downsample.morphology=true", "segment.keep=largest"], []),
+    (True, ["downsample={min_fraction: 0.6, factor: 1}"], ["downsample.min_fraction"]),
+    # a scan at factor 1: the downsample stage changes nothing; the segment stage reads segment
+    (False, ["downsample.min_fraction=0.6", "segment.keep=largest"], ["downsample.min_fraction"]),
+    (False, ["downsample.voxel_size=2", "downsample.min_fraction=0.6"], []),
+])
+def test_settings_no_stage_reads_are_found(label_volume, sets, unread):
+    """A floating part 'dropped' by segment.keep=largest on a label volume's row stayed in the
+    model, and the override was accepted without a word (dicer run --labels too)."""
+    from dicer.config import for_label_volume, load_config, parse_set
+    from dicer.sheet import unread_settings
+
+    config = {}
+    for item in sets:
+        config = {**config, **{k: {**config.get(k, {}), **v} for k, v in parse_set(item).items()}}
+    loaded = load_config(settings=config)
+    found = unread_settings(sets, for_label_volume(loaded) if label_volume else loaded, label_volume)
+    assert [key for key, _ in found] == unread
+    assert all("downsample" in why for _, why in found)  # names what would make it read

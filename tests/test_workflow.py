@@ -334,6 +334,25 @@ def test_the_workflow_reads_its_config_files_as_dicer_does(tmp_path):
         proc.stdout + proc.stderr
 
 
+def test_an_override_no_stage_of_the_patient_reads_stops_the_run(tmp_path):
+    """segment.keep=largest on a label volume's row (not downsampled) dropped no floating part,
+    and was accepted without a word."""
+    from test_label_input import seven_labels, write_nifti
+
+    workdir = _cohort(tmp_path)
+    (workdir / "data").mkdir()
+    write_nifti(workdir / "data" / "aseg.nii.gz", seven_labels())
+    sheet = workdir / "config" / "patients.tsv"
+    sheet.write_text("patient\timage\tlabels\toverrides\nbrain\t\tdata/aseg.nii.gz\tsegment.keep=largest\n")
+    proc = _snakemake(workdir, "-n", check=False)
+    assert proc.returncode != 0
+    assert ("config/patients.tsv, line 2: patient 'brain': override 'segment.keep' acts when the labels are "
+            "downsampled, and these are not (downsample.factor 1, no downsample.voxel_size), so it would change "
+            "nothing: remove it") in proc.stdout + proc.stderr
+    sheet.write_text(sheet.read_text().replace("segment.keep=largest", "downsample.factor=2"))
+    assert _snakemake(workdir, "-n", check=False).returncode == 0
+
+
 def test_row_with_image_and_labels_is_refused(tmp_path):
     workdir = _cohort(tmp_path)
     (workdir / "config" / "patients.tsv").write_text(

@@ -15,7 +15,7 @@ from dicer.config import (deep_merge, for_label_volume, load_config, parse_set, 
 from dicer.errors import DicerError
 from dicer.io.images import check_input_kind
 from dicer.phantoms import PHANTOMS
-from dicer.sheet import beside_sheet, read_sheet, scan_files
+from dicer.sheet import beside_sheet, read_sheet, scan_files, unread_settings
 
 # the rules call the `dicer` installed beside this Snakemake
 os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", "")
@@ -164,7 +164,11 @@ def patient_config(patient):
         loaded = load_config(settings=merged, properties_used=any(item.startswith("materials") for item in overrides))
     except DicerError as exc:
         raise WorkflowError(f"patient {patient}: {exc}")
-    return for_label_volume(loaded) if PATIENTS[patient].get("labels") else loaded
+    label_volume = bool(PATIENTS[patient].get("labels"))
+    loaded = for_label_volume(loaded) if label_volume else loaded
+    for key, why in unread_settings(overrides, loaded, label_volume):
+        raise WorkflowError(f"patient {patient!r}: override {key!r} {why}, so it would change nothing: remove it")
+    return loaded
 
 
 def _check_overrides():

@@ -352,21 +352,8 @@ def _npy_spacing(path, config: dict):
     return config["image"]["spacing"] if str(path).lower().endswith(".npy") else None
 
 
-def downsample_applies(config: dict) -> bool:
-    """Whether downsample.factor or downsample.voxel_size asks for a coarser grid: a label
-    volume given to 'dicer run --labels' is downsampled only then, since the stage's
-    morphology would otherwise reshape a segmentation the user already made."""
-    ds = config["downsample"]
-    return ds["voxel_size"] is not None or _coarsening(ds["factor"])
-
-
-def _coarsening(factor) -> bool:
-    """Whether downsample.factor (one value or one per axis) is other than 1 anywhere."""
-    return any(f != 1 for f in (factor if isinstance(factor, list) else [factor]))
-
-
 def do_downsample(labels_path: str, out: Path, config: dict):
-    from dicer.config import stage_kwargs
+    from dicer.config import _coarsening, stage_kwargs
     from dicer.downsample import downsample
     from dicer.io.images import read_labels
     from dicer.labels import write_mapped_labels
@@ -516,6 +503,8 @@ def _warn_of_fixed_volumes(before: np.ndarray, after: np.ndarray, config: dict, 
 
 def _finer_voxels(config: dict) -> str:
     """The advice for parts one voxel thin: less downsampling, or (at the scan's own voxels) a finer scan."""
+    from dicer.config import downsample_applies
+
     if downsample_applies(config):
         return "segment more finely or lower downsample.factor (or downsample.voxel_size)"
     return "a scan of finer voxels keeps them (or less downsampling, where these labels were downsampled)"
@@ -1543,6 +1532,8 @@ def _check_memory(source: str, config: dict, elements: int | None = None) -> Non
     machine or job may use: before any stage, for the stages that read the scan; with the
     mesh's ``elements`` (after fix), for the stages from the mesh on. The kernel would
     otherwise kill the run without a message."""
+    from dicer.config import downsample_applies
+
     import numpy as np
 
     from dicer.config import stage_kwargs
@@ -1758,6 +1749,8 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
     except OSError as exc:
         raise DicerError(f"{outdir}: cannot write to folder {outdir.parent} ({exc.strerror}); choose a writable "
                          "output folder") from None
+    from dicer.config import downsample_applies
+
     t0 = time.perf_counter()
     stage = "start"
 

@@ -1016,6 +1016,19 @@ def for_label_volume(config: dict) -> dict:
     return {**config, "downsample": {**section, **unset}}
 
 
+def downsample_applies(config: dict) -> bool:
+    """Whether downsample.factor or downsample.voxel_size asks for a coarser grid: a label
+    volume given to 'dicer run --labels' is downsampled only then, since the stage's
+    morphology would otherwise reshape a segmentation the user already made."""
+    ds = config["downsample"]
+    return ds["voxel_size"] is not None or _coarsening(ds["factor"])
+
+
+def _coarsening(factor) -> bool:
+    """Whether downsample.factor (one value or one per axis) is other than 1 anywhere."""
+    return any(f != 1 for f in (factor if isinstance(factor, list) else [factor]))
+
+
 def config_hash(config: dict) -> str:
     """Short SHA-256 of the canonical JSON of a configuration (provenance in exported decks).
 

@@ -156,8 +156,7 @@ def unread_settings(items, config: dict, label_volume: bool) -> list[tuple[str, 
     list of (key, reason)
         In the items' order, a leaf each.
     """
-    from dicer.cli import downsample_applies
-    from dicer.config import parse_set
+    from dicer.config import downsample_applies, parse_set
 
     downsampled, morphology = downsample_applies(config), config["downsample"]["morphology"]
     found = []

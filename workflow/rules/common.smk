@@ -9,9 +9,8 @@ from pathlib import Path
 
 from snakemake.exceptions import WorkflowError
 
-from dicer.cli import downsample_applies
-from dicer.config import (deep_merge, for_label_volume, load_config, parse_set, smoothing_reads_scan, stage_kwargs,
-                          stage_settings, workflow_config)
+from dicer.config import (deep_merge, downsample_applies, for_label_volume, load_config, parse_set,
+                          smoothing_reads_scan, stage_kwargs, stage_settings, workflow_config)
 from dicer.errors import DicerError
 from dicer.io.images import check_input_kind
 from dicer.phantoms import PHANTOMS

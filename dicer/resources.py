@@ -91,7 +91,8 @@ _CELLS = re.compile(rb'NumberOfCells="(\d+)"')
 
 
 def mesh_elements(path: str | os.PathLike) -> int:
-    """Element count of a VTU mesh, from its <Piece> header (the first 4 kB).
+    """Element count of a VTU mesh, from its <Piece> header (in the first 4 kB, or after the
+    field data that names each material: up to 64 MB for 65,535 of them).
 
     Parameters
     ----------
@@ -102,7 +103,14 @@ def mesh_elements(path: str | os.PathLike) -> int:
     int
     """
     with open(path, "rb") as handle:
-        match = _CELLS.search(handle.read(4096))
+        head = handle.read(4096)
+        match = _CELLS.search(head)
+        while match is None and len(head) < 1 << 26:
+            more = handle.read(1 << 20)
+            if not more:
+                break
+            head += more
+            match = _CELLS.search(head)
     if match is None:
         raise ValueError(f"{path}: no NumberOfCells in the VTU header")
     return int(match.group(1))

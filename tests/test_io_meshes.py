@@ -419,3 +419,23 @@ def test_stage_vtu_reads_as_meshio_reads_it(tmp_path, seed, dim, labels):
     assert np.array_equal(ref.cell_data["material"][0], m.material)
     assert list(ref.cell_data) == ["material", "scaled_jacobian", "edge_ratio"]
     assert np.array_equal(ref.cell_data["scaled_jacobian"][0], scaled_jacobian(m.points, m.cells).astype(np.float32))
+
+
+def test_a_mesh_of_tens_of_thousands_of_materials_reads_back(tmp_path):
+    """The field data names each material (about 100 bytes each): 12,000 of them put the data's
+    start past the first MiB, where the reader stopped looking, so every stage file of such an
+    atlas failed its own read-back check ('the VTU header is not dicer's')."""
+    from dicer.resources import mesh_elements
+
+    n = 20_000
+    labels = np.zeros((n, 2, 1), np.int32)
+    labels[:, 0, 0] = np.arange(1, n + 1)
+    mesh = voxel_mesh(labels)
+    mesh.names = [f"parcel_with_a_long_name_{i:07d}" for i in range(1, n + 1)]
+    path = tmp_path / "atlas.vtu"
+    write_mesh(mesh, path)  # read back and checked: it was refused
+    assert path.read_bytes().find(b"<AppendedData") > 1 << 20
+    back = read_mesh(path)
+    assert back.names == mesh.names and back.n_cells == n
+    assert np.array_equal(back.material, mesh.material)
+    assert mesh_elements(path) == n

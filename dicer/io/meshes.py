@@ -64,7 +64,11 @@ _APPENDED = b'<AppendedData encoding="raw">\n_'
 # the newline before </AppendedData> is needed: meshio's raw-data reader cuts the
 # data at the last newline before that tag
 _TAIL = b"\n</AppendedData>\n</VTKFile>\n"
-_HEAD_MAX = 1 << 20  # the XML before the data: a few dozen array tags, far below this
+_HEAD_MAX = 1 << 20  # the XML before the data: a few dozen array tags, and a material's name each
+_HEAD_LIMIT = 1 << 26
+"""A dicer VTU's XML is read on past _HEAD_MAX up to this: its field data names each material
+(about 100 bytes each; 65,535 materials of 32-character names take under 10 MB). Until it was,
+a mesh of more than about 11,000 materials failed its own read-back check."""
 
 MESHIO_CHECK_CELLS = 20_000
 """Meshes up to this many elements are also read back with meshio (the reference VTU
@@ -524,6 +528,9 @@ def _read_raw_vtu(path: Path, name: str, mapped: bool = False):
     with open(path, "rb") as f:
         head = f.read(_HEAD_MAX)
         at = head.find(_APPENDED)
+        while at < 0 and len(head) < min(file_size, _HEAD_LIMIT) and (_ROOT in head[:1024] or _ZLIB_ROOT in head[:1024]):
+            head += f.read(_HEAD_MAX)
+            at = head.find(_APPENDED, max(0, len(head) - 2 * _HEAD_MAX))
         compressed = at >= 0 and _ZLIB_ROOT in head[:at]
         if at < 0 or not (compressed or _ROOT in head[:at]):
             return None

@@ -496,6 +496,28 @@ def _validator() -> jsonschema.Draft202012Validator:
     return jsonschema.Draft202012Validator(_schema())
 
 
+_VALID_TEXTS: set[bytes] = set()
+"""Digests of configurations the schema passed: a command validates the same sections several
+times (each stage_kwargs call), and an atlas's thousands of materials took seconds each."""
+
+
+def _schema_errors(config: dict) -> list:
+    """The schema's errors of ``config``, the shallowest first; none for a configuration that
+    passed before (remembered by its canonical JSON)."""
+    try:
+        digest = hashlib.sha256(json.dumps(config, sort_keys=True, allow_nan=True).encode()).digest()
+    except (TypeError, ValueError):  # keys of mixed types, or values JSON has not: not remembered
+        digest = None
+    if digest is not None and digest in _VALID_TEXTS:
+        return []
+    errors = sorted(_validator().iter_errors(config), key=lambda e: (len(list(e.absolute_path)), e.message))
+    if not errors and digest is not None:
+        if len(_VALID_TEXTS) >= 256:
+            _VALID_TEXTS.clear()
+        _VALID_TEXTS.add(digest)
+    return errors
+
+
 def validate(config: dict, source: str = "config") -> dict:
     """Validate a configuration against the schema.
 
@@ -526,7 +548,7 @@ def validate(config: dict, source: str = "config") -> dict:
             shown = ", ".join(bad[:12]) + (f" and {len(bad) - 12} more" if len(bad) > 12 else "")
             raise DicerError(f"{source}: key 'labels.map': {len(bad)} names are not {_PATTERNS[_NAME.pattern]} "
                              f"({shown})")
-    errors = sorted(_validator().iter_errors(config), key=lambda e: (len(list(e.absolute_path)), e.message))
+    errors = _schema_errors(config)
     if errors:
         err = errors[0]
         if err.validator == "additionalProperties":

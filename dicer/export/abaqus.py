@@ -461,6 +461,7 @@ def _parse_abaqus(data, arr: np.ndarray, model=None) -> dict:
         raise FormatError(size - 1, "the file ends in the middle of this line (truncated?)")
     if arr[0] != ord("*"):
         raise FormatError(0, "a deck starts with a keyword line (*HEADING or *NODE)")
+    block_names: set[str] = set()
     out = {"heading": [], "points": None, "element_type": None, "blocks": [], "node_sets": {},
            "element_sets": {}, "surfaces": {}, "materials": {}, "sections": {}}
     conn, material, nxt, nodes_seen = [], None, 0, False
@@ -512,8 +513,9 @@ def _parse_abaqus(data, arr: np.ndarray, model=None) -> dict:
                 raise FormatError(s, f"element type {etype} after {out['element_type']} (dicer writes one type)")
             if not nodes_seen:
                 raise FormatError(s, "*ELEMENT before *NODE")
-            if any(name == n for n, _ in out["blocks"]):
+            if name in block_names:  # a set: an atlas's thousands of blocks
                 raise FormatError(s, f"a second element block for ELSET={name}")
+            block_names.add(name)
             out["element_type"] = etype
             k = NODES_PER_ELEMENT[ELEMENT_TYPES[etype]]
             sink = expected.elements(name, stride) if expected is not None else None

@@ -375,3 +375,13 @@ def test_block_end_finds_the_next_keyword_in_doubling_windows(records, star_at):
     expected = a + star_at * stride if star_at is not None else len(data)
     assert _block_end(data, arr, a, stride) == expected
     assert _block_end(data, arr, a, 0) == expected  # the byte scan agrees
+
+
+def test_abaqus_reader_refuses_a_second_block_of_one_element_set(tmp_path, mesh):
+    """Looked up in a set since an atlas's 12,000 blocks made the linear search most of the check."""
+    export_mesh(mesh, tmp_path / "m.inp", _config(2))
+    text = (tmp_path / "m.inp").read_text()
+    assert "ELSET=mat2" in text
+    (tmp_path / "twice.inp").write_text(text.replace("*ELEMENT, TYPE=C3D8, ELSET=mat2", "*ELEMENT, TYPE=C3D8, ELSET=mat1"))
+    with pytest.raises(DicerError, match=r"a second element block for ELSET=mat1"):
+        read_abaqus(tmp_path / "twice.inp")

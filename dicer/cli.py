@@ -1484,6 +1484,22 @@ def _check_export_dims(config: dict, dim: int, source: str) -> None:
                          f"{'s' if len(cannot) == 1 else ''} {dims} models only; drop {them} from workflow.exports")
 
 
+def _check_exodus_size(config: dict, labels, source: str) -> None:
+    """Refuse, before the meshing, an Exodus export that the fixed labels' materials and their
+    interfaces already make too large (it was refused after every stage and the other exports)."""
+    if not {"exo", "e"} & set(config["workflow"]["exports"]):
+        return
+    from dicer.export.exodus import _MAX_ARRAYS, least_arrays, too_many_arrays
+
+    variables, materials, pairs = least_arrays(labels, config["export"]["sets"])
+    if too_many_arrays(variables):
+        raise DicerError(f"{source}: the Exodus file of workflow.exports would hold at least {variables} netCDF "
+                         f"variables ({materials} materials' blocks and boundary sets, {pairs} interfaces' node and "
+                         f"side sets), above the {_MAX_ARRAYS} whose definition the netCDF library takes minutes "
+                         "over; export fewer sets (--set 'export.sets=[exterior]') or leave exo out of "
+                         "workflow.exports (an Abaqus deck, .inp, holds them)")
+
+
 def _input_dims(source: str) -> int | None:
     """2 or 3: the model's dimension from the input's header (an image of one voxel along an
     axis is read as 2D); None where the header does not tell (a folder of slices) or cannot be read."""
@@ -1782,6 +1798,7 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
         step("fix")
         fixed = do_fix(str(fix_input), path("labels_fixed.nii.gz"), config, path("fix.json"))
         _check_export_dims(config, fixed.ndim, source)  # before the meshing, not after it
+        _check_exodus_size(config, fixed, source)
         step("mesh")
         elements = int(fixed.size - (fixed == 0).sum())  # one element per labelled voxel
         del fixed

@@ -662,3 +662,40 @@ def test_febio_reader_on_mutated_files_refuses_or_agrees(tmp_path, mesh, order):
         _assert_same(got, _read_febio_tree(tmp_path / "f.feb"))
         agreed += 1
     assert agreed > 10  # digits changed in values: still files
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_least_netcdf_variables_counted_from_the_labels_bound_the_files(seed):
+    """dicer run refuses an Exodus file of too many variables after the fix, from the labels
+    (least_arrays); the bound may not exceed what the export then counts, or a file the export
+    would write would be refused."""
+    from dicer.export.exodus import least_arrays
+
+    rng = np.random.default_rng(seed)
+    labels = rng.integers(0, 6, (8, 7, 5)).astype(np.int32) * 7  # values 0, 7, ..., 35
+    mesh = voxel_mesh((labels // 7).astype(np.uint8))
+    names = [f"m{i}" for i in range(1, 6)]
+    for sets in (["planes", "materials", "interfaces", "exterior"], ["exterior"], ["interfaces"], []):
+        model = prepare_model(mesh, load_config(settings={"export": {"sets": sets},
+                                                          "materials": [{"name": n} for n in names]}))
+        counted = len(model.blocks()) + len(model.node_sets) + 2 * len(model.face_sets())
+        variables, materials, pairs = least_arrays(labels, sets)
+        assert materials == len(model.blocks()) and variables <= counted
+        if "interfaces" in sets:
+            assert pairs == len(model.interfaces)
+
+
+def test_dicer_run_refuses_an_exodus_file_of_too_many_variables_before_the_meshing(tmp_path, capsys):
+    """A 3,000-parcel atlas with exo among the exports ran every stage and the other exports,
+    then was refused; now it is refused at the fix, from its labels."""
+    from dicer.cli import main
+
+    labels = np.arange(1, 10_001, dtype=np.int32).reshape(100, 100, 1).repeat(2, axis=2)
+    np.save(tmp_path / "atlas.npy", labels)
+    args = ["run", "--labels", str(tmp_path / "atlas.npy"), "-o", str(tmp_path / "out"), "-q", "--set",
+            "workflow.exports=[exo]", "--set", "image.spacing=[1, 1, 1]", "--set", "fix.min_component_voxels=0",
+            "--set", "smooth.surface_from_labels=false"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "atlas.npy: the Exodus file of workflow.exports would hold at least" in err
+    assert "(10000 materials' blocks and boundary sets" in err and "stopped at the fix stage" in err

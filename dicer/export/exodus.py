@@ -111,6 +111,45 @@ def _id_table(nc, kind: str, count: str, ids, names: list[str]) -> None:
     _names(nc.createVariable(f"{kind}_names", "S1", (count, "len_name")), names)
 
 
+def least_arrays(labels: np.ndarray, sets) -> tuple[int, int, int]:
+    """The fewest netCDF variables an Exodus file of a model meshed from ``labels`` holds, known
+    before the mesh: a block per material, with ``sets`` (``export.sets``) a boundary node set
+    per material, an interface's node set and side set (two variables) per pair of materials
+    that share a face, the exterior's node set and side set. Pairs that touch at an edge only,
+    and the plane sets, add more.
+
+    Parameters
+    ----------
+    labels : (nx, ny[, nz]) int ndarray
+        The fixed label volume (0: background).
+    sets : sequence of str
+
+    Returns
+    -------
+    (variables, materials, pairs) : tuple of int
+    """
+    labels = np.asarray(labels)
+    present = np.unique(labels)
+    materials = int(np.count_nonzero(present))
+    codes = []
+    for axis in range(labels.ndim):
+        a = np.moveaxis(labels, axis, 0)
+        lo, hi = a[:-1].ravel().astype(np.int64), a[1:].ravel().astype(np.int64)
+        touch = (lo > 0) & (hi > 0) & (lo != hi)
+        first, second = np.minimum(lo[touch], hi[touch]), np.maximum(lo[touch], hi[touch])
+        codes.append(first << 32 | second)
+    pairs = int(np.unique(np.concatenate(codes)).size) if codes else 0
+    sets = set(sets)
+    variables = (materials + (materials if "materials" in sets else 0) + (3 * pairs if "interfaces" in sets else 0)
+                 + (3 if "exterior" in sets else 0))
+    return variables, materials, pairs
+
+
+def too_many_arrays(variables: int) -> bool:
+    """Whether an Exodus file of this many netCDF variables is refused (``_MAX_ARRAYS``)."""
+    return variables > _MAX_ARRAYS
+
+
 def write_exodus(model, path: str | Path) -> None:
     """Write a SolverModel as an Exodus II file (see the module notes).
 

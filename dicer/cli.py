@@ -1561,11 +1561,9 @@ def _check_memory(source: str, config: dict, elements: int | None = None) -> Non
     machine or job may use: before any stage, for the stages that read the scan; with the
     mesh's ``elements`` (after fix), for the stages from the mesh on. The kernel would
     otherwise kill the run without a message."""
-    from dicer.config import downsample_applies
-
     import numpy as np
 
-    from dicer.config import stage_kwargs
+    from dicer.config import downsample_applies, stage_kwargs
     from dicer.downsample import reduction_factor
     from dicer.resources import machine_memory_mb, run_peak_mb, scan_header, voxel_reduction
 
@@ -1766,6 +1764,8 @@ def _output_lock(outdir: Path):
 
 def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
     """The stages of ``dicer run`` into a staging folder, published into ``outdir`` at the end."""
+    from dicer.config import downsample_applies
+
     # every stage writes into a staging folder beside OUTDIR; only a finished run moves its
     # files into OUTDIR (an existing OUTDIR keeps its old files until then), and a failed
     # one leaves its finished, checked stage files in OUTDIR.failed for a look or a report
@@ -1778,8 +1778,6 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
     except OSError as exc:
         raise DicerError(f"{outdir}: cannot write to folder {outdir.parent} ({exc.strerror}); choose a writable "
                          "output folder") from None
-    from dicer.config import downsample_applies
-
     t0 = time.perf_counter()
     stage = "start"
 

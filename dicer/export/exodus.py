@@ -134,10 +134,10 @@ def least_arrays(labels: np.ndarray, sets) -> tuple[int, int, int]:
     codes = []
     for axis in range(labels.ndim):
         a = np.moveaxis(labels, axis, 0)
-        lo, hi = a[:-1].ravel().astype(np.int64), a[1:].ravel().astype(np.int64)
-        touch = (lo > 0) & (hi > 0) & (lo != hi)
-        first, second = np.minimum(lo[touch], hi[touch]), np.maximum(lo[touch], hi[touch])
-        codes.append(first << 32 | second)
+        lo, hi = a[:-1], a[1:]
+        touch = (lo != hi) & (lo > 0) & (hi > 0)  # in the labels' own type: only the pairs widened
+        first, second = lo[touch].astype(np.int64), hi[touch].astype(np.int64)
+        codes.append(np.minimum(first, second) << 32 | np.maximum(first, second))
     pairs = int(np.unique(np.concatenate(codes)).size) if codes else 0
     sets = set(sets)
     variables = (materials + (materials if "materials" in sets else 0) + (3 * pairs if "interfaces" in sets else 0)

@@ -271,20 +271,45 @@ def workflow_config(files: list, items: dict) -> dict:
     merged: dict = {}
     for path in files:
         merged = deep_merge(merged, read_config_file(path))
-    return deep_merge(merged, _texts_read(items))
+    return deep_merge(merged, _texts_read(items, _schema()))
 
 
-def _texts_read(tree):
-    """``tree`` with each text read as one YAML scalar (a text that reads as a mapping or list
-    stays text: Snakemake parsed the structure already)."""
+def _takes_text(node: dict) -> bool:
+    """Whether a schema node accepts a string (a name, a path, a method): its text is kept."""
+    kinds = node.get("type")
+    if kinds == "string" or (isinstance(kinds, list) and "string" in kinds):
+        return True
+    if any(isinstance(v, str) for v in node.get("enum", ())):
+        return True
+    return any(_takes_text(branch) for key in ("oneOf", "anyOf") for branch in node.get(key, ()))
+
+
+def _sub_node(node: dict, key=None) -> dict:
+    """The schema node of a mapping's ``key`` (None: an array's items), through oneOf/anyOf."""
+    for branch in [node, *node.get("oneOf", ()), *node.get("anyOf", ())]:
+        if key is None and isinstance(branch.get("items"), dict):
+            return branch["items"]
+        if key is not None and key in branch.get("properties", {}):
+            return branch["properties"][key]
+        if key is not None and isinstance(branch.get("additionalProperties"), dict):
+            return branch["additionalProperties"]
+    return {}
+
+
+def _texts_read(tree, node: dict):
+    """``tree`` (Snakemake's --config items: their nested values as text) with each text where
+    the schema takes no text read as one YAML value (``"0.5"``: 0.5; ``"041"``: 41), and each
+    key of digits a number, as dicer reads a labels.map key (``041``: label 41). A text the
+    schema takes (a results folder ``"041"``, ``"out #1"``) stays as given."""
     if isinstance(tree, dict):
-        return {k: _texts_read(v) for k, v in tree.items()}
+        return {(int(k, 10) if isinstance(k, str) and k.isdigit() else k): _texts_read(v, _sub_node(node, k))
+                for k, v in tree.items()}
     if isinstance(tree, list):
-        return [_texts_read(v) for v in tree]
-    if isinstance(tree, str):
+        return [_texts_read(v, _sub_node(node)) for v in tree]
+    if isinstance(tree, str) and not _takes_text(node):
         try:
             value = _yaml(tree, "--config") if tree.strip() else None
-        except DicerError:  # not one YAML value: the text itself
+        except DicerError:  # not one YAML value: the text itself, for the schema to name
             return tree
         return tree if isinstance(value, (dict, list)) else value
     return tree
@@ -306,6 +331,11 @@ def _construct_int(loader, node) -> int:
 
 
 _Loader.add_constructor("tag:yaml.org,2002:int", _construct_int)
+# dates as YAML 1.2 reads them: text (YAML 1.1: a date, which no key takes and which the error
+# message could not print: workflow.results=2024-01-05 ended in a traceback)
+_Loader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers if tag != "tag:yaml.org,2002:timestamp"]
+    for first, resolvers in _Loader.yaml_implicit_resolvers.items()}
 
 
 def _yaml(text: str, source: str):
@@ -357,6 +387,23 @@ def parse_set(item: str, source: str = "--set") -> dict:
     return out
 
 
+def _json_config(text: str, path) -> dict | None:
+    """A config file written as JSON (which YAML reads too, but not with tabs), or None when the
+    text is not JSON; a key given twice is refused as in YAML."""
+    def pairs(items):
+        seen = {}
+        for key, value in items:
+            if key in seen:
+                raise DicerError(f"{path}: key '{key}' is given twice in one section; keep one")
+            seen[key] = value
+        return seen
+
+    try:
+        return json.loads(text, object_pairs_hook=pairs)
+    except json.JSONDecodeError:
+        return None
+
+
 def read_config_file(path: str | Path) -> dict:
     """Read a YAML configuration file (no defaults, no validation).
 
@@ -390,7 +437,9 @@ def read_config_file(path: str | Path) -> dict:
         line = raw[: exc.start].count(b"\n") + 1
         raise DicerError(f"{path}: not UTF-8 text (byte {exc.start + 1}, line {line}); save the config file "
                          "as UTF-8") from None
-    data = _yaml(text, str(path))
+    data = _json_config(text, path) if text.lstrip().startswith("{") else None
+    if data is None:
+        data = _yaml(text, str(path))
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -501,13 +550,24 @@ _VALID_TEXTS: set[bytes] = set()
 times (each stage_kwargs call), and an atlas's thousands of materials took seconds each."""
 
 
+def _plain_json(tree) -> bool:
+    """Whether ``tree`` is made of dicts with text keys, lists and scalars only."""
+    if isinstance(tree, dict):
+        return all(isinstance(k, str) and _plain_json(v) for k, v in tree.items())
+    if isinstance(tree, list):
+        return all(_plain_json(v) for v in tree)
+    return tree is None or isinstance(tree, (str, int, float))
+
+
 def _schema_errors(config: dict) -> list:
     """The schema's errors of ``config``, the shallowest first; none for a configuration that
     passed before (remembered by its canonical JSON)."""
-    try:
-        digest = hashlib.sha256(json.dumps(config, sort_keys=True, allow_nan=True).encode()).digest()
-    except (TypeError, ValueError):  # keys of mixed types, or values JSON has not: not remembered
-        digest = None
+    digest = None
+    if _plain_json(config):  # other trees (tuples, keys that are not text) dump like plain ones
+        try:
+            digest = hashlib.sha256(json.dumps(config, sort_keys=True, allow_nan=True).encode()).digest()
+        except (TypeError, ValueError):  # values JSON has not: not remembered
+            digest = None
     if digest is not None and digest in _VALID_TEXTS:
         return []
     errors = sorted(_validator().iter_errors(config), key=lambda e: (len(list(e.absolute_path)), e.message))

@@ -110,7 +110,7 @@ def mesh_elements(path: str | os.PathLike) -> int:
             if not more:
                 break
             head += more
-            match = _CELLS.search(head)
+            match = _CELLS.search(head, max(0, len(head) - len(more) - 64))  # the new part, and a tag cut
     if match is None:
         raise ValueError(f"{path}: no NumberOfCells in the VTU header")
     return int(match.group(1))

@@ -264,6 +264,32 @@ def test_the_workflow_reads_its_config_as_dicer_does(tmp_path):
     (tmp_path / "c.yaml").write_text("smooth:\n  coefficient: 0.6\nsmooth:\n  pillow: true\n")
     with pytest.raises(DicerError, match=r"c.yaml: key 'smooth' is given twice \(lines 1 and 3\)"):
         workflow_config([tmp_path / "c.yaml"], {})
+    # a text where the schema takes text stays as given (Snakemake took the quotes off): a results
+    # folder "041", "out #1" or a date; a labels.map key of digits is a label, as --set reads it
+    items = {"workflow": {"results": "041", "exports": ["inp", "exo"]}, "labels": {"map": {"041": "bone"}},
+             "materials": [{"name": "yes", "density": "1e-9"}]}
+    read = workflow_config([], items)
+    assert read["workflow"] == {"results": "041", "exports": ["inp", "exo"]}
+    assert read["labels"]["map"] == {41: "bone"} and read["materials"] == [{"name": "yes", "density": 1e-9}]
+    for folder in ("out #1", "2024-01-05", "null"):
+        assert workflow_config([], {"workflow": {"results": folder}})["workflow"]["results"] == folder
+    # a JSON file (Snakemake reads JSON first): tabs are JSON's, not YAML's
+    (tmp_path / "d.json").write_text(json.dumps({"smooth": {"coefficient": 0.5}}, indent="\t"))
+    assert workflow_config([tmp_path / "d.json"], {}) == {"smooth": {"coefficient": 0.5}}
+    (tmp_path / "e.json").write_text('{"smooth": {"coefficient": 0.5}, "smooth": {"pillow": true}}')
+    with pytest.raises(DicerError, match=r"e.json: key 'smooth' is given twice in one section"):
+        workflow_config([tmp_path / "e.json"], {})
+
+
+def test_a_date_like_value_is_text_and_a_validated_tree_is_not_mistaken_for_another():
+    """YAML 1.1 read 2024-01-05 as a date, which the error message could not print (a traceback);
+    and the schema's remembered passes keyed a tuple like a list, a key True like "true"."""
+    assert load_config(sets=["workflow.results=2024-01-05"])["workflow"]["results"] == "2024-01-05"
+    with pytest.raises(DicerError, match="smooth.coefficient"):
+        load_config(sets=["smooth.coefficient=2024-01-05"])
+    validate({"image": {"spacing": [1.0, 1.0, 1.0]}})
+    with pytest.raises(DicerError, match="image.spacing"):
+        validate({"image": {"spacing": (1.0, 1.0, 1.0)}})
 
 
 def test_an_element_type_of_another_order_is_refused_when_the_config_is_read():

@@ -327,6 +327,16 @@ def test_the_workflow_reads_its_config_files_as_dicer_does(tmp_path):
     labels_settings = next(s for s in settings if "labels" in s)
     assert labels_settings["labels"]["map"] == {"2": "soft_tissue", "3": "soft_tissue", "41": "bone"}
     assert next(s for s in settings if "smooth" in s)["smooth"]["coefficient"] == 0.5
+    # --replace-workflow-config alone replaces nothing (Snakemake's rule): the file's 0.7 holds
+    config_path = workdir / "config" / "config.yaml"
+    config = yaml.safe_load(config_path.read_text())
+    config["smooth"]["coefficient"] = 0.7
+    config_path.write_text(yaml.safe_dump(config, sort_keys=False))
+    out = _snakemake(workdir, "-n", "-p", "--replace-workflow-config").stdout
+    smooth = next(json.loads(args[args.index("--settings") + 1]) for args in (
+        shlex.split(line.partition("Shell command: ")[2]) for line in out.splitlines()
+        if line.startswith("Shell command: dicer smooth")))
+    assert smooth["smooth"]["coefficient"] == 0.7
     (workdir / "extra.yaml").write_text("smooth:\n  coefficient: 0.6\nsmooth:\n  pillow: true\n")
     proc = _snakemake(workdir, "-n", "--configfile", *files, check=False)
     assert proc.returncode != 0

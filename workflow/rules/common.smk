@@ -26,8 +26,10 @@ def _as_dicer_reads():
     gave labels.map key 041 to label 33 and kept the last of a key given twice, without a word."""
     given = workflow.config_settings
     cli = [str(path) for path in given.configfiles or ()]
-    own = [] if given.replace_workflow_config else [str(path) for path in workflow.configfiles
-                                                    if os.path.abspath(path) not in map(os.path.abspath, cli)]
+    # Snakemake replaces the workflow's own file only when a --configfile or --config is given
+    replaced = given.replace_workflow_config and bool(cli or given.config)
+    own = [] if replaced else [str(path) for path in workflow.configfiles
+                               if os.path.abspath(path) not in map(os.path.abspath, cli)]
     return workflow_config(own + cli, dict(given.config or {}))
 
 
@@ -114,10 +116,11 @@ def stale_models():
     """Model files in a patient's results folder of a format workflow.exports no longer names:
     the workflow does not update them, so after a change of the config they describe an older
     model (dicer run, which writes its folder afresh, leaves none)."""
-    from dicer.export.registry import BY_SUFFIX
+    from dicer.config import schema
 
-    made = {f".{ext}" for ext in CONFIG["workflow"]["exports"]}
-    return [path for patient in PATIENTS for suffix in BY_SUFFIX if suffix not in made
+    nameable = schema()["properties"]["workflow"]["properties"]["exports"]["items"]["enum"]
+    made = set(CONFIG["workflow"]["exports"])
+    return [path for patient in PATIENTS for suffix in (f".{ext}" for ext in nameable if ext not in made)
             for path in [os.path.join(RESULTS, patient, f"model{suffix}")] if os.path.exists(path)]
 
 

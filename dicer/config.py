@@ -1101,7 +1101,17 @@ def for_label_volume(config: dict) -> dict:
 def downsample_applies(config: dict) -> bool:
     """Whether downsample.factor or downsample.voxel_size asks for a coarser grid: a label
     volume given to 'dicer run --labels' is downsampled only then, since the stage's
-    morphology would otherwise reshape a segmentation the user already made."""
+    morphology would otherwise reshape a segmentation the user already made.
+
+    Parameters
+    ----------
+    config : dict
+        A loaded configuration (its ``downsample`` section).
+
+    Returns
+    -------
+    bool
+    """
     ds = config["downsample"]
     return ds["voxel_size"] is not None or _coarsening(ds["factor"])
 

@@ -146,7 +146,17 @@ def least_arrays(labels: np.ndarray, sets) -> tuple[int, int, int]:
 
 
 def too_many_arrays(variables: int) -> bool:
-    """Whether an Exodus file of this many netCDF variables is refused (``_MAX_ARRAYS``)."""
+    """Whether an Exodus file of this many netCDF variables is refused (``_MAX_ARRAYS``).
+
+    Parameters
+    ----------
+    variables : int
+        Element blocks and node sets, and two per side set.
+
+    Returns
+    -------
+    bool
+    """
     return variables > _MAX_ARRAYS
 
 

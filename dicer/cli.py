@@ -417,7 +417,7 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
 
     from dicer.config import stage_kwargs
     from dicer.connectivity import fix_stage
-    from dicer.image import Volume
+    from dicer.image import Volume, enclosed_voids
     from dicer.io.images import read_labels
     from dicer.labels import write_mapped_labels
 
@@ -454,6 +454,14 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
                         "are rewritten by the connectivity fixes (the type C rounds fill or thicken them), and the "
                         "model is not the segmentation; %s", report["changed_voxels"], labelled,
                         100.0 * report["changed_voxels"] / labelled, _finer_voxels(config))
+        voids, walls = enclosed_voids(fixed)
+        if voids:  # their walls are exterior faces: a pressure on EXTERIOR loads them too
+            log.warning("fix: the model encloses %d void(s) (background with no way out of the image: a dropped "
+                        "label, a sinus, a marrow cavity; %d voxel faces of wall); the decks' EXTERIOR set and "
+                        "surface hold their walls beside the outer surface, so a pressure on EXTERIOR presses "
+                        "on them too: fill them (a segmentation or labels.map that gives them a material) or leave their "
+                        "faces out of the load",
+                        voids, walls)
         if not report["converged"] and any(report["remaining"].values()):
             log.warning("fix: stopped at a round cap with %s left; raise fix.max_iterations or "
                         "fix.max_type_c_rounds", report["remaining"])

@@ -108,3 +108,36 @@ def count_labels(array: np.ndarray, minlength: int = 0) -> np.ndarray:
         else:
             counts[:part.size] += part
     return counts
+
+
+def enclosed_voids(labels: np.ndarray) -> tuple[int, int]:
+    """The background regions a label volume encloses: no way out of the image through
+    background (6-connected; beyond the image counts as outside).
+
+    A mesh of the volume has their walls among its exterior faces, as its outer surface.
+
+    Parameters
+    ----------
+    labels : (nx, ny[, nz]) int ndarray
+        0 background.
+
+    Returns
+    -------
+    (voids, wall_faces) : tuple of int
+        The enclosed regions, and the voxel faces between them and the labelled voxels.
+    """
+    from scipy import ndimage
+
+    solid = np.asarray(labels) != 0
+    inner = (slice(1, -1),) * solid.ndim
+    regions, _ = ndimage.label(np.pad(~solid, 1, constant_values=True))
+    outside = regions[(0,) * solid.ndim]
+    regions = regions[inner]
+    enclosed = (regions != outside) & (regions > 0)
+    if not enclosed.any():
+        return 0, 0
+    walls = 0
+    for axis in range(solid.ndim):
+        s, e = np.moveaxis(solid, axis, 0), np.moveaxis(enclosed, axis, 0)
+        walls += int(np.count_nonzero(s[:-1] & e[1:])) + int(np.count_nonzero(e[:-1] & s[1:]))
+    return int(np.unique(regions[enclosed]).size), walls

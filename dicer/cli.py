@@ -1510,10 +1510,10 @@ def _check_exodus_size(config: dict, labels, source: str) -> None:
     interfaces already make too large (it was refused after every stage and the other exports)."""
     if not {"exo", "e"} & set(config["workflow"]["exports"]):
         return
-    from dicer.export.exodus import _MAX_ARRAYS, least_arrays, too_many_arrays
+    from dicer.export.exodus import _MAX_ARRAYS, least_arrays
 
     variables, materials, pairs = least_arrays(labels, config["export"]["sets"])
-    if too_many_arrays(variables):
+    if variables > _MAX_ARRAYS:  # the export's own limit
         raise DicerError(f"{source}: the Exodus file of workflow.exports would hold at least {variables} netCDF "
                          f"variables ({materials} materials' blocks and boundary sets, {pairs} interfaces' node and "
                          f"side sets), above the {_MAX_ARRAYS} whose definition the netCDF library takes minutes "

@@ -145,21 +145,6 @@ def least_arrays(labels: np.ndarray, sets) -> tuple[int, int, int]:
     return variables, materials, pairs
 
 
-def too_many_arrays(variables: int) -> bool:
-    """Whether an Exodus file of this many netCDF variables is refused (``_MAX_ARRAYS``).
-
-    Parameters
-    ----------
-    variables : int
-        Element blocks and node sets, and two per side set.
-
-    Returns
-    -------
-    bool
-    """
-    return variables > _MAX_ARRAYS
-
-
 def write_exodus(model, path: str | Path) -> None:
     """Write a SolverModel as an Exodus II file (see the module notes).
 

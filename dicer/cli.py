@@ -455,13 +455,10 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
                         "model is not the segmentation; %s", report["changed_voxels"], labelled,
                         100.0 * report["changed_voxels"] / labelled, _finer_voxels(config))
         voids, walls = enclosed_voids(fixed)
-        if voids:  # their walls are exterior faces: a pressure on EXTERIOR loads them too
-            log.warning("fix: the model encloses %d void(s) (background with no way out of the image: a dropped "
-                        "label, a sinus, a marrow cavity; %d voxel faces of wall); the decks' EXTERIOR set and "
-                        "surface hold their walls beside the outer surface, so a pressure on EXTERIOR presses "
-                        "on them too: fill them (a segmentation or labels.map that gives them a material) or leave their "
-                        "faces out of the load",
-                        voids, walls)
+        if voids:  # a dropped label may be one: said, and the decks hold their walls apart
+            log.info("fix: the model encloses %d void(s) (background with no way out of the image: a dropped "
+                     "label, a sinus, a marrow cavity; %d voxel faces of wall); the decks hold their walls in the "
+                     "set and surface CAVITIES, apart from the outer surface EXTERIOR", voids, walls)
         if not report["converged"] and any(report["remaining"].values()):
             log.warning("fix: stopped at a round cap with %s left; raise fix.max_iterations or "
                         "fix.max_type_c_rounds", report["remaining"])

@@ -774,7 +774,8 @@ def name_clash(names: list[str], sets=SET_KINDS) -> str | None:
 
     Solvers read names in upper case, so names are compared that way. An export names
     each material's element set and material after it, the faces of the exterior
-    EXTERIOR_S1..S6 (the surface and node set EXTERIOR) and, by ``sets``, the node sets ``<a>_BOUNDARY`` (materials) and
+    EXTERIOR_S1..S6 (the surface and node set EXTERIOR), of enclosed voids' walls CAVITIES_S1..S6
+    (the surface and node set CAVITIES) and, by ``sets``, the node sets ``<a>_BOUNDARY`` (materials) and
     ``<a>_<b>`` for materials a before b (interfaces). Two of those clash when one
     string splits two ways at its underscores, as ``a_b`` + ``c`` and ``a`` + ``b_c``
     do; that is looked up through the names' prefixes, so the work follows the
@@ -800,7 +801,8 @@ def name_clash(names: list[str], sets=SET_KINDS) -> str | None:
         label[up] = i
     if "exterior" in sets:
         for up, i in label.items():
-            if up in {"EXTERIOR"} | {f"EXTERIOR_S{s}" for s in range(1, 7)}:
+            if up in {f"{surface}{tail}" for surface in ("EXTERIOR", "CAVITIES")
+                      for tail in ("", *(f"_S{s}" for s in range(1, 7)))}:
                 return f"name {names[i - 1]} is the name of an exterior face set; rename it"
     bound, inter = "materials" in sets, "interfaces" in sets
     if not inter:

@@ -114,7 +114,8 @@ def enclosed_voids(labels: np.ndarray) -> tuple[int, int]:
     """The background regions a label volume encloses: no way out of the image through
     background (6-connected; beyond the image counts as outside).
 
-    A mesh of the volume has their walls among its exterior faces, as its outer surface.
+    A mesh of the volume has their walls among its free faces; the exports hold them in the
+    set CAVITIES, apart from the outer surface EXTERIOR.
 
     Parameters
     ----------

@@ -117,6 +117,29 @@ def test_exterior_surface_takes_a_pressure(tmp_path):
     assert ux.size and np.allclose(ux, strain * lx, rtol=0.01)
 
 
+def test_a_pressure_on_the_exterior_leaves_the_cavity_walls_unloaded(tmp_path):
+    """A hollow block: pressed on EXTERIOR and CAVITIES it shrinks as a solid block does
+    (hydrostatic); pressed on EXTERIOR alone it shrinks more, the void giving way."""
+    lab = np.ones((6, 6, 6), np.uint8)
+    lab[2:4, 2:4, 2:4] = 0  # a void of 2 x 2 x 2 voxels
+    e, nu, p = 1000.0, 0.3, 1.0
+    export_mesh(voxel_mesh(lab), tmp_path / "model.inp", config(("m", e, nu)))
+
+    def far_plane_ux(surfaces: str) -> np.ndarray:
+        loads = "".join(f"{name}, P, {p!r}\n" for name in surfaces.split())
+        step = ("*BOUNDARY\nX0, 1, 1, 0\nY0, 2, 2, 0\nZ0, 3, 3, 0\n*STEP\n*STATIC\n*DSLOAD\n"
+                f"{loads}*NODE PRINT, NSET=X1\nU\n*END STEP\n")
+        dat = run_ccx(tmp_path, model="model.inp", step=step)
+        rows = re.findall(r"^\s+\d+\s+(\S+)\s+\S+\s+\S+\s*$", dat.split("displacements")[-1], re.M)
+        return np.array([float(v) for v in rows])
+
+    hydrostatic = -p * (1 - 2 * nu) / e * 6.0
+    both = far_plane_ux("EXTERIOR CAVITIES")
+    assert both.size == 7 * 7 and np.allclose(both, hydrostatic, rtol=0.01)
+    outer = far_plane_ux("EXTERIOR")
+    assert outer.mean() < 1.05 * hydrostatic  # 9 % more shrinkage (both negative)
+
+
 @pytest.mark.parametrize("midside,merged", [("midpoint", False), pytest.param("curved", False, marks=pytest.mark.slow),
                                             pytest.param("curved", True, marks=pytest.mark.slow)])
 def test_smoothed_head_phantom_at_order_2_runs(tmp_path, midside, merged):

@@ -100,7 +100,7 @@ def test_strict_reader_agrees_with_meshio(case, order, digits):
     for name, ids in got["element_sets"].items():
         per_block = [np.flatnonzero(np.isin(block_ids, ids)) for _, block_ids in got["blocks"]]
         assert [a.tolist() for a in per_block] == [np.asarray(a).tolist() for a in ref.cell_sets[name]]
-    n_faces = 0 if model.exterior is None else model.exterior.shape[0]
+    n_faces = sum(rows.shape[0] for rows in (model.exterior, model.cavities) if rows is not None)
     assert sum(ids.size for ids in got["element_sets"].values()) == n_faces
     # the strict check passes on the deck as written
     for label in model.labels():

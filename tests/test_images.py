@@ -1003,8 +1003,7 @@ def test_dicom_folder_gdcm_drops_for_a_malformed_value_says_so(dicom_folder):
 
 
 def test_enclosed_voids_are_counted_with_their_walls():
-    """The walls of a void are exterior faces of the mesh: a pressure on EXTERIOR presses on
-    them (a hollow ball read as a solid one's stress, 37 % under the peak); fix says so."""
+    """The voids a model encloses, with their walls (the decks' CAVITIES): fix names them."""
     from dicer.image import enclosed_voids
 
     block = np.ones((7, 7, 7), np.uint8)

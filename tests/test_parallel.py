@@ -224,8 +224,8 @@ def test_sets_built_meanwhile_are_the_sets_built_in_line():
     mesh = voxel_mesh(lab)
     config = load_config(settings={"materials": [{"name": "a"}, {"name": "b"}]})
     model = prepare_model(mesh, config)
-    node_sets, exterior, interfaces = _surface_sets(model, {"materials", "interfaces", "exterior"},
-                                                    neighbour_materials(mesh), mesh.cells)
+    node_sets, exterior, cavities, interfaces = _surface_sets(model, {"materials", "interfaces", "exterior"},
+                                                              neighbour_materials(mesh), mesh.cells, mesh.points)
     seen = []
     readers = [threading.Thread(target=lambda: seen.append(dict(model.node_sets))) for _ in range(3)]
     for r in readers:
@@ -239,6 +239,7 @@ def test_sets_built_meanwhile_are_the_sets_built_in_line():
     solid = np.pad(lab > 0, 1)
     faces = sum(int(np.count_nonzero(np.diff(solid.astype(int), axis=a) != 0)) for a in range(3))
     assert np.array_equal(model.exterior, exterior) and exterior.shape[0] == faces == 132
+    assert np.array_equal(model.cavities, cavities) and cavities.size == 0
     assert list(model.interfaces) == ["a_b"] and np.array_equal(model.interfaces["a_b"], interfaces["a_b"])
 
 

@@ -153,8 +153,9 @@ def test_export_writes_plane_stress_deck(staged):
     pts = m.points
     assert np.array_equal(np.sort(sets["X1"]) - 1, np.flatnonzero(np.isclose(pts[:, 0], NX * PIXEL)))
     assert np.array_equal(np.sort(sets["Y0"]) - 1, np.flatnonzero(np.isclose(pts[:, 1], 0.0)))
-    # exterior: the outer rectangle and the (voxel) hole outline, one node set
-    assert sets["EXTERIOR"].size > 2 * (nx + ny)
+    # exterior: the outer rectangle; the hole's outline (a closed loop) is a set of its own
+    assert sets["EXTERIOR"].size == 2 * (nx + ny)
+    assert sets["CAVITIES"].size > 8 and not set(sets["CAVITIES"]) & set(sets["EXTERIOR"])
     assert "*STEP" not in inp
 
 

@@ -144,7 +144,7 @@ def export_mesh(mesh: Mesh, path: str | os.PathLike, *, materials: list[dict], o
     -------
     dict
         Summary: format, file, nodes, elements, element type, order, bytes, elements per
-        material, nodes per node set and exterior faces (formats that hold sets), verified.
+        material, nodes per node set, exterior and cavity faces (formats that hold sets), verified.
 
     Raises
     ------
@@ -171,6 +171,7 @@ def export_mesh(mesh: Mesh, path: str | os.PathLike, *, materials: list[dict], o
         "materials": {model.names[k]: int(np.count_nonzero(model.material == k)) for k in model.labels()},
         # a format with no sets (VTU) reports none rather than empty ones
         **({"node_sets": {name: int(ids.size) for name, ids in model.node_sets.items()},
-            "exterior_faces": 0 if model.exterior is None else int(model.exterior.shape[0])} if fmt.holds_sets else {}),
+            "exterior_faces": 0 if model.exterior is None else int(model.exterior.shape[0]),
+            "cavity_faces": 0 if model.cavities is None else int(model.cavities.shape[0])} if fmt.holds_sets else {}),
         "verified": bool(check),
     }

@@ -5,8 +5,9 @@ Layout::
     *HEADING                 provenance (dicer version, input name + SHA-256, config hash)
     *NODE                    numbered from 1, coordinates in mm
     *ELEMENT, TYPE=C3D8, ELSET=<material>    one block per material
-    *NSET, NSET=X0 ... Z1    bounding-box planes; <material>_BOUNDARY; <a>_<b> interfaces; EXTERIOR
-    *ELSET, ELSET=EXTERIOR_S1 ...  + *SURFACE, NAME=EXTERIOR, TYPE=ELEMENT
+    *NSET, NSET=X0 ... Z1    bounding-box planes; EXTERIOR; CAVITIES; <material>_BOUNDARY; <a>_<b> interfaces
+    *ELSET, ELSET=EXTERIOR_S1 ...  + *SURFACE, NAME=EXTERIOR, TYPE=ELEMENT (the outer surface)
+    *ELSET, ELSET=CAVITIES_S1 ...  + *SURFACE, NAME=CAVITIES, TYPE=ELEMENT (walls of enclosed voids, if any)
     *MATERIAL, *ELASTIC, *DENSITY, *SOLID SECTION per material (2D: thickness on the data line)
 
 There is no *STEP. Numbers fit CalculiX 2.20's reader, which takes at most 10
@@ -132,18 +133,14 @@ def write_abaqus(model, path: str | Path) -> None:
         # many sets at once (an atlas has thousands)
         write_int_blocks(w, ((f"*NSET, NSET={name}\n".encode(), ids + 1) for name, ids in model.node_sets.items()),
                          PER_LINE, wid)
-        if model.exterior is not None and model.exterior.size:
-            faces = model.exterior
-            present = []
-            for s in range(1, (6 if model.dim == 3 else 4) + 1):
-                ids = faces[faces[:, 1] == s, 0]
-                if ids.size:
-                    present.append(s)
-                    w(f"*ELSET, ELSET=EXTERIOR_S{s}\n".encode())
-                    w(int_lines(np.sort(ids) + 1, PER_LINE, wid))
-            w(b"*SURFACE, NAME=EXTERIOR, TYPE=ELEMENT\n")
+        for surface, faces in model.free_face_sets().items():
+            present = np.unique(faces[:, 1]).tolist()
             for s in present:
-                w(f"EXTERIOR_S{s}, S{s}\n".encode())
+                w(f"*ELSET, ELSET={surface}_S{s}\n".encode())
+                w(int_lines(np.sort(faces[faces[:, 1] == s, 0]) + 1, PER_LINE, wid))
+            w(f"*SURFACE, NAME={surface}, TYPE=ELEMENT\n".encode())
+            for s in present:
+                w(f"{surface}_S{s}, S{s}\n".encode())
         for k in model.labels():
             name, p = model.names[k], model.props[k]
             w(f"*MATERIAL, NAME={name}\n*ELASTIC\n{_num(p['youngs_modulus'])}, {_num(p['poissons_ratio'])}\n"
@@ -691,11 +688,12 @@ def check_abaqus(path: str | Path, model) -> None:
     if names != [model.names[k] for k, _ in blocks]:
         raise DicerError(f"element blocks {names} read back, expected {[model.names[k] for k, _ in blocks]}")
     _same_sets("node set", got["node_sets"], model.node_sets)
-    faces = model.exterior if model.exterior is not None else np.zeros((0, 2), np.int64)
-    present = np.unique(faces[:, 1]).tolist()
-    _same_sets("element set", got["element_sets"],
-               {f"EXTERIOR_S{s}": np.sort(faces[faces[:, 1] == s, 0]) for s in present})
-    surfaces = {"EXTERIOR": [(f"EXTERIOR_S{s}", f"S{s}") for s in present]} if present else {}
+    element_sets, surfaces = {}, {}
+    for surface, faces in model.free_face_sets().items():
+        present = np.unique(faces[:, 1]).tolist()
+        element_sets.update({f"{surface}_S{s}": np.sort(faces[faces[:, 1] == s, 0]) for s in present})
+        surfaces[surface] = [(f"{surface}_S{s}", f"S{s}") for s in present]
+    _same_sets("element set", got["element_sets"], element_sets)
     if got["surfaces"] != surfaces:
         raise DicerError(f"surfaces {got['surfaces']} read back, expected {surfaces}")
     labels = model.labels()

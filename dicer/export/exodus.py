@@ -9,7 +9,8 @@ netCDF mapping lays it out (the "large model" layout: one variable per coordinat
                            eb_names = material names, eb_prop1 (ID) = material label
     elem_num_map           the element numbers of the Abaqus deck (dicer's element order)
     node_ns<i>             the node sets of the Abaqus deck, ns_names = set names
-    elem_ss<i>, side_ss<i> side sets EXTERIOR and <a>_<b> (interfaces): element and local side
+    elem_ss<i>, side_ss<i> side sets EXTERIOR, CAVITIES (walls of enclosed voids) and <a>_<b>
+                           (interfaces): element and local side
     info_records           input SHA-256 and config hash
 
 Elements are stored block by block, so an element's position in the file (what side
@@ -116,7 +117,7 @@ def least_arrays(labels: np.ndarray, sets) -> tuple[int, int, int]:
     before the mesh: a block per material, with ``sets`` (``export.sets``) a boundary node set
     per material, an interface's node set and side set (two variables) per pair of materials
     that share a face, the exterior's node set and side set. Pairs that touch at an edge only,
-    and the plane sets, add more.
+    the cavities' sets and the plane sets add more.
 
     Parameters
     ----------

@@ -10,8 +10,9 @@ boundary condition, a load and a ``<Control>`` section.
         <Nodes name="model">                 <node id="1">x,y,z</node>, numbered from 1
         <Elements type="hex8" name=<material>>   one per material, <elem id> = Abaqus element number
         <NodeSet name=...>                   the Abaqus deck's node sets (planes, boundaries,
-                                             interfaces, EXTERIOR), comma-separated node numbers
-        <Surface name="EXTERIOR">, <Surface name="<a>_<b>">   <quad4 id> (order 2: <quad8>) facets
+                                             interfaces, EXTERIOR, CAVITIES), comma-separated node numbers
+        <Surface name="EXTERIOR">, <Surface name="CAVITIES">, <Surface name="<a>_<b>">
+                                             <quad4 id> (order 2: <quad8>) facets
       <MeshDomains>     <SolidDomain name=<material> mat=<material>/> per material
 
 Hexahedra only (``hex8``, ``hex20``): FEBio has no plane-stress or plane-strain

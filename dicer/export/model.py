@@ -20,7 +20,7 @@ from dicer.errors import DicerError
 from dicer.export.provenance import provenance, sha256_in_background
 from dicer.image import MAX_LABEL
 from dicer.mesh.boundary import PLANE_TOLERANCE
-from dicer.mesh.faces import materials_across, neighbour_materials
+from dicer.mesh.faces import cavity_faces, materials_across, neighbour_materials
 from dicer.mesh.frame import mirrored, to_scanner
 from dicer.mesh.model import Mesh, Sized, pieces
 from dicer.mesh.topology import (HEX20_FACES, HEX20_MIRROR, HEX_FACE_MIRROR, HEX_FACES, HEX_MIRROR, QUAD8_SIDES,
@@ -114,14 +114,17 @@ class SolverModel(Sized):
         interfaces).
     exterior : (F, 2) int64 ndarray or None
         Rows (element index, face number 1..6 / 1..4) of the element faces on the exterior
-        surface.
+        surface: the outer surface of every body, the walls of cavities left out.
+    cavities : (F, 2) int64 ndarray or None
+        The same rows for the walls of the cavities the material closes round (enclosed
+        voids: a sinus, an unlabelled hole); empty when there are none.
     interfaces : dict of str to (F, 2) int64 ndarray
         Interface name ``<a>_<b>`` -> rows (element index, face number) of the faces of
         material a with material b behind them (a < b), grouped by face number, elements
         ascending; for formats with face sets (Exodus, FEBio).
 
     The surface sets may still be in the making on a thread (:meth:`sets_meanwhile`):
-    reading any of these three waits for them.
+    reading any of these four waits for them.
     """
 
     points: np.ndarray
@@ -142,6 +145,7 @@ class SolverModel(Sized):
     def __post_init__(self) -> None:
         self._node_sets: dict[str, np.ndarray] = {}
         self._exterior: np.ndarray | None = None
+        self._cavities: np.ndarray | None = None
         self._interfaces: dict[str, np.ndarray] = {}
         self._pending = None
         self._lock = threading.Lock()  # readers on several threads wait for one result
@@ -149,9 +153,9 @@ class SolverModel(Sized):
     def sets_meanwhile(self, build) -> None:
         """Build surface sets on a thread while the writer starts on nodes and elements.
 
-        ``build()`` returns (node sets, exterior, interfaces); the node sets follow those
-        the model holds. The first read of ``node_sets``, ``exterior`` or ``interfaces``
-        waits for them (and raises what ``build`` raised).
+        ``build()`` returns (node sets, exterior, cavities, interfaces); the node sets follow
+        those the model holds. The first read of ``node_sets``, ``exterior``, ``cavities`` or
+        ``interfaces`` waits for them (and raises what ``build`` raised).
         """
         from dicer.parallel import meanwhile
 
@@ -162,22 +166,25 @@ class SolverModel(Sized):
             return
         with self._lock:
             if self._pending is not None:
-                node_sets, self._exterior, self._interfaces = self._pending()
+                node_sets, self._exterior, self._cavities, self._interfaces = self._pending()
                 self._node_sets.update(node_sets)
                 self._pending = None
 
     node_sets = _AfterSets()
     exterior = _AfterSets()
+    cavities = _AfterSets()
     interfaces = _AfterSets()
 
+    def free_face_sets(self) -> dict[str, np.ndarray]:
+        """The sets of faces of one element, those with faces: EXTERIOR, CAVITIES -> (F, 2)
+        rows (element index, face number)."""
+        return {name: rows for name, rows in (("EXTERIOR", self.exterior), ("CAVITIES", self.cavities))
+                if rows is not None and rows.size}
+
     def face_sets(self) -> dict[str, np.ndarray]:
-        """Element-face set name -> (F, 2) rows (element index, face number): EXTERIOR, then
-        the interfaces (Exodus side sets, FEBio surfaces)."""
-        out = {}
-        if self.exterior is not None and self.exterior.size:
-            out["EXTERIOR"] = self.exterior
-        out.update(self.interfaces)
-        return out
+        """Element-face set name -> (F, 2) rows (element index, face number): EXTERIOR,
+        CAVITIES, then the interfaces (Exodus side sets, FEBio surfaces)."""
+        return {**self.free_face_sets(), **self.interfaces}
 
     def name_list(self) -> list[str]:
         """Material names by label, 1..K (entry i names label i + 1)."""
@@ -273,12 +280,13 @@ def _grouped_nodes(code: np.ndarray, nodes: np.ndarray, n_points: int) -> tuple[
     return distinct, groups
 
 
-def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray,
-                  cells: np.ndarray) -> tuple[dict, np.ndarray | None, dict]:
-    """Exterior faces and surface, material boundary and interface node sets from neighbour materials:
-    (node sets, exterior faces or None, interfaces), as the SolverModel holds them.
+def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray, cells: np.ndarray,
+                  points: np.ndarray) -> tuple[dict, np.ndarray | None, np.ndarray | None, dict]:
+    """Exterior and cavity faces and surface, material boundary and interface node sets from
+    neighbour materials: (node sets, exterior faces or None, cavity faces or None, interfaces),
+    as the SolverModel holds them.
 
-    Sets come in the order EXTERIOR, <a>_BOUNDARY by label, <a>_<b> by label a then b
+    Sets come in the order EXTERIOR, CAVITIES, <a>_BOUNDARY by label, <a>_<b> by label a then b
     (a < b); only sets with nodes are kept. Nodes are collected as (set, node) pairs
     from the faces concerned, so the work follows the surface, not the number of
     materials or pairs of them.
@@ -289,8 +297,7 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray,
     else:
         table = HEX_FACES if dim == 3 else QUAD_EDGES
     n = model.n_points
-    node_sets, exterior_faces, interfaces = {}, None, {}
-    exterior = np.zeros(n, bool)
+    node_sets, exterior_faces, cavity_rows, interfaces = {}, None, None, {}
     ext_e, ext_f = [], []
     bound_code, bound_nodes, pair_code, pair_nodes, pair_face = [], [], [], [], []
 
@@ -304,7 +311,6 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray,
         if "exterior" in kinds:
             f_idx, e_idx = np.nonzero((nbm == 0).T)  # grouped by face number
             ext = (e_idx + start, f_idx)
-            exterior[corners[e_idx[:, None], table[f_idx]]] = True  # only True is written: any order will do
         if "materials" in kinds:  # faces of a material with another (or none) behind them
             e_idx, nodes = _face_nodes(corners, table, nbm != mat[:, None])
             bound = (mat[e_idx], nodes)
@@ -330,9 +336,20 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray,
     if "exterior" in kinds:
         e, f = np.concatenate(ext_e), np.concatenate(ext_f)
         order = np.lexsort((e, f))  # grouped by face number, elements ascending
-        exterior_faces = np.column_stack([e[order], f[order] + 1]).astype(np.int64)
-        if exterior.any():
-            node_sets["EXTERIOR"] = np.flatnonzero(exterior)
+        e, f = e[order], f[order]
+        # a pressure on the outer surface must not press on the walls of enclosed voids
+        cavity = cavity_faces(points, cells, dim, e, f)
+        flags = np.zeros(n, bool)
+        for name, keep in (("EXTERIOR", ~cavity), ("CAVITIES", cavity)):
+            rows = np.column_stack([e[keep], f[keep] + 1]).astype(np.int64)
+            if name == "EXTERIOR":
+                exterior_faces = rows
+            else:
+                cavity_rows = rows
+            if rows.size:
+                flags[cells[rows[:, :1], table[rows[:, 1] - 1]]] = True
+                node_sets[name] = np.flatnonzero(flags)
+                flags[node_sets[name]] = False
     width = table.shape[1]
     if "materials" in kinds:
         codes, groups = _grouped_nodes(np.concatenate(bound_code), np.concatenate(bound_nodes).reshape(-1, width), n)
@@ -350,7 +367,7 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray,
         cut = np.flatnonzero(code[1:] != code[:-1]) + 1
         for c, rows in zip(code[np.r_[0, cut]].tolist() if code.size else [], np.split(faces, cut)):
             interfaces[f"{model.names[c >> 16]}_{model.names[c & 0xFFFF]}"] = rows
-    return node_sets, exterior_faces, interfaces
+    return node_sets, exterior_faces, cavity_rows, interfaces
 
 
 def _plane_sets(mesh: Mesh, points: np.ndarray, lattice2: np.ndarray | None, path) -> dict[str, np.ndarray]:
@@ -482,12 +499,12 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
                              "materials, interfaces and exterior out of export.sets")
         flip = mesh.direction is not None and mirrored(mesh.direction)
 
-        def build(cells=model.cells, nb_mat=nb_mat):  # the cells of the lattice frame
+        def build(cells=model.cells, points=model.points, nb_mat=nb_mat):  # the lattice frame's
             nb = across() if nb_mat is None else nb_mat
-            node_sets, exterior, interfaces = _surface_sets(model, kinds, nb, cells)
+            node_sets, exterior, cavities, interfaces = _surface_sets(model, kinds, nb, cells, points)
             if flip:
-                _mirror_faces([exterior, *interfaces.values()])
-            return node_sets, exterior, interfaces
+                _mirror_faces([exterior, cavities, *interfaces.values()])
+            return node_sets, exterior, cavities, interfaces
 
         # on a thread: the writer starts on the nodes and elements, which need no sets
         model.sets_meanwhile(build)

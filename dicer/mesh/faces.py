@@ -303,3 +303,65 @@ def materials_across(material: np.ndarray, neighbours: np.ndarray) -> np.ndarray
     material = np.asarray(material)
     return np.where(neighbours >= 0, material[np.maximum(neighbours, 0)], 0).astype(material.dtype, copy=False)
 
+
+
+def cavity_faces(points: np.ndarray, cells: np.ndarray, dim: int, elements: np.ndarray,
+                 faces: np.ndarray) -> np.ndarray:
+    """Which of the given free faces are walls of a cavity: a hole the material closes round.
+
+    The free faces fall into surfaces joined at their edges (2D: sides joined at their nodes).
+    A body's outer surface, its normals out of the material, encloses a positive volume; the
+    wall of a cavity, its normals into the hole, a negative one. A surface that reaches a
+    bounding plane of the image is closed by its faces on that plane, so a hole open to a cut
+    plane counts as outside.
+
+    Parameters
+    ----------
+    points : (N, 3) float ndarray
+        Node coordinates (any frame, mm).
+    cells : (M, c) int ndarray
+        Hexahedra (c >= 8) or quads (c >= 4), corners first in VTK order, none inverted (the
+        faces of :mod:`dicer.mesh.topology` then turn out of their element).
+    dim : int
+        3 or 2.
+    elements, faces : (F,) int ndarray
+        Element index and face number 0..5 (2D: 0..3) of each free face.
+
+    Returns
+    -------
+    (F,) bool ndarray
+        True for the faces of surfaces that enclose a negative volume (area in 2D).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    count = int(elements.size)
+    if not count:
+        return np.zeros(0, bool)
+    table = HEX_FACES if dim == 3 else QUAD_EDGES
+    nodes = np.asarray(cells)[elements[:, None], table[faces]].astype(np.int64)
+    if dim == 3:  # faces that share an edge
+        turn = np.roll(nodes, -1, axis=1)
+        keys = (np.minimum(nodes, turn) * np.int64(points.shape[0]) + np.maximum(nodes, turn)).ravel()
+    else:  # sides that share a node
+        keys = nodes.ravel()
+    owner = np.repeat(np.arange(count), nodes.shape[1])
+    order = np.argsort(keys)  # equal keys side by side: any order among them links them
+    keys, owner = keys[order], owner[order]
+    linked = keys[1:] == keys[:-1]
+    graph = coo_matrix((np.ones(int(linked.sum()), np.int8), (owner[:-1][linked], owner[1:][linked])),
+                       shape=(count, count))
+    surfaces, surface = connected_components(graph, directed=False)
+    # each surface about its own first node, so a small cavity's volume is not lost to rounding
+    _, first = np.unique(surface, return_index=True)
+    p = np.asarray(points, float)[nodes]
+    p -= p[first[surface], :1]
+    if dim == 3:  # the divergence theorem over the faces' two triangles
+        measure = (np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2]))
+                   + np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 2], p[:, 3]))) / 6.0
+    else:
+        measure = (p[:, 0, 0] * p[:, 1, 1] - p[:, 1, 0] * p[:, 0, 1]) / 2.0
+    enclosed = np.bincount(surface, weights=measure, minlength=surfaces)
+    if enclosed.sum() < 0:  # the material's volume: corners in the mirrored order throughout
+        enclosed = -enclosed
+    return enclosed[surface] < 0

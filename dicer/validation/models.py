@@ -134,7 +134,7 @@ class Deck:
         0-based.
     dim, order : int
     face_elements : (F,) int ndarray
-        Element index of each exterior face.
+        Element index of each free face (EXTERIOR and CAVITIES).
     face_numbers : (F,) int ndarray
         Its face number 1.. (Abaqus S1..S6 / S1..S4).
     """
@@ -155,7 +155,7 @@ class Deck:
         d = read_abaqus(path)
         dim, order = ELEMENT_TYPES[d["element_type"]]
         sets = d["element_sets"]
-        names = [f"EXTERIOR_S{k}" for k in range(1, 7) if f"EXTERIOR_S{k}" in sets]
+        names = [f"{s}_S{k}" for s in ("EXTERIOR", "CAVITIES") for k in range(1, 7) if f"{s}_S{k}" in sets]
         elements = np.concatenate([sets[n] for n in names]).astype(np.int64)
         numbers = np.concatenate([np.full(sets[n].size, int(n[-1])) for n in names])
         return cls(d["points"], np.asarray(d["cells"], np.int64), dim, order, elements, numbers)

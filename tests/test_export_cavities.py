@@ -1,0 +1,141 @@
+"""The walls of enclosed voids are a surface of their own (CAVITIES), apart from EXTERIOR.
+
+A pressure on EXTERIOR stands for what surrounds the model; a sinus or an unlabelled hole
+inside it is not loaded by that. Every format with face sets holds both; the exports' own
+read-back checks compare them with the model.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+from scipy import ndimage
+
+from dicer.config import load_config, name_clash
+from dicer.connectivity import fix_connectivity
+from dicer.export import export_mesh, prepare_model
+from dicer.export.abaqus import read_abaqus
+from dicer.export.exodus import least_arrays
+from dicer.image import enclosed_voids
+from dicer.mesh.voxel import voxel_mesh
+
+
+def _free_faces(labels: np.ndarray) -> int:
+    solid = np.pad(labels > 0, 1)
+    return sum(np.count_nonzero(solid & ~np.roll(solid, s, axis=a)) for a in range(labels.ndim) for s in (1, -1))
+
+
+def _hollow_cube(body_inside: bool) -> np.ndarray:
+    lab = np.zeros((10, 10, 10), np.uint8)
+    lab[1:9, 1:9, 1:9] = 1
+    lab[3:7, 3:7, 3:7] = 0  # a void of 4 x 4 x 4 voxels: 96 faces of wall
+    if body_inside:
+        lab[4:6, 4:6, 4:6] = 2  # a core the void holds: its 24 faces face the void
+    return lab
+
+
+@pytest.mark.parametrize("body_inside", [False, True])
+def test_cavity_walls_are_apart_from_the_exterior_in_every_format(tmp_path, body_inside):
+    lab = _hollow_cube(body_inside)
+    cfg = load_config(settings={"materials": [{"name": "shell"}, {"name": "core"}]})
+    model = prepare_model(voxel_mesh(lab), cfg)
+    assert model.cavities.shape == (96, 2)
+    assert model.exterior.shape == (_free_faces(lab) - 96, 2)  # the outer 384 and the core's 24
+    assert model.exterior.shape[0] == 384 + 24 * body_inside
+    assert model.node_sets["CAVITIES"].size == 98  # a closed quad surface: faces + 2
+    assert not set(model.node_sets["CAVITIES"]) & set(model.node_sets["EXTERIOR"])
+    for suffix in ("inp", "exo", "feb", "k"):  # each read back and compared by the export
+        info = export_mesh(voxel_mesh(lab), tmp_path / f"m.{suffix}", cfg)
+        assert (info["exterior_faces"], info["cavity_faces"]) == (384 + 24 * body_inside, 96)
+        assert info["node_sets"]["CAVITIES"] == 98
+    deck = read_abaqus(tmp_path / "m.inp")
+    assert list(deck["surfaces"]) == ["EXTERIOR", "CAVITIES"]
+    assert sum(deck["element_sets"][f"CAVITIES_S{s}"].size for s in range(1, 7)) == 96
+    # the wall's faces are the inner faces of the shell's elements around the void
+    centre = np.array([5.0, 5.0, 5.0])
+    points = voxel_mesh(lab).points
+    for s in range(1, 7):
+        rows = deck["element_sets"][f"CAVITIES_S{s}"]
+        assert np.all(np.abs(points[deck["cells"][rows]].mean(axis=1) - centre).max(axis=1) <= 2.5)
+
+
+def test_a_mirrored_scan_keeps_the_same_walls():
+    lab = _hollow_cube(False)
+    cfg = load_config()
+    plain = prepare_model(voxel_mesh(lab), cfg)
+    flipped = prepare_model(voxel_mesh(lab, direction=np.diag([1.0, 1.0, -1.0])), cfg)
+    assert flipped.cavities.shape == plain.cavities.shape == (96, 2)
+    assert np.array_equal(np.sort(flipped.cavities[:, 0]), np.sort(plain.cavities[:, 0]))
+    assert np.array_equal(flipped.node_sets["CAVITIES"], plain.node_sets["CAVITIES"])
+
+
+def test_a_hole_open_to_a_cut_plane_is_outside():
+    lab = _hollow_cube(False)
+    lab[3:7, 3:7, :7] = 0  # the void now runs out through the bottom plane
+    model = prepare_model(voxel_mesh(lab), load_config())
+    assert model.cavities.size == 0 and "CAVITIES" not in model.node_sets
+    assert model.exterior.shape[0] == _free_faces(lab)
+
+
+def test_two_dimensional_holes():
+    lab = np.zeros((12, 9), np.uint8)
+    lab[1:11, 1:8] = 1
+    lab[3:5, 3:6] = 0  # a hole of 2 x 3 pixels: 10 edges of wall
+    lab[7, 4] = 0  # a hole of one pixel: 4 edges
+    model = prepare_model(voxel_mesh(lab, spacing=(0.5, 0.5)), load_config())
+    assert model.cavities.shape == (14, 2)
+    assert model.exterior.shape == (2 * (10 + 7), 2)
+    assert model.node_sets["CAVITIES"].size == 14  # two closed loops: as many nodes as edges
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_smoothed_walls_stay_cavities(order):
+    """Smoothing moves the wall's nodes; the surfaces and their sides stay (order 2: the
+    mid-edge nodes join the node set)."""
+    from dicer.mesh.smooth import smooth_mesh
+
+    g = np.indices((22, 22, 22)) - 10.5
+    r = np.sqrt((g**2).sum(axis=0))
+    lab = ((r < 9.5) & (r > 4.5)).astype(np.uint8)
+    lab, _ = fix_connectivity(lab)
+    voids, walls = enclosed_voids(lab)
+    assert voids == 1
+    mesh, _ = smooth_mesh(voxel_mesh(lab))
+    cfg = load_config(settings={"export": {"order": order}})
+    model = prepare_model(mesh, cfg)
+    assert model.cavities.shape[0] == walls
+    assert model.exterior.shape[0] == _free_faces(lab) - walls
+    corners = set(np.unique(mesh.cells[model.cavities[:, 0]]).tolist())
+    if order == 1:
+        assert set(model.node_sets["CAVITIES"].tolist()) <= corners
+    radius = np.linalg.norm(model.points[model.node_sets["CAVITIES"]] - 10.5 - 0.5, axis=1)
+    assert radius.max() < 7.0  # all on the inner wall (radius about 5), none on the outer (about 9.5)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**16), fraction=st.floats(0.02, 0.25))
+def test_cavity_faces_are_the_walls_of_the_enclosed_voids(seed, fraction):
+    """Random voids in a block, repaired as `dicer fix` does: with the material in one piece,
+    the CAVITIES faces are exactly the voxel faces between material and enclosed background."""
+    rng = np.random.default_rng(seed)
+    lab = np.zeros((9, 8, 7), np.uint8)
+    lab[1:-1, 1:-1, 1:-1] = rng.integers(1, 3, (7, 6, 5))
+    lab[1:-1, 1:-1, 1:-1][rng.random((7, 6, 5)) < fraction] = 0
+    lab, _ = fix_connectivity(lab)
+    assume(ndimage.label(lab > 0)[1] == 1)
+    _, walls = enclosed_voids(lab)
+    model = prepare_model(voxel_mesh(lab), load_config(settings={"materials": [{"name": "a"}, {"name": "b"}],
+                                                                 "export": {"sets": ["exterior"]}}))
+    assert model.cavities.shape[0] == walls
+    assert model.exterior.shape[0] + walls == _free_faces(lab)
+    # the Exodus file's least count, known from the labels alone, stays below what it holds
+    variables, _, _ = least_arrays(lab, ["exterior"])
+    assert variables + (3 if walls else 0) == len(model.blocks()) + len(model.node_sets) + 2 * len(model.face_sets())
+
+
+def test_cavities_is_a_reserved_name():
+    assert "exterior face set" in name_clash(["bone", "cavities"])
+    assert "exterior face set" in name_clash(["Cavities_S3"])
+    assert name_clash(["cavities"], sets=("planes",)) is None

@@ -749,3 +749,19 @@ def test_label_volumes_of_the_wrong_kind_say_what_they_look_like(tmp_path, capsy
         f"labels: every voxel of {tmp_path / 'shifted.nii.gz'} is a material (values 10, 11, 12), so the model fills "
         "the whole image box; if the background has a value of its own (a header's scl_inter, an atlas's 'unknown'), "
         "set labels.drop: [value]"]
+
+
+def test_lines_of_the_image_reader_name_the_stage_not_the_module():
+    """The reader's warnings (``dicer.io.images``) read as the stage's own lines on stderr."""
+    import logging
+
+    from dicer.cli import _LineFormatter, _Stage
+
+    record = logging.LogRecord("dicer.io.images", logging.WARNING, __file__, 1,
+                               "%s: the file carries no voxel size", ("seg.npy",), None)
+    formatter = _LineFormatter("%(name)s %(message)s")
+    with _Stage("fix"):
+        assert formatter.format(record) == "dicer fix: seg.npy: the file carries no voxel size"
+    assert formatter.format(record) == "dicer seg.npy: the file carries no voxel size"
+    own = logging.LogRecord("dicer", logging.INFO, __file__, 1, "fix: done", (), None)
+    assert formatter.format(own) == "dicer fix: done"

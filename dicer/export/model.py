@@ -339,13 +339,10 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray, cells
         e, f = e[order], f[order]
         # a pressure on the outer surface must not press on the walls of enclosed voids
         cavity = cavity_faces(points, cells, dim, e, f)
+        exterior_faces, cavity_rows = (np.column_stack([e[keep], f[keep] + 1]).astype(np.int64)
+                                       for keep in (~cavity, cavity))
         flags = np.zeros(n, bool)
-        for name, keep in (("EXTERIOR", ~cavity), ("CAVITIES", cavity)):
-            rows = np.column_stack([e[keep], f[keep] + 1]).astype(np.int64)
-            if name == "EXTERIOR":
-                exterior_faces = rows
-            else:
-                cavity_rows = rows
+        for name, rows in (("EXTERIOR", exterior_faces), ("CAVITIES", cavity_rows)):
             if rows.size:
                 flags[cells[rows[:, :1], table[rows[:, 1] - 1]]] = True
                 node_sets[name] = np.flatnonzero(flags)

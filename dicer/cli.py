@@ -461,8 +461,8 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
         voids, walls = enclosed_voids(fixed)
         if voids:  # a dropped label may be one: said, and the decks hold their walls apart
             log.info("fix: the model encloses %d void(s) (background with no way out of the image: a dropped "
-                     "label, a sinus, a marrow cavity; %d voxel faces of wall); the decks hold their walls in the "
-                     "set and surface CAVITIES, apart from the outer surface EXTERIOR", voids, walls)
+                     "label, a sinus, a marrow cavity; %d voxel faces of wall); decks with sets hold the faces that "
+                     "face them in the set and surface CAVITIES, apart from the outer surface EXTERIOR", voids, walls)
         if not report["converged"] and any(report["remaining"].values()):
             log.warning("fix: stopped at a round cap with %s left; raise fix.max_iterations or "
                         "fix.max_type_c_rounds", report["remaining"])

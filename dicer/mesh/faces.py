@@ -311,9 +311,10 @@ def cavity_faces(points: np.ndarray, cells: np.ndarray, dim: int, elements: np.n
 
     The free faces fall into surfaces joined at their edges (2D: sides joined at their nodes).
     A body's outer surface, its normals out of the material, encloses a positive volume; the
-    wall of a cavity, its normals into the hole, a negative one. A surface that reaches a
-    bounding plane of the image is closed by its faces on that plane, so a hole open to a cut
-    plane counts as outside.
+    wall of a cavity, its normals into the hole, a negative one. A body floating in a cavity
+    faces the hole too: its surface counts with the walls when a wall's winding number holds
+    it. A surface that reaches a bounding plane of the image is closed by its faces on that
+    plane, so a hole open to a cut plane counts as outside.
 
     Parameters
     ----------
@@ -330,7 +331,8 @@ def cavity_faces(points: np.ndarray, cells: np.ndarray, dim: int, elements: np.n
     Returns
     -------
     (F,) bool ndarray
-        True for the faces of surfaces that enclose a negative volume (area in 2D).
+        True for the faces of surfaces that enclose a negative volume (area in 2D), and of
+        the surfaces inside those.
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -362,6 +364,41 @@ def cavity_faces(points: np.ndarray, cells: np.ndarray, dim: int, elements: np.n
     else:
         measure = (p[:, 0, 0] * p[:, 1, 1] - p[:, 1, 0] * p[:, 0, 1]) / 2.0
     enclosed = np.bincount(surface, weights=measure, minlength=surfaces)
-    if enclosed.sum() < 0:  # the material's volume: corners in the mirrored order throughout
-        enclosed = -enclosed
-    return enclosed[surface] < 0
+    mirrored = enclosed.sum() < 0  # the material's volume: corners in the mirrored order throughout
+    wall = enclosed > 0 if mirrored else enclosed < 0
+    bodies = np.flatnonzero(~wall)
+    if wall.any() and bodies.size > 1:  # a body may float in a cavity: its surface faces the hole too
+        probes = np.asarray(points, float)[nodes[first[bodies]]].mean(axis=1)
+        walls = wall[surface]
+        inside = _windings(probes, np.asarray(points, float)[nodes[walls]], 1 if mirrored else -1)
+        wall[bodies[inside]] = True
+    return wall[surface]
+
+
+def _windings(probes: np.ndarray, faces: np.ndarray, sign: int) -> np.ndarray:
+    """Whether each probe point lies inside the closed surfaces ``faces`` make together.
+
+    probes : (B, 3); faces : (F, 4, 3) quads or (F, 2, 3) sides (2D, in x and y), turned so
+    that a point inside gets the winding number ``sign``. The winding number sums the solid
+    angles the faces' triangles subtend (2D: the angles of the sides), a few probes at a time.
+    """
+    out = np.zeros(probes.shape[0], bool)
+    step = max(1, 200_000 // max(1, faces.shape[0]))  # (probes, faces) pairs at a time: 20 MB
+    for start in range(0, probes.shape[0], step):
+        rel = faces[None, :, :, :] - probes[start:start + step, None, None, :]  # (b, F, k, 3)
+        if faces.shape[1] == 4:
+            total = np.zeros(rel.shape[0])
+            for a, b, c in ((0, 1, 2), (0, 2, 3)):
+                pa, pb, pc = rel[:, :, a], rel[:, :, b], rel[:, :, c]
+                la, lb, lc = (np.linalg.norm(v, axis=-1) for v in (pa, pb, pc))
+                triple = np.einsum("bfi,bfi->bf", pa, np.cross(pb, pc))
+                below = (la * lb * lc + np.einsum("bfi,bfi->bf", pa, pb) * lc
+                         + np.einsum("bfi,bfi->bf", pa, pc) * lb + np.einsum("bfi,bfi->bf", pb, pc) * la)
+                total += 2.0 * np.arctan2(triple, below).sum(axis=1)
+            winding = total / (4.0 * np.pi)
+        else:
+            pa, pb = rel[:, :, 0, :2], rel[:, :, 1, :2]
+            turn = np.arctan2(pa[..., 0] * pb[..., 1] - pa[..., 1] * pb[..., 0], np.einsum("bfi,bfi->bf", pa, pb))
+            winding = turn.sum(axis=1) / (2.0 * np.pi)
+        out[start:start + step] = sign * winding > 0.5
+    return out

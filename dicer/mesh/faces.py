@@ -369,10 +369,30 @@ def cavity_faces(points: np.ndarray, cells: np.ndarray, dim: int, elements: np.n
     bodies = np.flatnonzero(~wall)
     if wall.any() and bodies.size > 1:  # a body may float in a cavity: its surface faces the hole too
         probes = np.asarray(points, float)[nodes[first[bodies]]].mean(axis=1)
-        walls = wall[surface]
-        inside = _windings(probes, np.asarray(points, float)[nodes[walls]], 1 if mirrored else -1)
-        wall[bodies[inside]] = True
+        wall[bodies[_inside_walls(probes, np.asarray(points, float)[nodes], surface, np.flatnonzero(wall),
+                                  1 if mirrored else -1)]] = True
     return wall[surface]
+
+
+def _inside_walls(probes: np.ndarray, corners: np.ndarray, surface: np.ndarray, walls: np.ndarray,
+                  sign: int) -> np.ndarray:
+    """Whether each probe point lies inside any of the closed surfaces ``walls``.
+
+    probes : (B, 3); corners : (F, k, 3) the faces' corners; surface : (F,) each face's surface;
+    walls : the surfaces to test. A wall is tested only against the probes in its bounding box.
+    """
+    inside = np.zeros(probes.shape[0], bool)
+    faces = np.flatnonzero(np.isin(surface, walls))
+    faces = faces[np.argsort(surface[faces], kind="stable")]
+    cut = np.flatnonzero(np.diff(surface[faces])) + 1
+    starts = np.r_[0, cut]
+    low = np.minimum.reduceat(corners[faces].min(axis=1), starts)
+    high = np.maximum.reduceat(corners[faces].max(axis=1), starts)
+    for k, rows in enumerate(np.split(faces, cut)):  # a loop over cavities, not faces
+        near = np.flatnonzero(~inside & np.all((probes >= low[k]) & (probes <= high[k]), axis=1))
+        if near.size:
+            inside[near[_windings(probes[near], corners[rows], sign)]] = True
+    return inside
 
 
 def _windings(probes: np.ndarray, faces: np.ndarray, sign: int) -> np.ndarray:

@@ -170,3 +170,33 @@ def test_cavities_is_a_reserved_name():
     assert "exterior face set" in name_clash(["bone", "cavities"])
     assert "exterior face set" in name_clash(["Cavities_S3"])
     assert name_clash(["cavities"], sets=("planes",)) is None
+
+
+def test_vtks_exodus_reader_reads_both_surfaces(tmp_path):
+    """ParaView's reader (VTK's vtkExodusIIReader) gives EXTERIOR and CAVITIES as side sets
+    of the faces counted here, on the nodes of the node sets of the same names."""
+    vtk = pytest.importorskip("vtk")
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    lab = _hollow_cube(True)
+    cfg = load_config(settings={"materials": [{"name": "shell"}, {"name": "core"}]})
+    export_mesh(voxel_mesh(lab), tmp_path / "m.exo", cfg)
+    reader = vtk.vtkExodusIIReader()
+    reader.SetFileName(str(tmp_path / "m.exo"))
+    reader.UpdateInformation()
+    for kind in (vtk.vtkExodusIIReader.SIDE_SET, vtk.vtkExodusIIReader.NODE_SET):
+        for i in range(reader.GetNumberOfObjects(kind)):
+            reader.SetObjectStatus(kind, i, 1)
+    reader.Update()
+    out = reader.GetOutput()
+
+    def named(group) -> dict:
+        return {group.GetMetaData(j).Get(vtk.vtkCompositeDataSet.NAME()): group.GetBlock(j)
+                for j in range(group.GetNumberOfBlocks())}
+
+    side, node = (named(named(out)[kind]) for kind in ("Side Sets", "Node Sets"))
+    assert {name: grid.GetNumberOfCells() for name, grid in side.items()} == {"EXTERIOR": 384, "CAVITIES": 120}
+    for name in ("EXTERIOR", "CAVITIES"):
+        faces = {tuple(p) for p in np.round(vtk_to_numpy(side[name].GetPoints().GetData()), 9)}
+        nodes = {tuple(p) for p in np.round(vtk_to_numpy(node[name].GetPoints().GetData()), 9)}
+        assert faces == nodes and len(nodes) == (386 if name == "EXTERIOR" else 124)

@@ -13,7 +13,8 @@ import time
 import warnings
 
 import numpy as np
-from skimage.filters import threshold_multiotsu, threshold_otsu
+from skimage.exposure import histogram
+from skimage.filters import threshold_otsu
 
 from dicer.errors import DicerError
 
@@ -150,26 +151,67 @@ def otsu_thresholds(values: np.ndarray, k: int, names: list[str], source: str) -
 def multiotsu_thresholds(values: np.ndarray, k: int, names: list[str], source: str) -> list[float]:
     """Multi-Otsu thresholds for K material classes (K + 1 classes with background).
 
-    Uses :func:`skimage.filters.threshold_multiotsu` with ``classes=K+1`` on a
-    256-bin histogram of ``values``, the image's clipped to their 0.1 % and 99.9 %
-    quantiles (:func:`histogram_values`: a few metal voxels would stretch the bins over
-    tens of thousands of HU).
+    The thresholds that maximise Otsu's between-class variance on a 256-bin histogram of
+    ``values`` (the image's clipped to their 0.1 % and 99.9 % quantiles,
+    :func:`histogram_values`: a few metal voxels would stretch the bins over tens of
+    thousands of HU), found exactly by :func:`multiotsu_bins`, at the centres of the bins
+    :func:`skimage.exposure.histogram` gives.
 
     Returns
     -------
     thresholds : list of K floats, increasing
     """
-    try:
-        with _quiet():
-            t = threshold_multiotsu(values, classes=k + 1)
-    except ValueError as exc:
-        raise DicerError(f"{source}: multi-Otsu cannot split the image into {k + 1} classes ({exc}); "
-                         "use fewer materials or segment.method=manual") from None
-    t = [float(x) for x in t]
-    if any(b <= a for a, b in zip(t, t[1:])):
-        raise DicerError(f"{source}: multi-Otsu found repeated thresholds {t}; the image has too few grey levels "
-                         "for the configured materials; use segment.method=manual")
-    return t
+    with _quiet():
+        counts, centres = histogram(np.asarray(values).reshape(-1), 256, source_range="image")
+    filled = np.flatnonzero(counts)
+    if filled.size < k + 1:
+        raise DicerError(f"{source}: multi-Otsu cannot split the image into {k + 1} classes (its 256-bin histogram "
+                         f"holds {filled.size} values); use fewer materials or segment.method=manual")
+    bins = filled[:-1] if filled.size == k + 1 else multiotsu_bins(counts, k)
+    return [float(x) for x in centres[bins]]
+
+
+def multiotsu_bins(counts: np.ndarray, thresholds: int) -> np.ndarray:
+    """The histogram bins that end each class but the last, maximising Otsu's between-class
+    variance (Liao, Chen and Chung 2001: the sum over classes of (sum of i n_i)^2 / sum of n_i).
+
+    Exact, by dynamic programming over where each class ends: in O(K B^2) for K thresholds on
+    B bins, where an exhaustive search takes O(B^K) (skimage's: 3 s for four thresholds, hours
+    for five). Equal splits are told apart the same way on every run.
+
+    Parameters
+    ----------
+    counts : (B,) int or float ndarray
+        Histogram counts.
+    thresholds : int
+        K >= 1.
+
+    Returns
+    -------
+    (K,) int ndarray
+        Increasing bin indices: class j holds the bins after threshold j - 1 up to threshold j.
+    """
+    counts = np.asarray(counts, np.float64)
+    b = counts.size
+    n = np.concatenate([[0.0], np.cumsum(counts)])
+    moment = np.concatenate([[0.0], np.cumsum(counts * np.arange(b))])
+    # score[a, e]: one class on bins a .. e - 1, for a < e
+    weight = n[None, :] - n[:, None]
+    first = moment[None, :] - moment[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        score = np.where(weight > 0, first * first / weight, 0.0)
+    score[np.tril_indices(b + 1)] = -np.inf
+    best, starts = score[0], []  # best[e]: the classes so far on bins 0 .. e - 1
+    for _ in range(thresholds):
+        total = best[:, None] + score  # the next class on bins a .. e - 1
+        start = np.argmax(total, axis=0)
+        starts.append(start)
+        best = total[start, np.arange(b + 1)]
+    ends, end = [], b
+    for start in reversed(starts):
+        end = int(start[end])
+        ends.append(end - 1)
+    return np.array(ends[::-1], np.int64)
 
 
 MODE_SHARE = 0.25

@@ -179,6 +179,12 @@ def test_otsu_on_an_image_without_air_in_hu_is_warned_of():
     _, info = segment(mr, config(method="multiotsu"), "mr.nii.gz")
     said = [w for w in info["warnings"] if w.startswith("the image holds no value below -500")]
     assert len(said) == 1 and "named soft_tissue, bone in order of intensity" in said[0]
+    # one class: no "brightest" of one
+    one = load_config(settings={"materials": [{"name": "head"}], "segment": {"method": "otsu"}})
+    _, info = segment(mr, one, "mr.nii.gz")
+    said = [w for w in info["warnings"] if w.startswith("the image holds no value below -500")]
+    assert len(said) == 1 and "named head: check that it holds what 'head' names" in said[0]
+    assert "brightest" not in said[0]
 
 
 def test_segment_2d():

@@ -279,10 +279,11 @@ def _histogram_warnings(method: str, array: np.ndarray, values, names: list[str]
     lowest = float(np.nanmin(array)) if array.size else 0.0
     if lowest > NO_AIR_HU:
         # Otsu splits any values; the classes take the materials' names in order of intensity
+        check = (f"named {', '.join(names)} in order of intensity: check that the brightest class is '{names[-1]}'"
+                 if len(names) > 1 else f"named {names[0]}: check that it holds what '{names[0]}' names")
         said.append(f"the image holds no value below {NO_AIR_HU:g} (its lowest is {lowest:g}): no air in HU, so it is "
                     f"not a CT in HU (an MR?) or holds no air; {method} made {len(names)} class(es) of its values, "
-                    f"named {', '.join(names)} in order of intensity: check that the brightest class is "
-                    f"'{names[-1]}' (an MR's bright tissue is not bone; correct an MR's bias field first, "
+                    f"{check} (an MR's bright tissue is not bone; correct an MR's bias field first, "
                     "docs/segmentation.md), or name the materials for this scan")
     return said
 

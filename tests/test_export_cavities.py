@@ -7,6 +7,8 @@ read-back checks compare them with the model.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, assume, given, settings
@@ -137,6 +139,30 @@ def test_smoothed_walls_stay_cavities(order):
         assert set(model.node_sets["CAVITIES"].tolist()) <= corners
     radius = np.linalg.norm(model.points[model.node_sets["CAVITIES"]] - 10.5 - 0.5, axis=1)
     assert radius.max() < 7.0  # all on the inner wall (radius about 5), none on the outer (about 9.5)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_many_bodies_in_one_void_face_it(dim):
+    """Cubes (squares) strewn in one large void, as bone fragments in a marrow cavity: each
+    body's surface is tested along a ray against the faces it passes (a winding number over
+    every face of the wall took 351 s for 6,859 bodies in a 160³ box; now 1.6 s)."""
+    from dicer.mesh.faces import cavity_faces, neighbour_materials
+
+    n = 40 if dim == 3 else 64
+    a = np.zeros((n,) * dim, np.uint8)
+    a[(slice(1, -1),) * dim] = 1
+    a[(slice(4, -4),) * dim] = 0
+    starts = range(6, n - 9, 8)
+    for corner in itertools.product(starts, repeat=dim):
+        a[tuple(slice(c, c + 4) for c in corner)] = 2
+    voids, walls = enclosed_voids(a)
+    mesh = voxel_mesh(a)
+    e, f = np.nonzero(neighbour_materials(mesh) == 0)
+    wall = cavity_faces(mesh.points, mesh.cells, dim, e, f)
+    bodies = len(starts) ** dim
+    void_wall = 4 * (n - 8) if dim == 2 else 6 * (n - 8) ** 2  # the void's own wall
+    assert voids == 1 and walls == void_wall + bodies * (16 if dim == 2 else 96)
+    assert int(wall.sum()) == walls and int((~wall).sum()) == _free_faces(a) - walls
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -459,10 +459,13 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
                         "model is not the segmentation; %s", report["changed_voxels"], labelled,
                         100.0 * report["changed_voxels"] / labelled, _finer_voxels(config))
         voids, walls = enclosed_voids(fixed)
+        report["enclosed_voids"], report["void_wall_faces"] = voids, walls  # for a cohort's decks
         if voids:  # a dropped label may be one: said, and the decks hold their walls apart
             log.info("fix: the model encloses %d void(s) (background with no way out of the image: a dropped "
                      "label, a sinus, a marrow cavity; %d voxel faces of wall); decks with sets hold the faces that "
-                     "face them in the set and surface CAVITIES, apart from the outer surface EXTERIOR", voids, walls)
+                     "face them in the set and surface CAVITIES, apart from the outer surface EXTERIOR (a void "
+                     "merging fills, about two voxels across, leaves none: the export's cavity_faces says)",
+                     voids, walls)
         if not report["converged"] and any(report["remaining"].values()):
             log.warning("fix: stopped at a round cap with %s left; raise fix.max_iterations or "
                         "fix.max_type_c_rounds", report["remaining"])

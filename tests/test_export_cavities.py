@@ -226,3 +226,26 @@ def test_vtks_exodus_reader_reads_both_surfaces(tmp_path):
         faces = {tuple(p) for p in np.round(vtk_to_numpy(side[name].GetPoints().GetData()), 9)}
         nodes = {tuple(p) for p in np.round(vtk_to_numpy(node[name].GetPoints().GetData()), 9)}
         assert faces == nodes and len(nodes) == (386 if name == "EXTERIOR" else 124)
+
+
+def test_fix_report_counts_the_voids_a_cohort_deck_may_load(tmp_path):
+    """fix.json gives the voids and their voxel faces of wall; the deck of the same labels
+    holds as many CAVITIES faces when merging leaves the walls alone."""
+    import json
+
+    from dicer.cli import main
+
+    lab = _hollow_cube(True)
+    np.save(tmp_path / "hollow.npy", lab)
+    spacing = "image.spacing=[1, 1, 1]"
+    assert main(["fix", str(tmp_path / "hollow.npy"), "-o", str(tmp_path / "f.nii.gz"), "--set", spacing,
+                 "--set", "materials=[{name: shell}, {name: core}]", "--set", "fix.min_component_voxels=0",
+                 "--report", str(tmp_path / "fix.json")]) == 0  # the core kept: 8 voxels
+    report = json.loads((tmp_path / "fix.json").read_text())
+    assert (report["enclosed_voids"], report["void_wall_faces"]) == (1, 120)
+    assert main(["mesh", str(tmp_path / "f.nii.gz"), "-o", str(tmp_path / "m.vtu"), "--set", spacing,
+                 "--set", "materials=[{name: shell}, {name: core}]"]) == 0
+    assert main(["export", str(tmp_path / "m.vtu"), "-o", str(tmp_path / "m.inp"),
+                 "--set", "materials=[{name: shell}, {name: core}]"]) == 0
+    deck = read_abaqus(tmp_path / "m.inp")
+    assert sum(deck["element_sets"][f"CAVITIES_S{s}"].size for s in range(1, 7)) == 120

@@ -471,3 +471,23 @@ def test_a_layer_mostly_not_made_on_elongated_voxels_names_them(tmp_path, caplog
     assert warned[0].endswith("the voxels are 0.5 x 0.5 x 2.5 mm, on which a layer of any thickness keeps the floor "
                               "on few faces (now smooth.pillow_thickness=0.25): a downsample.factor per axis makes "
                               "them nearer cubic")
+
+
+def test_a_layer_element_out_of_shape_is_named_with_its_check():
+    """An element of the layer that keeps the scaled Jacobian's floor but fails a shape check
+    (here stretched) is named with that check, not with the floor it reaches."""
+    from types import SimpleNamespace
+
+    from dicer.mesh.smooth import _pillow_failure
+
+    st = SimpleNamespace(mesh=SimpleNamespace(n_cells=100), touched=np.arange(3), s={"min_scaled_jacobian": 0.3})
+    none = np.zeros(3, bool)
+    stretched = np.array([False, True, False])
+    error = _pillow_failure(st, np.ones(3), none, np.full(3, 0.9), none,
+                            {"an edge too short": none, "its longest edge over 20 times its shortest": stretched})
+    assert str(error) == ("the pillow layer cannot keep element 102 (of the layer) in shape: its longest edge over 20 "
+                          "times its shortest (1 element(s) fail); set smooth.pillow: false, or change "
+                          "smooth.pillow_thickness")
+    floor = np.array([False, False, True])
+    error = _pillow_failure(st, np.ones(3), none, np.array([0.9, 0.9, 0.25]), floor, {"stretched": stretched})
+    assert "element 103 (of the layer) at a scaled Jacobian of at least 0.3 (it reaches 0.250, 2 element(s)" in str(error)

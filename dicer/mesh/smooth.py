@@ -1709,15 +1709,16 @@ def _add_pillow(st: _Smoothing) -> None:
         x_layer = np.concatenate([st.x, outer])
         sj_layer = scaled_jacobian(x_layer, cells)
         bad_under = _fails_under_layer(sj_under, sj_accepted, floor, shrunk)
-        bad_layer = (sj_layer < floor) | (sj_layer <= 0)
+        bad_sj = (sj_layer < floor) | (sj_layer <= 0)
         # and edges brought together on the copies' face
         lengths = _edge_lengths2(cells, x_layer)
-        bad_layer |= (lengths < _SHORTEST_EDGE**2 * layer_lengths0[kept]).any(axis=1)
+        bad_short = (lengths < _SHORTEST_EDGE**2 * layer_lengths0[kept]).any(axis=1)
         # and no new element stretched (a thin layer under a long merged face)
-        bad_layer |= lengths.max(axis=1) > _PILLOW_STRETCH**2 * lengths.min(axis=1)
+        bad_stretch = lengths.max(axis=1) > _PILLOW_STRETCH**2 * lengths.min(axis=1)
         least_at = np.zeros(n)
         least_at[nodes[rows]] = thinnest[rows]
-        bad_layer |= characteristic_length(x_layer, cells) < _PILLOW_LENGTH * least_at[faces[kept]].min(axis=1)
+        bad_thin = characteristic_length(x_layer, cells) < _PILLOW_LENGTH * least_at[faces[kept]].min(axis=1)
+        bad_layer = bad_sj | bad_short | bad_stretch | bad_thin
         if not (bad_under.any() or bad_layer.any() or whole):  # the layer is accepted on a whole check only
             sj_under, whole = st.checked.scaled_jacobian(st.x), True
             last = (st.x, sj_under)
@@ -1725,7 +1726,10 @@ def _add_pillow(st: _Smoothing) -> None:
         if not (bad_under.any() or bad_layer.any()):
             break
         if rounds == _PILLOW_ROUNDS:
-            raise _pillow_failure(st, sj_under, bad_under, sj_layer, bad_layer)
+            raise _pillow_failure(st, sj_under, bad_under, sj_layer, bad_sj,
+                                  {"an edge shorter than a twentieth of its length before": bad_short,
+                                   f"its longest edge over {_PILLOW_STRETCH:g} times its shortest": bad_stretch,
+                                   "thinner than the layer's least thickness": bad_thin})
         failing = np.flatnonzero(kept)[bad_layer]
         pulled = np.unique(at[failing])
         pulled = pulled[share[pulled] > 0]
@@ -1767,17 +1771,26 @@ def _add_pillow(st: _Smoothing) -> None:
 
 
 def _pillow_failure(st: _Smoothing, sj_under: np.ndarray, bad_under: np.ndarray, sj_layer: np.ndarray,
-                    bad_layer: np.ndarray) -> DicerError:
-    """The error naming the worst failing element (numbered as in the mesh with the layer)."""
+                    bad_sj: np.ndarray, shapes: dict[str, np.ndarray]) -> DicerError:
+    """The error naming the worst failing element (numbered as in the mesh with the layer) and
+    the check it fails: the scaled Jacobian's floor, or one of ``shapes`` (reason -> (E,) bool
+    over the layer's elements) where no element fails the floor."""
+    failing = int(bad_under.sum() + np.logical_or.reduce([bad_sj, *shapes.values()]).sum())
     under = np.where(bad_under, sj_under, np.inf)
-    layer = np.where(bad_layer, sj_layer, np.inf)
+    layer = np.where(bad_sj, sj_layer, np.inf)
+    if not (np.isfinite(under).any() or np.isfinite(layer).any()):
+        reason, bad = next((r, b) for r, b in shapes.items() if b.any())
+        number = st.mesh.n_cells + int(np.flatnonzero(bad)[0]) + 1
+        return DicerError(
+            f"the pillow layer cannot keep element {number} (of the layer) in shape: {reason} ({failing} element(s) "
+            "fail); set smooth.pillow: false, or change smooth.pillow_thickness")
     if under.size and (not layer.size or under.min() <= layer.min()):
         worst, number, what = float(under.min()), int(st.touched[np.argmin(under)]) + 1, "under the layer"
     else:
         worst, number, what = float(layer.min()), st.mesh.n_cells + int(np.argmin(layer)) + 1, "of the layer"
     return DicerError(
         f"the pillow layer cannot keep element {number} ({what}) at a scaled Jacobian of at least "
-        f"{float(st.s['min_scaled_jacobian']):g} (it reaches {worst:.3f}, {int(bad_under.sum() + bad_layer.sum())} "
+        f"{float(st.s['min_scaled_jacobian']):g} (it reaches {worst:.3f}, {failing} "
         "element(s) fail); set smooth.pillow: false, or lower smooth.pillow_thickness or smooth.min_scaled_jacobian")
 
 

@@ -304,7 +304,6 @@ def materials_across(material: np.ndarray, neighbours: np.ndarray) -> np.ndarray
     return np.where(neighbours >= 0, material[np.maximum(neighbours, 0)], 0).astype(material.dtype, copy=False)
 
 
-
 def cavity_faces(points: np.ndarray, cells: np.ndarray, dim: int, elements: np.ndarray,
                  faces: np.ndarray) -> np.ndarray:
     """Which of the given free faces are walls of a cavity: a hole the material closes round.
@@ -313,8 +312,8 @@ def cavity_faces(points: np.ndarray, cells: np.ndarray, dim: int, elements: np.n
     A body's outer surface, its normals out of the material, encloses a positive volume; the
     wall of a cavity, its normals into the hole, a negative one. A body floating in a cavity
     faces the hole too: its surface counts with the walls when a ray from it crosses a wall an
-    odd number of times. A surface that reaches a bounding plane of the image is closed by its faces on that
-    plane, so a hole open to a cut plane counts as outside.
+    odd number of times. A surface that reaches a bounding plane of the image is closed by its
+    faces on that plane, so a hole open to a cut plane counts as outside.
 
     Parameters
     ----------
@@ -427,8 +426,9 @@ def _inside_walls(probes: np.ndarray, corners: np.ndarray, surface: np.ndarray, 
     probe_key = at[:, 0] * width + at[:, 1] if dim3 else at[:, 0]
     lo, hi = np.searchsorted(key, probe_key, "left"), np.searchsorted(key, probe_key, "right")
     hi = np.where(inside_grid, hi, lo)
-    probe = np.repeat(np.arange(probes.shape[0]), hi - lo)
-    pair = face[np.arange(probe.size) - np.repeat(np.cumsum(hi - lo) - (hi - lo), hi - lo) + np.repeat(lo, hi - lo)]
+    found = hi - lo  # the faces in each probe's cell: face[lo:hi]
+    probe = np.repeat(np.arange(probes.shape[0]), found)
+    pair = face[np.arange(probe.size) - np.repeat(np.cumsum(found) - found, found) + np.repeat(lo, found)]
     p, t = probes[probe], tri[pair]
     if dim3:  # the probe's (y, z) in the triangle's projection, and the crossing ahead of it
         a, b, c = t[:, 0], t[:, 1], t[:, 2]

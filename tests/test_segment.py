@@ -145,6 +145,10 @@ def test_multiotsu_splits_many_materials_as_skimage_splits_few():
     assert np.all(np.abs(np.array(got) - valleys) < 40.0)
     two = multiotsu_thresholds(values, 2, ["m"] * 2, "mr.nii.gz")
     assert np.array_equal(two, threshold_multiotsu(values, classes=3))
+    # 16-bit integers: 256 bins too (scikit-image bins them one value a bin: 65,536 bins)
+    scale = 65000.0 / np.ptp(values)
+    got = multiotsu_thresholds(((values - values.min()) * scale).astype(np.uint16), 6, ["m"] * 6, "mr.nii.gz")
+    assert np.all(np.abs(np.array(got) / scale + values.min() - valleys) < 40.0)
 
 
 def test_thresholds_of_an_image_in_tiny_units_are_written_as_found():

@@ -161,8 +161,11 @@ def multiotsu_thresholds(values: np.ndarray, k: int, names: list[str], source: s
     -------
     thresholds : list of K floats, increasing
     """
+    values = np.asarray(values).reshape(-1)
+    if not np.issubdtype(values.dtype, np.floating):  # scikit-image bins integers one value a bin
+        values = values.astype(np.float64)
     with _quiet():
-        counts, centres = histogram(np.asarray(values).reshape(-1), 256, source_range="image")
+        counts, centres = histogram(values, 256, source_range="image")
     filled = np.flatnonzero(counts)
     if filled.size < k + 1:
         raise DicerError(f"{source}: multi-Otsu cannot split the image into {k + 1} classes (its 256-bin histogram "

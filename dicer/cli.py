@@ -357,14 +357,14 @@ def _npy_spacing(path, config: dict):
 
 
 def do_downsample(labels_path: str, out: Path, config: dict):
-    from dicer.config import _coarsening, stage_kwargs
+    from dicer.config import coarsening, stage_kwargs
     from dicer.downsample import downsample
     from dicer.io.images import read_labels
     from dicer.labels import write_mapped_labels
 
     with _Stage("downsample"):
         settings = stage_kwargs(config, "downsample")
-        if settings["voxel_size"] is not None and _coarsening(settings["factor"]):
+        if settings["voxel_size"] is not None and coarsening(settings["factor"]):
             log.warning("downsample: downsample.voxel_size %s replaces downsample.factor %s, which is not used; give "
                         "one of them", settings["voxel_size"], settings["factor"])
         labels = read_labels(labels_path, _npy_spacing(labels_path, config))

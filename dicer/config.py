@@ -1115,10 +1115,10 @@ def downsample_applies(config: dict) -> bool:
     bool
     """
     ds = config["downsample"]
-    return ds["voxel_size"] is not None or _coarsening(ds["factor"])
+    return ds["voxel_size"] is not None or coarsening(ds["factor"])
 
 
-def _coarsening(factor) -> bool:
+def coarsening(factor) -> bool:
     """Whether downsample.factor (one value or one per axis) is other than 1 anywhere."""
     return any(f != 1 for f in (factor if isinstance(factor, list) else [factor]))
 

@@ -355,8 +355,8 @@ def cavity_faces(points: np.ndarray, cells: np.ndarray, dim: int, elements: np.n
     surfaces, surface = connected_components(graph, directed=False)
     # each surface about its own first node, so a small cavity's volume is not lost to rounding
     _, first = np.unique(surface, return_index=True)
-    p = np.asarray(points, float)[nodes]
-    p -= p[first[surface], :1]
+    xyz = np.asarray(points, float)[nodes]
+    p = xyz - xyz[first[surface], :1]
     if dim == 3:  # the divergence theorem over the faces' two triangles
         measure = (np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2]))
                    + np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 2], p[:, 3]))) / 6.0
@@ -369,7 +369,6 @@ def cavity_faces(points: np.ndarray, cells: np.ndarray, dim: int, elements: np.n
     if wall.any() and bodies.size > 1:  # a body may float in a cavity: its surface faces the hole too
         # a point of each body's face that turns most to x, off its edges and diagonals: the
         # rays along x from it leave its plane and miss the lattice lines of the walls
-        xyz = np.asarray(points, float)[nodes]
         if dim == 3:
             facing = np.cross(xyz[:, 2] - xyz[:, 0], xyz[:, 3] - xyz[:, 1])
             facing = np.abs(facing[:, 0]) / np.maximum(np.linalg.norm(facing, axis=1), 1e-300)
@@ -398,12 +397,13 @@ def _inside_walls(probes: np.ndarray, corners: np.ndarray, surface: np.ndarray, 
     and y); surface : (F,) each face's surface; wall : (S,) bool, the surfaces to test.
     """
     faces = np.flatnonzero(wall[surface])
+    quads = corners[faces]
     if dim3 := corners.shape[1] == 4:
-        tri = np.concatenate([corners[faces][:, [0, 1, 2]], corners[faces][:, [0, 2, 3]]])
+        tri = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
         owner = np.concatenate([surface[faces], surface[faces]])
         plane = (1, 2)
     else:
-        tri, owner, plane = corners[faces][:, :, :2], surface[faces], (1,)
+        tri, owner, plane = quads[:, :, :2], surface[faces], (1,)
     low, high = tri[:, :, plane].min(axis=1), tri[:, :, plane].max(axis=1)
     cell = max(float(np.mean(high - low)), 1e-300) * 2.0
     origin = low.min(axis=0)

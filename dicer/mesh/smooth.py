@@ -1727,7 +1727,7 @@ def _add_pillow(st: _Smoothing) -> None:
             break
         if rounds == _PILLOW_ROUNDS:
             raise _pillow_failure(st, sj_under, bad_under, sj_layer, bad_sj,
-                                  {"an edge shorter than a twentieth of its length before": bad_short,
+                                  {f"an edge shorter than {_SHORTEST_EDGE:g} of its length before": bad_short,
                                    f"its longest edge over {_PILLOW_STRETCH:g} times its shortest": bad_stretch,
                                    "thinner than the layer's least thickness": bad_thin})
         failing = np.flatnonzero(kept)[bad_layer]

@@ -1119,7 +1119,17 @@ def downsample_applies(config: dict) -> bool:
 
 
 def coarsening(factor) -> bool:
-    """Whether downsample.factor (one value or one per axis) is other than 1 anywhere."""
+    """Whether downsample.factor (one value or one per axis) is other than 1 anywhere.
+
+    Parameters
+    ----------
+    factor : int or list of int
+        ``downsample.factor``.
+
+    Returns
+    -------
+    bool
+    """
     return any(f != 1 for f in (factor if isinstance(factor, list) else [factor]))
 
 

@@ -136,4 +136,4 @@ def crop_volume(volume: Volume, crop: dict | None, source: str) -> tuple[Volume,
     array = np.ascontiguousarray(volume.array[tuple(slice(a, b) for a, b in zip(start.tolist(), stop.tolist()))])
     info = {"start": start.tolist(), "stop": stop.tolist(), "shape_before": list(volume.array.shape),
             "shape": list(array.shape)}
-    return Volume(array, volume.spacing, tuple(origin.tolist()), volume.direction), info
+    return Volume(array, volume.spacing, tuple(origin.tolist()), volume.direction, volume.modality), info

@@ -30,12 +30,18 @@ class Volume:
         for the identity. Stages work in the index axes; label files keep them (so their
         affine), and the exports place the model in scanner coordinates with them
         (docs/coordinates.md).
+    modality : str, optional
+        What the scan is, as DICOM's Modality (0008,0060) names it ("CT", "MR", ...): from a
+        DICOM file or series, or the BIDS sidecar (``scan.json`` beside ``scan.nii.gz``) that
+        dcm2niix writes; None when the input does not say. Segmentation refuses HU defaults
+        for a scan that is not a CT.
     """
 
     array: np.ndarray
     spacing: tuple[float, ...]
     origin: tuple[float, ...] | None = None
     direction: tuple[float, ...] | None = None
+    modality: str | None = None
 
     def __post_init__(self):
         self.spacing = tuple(float(s) for s in self.spacing)

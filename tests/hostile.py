@@ -187,8 +187,9 @@ def text(path: Path, content: str | bytes) -> Path:
     return path
 
 
-def write_dicom_series(folder: Path, positions, shape=(12, 10), orient=None, sizes=None) -> Path:
-    """A CT series from scratch: one int16 slice per z position (slope 1, intercept -1024)."""
+def write_dicom_series(folder: Path, positions, shape=(12, 10), orient=None, sizes=None, modality="CT") -> Path:
+    """A series from scratch (a CT unless ``modality`` says otherwise): one int16 slice per z
+    position (slope 1, intercept -1024)."""
     from pydicom.dataset import FileDataset, FileMetaDataset
     from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 
@@ -205,7 +206,7 @@ def write_dicom_series(folder: Path, positions, shape=(12, 10), orient=None, siz
         ds.SOPClassUID, ds.SOPInstanceUID = CTImageStorage, uid
         ds.StudyInstanceUID = generate_uid(entropy_srcs=["hostile study"])
         ds.SeriesInstanceUID = series_uid
-        ds.Modality = "CT"
+        ds.Modality = modality
         ds.PatientName, ds.PatientID = "Anonymous^Hostile", "HX-0001"
         ds.Rows, ds.Columns = rows, cols
         ds.PixelSpacing = [0.7, 0.7]
@@ -456,11 +457,14 @@ DICOM_CASES = {
     "folder of notes only": (lambda c: (text(c.t / "series" / "notes.txt", "scan notes\n"), c.t / "series")[1],
                              "series"),
     "empty folder": (lambda c: (c.t / "series").mkdir() or c.t / "series", "series"),
+    "MR series under the CT defaults": (lambda c: write_dicom_series(c.t / "series", np.arange(6) * 2.0,
+                                                                     modality="MR"), "Modality MR"),
 }
 for label, (build, expect) in DICOM_CASES.items():
     case("2-dicom", f"segment: DICOM {label}",
          (lambda build: lambda c: ["segment", build(c), "-o", c.t / "l.nii.gz"])(build), expect)
-for label in ("missing slice", "duplicate position", "truncated slice", "random-bytes slice", "slices of two sizes"):
+for label in ("missing slice", "duplicate position", "truncated slice", "random-bytes slice", "slices of two sizes",
+              "MR series under the CT defaults"):
     build, expect = DICOM_CASES[label]
     case("2-dicom", f"run: DICOM {label}",
          (lambda build: lambda c: ["run", build(c), "-o", c.t / "out"])(build), expect)

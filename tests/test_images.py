@@ -186,7 +186,7 @@ SECRET_ID = "PID-88231577"
 
 def _write_dicom_series(folder, nslices, series_uid, stored, z0=-20.0, dz=2.5, prefix="im", order=None,
                         positions=None, shift_y=0.0, pixel_spacing=True, patient_id=None, study_uid=None,
-                        padding=None):
+                        padding=None, modality=None):
     """Write a CT series built on pydicom's CT_small.dcm: stored values, slope 2, intercept -1024.
 
     Slice k lies at z = ``positions[k]`` (default ``z0 + dz * k``); its SliceThickness is
@@ -222,6 +222,8 @@ def _write_dicom_series(folder, nslices, series_uid, stored, z0=-20.0, dz=2.5, p
         ds.RescaleIntercept = -1024
         if padding is not None:
             ds.PixelPaddingValue = padding
+        if modality is not None:
+            ds.Modality = modality
         for tag in ("SmallestImagePixelValue", "LargestImagePixelValue"):
             if tag in ds:
                 delattr(ds, tag)
@@ -257,6 +259,59 @@ def test_dicom_series_in_hu_ordered_by_position(dicom_folder, tmp_path, caplog):
         assert secret.encode() not in raw
         assert secret.encode() not in gzip.decompress(raw)
         assert secret not in caplog.text
+
+
+def _head_like(shape=(24, 22, 8)):
+    """Stored values of a disc of 'tissue' with a brighter core, on a dark background."""
+    x, y = np.meshgrid(np.arange(shape[0]) - shape[0] / 2, np.arange(shape[1]) - shape[1] / 2, indexing="ij")
+    r = np.hypot(x, y)[:, :, None] + np.zeros(shape)
+    return np.where(r < 5, 1400, np.where(r < 9, 900, 20)).astype(np.int16)
+
+
+@pytest.mark.parametrize("modality, refused", [("MR", True), ("PT", True), ("CT", False), (None, False)])
+def test_segmentation_refuses_ct_defaults_for_a_series_that_is_not_ct(tmp_path, capsys, modality, refused):
+    from dicer.cli import main
+
+    folder = tmp_path / "series"
+    folder.mkdir()
+    _write_dicom_series(folder, 8, "1.2.826.0.1.3680043.8.498.7", _head_like(), modality=modality)
+    assert read_image(folder).modality == (modality or "CT")  # the template is a CT
+    out = tmp_path / "labels.nii.gz"
+    code = main(["segment", str(folder), "-o", str(out), "-q"])
+    err = capsys.readouterr().err
+    if not refused:
+        assert code == 0 and out.exists()
+        return
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and not out.exists()
+    assert lines[0].startswith(f"error: {folder}: the scan is ") and f"(DICOM Modality {modality})" in lines[0]
+    assert "segment.method: multiotsu" in lines[0] and "segment.ranges" in lines[0]
+    # the histogram's thresholds, or ranges set for the image's values, take the same series
+    assert main(["segment", str(folder), "-o", str(out), "-q", "--set", "segment.method=multiotsu"]) == 0
+    labels = read_labels(out).array
+    assert np.count_nonzero(labels == 2) == np.count_nonzero(_head_like() * 2 - 1024 >= 1400 * 2 - 1024)
+    out.unlink()
+    assert main(["segment", str(folder), "-o", str(out), "-q", "--set", "segment.method=manual",
+                 "--set", "segment.thresholds=[0, 1000]"]) == 0
+
+
+def test_modality_from_a_bids_sidecar(tmp_path):
+    from dicer.segment import segment
+
+    image = tmp_path / "sub-01_T1w.nii.gz"
+    write_image(Volume(_head_like().astype(np.float32), (1.0, 1.0, 1.0)), image)
+    assert read_image(image).modality is None
+    sidecar = tmp_path / "sub-01_T1w.json"
+    sidecar.write_text('{"Modality": "MR", "MagneticFieldStrength": 3}')
+    volume = read_image(image)
+    assert volume.modality == "MR"
+    with pytest.raises(DicerError, match=r"the scan is an MR \(DICOM Modality MR\), not a CT"):
+        segment(volume, source=str(image))
+    _, info = segment(volume, {"segment": {"method": "multiotsu"}}, str(image))
+    assert info["thresholds"][0] > 20  # the dark background is background
+    for text in ("not json {", '["Modality", "MR"]', '{"Modality": 3}', '{"Modality": " "}'):
+        sidecar.write_text(text)
+        assert read_image(image).modality is None
 
 
 def test_dicom_picks_the_largest_series(dicom_folder, caplog):

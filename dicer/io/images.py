@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import gzip
+import json
 import logging
 import os
 import re
@@ -143,6 +144,33 @@ def image_header(path: str | os.PathLike, io: str | None = None):
     except RuntimeError:
         return None
     return reader
+
+
+_MODALITY_TAG = "0008|0060"  # DICOM's Modality: CT, MR, PT, ...
+
+
+def _dicom_modality(path: str | os.PathLike) -> str | None:
+    """The Modality (0008,0060) of a DICOM file ("CT", "MR", ...), or None without one."""
+    header = image_header(path, "GDCMImageIO")
+    if header is None or not header.HasMetaDataKey(_MODALITY_TAG):
+        return None
+    return header.GetMetaData(_MODALITY_TAG).strip().upper() or None
+
+
+def _sidecar_modality(path: Path) -> str | None:
+    """The ``Modality`` of the BIDS sidecar beside an image (``scan.json`` for ``scan.nii.gz``,
+    as dcm2niix writes it), or None: no sidecar, not JSON, or no such field."""
+    sidecar = path.with_name(path.name[: len(path.name) - len(_suffix(path))] + ".json")
+    try:
+        if not sidecar.is_file() or sidecar.stat().st_size > 1 << 20:
+            return None
+        fields = json.loads(sidecar.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    modality = fields.get("Modality") if isinstance(fields, dict) else None
+    if not isinstance(modality, str):
+        return None
+    return modality.strip().upper() or None
 
 
 def _itk_message(exc: Exception) -> str:
@@ -1389,8 +1417,11 @@ def _read_dicom_series(folder: Path, required: bool = True, allow_irregular: boo
         log.info("%s: %d DICOM series found (slices: %s); reading the one with the most slices (%d)",
                  folder.name, len(counts), ", ".join(map(str, counts)), len(names))
     if array is None:  # one multi-frame file
-        return _read_file(Path(names[0]), None, keep_direction=True)
-    return _stack_dicom_slices(folder, names, array, positions, direction, pixel_spacing, allow_irregular)
+        volume = _read_file(Path(names[0]), None, keep_direction=True)
+    else:
+        volume = _stack_dicom_slices(folder, names, array, positions, direction, pixel_spacing, allow_irregular)
+    volume.modality = _dicom_modality(names[0])
+    return volume
 
 
 def _dicom_series_slices(folder: Path, required: bool):
@@ -1488,6 +1519,8 @@ def read_image(path: str | os.PathLike, spacing=None, allow_irregular_slices: bo
         page or a single slice gives a 2D Volume. ``.npy`` arrays are taken as
         indexed [x, y(, z)] with origin 0. ``direction``: the header's direction
         cosines of a 3D NIfTI, NRRD, MetaImage or DICOM series (None: identity).
+        ``modality``: a DICOM input's Modality, or that of a BIDS sidecar beside the file
+        (``scan.json``, as dcm2niix writes it); None when neither says.
 
     Raises
     ------
@@ -1503,8 +1536,10 @@ def read_image(path: str | os.PathLike, spacing=None, allow_irregular_slices: bo
     if path.is_dir():
         return _read_folder(path, spacing, allow_irregular_slices)
     volume = _read_file(path, spacing, keep_direction=True)
-    if volume.array.ndim == 2 and (_suffix(path) == ".dcm" or _dicom_preamble(path)):
+    dicom = _suffix(path) == ".dcm" or _dicom_preamble(path)
+    if volume.array.ndim == 2 and dicom:
         _say_series_of_slice(path)
+    volume.modality = _dicom_modality(path) if dicom else _sidecar_modality(path)
     return volume
 
 

@@ -8,11 +8,12 @@ closing and optional component filters clean each class (see
 
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
 
-from dicer.config import takes_settings
+from dicer.config import section_defaults, takes_settings
 from dicer.errors import DicerError
 from dicer.image import Volume, count_labels
 from dicer.segment.morphology import axis_radii, clean_labels
@@ -240,6 +241,44 @@ def _empty_class_warnings(info: dict, names: list[str], thresholds) -> list[str]
     return warnings
 
 
+NOT_IN_HU = {"MR": "an MR", "PT": "a PET", "NM": "a nuclear-medicine image", "US": "an ultrasound",
+             "CR": "a radiograph", "DX": "a radiograph", "MG": "a mammogram", "XA": "an angiogram"}
+"""DICOM Modality values (0008,0060) of scans whose values are not HU, and what to call them."""
+
+
+def check_modality(modality: str | None, method: str, thresholds, ranges, source: str) -> None:
+    """Refuse CT's default thresholds in HU for a scan whose DICOM Modality says it is no CT.
+
+    Parameters
+    ----------
+    modality : str or None
+        The image's Modality (``Volume.modality``); None or another value passes.
+    method, thresholds, ranges
+        The ``segment:`` settings; ``otsu`` and ``multiotsu`` take no values and pass, as do
+        values the user set (any but the schema's defaults).
+    source : str
+        The image's file name, for the message.
+
+    Raises
+    ------
+    DicerError
+        ``shape_connectivity`` with the default ``ranges``, or ``manual`` with the default
+        ``thresholds``, on an image of a modality in :data:`NOT_IN_HU`.
+    """
+    kind = NOT_IN_HU.get(modality or "")
+    if kind is None or method not in ("shape_connectivity", "manual"):
+        return
+    key = "ranges" if method == "shape_connectivity" else "thresholds"
+    given = ranges if method == "shape_connectivity" else thresholds
+    default = section_defaults("segment")[key]
+    if np.shape(given) != np.shape(default) or not np.array_equal(np.asarray(given, float), default):
+        return
+    raise DicerError(f"{source}: the scan is {kind} (DICOM Modality {modality}), not a CT, and segment.method "
+                     f"{method} takes the default segment.{key} {json.dumps(default)}, which are CT values in HU; "
+                     f"set segment.method: multiotsu (thresholds from the image's histogram, docs/segmentation.md), "
+                     f"or segment.{key} for this image's values")
+
+
 def _range_warnings(info: dict, names: list[str], lo: float, hi: float) -> list[str]:
     """Warnings for thresholds that suggest the image is not in the units the settings
     assume (an MR or a rescaled image under the CT defaults)."""
@@ -333,6 +372,7 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
     source = source or "image"
     k = len(names)
     lo, hi = _check_image(image, source)
+    check_modality(image.modality, method, thresholds, ranges, source)
     array = image.array
     info: dict = {"method": method}
     values = None  # Otsu's histogram values (histogram_values)

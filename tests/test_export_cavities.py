@@ -16,9 +16,11 @@ from hypothesis import strategies as st
 
 from dicer.config import load_config, name_clash
 from dicer.connectivity import fix_connectivity
+from dicer.errors import DicerError
 from dicer.export import export_mesh, prepare_model
 from dicer.export.abaqus import read_abaqus
 from dicer.export.exodus import least_arrays
+from dicer.export.lsdyna import read_lsdyna
 from dicer.image import enclosed_voids
 from dicer.mesh.voxel import voxel_mesh
 
@@ -61,6 +63,49 @@ def test_cavity_walls_are_apart_from_the_exterior_in_every_format(tmp_path, body
     for s in range(1, 7):
         rows = deck["element_sets"][f"CAVITIES_S{s}"]
         assert np.all(np.abs(points[deck["cells"][rows]].mean(axis=1) - centre).max(axis=1) <= 2.5)
+
+
+@pytest.mark.parametrize("body_inside", [False, True])
+def test_lsdyna_segment_sets_are_the_faces_wound_outward(tmp_path, body_inside):
+    """The keyword file's *SET_SEGMENT_TITLE sets hold each face set's faces, N1..N4 counter-clockwise
+    seen from outside the element they bound: a segment's normal points out of its element (into
+    the void for CAVITIES, out of the model for EXTERIOR), so a positive *LOAD_SEGMENT_SET pressure
+    presses on the material."""
+    lab = _hollow_cube(body_inside)
+    cfg = load_config(settings={"materials": [{"name": "shell"}, {"name": "core"}],
+                                "export": {"sets": ["materials", "interfaces", "exterior"]}})
+    export_mesh(voxel_mesh(lab), tmp_path / "m.k", cfg)
+    deck = read_lsdyna(tmp_path / "m.k")
+    walls = 96 + 24 * body_inside
+    sets = deck["segment_sets"]
+    assert list(sets) == ["EXTERIOR", "CAVITIES"]
+    assert (sets["EXTERIOR"].shape, sets["CAVITIES"].shape) == ((384, 4), (walls, 4))
+    points, cells = deck["points"], deck["cells"]
+    # each face's element: the one holding its four nodes
+    holder = {frozenset(cells[e][list(c)]): e for e in range(cells.shape[0])
+              for c in ((0, 1, 2, 3), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7))}
+    centre = np.array([5.0, 5.0, 5.0])
+    for name, faces in sets.items():
+        corner = points[faces]
+        normal = np.cross(corner[:, 2] - corner[:, 0], corner[:, 3] - corner[:, 1])
+        element = np.array([holder[frozenset(f)] for f in faces.tolist()])
+        out = corner.mean(axis=1) - points[cells[element]].mean(axis=1)
+        assert np.all(np.einsum("ij,ij->i", normal, out) > 0), name
+        if name == "CAVITIES" and not body_inside:  # the walls' normals point into the void
+            assert np.all(np.einsum("ij,ij->i", normal, centre - corner.mean(axis=1)) > 0)
+    # an interface's segments: one face per pair of elements across it, wound out of its element
+    solid = lab.copy()
+    solid[3:7, 3:7, 3:7] = 2
+    export_mesh(voxel_mesh(solid), tmp_path / "solid.k", cfg)
+    both = read_lsdyna(tmp_path / "solid.k")["segment_sets"]
+    assert list(both) == ["EXTERIOR", "shell_core"] and both["shell_core"].shape == (96, 4)
+    # a segment card cut short is refused, naming its line
+    text = (tmp_path / "m.k").read_text().splitlines()
+    at = next(i for i in range(len(text)) if text[i : i + 2] == ["*SET_SEGMENT_TITLE", "CAVITIES"]) + 4
+    text[at] = text[at][:35]
+    (tmp_path / "bad.k").write_text("\n".join(text) + "\n")
+    with pytest.raises(DicerError, match=rf"line {at + 1}: segment set CAVITIES: a segment card is four"):
+        read_lsdyna(tmp_path / "bad.k")
 
 
 @pytest.mark.parametrize("dim", [2, 3])

@@ -40,7 +40,7 @@ def _former_read_lsdyna(path) -> dict:
     if not keys or keys[0] != "*KEYWORD" or keys[-1] != "*END":
         raise DicerError("an LS-DYNA keyword file starts with *KEYWORD and ends with *END")
     bounds = list(key_rows) + [n]
-    out = {"parts": {}, "materials": {}, "node_sets": {}, "title": ""}
+    out = {"parts": {}, "materials": {}, "node_sets": {}, "segment_sets": {}, "title": ""}
     points = cells = pids = None
     for i, key in enumerate(keys):
         rows = np.arange(bounds[i] + 1, bounds[i + 1])
@@ -93,6 +93,14 @@ def _former_read_lsdyna(path) -> dict:
                 k = int(lines.lengths[tail[0]]) // 10
                 ids = np.concatenate([ids] + [lines.ints(tail, 10 * j, 10, "node set") for j in range(k)])
             out["node_sets"][name] = ids - 1
+        elif key == "*SET_SEGMENT_TITLE":
+            if rows.size < 3:
+                raise DicerError("*SET_SEGMENT_TITLE needs a title, a SID card and a segment card")
+            name, data = lines.text(rows[0]).strip(), rows[2:]
+            if np.any(lines.lengths[data] != 40):
+                raise DicerError(f"segment set {name}: a segment card is four 10-column node ids")
+            out["segment_sets"][name] = np.column_stack([lines.ints(data, 10 * k, 10, "segment node")
+                                                         for k in range(4)]) - 1
         elif key in ("*KEYWORD", "*END"):
             if rows.size:
                 raise DicerError(f"{key} takes no data cards")

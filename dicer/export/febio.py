@@ -43,7 +43,6 @@ import numpy as np
 from dicer.errors import DicerError
 from dicer.export.format import Format
 from dicer.export.textfmt import Float, Int, Sci, int_lines, int_width, write_chunks
-from dicer.mesh.topology import HEX20_FACES, HEX_FACES
 
 SPEC_VERSION = "4.0"
 FEBIO_TYPES = {1: "hex8", 2: "hex20"}
@@ -59,24 +58,6 @@ def _num(v: float) -> str:
 def _comment(text: str) -> str:
     # "--" may not appear inside an XML comment (a file name could hold one)
     return "<!-- " + text.replace("--", "- -") + " -->\n"
-
-
-def facets(model, faces: np.ndarray) -> np.ndarray:
-    """Node indices of the outward facets of element faces.
-
-    Parameters
-    ----------
-    model : SolverModel
-    faces : (F, 2) int ndarray
-        Rows of element index and Abaqus face number 1..6.
-
-    Returns
-    -------
-    (F, 4) or (F, 8) int ndarray
-        0-based.
-    """
-    table = HEX20_FACES if model.order == 2 else HEX_FACES  # wound outward, as FEBio wants them
-    return model.cells[faces[:, 0][:, None], table[faces[:, 1] - 1]]
 
 
 def _rows(stream, tag: bytes, ids: np.ndarray, values: np.ndarray, width: int, fmt: Sci | None = None) -> None:
@@ -142,7 +123,7 @@ def write_febio(model, path: str | Path, *, material_type: str) -> None:
         ftype = FACET_TYPES[model.order].encode()
         for name, faces in model.face_sets().items():
             w(f'\t\t<Surface name="{name}">\n'.encode())
-            _rows(f, ftype, np.arange(1, faces.shape[0] + 1), facets(model, faces) + 1, width)
+            _rows(f, ftype, np.arange(1, faces.shape[0] + 1), model.facets(faces) + 1, width)
             w(b"\t\t</Surface>\n")
         w(b"\t</Mesh>\n\t<MeshDomains>\n")
         for k in labels:
@@ -1016,7 +997,7 @@ def check_febio(path: str | Path, model, *, material_type: str) -> None:
         raise DicerError(f"surfaces {list(got['surfaces'])} read back, expected {list(want_s)}")
     for name, faces in want_s.items():
         ftype, conn = got["surfaces"][name]
-        if ftype != FACET_TYPES[model.order] or not np.array_equal(conn, facets(model, faces)):
+        if ftype != FACET_TYPES[model.order] or not np.array_equal(conn, model.facets(faces)):
             raise DicerError(f"surface {name} differs")
 
 

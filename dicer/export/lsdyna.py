@@ -11,6 +11,9 @@
     *MAT_ELASTIC              MID RO E PR (I10, E10)
     *ELEMENT_SOLID            EID PID N1..N8 (10 x I8)
     *SET_NODE_LIST_TITLE      the node sets of the Abaqus deck: title, SID (I10), node ids (8 x I10)
+    *SET_SEGMENT_TITLE        the face sets (EXTERIOR, CAVITIES, the interfaces): title, SID (I10),
+                              a card per face, N1..N4 (4 x I10) wound outward (counter-clockwise
+                              seen from outside its element: positive pressure presses inward)
     *END
 
 Units are dicer's: mm, N, MPa (N/mm^2), t/mm^3, so times come out in seconds.
@@ -107,6 +110,10 @@ def write_lsdyna(model, path: str | Path) -> None:
         write_int_blocks(w, ((f"*SET_NODE_LIST_TITLE\n{name}\n$#     sid\n{sid:10d}\n".encode(), ids + 1)
                              for sid, (name, ids) in enumerate(model.node_sets.items(), start=1)),
                          8, 10, sep=b"")  # 8 x I10
+        write_int_blocks(w, ((f"*SET_SEGMENT_TITLE\n{name}\n$#     sid\n{sid:10d}\n".encode(),
+                              (model.facets(faces) + 1).ravel())
+                             for sid, (name, faces) in enumerate(model.face_sets().items(), start=1)),
+                         4, 10, sep=b"")  # a card per face: N1..N4, 4 x I10
         w(b"*END\n")
 
 
@@ -125,8 +132,8 @@ def read_lsdyna(path: str | Path) -> dict:
     -------
     dict
         ``points``, ``cells`` (0-based), ``material`` (part ids), ``parts`` (pid ->
-        title), ``materials`` (mid -> (ro, e, pr)), ``node_sets`` (title -> 0-based ids)
-        and ``title``.
+        title), ``materials`` (mid -> (ro, e, pr)), ``node_sets`` (title -> 0-based ids),
+        ``segment_sets`` (title -> (F, 4) 0-based node ids) and ``title``.
 
     Raises
     ------
@@ -141,7 +148,7 @@ _NODE_CARD = ((8, 16, 16, 16), "ifff", ("*NODE id",) + ("*NODE coordinate",) * 3
 _ELEMENT_CARD = ((8,) * 10, "i" * 10, ("*ELEMENT_SOLID id", "*ELEMENT_SOLID part") + ("*ELEMENT_SOLID node",) * 8)
 _BIG = {"*NODE": _NODE_CARD, "*ELEMENT_SOLID": _ELEMENT_CARD}
 _SET_FIELD = 10  # I10 node ids, 8 to a full card
-_BATCHED = ("*PART", "*SECTION_SOLID", "*MAT_ELASTIC", "*SET_NODE_LIST_TITLE")  # many small blocks
+_BATCHED = ("*PART", "*SECTION_SOLID", "*MAT_ELASTIC", "*SET_NODE_LIST_TITLE", "*SET_SEGMENT_TITLE")  # many small blocks
 
 
 def _read_lsdyna(path: str | Path) -> dict:
@@ -346,7 +353,7 @@ def _parse(lines: Lines, parsed: dict) -> dict:
         cut = f" (this one ends after line {n} without *END: truncated?)" if keys and keys[-1] != "*END" else ""
         raise DicerError(f"an LS-DYNA keyword file starts with *KEYWORD and ends with *END{cut}")
     bounds = np.append(key_rows, n)
-    out = {"parts": {}, "materials": {}, "node_sets": {}, "title": ""}
+    out = {"parts": {}, "materials": {}, "node_sets": {}, "segment_sets": {}, "title": ""}
     points = cells = pids = element_rows = None
     batched: dict[str, list[int]] = {key: [] for key in _BATCHED}
     for i, key in enumerate(keys):
@@ -375,6 +382,7 @@ def _parse(lines: Lines, parsed: dict) -> dict:
     blocks = {key: np.array(batched[key], np.intp) for key in _BATCHED}
     _parts(lines, key_rows, bounds, comment, blocks, out)
     out["node_sets"] = _node_sets(lines, key_rows, bounds, blocks["*SET_NODE_LIST_TITLE"], comment)
+    out["segment_sets"] = _segment_sets(lines, key_rows, bounds, blocks["*SET_SEGMENT_TITLE"], comment)
     if points is None or cells is None:
         raise DicerError("no *NODE or *ELEMENT_SOLID block")
     if cells.size and (cells.min() < 0 or cells.max() >= points.shape[0]):
@@ -634,6 +642,43 @@ def _node_sets(lines: Lines, key_rows: np.ndarray, bounds: np.ndarray, blocks: n
     return out
 
 
+def _segment_sets(lines: Lines, key_rows: np.ndarray, bounds: np.ndarray, blocks: np.ndarray,
+                  comment: np.ndarray) -> dict:
+    """The *SET_SEGMENT_TITLE blocks: a title card, a SID card and a card of 4 x I10 node ids per
+    face, all sets' cards checked and converted together (arguments as :func:`_node_sets`).
+
+    Returns
+    -------
+    dict
+        title -> (F, 4) int64 0-based node ids, in file order.
+
+    Raises
+    ------
+    DicerError
+        Naming the line.
+    """
+    if blocks.size == 0:
+        return {}
+    rows, sid, first, count = _block_rows(key_rows, bounds, blocks, comment)
+    if np.any(count < 3):
+        s = int(np.flatnonzero(count < 3)[0])
+        raise DicerError(f"line {key_rows[blocks[s]] + 1}: *SET_SEGMENT_TITLE needs a title, a SID card and a "
+                         "segment card")
+    names = [lines.text(r).strip() for r in rows[first]]
+    data = np.arange(rows.size) - np.repeat(first, count) >= 2  # after the title and SID cards
+    rows, sid = rows[data], sid[data]
+    width = 4 * _SET_FIELD
+    wrong = lines.lengths[rows] != width
+    if wrong.any():
+        i = int(np.flatnonzero(wrong)[0])
+        raise DicerError(f"line {rows[i] + 1}: segment set {names[sid[i]]}: a segment card is four 10-column node "
+                         f"ids ({width} columns), this one {lines.lengths[rows[i]]}")
+    card = ((_SET_FIELD,) * 4, "iiii", ("segment node",) * 4)
+    ints, _ = _parse_cards(lines, rows, _gather(lines, rows, width + 1), card)
+    ends = np.cumsum(np.bincount(sid, minlength=blocks.size))
+    return {name: faces.astype(np.int64) - 1 for name, faces in zip(names, np.split(ints, ends[:-1]))}
+
+
 def check_lsdyna(path: str | Path, model) -> None:
     """Re-read an LS-DYNA keyword file with :func:`read_lsdyna` and compare it with the model.
 
@@ -654,6 +699,12 @@ def check_lsdyna(path: str | Path, model) -> None:
     for name, ids in model.node_sets.items():
         if not np.array_equal(got["node_sets"].get(name, np.zeros(0)), ids):
             raise DicerError(f"node set {name} differs")
+    faces = model.face_sets()
+    if set(got["segment_sets"]) != set(faces):
+        raise DicerError(f"segment sets {sorted(got['segment_sets'])} where the model has {sorted(faces)}")
+    for name, rows in faces.items():
+        if not np.array_equal(got["segment_sets"][name], model.facets(rows)):
+            raise DicerError(f"segment set {name} differs")
     for k in model.labels():
         if got["parts"].get(k, {}).get("title") != model.names[k] or k not in got["materials"]:
             raise DicerError(f"part or material {model.names[k]} missing")

@@ -181,6 +181,23 @@ class SolverModel(Sized):
         return {name: rows for name, rows in (("EXTERIOR", self.exterior), ("CAVITIES", self.cavities))
                 if rows is not None and rows.size}
 
+    def facets(self, faces: np.ndarray) -> np.ndarray:
+        """Node indices of element faces, wound outward (counter-clockwise seen from outside
+        the element: the normal FEBio's and LS-DYNA's pressure loads take).
+
+        Parameters
+        ----------
+        faces : (F, 2) int ndarray
+            Rows of element index and Abaqus face number 1..6.
+
+        Returns
+        -------
+        (F, 4) or (F, 8) int ndarray
+            0-based.
+        """
+        table = HEX20_FACES if self.order == 2 else HEX_FACES
+        return self.cells[faces[:, 0][:, None], table[faces[:, 1] - 1]]
+
     def face_sets(self) -> dict[str, np.ndarray]:
         """Element-face set name -> (F, 2) rows (element index, face number): EXTERIOR,
         CAVITIES, then the interfaces (Exodus side sets, FEBio surfaces)."""

@@ -576,6 +576,19 @@ def _gather(lines: Lines, rows: np.ndarray, length: int) -> np.ndarray:
     return out.ravel()
 
 
+def _titled_sets(lines: Lines, key_rows: np.ndarray, bounds: np.ndarray, blocks: np.ndarray, comment: np.ndarray,
+                 least: int, message: str) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """The titles of set blocks (a title card, a SID card, data cards), and their data cards' lines
+    with the index of the block each belongs to; DicerError ``message`` naming the first block
+    of fewer than ``least`` cards."""
+    rows, sid, first, count = _block_rows(key_rows, bounds, blocks, comment)
+    if np.any(count < least):
+        raise DicerError(f"line {key_rows[blocks[int(np.flatnonzero(count < least)[0])]] + 1}: {message}")
+    names = [lines.text(r).strip() for r in rows[first]]
+    data = np.arange(rows.size) - np.repeat(first, count) >= 2  # after the title and SID cards
+    return names, rows[data], sid[data]
+
+
 def _node_sets(lines: Lines, key_rows: np.ndarray, bounds: np.ndarray, blocks: np.ndarray,
                comment: np.ndarray) -> dict:
     """The *SET_NODE_LIST_TITLE blocks, all sets' cards checked and converted together.
@@ -608,13 +621,8 @@ def _node_sets(lines: Lines, key_rows: np.ndarray, bounds: np.ndarray, blocks: n
     """
     if blocks.size == 0:
         return {}
-    rows, sid, first, count = _block_rows(key_rows, bounds, blocks, comment)
-    if np.any(count < 2):
-        s = int(np.flatnonzero(count < 2)[0])
-        raise DicerError(f"line {key_rows[blocks[s]] + 1}: *SET_NODE_LIST_TITLE needs a title and a data card")
-    names = [lines.text(r).strip() for r in rows[first]]
-    data = np.arange(rows.size) - np.repeat(first, count) >= 2  # after the title and SID cards
-    rows, sid = rows[data], sid[data]
+    names, rows, sid = _titled_sets(lines, key_rows, bounds, blocks, comment, 2,
+                                    "*SET_NODE_LIST_TITLE needs a title and a data card")
     length = lines.lengths[rows]
     last = np.ones(rows.size, bool)  # the last card of its set
     last[:-1] = sid[1:] != sid[:-1]
@@ -659,14 +667,8 @@ def _segment_sets(lines: Lines, key_rows: np.ndarray, bounds: np.ndarray, blocks
     """
     if blocks.size == 0:
         return {}
-    rows, sid, first, count = _block_rows(key_rows, bounds, blocks, comment)
-    if np.any(count < 3):
-        s = int(np.flatnonzero(count < 3)[0])
-        raise DicerError(f"line {key_rows[blocks[s]] + 1}: *SET_SEGMENT_TITLE needs a title, a SID card and a "
-                         "segment card")
-    names = [lines.text(r).strip() for r in rows[first]]
-    data = np.arange(rows.size) - np.repeat(first, count) >= 2  # after the title and SID cards
-    rows, sid = rows[data], sid[data]
+    names, rows, sid = _titled_sets(lines, key_rows, bounds, blocks, comment, 3,
+                                    "*SET_SEGMENT_TITLE needs a title, a SID card and a segment card")
     width = 4 * _SET_FIELD
     wrong = lines.lengths[rows] != width
     if wrong.any():

@@ -186,7 +186,7 @@ SECRET_ID = "PID-88231577"
 
 def _write_dicom_series(folder, nslices, series_uid, stored, z0=-20.0, dz=2.5, prefix="im", order=None,
                         positions=None, shift_y=0.0, pixel_spacing=True, patient_id=None, study_uid=None,
-                        padding=None, modality=None):
+                        padding=None, modality=None, bits_stored=None):
     """Write a CT series built on pydicom's CT_small.dcm: stored values, slope 2, intercept -1024.
 
     Slice k lies at z = ``positions[k]`` (default ``z0 + dz * k``); its SliceThickness is
@@ -220,8 +220,10 @@ def _write_dicom_series(folder, nslices, series_uid, stored, z0=-20.0, dz=2.5, p
         ds.InstanceNumber = nslices - k  # misleading on purpose: position must decide
         ds.RescaleSlope = 2
         ds.RescaleIntercept = -1024
+        if bits_stored is not None:  # unsigned, as a 12-bit CT stores its values
+            ds.BitsStored, ds.HighBit, ds.PixelRepresentation = bits_stored, bits_stored - 1, 0
         if padding is not None:
-            ds.PixelPaddingValue = padding
+            ds.add_new(0x00280120, "SS" if ds.PixelRepresentation else "US", padding)  # Pixel Padding Value
         if modality is not None:
             ds.Modality = modality
         for tag in ("SmallestImagePixelValue", "LargestImagePixelValue"):
@@ -938,6 +940,25 @@ def test_pixel_padding_value_marks_voxels_outside_the_image(tmp_path, caplog):
     without.mkdir()
     _write_dicom_series(without, 4, "1.2.826.0.1.3680043.8.498.32", stored)
     assert read_image(without).array.max() == 30000 * 2 - 1024  # no padding value said: the values as stored
+
+
+def test_a_padding_value_beyond_the_bits_stored_is_refused(tmp_path):
+    """A 12-bit unsigned series whose Pixel Padding Value is 63536: the pixels keep 12 bits, so
+    the padding read as 2096 (1072 HU, bone) and the padding check never matched (exit 0, the
+    field of view's ring of bone). It is refused, naming the slice and the bits."""
+    stored = np.full((6, 5, 4), 12, np.int16)
+    stored[2:4, 1:4] = 532
+    _write_dicom_series(tmp_path, 4, "1.2.826.0.1.3680043.8.498.33", stored, padding=63536, bits_stored=12)
+    with pytest.raises(DicerError, match=r"im\d{3}\.dcm: the slice's Pixel Padding Value \(0028,0120\) 63536 does "
+                                         r"not fit the 12 bits it stores .* padding reads as 2096"):
+        read_image(tmp_path)
+    # a padding value within the bits: read as before
+    fits = tmp_path / "fits"
+    fits.mkdir()
+    stored[0] = 4000
+    _write_dicom_series(fits, 4, "1.2.826.0.1.3680043.8.498.34", stored, padding=4000, bits_stored=12)
+    volume = read_image(fits)
+    assert np.all(volume.array[0] == -1000.0) and volume.array.max() == 40.0
 
 
 def test_a_folder_of_one_multiframe_file_or_a_dicom_medium(tmp_path):

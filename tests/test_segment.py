@@ -662,6 +662,34 @@ def test_padding_outside_the_field_of_view_is_air_for_the_thresholds(pad, method
     assert np.count_nonzero(labels.array != want) <= 0.002 * want.size
 
 
+def test_a_shifted_ct_with_padding_is_refused_as_one_without():
+    """A CT stored as HU + 1024 with padding outside its field of view (-2000): the padding, taken
+    for air at -1024, put the default soft-tissue range [-400, 0] inside the image's values, and
+    the search made the air soft tissue and the body bone (exit 0, no word). The ranges are
+    checked against the scan's own values, as without padding."""
+    image, _ = _padded_ct(-2000)
+    shifted = np.where(image == -2000, -2000, np.maximum(image + 1024, 0)).astype(np.int16)  # stored unsigned
+    with pytest.raises(DicerError, match=r"span 0 \.\. \d+; .* a CT stored as HU \+ 1024 .* 1024 subtracted"):
+        segment(Volume(shifted, (0.8, 0.8, 2.0)), source="ct.nii.gz")
+    # in HU with the same padding: segmented as before
+    labels, info = segment(Volume(image, (0.8, 0.8, 2.0)), {"segment": {"opening_radius": 0, "closing_radius": 0}})
+    assert info["padding"]["value"] == -2000.0 and labels.array.max() == 2
+
+
+def test_a_box_without_air_names_a_lost_rescale_intercept():
+    """A CT stored as HU + 1024 and resampled (a few values below 0): the defaults' ranges lie
+    within its values and the whole box becomes the body; the warning names the intercept."""
+    image, _ = _padded_ct(-1000)
+    dips = (np.arange(image.size) % 997 == 0).reshape(image.shape)  # the resampling's few values below 0
+    shifted = np.maximum(image.astype(np.float32) + 1024.0, 0.0) - 60.0 * dips
+    _, info = segment(Volume(shifted, (0.8, 0.8, 2.0)), {"segment": {"opening_radius": 0, "closing_radius": 0}})
+    said = [w for w in info["warnings"] if w.startswith("only ")]
+    assert len(said) == 1 and "with no value near air's -1000 HU: a CT stored as HU + 1024" in said[0]
+    # a scan in HU, its air there, gets no such word
+    _, info = segment(Volume(image.astype(np.float32), (0.8, 0.8, 2.0)))
+    assert not any("HU + 1024" in w for w in info.get("warnings", []))
+
+
 def test_air_at_its_lowest_values_is_no_padding():
     """A CT stored down to -1024 (unsigned with intercept -1024), or noisy air reaching
     below it, has no padding; nor has an MR."""

@@ -1188,7 +1188,7 @@ def _read_dicom_slices(names: list[str]):
             if len(names) > 1 and not reader.HasMetaDataKey(tag):
                 raise DicerError(f"{Path(name).parent}: the DICOM slices carry no {what}, so their {unknown}; export "
                                  "the series with it, or convert it to NIfTI with the geometry set there")
-        paddings.append(_padding_range(reader))
+        paddings.append(_padding_range(reader, name))
         positions.append(reader.GetOrigin()[:3])
         directions.append(reader.GetDirection())
         sizes.append(reader.GetSize()[:2])
@@ -1242,9 +1242,12 @@ def _check_orientation_tag(reader, name: str) -> None:
                            f"({', '.join(f'{v:g}' for v in values)})")
 
 
-def _padding_range(reader) -> tuple[float, float] | None:
+def _padding_range(reader, name: str) -> tuple[float, float] | None:
     """The rescaled values a slice's Pixel Padding Value (0028,0120) and Range Limit
-    (0028,0121) mark as outside the image, widened by half a stored step; None without."""
+    (0028,0121) mark as outside the image, widened by half a stored step; None without.
+    DicerError for an unsigned padding value beyond the slice's Bits Stored (0028,0101): GDCM
+    keeps those bits only (63536 in 12 bits reads 2096, a bone's value), so the padding could
+    not be told from the scan."""
     def number(tag: str, default=None):
         try:
             return float(reader.GetMetaData(tag).strip()) if reader.HasMetaDataKey(tag) else default
@@ -1255,6 +1258,12 @@ def _padding_range(reader) -> tuple[float, float] | None:
     if pad is None:
         return None
     limit = number("0028|0121", pad)
+    bits, signed = number("0028|0101"), number("0028|0103", 0.0)
+    if bits is not None and not signed and 0 < bits < 32 and max(pad, limit) >= 2.0**bits:
+        raise DicerError(f"{name}: the slice's Pixel Padding Value (0028,0120) {max(pad, limit):g} does not fit "
+                         f"the {bits:g} bits it stores (Bits Stored (0028,0101)); the pixels keep only those bits, "
+                         f"so padding reads as {int(max(pad, limit)) % 2**int(bits)}, a value the scan may hold too: "
+                         "export the series with its Bits Stored covering the padding (16), or without padding")
     slope, intercept = number("0028|1053", 1.0) or 1.0, number("0028|1052", 0.0)
     lo, hi = sorted((min(pad, limit) * slope + intercept, max(pad, limit) * slope + intercept))
     return lo - abs(slope) / 2, hi + abs(slope) / 2

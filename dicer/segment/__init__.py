@@ -18,6 +18,7 @@ from dicer.errors import DicerError
 from dicer.image import Volume, count_labels
 from dicer.segment.morphology import axis_radii, clean_labels
 from dicer.segment.thresholds import (
+    check_ranges,
     check_thresholds,
     classify,
     histogram_values,
@@ -211,15 +212,20 @@ def padding_value(array: np.ndarray, lo: float | None = None) -> float | None:
     return lo if at >= PADDING_SHARE * array.size and between * 10 < at else None
 
 
-def _without_padding(array: np.ndarray, lo: float) -> tuple[np.ndarray, float | None, int]:
+def _without_padding(array: np.ndarray, lo: float) -> tuple[np.ndarray, float | None, int, float]:
     """The image for the threshold search, its padding at -1024 HU, as a scanner that pads
     with the lowest HU it stores (within the air's noise, not at its far tail): Otsu's and
-    multi-Otsu's splits and the search ranges then see the scan and its air only."""
+    multi-Otsu's splits and the search ranges then see the scan and its air only. Also the
+    padding value, its voxel count and the lowest value of the scan within its field of view
+    (``lo`` without padding)."""
     pad = padding_value(array, lo)
     if pad is None:
-        return array, None, 0
+        return array, None, 0, lo
     padded = array == pad
-    return np.where(padded, np.asarray(PADDING_BELOW, array.dtype), array), pad, int(np.count_nonzero(padded))
+    top = np.iinfo(array.dtype).max if array.dtype.kind in "iu" else np.inf
+    lowest = float(np.min(array, where=~padded, initial=top))
+    return (np.where(padded, np.asarray(PADDING_BELOW, array.dtype), array), pad, int(np.count_nonzero(padded)),
+            lowest)
 
 
 def _empty_class_warnings(info: dict, names: list[str], thresholds) -> list[str]:
@@ -293,9 +299,12 @@ def _range_warnings(info: dict, names: list[str], lo: float, hi: float) -> list[
                             "if it is not CT in HU, set segment.ranges (or segment.thresholds) for its values")
     background = info["classes"]["background"]["fraction"]
     if background < 0.01:
+        # no air's -1000 HU, bone's thousands: most likely a CT whose rescale intercept was lost
+        offset = (f"; the image spans {lo:g} .. {hi:g}, with no value near air's -1000 HU: a CT stored as HU + 1024 "
+                  "(its rescale intercept lost, air near 0) needs 1024 subtracted" if lo > -200 and hi > 1000 else "")
         warnings.append(f"only {100 * background:.2f} % of the image is background: the whole box is taken for "
                         "the body; if the scan has air or fluid around it (an MR or a rescaled image under the "
-                        "CT defaults), set segment.ranges (or segment.thresholds) for the image's values")
+                        f"CT defaults), set segment.ranges (or segment.thresholds) for the image's values{offset}")
     return warnings
 
 
@@ -377,9 +386,11 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
     info: dict = {"method": method}
     values = None  # Otsu's histogram values (histogram_values)
     if method != "manual":
-        array, pad, padded = _without_padding(array, lo)
+        array, pad, padded, lowest = _without_padding(array, lo)
         if pad is not None:  # outside the field of view: as air for the thresholds, background after them
             info["padding"] = {"value": pad, "voxels": padded}
+            if method == "shape_connectivity":  # the ranges against the scan's own values, not the padding's -1024
+                check_ranges(ranges, k, names, lowest, hi, source)
     if method == "manual":
         thresholds = check_thresholds(thresholds, k, names, source)
     elif method in ("otsu", "multiotsu"):

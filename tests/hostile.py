@@ -787,6 +787,24 @@ case("7-blame", "downsample: factor 0", lambda c: argv_for(c, "downsample", extr
      "downsample.factor")
 case("7-blame", "downsample: factor per axis with 2 values",
      lambda c: argv_for(c, "downsample", extra=["--set", "downsample.factor=[2,2]"]), "downsample.factor")
+def _shifted_padded(c) -> Path:
+    """The head phantom stored as HU + 1024 with padding (-2000) outside its field-of-view circle:
+    the padding, taken for air, put the default search ranges inside its values (exit 0, air as
+    soft tissue, soft tissue as bone)."""
+    import SimpleITK as sitk
+
+    image = sitk.ReadImage(str(c.copy("head.nii.gz")))
+    a = np.maximum(sitk.GetArrayFromImage(image).astype(np.int32) + 1024, 0)  # stored unsigned, air near 0
+    _, y, x = np.indices(a.shape)
+    a[np.hypot(y - a.shape[1] / 2, x - a.shape[2] / 2) > 0.5 * a.shape[2]] = -2000
+    out = sitk.GetImageFromArray(a.astype(np.int16))
+    out.CopyInformation(image)
+    sitk.WriteImage(out, str(c.t / "shifted.nii.gz"))
+    return c.t / "shifted.nii.gz"
+
+
+case("7-blame", "segment: a CT stored as HU + 1024 with padding outside its field of view",
+     lambda c: ["segment", _shifted_padded(c), "-o", c.t / "l.nii.gz"], "shifted.nii.gz", "HU + 1024")
 case("7-blame", "segment: opening_radius=1000",
      lambda c: argv_for(c, "segment", extra=["--set", "segment.opening_radius=1000"]), "opening_radius")
 case("7-blame", "segment: closing_radius=1000",

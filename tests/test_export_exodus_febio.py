@@ -300,8 +300,9 @@ def test_febio_example_of_the_docs(tmp_path):
 
 
 def test_an_exodus_file_of_too_many_blocks_and_sets_is_refused_before_any_work(tmp_path, mesh, monkeypatch):
-    # an atlas of thousands of labels: netCDF's time to define the variables grows faster
-    # than their count (hours), so the export stops at once and says what to do
+    # an atlas of thousands of labels: more variables than netCDF's default build opens, and
+    # defining them takes time growing with the square of their number, so the export stops
+    # at once and says what to do
     import dicer.export.exodus as exodus
 
     model = prepare_model(mesh, cfg())

@@ -187,6 +187,13 @@ def resolve_materials(values, *, materials: list[dict], map: dict, drop: list,  
                     brief_names(not_dropped), brief_names(unnamed), brief_names([f"label_{v}" for v in unnamed]))
     mapped = [n for n in defaulted if n in set(names.values())]
     unused = [m["name"] for m in given.values() if m["name"] not in number] if written else []
+    spelled = {n.upper(): n for n in unused}
+    alike = [(n, spelled[n.upper()]) for n in mapped if n.upper() in spelled]
+    if alike:  # meant as one material: its properties would fall to the defaults without a word but a warning
+        name, entry = alike[0]
+        raise DicerError(f"{source}: labels.map names {name!r} and the materials entry {entry!r}: the names differ "
+                         "only in case, and solvers read names in upper case, so the entry was meant for the "
+                         "material; spell them alike")
     if not names and unused:  # the entries were meant for the label values, in order (as a stage's mesh takes them)
         kept = sorted(v for v in lut if lut[v])
         hint = ", ".join(f"{v}: {m['name']}" for v, m in zip(kept, given.values()))

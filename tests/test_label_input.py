@@ -151,6 +151,20 @@ def test_a_map_name_without_materials_entry_beside_an_unused_entry_is_warned_of(
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
 
 
+def test_a_map_name_and_an_entry_that_differ_in_case_are_refused():
+    """labels.map: white_matter, materials: White_Matter -- solvers read both as WHITE_MATTER, and
+    the material took default properties (E 1000 MPa for 0.003) with a warning, exit 0."""
+    settings = {"labels": {"map": {"2": "white_matter", "3": "grey_matter"}},
+                "materials": [{"name": "White_Matter", "youngs_modulus": 0.003},
+                              {"name": "grey_matter", "youngs_modulus": 0.002}]}
+    with pytest.raises(DicerError, match=r"seg: labels.map names 'white_matter' and the materials entry "
+                                         r"'White_Matter': the names differ only in case"):
+        resolve_materials([0, 2, 3], load_config(settings=settings), source="seg")
+    settings["materials"][0]["name"] = "white_matter"
+    _, materials = resolve_materials([0, 2, 3], load_config(settings=settings))
+    assert [m["youngs_modulus"] for m in materials] == [0.003, 0.002]
+
+
 def test_materials_entries_without_a_map_are_warned_of(caplog):
     """materials [soft_tissue E 2.5, bone E 12000] and no labels.map: both labels took the
     default E 1000 MPa (the stages, taking label i as the i-th entry, gave the user's)."""

@@ -1520,8 +1520,8 @@ def _check_exodus_size(config: dict, labels, source: str) -> None:
     if variables > _MAX_ARRAYS:  # the export's own limit
         raise DicerError(f"{source}: the Exodus file of workflow.exports would hold at least {variables} netCDF "
                          f"variables ({materials} materials' blocks and boundary sets, {pairs} interfaces' node and "
-                         f"side sets), above the {_MAX_ARRAYS} that Exodus readers open (netCDF's default limit is "
-                         "8,192 a file); export fewer sets (--set 'export.sets=[exterior]') or leave exo out of "
+                         f"side sets), above the {_MAX_ARRAYS} whose definition takes the netCDF library a minute and "
+                         "more; export fewer sets (--set 'export.sets=[exterior]') or leave exo out of "
                          "workflow.exports (an Abaqus deck, .inp, holds them)")
 
 

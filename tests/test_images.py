@@ -311,9 +311,20 @@ def test_modality_from_a_bids_sidecar(tmp_path):
         segment(volume, source=str(image))
     _, info = segment(volume, {"segment": {"method": "multiotsu"}}, str(image))
     assert info["thresholds"][0] > 20  # the dark background is background
-    for text in ("not json {", '["Modality", "MR"]', '{"Modality": 3}', '{"Modality": " "}'):
-        sidecar.write_text(text)
+    for text in ("not json {", '["Modality", "MR"]', '{"Modality": 3}', '{"Modality": " "}', "[" * 100_000):
+        sidecar.write_text(text)  # the last nests past the JSON parser's recursion
         assert read_image(image).modality is None
+
+
+def test_modality_from_the_first_slice_that_gives_it(tmp_path):
+    import pydicom
+
+    _write_dicom_series(tmp_path, 6, "1.2.826.0.1.3680043.8.498.8", _head_like(shape=(24, 22, 6)), modality="MR")
+    for name in ("im000.dcm", "im001.dcm", "im002.dcm", "im003.dcm", "im004.dcm"):  # im005 alone says it
+        ds = pydicom.dcmread(tmp_path / name)
+        del ds.Modality
+        ds.save_as(tmp_path / name)
+    assert read_image(tmp_path).modality == "MR"
 
 
 def test_dicom_picks_the_largest_series(dicom_folder, caplog):

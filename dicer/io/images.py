@@ -165,7 +165,7 @@ def _sidecar_modality(path: Path) -> str | None:
         if not sidecar.is_file() or sidecar.stat().st_size > 1 << 20:
             return None
         fields = json.loads(sidecar.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):  # unreadable, not JSON, nested past the parser
         return None
     modality = fields.get("Modality") if isinstance(fields, dict) else None
     if not isinstance(modality, str):
@@ -1161,11 +1161,14 @@ def _read_dicom_slices(names: list[str]):
         In-plane voxel size (x, y), mm.
     paddings : list
         Each slice's padding range (``_padding_range``), for ``_clear_padding``.
+    modality : str or None
+        The first Modality (0008,0060) a slice gives.
     """
     reader = sitk.ImageFileReader()
     reader.SetImageIO("GDCMImageIO")
     positions, directions, sizes, spacings, paddings = [], [], [], [], []
     sessions = set()
+    modality = None
     for name in names:
         reader.SetFileName(name)
         try:
@@ -1189,6 +1192,8 @@ def _read_dicom_slices(names: list[str]):
                 raise DicerError(f"{Path(name).parent}: the DICOM slices carry no {what}, so their {unknown}; export "
                                  "the series with it, or convert it to NIfTI with the geometry set there")
         paddings.append(_padding_range(reader, name))
+        if modality is None and reader.HasMetaDataKey(_MODALITY_TAG):  # the first slice that says
+            modality = reader.GetMetaData(_MODALITY_TAG).strip().upper() or None
         positions.append(reader.GetOrigin()[:3])
         directions.append(reader.GetDirection())
         sizes.append(reader.GetSize()[:2])
@@ -1218,7 +1223,7 @@ def _read_dicom_slices(names: list[str]):
         if pixels.size != nx * ny or image.GetNumberOfComponentsPerPixel() != 1:
             raise _slice_error(name, f"{pixels.size} values where the header promises {nx}x{ny}")
         array[:, :, k] = pixels.reshape(ny, nx).T  # [y, x] -> [x, y]
-    return array, positions, directions[0].reshape(3, 3), tuple(float(v) for v in spacings[0]), paddings
+    return array, positions, directions[0].reshape(3, 3), tuple(float(v) for v in spacings[0]), paddings, modality
 
 
 def _check_orientation_tag(reader, name: str) -> None:
@@ -1418,7 +1423,7 @@ def _read_dicom_series(folder: Path, required: bool = True, allow_irregular: boo
         found = _dicom_series_slices(folder, required)
     if found is None:
         return None
-    names, array, positions, direction, pixel_spacing, paddings, counts = found
+    names, array, positions, direction, pixel_spacing, paddings, modality, counts = found
     if array is not None:
         _clear_padding(array, paddings, folder)  # it says what it cleared: out of the captured block
     if len(counts) > 1:
@@ -1429,7 +1434,7 @@ def _read_dicom_series(folder: Path, required: bool = True, allow_irregular: boo
         volume = _read_file(Path(names[0]), None, keep_direction=True)
     else:
         volume = _stack_dicom_slices(folder, names, array, positions, direction, pixel_spacing, allow_irregular)
-    volume.modality = _dicom_modality(names[0])
+    volume.modality = modality
     return volume
 
 
@@ -1475,7 +1480,7 @@ def _dicom_series_slices(folder: Path, required: bool):
     names = list(members[chosen])
     counts = [c for c, _ in candidates]
     if len(names) == 1 and _frames(names[0]) > 1:  # one multi-frame file: read as the file it is
-        return names, None, None, None, None, None, counts
+        return names, None, None, None, None, None, _dicom_modality(names[0]), counts
     return (names, *_read_dicom_slices(names), counts)
 
 

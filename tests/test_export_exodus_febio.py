@@ -700,3 +700,29 @@ def test_dicer_run_refuses_an_exodus_file_of_too_many_variables_before_the_meshi
     err = capsys.readouterr().err
     assert "atlas.npy: the Exodus file of workflow.exports would hold at least" in err
     assert "(10000 materials' blocks and boundary sets" in err and "stopped at the fix stage" in err
+
+
+def test_an_exodus_file_that_cannot_be_written_whole_raises(tmp_path):
+    """The file is built in netCDF's memory and written by Python: a write cut short (here a
+    file-size limit of 20 kB, as a full disk cuts it) raises, where the library's own write at
+    close returned without a word and left a truncated file."""
+    script = f"""
+import resource, signal, numpy as np
+from dicer.config import load_config
+from dicer.export import prepare_model
+from dicer.export.exodus import write_exodus
+from dicer.mesh.voxel import voxel_mesh
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (20000, 20000))
+model = prepare_model(voxel_mesh(np.ones((12, 12, 12), np.uint8)), load_config())
+try:
+    write_exodus(model, {str(tmp_path / "m.exo")!r})
+except OSError as exc:
+    print("raised", exc.errno)
+"""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith("raised"), out.stdout + out.stderr

@@ -381,8 +381,10 @@ def _parse(lines: Lines, parsed: dict) -> dict:
             raise DicerError(f"line {key_rows[i] + 1}: unexpected keyword {key}")
     blocks = {key: np.array(batched[key], np.intp) for key in _BATCHED}
     _parts(lines, key_rows, bounds, comment, blocks, out)
-    out["node_sets"] = _node_sets(lines, key_rows, bounds, blocks["*SET_NODE_LIST_TITLE"], comment)
-    out["segment_sets"] = _segment_sets(lines, key_rows, bounds, blocks["*SET_SEGMENT_TITLE"], comment)
+    for key, name, read in (("*SET_NODE_LIST_TITLE", "node_sets", _node_sets),
+                            ("*SET_SEGMENT_TITLE", "segment_sets", _segment_sets)):
+        if blocks[key].size:
+            out[name] = read(lines, key_rows, bounds, blocks[key], comment)
     if points is None or cells is None:
         raise DicerError("no *NODE or *ELEMENT_SOLID block")
     if cells.size and (cells.min() < 0 or cells.max() >= points.shape[0]):
@@ -604,7 +606,7 @@ def _node_sets(lines: Lines, key_rows: np.ndarray, bounds: np.ndarray, blocks: n
     bounds : (K + 1,) int ndarray
         ``key_rows``, then the line count.
     blocks : (S,) int ndarray
-        The indices (into ``key_rows``) of the node set blocks, in file order.
+        The indices (into ``key_rows``) of the node set blocks, in file order (at least one).
     comment : (n,) bool ndarray
         Comment lines (``$``), left out.
 
@@ -619,8 +621,6 @@ def _node_sets(lines: Lines, key_rows: np.ndarray, bounds: np.ndarray, blocks: n
     DicerError
         Naming the line.
     """
-    if blocks.size == 0:
-        return {}
     names, rows, sid = _titled_sets(lines, key_rows, bounds, blocks, comment, 2,
                                     "*SET_NODE_LIST_TITLE needs a title and a data card")
     length = lines.lengths[rows]
@@ -665,8 +665,6 @@ def _segment_sets(lines: Lines, key_rows: np.ndarray, bounds: np.ndarray, blocks
     DicerError
         Naming the line.
     """
-    if blocks.size == 0:
-        return {}
     names, rows, sid = _titled_sets(lines, key_rows, bounds, blocks, comment, 3,
                                     "*SET_SEGMENT_TITLE needs a title, a SID card and a segment card")
     width = 4 * _SET_FIELD

@@ -187,9 +187,11 @@ def text(path: Path, content: str | bytes) -> Path:
     return path
 
 
-def write_dicom_series(folder: Path, positions, shape=(12, 10), orient=None, sizes=None, modality="CT") -> Path:
+def write_dicom_series(folder: Path, positions, shape=(12, 10), orient=None, sizes=None, modality="CT",
+                       padding=None) -> Path:
     """A series from scratch (a CT unless ``modality`` says otherwise): one int16 slice per z
-    position (slope 1, intercept -1024)."""
+    position (slope 1, intercept -1024); ``padding``: a Pixel Padding Value for 12-bit unsigned
+    slices, set in the corner pixel."""
     from pydicom.dataset import FileDataset, FileMetaDataset
     from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
 
@@ -219,6 +221,10 @@ def write_dicom_series(folder: Path, positions, shape=(12, 10), orient=None, siz
         pixels = np.full((rows, cols), 0, np.int16)
         pixels[2:-2, 2:-2] = 1100
         pixels[4:-4, 4:-4] = 2000
+        if padding is not None:  # 12 bits stored, unsigned: a padding value beyond them
+            ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 12, 11, 0
+            ds.add_new(0x00280120, "US", padding)
+            pixels[0, 0] = padding & 0xFFF  # what the 12 bits keep of it
         ds.PixelData = pixels.tobytes()
         ds.save_as(folder / f"im{k:03d}.dcm", enforce_file_format=True)
     return folder
@@ -459,6 +465,8 @@ DICOM_CASES = {
     "empty folder": (lambda c: (c.t / "series").mkdir() or c.t / "series", "series"),
     "MR series under the CT defaults": (lambda c: write_dicom_series(c.t / "series", np.arange(6) * 2.0,
                                                                      modality="MR"), "Modality MR"),
+    "12-bit slices with a padding value beyond their bits": (
+        lambda c: write_dicom_series(c.t / "series", np.arange(6) * 2.0, padding=63536), "Bits Stored"),
 }
 for label, (build, expect) in DICOM_CASES.items():
     case("2-dicom", f"segment: DICOM {label}",
@@ -803,6 +811,15 @@ def _shifted_padded(c) -> Path:
     return c.t / "shifted.nii.gz"
 
 
+def _mr_with_sidecar(c) -> Path:
+    """An image beside the BIDS sidecar dcm2niix writes, which says it is an MR."""
+    image = c.copy("head.nii.gz", "sub-01_T1w.nii.gz")
+    text(c.t / "sub-01_T1w.json", '{"Modality": "MR", "MagneticFieldStrength": 3, "SeriesDescription": "T1"}\n')
+    return image
+
+
+case("7-blame", "run: an MR NIfTI with its dcm2niix sidecar under the CT defaults",
+     lambda c: ["run", _mr_with_sidecar(c), "-o", c.t / "out"], "sub-01_T1w.nii.gz", "Modality MR")
 case("7-blame", "segment: a CT stored as HU + 1024 with padding outside its field of view",
      lambda c: ["segment", _shifted_padded(c), "-o", c.t / "l.nii.gz"], "shifted.nii.gz", "HU + 1024")
 case("7-blame", "segment: opening_radius=1000",

@@ -137,8 +137,8 @@ COEFFICIENTS = {
     "mesh": (164, 91.3, 0.7, 1.5),
     "merge": (99, 504.2, 0.9, 4.9),
     "smooth": (235, 582.9, 1.5, 28.1),
-    "export_inp": (68, 397.9, 0.6, 2.4),
-    "export_vtu": (70, 293.4, 0.6, 2.0),
+    "export_inp": (85, 401.4, 0.6, 7.6),
+    "export_vtu": (66, 294.8, 0.4, 7.6),
     "quality": (234, 479.6, 2.0, 18.5),
 }
 #: smooth with the scan (smooth.surface_from_image): the image reader's libraries at import

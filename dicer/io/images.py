@@ -149,12 +149,16 @@ def image_header(path: str | os.PathLike, io: str | None = None):
 _MODALITY_TAG = "0008|0060"  # DICOM's Modality: CT, MR, PT, ...
 
 
-def _dicom_modality(path: str | os.PathLike) -> str | None:
-    """The Modality (0008,0060) of a DICOM file ("CT", "MR", ...), or None without one."""
-    header = image_header(path, "GDCMImageIO")
+def _modality(header) -> str | None:
+    """The Modality (0008,0060) a DICOM header gives ("CT", "MR", ...), or None without one."""
     if header is None or not header.HasMetaDataKey(_MODALITY_TAG):
         return None
     return header.GetMetaData(_MODALITY_TAG).strip().upper() or None
+
+
+def _dicom_modality(path: str | os.PathLike) -> str | None:
+    """The Modality of a DICOM file, or None without one."""
+    return _modality(image_header(path, "GDCMImageIO"))
 
 
 def _sidecar_modality(path: Path) -> str | None:
@@ -1192,8 +1196,7 @@ def _read_dicom_slices(names: list[str]):
                 raise DicerError(f"{Path(name).parent}: the DICOM slices carry no {what}, so their {unknown}; export "
                                  "the series with it, or convert it to NIfTI with the geometry set there")
         paddings.append(_padding_range(reader, name))
-        if modality is None and reader.HasMetaDataKey(_MODALITY_TAG):  # the first slice that says
-            modality = reader.GetMetaData(_MODALITY_TAG).strip().upper() or None
+        modality = modality or _modality(reader)  # the first slice that says
         positions.append(reader.GetOrigin()[:3])
         directions.append(reader.GetDirection())
         sizes.append(reader.GetSize()[:2])

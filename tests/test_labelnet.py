@@ -25,9 +25,11 @@ def _curvature(p: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize("a, centre, mean, worst, spread", [
-    (7.0, (0.0, 0.0), 0.089, 0.163, 0.21),
-    (7.0, (0.35, 0.2), 0.085, 0.271, 0.16),
-    (14.0, (0.0, 0.0), 0.103, 0.161, 0.13),
+    # measured 0.050 / 0.098 / 0.080, 0.097 / 0.217 / 0.210, 0.096 / 0.180 / 0.193 (the umbrella
+    # energy until late on 6 December 2026: 0.089 / 0.163, 0.085 / 0.271, 0.103 / 0.161)
+    (7.0, (0.0, 0.0), 0.050, 0.098, 0.09),
+    (7.0, (0.35, 0.2), 0.097, 0.217, 0.22),
+    (14.0, (0.0, 0.0), 0.096, 0.180, 0.20),
 ])
 def test_a_digitised_circle_relaxes_close_to_the_circle(a, centre, mean, worst, spread):
     # the staircase's corners lie 0.3 voxel off the circle on average (curvature spread 2 to 7 / a)
@@ -50,7 +52,7 @@ def test_a_sphere_in_3d_and_anisotropic_voxels():
     lab = (np.sqrt(x**2 + y**2 + z**2) < radius).astype(np.uint8)
     points, normals, _, weights = relaxed_staircase(lab, (1.0, 1.0, 1.0), (-n / 2,) * 3)
     r = np.linalg.norm(points, axis=1)
-    assert np.abs(r - radius).mean() < 0.06 and np.abs(r - radius).max() < 0.25  # measured 0.054, 0.242
+    assert np.abs(r - radius).mean() < 0.04 and np.abs(r - radius).max() < 0.14  # measured 0.037, 0.126 (0.054, 0.242 before)
     assert weights.sum() == pytest.approx(4 * np.pi * radius**2, rel=0.01)
     # the same labels on voxels twice as long along z: the same vertices in voxels (each axis is its own problem)
     points2, _, _, weights2 = relaxed_staircase(lab, (1.0, 1.0, 2.0), (-n / 2, -n / 2, -n))

@@ -92,10 +92,11 @@ RELAXED = "smooth.label_samples=relaxed"
 def test_lame_quarter_tube_from_labels_relaxed_with_a_pillow_layer_meets_3_percent(tmp_path):
     """The Lamé target from labels alone (inner radius 7 voxels, C3D8 and C3D20): the fit to the
     staircase relaxed within its voxels, a pillow layer, no merging: the bore's mean hoop stress
-    +0.0 % and -0.6 % (measured; the faces' centres read -2.7 % and -4.9 %)."""
+    +0.7 % and -1.2 % (measured; at a = 14 -0.2 % and -1.1 %; with the umbrella energy before
+    late on 6 December 2026 +0.0 % and -0.6 %; the faces' centres read -2.7 % and -4.9 %)."""
     r = cases.lame(tmp_path, "quarter", [NO_MERGE, FIT, MIN_SJ_03, PILLOW, RELAXED], inner=7.0, outer=14.0)
     assert r["inverted"] == 0 and r["min_sj"] >= 0.3
-    for order, measured in ((1, 0.0001), (2, -0.0058)):
+    for order, measured in ((1, 0.0074), (2, -0.0122)):
         assert r[order]["error_mean"] == pytest.approx(measured, abs=0.005)
         assert abs(r[order]["error_mean"]) < 0.03
 
@@ -191,6 +192,30 @@ def test_kirsch_quarter_plate_against_the_coefficient(tmp_path, k, min_sj, cps4,
     assert r["min_sj"] == pytest.approx(min_sj, abs=0.005) and r["inverted"] == 0
     assert r[1]["sigma_x_90"] == pytest.approx(cps4, abs=0.02)
     assert r[2]["sigma_x_90"] == pytest.approx(cps8, abs=0.02)
+
+
+@pytest.mark.slow
+def test_label_only_targets_with_a_pillow_layer_relaxed_samples_and_curved_mid_edge_nodes(tmp_path):
+    """dicer run --labels at its defaults (plane merging, the labels' fit, the floor 0.3) with
+    smooth.pillow, smooth.label_samples: relaxed (the staircase relaxed to least variation of
+    curvature) and export.midside_nodes: curved meets every label-only target (docs/validation.md
+    §4): the Kirsch plate within 8 %, largest at 90 deg, CPS4 and CPS8 (measured 2.856 and 2.890
+    against Kirsch's field; the umbrella energy until late on 6 December 2026 read 2.750, -8.3 %), the
+    Lame bore within 3 %, C3D8 and C3D20 (measured +0.3 / -2.2 % at a = 7, +0.2 / -1.4 % at 14;
+    the faces' centres -1.6 / -7.2 %)."""
+    sets = [FIT, MIN_SJ_03, PILLOW, RELAXED, CURVED]
+    k = cases.kirsch(tmp_path / "plate", "quarter", sets)
+    assert k["inverted"] == 0 and k["min_sj"] >= 0.3
+    for order, measured in ((1, 2.856), (2, 2.890)):
+        e = k[order]["kirsch_edges"]
+        assert e["sigma_x_90"] == pytest.approx(measured, abs=0.01) and abs(e["sigma_x_90"] / 3.0 - 1) < 0.08
+        assert abs(e["peak"] / 3.0 - 1) < 0.08 and abs(e["peak_angle_deg"] - 90) <= 10
+    for a, c3d8, c3d20 in ((7.0, 0.0028, -0.0221), (14.0, 0.0015, -0.0138)):
+        r = cases.lame(tmp_path / f"tube{a:g}", "quarter", sets, inner=a, outer=2 * a)
+        assert r["inverted"] == 0 and r["min_sj"] >= 0.3
+        for order, measured in ((1, c3d8), (2, c3d20)):
+            assert r[order]["error_mean"] == pytest.approx(measured, abs=0.005)
+            assert abs(r[order]["error_mean"]) < 0.03
 
 
 def test_kirsch_cps8_with_curved_mid_edge_nodes_at_todays_defaults_from_labels(tmp_path):

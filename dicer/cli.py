@@ -795,11 +795,6 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
                     "volume input, or dicer smooth without --image): the surface is smoothed from the labels alone")
     # the scan: for its surface, or to place the labels' faces for the fit
     fit_to_scan = fits_labels and places_faces_by_scan(settings) and labels is not None
-    if image_path is not None and labels is not None and fits_labels and settings["fit_to_scan"] and \
-            settings["label_samples"] == "relaxed":
-        log.warning("smooth: smooth.label_samples: relaxed takes the labels' staircase relaxed within its voxels, and "
-                    "reads no scan: the faces' placement by the scan (smooth.fit_to_scan) is not made; set "
-                    "label_samples: faces to place them by %s, or smooth.fit_to_scan: false", image_path)
     if image_path is not None and (settings["surface_from_image"] or fit_to_scan):
         from dicer.io.images import read_image
 
@@ -1419,11 +1414,9 @@ def cmd_smooth(args):
         log.warning("smooth: smooth.fit_to_scan places the labels' faces by the scan: it needs --labels beside "
                     "--image (labels_fixed.nii.gz of dicer run); without it the fit takes the mesh's faces, and the "
                     "scan is not read")
-    elif args.image is not None and not smoothing_reads_scan(smooth) and not (
-            args.labels is not None and smooth["fit_to_scan"] and smooth["surface_from_labels"]):  # relaxed: said
+    elif args.image is not None and not smoothing_reads_scan(smooth):
         log.warning("smooth: --image is read by smooth.surface_from_image, or by smooth.fit_to_scan with --labels "
-                    "(the fit's faces placed by the scan; not with smooth.label_samples: relaxed), and these settings "
-                    "use neither: %s is not read", args.image)
+                    "(the fit's faces placed by the scan), and these settings use neither: %s is not read", args.image)
     do_smooth(args.mesh, _check_output(args.output, (".vtu",), "the mesh"), config, report,
               image_path=args.image, thresholds_path=args.thresholds, labels_path=args.labels)
 

@@ -749,8 +749,8 @@ def smoothing_reads_scan(smooth: dict) -> bool:
 def places_faces_by_scan(smooth: dict) -> bool:
     """Whether the labels' faces, given a scan, are placed by it before the fit.
 
-    ``smooth.fit_to_scan`` places the faces' centres; ``label_samples: relaxed`` takes the
-    staircase's relaxed vertices instead and reads no scan.
+    ``smooth.fit_to_scan`` places the faces' centres; with ``label_samples: relaxed`` the
+    staircase is relaxed through those places.
 
     Parameters
     ----------
@@ -762,7 +762,7 @@ def places_faces_by_scan(smooth: dict) -> bool:
     bool
         True where a scan given to the stage places the faces of the labels' fit.
     """
-    return bool(smooth["fit_to_scan"] and smooth["surface_from_labels"] and smooth["label_samples"] == "faces")
+    return bool(smooth["fit_to_scan"] and smooth["surface_from_labels"])
 
 
 SET_KINDS = ("planes", "materials", "interfaces", "exterior")

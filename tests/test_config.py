@@ -417,10 +417,11 @@ def test_smooth_settings_the_others_leave_unused_are_said():
     # used: said of nothing (image_sigma smooths the scan for fit_to_scan, on by default)
     used = ["smooth.image_sigma=1", "smooth.pillow=true", "smooth.pillow_thickness=0.5"]
     assert unused_smooth_settings(load_config(sets=used)["smooth"]) == []
-    # relaxed samples read no scan, nor does a fit_to_scan turned off: image_sigma unused
-    for off in ("smooth.label_samples=relaxed", "smooth.fit_to_scan=false"):
-        assert unused_smooth_settings(load_config(sets=["smooth.image_sigma=1", off])["smooth"])[0].startswith(
-            "smooth.image_sigma=1 is not used")
+    # a fit_to_scan turned off reads no scan: image_sigma unused; relaxed samples are placed by it
+    assert unused_smooth_settings(load_config(sets=["smooth.image_sigma=1", "smooth.fit_to_scan=false"])["smooth"])[
+        0].startswith("smooth.image_sigma=1 is not used")
+    assert unused_smooth_settings(load_config(sets=["smooth.image_sigma=1", "smooth.label_samples=relaxed"])["smooth"]) \
+        == []
 
 
 def test_unused_smooth_settings_are_said_by_the_commands_that_smooth_only(tmp_path, caplog):

@@ -443,7 +443,7 @@ def test_smooth_command_fits_the_labels_dicer_run_made(tmp_path, caplog, capsys)
                  "--set", "smooth.fit_to_scan=false"]) == 0
     assert [r.getMessage() for r in caplog.records if "--image" in r.getMessage()] == [
         "smooth: --image is read by smooth.surface_from_image, or by smooth.fit_to_scan with --labels (the fit's "
-        "faces placed by the scan; not with smooth.label_samples: relaxed), and these settings use neither: "
+        "faces placed by the scan), and these settings use neither: "
         f"{tmp_path / 'other.npy'} is not read"]
 
 
@@ -539,8 +539,12 @@ def test_a_ct_ball_fitted_to_its_labels_placed_by_the_scan(dim):
 
     alone, _ = smooth_mesh(mesh, {"fit_to_scan": False}, labels=labels, image=scan, thresholds=[500.0])
     placed, report = smooth_mesh(mesh, labels=labels, image=scan, thresholds=[500.0])  # fit_to_scan: the default
-    relaxed = smooth_mesh(mesh, {"label_samples": "relaxed"}, labels=labels, image=scan, thresholds=[500.0])[1]
-    assert "samples_placed_by_the_scan" not in relaxed["surface_from_labels"]  # relaxed reads no scan
+    relaxed = smooth_mesh(mesh, {"label_samples": "relaxed"}, labels=labels, image=scan, thresholds=[500.0])
+    # the staircase relaxed through the faces' places: mean / max |r - R| measured 3D 0.067 / 0.25,
+    # 2D 0.059 / 0.24 (not placed: 0.072 / 0.34, 0.093 / 0.30)
+    assert relaxed[1]["surface_from_labels"]["share_of_faces_placed_by_the_scan"] > 0.5
+    assert np.abs(error(relaxed[0])).mean() < (0.07 if dim == 3 else 0.062)
+    assert np.abs(error(relaxed[0])).max() < 0.26
     # measured, mean |r - R|: 3D 0.083 -> 0.064 (the pull onto the scan: 0.066), 2D 0.117 -> 0.046 (0.056);
     # largest 0.17 and 0.13; mean r - R +0.012 and +0.002 (without the blur's shift taken back -0.035
     # and -0.022: the iso-surface of the blurred ball lies inside it by about s^2 / R)
@@ -664,20 +668,20 @@ def test_dicer_run_on_a_scan_places_the_faces_by_it(tmp_path, caplog):
     assert not [r.getMessage() for r in caplog.records if "fit_to_scan" in r.getMessage()]
     assert "samples_placed_by_the_scan" not in json.loads(
         (tmp_path / "from_labels" / "smooth.json").read_text())["surface_from_labels"]
-    # label_samples: relaxed reads no scan: said
+    # label_samples: relaxed is relaxed through the faces' places: the scan is read, nothing said
     caplog.clear()
     assert main(["run", str(tmp_path / "ball.nii.gz"), "-o", str(tmp_path / "relaxed"), "--config",
                  str(tmp_path / "c.yaml"), "--set", "smooth.label_samples=relaxed", "-q"]) == 0
-    assert [r.getMessage() for r in caplog.records if "fit_to_scan" in r.getMessage()] == [
-        "smooth: smooth.label_samples: relaxed takes the labels' staircase relaxed within its voxels, and reads no "
-        "scan: the faces' placement by the scan (smooth.fit_to_scan) is not made; set label_samples: faces to place "
-        f"them by {tmp_path / 'ball.nii.gz'}, or smooth.fit_to_scan: false"]
-    # dicer smooth with --labels and --image: said once, the same
+    assert not [r.getMessage() for r in caplog.records if "fit_to_scan" in r.getMessage() or "--image" in
+                r.getMessage()]
+    assert json.loads((tmp_path / "relaxed" / "smooth.json").read_text())["surface_from_labels"][
+        "samples_placed_by_the_scan"] > 0
+    # dicer smooth with --labels and --image: the same, nothing said
     caplog.clear()
     assert main(["smooth", str(run / "merged.vtu"), "-o", str(tmp_path / "r.vtu"), "--labels",
                  str(run / "labels_fixed.nii.gz"), "--image", str(tmp_path / "ball.nii.gz"), "--config",
                  str(tmp_path / "c.yaml"), "--set", "smooth.label_samples=relaxed", "-q"]) == 0
-    assert len([r for r in caplog.records if "--image" in r.getMessage() or "reads no scan" in r.getMessage()]) == 1
+    assert not [r for r in caplog.records if "--image" in r.getMessage() or "fit_to_scan" in r.getMessage()]
 
 
 def test_stage_by_stage_on_a_scan_gives_the_run_bytes(tmp_path):

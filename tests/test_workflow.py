@@ -286,8 +286,8 @@ def test_labels_column_meshes_a_label_volume(tmp_path):
 
 def test_the_scan_goes_to_smooth_where_its_settings_read_it(tmp_path):
     """A segmented patient's smooth rule is given the scan (the labels' faces placed by it, the
-    default), also with label_samples: relaxed, which then says it reads none, as dicer run
-    does; with smooth.fit_to_scan: false it is not."""
+    default), also with label_samples: relaxed (the staircase relaxed through the faces' places);
+    with smooth.fit_to_scan: false it is not."""
     workdir = _cohort(tmp_path)
     (workdir / "config" / "patients.tsv").write_text(
         "patient\timage\toverrides\n"

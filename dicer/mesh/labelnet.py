@@ -37,6 +37,7 @@ __all__ = ["relaxed_staircase", "staircase_vertices"]
 _ITERATIONS = 1000  # FISTA steps: within 0.024 voxel of 4000 steps' vertices on the Lamé tube at a = 7 (0.005 on the Kirsch plate)
 _LAM = 1e-4  # pull towards the corner, against the bending energy's flat directions
 _MIRROR_PAD = 8  # voxels of reflected labels beyond a mirror plane
+_PLACED = 0.1  # the pull of a face to where the scan placed it, against the fairing
 
 
 def _staircase(lab: np.ndarray):
@@ -95,19 +96,27 @@ def staircase_vertices(lab: np.ndarray):
     return corner, vpair, junction, inv.reshape(keys.shape), face_normal, shape, top
 
 
-def _fista(L: sp.csr_matrix, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """argmin |L L x|^2 + _LAM |x - x0|^2 over lo <= x <= hi, each column on its own; (n, k)."""
+def _fista(L: sp.csr_matrix, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+           data: tuple[sp.csr_matrix, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """argmin |L L x|^2 + _LAM |x - x0|^2 (+ sum W (A x - Y)^2) over lo <= x <= hi, each
+    column on its own; (n, k). ``data``: A (F, n), Y and W (F, k)."""
     Lt = L.T.tocsr()
-    # the gradient's Lipschitz constant 2 (|L|^4 + lam), |L|_2^2 <= |L|_1 |L|_inf; L applied
-    # twice costs less than the product's denser matrix
-    absL = abs(L)
-    lip = 2.0 * ((float(absL.sum(axis=0).max()) * float(absL.sum(axis=1).max())) ** 2 + _LAM)
+    # the gradient's Lipschitz constant 2 (|L|^4 + lam (+ |W| |A|^2)), |L|_2^2 <= |L|_1 |L|_inf;
+    # L applied twice costs less than the product's denser matrix
+    norm2 = lambda m: float(abs(m).sum(axis=0).max()) * float(abs(m).sum(axis=1).max())  # noqa: E731
+    lip = 2.0 * (norm2(L) ** 2 + _LAM)
+    if data is not None:
+        A, Y, W = data
+        At = A.T.tocsr()
+        lip += 2.0 * float(W.max(initial=0.0)) * norm2(A)
     step = 1.0 / lip
     x = x0.copy()
     y = x0.copy()
     t = 1.0
     for _ in range(_ITERATIONS):
         grad = 2.0 * (Lt @ (Lt @ (L @ (L @ y)))) + (2.0 * _LAM) * (y - x0)
+        if data is not None:
+            grad += 2.0 * (At @ (W * (A @ y - Y)))
         nxt = np.clip(y - step * grad, lo, hi)
         t_next = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
         y = nxt + ((t - 1.0) / t_next) * (nxt - x)
@@ -115,7 +124,63 @@ def _fista(L: sp.csr_matrix, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> 
     return x
 
 
-def relaxed_staircase(lab: np.ndarray, spacing, origin, mirror: bool = False
+def _face_keys(axis: np.ndarray, twice: np.ndarray, shape2: np.ndarray) -> np.ndarray:
+    """One int64 per face: its axis and its centre's doubled lattice coordinates."""
+    return axis.astype(np.int64) + twice.astype(np.int64) @ np.cumprod(np.r_[len(shape2), shape2[:-1]]).astype(np.int64)
+
+
+def _placed_targets(lab: np.ndarray, corner: np.ndarray, inv: np.ndarray, face_normal: np.ndarray, pad: int,
+                    placed: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
+    """The relaxed faces' pull to where a scan placed them: A (F, V) averaging each face's
+    vertices, Y (F, dim) the placed coordinate along the face's axis, W (F, dim) _PLACED where
+    the face was placed, along its axis (a padded face takes its mirror image's placement)."""
+    dim = lab.ndim
+    ext2 = 2 * (np.asarray(lab.shape, np.int64) - 2 * pad)
+    shape2 = ext2 + 1
+    # the placements, keyed by face, in label_image_samples' order (unpadded labels)
+    inner = lab[tuple(slice(pad, lab.shape[e] - pad) for e in range(dim))]
+    keys, offs = [], []
+    at = 0
+    for d in range(dim):
+        lo = inner[(slice(None),) * d + (slice(None, -1),)]
+        hi = inner[(slice(None),) * d + (slice(1, None),)]
+        idx = np.column_stack(np.nonzero(lo != hi)).astype(np.int64)
+        twice = 2 * idx + 1
+        twice[:, d] += 1
+        keys.append(_face_keys(np.full(idx.shape[0], d), twice, shape2))
+        offs.append(placed[at:at + idx.shape[0]])
+        at += idx.shape[0]
+    keys, offs = np.concatenate(keys), np.concatenate(offs)
+    order = np.argsort(keys)
+    keys, offs = keys[order], offs[order]
+    # every relaxed face's centre, folded back into the image across the mirrors
+    k = inv.shape[1]
+    axis = np.argmax(np.abs(face_normal), axis=1)
+    twice = np.rint(2.0 * corner[inv].mean(axis=1)).astype(np.int64) - 2 * pad
+    flips = np.zeros(inv.shape[0], bool)
+    for e in range(dim):
+        for _ in range(4):  # a pad wider than the image reflects again
+            low, high = twice[:, e] < 0, twice[:, e] > ext2[e]
+            twice[low, e] = -twice[low, e]
+            twice[high, e] = 2 * ext2[e] - twice[high, e]
+            flips ^= (low | high) & (axis == e)
+    key = _face_keys(axis, twice, shape2)
+    pos = np.clip(np.searchsorted(keys, key), 0, max(keys.size - 1, 0))
+    found = (keys.size > 0) & (keys[pos] == key) if keys.size else np.zeros(key.size, bool)
+    off = np.where(found, offs[pos] if keys.size else 0.0, np.nan)
+    off = np.where(flips, -off, off)
+    rows = np.flatnonzero(np.isfinite(off))
+    F, V = inv.shape[0], corner.shape[0]
+    A = sp.csr_matrix((np.full(rows.size * k, 1.0 / k), (np.repeat(np.arange(rows.size), k), inv[rows].ravel())),
+                      shape=(rows.size, V))
+    Y = np.zeros((rows.size, dim))
+    W = np.zeros((rows.size, dim))
+    Y[np.arange(rows.size), axis[rows]] = corner[inv[rows]].mean(axis=1)[np.arange(rows.size), axis[rows]] + off[rows]
+    W[np.arange(rows.size), axis[rows]] = _PLACED
+    return A, Y, W
+
+
+def relaxed_staircase(lab: np.ndarray, spacing, origin, mirror: bool = False, placed: np.ndarray | None = None
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The staircase's vertices between two kinds, relaxed within their voxels.
 
@@ -130,6 +195,13 @@ def relaxed_staircase(lab: np.ndarray, spacing, origin, mirror: bool = False
         ``_MIRROR_PAD`` voxels beyond each edge for the relaxation, so a cut model relaxes as
         the whole one does near its cut (the Kirsch plate's quarter reads within 0.1 % of the
         whole plate); else a vertex on an edge stays in its plane.
+    placed : (S,) float64 ndarray, optional
+        Where a scan placed each face between two kinds (``dicer.mesh.labelsurface.scan_crossings``):
+        its move along the face's axis, in voxels towards higher indices, NaN where the scan
+        did not place it; the faces in the order ``label_image_samples`` gives them (per axis,
+        C order of the lower voxel). Each placed face's vertices are pulled, on average, to
+        that place (weight ``_PLACED`` against the fairing), so the relaxed staircase is a fair
+        surface through the scan's placements: their noise averaged along it.
 
     Returns
     -------
@@ -163,7 +235,8 @@ def relaxed_staircase(lab: np.ndarray, spacing, origin, mirror: bool = False
     half = np.where(junction, 0.0, 0.5)[:, None] * np.ones((1, dim))
     edge = (corner == 0) | (corner == shape[:dim] - 1)  # on the image's edge: stays in that plane
     half[edge] = 0.0
-    x = _fista(L, corner, corner - half, corner + half)
+    data = None if placed is None else _placed_targets(lab, corner, inv, face_normal, pad, np.asarray(placed, float))
+    x = _fista(L, corner, corner - half, corner + half, data)
     # normals and areas of the relaxed faces, summed at their vertices
     if dim == 2:
         tangent = x[inv[:, 1]] - x[inv[:, 0]]
@@ -178,5 +251,6 @@ def relaxed_staircase(lab: np.ndarray, spacing, origin, mirror: bool = False
     normals = summed / np.maximum(size, 1e-300)[:, None]
     kinds = np.stack([vpair // top, vpair % top], axis=1)
     x -= pad
-    inside = np.all((x >= 0) & (x <= extent), axis=1) if pad else np.ones(n, bool)
+    # a vertex on a mirror plane may lie a rounding off it: kept (else its count follows the last bit)
+    inside = np.all((x >= -1e-9) & (x <= extent + 1e-9), axis=1) if pad else np.ones(n, bool)
     return origin + x[inside] * spacing, normals[inside], kinds[inside], size[inside]

@@ -407,14 +407,60 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.where(length > 0, length, 1.0)[:, None]
 
 
+def _along(rel: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """(P, k): the rows of ``rel`` (P, k, dim) dotted with ``n`` (P, dim), term by term.
+
+    Elementwise products and sums, not a matrix product: BLAS picks its kernels by the CPU,
+    and their last bits differ between them (the fit then gave other bytes on another machine)."""
+    out = rel[..., 0] * n[:, None, 0]
+    for a in range(1, rel.shape[-1]):
+        out += rel[..., a] * n[:, None, a]
+    return out
+
+
 def _weighted_fit(basis: np.ndarray, w: np.ndarray, h: np.ndarray) -> np.ndarray:
     """(P, m) least-squares coefficients of ``h`` (P, k) in ``basis`` (P, k, m) with weights
-    ``w`` (P, k); a relative 1e-9 on the diagonal keeps a degenerate row solvable."""
+    ``w`` (P, k); a relative 1e-9 on the diagonal keeps a degenerate row solvable.
+
+    The normal equations are summed and solved (Cholesky) element by element, not by BLAS or
+    LAPACK, whose kernels the CPU picks: the same bytes on every machine."""
     m = basis.shape[-1]
-    wb = basis.transpose(0, 2, 1) * w[:, None, :]
-    normal_matrix = wb @ basis
-    normal_matrix += (1e-9 * np.maximum(np.trace(normal_matrix, axis1=1, axis2=2), 1e-30))[:, None, None] * np.eye(m)
-    return np.linalg.solve(normal_matrix, (wb @ h[..., None]))[..., 0]
+    wb = basis * w[..., None]
+    a = np.empty((basis.shape[0], m, m))
+    for i in range(m):
+        for j in range(i + 1):
+            a[:, i, j] = a[:, j, i] = np.sum(wb[..., i] * basis[..., j], axis=1)
+    rhs = np.stack([np.sum(wb[..., i] * h, axis=1) for i in range(m)], axis=1)
+    trace = a[:, 0, 0].copy()
+    for i in range(1, m):
+        trace += a[:, i, i]
+    for i in range(m):
+        a[:, i, i] += 1e-9 * np.maximum(trace, 1e-30)
+    # Cholesky, a = l l^T, then the two triangular solves
+    low = np.zeros_like(a)
+    for j in range(m):
+        d = a[:, j, j].copy()
+        for q in range(j):
+            d -= low[:, j, q] * low[:, j, q]
+        low[:, j, j] = np.sqrt(np.maximum(d, 1e-300))
+        for i in range(j + 1, m):
+            e = a[:, i, j].copy()
+            for q in range(j):
+                e -= low[:, i, q] * low[:, j, q]
+            low[:, i, j] = e / low[:, j, j]
+    y = np.empty_like(rhs)
+    for i in range(m):
+        e = rhs[:, i].copy()
+        for q in range(i):
+            e -= low[:, i, q] * y[:, q]
+        y[:, i] = e / low[:, i, i]
+    coef = np.empty_like(rhs)
+    for i in reversed(range(m)):
+        e = y[:, i].copy()
+        for q in range(i + 1, m):
+            e -= low[:, q, i] * coef[:, q]
+        coef[:, i] = e / low[:, i, i]
+    return coef
 
 
 class LabelSurface:
@@ -458,12 +504,6 @@ class LabelSurface:
         self.relaxed = bool(relaxed and labels is not None)
         if labels is None:
             samples = staircase_samples(mesh, reach)
-        elif relaxed:  # the staircase's vertices at its smoothest surface within their voxels
-            from dicer.mesh.labelnet import relaxed_staircase
-
-            relaxed_samples = relaxed_staircase(np.asarray(labels.array), mesh.spacing[:dim], mesh.origin[:dim],
-                                                mirror=mirror)
-            samples = _mirrored(mesh, relaxed_samples, reach)
         else:
             points, normals, kinds, weights = label_image_samples(labels, mesh)
             if scan is not None:  # placed before mirroring, so the mirror images are placed alike
@@ -478,8 +518,18 @@ class LabelSurface:
                 # than the scan's), where the gradient is flatter and would widen it
                 between = moved & (np.abs(np.einsum("ij,ij->i", placed - points, normals)) < 0.5 * step * (1 - 1e-9))
                 blur = edge_variance(placed[between], kinds[between], scan)
-                points = placed
-            samples = _mirrored(mesh, (points, normals, kinds, weights), reach)
+                points, unplaced = placed, points
+            if relaxed:  # the staircase's vertices at its fairest surface within their voxels
+                from dicer.mesh.labelnet import relaxed_staircase
+
+                moves = None
+                if scan is not None:  # through the scan's placements, voxels along each face's axis
+                    # (a face the scan leaves where it is counts there, as its sample does)
+                    moves = ((points - unplaced) / spacing).sum(axis=1)
+                samples = _mirrored(mesh, relaxed_staircase(np.asarray(labels.array), mesh.spacing[:dim],
+                                                            mesh.origin[:dim], mirror=mirror, placed=moves), reach)
+            else:
+                samples = _mirrored(mesh, (points, normals, kinds, weights), reach)
         self.points, self.normals, kinds, self.weights = samples
         self._points_normals = np.c_[self.points, self.normals]  # gathered together by the fit
         # the mesh's faces off the lattice's axes: merging's slopes (chamfers), off the labels' surface
@@ -642,8 +692,7 @@ class LabelSurface:
         # that faces edge-on to the node (an axis-aligned normal) count alike in a mirrored model
         facing = np.clip(_cosines(near, n, dim) / _FACING, 0.0, 1.0)
         rel = (near[..., :dim] - p[:, None, :]) / unit
-        h = rel @ n[:, :, None]  # (P, k, 1)
-        h = h[..., 0]
+        h = _along(rel, n)  # (P, k)
         if dim == 2:
             u = rel[..., 0] * -n[:, None, 1] + rel[..., 1] * n[:, None, 0]
             d2 = u * u
@@ -653,8 +702,8 @@ class LabelSurface:
             t1 = np.cross(n, helper)
             t1 /= np.linalg.norm(t1, axis=1)[:, None]
             t2 = np.cross(n, t1)
-            u = (rel @ t1[:, :, None])[..., 0]
-            v = (rel @ t2[:, :, None])[..., 0]
+            u = _along(rel, t1)
+            v = _along(rel, t2)
             d2 = u * u + v * v
             basis = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1)
         q = d2 / (r * r)
@@ -663,7 +712,7 @@ class LabelSurface:
         m = basis.shape[-1]
         coef = _weighted_fit(basis, w, h)
         # once more without the samples far off the first fit, for the nodes that had such
-        residual = h - (basis @ coef[..., None])[..., 0]
+        residual = h - _along(basis, coef)
         kept = np.where(np.abs(residual) < _OUTLIER * voxel, w, 0.0)
         again = np.flatnonzero(np.any(kept != w, axis=1))
         if again.size:

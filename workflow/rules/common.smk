@@ -284,12 +284,11 @@ def scan_input(wildcards):
 def scan_option(wildcards, input):
     """params: --image SCAN --thresholds segmentation.json for a segmented patient whose
     smoothing reads the scan (smooth.surface_from_image, or fit_to_scan with the labels' fit),
-    or would but for label_samples: relaxed (the stage then says it reads none, as dicer run
-    does), else nothing."""
+    else nothing."""
     if "image" not in input.keys():
         return ""
     smooth = stage_kwargs(patient_config(wildcards.patient), "smooth")
-    if not (smoothing_reads_scan(smooth) or (smooth["fit_to_scan"] and smooth["surface_from_labels"])):
+    if not smoothing_reads_scan(smooth):
         return ""
     return f"--image {shlex.quote(input.image)} --thresholds {shlex.quote(input.thresholds)}"
 

@@ -201,7 +201,7 @@ def test_label_only_targets_with_a_pillow_layer_relaxed_samples_and_curved_mid_e
     curvature) and export.midside_nodes: curved meets every label-only target (docs/validation.md
     §4): the Kirsch plate within 8 %, largest at 90 deg, CPS4 and CPS8 (measured 2.856 and 2.890
     against Kirsch's field; the umbrella energy until late on 6 December 2026 read 2.750, -8.3 %), the
-    Lame bore within 3 %, C3D8 and C3D20 (measured +0.3 / -2.2 % at a = 7, +0.2 / -1.4 % at 14;
+    Lame bore within 3 %, C3D8 and C3D20 (measured +0.3 / -2.1 % at a = 7, +0.2 / -1.4 % at 14;
     the faces' centres -1.6 / -7.2 %)."""
     sets = [FIT, MIN_SJ_03, PILLOW, RELAXED, CURVED]
     k = cases.kirsch(tmp_path / "plate", "quarter", sets)
@@ -210,7 +210,7 @@ def test_label_only_targets_with_a_pillow_layer_relaxed_samples_and_curved_mid_e
         e = k[order]["kirsch_edges"]
         assert e["sigma_x_90"] == pytest.approx(measured, abs=0.01) and abs(e["sigma_x_90"] / 3.0 - 1) < 0.08
         assert abs(e["peak"] / 3.0 - 1) < 0.08 and abs(e["peak_angle_deg"] - 90) <= 10
-    for a, c3d8, c3d20 in ((7.0, 0.0028, -0.0221), (14.0, 0.0015, -0.0138)):
+    for a, c3d8, c3d20 in ((7.0, 0.0031, -0.0210), (14.0, 0.0015, -0.0138)):
         r = cases.lame(tmp_path / f"tube{a:g}", "quarter", sets, inner=a, outer=2 * a)
         assert r["inverted"] == 0 and r["min_sj"] >= 0.3
         for order, measured in ((1, c3d8), (2, c3d20)):

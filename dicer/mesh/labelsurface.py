@@ -407,30 +407,33 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.where(length > 0, length, 1.0)[:, None]
 
 
-def _along(rel: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """(P, k): the rows of ``rel`` (P, k, dim) dotted with ``n`` (P, dim), term by term.
+def _along(rel: list[np.ndarray], n: np.ndarray) -> np.ndarray:
+    """(P, k): the vectors whose components are the arrays ``rel`` (each (P, k)) dotted with
+    ``n`` (P, len(rel)), term by term.
 
     Elementwise products and sums, not a matrix product: BLAS picks its kernels by the CPU,
     and their last bits differ between them (the fit then gave other bytes on another machine)."""
-    out = rel[..., 0] * n[:, None, 0]
-    for a in range(1, rel.shape[-1]):
-        out += rel[..., a] * n[:, None, a]
+    out = rel[0] * n[:, None, 0]
+    for a in range(1, len(rel)):
+        out += rel[a] * n[:, None, a]
     return out
 
 
-def _weighted_fit(basis: np.ndarray, w: np.ndarray, h: np.ndarray) -> np.ndarray:
-    """(P, m) least-squares coefficients of ``h`` (P, k) in ``basis`` (P, k, m) with weights
-    ``w`` (P, k); a relative 1e-9 on the diagonal keeps a degenerate row solvable.
+def _weighted_fit(basis: list[np.ndarray], w: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """(P, m) least-squares coefficients of ``h`` (P, k) in the m functions ``basis`` (each
+    (P, k), the first the constant 1) with weights ``w`` (P, k); a relative 1e-9 on the
+    diagonal keeps a degenerate row solvable.
 
     The normal equations are summed and solved (Cholesky) element by element, not by BLAS or
     LAPACK, whose kernels the CPU picks: the same bytes on every machine."""
-    m = basis.shape[-1]
-    wb = basis * w[..., None]
-    a = np.empty((basis.shape[0], m, m))
+    m = len(basis)
+    wb = [w] + [b * w for b in basis[1:]]  # the constant's products are the others' own
+    a = np.empty((w.shape[0], m, m))
     for i in range(m):
-        for j in range(i + 1):
-            a[:, i, j] = a[:, j, i] = np.sum(wb[..., i] * basis[..., j], axis=1)
-    rhs = np.stack([np.sum(wb[..., i] * h, axis=1) for i in range(m)], axis=1)
+        a[:, i, 0] = a[:, 0, i] = np.sum(wb[i], axis=1)
+        for j in range(1, i + 1):
+            a[:, i, j] = a[:, j, i] = np.sum(wb[i] * basis[j], axis=1)
+    rhs = np.stack([np.sum(wb[i] * h, axis=1) for i in range(m)], axis=1)
     trace = a[:, 0, 0].copy()
     for i in range(1, m):
         trace += a[:, i, i]
@@ -691,12 +694,12 @@ class LabelSurface:
         # facing the node's side: a weight rising from 0 (edge-on) to 1 at _FACING, continuous so
         # that faces edge-on to the node (an axis-aligned normal) count alike in a mirrored model
         facing = np.clip(_cosines(near, n, dim) / _FACING, 0.0, 1.0)
-        rel = (near[..., :dim] - p[:, None, :]) / unit
+        rel = [(near[..., a] - p[:, None, a]) / unit for a in range(dim)]  # (P, k) each: rows run on
         h = _along(rel, n)  # (P, k)
         if dim == 2:
-            u = rel[..., 0] * -n[:, None, 1] + rel[..., 1] * n[:, None, 0]
+            u = rel[0] * -n[:, None, 1] + rel[1] * n[:, None, 0]
             d2 = u * u
-            basis = np.stack([np.ones_like(u), u, u * u], axis=-1)
+            basis = [np.ones_like(u), u, u * u]
         else:
             helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
             t1 = np.cross(n, helper)
@@ -705,18 +708,18 @@ class LabelSurface:
             u = _along(rel, t1)
             v = _along(rel, t2)
             d2 = u * u + v * v
-            basis = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1)
+            basis = [np.ones_like(u), u, v, u * u, u * v, v * v]
         q = d2 / (r * r)
         ok = ok & (q < 1.0) & (np.abs(h) < voxel * _SHEET + 0.5 * d2 / r)
         w = np.where(ok, (1.0 - q) ** 2 * facing * weights, 0.0)
-        m = basis.shape[-1]
+        m = len(basis)
         coef = _weighted_fit(basis, w, h)
         # once more without the samples far off the first fit, for the nodes that had such
         residual = h - _along(basis, coef)
         kept = np.where(np.abs(residual) < _OUTLIER * voxel, w, 0.0)
         again = np.flatnonzero(np.any(kept != w, axis=1))
         if again.size:
-            coef[again] = _weighted_fit(basis[again], kept[again], h[again])
+            coef[again] = _weighted_fit([b[again] for b in basis], kept[again], h[again])
         fitted = np.count_nonzero(kept, axis=1) >= _PER_COEFFICIENT * m
         # the mean curvature towards n: c2 (2D), c3 + c5 (3D); the blurred iso-surface lies that
         # times the variance further along n than the surface. At most a circle's (sphere's) of

@@ -18,6 +18,7 @@ from matplotlib.figure import Figure
 from dicer.errors import DicerError
 from dicer.image import Volume
 from dicer.io.atomic import atomic_path
+from dicer.mesh.frame import mirrored, to_scanner
 from dicer.mesh.topology import HEX_FACES
 
 __all__ = ["legend_materials", "save_jacobian_histogram", "save_model_picture", "save_node_class_chart",
@@ -419,20 +420,6 @@ def _draw_faces(ax, xy: np.ndarray, depth: np.ndarray, colours: np.ndarray, edge
     ax.set_ylim(y0, y1)
 
 
-def _to_scanner(points: np.ndarray, spacing, origin, direction) -> np.ndarray:
-    """:func:`dicer.mesh.frame.to_scanner` column by column (a (N, 3) @ (3, 3) product is slow
-    in numpy): (N, 3) float64 scanner coordinates of lattice-frame ``points`` (N, 3)."""
-    from dicer.mesh.frame import voxel_centre
-
-    c = voxel_centre(spacing, origin)
-    d = np.asarray(direction, np.float64)
-    rel = [points[:, j] - c[j] for j in range(3)]
-    out = np.empty((points.shape[0], 3))
-    for i in range(3):
-        out[:, i] = d[i, 0] * rel[0] + d[i, 1] * rel[1] + d[i, 2] * rel[2] + c[i]
-    return out
-
-
 def save_model_picture(mesh, names: dict, path, max_edges: int = 20000, neighbours: np.ndarray | None = None) -> Path:
     """Picture of the model: its exterior coloured by material, and the same view cut open.
 
@@ -446,7 +433,6 @@ def save_model_picture(mesh, names: dict, path, max_edges: int = 20000, neighbou
     """
     from matplotlib.patches import Patch
 
-    from dicer.mesh.frame import mirrored
     from dicer.quality import element_neighbours
 
     material = np.asarray(mesh.material, np.int64)
@@ -465,7 +451,7 @@ def save_model_picture(mesh, names: dict, path, max_edges: int = 20000, neighbou
         points = mesh.points
         flip = False
         if mesh.direction is not None:
-            points = _to_scanner(points, mesh.spacing, mesh.origin, mesh.direction)
+            points = to_scanner(points, mesh.spacing, mesh.origin, mesh.direction)
             flip = mirrored(mesh.direction)
         towards, right, up = _camera()
         if neighbours is None:

@@ -100,11 +100,7 @@ def to_scanner(points: np.ndarray, spacing, origin, direction: np.ndarray) -> np
     (N, 3) float64 ndarray
         mm, LPS.
     """
-    c = voxel_centre(spacing, origin)
-    out = np.subtract(points, c)
-    out = out @ np.asarray(direction, np.float64).T
-    out += c
-    return out
+    return _rotated(points, voxel_centre(spacing, origin), np.asarray(direction, np.float64))
 
 
 def to_lattice(points: np.ndarray, spacing, origin, direction: np.ndarray) -> np.ndarray:
@@ -121,11 +117,28 @@ def to_lattice(points: np.ndarray, spacing, origin, direction: np.ndarray) -> np
     -------
     (N, 3) float64 ndarray
     """
-    c = voxel_centre(spacing, origin)
-    out = np.subtract(points, c)
     # the inverse, not the transpose: a header's cosines are orthonormal only to float32 precision
-    out = out @ np.linalg.inv(np.asarray(direction, np.float64)).T
-    out += c
+    return _rotated(points, voxel_centre(spacing, origin), _inverse3(np.asarray(direction, np.float64)))
+
+
+def _inverse3(d: np.ndarray) -> np.ndarray:
+    """The inverse of a 3 x 3 matrix by its cofactors (no LAPACK: the same bytes on every CPU)."""
+    cof = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            r, q = [a for a in range(3) if a != i], [b for b in range(3) if b != j]
+            cof[i, j] = (-1.0) ** (i + j) * (d[r[0], q[0]] * d[r[1], q[1]] - d[r[0], q[1]] * d[r[1], q[0]])
+    return cof.T / (d[0, 0] * cof[0, 0] + d[0, 1] * cof[0, 1] + d[0, 2] * cof[0, 2])
+
+
+def _rotated(points: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """(N, 3): ``c + d @ (p - c)`` for each row p of ``points``, term by term: a matrix product
+    would take BLAS, whose kernels the CPU picks and whose last bits differ between them."""
+    points = np.asarray(points, np.float64)
+    rel = [points[:, j] - c[j] for j in range(3)]
+    out = np.empty((points.shape[0], 3))
+    for i in range(3):
+        out[:, i] = d[i, 0] * rel[0] + d[i, 1] * rel[1] + d[i, 2] * rel[2] + c[i]
     return out
 
 

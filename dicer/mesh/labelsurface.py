@@ -288,7 +288,7 @@ def edge_variance(points: np.ndarray, kinds: np.ndarray, scan) -> dict:
     good = (slope > 0) & (contrast > 0)
     # the interpolated scan's gradient is a chord between voxel centres: to first order a box
     # of a voxel along u more blur, whose variance (sum u_d^2 h_d^2 / 12) is taken off
-    chord = (up * up) @ (spacing * spacing) / 12.0
+    chord = (up * up * (spacing * spacing)).sum(axis=1) / 12.0  # not a BLAS product: the same bytes on every CPU
     var = np.maximum((contrast * density / np.where(good, slope, 1.0)) ** 2 - chord, 0.0)
     cap = float(np.max(spacing)) ** 2 + (scan.sigma * float(np.min(spacing))) ** 2
     # medians per pair, by one sort (an atlas has thousands of pairs)
@@ -510,7 +510,7 @@ class LabelSurface:
         else:
             points, normals, kinds, weights = label_image_samples(labels, mesh)
             if scan is not None:  # placed before mirroring, so the mirror images are placed alike
-                step = np.abs(normals) @ spacing
+                step = (np.abs(normals) * spacing).sum(axis=1)
                 placed = scan_crossings(points, normals, kinds, step, scan)
                 moved = np.any(placed != points, axis=1)
                 self.placed = int(np.count_nonzero(moved))
@@ -760,7 +760,7 @@ class LabelSurface:
         sel = np.flatnonzero(defined)
         lo, hi = sides.pair[sel] // sides.top, sides.pair[sel] % sides.top
         height, fitted, normal = self.offsets(xb[sel], normal[sel], lo * self.top + hi, sides.fixed[sel])
-        limit = np.abs(normal[:, :self.dim]) @ self.mesh_spacing
+        limit = (np.abs(normal[:, :self.dim]) * self.mesh_spacing).sum(axis=1)
         height = np.clip(height, -limit, limit)
         y = xb.copy()
         y[sel] += height[:, None] * normal

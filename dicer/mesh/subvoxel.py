@@ -488,7 +488,7 @@ def project(surface: ImageSurface, sides: NodeSides, adj: sp.csr_matrix, degree:
     for _ in range(_PASSES):
         xs[bnodes] = y
         nrm, ok = sides.normals(xs, y)
-        reach = np.abs(nrm[:, :dim]) @ surface.mesh_spacing  # L per node, mm
+        reach = (np.abs(nrm[:, :dim]) * surface.mesh_spacing).sum(axis=1)  # L per node, mm (no BLAS: the same bytes on every CPU)
         sel = np.flatnonzero(ok)
         pts = (y[sel, None, :dim] + (steps[None, :, None] * reach[sel, None, None]) * nrm[sel, None, :dim])
         vals = surface.sample(pts.reshape(-1, dim)).reshape(sel.size, steps.size).astype(np.float64)
@@ -543,7 +543,7 @@ def project(surface: ImageSurface, sides: NodeSides, adj: sp.csr_matrix, degree:
     # the move from the smoothed position is limited to the voxel's extent along the normal
     d = y - xb
     length = np.linalg.norm(d, axis=1)
-    limit = np.abs(nrm[:, :dim]) @ surface.mesh_spacing
+    limit = (np.abs(nrm[:, :dim]) * surface.mesh_spacing).sum(axis=1)
     scale = np.where(length > limit, limit / np.maximum(length, 1e-30), 1.0)
     y = xb + d * scale[:, None]
     return y, info

@@ -32,12 +32,38 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["relaxed_staircase", "staircase_vertices"]
+__all__ = ["faces_between", "relaxed_staircase", "staircase_vertices"]
 
 _ITERATIONS = 1000  # FISTA steps: within 0.024 voxel of 4000 steps' vertices on the Lamé tube at a = 7 (0.005 on the Kirsch plate)
 _LAM = 1e-4  # pull towards the corner, against the bending energy's flat directions
 _MIRROR_PAD = 8  # voxels of reflected labels beyond a mirror plane
 _PLACED = 0.1  # the pull of a face to where the scan placed it, against the fairing
+
+
+def faces_between(lab: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
+    """The faces between voxels of two kinds, axis by axis, each axis's in C order of the lower
+    voxel: the one order every reader of the staircase takes (its samples in
+    ``dicer.mesh.labelsurface.label_image_samples``, the placements :func:`relaxed_staircase`
+    takes).
+
+    Parameters
+    ----------
+    lab : (nx, ny[, nz]) integer ndarray
+        Labels.
+
+    Returns
+    -------
+    list of (d, idx, a, b)
+        Per axis d: (F, dim) int64 indices of the voxel below each face along d, and (F,) int64
+        the labels of that voxel and of the one above it.
+    """
+    out = []
+    for d in range(lab.ndim):
+        lo = lab[(slice(None),) * d + (slice(None, -1),)]
+        hi = lab[(slice(None),) * d + (slice(1, None),)]
+        idx = np.column_stack(np.nonzero(lo != hi)).astype(np.int64).reshape(-1, lab.ndim)
+        out.append((d, idx, lo[tuple(idx.T)].astype(np.int64), hi[tuple(idx.T)].astype(np.int64)))
+    return out
 
 
 def _staircase(lab: np.ndarray):
@@ -48,11 +74,7 @@ def _staircase(lab: np.ndarray):
     strides = np.cumprod(np.r_[1, shape[::-1][:-1]])[::-1].astype(np.int64)
     top = int(lab.max(initial=0)) + 1
     keys, pairs, normals = [], [], []
-    for d in range(dim):
-        lo = lab[(slice(None),) * d + (slice(None, -1),)]
-        hi = lab[(slice(None),) * d + (slice(1, None),)]
-        idx = np.column_stack(np.nonzero(lo != hi))
-        a, b = lo[tuple(idx.T)].astype(np.int64), hi[tuple(idx.T)].astype(np.int64)
+    for d, idx, a, b in faces_between(lab):
         base = idx.copy()
         base[:, d] += 1  # the face between voxels i and i + 1 lies on corner plane i + 1
         unit = np.eye(dim, dtype=np.int64)[[e for e in range(dim) if e != d]]
@@ -139,20 +161,16 @@ def _placed_targets(lab: np.ndarray, corner: np.ndarray, inv: np.ndarray, face_n
     shape2 = ext2 + 1
     # the placements, keyed by face, in label_image_samples' order (unpadded labels)
     inner = lab[tuple(slice(pad, lab.shape[e] - pad) for e in range(dim))]
-    keys, offs = [], []
-    at = 0
-    for d in range(dim):
-        lo = inner[(slice(None),) * d + (slice(None, -1),)]
-        hi = inner[(slice(None),) * d + (slice(1, None),)]
-        idx = np.column_stack(np.nonzero(lo != hi)).astype(np.int64)
+    keys = []
+    for d, idx, _, _ in faces_between(inner):
         twice = 2 * idx + 1
         twice[:, d] += 1
         keys.append(_face_keys(np.full(idx.shape[0], d), twice, shape2))
-        offs.append(placed[at:at + idx.shape[0]])
-        at += idx.shape[0]
-    keys, offs = np.concatenate(keys), np.concatenate(offs)
+    keys = np.concatenate(keys)
+    if keys.size == 0:  # no face to place
+        return sp.csr_matrix((0, corner.shape[0])), np.zeros((0, dim)), np.zeros((0, dim))
     order = np.argsort(keys)
-    keys, offs = keys[order], offs[order]
+    keys, offs = keys[order], placed[order]
     # every relaxed face's centre, folded back into the image across the mirrors
     k = inv.shape[1]
     axis = np.argmax(np.abs(face_normal), axis=1)
@@ -165,12 +183,11 @@ def _placed_targets(lab: np.ndarray, corner: np.ndarray, inv: np.ndarray, face_n
             twice[high, e] = 2 * ext2[e] - twice[high, e]
             flips ^= (low | high) & (axis == e)
     key = _face_keys(axis, twice, shape2)
-    pos = np.clip(np.searchsorted(keys, key), 0, max(keys.size - 1, 0))
-    found = (keys.size > 0) & (keys[pos] == key) if keys.size else np.zeros(key.size, bool)
-    off = np.where(found, offs[pos] if keys.size else 0.0, np.nan)
+    pos = np.clip(np.searchsorted(keys, key), 0, keys.size - 1)
+    off = np.where(keys[pos] == key, offs[pos], np.nan)  # a staircase has faces here: the placed ones
     off = np.where(flips, -off, off)
     rows = np.flatnonzero(np.isfinite(off))
-    F, V = inv.shape[0], corner.shape[0]
+    V = corner.shape[0]
     A = sp.csr_matrix((np.full(rows.size * k, 1.0 / k), (np.repeat(np.arange(rows.size), k), inv[rows].ravel())),
                       shape=(rows.size, V))
     Y = np.zeros((rows.size, dim))

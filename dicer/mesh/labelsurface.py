@@ -45,6 +45,7 @@ from scipy.spatial import cKDTree
 from dicer.errors import DicerError
 from dicer.mesh.boundary import plane_bits
 from dicer.mesh.faces import neighbour_materials
+from dicer.mesh.labelnet import faces_between, relaxed_staircase
 from dicer.mesh.model import Mesh
 from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
 from dicer.parallel import ordered_map
@@ -170,12 +171,8 @@ def label_image_samples(labels, mesh: Mesh, mirror_reach: float = 0.0
     spacing = np.asarray(mesh.spacing, float)[:dim]
     origin = np.asarray(mesh.origin, float)[:dim]
     parts = []
-    for d in range(dim):
-        lo = lab[(slice(None),) * d + (slice(None, -1),)]
-        hi = lab[(slice(None),) * d + (slice(1, None),)]
-        index = np.nonzero(lo != hi)  # the faces between voxels i and i + 1 along d
-        a, b = lo[index].astype(np.int64), hi[index].astype(np.int64)
-        centre = np.column_stack(index).astype(float) + 0.5
+    for d, index, a, b in faces_between(lab):  # the faces between voxels i and i + 1 along d
+        centre = index.astype(float) + 0.5
         centre[:, d] += 0.5
         normal = np.zeros((a.size, dim))
         normal[:, d] = np.where(b > a, 1.0, -1.0)  # into the higher kind
@@ -523,8 +520,6 @@ class LabelSurface:
                 blur = edge_variance(placed[between], kinds[between], scan)
                 points, unplaced = placed, points
             if relaxed:  # the staircase's vertices at its fairest surface within their voxels
-                from dicer.mesh.labelnet import relaxed_staircase
-
                 moves = None
                 if scan is not None:  # through the scan's placements, voxels along each face's axis
                     # (a face the scan leaves where it is counts there, as its sample does)

@@ -16,7 +16,7 @@ import pytest
 
 from calculix import needs_ccx
 
-from dicer.validation import cases, geometry, reference
+from dicer.validation import cases, geometry, reference, study
 from dicer.validation.study import CURVED, FIT, FIT_TO_SCAN, MIN_SJ_03, NO_MERGE, OFFSET, PILLOW, TODAY, UNPLACED
 
 pytestmark = [pytest.mark.calculix, needs_ccx]
@@ -632,6 +632,30 @@ def test_target_kirsch_from_a_noise_free_grey_value_image_at_todays_defaults_aga
 def test_target_kirsch_cps8_from_a_grey_value_image_at_todays_defaults_against_kirschs_field(kirsch_scan_today_curved):
     kirsch_target(kirsch_scan_today_curved("quarter", 30.0), kirsch_scan_today_curved("full", 30.0), 2, 0.03,
                   edges=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("radius,cps4,cps8", [
+    (5, (3.019, 0.037, 3.011, 0.015, 6, 3), (3.024, 0.106, 3.034, 0.032, 2, 1)),
+    (7, (3.014, 0.019, 3.005, 0.011, 6, 6), (2.985, 0.049, 2.981, 0.025, 5, 2))])
+def test_kirsch_plate_from_six_draws_of_the_images_noise(tmp_path, radius, cps4, cps8):
+    """dicer run's defaults with curved mid-edge nodes on six draws of the grey-value image's
+    noise, against Kirsch's field: (quarter mean, sd, full mean, sd, draws within 3 %, draws
+    within the whole target). The quarter reads one point whose noise its mirror doubles, the
+    full plate the mean of two: the quarter spreads two to three times as much, and on one draw
+    the two part by up to 1.7 % (CPS4) and 6 % (CPS8) at the fit's radius 5, 1.0 % and 2.3 % at
+    radius 7 (docs/validation.md §1e)."""
+    r = study.kirsch_noise_draws(tmp_path, TODAY + [CURVED, f"smooth.label_surface_radius={radius}"], 6,
+                                 log=lambda *a: None)
+    assert all(row["min_sj"] >= 0.3 and row["inverted"] == 0 for row in r["draws"])
+    for name, (q_mean, q_sd, f_mean, f_sd, within, target) in (("CPS4", cps4), ("CPS8", cps8)):
+        got = r[name]
+        assert got["quarter_mean"] == pytest.approx(q_mean, abs=0.01)
+        assert got["full_mean"] == pytest.approx(f_mean, abs=0.01)
+        assert got["quarter_sd"] == pytest.approx(q_sd, abs=0.005)
+        assert got["full_sd"] == pytest.approx(f_sd, abs=0.005)
+        assert got["quarter_sd"] > 1.4 * got["full_sd"]
+        assert (got["within_3_percent"], got["within_target"]) == (within, target)
 
 
 @pytest.mark.slow

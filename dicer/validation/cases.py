@@ -190,7 +190,7 @@ def rim_on_circle(deck_path: Path, centre, radius: float) -> Path:
 
 def kirsch(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (), radius: float = 7.0,
            width: int = 140, orders=(1, 2), offset=(0.0, 0.0), scan: bool = False, noise: float = 30.0,
-           on_circle: bool = False) -> dict:
+           on_circle: bool = False, seed: int = 0) -> dict:
     """The Kirsch plate (:func:`~dicer.validation.geometry.kirsch_plate`) meshed and solved at
     each element order.
 
@@ -215,6 +215,8 @@ def kirsch(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (
         threshold, the smoothing pulled onto the image's iso-line) instead of from labels.
     noise : float, optional
         With ``scan``: the image's noise (standard deviation, of a contrast of 1000).
+    seed : int, optional
+        With ``scan``: the noise's draw (the quarter's noise is the full plate's of the same seed).
     on_circle : bool, optional
         Also solve each deck with its rim moved onto the exact circle (:func:`rim_on_circle`),
         as ``"<order> on circle"``.
@@ -234,7 +236,7 @@ def kirsch(folder: str | os.PathLike, part: str = "quarter", sets: list[str] = (
     """
     if scan and any(offset):
         raise ValueError("the grey-value plate has its hole about the image centre; no offset")
-    image = (geometry.kirsch_scan(radius, width, part, noise=noise) if scan
+    image = (geometry.kirsch_scan(radius, width, part, noise=noise, seed=seed) if scan
              else geometry.kirsch_plate(radius, width, part, offset))
     centre = np.zeros(2) if part == "quarter" else np.full(2, width / 2) + offset
     built = build(image, folder, sets, orders, scan=scan)

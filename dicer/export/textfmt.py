@@ -38,7 +38,7 @@ def _digit_table() -> np.ndarray:
     """(30000,) uint32: 4-digit groups as words -- zero-padded | blank-padded last group | blank inner group."""
     v = np.arange(10000)
     digits = ((v[:, None] // np.array([1000, 100, 10, 1])) % 10 + _ZERO).astype(np.uint8)
-    ndig = np.where(v > 0, np.floor(np.log10(np.maximum(v, 1))).astype(int) + 1, 1)
+    ndig = 1 + (v >= 10).astype(int) + (v >= 100) + (v >= 1000)  # by comparison: log10 is not exact on every CPU
     last = digits.copy()
     last[np.arange(4)[None, :] < (4 - ndig)[:, None]] = _SPACE  # "   7", "   0"
     inner = last.copy()

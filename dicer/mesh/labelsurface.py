@@ -47,6 +47,7 @@ from dicer.mesh.boundary import plane_bits
 from dicer.mesh.faces import neighbour_materials
 from dicer.mesh.labelnet import faces_between, relaxed_staircase
 from dicer.mesh.model import Mesh
+from dicer.mesh.subvoxel import normal_density
 from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
 from dicer.parallel import ordered_map
 
@@ -281,7 +282,7 @@ def edge_variance(points: np.ndarray, kinds: np.ndarray, scan) -> dict:
     low = scan.sample(points - far * up).astype(float)
     contrast = scan.sample(points + far * up).astype(float) - low
     level = np.clip((t - low) / np.where(contrast > 0, contrast, 1.0), 0.05, 0.95)
-    density = np.exp(-0.5 * special.ndtri(level) ** 2) / np.sqrt(2 * np.pi)
+    density = normal_density(special.ndtri(level))
     good = (slope > 0) & (contrast > 0)
     # the interpolated scan's gradient is a chord between voxel centres: to first order a box
     # of a voxel along u more blur, whose variance (sum u_d^2 h_d^2 / 12) is taken off

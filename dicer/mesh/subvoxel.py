@@ -51,7 +51,8 @@ from dicer.parallel import ordered_map
 
 log = logging.getLogger("dicer")
 
-__all__ = ["ImageSurface", "NodeSides", "check_thresholds_for_mesh", "lift", "pairs_not_helped", "project"]
+__all__ = ["ImageSurface", "NodeSides", "check_thresholds_for_mesh", "lift", "normal_density", "pairs_not_helped",
+           "project"]
 
 # corners per element -> for each corner, the corners its edges run to, right-handed
 _EDGE_ENDS = {8: HEX_CORNER_NEIGHBOURS, 4: QUAD_CORNER_NEIGHBOURS}
@@ -63,6 +64,15 @@ _SAMPLES = 21  # profile samples over [-L, L]
 _FAR = 2.5  # the contrast samples, in units of L
 _PASSES = 2
 _CURVATURE_AVERAGING = 4
+
+
+def normal_density(z: np.ndarray) -> np.ndarray:
+    """The standard normal density at ``z`` (float ndarray, any shape).
+
+    By scipy's expm1, not numpy's exp: numpy computes exp with its own vector code on CPUs
+    with AVX-512 and with the C library elsewhere, which differ in the last bit, and the
+    density sets where nodes go."""
+    return (special.expm1(-0.5 * z * z) + 1.0) / np.sqrt(2.0 * np.pi)
 
 
 def check_thresholds_for_mesh(thresholds, mesh: Mesh, source: str = "the thresholds") -> np.ndarray:
@@ -509,7 +519,7 @@ def project(surface: ImageSurface, sides: NodeSides, adj: sp.csr_matrix, degree:
         # the edge's variance per pair of kinds (see the module docstring): an edge
         # D Phi(s / sigma) crossed at the level q has the slope D phi(Phi^-1(q)) / sigma there
         level = np.clip(-vals[:, -2] / np.where(contrast > 0, contrast, 1.0), 0.05, 0.95)
-        density = np.exp(-0.5 * special.ndtri(level) ** 2) / np.sqrt(2 * np.pi)
+        density = normal_density(special.ndtri(level))
         pair = sides.pair[sel]
         good = found & (slope > 0) & (contrast > 0)
         var = np.zeros(sel.size)

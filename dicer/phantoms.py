@@ -11,6 +11,8 @@ Voxel centres sit at ``(i + 0.5) * spacing`` mm from the volume corner (origin 0
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from dicer.errors import DicerError
@@ -254,8 +256,11 @@ def _long_bone(n: int):
     # the bone, described per slice (1D in z): a bow, a radius and a wall thickness
     z0, z1 = 0.1 * ext[2], 0.9 * ext[2]
     zz = z.astype(np.float64)
-    ends = np.exp(-(((zz - z0) / 25.0) ** 2)) + np.exp(-(((z1 - zz) / 25.0) ** 2))  # 1 at the ends
-    bow = 4.0 * np.sin(np.pi * np.clip((zz - z0) / (z1 - z0), 0.0, 1.0))
+    # per slice by the C library (math): numpy's exp and sin run their own vector code on AVX-512
+    # CPUs, which differs in the last bit, and a voxel on the edge would follow it
+    ends = np.array([math.exp(-(((v - z0) / 25.0) ** 2)) + math.exp(-(((z1 - v) / 25.0) ** 2))
+                     for v in zz])  # 1 at the ends
+    bow = 4.0 * np.array([math.sin(math.pi * min(max((v - z0) / (z1 - z0), 0.0), 1.0)) for v in zz])
     r_out = 13.0 + 9.0 * ends  # wider epiphyses
     wall = 5.0 + 3.5 * (1.0 - np.minimum(ends, 1.0))  # 8.5 mm in the shaft, 5 mm at the ends
     in_bone_z = (zz >= z0) & (zz <= z1)

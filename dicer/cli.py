@@ -960,7 +960,8 @@ def _warn_of_long_voxels(spacing) -> None:
                 " x ".join(f"{v:g}" for v in sizes), max(sizes) / min(sizes), even, [0 if a else 1 for a in long_axes])
 
 
-def do_export(mesh_path: str, out: Path, config: dict, mesh=None, neighbours=None, materials_path: str | None = None):
+def do_export(mesh_path: str, out: Path, config: dict, mesh=None, neighbours=None, materials_path: str | None = None,
+              quadratic=None):
     from dicer.config import stage_kwargs
     from dicer.export import export_mesh
     from dicer.io.meshes import read_mesh, refuse_inverted
@@ -978,7 +979,8 @@ def do_export(mesh_path: str, out: Path, config: dict, mesh=None, neighbours=Non
                         "by material number: give --materials materials.json (written by dicer labels / dicer run "
                         "--labels) or a config with these materials", brief_names(mesh.names), given,
                         brief_names(named[:len(mesh.names)]), given)
-        info = export_mesh(mesh, out, **stage_kwargs(config, "export"), source=mesh_path, neighbours=neighbours)
+        info = export_mesh(mesh, out, **stage_kwargs(config, "export"), source=mesh_path, neighbours=neighbours,
+                           quadratic=quadratic)
         # the summary's keys sorted, its materials in label order
         log.info("export: wrote %s (%s)", out, brief_json(dict(sorted(info.items())), whole_top=True))
 
@@ -1867,6 +1869,12 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
         from dicer.quality import element_neighbours
 
         neighbours = meanwhile(element_neighbours, mesh)
+        # the decks of order 2 take one quadratic mesh: its mid-edge nodes placed and checked once
+        from functools import cache
+
+        from dicer.export.model import quadratic_nodes
+
+        quadratic = cache(lambda midside_nodes: quadratic_nodes(mesh, midside_nodes, neighbours))
 
         def quality():
             do_quality(str(path("smoothed.vtu")), path("quality.json"), config,
@@ -1885,7 +1893,9 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
                 report = pool.submit(quality)
             step("export")
             for name in run_models(config):
-                do_export(str(path("smoothed.vtu")), path(name), config, mesh=mesh, neighbours=neighbours)
+                do_export(str(path("smoothed.vtu")), path(name), config, mesh=mesh, neighbours=neighbours,
+                          quadratic=quadratic)
+            quadratic.cache_clear()  # its arrays go before the report's last part
             step("quality")
             report.result() if report is not None else quality()
     except _MemoryError:

@@ -659,3 +659,38 @@ def test_an_ascii_locale_reads_the_schema_and_the_stage_reports(tmp_path):
     done = dicer("quality", tmp_path / "m.vtu", "-o", tmp_path / "q.json", "--stage-report", tmp_path / "fix.json")
     assert done.returncode == 0, done.stderr
     assert "fix" in json.loads((tmp_path / "q.json").read_text(encoding="utf-8"))["stages"]
+
+
+def test_run_places_the_mid_edge_nodes_of_its_order_2_decks_once(tmp_path, monkeypatch):
+    """dicer run writes model.inp and model.vtu from one quadratic mesh (its curved mid-edge
+    nodes' fold check is most of an order-2 export), the same nodes dicer export places."""
+    import meshio
+
+    import dicer.mesh.quadratic as quadratic
+
+    ball = np.zeros((14, 14, 14), np.uint8)
+    g = np.indices(ball.shape) - 6.5
+    ball[np.sum(g * g, axis=0) <= 5.2**2] = 1
+    np.save(tmp_path / "ball.npy", ball)
+    calls = []
+    made = quadratic.quadratic_mesh
+
+    def counted(mesh, boundary_faces=None):
+        calls.append(boundary_faces is not None)
+        return made(mesh, boundary_faces)
+
+    monkeypatch.setattr(quadratic, "quadratic_mesh", counted)
+    sets = ["--set", "image.spacing=[1,1,1]", "--set", "export.order=2", "--set", "export.midside_nodes=curved"]
+    assert main(["run", "--labels", str(tmp_path / "ball.npy"), "-o", str(tmp_path / "out"), "-q", *sets]) == 0
+    assert calls == [True]  # two decks, one placement
+    assert main(["export", str(tmp_path / "out" / "smoothed.vtu"), "-o", str(tmp_path / "alone.vtu"), "-q",
+                 *sets[2:]]) == 0
+    run, alone = meshio.read(tmp_path / "out" / "model.vtu"), meshio.read(tmp_path / "alone.vtu")
+    cells = run.cells[0].data
+    assert run.cells[0].type == "hexahedron20" and len(cells) > 100
+    bent = np.linalg.norm(run.points[cells[:, 8]] - 0.5 * (run.points[cells[:, 0]] + run.points[cells[:, 1]]), axis=1)
+    assert np.count_nonzero(bent > 1e-3) > 10  # curved: off their edges' midpoints
+    np.testing.assert_array_equal(run.points, alone.points)
+    np.testing.assert_array_equal(run.cells[0].data, alone.cells[0].data)
+    inp = (tmp_path / "out" / "model.inp").read_text()
+    assert "C3D20" in inp

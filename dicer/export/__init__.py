@@ -114,7 +114,7 @@ def _check_printed_digits(fmt: Format, model: SolverModel, mesh: Mesh, digits: i
 def export_mesh(mesh: Mesh, path: str | os.PathLike, *, materials: list[dict], order: int, element_type: str | None,
                 midside_nodes: str, thickness: float, digits: int, sets: list[str], heading: bool,
                 febio_material: str, verify: str, source: str | os.PathLike | None = None,
-                check: bool = True, neighbours=None) -> dict:
+                check: bool = True, neighbours=None, quadratic=None) -> dict:
     """Write a mesh in the format its file extension names.
 
     The settings are keyword-only with no defaults here: the command line passes
@@ -139,6 +139,8 @@ def export_mesh(mesh: Mesh, path: str | os.PathLike, *, materials: list[dict], o
         Read the file back and check it before renaming it into place (default).
     neighbours : callable, optional
         Returns the element across each face of ``mesh`` (see :func:`prepare_model`).
+    quadratic : callable, optional
+        Returns the quadratic mesh for an ``export.midside_nodes`` (see :func:`prepare_model`).
 
     Returns
     -------
@@ -156,7 +158,7 @@ def export_mesh(mesh: Mesh, path: str | os.PathLike, *, materials: list[dict], o
     path = Path(path)
     fmt = _format_for(mesh, path)
     model = prepare_model(mesh, {"materials": materials, "export": ex}, source, path, build_sets=fmt.holds_sets,
-                          neighbours=neighbours)
+                          neighbours=neighbours, quadratic=quadratic)
     if model.order not in fmt.orders:
         raise DicerError(f"{path}: {fmt.limits.format(dim=model.dim, order=model.order)}")
     _check_printed_digits(fmt, model, mesh, digits, path)

@@ -420,8 +420,39 @@ def _plane_sets(mesh: Mesh, points: np.ndarray, lattice2: np.ndarray | None, pat
     return sets
 
 
+def quadratic_nodes(mesh: Mesh, midside_nodes: str, neighbours=None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """The quadratic mesh of ``mesh`` (:func:`dicer.mesh.quadratic.quadratic_mesh`).
+
+    Parameters
+    ----------
+    mesh : Mesh
+    midside_nodes : {"midpoints", "curved"}
+        ``export.midside_nodes``: curved bends the edges of faces on a boundary (the exterior
+        or an interface) onto its curve.
+    neighbours : callable, optional
+        As for :func:`prepare_model`.
+
+    Returns
+    -------
+    points : (N + E, 3) float64 ndarray
+    cells : (M, 20) or (M, 8) int64 ndarray
+    lattice2 : (N + E, 3) int64 ndarray
+    across : (M, F) ndarray or None
+        With curved: the material across each face (0 for none), which the sets take too.
+    """
+    from dicer.mesh.quadratic import quadratic_mesh
+
+    across = None
+    boundary = None
+    if midside_nodes == "curved":
+        across = neighbour_materials(mesh) if neighbours is None else materials_across(mesh.material, neighbours())
+        boundary = across != mesh.material[:, None].astype(across.dtype)
+    return (*quadratic_mesh(mesh, boundary), across)
+
+
 def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "model",
-                  build_sets: bool = True, neighbours=None) -> SolverModel:
+                  build_sets: bool = True, neighbours=None, quadratic=None) -> SolverModel:
     """Validate a mesh against the configuration and build the SolverModel the writers share.
 
     Parameters
@@ -441,6 +472,10 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
         Returns the (M, F) element across each face of ``mesh`` (-1 for none), as
         :func:`dicer.quality.element_neighbours` gives it: a run that needs them elsewhere
         too (the quality report) finds them once. Without it the sets find what they need.
+    quadratic : callable, optional
+        ``quadratic(midside_nodes)`` gives :func:`quadratic_nodes` of ``mesh`` for that
+        placement: a run that writes several decks of order 2 places the mid-edge nodes once
+        (their fold check is most of an order-2 export). Without it they are placed here.
 
     Returns
     -------
@@ -492,14 +527,11 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
 
     def across() -> np.ndarray:
         return neighbour_materials(mesh) if neighbours is None else materials_across(mesh.material, neighbours())
-    if order == 2 and ex["midside_nodes"] == "curved":
-        nb_mat = across()
     if order == 2:
-        from dicer.mesh.quadratic import quadratic_mesh
-
-        curved = ex["midside_nodes"] == "curved"
-        boundary = (nb_mat != mesh.material[:, None].astype(nb_mat.dtype)) if curved else None
-        points, cells, lattice2 = quadratic_mesh(mesh, boundary)
+        if quadratic is None:
+            points, cells, lattice2, nb_mat = quadratic_nodes(mesh, ex["midside_nodes"], neighbours)
+        else:
+            points, cells, lattice2, nb_mat = quadratic(ex["midside_nodes"])
     model = SolverModel(
         points=points, cells=cells, material=mesh.material.astype(np.int32), names=names, props=props,
         element_type=etype, dim=mesh.dim, order=order, thickness=float(ex["thickness"]),

@@ -1582,7 +1582,8 @@ def _check_memory(source: str, config: dict, elements: int | None = None) -> Non
     factor = (reduction_factor(spacing or (1.0, 1.0, 1.0), factor=ds["factor"], voxel_size=ds["voxel_size"],
                                source=source) if downsample_applies(config) else 1)
     whole, voxels = voxels, _cropped_voxels(voxels, spacing, config["image"]["crop"])
-    need, have = run_peak_mb(voxels, factor, elements), machine_memory_mb()
+    order = stage_kwargs(config, "export")["order"]
+    need, have = run_peak_mb(voxels, factor, elements, order), machine_memory_mb()
     if voxels < whole:  # the whole scan is read (as float32) before it is cut
         need += whole * 4 / 2**20
     if have is None or need <= have:
@@ -1591,7 +1592,7 @@ def _check_memory(source: str, config: dict, elements: int | None = None) -> Non
     def peak(f):  # the elements shrink with the voxels a coarser grid leaves
         coarser = np.maximum(factor, f)
         fewer = None if elements is None else elements * voxel_reduction(factor) // voxel_reduction(coarser)
-        return run_peak_mb(voxels, coarser, fewer)
+        return run_peak_mb(voxels, coarser, fewer, order)
 
     fits = [(f, p) for f, p in ((f, peak(f)) for f in range(2, 9)) if p <= 0.8 * have]
     hint = (f"set downsample.factor: {fits[0][0]} (about {fits[0][1] / 1024:.1f} GB)" if fits
@@ -1609,7 +1610,7 @@ thread, which raised the measured peak by 4.7 % on the 256³ CT (2.68 -> 2.80 GB
 14 % on the 512³ CT (17.1 -> 19.5 GB; fitted peak 19.0 GB, times 1.2: 22.8 GB)."""
 
 
-def _side_by_side(source: str, elements: int) -> bool:
+def _side_by_side(source: str, elements: int, order: int = 1) -> bool:
     """Whether ``dicer run`` may write stage files and make its quality report in a second
     thread: a second core for it, and memory for :data:`SIDE_BY_SIDE_MEMORY` times the run's
     fitted peak (dicer/resources.py)."""
@@ -1623,7 +1624,7 @@ def _side_by_side(source: str, elements: int) -> bool:
         voxels = scan_header(source)[0]
     except OSError:
         return False
-    return have is None or SIDE_BY_SIDE_MEMORY * run_peak_mb(voxels, 1, elements) <= have
+    return have is None or SIDE_BY_SIDE_MEMORY * run_peak_mb(voxels, 1, elements, order) <= have
 
 
 @contextlib.contextmanager
@@ -1771,7 +1772,7 @@ def _output_lock(outdir: Path):
 
 def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
     """The stages of ``dicer run`` into a staging folder, published into ``outdir`` at the end."""
-    from dicer.config import downsample_applies
+    from dicer.config import downsample_applies, stage_kwargs
 
     # every stage writes into a staging folder beside OUTDIR; only a finished run moves its
     # files into OUTDIR (an existing OUTDIR keeps its old files until then), and a failed
@@ -1825,7 +1826,7 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
         # each stage hands its mesh to the next in memory, so the next stage need not read
         # the file again; with a second core (and memory), the file is written and checked
         # in a second thread meanwhile (the stages only read their input mesh)
-        beside = _side_by_side(source, elements)
+        beside = _side_by_side(source, elements, stage_kwargs(config, "export")["order"])
         with ThreadPoolExecutor(1) as files:
             written = []
 

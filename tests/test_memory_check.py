@@ -89,3 +89,26 @@ def test_a_missing_input_is_named_by_the_stage_not_the_memory_check(tmp_path, ca
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("error: ") and "nope." in err[0]
         assert not (tmp_path / "out").exists()
+
+
+def test_an_order_2_run_counts_the_quadratic_mesh(tmp_path, monkeypatch, capsys):
+    """export.order 2 holds the quadratic mesh besides the run's own (the head CT's labels with
+    curved mid-edge nodes peaked at 4.07-4.35 GB against 1.7-1.8 GB at order 1): a machine that
+    fits the linear run refuses the quadratic one before any stage writes."""
+    from dicer.resources import COEFFICIENTS, RUN_MESH
+
+    linear = resources.run_peak_mb(10**6, elements=2_280_000)
+    quadratic = resources.run_peak_mb(10**6, elements=2_280_000, order=2)
+    assert quadratic - linear == pytest.approx(COEFFICIENTS["export_inp_order2"][1] * 2.28, abs=1)
+    assert 4_000 < quadratic < 2 * 4_350 and RUN_MESH[1] < COEFFICIENTS["export_inp_order2"][1]
+    labels = np.zeros((64, 64, 64), np.uint8)
+    labels[16:48, 16:48, 16:48] = 1
+    np.save(tmp_path / "labels.npy", labels)
+    one, two = (resources.run_peak_mb(labels.size, elements=32**3, order=k) for k in (1, 2))
+    monkeypatch.setattr(resources, "machine_memory_mb", lambda: (one + two) // 2)
+    out = tmp_path / "out"
+    assert main(["run", "--labels", str(tmp_path / "labels.npy"), "-o", str(out), "--set", "export.order=2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "32,768 elements" in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy"]
+    assert main(["run", "--labels", str(tmp_path / "labels.npy"), "-o", str(out), "-q"]) == 0  # order 1 fits

@@ -51,10 +51,16 @@ def test_requests_cover_the_measured_peaks_within_twice():
         assert minutes * 60 >= 2 * float(row["seconds"]), row
     assert min(ratios.values()) >= 1.0, min(ratios.items(), key=lambda kv: kv[1])
     assert max(ratios.values()) <= 2.0, max(ratios.items(), key=lambda kv: kv[1])
-    # the full-resolution head CT (256 x 256 x 108): smooth peaks highest, at 1.46 GB (the labels'
-    # fit; merge 1.1 GB, the highest before it was the default)
+    # the full-resolution head CT (256 x 256 x 108): at order 1 smooth peaks highest, at 1.46 GB
+    # (the labels' fit; merge 1.1 GB, the highest before it was the default); an export of order 2
+    # above it (3.2 GB: the quadratic mesh), which a request for order 1 would not cover
     cranium = {r["stage"]: r for r in rows if r["case"] == "cr1"}
-    assert max(cranium, key=lambda s: float(cranium[s]["max_rss_mb"])) == "smooth"
+    linear = {s: r for s, r in cranium.items() if not s.endswith("_order2")}
+    assert max(linear, key=lambda s: float(linear[s]["max_rss_mb"])) == "smooth"
+    for stage in ("export_inp", "export_vtu"):
+        quadratic = cranium[f"{stage}_order2"]
+        assert float(quadratic["max_rss_mb"]) > 2 * estimate(stage, 7077888, elements=2275000)[0]
+        assert estimate(stage, 7077888, elements=2275000, order=2) == _request(quadratic)
     assert 1000 < float(cranium["merge"]["max_rss_mb"]) < _request(cranium["merge"])[0] == 1451
     assert 1400 < float(cranium["smooth"]["max_rss_mb"]) < _request(cranium["smooth"])[0]
 

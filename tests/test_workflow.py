@@ -452,6 +452,21 @@ def test_benchmarks_and_resources_per_stage(cohort):
             assert bench["max_rss"] == "NA" or float(bench["max_rss"]) <= requests[patient, stage], (patient, stage)
 
 
+def test_exports_of_order_2_ask_for_the_quadratic_mesh(cohort):
+    """export.order 2: the export rules ask by the _order2 rows (a quadratic deck holds two to
+    three times an order-1 export's memory); the other stages as before."""
+    from dicer.resources import estimate, mesh_elements, scan_voxels
+
+    linear = _requested(_snakemake(cohort, "-n", "--forceall"))
+    quadratic = _requested(_snakemake(cohort, "-n", "--forceall", "--config", "export={order: 2}"))
+    voxels = scan_voxels(cohort / "resources" / "phantoms" / "head.nii.gz")
+    elements = mesh_elements(cohort / "results" / "head" / "mesh.vtu")
+    for stage in ("export_inp", "export_vtu"):
+        assert quadratic["head", stage] == estimate(stage, voxels, voxels, elements, scan=True, order=2)[0]
+        assert quadratic["head", stage] > 1.3 * linear["head", stage]  # a small phantom: the baseline counts
+    assert quadratic["head", "smooth"] == linear["head", "smooth"]
+
+
 def test_the_cohort_table_leaves_out_a_stage_the_model_no_longer_goes_through(cohort):
     """An earlier run's benchmark file of a stage since dropped (say downsample, after its
     override went) showed in the table as if the model went through it."""

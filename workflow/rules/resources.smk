@@ -61,11 +61,13 @@ def _estimate(stage, wildcards, attempt):
     if stage == "phantom":
         size = CONFIG["workflow"]["phantom_size"] or DEFAULT_SIZE.get(wildcards.name, 256)
         return estimate("phantom", voxels=size ** 3, attempt=attempt)
+    order = 1
     if stage == "export":
         stage = f"export_{wildcards.ext}"
+        order = patient_config(wildcards.patient)["export"]["order"]  # order 2: the quadratic mesh besides
     voxels, coarse = _scan_size(wildcards.patient)
     return estimate(stage, voxels=voxels, voxels_ds=coarse, elements=_elements(wildcards.patient),
-                    attempt=attempt, scan=wildcards.patient not in LABEL_PATIENTS)
+                    attempt=attempt, scan=wildcards.patient not in LABEL_PATIENTS, order=order)
 
 
 def mem_mb(stage):

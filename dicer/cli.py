@@ -1613,7 +1613,7 @@ thread, which raised the measured peak by 4.7 % on the 256³ CT (2.68 -> 2.80 GB
 def _side_by_side(source: str, elements: int, order: int = 1) -> bool:
     """Whether ``dicer run`` may write stage files and make its quality report in a second
     thread: a second core for it, and memory for :data:`SIDE_BY_SIDE_MEMORY` times the run's
-    fitted peak (dicer/resources.py)."""
+    fitted peak (dicer/resources.py) at its ``export.order``."""
     from dicer.parallel import cores
     from dicer.resources import machine_memory_mb, run_peak_mb, scan_header
 
@@ -1826,7 +1826,7 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
         # each stage hands its mesh to the next in memory, so the next stage need not read
         # the file again; with a second core (and memory), the file is written and checked
         # in a second thread meanwhile (the stages only read their input mesh)
-        beside = _side_by_side(source, elements, stage_kwargs(config, "export")["order"])
+        beside = _side_by_side(source, elements, order=stage_kwargs(config, "export")["order"])
         with ThreadPoolExecutor(1) as files:
             written = []
 

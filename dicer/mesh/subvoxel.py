@@ -67,11 +67,22 @@ _CURVATURE_AVERAGING = 4
 
 
 def normal_density(z: np.ndarray) -> np.ndarray:
-    """The standard normal density at ``z`` (float ndarray, any shape).
+    """The standard normal density at ``z``.
 
     By scipy's expm1, not numpy's exp: numpy computes exp with its own vector code on CPUs
     with AVX-512 and with the C library elsewhere, which differ in the last bit, and the
-    density sets where nodes go."""
+    density sets where nodes go.
+
+    Parameters
+    ----------
+    z : float ndarray
+        Any shape.
+
+    Returns
+    -------
+    float64 ndarray
+        The same shape.
+    """
     return (special.expm1(-0.5 * z * z) + 1.0) / np.sqrt(2.0 * np.pi)
 
 

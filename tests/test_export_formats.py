@@ -17,6 +17,7 @@ from dicer.export import export_mesh, prepare_model
 from dicer.export.lsdyna import read_lsdyna
 from dicer.export.patran import read_patran
 from dicer.mesh import quadratic
+from dicer.mesh.metrics import quality_arrays
 from dicer.mesh.quadratic import quadratic_mesh
 from dicer.mesh.topology import HEX_EDGES, QUAD_EDGES
 from dicer.mesh.voxel import voxel_mesh
@@ -474,6 +475,84 @@ def test_lsdyna_element_formulation_and_limits(tmp_path, mesh):
 
 
 # --- VTU and Gmsh -----------------------------------------------------------------------------
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 10_000), dim=st.sampled_from([2, 3]), curved=st.booleans())
+def test_quadratic_vtu_reads_back_as_meshio_reads_it(tmp_path_factory, seed, dim, curved):
+    """dicer writes order-2 VTU itself (zlib blocks, VTK's types 25 and 23): meshio reads
+    the same nodes, cells, materials, corner quality and material names the model holds."""
+    from dicer.export.vtu import check_vtu
+    from dicer.io.meshes import read_raw_vtu
+
+    rng = np.random.default_rng(seed)
+    lab = rng.integers(0, 3, tuple(rng.integers(2, 6, dim))).astype(np.uint8)
+    lab.flat[0] = 1
+    m = voxel_mesh(lab)
+    m.points[:, :dim] += rng.uniform(-0.15, 0.15, (m.n_points, dim))
+    config = cfg(order=2, midside_nodes="curved" if curved else "midpoint")
+    path = tmp_path_factory.mktemp("q") / "q.vtu"
+    export_mesh(m, path, config)
+    model = prepare_model(m, config)
+    k = 20 if dim == 3 else 8
+    ref = meshio.read(path)
+    assert ref.cells[0].type == ("hexahedron20" if dim == 3 else "quad8") and ref.cells[0].data.shape == (m.n_cells, k)
+    assert np.array_equal(ref.points, model.points) and np.array_equal(ref.cells[0].data, model.cells)
+    assert np.array_equal(ref.cell_data["material"][0], m.material)
+    corners = quality_arrays(model.points, model.cells[:, :8 if dim == 3 else 4])
+    for key, want in corners.items():
+        assert np.array_equal(ref.cell_data[key][0], want, equal_nan=True)
+    assert {name: list(v) for name, v in ref.field_data.items()} == {
+        name: [label, dim] for label, name in enumerate(model.name_list(), start=1)}
+    cell_type, points, cells, *_ = read_raw_vtu(path, str(path))
+    assert cell_type == ref.cells[0].type and np.array_equal(cells, model.cells)
+    check_vtu(path, model)
+
+
+@pytest.mark.parametrize("what", ["points", "cells", "scaled_jacobian"])
+def test_quadratic_vtu_check_finds_one_changed_value(tmp_path, mesh, what):
+    from dicer.export.vtu import check_vtu
+
+    config = cfg(order=2)
+    export_mesh(mesh, tmp_path / "q.vtu", config)
+    model = prepare_model(mesh, config)
+    check_vtu(tmp_path / "q.vtu", model)
+    model.cell_data.update(quality_arrays(model.points, model.cells[:, :8]))
+    if what == "points":
+        model.points = model.points.copy()
+        model.points[mesh.n_points + 3, 1] = np.nextafter(model.points[mesh.n_points + 3, 1], 9.0)  # a mid-edge node
+    elif what == "cells":
+        model.cells = model.cells.copy()
+        model.cells[2, [8, 9]] = model.cells[2, [9, 8]]
+    else:
+        model.cell_data[what] = model.cell_data[what].copy()
+        model.cell_data[what][4] = np.nextafter(model.cell_data[what][4], 2.0)
+    with pytest.raises(DicerError, match={"points": "coordinates", "cells": "connectivity",
+                                          "scaled_jacobian": "scaled_jacobian"}[what]):
+        check_vtu(tmp_path / "q.vtu", model)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_vtks_own_reader_reads_the_quadratic_vtu(tmp_path, mesh, dim):
+    """ParaView's reader (VTK's vtkXMLUnstructuredGridReader) takes dicer's order-2 file:
+    its cell types, node count per cell, connectivity and materials."""
+    vtk = pytest.importorskip("vtk")
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    m = mesh if dim == 3 else voxel_mesh(np.array([[1, 1, 2], [2, 2, 1]], np.uint8))
+    config = cfg(order=2, midside_nodes="curved")
+    export_mesh(m, tmp_path / "q.vtu", config)
+    model = prepare_model(m, config)
+    reader = vtk.vtkXMLUnstructuredGridReader()
+    reader.SetFileName(str(tmp_path / "q.vtu"))
+    reader.Update()
+    grid = reader.GetOutput()
+    k = 20 if dim == 3 else 8
+    assert grid.GetNumberOfCells() == m.n_cells and grid.GetNumberOfPoints() == model.n_points
+    assert set(vtk_to_numpy(grid.GetCellTypes() if hasattr(grid, "GetCellTypes") else grid.GetCellTypesArray()).tolist()) == {25 if dim == 3 else 23}
+    assert np.array_equal(vtk_to_numpy(grid.GetCells().GetConnectivityArray()).reshape(-1, k), model.cells)
+    assert np.array_equal(vtk_to_numpy(grid.GetPoints().GetData()), model.points)
+    assert np.array_equal(vtk_to_numpy(grid.GetCellData().GetArray("material")), m.material)
 
 
 def test_vtu_quadratic_and_gmsh(tmp_path, mesh):

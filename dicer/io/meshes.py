@@ -52,7 +52,10 @@ _VTK_TYPES = {
     ]
 }
 _NUMPY_TYPES = {n: t.newbyteorder("<") for t, n in _VTK_TYPES.items()}
-_VTK_CELL_TYPES = {8: 12, 4: 9}  # corners per element -> VTK_HEXAHEDRON, VTK_QUAD
+_VTK_CELL_TYPES = {"hexahedron": 12, "quad": 9, "hexahedron20": 25, "quad8": 23}
+"""meshio's cell type names -> VTK's (the node order of each is VTK's in both)."""
+_CELL_TYPE_NAMES = {(8, 12): "hexahedron", (4, 9): "quad", (20, 25): "hexahedron20", (8, 23): "quad8"}
+"""(nodes per element, VTK cell type) -> meshio's name."""
 
 _ROOT = b'<VTKFile type="UnstructuredGrid" version="1.0" byte_order="LittleEndian" header_type="UInt64">'
 _ZLIB_ROOT = _ROOT[:-1] + b' compressor="vtkZLibDataCompressor">'
@@ -155,9 +158,11 @@ class _Later:
 
 
 @contextlib.contextmanager
-def quality_meanwhile(mesh: Mesh):
+def quality_meanwhile(mesh: Mesh, corners: np.ndarray | None = None):
     """The :data:`~dicer.mesh.metrics.QUALITY_DATA` arrays of ``mesh``, computed in a second
     thread while a writer (:func:`write_raw_vtu`) writes the arrays before them.
+    ``corners``: (M, 8) or (M, 4) corner indices to measure instead of ``mesh.cells`` (the
+    corners of quadratic elements; ``mesh`` then needs only ``points``).
 
     Yields
     ------
@@ -167,8 +172,9 @@ def quality_meanwhile(mesh: Mesh):
         ``result()`` -> dict of str to (M,) float64 ndarray, the computed arrays.
     """
     with ThreadPoolExecutor(1) as pool:
-        metrics = pool.submit(quality_arrays, mesh.points, mesh.cells)
-        yield ({k: _Later(lambda k=k: metrics.result()[k], np.float64, (mesh.n_cells,)) for k in QUALITY_DATA},
+        cells = mesh.cells if corners is None else corners
+        metrics = pool.submit(quality_arrays, mesh.points, cells)
+        yield ({k: _Later(lambda k=k: metrics.result()[k], np.float64, (len(cells),)) for k in QUALITY_DATA},
                metrics.result)
 
 
@@ -264,7 +270,7 @@ def _vtu_arrays(mesh: Mesh, path: Path, wide=(), stage: bool = True) -> dict[str
         "Cells": [
             ("connectivity", _index_array(mesh.cells, 0, mesh.n_points, "connectivity" in wide)),
             ("offsets", np.arange(k, k * mesh.n_cells + 1, k, dtype=offsets_type)),
-            ("types", np.full(mesh.n_cells, _VTK_CELL_TYPES[k], np.uint8)),
+            ("types", np.full(mesh.n_cells, _VTK_CELL_TYPES[mesh.cell_type], np.uint8)),
         ],
         # a lattice index lies between -1 (a node between lattice points) and the grid's size
         "PointData": [("lattice", _index_array(mesh.lattice, -1, int(np.max(mesh.grid_shape, initial=0)) + 1,
@@ -322,6 +328,12 @@ def _write_vtu(mesh: Mesh, path: Path, compress: bool = False) -> None:
         sections = _vtu_arrays(mesh, path, wide, stage=not compress)
         if _meshio_walk_ok([a.nbytes for arrays in sections.values() for _, a in arrays]):
             break
+    _write_sections(path, sections, _field_data_xml(mesh), mesh.n_points, mesh.n_cells, compress)
+
+
+def _write_sections(path: Path, sections: dict, field_xml: str, n_points: int, n_cells: int,
+                    compress: bool) -> None:
+    """Write the arrays of :func:`_vtu_arrays`'s form at ``path`` after the <FieldData> ``field_xml``."""
     offset, tags, blocks = 0, [], []
     for section, arrays in sections.items():
         tags.append(f"<{section}>\n")
@@ -343,7 +355,7 @@ def _write_vtu(mesh: Mesh, path: Path, compress: bool = False) -> None:
         tags.append(f"</{section}>\n")
     head = (
         '<?xml version="1.0"?>\n' + (_ZLIB_ROOT if compress else _ROOT).decode() + "\n<UnstructuredGrid>\n"
-        + _field_data_xml(mesh) + f'<Piece NumberOfPoints="{mesh.n_points}" NumberOfCells="{mesh.n_cells}">\n'
+        + field_xml + f'<Piece NumberOfPoints="{n_points}" NumberOfCells="{n_cells}">\n'
         + "".join(tags) + "</Piece>\n</UnstructuredGrid>\n"
     ).encode() + _APPENDED
     with open(path, "wb") as f:
@@ -639,14 +651,16 @@ def _read_raw_vtu(path: Path, name: str, mapped: bool = False):
 
 
 def _one_block(cells: dict, n_cells: int):
-    """(cell type, (M, k) connectivity) when the cells are one block of hexahedra or quads."""
+    """(cell type, (M, k) connectivity) when the cells are one block of one of dicer's cell
+    types (:data:`_VTK_CELL_TYPES`: hexahedra or quads, linear or quadratic)."""
     conn, offsets, types = cells["connectivity"], cells["offsets"], cells["types"]
     k = conn.size // n_cells if n_cells else 0
-    if (k not in _VTK_CELL_TYPES or conn.size != k * n_cells
+    name = _CELL_TYPE_NAMES.get((k, int(types[0]))) if types.size else None
+    if (name is None or conn.size != k * n_cells
             or not np.array_equal(offsets, np.arange(k, k * n_cells + 1, k))
-            or not np.all(types == _VTK_CELL_TYPES[k])):
+            or not np.all(types == _VTK_CELL_TYPES[name])):
         return None
-    return ("hexahedron" if k == 8 else "quad"), conn.reshape(n_cells, k)
+    return name, conn.reshape(n_cells, k)
 
 
 def _inflate(fetch, start: int, file_size: int, name: str, label: str) -> tuple[np.ndarray, int]:
@@ -694,6 +708,43 @@ def write_raw_vtu(mesh: Mesh, path: str | os.PathLike, compress: bool = False) -
     _write_vtu(mesh, Path(path), compress)
 
 
+def write_cells_vtu(path: str | os.PathLike, points: np.ndarray, cells: np.ndarray, cell_type: str,
+                    cell_data: dict, field_xml: str = "") -> None:
+    """Write elements of any of dicer's cell types (linear or quadratic) as a VTU in zlib
+    blocks, with no checks (the caller checks): the layout of :func:`write_raw_vtu` with
+    ``compress``, but no lattice and no grid, for exported models of order 2.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    points : (N, 3) float64 ndarray
+    cells : (M, k) int ndarray
+        Node indices in VTK's order.
+    cell_type : str
+        meshio's name: ``hexahedron``, ``quad``, ``hexahedron20`` or ``quad8``.
+    cell_data : dict of str to (M,) or (M, c) ndarray or later array
+        ``material`` first (written as Int32), then the rest in their own types.
+    field_xml : str, optional
+        <DataArray> elements for the <FieldData> (e.g. :func:`names_xml`).
+    """
+    path = Path(path)
+    n_points, n_cells = len(points), len(cells)
+    k = cells.shape[1]
+    offsets_type = np.int32 if k * n_cells <= _INT32_MAX else np.int64
+    arrays = [(key, _extra_array(path, "cell", key, v, n_cells)) for key, v in cell_data.items()]
+    sections = {
+        "Points": [("Points", np.ascontiguousarray(points, "<f8"))],
+        "Cells": [
+            ("connectivity", _index_array(cells, 0, n_points)),
+            ("offsets", np.arange(k, k * n_cells + 1, k, dtype=offsets_type)),
+            ("types", np.full(n_cells, _VTK_CELL_TYPES[cell_type], np.uint8)),
+        ],
+        "CellData": [(key, a if isinstance(a, _Later) else np.ascontiguousarray(
+            a, "<i4" if key == "material" else a.dtype.newbyteorder("<"))) for key, a in arrays],
+    }
+    _write_sections(path, sections, f"<FieldData>\n{field_xml}</FieldData>\n", n_points, n_cells, compress=True)
+
+
 def read_raw_vtu(path: str | os.PathLike, name: str):
     """The arrays of a VTU file dicer wrote (raw or zlib blocks), or None for any other VTU.
 
@@ -714,6 +765,14 @@ def read_raw_vtu(path: str | os.PathLike, name: str):
 _QUADRATIC = {"hexahedron20", "hexahedron27", "quad8", "quad9"}  # meshio's names of quadratic hexahedra and quads
 
 
+def _refuse_quadratic(name: str, types: set[str]) -> None:
+    if types & _QUADRATIC:  # an export with export.order 2 (model.vtu): its stage mesh is linear
+        raise DicerError(f"{name}: holds quadratic elements ({', '.join(sorted(types))}), as an export with "
+                         "export.order 2 writes them, and dicer reads meshes of linear hexahedra or quads; give "
+                         "the stage mesh it was exported from (smoothed.vtu), or a model.vtu exported with "
+                         "export.order 1")
+
+
 def _read_meshio(path: Path, name: str):
     """The parts of any mesh file meshio reads, as _read_raw_vtu returns them."""
     import meshio
@@ -726,11 +785,7 @@ def _read_meshio(path: Path, name: str):
         raise DicerError(f"{name}: cannot read mesh ({type(exc).__name__}: {str(exc)[:120]}); is the file complete?") from None
     blocks = [(b.type, b.data) for b in m.cells]
     types = {t for t, _ in blocks}
-    if types & _QUADRATIC:  # an export with export.order 2 (model.vtu): its stage mesh is linear
-        raise DicerError(f"{name}: holds quadratic elements ({', '.join(sorted(types))}), as an export with "
-                         "export.order 2 writes them, and dicer reads meshes of linear hexahedra or quads; give "
-                         "the stage mesh it was exported from (smoothed.vtu), or a model.vtu exported with "
-                         "export.order 1")
+    _refuse_quadratic(name, types)
     if types - {"hexahedron", "quad"} or len(types) != 1:
         raise DicerError(f"{name}: expected only hexahedron or only quad elements, found {sorted(types)}; give a "
                          "mesh a dicer stage wrote (mesh.vtu, merged.vtu, smoothed.vtu)")
@@ -848,6 +903,8 @@ def read_mesh(path: str | os.PathLike, source: str | None = None, mapped: bool =
     if not path.exists():
         raise DicerError(f"{name}: mesh file not found; check the path")
     parts = _read_raw_vtu(path, name, mapped) if path.suffix.lower() == ".vtu" and path.is_file() else None
+    if parts:
+        _refuse_quadratic(name, {parts[0]})
     mesh = _assemble(name, *(parts or _read_meshio(path, name)), widen="lattice" if mapped else True)
     if mapped and parts:
         # the index arrays widened from the file's Int32 are copies: read-only too, as the

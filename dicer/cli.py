@@ -1563,11 +1563,11 @@ class _MemoryError(DicerError):
     would, with nothing written."""
 
 
-def _check_memory(source: str, config: dict, elements: int | None = None) -> None:
+def _check_memory(source: str, config: dict, elements: int | None = None, faces: int | None = None) -> None:
     """DicerError when the run's fitted peak memory (dicer/resources.py) exceeds what this
     machine or job may use: before any stage, for the stages that read the scan; with the
-    mesh's ``elements`` (after fix), for the stages from the mesh on. The kernel would
-    otherwise kill the run without a message."""
+    mesh's ``elements`` and surface ``faces`` (after fix), for the stages from the mesh on.
+    The kernel would otherwise kill the run without a message."""
     import numpy as np
 
     from dicer.config import downsample_applies, stage_kwargs
@@ -1583,16 +1583,18 @@ def _check_memory(source: str, config: dict, elements: int | None = None) -> Non
                                source=source) if downsample_applies(config) else 1)
     whole, voxels = voxels, _cropped_voxels(voxels, spacing, config["image"]["crop"])
     order = stage_kwargs(config, "export")["order"]
-    need, have = run_peak_mb(voxels, factor, elements, order), machine_memory_mb()
+    need, have = run_peak_mb(voxels, factor, elements, order, faces), machine_memory_mb()
     if voxels < whole:  # the whole scan is read (as float32) before it is cut
         need += whole * 4 / 2**20
     if have is None or need <= have:
         return
 
-    def peak(f):  # the elements shrink with the voxels a coarser grid leaves
+    def peak(f):  # the elements shrink with the voxels a coarser grid leaves, the faces as their area
         coarser = np.maximum(factor, f)
-        fewer = None if elements is None else elements * voxel_reduction(factor) // voxel_reduction(coarser)
-        return run_peak_mb(voxels, coarser, fewer, order)
+        shrink = voxel_reduction(factor) / voxel_reduction(coarser)
+        fewer = None if elements is None else int(elements * shrink)
+        less = None if elements is None or faces is None else int(faces * shrink ** (2 / 3))
+        return run_peak_mb(voxels, coarser, fewer, order, less)
 
     fits = [(f, p) for f, p in ((f, peak(f)) for f in range(2, 9)) if p <= 0.8 * have]
     hint = (f"set downsample.factor: {fits[0][0]} (about {fits[0][1] / 1024:.1f} GB)" if fits
@@ -1607,13 +1609,15 @@ def _check_memory(source: str, config: dict, elements: int | None = None) -> Non
 SIDE_BY_SIDE_MEMORY = 1.2
 """The run's fitted peak (dicer/resources.py) times this must fit the machine for the second
 thread, which raised the measured peak by 4.7 % on the 256³ CT (2.68 -> 2.80 GB) and by
-14 % on the 512³ CT (17.1 -> 19.5 GB; fitted peak 19.0 GB, times 1.2: 22.8 GB)."""
+14 % on the 512³ CT (17.1 -> 19.5 GB; fitted peak then 19.0 GB, times 1.2: 22.8 GB; since
+the surface faces count, 19.5 GB, times 1.2: 23.4 GB of the 23.5 GB)."""
 
 
-def _side_by_side(source: str, elements: int, order: int = 1) -> bool:
+def _side_by_side(source: str, elements: int, order: int = 1, faces: int | None = None) -> bool:
     """Whether ``dicer run`` may write stage files and make its quality report in a second
     thread: a second core for it, and memory for :data:`SIDE_BY_SIDE_MEMORY` times the run's
-    fitted peak (dicer/resources.py) at its ``export.order``."""
+    fitted peak (dicer/resources.py) at its ``export.order``, for its ``elements`` and
+    surface ``faces``."""
     from dicer.parallel import cores
     from dicer.resources import machine_memory_mb, run_peak_mb, scan_header
 
@@ -1624,7 +1628,7 @@ def _side_by_side(source: str, elements: int, order: int = 1) -> bool:
         voxels = scan_header(source)[0]
     except OSError:
         return False
-    return have is None or SIDE_BY_SIDE_MEMORY * run_peak_mb(voxels, 1, elements, order) <= have
+    return have is None or SIDE_BY_SIDE_MEMORY * run_peak_mb(voxels, 1, elements, order, faces) <= have
 
 
 @contextlib.contextmanager
@@ -1773,6 +1777,7 @@ def _output_lock(outdir: Path):
 def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
     """The stages of ``dicer run`` into a staging folder, published into ``outdir`` at the end."""
     from dicer.config import downsample_applies, stage_kwargs
+    from dicer.resources import surface_faces
 
     # every stage writes into a staging folder beside OUTDIR; only a finished run moves its
     # files into OUTDIR (an existing OUTDIR keeps its old files until then), and a failed
@@ -1820,13 +1825,14 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
         _check_exodus_size(config, fixed, source)
         step("mesh")
         elements = int(fixed.size - (fixed == 0).sum())  # one element per labelled voxel
+        faces = surface_faces(fixed)
         del fixed
         if not args.skip_memory_check:  # the mesh's size is known now
-            _check_memory(source, config, elements)
+            _check_memory(source, config, elements, faces)
         # each stage hands its mesh to the next in memory, so the next stage need not read
         # the file again; with a second core (and memory), the file is written and checked
         # in a second thread meanwhile (the stages only read their input mesh)
-        beside = _side_by_side(source, elements, order=stage_kwargs(config, "export")["order"])
+        beside = _side_by_side(source, elements, order=stage_kwargs(config, "export")["order"], faces=faces)
         with ThreadPoolExecutor(1) as files:
             written = []
 

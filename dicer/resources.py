@@ -154,12 +154,17 @@ SMOOTH_SCAN = (119, 21.3, 0.8, 5.8)
 #: bone); a fuller scan runs out of memory on the first attempt and gets twice on the retry
 ELEMENT_FRACTION = 0.5
 #: dicer run's peak from its mesh stage on: (baseline MB, MB per million elements of the
-#: voxel mesh). One process holds the mesh from stage to stage, so its peak is not the
-#: largest stage process's. Measured with `python -m bench --processes` on the CT phantom
-#: (docs/benchmark.md): 64^3 290 MB at 0.10 M elements, 128^3 544 MB at 0.80 M, 256^3
-#: 2,507 MB at 6.40 M, 512^3 17.7 GB at 51.2 M; the slope is the steepest between two
-#: sizes (363), rounded up
-RUN_MESH = (255, 365)
+#: voxel mesh, MB per million faces of its surfaces). One process holds the mesh from stage
+#: to stage, so its peak is not the largest stage process's; smoothing's surface work (the
+#: labels' fit, the fit to the scan, the boundary solves) grows with the faces, so thin bone
+#: needs more per element than a solid ball. The smallest upper bound of `dicer run`'s
+#: measured peaks on thirteen scans (docs/robustness.md, "Memory": the shell phantom 64^3 to
+#: 512^3, the head, long-bone, sphere and block phantoms, the head CT at factors 1 and 2 and
+#: its labels), rounded up
+RUN_MESH = (260, 315, 2170)
+#: surface faces per element assumed where a caller knows only the elements: the most of the
+#: measured scans (the head CT at factor 2: 0.32)
+FACE_FRACTION = 0.35
 #: requested memory over the fitted peak: room for other library versions and inputs
 MEMORY_MARGIN = 1.15
 #: the baseline again over the fitted one: the same library versions installed afresh on
@@ -252,13 +257,37 @@ def voxel_reduction(factor) -> int:
     return max(1, int(factor ** 3 if factor.ndim == 0 else np.prod(factor)))
 
 
-def run_peak_mb(voxels: int, factor=1, elements: int | None = None, order: int = 1) -> int:
+def surface_faces(labels: np.ndarray) -> int:
+    """Voxel faces between two different labels, or a label and the background or the
+    volume's edge: the faces of the voxel mesh's exterior and interfaces.
+
+    Parameters
+    ----------
+    labels : (X, Y, Z) or (X, Y) integer ndarray
+        0 background.
+
+    Returns
+    -------
+    int
+    """
+    labels = np.asarray(labels)
+    count = 0
+    for axis in range(labels.ndim):
+        a, b = np.moveaxis(labels, axis, 0)[:-1], np.moveaxis(labels, axis, 0)[1:]
+        ends = np.moveaxis(labels, axis, 0)[[0, -1]] if labels.shape[axis] else labels[:0]
+        count += int(np.count_nonzero(a != b)) + int(np.count_nonzero(ends))
+    return count
+
+
+def run_peak_mb(voxels: int, factor=1, elements: int | None = None, order: int = 1,
+                faces: int | None = None) -> int:
     """Fitted peak memory of ``dicer run``.
 
     Without ``elements`` (before the scan is segmented): the stages that read the scan or
     its label volume (segment, downsample, fix), whose size the header gives. With the
-    mesh's element count (known once the labels are fixed): also the stages from the mesh
-    on, by RUN_MESH; with ``order`` 2 the exports then hold the quadratic mesh besides what
+    mesh's element count and its surface faces (known once the labels are fixed,
+    :func:`surface_faces`): also the stages from the mesh on, by RUN_MESH (without
+    ``faces``, FACE_FRACTION of the elements); with ``order`` 2 the exports then hold the quadratic mesh besides what
     the run holds, the export_inp_order2 row's growth on top of RUN_MESH's (measured on the
     head CT's labels with curved mid-edge nodes: 4.07 to 4.35 GB at 2.28 M elements).
 
@@ -272,6 +301,8 @@ def run_peak_mb(voxels: int, factor=1, elements: int | None = None, order: int =
         Elements of the voxel mesh (the fixed labels' non-zero voxels).
     order : int, optional
         ``export.order``.
+    faces : int, optional
+        Surface faces of the voxel mesh.
 
     Returns
     -------
@@ -281,10 +312,11 @@ def run_peak_mb(voxels: int, factor=1, elements: int | None = None, order: int =
     voxels_ds = max(1, voxels // voxel_reduction(factor))
     peaks = [estimate(stage, voxels, voxels_ds)[0] / MEMORY_MARGIN for stage in ("segment", "downsample", "fix")]
     if elements is not None:
-        base_mb, mb_per_m = RUN_MESH
+        base_mb, mb_per_m, mb_per_face_m = RUN_MESH
         if order == 2:
             mb_per_m += COEFFICIENTS["export_inp_order2"][1]
-        peaks.append(BASELINE_FACTOR * base_mb + mb_per_m * elements / 1e6)
+        faces = FACE_FRACTION * elements if faces is None else faces
+        peaks.append(base_mb + mb_per_m * elements / 1e6 + mb_per_face_m * faces / 1e6)
     return int(max(peaks))
 
 

@@ -250,7 +250,7 @@ def test_the_quality_report_beside_the_exports_leaves_the_same_files(tmp_path, m
     main, args = _head_run(tmp_path)
     results = {}
     for beside in (False, True):
-        monkeypatch.setattr(cli, "_side_by_side", lambda source, elements, order=1, beside=beside: beside)
+        monkeypatch.setattr(cli, "_side_by_side", lambda source, elements, order=1, faces=None, beside=beside: beside)
         out = tmp_path / f"out_{beside}"
         assert main(args + ["-o", str(out)]) == 0
         results[beside] = {p.name: p.read_bytes() for p in out.iterdir()}
@@ -262,7 +262,7 @@ def test_a_failure_beside_the_exports_names_the_quality_stage(tmp_path, monkeypa
     import dicer.cli as cli
 
     main, args = _head_run(tmp_path)
-    monkeypatch.setattr(cli, "_side_by_side", lambda source, elements, order=1: True)
+    monkeypatch.setattr(cli, "_side_by_side", lambda source, elements, order=1, faces=None: True)
 
     def broken(mesh_path, out, *a, **k):
         time.sleep(0.5)  # still running when the exports end
@@ -300,7 +300,7 @@ def test_a_stage_file_written_beside_the_next_stage_names_its_stage_when_it_fail
     import dicer.io.meshes as meshes
 
     main, args = _head_run(tmp_path)
-    monkeypatch.setattr(cli, "_side_by_side", lambda source, elements, order=1: True)
+    monkeypatch.setattr(cli, "_side_by_side", lambda source, elements, order=1, faces=None: True)
     real = meshes.write_mesh
 
     def failing(mesh, path, *a, **k):
@@ -334,7 +334,7 @@ def test_a_merge_whose_check_beside_the_smoothing_fails_is_named_before_the_smoo
     plates[np.abs((0.3 * x + 0.5 * y + 0.81 * z) / np.linalg.norm([0.3, 0.5, 0.81]) - 28) < 0.6] = 1
     plates[np.abs((0.7 * x - 0.4 * y + 0.2 * z) / np.linalg.norm([0.7, -0.4, 0.2]) - 12) < 1.0] = 2
     np.save(tmp_path / "plates.npy", plates)
-    monkeypatch.setattr(cli, "_side_by_side", lambda source, elements, order=1: True)
+    monkeypatch.setattr(cli, "_side_by_side", lambda source, elements, order=1, faces=None: True)
     out = tmp_path / "out"
     assert cli.main(["run", "--labels", str(tmp_path / "plates.npy"), "-o", str(out), "-q", "--set",
                      "merge.min_scaled_jacobian=-1", "--set", "merge.passes=[2,2,2]"]) == 2

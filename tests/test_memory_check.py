@@ -12,16 +12,86 @@ def test_peak_estimate_grows_with_voxels_and_elements_and_shrinks_with_downsampl
     # before any stage: the stages that read the scan (the 512^3 CT's segment peaks near 3 GB)
     scan = resources.run_peak_mb(512**3)
     assert 2_000 < scan < 5_000
-    # with the mesh's size: dicer run on the 512^3 CT (51.2 M elements) measured 17.7 GB
-    full = resources.run_peak_mb(512**3, elements=51_200_000)
-    assert 17.7 * 1024 < full < 1.1 * 17.7 * 1024
-    assert resources.run_peak_mb(512**3, 2, elements=51_200_000 // 8) < full / 5  # a factor 2 leaves 1/8
+    # with the mesh's size: dicer run on the 512^3 CT (51.2 M elements, 1.45 M surface faces)
+    # measured 17.9 GB
+    full = resources.run_peak_mb(512**3, elements=51_229_208, faces=1_445_136)
+    assert 17_905 < full < 1.1 * 17_905
+    # a factor 2 leaves 1/8 of the elements, 1/4 of the faces
+    assert resources.run_peak_mb(512**3, 2, elements=51_229_208 // 8, faces=1_445_136 // 4) < full / 5
     # per-axis factors count by the voxels they leave: (2, 2, 1) as (4, 1, 1), between factors 1 and 2
     assert resources.voxel_reduction((2, 2, 1)) == resources.voxel_reduction((4, 1, 1)) == 4
     assert resources.voxel_reduction(2) == 8 and resources.voxel_reduction(1) == 1
     assert resources.run_peak_mb(512**3, (2, 2, 1)) == resources.run_peak_mb(512**3, (4, 1, 1)) <= scan
     small = resources.run_peak_mb(48**3, elements=48**3 // 2)
     assert 150 < small < 400                            # the interpreter's baseline dominates
+
+
+def _run_memory_rows():
+    import csv
+    from pathlib import Path
+
+    lines = [line for line in (Path(__file__).parents[1] / "docs" / "run-memory.tsv").read_text().splitlines()
+             if not line.startswith("#")]
+    return list(csv.DictReader(lines, delimiter="\t"))
+
+
+def test_the_run_estimate_bounds_every_measured_run_closely():
+    """RUN_MESH against dicer run's measured peaks on phantoms and the head CT: never below
+    (the check would let through a run the kernel kills), at most 35 % above (it would refuse
+    runs that fit)."""
+    rows = _run_memory_rows()
+    assert len(rows) >= 12 and {r["scan"].split()[0] for r in rows} >= {"shell", "head", "long_bone", "block"}
+    ratios = []
+    for r in rows:
+        need = resources.run_peak_mb(int(r["voxels"]), int(r["factor"]), int(r["elements"]), faces=int(r["faces"]))
+        ratios.append(need / float(r["peak_mb"]))
+    assert min(ratios) >= 1.0 and max(ratios) <= 1.35, ratios
+    # without the faces the thin-walled head CT is not underestimated either
+    ct = next(r for r in rows if r["scan"] == "head CT" and r["factor"] == "1")
+    assert resources.run_peak_mb(int(ct["voxels"]), 1, int(ct["elements"])) >= float(ct["peak_mb"])
+
+
+def test_the_run_counts_the_surface_thin_walls_need(tmp_path, monkeypatch, capsys):
+    """As many elements in 16 plates two voxels thick (which fix leaves as they are) as in one
+    cube: six times the surface faces. A machine with memory for the cube's run refuses the
+    plates' before any stage of the mesh writes, naming their size."""
+    cube = np.zeros((64, 40, 40), np.uint8)
+    cube[16:48, 4:36, 4:36] = 1
+    plates = np.zeros((64, 40, 40), np.uint8)
+    for k in range(0, 64, 4):
+        plates[k:k + 2, 4:36, 4:36] = 1
+    assert np.count_nonzero(cube) == np.count_nonzero(plates) == 32**3
+    assert resources.surface_faces(plates) == 6 * resources.surface_faces(cube) == 36_864
+    need = {name: resources.run_peak_mb(a.size, elements=32**3, faces=resources.surface_faces(a))
+            for name, a in (("cube", cube), ("plates", plates))}
+    assert need["plates"] - need["cube"] > 50
+    monkeypatch.setattr(resources, "machine_memory_mb", lambda: (need["cube"] + need["plates"]) // 2)
+    for name, a in (("cube", cube), ("plates", plates)):
+        np.save(tmp_path / f"{name}.npy", a)
+    assert main(["run", "--labels", str(tmp_path / "plates.npy"), "-o", str(tmp_path / "p"), "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "32,768 elements" in err[0]
+    assert not (tmp_path / "p").exists()
+    assert main(["run", "--labels", str(tmp_path / "cube.npy"), "-o", str(tmp_path / "c"), "-q"]) == 0
+
+
+def test_surface_faces_counts_exterior_and_interface_faces():
+    labels = np.zeros((4, 5, 6), np.uint8)
+    assert resources.surface_faces(labels) == 0
+    labels[1, 1, 1] = 1
+    assert resources.surface_faces(labels) == 6                        # one voxel: its six faces
+    labels[1, 1, 2] = 2
+    assert resources.surface_faces(labels) == 11                       # two voxels: 10 outside, 1 between
+    labels[1, 1, 3] = 2
+    assert resources.surface_faces(labels) == 15                       # the same label meets itself: no face
+    labels[:] = 3
+    assert resources.surface_faces(labels) == 2 * (20 + 24 + 30)       # the volume's edges
+    assert resources.surface_faces(np.ones((3, 4), np.uint8)) == 14    # 2D: the perimeter
+    rng = np.random.default_rng(5)
+    lab = rng.integers(0, 3, (6, 7, 8))
+    padded = np.pad(lab, 1)
+    brute = sum(int(np.count_nonzero(np.diff(padded, axis=a) != 0)) for a in range(3))
+    assert resources.surface_faces(lab) == brute
 
 
 def test_machine_memory_is_read():
@@ -55,7 +125,9 @@ def test_the_hint_names_a_factor_that_fits(tmp_path, monkeypatch):
     with pytest.raises(DicerError) as err:
         _check_memory("scan.nii.gz", default_config(), elements=512**3)
     assert "134,217,728 elements" in str(err.value) and "downsample.factor: 2" in str(err.value)
-    _check_memory("scan.nii.gz", default_config(), elements=51_200_000)  # the CT phantom's 38 % fits
+    _check_memory("scan.nii.gz", default_config(), elements=51_200_000, faces=1_445_136)  # the CT phantom's 38 % fits
+    with pytest.raises(DicerError, match="51,200,000 elements"):  # as many elements, thin walls: 35 % faces
+        _check_memory("scan.nii.gz", default_config(), elements=51_200_000, faces=18_000_000)
 
 
 def test_run_refuses_a_mesh_too_big_after_fix_and_writes_nothing(tmp_path, monkeypatch, capsys):

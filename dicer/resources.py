@@ -142,7 +142,7 @@ COEFFICIENTS = {
     "export_vtu": (66, 285.2, 0.4, 7.6),
     "quality": (234, 479.6, 2.0, 18.5),
     "export_inp_order2": (111, 1537.7, 1.6, 18.0),
-    "export_vtu_order2": (87, 1359.3, 1.6, 28.8),
+    "export_vtu_order2": (88, 1145.9, 0.6, 8.9),
 }
 #: smooth with the scan (smooth.surface_from_image): the image reader's libraries at import
 #: and the scan (float32, its smoothed crop) on top of the mesh, per million scan voxels;

@@ -597,3 +597,18 @@ def test_every_format_reruns_byte_identical(tmp_path, mesh, name):
     for folder in (a, b):
         export_mesh(mesh, folder / name, cfg(), source="scan.nii")
     assert (a / name).read_bytes() == (b / name).read_bytes()
+
+
+@settings(max_examples=60, deadline=None)
+@given(groups=st.lists(st.integers(0, 6), min_size=1, max_size=40),
+       values=st.lists(st.sampled_from([-1.0, -0.5, 0.0, 0.5, float("nan")]), min_size=40, max_size=40),
+       runs=st.booleans())
+def test_first_smallest_of_each_group_is_lexsorts_first(groups, values, runs):
+    """The arcs' choice of continuation (the most nearly opposite edge) equals the lexsort it
+    replaced: the smallest value per group, the first on ties, NaN last."""
+    group = np.array(sorted(groups) if runs else groups, np.int64)
+    value = np.array(values[:group.size])
+    got = quadratic._first_smallest(group, value)
+    first = np.lexsort((value, group))
+    want = first[np.r_[True, group[first][1:] != group[first][:-1]]]
+    assert np.array_equal(got, want)

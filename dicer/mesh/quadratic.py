@@ -260,6 +260,21 @@ def _sagitta(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
     return np.where(straight[:, None], 0.0, -(depth / np.where(straight, 1.0, width))[:, None] * across)
 
 
+def _first_smallest(group: np.ndarray, value: np.ndarray) -> np.ndarray:
+    """Per group, the index of its smallest value (the first on ties; NaN never chosen
+    unless the group holds nothing else): ``np.lexsort((value, group))``'s first of each
+    group, from a stable sort of the groups alone (``group`` is mostly sorted runs)."""
+    order = np.argsort(group, kind="stable")
+    ranked = group[order]
+    starts = np.flatnonzero(np.r_[True, ranked[1:] != ranked[:-1]])
+    least = np.fmin.reduceat(value[order], starts)
+    ends = np.r_[starts[1:], order.size]
+    hit = value[order] == np.repeat(least, ends - starts)
+    # the first hit of each group; a group of NaN only takes its first entry
+    first = np.minimum.reduceat(np.where(hit, np.arange(order.size), order.size), starts)
+    return order[np.where(first < ends, first, starts)]
+
+
 def arc_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_faces: np.ndarray) -> np.ndarray:
     """Mid-edge node positions with boundary edges bent onto the boundary's curve, on any mesh.
 
@@ -312,10 +327,11 @@ def arc_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_fac
             beyond.append(image)
             owner.append(on)
     beyond, owner = np.concatenate(beyond), np.concatenate(owner)
-    u, v = beyond - xs[owner], xd[owner] - xs[owner]
-    cosine = np.sum(u * v, axis=1) / np.maximum(np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1), 1e-300)
-    first = np.lexsort((cosine, owner))  # per directed edge, the most nearly opposite first
-    best = first[np.r_[True, owner[first][1:] != owner[first][:-1]]]
+    chord = xd - xs
+    length = np.linalg.norm(chord, axis=1)  # once per directed edge, not per continuation
+    u = beyond - xs[owner]
+    cosine = np.sum(u * chord[owner], axis=1) / np.maximum(np.linalg.norm(u, axis=1) * length[owner], 1e-300)
+    best = _first_smallest(owner, cosine)  # per directed edge, the most nearly opposite
     best = best[cosine[best] <= -np.cos(np.radians(_ARC_TURN))]
     offset = np.zeros((src.size, 3))
     found = np.zeros(src.size, bool)

@@ -160,7 +160,7 @@ ELEMENT_FRACTION = 0.5
 #: needs more per element than a solid ball. The smallest upper bound of `dicer run`'s
 #: measured peaks on thirteen scans (docs/robustness.md, "Memory": the shell phantom 64^3 to
 #: 512^3, the head, long-bone, sphere and block phantoms, the head CT at factors 1 and 2 and
-#: its labels), rounded up
+#: its labels), rounded up: `python workflow/scripts/fit_resources.py docs/run-memory.tsv`
 RUN_MESH = (260, 315, 2170)
 #: surface faces per element assumed where a caller knows only the elements: the most of the
 #: measured scans (the head CT at factor 2: 0.32)

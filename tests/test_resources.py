@@ -41,6 +41,12 @@ def test_the_formula_is_the_fit_of_the_committed_measurements():
     assert set(SIZE_OF) == set(COEFFICIENTS)
 
 
+def test_the_runs_memory_formula_is_the_fit_of_the_committed_runs():
+    from dicer.resources import RUN_MESH
+
+    assert _script("fit_resources").fit_run(str(REPO / "docs" / "run-memory.tsv")) == RUN_MESH
+
+
 def test_requests_cover_the_measured_peaks_within_twice():
     rows = _table()
     assert {r["stage"] for r in rows} == set(COEFFICIENTS)

@@ -11,6 +11,8 @@ end, which fail (and so must be turned into plain tests) once the targets are me
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -700,3 +702,33 @@ def test_lame_from_a_grey_value_image_at_todays_defaults(tmp_path, a, c3d8, c3d2
 def test_target_lame_from_a_grey_value_image(tmp_path):
     r = cases.lame(tmp_path, "quarter", [NO_MERGE], inner=7.0, outer=14.0, scan=True)
     assert abs(r[1]["error_mean"]) <= 0.03 and abs(r[2]["error_mean"]) <= 0.03
+
+
+def _preset_sets() -> list[str]:
+    """config/static-stress.yaml as --set items (its order aside: every case exports both)."""
+    import yaml
+
+    preset = yaml.safe_load((Path(__file__).parents[1] / "config" / "static-stress.yaml").read_text())
+    return [f"{section}.{key}={str(value).lower() if isinstance(value, bool) else value}"
+            for section, keys in preset.items() for key, value in keys.items() if key != "order"]
+
+
+def test_the_static_stress_preset_is_the_validated_settings_and_meets_the_lame_target(tmp_path):
+    """config/static-stress.yaml is today's defaults with the settings that meet every label-only
+    target (docs/validation.md §4): a layer, relaxed samples, curved mid-edge nodes, order 2. The
+    Lamé bore from labels at a = 7 within 3 %, C3D8 and C3D20 (measured +0.3 / -2.1 %)."""
+    from dicer.config import default_config, load_config
+
+    preset = load_config(Path(__file__).parents[1] / "config" / "static-stress.yaml")
+    defaults = default_config()
+    changed = {(s, k) for s in defaults if isinstance(defaults[s], dict)
+               for k in defaults[s] if preset[s].get(k) != defaults[s][k]}
+    assert changed == {("smooth", "pillow"), ("smooth", "label_samples"), ("export", "order"),
+                       ("export", "midside_nodes")}
+    assert sorted(_preset_sets()) == sorted([PILLOW, RELAXED, CURVED])
+    # the cases start from the smoothing before today's defaults (BASE_SMOOTHING): TODAY restores them
+    r = cases.lame(tmp_path, "quarter", TODAY + _preset_sets(), inner=7.0, outer=14.0)
+    assert r["inverted"] == 0 and r["min_sj"] >= 0.3
+    for order, measured in ((1, 0.0031), (2, -0.0210)):
+        assert r[order]["error_mean"] == pytest.approx(measured, abs=0.005)
+        assert abs(r[order]["error_mean"]) < 0.03

@@ -162,6 +162,13 @@ ELEMENT_FRACTION = 0.5
 #: 512^3, the head, long-bone, sphere and block phantoms, the head CT at factors 1 and 2 and
 #: its labels), rounded up: `python workflow/scripts/fit_resources.py docs/run-memory.tsv`
 RUN_MESH = (260, 315, 2170)
+#: with ``export.order`` 2, added to RUN_MESH: MB per million elements and per million surface
+#: faces for the quadratic mesh the exports hold (its mid-edge nodes placed and, curved, checked
+#: for folds), the smallest upper bound of the same scans run with curved C3D20 decks
+#: (docs/run-memory.tsv's order 2 rows: 1.00-1.54 times their peaks, the head CT's 3.86 GB as
+#: 3.86 GB). Until then the export_inp_order2 row's 1,538 MB per million elements stood here:
+#: 1.40 times the head CT's peak, 2.3 times the long-bone phantom's.
+RUN_MESH_ORDER2 = (655, 1110)
 #: surface faces per element assumed where a caller knows only the elements: the most of the
 #: measured scans (the head CT at factor 2: 0.32)
 FACE_FRACTION = 0.35
@@ -287,9 +294,8 @@ def run_peak_mb(voxels: int, factor=1, elements: int | None = None, order: int =
     its label volume (segment, downsample, fix), whose size the header gives. With the
     mesh's element count and its surface faces (known once the labels are fixed,
     :func:`surface_faces`): also the stages from the mesh on, by RUN_MESH (without
-    ``faces``, FACE_FRACTION of the elements); with ``order`` 2 the exports then hold the quadratic mesh besides what
-    the run holds, the export_inp_order2 row's growth on top of RUN_MESH's (measured on the
-    head CT's labels with curved mid-edge nodes: 4.07 to 4.35 GB at 2.28 M elements).
+    ``faces``, FACE_FRACTION of the elements); with ``order`` 2 the exports then hold the
+    quadratic mesh besides what the run holds, RUN_MESH_ORDER2 on top of RUN_MESH.
 
     Parameters
     ----------
@@ -314,7 +320,7 @@ def run_peak_mb(voxels: int, factor=1, elements: int | None = None, order: int =
     if elements is not None:
         base_mb, mb_per_m, mb_per_face_m = RUN_MESH
         if order == 2:
-            mb_per_m += COEFFICIENTS["export_inp_order2"][1]
+            mb_per_m, mb_per_face_m = mb_per_m + RUN_MESH_ORDER2[0], mb_per_face_m + RUN_MESH_ORDER2[1]
         faces = FACE_FRACTION * elements if faces is None else faces
         peaks.append(base_mb + mb_per_m * elements / 1e6 + mb_per_face_m * faces / 1e6)
     return int(max(peaks))

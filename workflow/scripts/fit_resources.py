@@ -36,27 +36,37 @@ def fit(path: str) -> dict[str, tuple[float, float, float, float]]:
     return table
 
 
-def fit_run(path: str) -> tuple[int, int, int]:
-    """RUN_MESH from whole `dicer run` peaks (docs/run-memory.tsv): the baseline, MB per
-    million elements and per million surface faces of the smallest upper bound (a linear
-    programme: the sum of estimate / peak least, no estimate below its peak), each rounded up
-    to 5 MB."""
+def _upper_bound(size, peak, offset) -> tuple[int, ...]:
+    """The coefficients c >= 0 of the least sum of (offset + size c) / peak with no
+    offset + size c below its peak (a linear programme), each rounded up to 5 MB."""
     import math
 
-    import numpy as np
     from scipy.optimize import linprog
+
+    best = linprog((size / peak[:, None]).sum(axis=0), A_ub=-size, b_ub=-(peak - offset),
+                   bounds=[(0, None)] * size.shape[1])
+    return tuple(5 * math.ceil(c / 5 - 1e-9) for c in best.x)
+
+
+def fit_run(path: str) -> tuple[tuple[int, int, int], tuple[int, int]]:
+    """RUN_MESH and RUN_MESH_ORDER2 from whole `dicer run` peaks (docs/run-memory.tsv): the
+    baseline, MB per million elements and per million surface faces of the smallest upper bound
+    of the order-1 runs; then what the order-2 runs need on top, per million elements and faces."""
+    import numpy as np
 
     with open(path, encoding="utf-8") as handle:
         rows = list(csv.DictReader((line for line in handle if not line.startswith("#")), delimiter="\t"))
-    size = np.array([[1.0, int(r["elements"]) / 1e6, int(r["faces"]) / 1e6] for r in rows])
-    peak = np.array([float(r["peak_mb"]) for r in rows])
-    best = linprog((size / peak[:, None]).sum(axis=0), A_ub=-size, b_ub=-peak, bounds=[(0, None)] * 3)
-    return tuple(5 * math.ceil(c / 5 - 1e-9) for c in best.x)
+    size = {o: np.array([[1.0, int(r["elements"]) / 1e6, int(r["faces"]) / 1e6] for r in rows if r["order"] == o])
+            for o in "12"}
+    peak = {o: np.array([float(r["peak_mb"]) for r in rows if r["order"] == o]) for o in "12"}
+    linear = _upper_bound(size["1"], peak["1"], 0.0)
+    return linear, _upper_bound(size["2"][:, 1:], peak["2"], size["2"] @ np.array(linear, float))
 
 
 if __name__ == "__main__":
     if Path(sys.argv[1]).name == "run-memory.tsv":
-        print(f"RUN_MESH = {fit_run(sys.argv[1])}")
+        linear, quadratic = fit_run(sys.argv[1])
+        print(f"RUN_MESH = {linear}\nRUN_MESH_ORDER2 = {quadratic}")
     else:
         for stage, (base_mb, mb_per_m, base_s, s_per_m) in fit(sys.argv[1]).items():
             print(f'    "{stage}": ({base_mb}, {mb_per_m}, {base_s}, {s_per_m}),')

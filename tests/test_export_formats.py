@@ -608,6 +608,7 @@ def test_first_smallest_of_each_group_is_lexsorts_first(groups, values, runs):
     replaced: the smallest value per group, the first on ties, NaN last."""
     group = np.array(sorted(groups) if runs else groups, np.int64)
     value = np.array(values[:group.size])
+    assert quadratic._first_smallest(group[:0], value[:0]).size == 0
     got = quadratic._first_smallest(group, value)
     first = np.lexsort((value, group))
     want = first[np.r_[True, group[first][1:] != group[first][:-1]]]

@@ -264,6 +264,8 @@ def _first_smallest(group: np.ndarray, value: np.ndarray) -> np.ndarray:
     """Per group, the index of its smallest value (the first on ties; NaN never chosen
     unless the group holds nothing else): ``np.lexsort((value, group))``'s first of each
     group, from a stable sort of the groups alone (``group`` is mostly sorted runs)."""
+    if group.size == 0:
+        return np.zeros(0, np.int64)
     order = np.argsort(group, kind="stable")
     ranked = group[order]
     starts = np.flatnonzero(np.r_[True, ranked[1:] != ranked[:-1]])

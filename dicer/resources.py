@@ -167,7 +167,7 @@ RUN_MESH = (260, 315, 2170)
 #: for folds), the smallest upper bound of the same scans run with curved C3D20 decks
 #: (docs/run-memory.tsv's order 2 rows: 1.00-1.54 times their peaks, the head CT's 3.86 GB as
 #: 3.86 GB). Until then the export_inp_order2 row's 1,538 MB per million elements stood here:
-#: 1.40 times the head CT's peak, 2.3 times the long-bone phantom's.
+#: 1.20 times the head CT's peak, 2.15 times the long-bone phantom's.
 RUN_MESH_ORDER2 = (655, 1110)
 #: surface faces per element assumed where a caller knows only the elements: the most of the
 #: measured scans (the head CT at factor 2: 0.32)

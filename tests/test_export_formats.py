@@ -510,8 +510,13 @@ def test_quadratic_vtu_reads_back_as_meshio_reads_it(tmp_path_factory, seed, dim
 
 
 @pytest.mark.parametrize("what", ["points", "cells", "scaled_jacobian"])
-def test_quadratic_vtu_check_finds_one_changed_value(tmp_path, mesh, what):
+def test_quadratic_vtu_check_finds_one_changed_value(tmp_path, monkeypatch, mesh, what):
+    """dicer's own read-back of an order-2 file (the only one past 20,000 elements) finds one
+    changed ulp or one swapped pair of nodes."""
+    import dicer.export.vtu as vtu
     from dicer.export.vtu import check_vtu
+
+    monkeypatch.setattr(vtu, "MESHIO_CHECK_CELLS", 0)  # as for a large model: no meshio read
 
     config = cfg(order=2)
     export_mesh(mesh, tmp_path / "q.vtu", config)

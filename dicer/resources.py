@@ -280,9 +280,9 @@ def surface_faces(labels: np.ndarray) -> int:
     labels = np.asarray(labels)
     count = 0
     for axis in range(labels.ndim):
-        a, b = np.moveaxis(labels, axis, 0)[:-1], np.moveaxis(labels, axis, 0)[1:]
-        ends = np.moveaxis(labels, axis, 0)[[0, -1]] if labels.shape[axis] else labels[:0]
-        count += int(np.count_nonzero(a != b)) + int(np.count_nonzero(ends))
+        v = np.moveaxis(labels, axis, 0)  # a view: faces between neighbours along v's first axis
+        ends = v[[0, -1]] if len(v) else v
+        count += int(np.count_nonzero(v[:-1] != v[1:])) + int(np.count_nonzero(ends))
     return count
 
 

@@ -446,9 +446,15 @@ def quadratic_nodes(mesh: Mesh, midside_nodes: str, neighbours=None
     across = None
     boundary = None
     if midside_nodes == "curved":
-        across = neighbour_materials(mesh) if neighbours is None else materials_across(mesh.material, neighbours())
+        across = _materials_across(mesh, neighbours)
         boundary = across != mesh.material[:, None].astype(across.dtype)
     return (*quadratic_mesh(mesh, boundary), across)
+
+
+def _materials_across(mesh: Mesh, neighbours=None) -> np.ndarray:
+    """(M, F): the material across each face of ``mesh`` (0 for none), from ``neighbours()``
+    where the caller found them."""
+    return neighbour_materials(mesh) if neighbours is None else materials_across(mesh.material, neighbours())
 
 
 def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "model",
@@ -524,9 +530,6 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
     lattice2 = None  # twice the lattice index (order 2: mid-edge nodes at half-integers)
     points = mesh.points
     nb_mat = None
-
-    def across() -> np.ndarray:
-        return neighbour_materials(mesh) if neighbours is None else materials_across(mesh.material, neighbours())
     if order == 2:
         if quadratic is None:
             points, cells, lattice2, nb_mat = quadratic_nodes(mesh, ex["midside_nodes"], neighbours)
@@ -546,7 +549,7 @@ def prepare_model(mesh: Mesh, config: dict, source=None, path: Path | str = "mod
         flip = mesh.direction is not None and mirrored(mesh.direction)
 
         def build(cells=model.cells, points=model.points, nb_mat=nb_mat):  # the lattice frame's
-            nb = across() if nb_mat is None else nb_mat
+            nb = _materials_across(mesh, neighbours) if nb_mat is None else nb_mat
             node_sets, exterior, cavities, interfaces = _surface_sets(model, kinds, nb, cells, points)
             if flip:
                 _mirror_faces([exterior, cavities, *interfaces.values()])

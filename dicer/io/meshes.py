@@ -259,19 +259,23 @@ def _extra_array(path: Path, kind: str, key: str, values, count: int) -> np.ndar
     return a
 
 
+def _cell_arrays(cells: np.ndarray, n_points: int, cell_type: str, wide=()) -> list[tuple[str, np.ndarray]]:
+    """The <Cells> arrays of one block of ``cell_type``: connectivity and offsets as Int32
+    unless named in ``wide`` or too large, types as UInt8."""
+    k, n = cells.shape[1], cells.shape[0]
+    offsets_type = np.int32 if k * n <= _INT32_MAX and "offsets" not in wide else np.int64
+    return [("connectivity", _index_array(cells, 0, n_points, "connectivity" in wide)),
+            ("offsets", np.arange(k, k * n + 1, k, dtype=offsets_type)),
+            ("types", np.full(n, _VTK_CELL_TYPES[cell_type], np.uint8))]
+
+
 def _vtu_arrays(mesh: Mesh, path: Path, wide=(), stage: bool = True) -> dict[str, list[tuple[str, np.ndarray]]]:
     """The arrays of the file by XML section, each C-contiguous and little-endian; the
     integer arrays named in ``wide`` as Int64 (see :func:`_index_array`). ``stage``: a
     stage file, its lattice and material as narrow as they fit; else (model.vtu) Int32."""
-    k = mesh.cells.shape[1]
-    offsets_type = np.int32 if k * mesh.n_cells <= _INT32_MAX and "offsets" not in wide else np.int64
     sections = {
         "Points": [("Points", np.asarray(mesh.points, np.float64))],
-        "Cells": [
-            ("connectivity", _index_array(mesh.cells, 0, mesh.n_points, "connectivity" in wide)),
-            ("offsets", np.arange(k, k * mesh.n_cells + 1, k, dtype=offsets_type)),
-            ("types", np.full(mesh.n_cells, _VTK_CELL_TYPES[mesh.cell_type], np.uint8)),
-        ],
+        "Cells": _cell_arrays(mesh.cells, mesh.n_points, mesh.cell_type, wide),
         # a lattice index lies between -1 (a node between lattice points) and the grid's size
         "PointData": [("lattice", _index_array(mesh.lattice, -1, int(np.max(mesh.grid_shape, initial=0)) + 1,
                                                "lattice" in wide, (np.int16, np.int32) if stage else (np.int32,)))]
@@ -729,16 +733,10 @@ def write_cells_vtu(path: str | os.PathLike, points: np.ndarray, cells: np.ndarr
     """
     path = Path(path)
     n_points, n_cells = len(points), len(cells)
-    k = cells.shape[1]
-    offsets_type = np.int32 if k * n_cells <= _INT32_MAX else np.int64
     arrays = [(key, _extra_array(path, "cell", key, v, n_cells)) for key, v in cell_data.items()]
     sections = {
         "Points": [("Points", np.ascontiguousarray(points, "<f8"))],
-        "Cells": [
-            ("connectivity", _index_array(cells, 0, n_points)),
-            ("offsets", np.arange(k, k * n_cells + 1, k, dtype=offsets_type)),
-            ("types", np.full(n_cells, _VTK_CELL_TYPES[cell_type], np.uint8)),
-        ],
+        "Cells": _cell_arrays(cells, n_points, cell_type),
         "CellData": [(key, a if isinstance(a, _Later) else np.ascontiguousarray(
             a, "<i4" if key == "material" else a.dtype.newbyteorder("<"))) for key, a in arrays],
     }

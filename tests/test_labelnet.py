@@ -87,3 +87,27 @@ def test_a_mirrored_edge_relaxes_as_the_whole():
     # the reflected labels reach 8 voxels, past the hole: the cut relaxes as the whole (measured
     # 8.5e-14 voxel; 0.36 with the edges held in their planes instead)
     assert np.abs(p_cut[key(p_cut)] - mine[key(mine)]).max() < 1e-9
+
+
+@pytest.mark.parametrize("placed", [False, True])
+def test_the_relaxation_gives_the_same_bytes_on_one_core_and_on_two(monkeypatch, placed):
+    """The relaxation's rows go to one block per core; each row sums in the same order in
+    any block, so a one-core SLURM task and a laptop get the same vertices (with a scan's
+    placements too)."""
+    import dicer.mesh.labelnet as labelnet
+
+    c = np.arange(-8, 8) + 0.5
+    x, y, z = np.meshgrid(c, c, c[:6], indexing="ij")
+    lab = ((np.hypot(x, y) >= 3.3) & (np.hypot(x, y) < 6.6)).astype(np.uint8)  # a tube
+    faces = sum(int(np.count_nonzero(np.diff(lab, axis=a))) for a in range(3))
+    moves = np.random.default_rng(0).uniform(-0.4, 0.4, faces) if placed else None
+    monkeypatch.setattr(labelnet, "_ROWS_PER_CORE", 10)
+    got = {}
+    for n in (1, 2):
+        monkeypatch.setattr(labelnet, "cores", lambda n=n: n)
+        got[n] = relaxed_staircase(lab, (1.0, 0.9, 1.3), (0.0, 0.0, 0.0), mirror=True, placed=moves)
+    assert got[1][0].shape[0] > 300
+    for one, two in zip(got[1], got[2]):
+        assert one.tobytes() == two.tobytes()
+    moved = np.abs(got[1][0] - np.round(got[1][0] / (1.0, 0.9, 1.3)) * (1.0, 0.9, 1.3)).max()
+    assert moved > 0.1  # the vertices left their corners: the iterations ran

@@ -29,14 +29,19 @@ quadrics fitted to the faces (docs/smoothing.md §3c).
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import scipy.sparse as sp
+
+from dicer.parallel import MAX_WORKERS, cores
 
 __all__ = ["faces_between", "relaxed_staircase", "staircase_vertices"]
 
 _ITERATIONS = 1000  # FISTA steps: within 0.024 voxel of 4000 steps' vertices on the Lamé tube at a = 7 (0.005 on the Kirsch plate)
 _LAM = 1e-4  # pull towards the corner, against the bending energy's flat directions
 _MIRROR_PAD = 8  # voxels of reflected labels beyond a mirror plane
+_ROWS_PER_CORE = 20000  # vertices for another core to pay its threads' hand-overs, 4 an iteration
 _PLACED = 0.1  # the pull of a face to where the scan placed it, against the fairing
 
 
@@ -132,17 +137,59 @@ def _fista(L: sp.csr_matrix, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
         At = A.T.tocsr()
         lip += 2.0 * float(W.max(initial=0.0)) * norm2(A)
     step = 1.0 / lip
+    # the rows in blocks, one per core: a row's sums are the same in any block, so the
+    # result is the same bytes on any number of cores
+    parts = min(cores(), MAX_WORKERS) if x0.shape[0] >= _ROWS_PER_CORE else 1
+    cut = np.linspace(0, x0.shape[0], parts + 1).astype(np.int64)
+    rows = [slice(int(cut[i]), int(cut[i + 1])) for i in range(parts)]
+    L_rows, Lt_rows = [L[r] for r in rows], [Lt[r] for r in rows]
+    if data is not None:
+        fcut = np.linspace(0, A.shape[0], parts + 1).astype(np.int64)
+        frows = [slice(int(fcut[i]), int(fcut[i + 1])) for i in range(parts)]
+        A_rows, At_rows = [A[r] for r in frows], [At[r] for r in rows]
     x = x0.copy()
     y = x0.copy()
+    nxt = np.empty_like(x0)
+    u, v, w = (np.empty_like(x0) for _ in range(3))
+    misfit = None if data is None else np.empty_like(Y)
     t = 1.0
-    for _ in range(_ITERATIONS):
-        grad = 2.0 * (Lt @ (Lt @ (L @ (L @ y)))) + (2.0 * _LAM) * (y - x0)
+
+    def product(m_rows, vec, out):
+        def one(i):
+            out[rows[i]] = m_rows[i] @ vec
+        return one
+
+    def descend(i, momentum):
+        r = rows[i]
+        grad = 2.0 * (Lt_rows[i] @ w) + (2.0 * _LAM) * (y[r] - x0[r])
         if data is not None:
-            grad += 2.0 * (At @ (W * (A @ y - Y)))
-        nxt = np.clip(y - step * grad, lo, hi)
-        t_next = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
-        y = nxt + ((t - 1.0) / t_next) * (nxt - x)
-        x, t = nxt, t_next
+            grad += 2.0 * (At_rows[i] @ misfit)
+        np.clip(y[r] - step * grad, lo[r], hi[r], out=nxt[r])
+        y[r] = nxt[r] + momentum * (nxt[r] - x[r])
+
+    def misfits(i):
+        f = frows[i]
+        misfit[f] = W[f] * (A_rows[i] @ y - Y[f])
+
+    with ThreadPoolExecutor(parts) as pool:
+        def each(fn):  # every block done before the next product reads them
+            if parts == 1:
+                fn(0)
+            else:
+                for _ in pool.map(fn, range(parts)):
+                    pass
+
+        for _ in range(_ITERATIONS):
+            each(product(L_rows, y, u))
+            if data is not None:
+                each(misfits)
+            each(product(L_rows, u, v))
+            each(product(Lt_rows, v, w))
+            t_next = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
+            momentum = (t - 1.0) / t_next
+            each(lambda i: descend(i, momentum))
+            x, nxt = nxt, x
+            t = t_next
     return x
 
 

@@ -150,7 +150,7 @@ def _fista(L: sp.csr_matrix, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     x = x0.copy()
     y = x0.copy()
     nxt = np.empty_like(x0)
-    u, v, w = (np.empty_like(x0) for _ in range(3))
+    u, v, w, pull = (np.empty_like(x0) for _ in range(4))
     misfit = None if data is None else np.empty_like(Y)
     t = 1.0
 
@@ -160,12 +160,22 @@ def _fista(L: sp.csr_matrix, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
         return one
 
     def descend(i, momentum):
+        # y - step grad, clipped, and nxt + momentum (nxt - x), in place (the same operations
+        # in the same order: a fresh array of this size costs its pages again each time)
         r = rows[i]
-        grad = 2.0 * (Lt_rows[i] @ w) + (2.0 * _LAM) * (y[r] - x0[r])
+        grad = Lt_rows[i] @ w
+        grad *= 2.0
+        np.subtract(y[r], x0[r], out=pull[r])
+        pull[r] *= 2.0 * _LAM
+        grad += pull[r]
         if data is not None:
             grad += 2.0 * (At_rows[i] @ misfit)
-        np.clip(y[r] - step * grad, lo[r], hi[r], out=nxt[r])
-        y[r] = nxt[r] + momentum * (nxt[r] - x[r])
+        grad *= step
+        np.subtract(y[r], grad, out=grad)
+        np.clip(grad, lo[r], hi[r], out=nxt[r])
+        np.subtract(nxt[r], x[r], out=grad)
+        grad *= momentum
+        np.add(nxt[r], grad, out=y[r])
 
     def misfits(i):
         f = frows[i]

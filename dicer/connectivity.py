@@ -33,6 +33,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from dicer.arrays import argwhere, nonzero
 from dicer.config import takes_settings
 from dicer.errors import DicerError
 from dicer.image import count_labels
@@ -87,7 +88,7 @@ def _mixed_blocks(w: np.ndarray, axes: tuple[int, ...]) -> tuple[np.ndarray, ...
         s_lo, s_hi = _sl(w.ndim, ax, _LO), _sl(w.ndim, ax, _HI)
         hi = np.maximum(hi[s_lo], hi[s_hi])
         lo = np.minimum(lo[s_lo], lo[s_hi])
-    return np.nonzero(hi != lo)
+    return nonzero(hi != lo)
 
 
 def _corners(origins: tuple[np.ndarray, ...], axes: tuple[int, ...]) -> list[tuple[np.ndarray, ...]]:
@@ -287,7 +288,7 @@ def _edge_voxels(lp: np.ndarray, sites: list[np.ndarray]):
     for axis in range(3):
         if not sites[axis].any():  # far cheaper than nonzero on an empty mask
             continue
-        idx = np.nonzero(sites[axis])
+        idx = nonzero(sites[axis])
         others = [ax for ax in range(3) if ax != axis]
         vox = []
         for code in range(4):
@@ -425,7 +426,7 @@ def _joined_to_seeds(w: np.ndarray, mask: np.ndarray, seeds: np.ndarray) -> np.n
         src = tuple(slice(max(0, -o), n - max(0, o)) for o, n in zip(off, w.shape))
         dst = tuple(slice(max(0, o), n - max(0, -o)) for o, n in zip(off, w.shape))
         linked = mask[src] & mask[dst] & (w[src] == w[dst])
-        where = np.nonzero(linked)
+        where = nonzero(linked)
         flat = sum((c + s.start) * st for c, s, st in zip(where, src, strides))
         first.append(np.searchsorted(nodes, flat))
         second.append(np.searchsorted(nodes, flat + int(np.dot(off, strides))))
@@ -448,7 +449,7 @@ def _fatten(w: np.ndarray, prop: np.ndarray, seeds: np.ndarray) -> None:
     block rises to the lowest higher class among its face neighbours.
     """
     thin = ~_fat(w)
-    pts = np.argwhere(_joined_to_seeds(w, thin, seeds))
+    pts = argwhere(_joined_to_seeds(w, thin, seeds))
     if not pts.size:
         return
     v = w[tuple(pts.T)]
@@ -502,7 +503,7 @@ def _sweep(w: np.ndarray, counts: dict, box: tuple) -> np.ndarray:
     if changed is None:
         return np.zeros((0, w.ndim), dtype=np.int64)
     start = np.array([b.start or 0 for b in box])
-    return (np.argwhere(changed) + start) // _TILE
+    return (argwhere(changed) + start) // _TILE
 
 
 def _tile_boxes(tiles: np.ndarray, shape: tuple) -> list[tuple]:
@@ -525,7 +526,7 @@ def _ab_to_fixed_point(w: np.ndarray, max_iterations: int, counts: dict,
     if changed is None:
         boxes = [tuple(slice(None) for _ in range(w.ndim))]
     else:
-        boxes = _tile_boxes(np.argwhere(changed) // _TILE, w.shape)
+        boxes = _tile_boxes(argwhere(changed) // _TILE, w.shape)
     for it in range(1, max_iterations + 1):
         tiles = [_sweep(w, counts, box) for box in boxes]
         tiles = np.concatenate(tiles) if tiles else np.zeros((0, w.ndim), dtype=np.int64)

@@ -13,6 +13,7 @@ import json
 import numpy as np
 
 from dicer import __version__
+from dicer.arrays import nonzero
 from dicer.config import takes_settings
 from dicer.image import count_labels
 from dicer.mesh.metrics import characteristic_length, element_metrics
@@ -196,7 +197,7 @@ def surface_euler(mesh: Mesh, neighbours: np.ndarray) -> dict[int, int]:
     material = np.asarray(mesh.material)
     nb = np.asarray(neighbours)
     other = np.where(nb >= 0, material[np.maximum(nb, 0)], -1)
-    elem, face = np.nonzero(other != material[:, None])
+    elem, face = nonzero(other != material[:, None])
     faces = cells[elem[:, None], HEX_FACES[face]].astype(np.int64)  # (F, 4)
     mats = material[elem]
     order = np.argsort(mats, kind="stable")

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dicer.arrays import nonzero
 from dicer.config import name_clash, stage_kwargs
 from dicer.errors import DicerError
 from dicer.export.provenance import provenance, sha256_in_background
@@ -269,7 +270,7 @@ def resolve_element_type(mesh: Mesh, order: int, element_type: str | None, path:
 
 def _face_nodes(cells: np.ndarray, table: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Elements (F,) and their nodes (F, c) of the faces marked in the (M, faces) bool array ``faces``."""
-    e_idx, f_idx = np.nonzero(faces)
+    e_idx, f_idx = nonzero(faces)
     return e_idx, cells[e_idx[:, None], table[f_idx]]
 
 
@@ -326,7 +327,7 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray, cells
         corners = cells[part]
         ext = bound = pair = None
         if "exterior" in kinds:
-            f_idx, e_idx = np.nonzero((nbm == 0).T)  # grouped by face number
+            f_idx, e_idx = nonzero((nbm == 0).T)  # grouped by face number
             ext = (e_idx + start, f_idx)
         if "materials" in kinds:  # faces of a material with another (or none) behind them
             e_idx, nodes = _face_nodes(corners, table, nbm != mat[:, None])
@@ -335,7 +336,7 @@ def _surface_sets(model: SolverModel, kinds: set[str], nb_mat: np.ndarray, cells
             later = nbm > mat[:, None]
             e_idx, nodes = _face_nodes(corners, table, later)
             pair = (mat[e_idx] << 16 | nbm[later].astype(np.int64),  # labels <= MAX_LABEL < 2**16
-                    nodes, np.column_stack(np.nonzero(later)) + [start, 1])  # (element, face number)
+                    nodes, np.column_stack(nonzero(later)) + [start, 1])  # (element, face number)
         return ext, bound, pair
 
     # pieces side by side (numpy leaves the interpreter lock), their faces joined in order

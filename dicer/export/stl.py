@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from dicer import __version__
+from dicer.arrays import nonzero
 from dicer.errors import DicerError
 from dicer.io.atomic import atomic_path
 from dicer.mesh.frame import mirrored, to_scanner
@@ -54,7 +55,7 @@ def material_triangles(mesh: Mesh, label: int, nb_mat: np.ndarray) -> np.ndarray
     """
     own = mesh.material == label
     faces = own[:, None] & (nb_mat != label)
-    e_idx, f_idx = np.nonzero(faces)
+    e_idx, f_idx = nonzero(faces)
     quads = mesh.cells[e_idx[:, None], HEX_FACES[f_idx]]  # (F, 4)
     tris = np.empty((quads.shape[0], 2, 3), np.int64)
     tris[:, 0] = quads[:, [0, 1, 2]]

@@ -16,6 +16,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import ListedColormap
 from matplotlib.figure import Figure
 
+from dicer.arrays import nonzero
 from dicer.errors import DicerError
 from dicer.image import Volume
 from dicer.io.atomic import atomic_path
@@ -286,7 +287,7 @@ def visible_faces(points: np.ndarray, cells: np.ndarray, neighbours: np.ndarray,
     light from over the viewer's right shoulder), sorted by depth, farthest first (the painter's order).
     """
     across = np.where(neighbours >= 0, keep[np.maximum(neighbours, 0)], False)
-    e_idx, f_idx = np.nonzero(keep[:, None] & ~across)
+    e_idx, f_idx = nonzero(keep[:, None] & ~across)
     quads = cells[e_idx[:, None], HEX_FACES[f_idx]]
     p = points[quads]  # (F, 4, 3)
     normal = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])

@@ -34,6 +34,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import scipy.sparse as sp
 
+from dicer.arrays import nonzero
 from dicer.parallel import MAX_WORKERS, cores
 
 __all__ = ["faces_between", "relaxed_staircase", "staircase_vertices"]
@@ -66,7 +67,7 @@ def faces_between(lab: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray, np
     for d in range(lab.ndim):
         lo = lab[(slice(None),) * d + (slice(None, -1),)]
         hi = lab[(slice(None),) * d + (slice(1, None),)]
-        idx = np.column_stack(np.nonzero(lo != hi)).astype(np.int64).reshape(-1, lab.ndim)
+        idx = np.column_stack(nonzero(lo != hi)).astype(np.int64).reshape(-1, lab.ndim)
         out.append((d, idx, lo[tuple(idx.T)].astype(np.int64), hi[tuple(idx.T)].astype(np.int64)))
     return out
 

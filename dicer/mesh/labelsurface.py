@@ -42,6 +42,7 @@ import numpy as np
 from scipy import special
 from scipy.spatial import cKDTree
 
+from dicer.arrays import nonzero
 from dicer.errors import DicerError
 from dicer.mesh.boundary import plane_bits
 from dicer.mesh.faces import neighbour_materials
@@ -100,7 +101,7 @@ def staircase_samples(mesh: Mesh, mirror_reach: float = 0.0) -> tuple[np.ndarray
     across = neighbour_materials(mesh)
     own = np.asarray(mesh.material)
     # a face between two materials once, from its lower material's element
-    elem, face = np.nonzero((across != own[:, None]) & ((across == 0) | (across > own[:, None])))
+    elem, face = nonzero((across != own[:, None]) & ((across == 0) | (across > own[:, None])))
     corner = np.asarray(mesh.cells)[elem[:, None], table[face]]  # (F, 4 | 2)
     # the image's edge is no surface between two kinds: a face whose corners share a bounding plane
     keep = np.bitwise_and.reduce(plane_bits(mesh, x0)[corner], axis=1) == 0

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dicer.arrays import nonzero
 from dicer.mesh.faces import face_neighbours
 from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
 
@@ -52,11 +53,11 @@ def surface_faces(cells: np.ndarray, dim: int, n_points: int, planes: np.ndarray
     table = HEX_FACES if dim == 3 else QUAD_EDGES
     if boundary is None:
         cells = np.asarray(cells, np.int64)
-        owner, slot = np.nonzero(face_neighbours(cells, dim, n_points) < 0)
+        owner, slot = nonzero(face_neighbours(cells, dim, n_points) < 0)
     else:
         nodes, elements = boundary
         cells = np.asarray(cells[elements], np.int64)
-        owner, slot = np.nonzero(face_neighbours(cells, dim, n_points) < 0)
+        owner, slot = nonzero(face_neighbours(cells, dim, n_points) < 0)
         mark = np.zeros(n_points, bool)
         mark[nodes] = True
         whole = mark[cells[owner[:, None], table[slot]]].all(axis=1)

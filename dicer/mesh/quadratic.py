@@ -22,6 +22,7 @@ import logging
 
 import numpy as np
 
+from dicer.arrays import nonzero
 from dicer.mesh.boundary import plane_bits
 from dicer.mesh.model import Mesh
 from dicer.mesh.topology import HEX_EDGE_AXES, HEX_EDGES, HEX_FACE_EDGES, QUAD_EDGE_AXES, QUAD_EDGES, QUAD_SIDE_EDGES
@@ -105,7 +106,7 @@ def edges_by_lattice(mesh: Mesh, cells: np.ndarray) -> tuple[np.ndarray, np.ndar
         ends = cells[c:c + _CHUNK][:, table]
         i = index[c:c + _CHUNK]
         held = (edges[i, 0] != ends.min(axis=2)) | (edges[i, 1] != ends.max(axis=2)) | (i == count)
-        rows, cols = np.nonzero(held)
+        rows, cols = nonzero(held)
         rest.append((rows + c) * slots + cols)
     rest = np.concatenate(rest)
     edges = [edges[:count]]

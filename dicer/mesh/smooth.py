@@ -53,6 +53,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from dicer.arrays import nonzero
 from dicer.config import places_faces_by_scan, section_defaults, takes_settings
 from dicer.errors import DicerError
 from dicer.mesh.boundary import (NODE_CLASSES, BoundaryGraph, boundary_graph, bounding_planes, class_counts,
@@ -1251,7 +1252,7 @@ def _back_off_pull(st: _Smoothing) -> bool:
     pulled = bpos[failing[(corner < floor) | (corner <= 0)]]
     if st.short is not None:  # and both ends of every edge the pull shrank too far
         rows, short = st.short
-        e, k = np.nonzero(short)
+        e, k = nonzero(short)
         ends = st.mesh.cells[st.touched[rows[e]]][:, (HEX_EDGES if short.shape[1] == 12 else QUAD_EDGES)]
         ends = ends[np.arange(e.size), k]
         pulled = np.concatenate([pulled, bpos[ends.ravel()]])

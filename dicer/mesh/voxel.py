@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dicer.arrays import nonzero
 from dicer.config import takes_settings
 from dicer.errors import DicerError
 from dicer.mesh.frame import check_direction
@@ -108,7 +109,7 @@ def _hexahedra(solid: np.ndarray, corners: np.ndarray, spacing3: np.ndarray, ori
     coordinate = [origin3[axis] + spacing3[axis] * np.arange(node_shape[axis]) for axis in range(3)]
     for x0 in range(0, node_shape[0], step):
         x1 = min(node_shape[0], x0 + step)
-        index = np.nonzero(used[x0:x1])
+        index = nonzero(used[x0:x1])
         rows = slice(plane_start[x0], plane_start[x1])
         for axis in range(3):
             np.add(index[axis], x0 if axis == 0 else 0, out=lattice[rows, axis])

@@ -1,0 +1,32 @@
+"""dicer.arrays: numpy's nonzero and argwhere, by the flat indices."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import array_shapes, arrays
+
+from dicer.arrays import argwhere, nonzero
+
+
+@settings(max_examples=200, deadline=None)
+@given(arrays(st.sampled_from([np.bool_, np.int8, np.float64]), array_shapes(min_dims=0, max_dims=4, min_side=0, max_side=6)),
+       st.booleans())
+def test_the_same_arrays_as_numpys(mask, transposed):
+    if transposed:
+        mask = mask.T  # a view out of C order: its logical order counts
+    assert np.array_equal(argwhere(mask), np.argwhere(mask)) and argwhere(mask).dtype == np.argwhere(mask).dtype
+    if mask.ndim:
+        ours, theirs = nonzero(mask), np.nonzero(mask)
+        assert len(ours) == len(theirs)
+        for a, b in zip(ours, theirs):
+            assert a.dtype == b.dtype and np.array_equal(a, b)
+
+
+def test_a_large_sparse_mask():
+    mask = np.zeros((60, 50, 40), bool)
+    mask.ravel()[np.random.default_rng(0).choice(mask.size, 300, replace=False)] = True
+    for a, b in zip(nonzero(mask), np.nonzero(mask)):
+        assert np.array_equal(a, b)
+    assert argwhere(mask).shape == (300, 3)

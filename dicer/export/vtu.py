@@ -90,7 +90,7 @@ def check_vtu(path: str | Path, model) -> None:
 
 
 def _check_raw(parts, model) -> None:
-    """The arrays dicer's reader got from an order-1 file against the model, exactly."""
+    """The arrays dicer's reader got from the file (order 1 or 2) against the model, exactly."""
     from dicer.mesh.metrics import QUALITY_DATA
 
     cell_type, points, cells, point_data, cell_data, fields = parts

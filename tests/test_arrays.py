@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import array_shapes, arrays
 
-from dicer.arrays import argwhere, nonzero
+from dicer.arrays import argwhere, nonzero, norm
 
 
 @settings(max_examples=200, deadline=None)
@@ -30,3 +30,24 @@ def test_a_large_sparse_mask():
     for a, b in zip(nonzero(mask), np.nonzero(mask)):
         assert np.array_equal(a, b)
     assert argwhere(mask).shape == (300, 3)
+
+
+@settings(max_examples=300, deadline=None)
+@given(arrays(st.sampled_from([np.float32, np.float64]), array_shapes(min_dims=1, max_dims=3, min_side=1, max_side=9),
+              elements=st.floats(allow_nan=True, allow_infinity=True, width=32)),
+       st.integers(-3, 2), st.booleans(), st.booleans())
+def test_norm_gives_numpys_bytes(v, axis, keepdims, transposed):
+    if transposed:
+        v = v.T
+    axis = axis % v.ndim
+    ours, theirs = norm(v, axis=axis, keepdims=keepdims), np.linalg.norm(v, axis=axis, keepdims=keepdims)
+    assert ours.dtype == theirs.dtype and ours.shape == theirs.shape
+    assert np.array_equal(ours, theirs, equal_nan=True)
+
+
+def test_norm_of_vectors_of_mixed_magnitudes_on_a_large_array():
+    rng = np.random.default_rng(3)
+    v = rng.normal(size=(5000, 4, 3)) * 10.0 ** rng.uniform(-200, 200, size=(5000, 4, 1))
+    for axis in (0, 1, 2, -1):
+        assert np.array_equal(norm(v, axis=axis), np.linalg.norm(v, axis=axis))
+    assert np.array_equal(norm(np.arange(12).reshape(4, 3), axis=1), np.linalg.norm(np.arange(12).reshape(4, 3), axis=1))

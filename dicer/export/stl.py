@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from dicer import __version__
-from dicer.arrays import nonzero
+from dicer.arrays import nonzero, norm
 from dicer.errors import DicerError
 from dicer.io.atomic import atomic_path
 from dicer.mesh.frame import mirrored, to_scanner
@@ -129,7 +129,7 @@ def write_stl(path: Path, points: np.ndarray, tris: np.ndarray, name: str) -> No
     """
     corners = points[tris]  # (T, 3, 3) float64
     normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    length = np.linalg.norm(normal, axis=1, keepdims=True)
+    length = norm(normal, axis=1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         normal = np.where(length > 0, normal / length, 0.0)
     records = np.zeros(tris.shape[0], _RECORD)

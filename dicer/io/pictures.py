@@ -16,7 +16,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import ListedColormap
 from matplotlib.figure import Figure
 
-from dicer.arrays import nonzero
+from dicer.arrays import nonzero, norm
 from dicer.errors import DicerError
 from dicer.image import Volume
 from dicer.io.atomic import atomic_path
@@ -293,13 +293,13 @@ def visible_faces(points: np.ndarray, cells: np.ndarray, neighbours: np.ndarray,
     normal = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
     if flip:
         normal = -normal
-    length = np.linalg.norm(normal, axis=1)
+    length = norm(normal, axis=1)
     facing = normal @ towards
     front = facing > 1e-12 * np.maximum(length, 1e-300)
     e_idx, quads, p = e_idx[front], quads[front], p[front]
     _, right, up = _camera()
     light = towards + 0.6 * right + 0.4 * up
-    lambert = (normal[front] @ (light / np.linalg.norm(light))) / length[front]
+    lambert = (normal[front] @ (light / norm(light))) / length[front]
     depth = p.mean(axis=1) @ towards
     order = np.argsort(depth, kind="stable")
     return e_idx[order], quads[order], lambert[order]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dicer.arrays import norm
 from dicer.mesh.boxes import box_extents, linear_index
 from dicer.mesh.model import Mesh, pieces
 from dicer.parallel import ordered_map
@@ -371,10 +372,10 @@ def cavity_faces(points: np.ndarray, cells: np.ndarray, dim: int, elements: np.n
         # rays along x from it leave its plane and miss the lattice lines of the walls
         if dim == 3:
             facing = np.cross(xyz[:, 2] - xyz[:, 0], xyz[:, 3] - xyz[:, 1])
-            facing = np.abs(facing[:, 0]) / np.maximum(np.linalg.norm(facing, axis=1), 1e-300)
+            facing = np.abs(facing[:, 0]) / np.maximum(norm(facing, axis=1), 1e-300)
         else:
             step = xyz[:, 1, :2] - xyz[:, 0, :2]
-            facing = np.abs(step[:, 1]) / np.maximum(np.linalg.norm(step, axis=1), 1e-300)
+            facing = np.abs(step[:, 1]) / np.maximum(norm(step, axis=1), 1e-300)
         by = np.lexsort((-facing, surface))
         chosen = by[np.searchsorted(surface[by], bodies)]
         # (in a lattice face's two axes: fractions 0.68 / 0.46 / 0.32 / 0.54, neither equal

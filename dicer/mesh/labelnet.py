@@ -34,7 +34,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import scipy.sparse as sp
 
-from dicer.arrays import nonzero
+from dicer.arrays import nonzero, norm
 from dicer.parallel import MAX_WORKERS, cores
 
 __all__ = ["faces_between", "relaxed_staircase", "staircase_vertices"]
@@ -322,7 +322,7 @@ def relaxed_staircase(lab: np.ndarray, spacing, origin, mirror: bool = False, pl
     at = inv.ravel()  # each face's area shared among its k vertices
     summed = np.stack([np.bincount(at, weights=np.repeat(area[:, c] / k, k), minlength=n) for c in range(dim)],
                       axis=1)
-    size = np.linalg.norm(summed, axis=1)
+    size = norm(summed, axis=1)
     normals = summed / np.maximum(size, 1e-300)[:, None]
     kinds = np.stack([vpair // top, vpair % top], axis=1)
     x -= pad

@@ -42,7 +42,7 @@ import numpy as np
 from scipy import special
 from scipy.spatial import cKDTree
 
-from dicer.arrays import nonzero
+from dicer.arrays import nonzero, norm
 from dicer.errors import DicerError
 from dicer.mesh.boundary import plane_bits
 from dicer.mesh.faces import neighbour_materials
@@ -111,12 +111,12 @@ def staircase_samples(mesh: Mesh, mirror_reach: float = 0.0) -> tuple[np.ndarray
     p = x0[corner][..., :dim]  # (F, 4 | 2, dim)
     if dim == 3:
         nrm = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
-        area = 0.5 * np.linalg.norm(nrm, axis=1)
+        area = 0.5 * norm(nrm, axis=1)
     else:
         e = p[:, 1] - p[:, 0]
         nrm = np.stack([e[:, 1], -e[:, 0]], axis=1)
-        area = np.linalg.norm(nrm, axis=1)
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1), 1e-30)[:, None]
+        area = norm(nrm, axis=1)
+    nrm /= np.maximum(norm(nrm, axis=1), 1e-30)[:, None]
     inward = x0[np.asarray(mesh.cells)[elem]][..., :dim].mean(axis=1) - p.mean(axis=1)  # into the face's element
     towards_own = np.sign(np.einsum("ij,ij->i", nrm, inward))
     nrm *= (np.where(a == kinds[:, 1], 1.0, -1.0) * towards_own)[:, None]
@@ -277,7 +277,7 @@ def edge_variance(points: np.ndarray, kinds: np.ndarray, scan) -> dict:
         h = np.zeros(dim)
         h[d] = 0.25 * spacing[d]
         grad[:, d] = (scan.sample(points + h) - scan.sample(points - h)).astype(float) / (2 * h[d])
-    slope = np.linalg.norm(grad, axis=1)
+    slope = norm(grad, axis=1)
     up = grad / np.maximum(slope, 1e-30)[:, None]
     far = _FAR * float(np.max(spacing))
     low = scan.sample(points - far * up).astype(float)
@@ -402,7 +402,7 @@ def _cosines(near: np.ndarray, n: np.ndarray, dim: int) -> np.ndarray:
 
 def _unit(v: np.ndarray) -> np.ndarray:
     """Rows of ``v`` scaled to length 1 (a zero row stays zero)."""
-    length = np.linalg.norm(v, axis=1)
+    length = norm(v, axis=1)
     return v / np.where(length > 0, length, 1.0)[:, None]
 
 
@@ -673,7 +673,7 @@ class LabelSurface:
         q = np.where(ok[lost], dist[lost] * dist[lost] / (r * r), 1.0)
         w = np.where(_cosines(near[lost], n[lost], dim) > -_FACING, (1.0 - np.minimum(q, 1.0)) ** 2 * weights[lost], 0.0)
         mean = np.stack([np.einsum("ij,ij->i", w, near[lost, :, dim + a]) for a in range(dim)], axis=1) * free[lost]
-        some = np.linalg.norm(mean, axis=1) > 1e-9 * w.sum(axis=1)  # relative: the weights are areas, mm^2
+        some = norm(mean, axis=1) > 1e-9 * w.sum(axis=1)  # relative: the weights are areas, mm^2
         lost, mean = lost[some], _unit(mean[some])
         h2, f2, _, _ = self._fit_in_frame(p[lost], mean, near[lost], ok[lost], weights[lost], blur[lost])
         take = lost[f2]
@@ -700,7 +700,7 @@ class LabelSurface:
         else:
             helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
             t1 = np.cross(n, helper)
-            t1 /= np.linalg.norm(t1, axis=1)[:, None]
+            t1 /= norm(t1, axis=1)[:, None]
             t2 = np.cross(n, t1)
             u = _along(rel, t1)
             v = _along(rel, t2)

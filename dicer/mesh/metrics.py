@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from dicer.arrays import norm
 from dicer.mesh.boxes import box_flags, linear_index
 from dicer.mesh.model import pieces
 from dicer.parallel import ordered_map
@@ -18,10 +19,10 @@ from dicer.mesh.topology import (HEX_AXIS_CORNERS, HEX_CORNER_NEIGHBOURS, HEX_ED
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
-    norm = np.linalg.norm(v, axis=-1, keepdims=True)
+    length = norm(v, axis=-1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
-        u = v / norm
-    return np.where(norm > 0, u, 0.0)
+        u = v / length
+    return np.where(length > 0, u, 0.0)
 
 
 def corner_scaled_jacobians(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
@@ -336,7 +337,7 @@ def characteristic_length(points: np.ndarray, cells: np.ndarray, chunk: int = _B
         return _per_block(_hex_length, point_columns(points), cells.T, chunk, None)
     area = np.abs(element_volumes(points, cells))
     corners = points[cells]  # (M, 4, 3): a 2D mesh's quads
-    longest = np.linalg.norm(np.roll(corners, -1, axis=1) - corners, axis=2).max(axis=1)
+    longest = norm(np.roll(corners, -1, axis=1) - corners, axis=2).max(axis=1)
     return np.divide(area, longest, out=np.zeros_like(area), where=longest > 0)
 
 

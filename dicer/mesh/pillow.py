@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dicer.arrays import nonzero
+from dicer.arrays import nonzero, norm
 from dicer.mesh.faces import face_neighbours
 from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
 
@@ -113,10 +113,10 @@ def outward_normals(points: np.ndarray, faces: np.ndarray, nodes: np.ndarray, he
 
     def normalised(v):
         v[held] = 0.0
-        length = np.linalg.norm(v, axis=1, keepdims=True)
+        length = norm(v, axis=1, keepdims=True)
         return np.divide(v, length, out=np.zeros_like(v), where=length > 0)
 
-    size = np.linalg.norm(area, axis=1)
+    size = norm(area, axis=1)
     unit = area / np.maximum(size, 1e-300)[:, None]
     normal = normalised(at_nodes(np.repeat(size[:, None], faces.shape[1], axis=1)))
     for _ in range(_DIRECTION_ROUNDS):

@@ -22,7 +22,7 @@ import logging
 
 import numpy as np
 
-from dicer.arrays import nonzero
+from dicer.arrays import nonzero, norm
 from dicer.mesh.boundary import plane_bits
 from dicer.mesh.model import Mesh
 from dicer.mesh.topology import HEX_EDGE_AXES, HEX_EDGES, HEX_FACE_EDGES, QUAD_EDGE_AXES, QUAD_EDGES, QUAD_SIDE_EDGES
@@ -246,15 +246,15 @@ def _sagitta(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
     """(K, 3): from the midpoint of chord a-b to the middle of its arc on the circle through
     p, a and b (p beyond a or b); zero where the three are in a line. Rows are points, mm."""
     chord = b - a
-    length = np.linalg.norm(chord, axis=1)
+    length = norm(chord, axis=1)
     along = chord / np.maximum(length, 1e-300)[:, None]
     w = p - 0.5 * (a + b)
     across = w - np.sum(w * along, axis=1)[:, None] * along  # the circle's centre side of the chord
-    width = np.linalg.norm(across, axis=1)
+    width = norm(across, axis=1)
     # curvature 1/R = 2 sin(angle at a) / |p - b|, the angle between p - a and the chord
     u = p - a
-    sine = np.linalg.norm(np.cross(u, chord), axis=1) / np.maximum(np.linalg.norm(u, axis=1) * length, 1e-300)
-    k = 2.0 * sine / np.maximum(np.linalg.norm(p - b, axis=1), 1e-300)
+    sine = norm(np.cross(u, chord), axis=1) / np.maximum(norm(u, axis=1) * length, 1e-300)
+    k = 2.0 * sine / np.maximum(norm(p - b, axis=1), 1e-300)
     half = np.minimum(0.5 * k * length, 1.0)
     depth = 0.5 * half * length / (1.0 + np.sqrt(1.0 - half * half))
     straight = width <= 1e-12 * np.maximum(length, 1e-300)
@@ -331,9 +331,9 @@ def arc_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_fac
             owner.append(on)
     beyond, owner = np.concatenate(beyond), np.concatenate(owner)
     chord = xd - xs
-    length = np.linalg.norm(chord, axis=1)  # once per directed edge, not per continuation
+    length = norm(chord, axis=1)  # once per directed edge, not per continuation
     u = beyond - xs[owner]
-    cosine = np.sum(u * chord[owner], axis=1) / np.maximum(np.linalg.norm(u, axis=1) * length[owner], 1e-300)
+    cosine = np.sum(u * chord[owner], axis=1) / np.maximum(norm(u, axis=1) * length[owner], 1e-300)
     best = _first_smallest(owner, cosine)  # per directed edge, the most nearly opposite
     best = best[cosine[best] <= -np.cos(np.radians(_ARC_TURN))]
     offset = np.zeros((src.size, 3))

@@ -53,7 +53,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from dicer.arrays import nonzero
+from dicer.arrays import nonzero, norm
 from dicer.config import places_faces_by_scan, section_defaults, takes_settings
 from dicer.errors import DicerError
 from dicer.mesh.boundary import (NODE_CLASSES, BoundaryGraph, boundary_graph, bounding_planes, class_counts,
@@ -1639,7 +1639,7 @@ def _add_pillow(st: _Smoothing) -> None:
     normal = outward_normals(st.x, faces, nodes, held)
     spacing = np.asarray(mesh.spacing, float)
     # mm: voxels along the normal, the same everywhere in isotropic voxels
-    voxel = np.linalg.norm(normal * spacing, axis=1)  # mm: a voxel along the normal
+    voxel = norm(normal * spacing, axis=1)  # mm: a voxel along the normal
     move = -(float(s["pillow_thickness"]) * voxel)[:, None] * normal
     # the share of its move onto st.surface a copy makes (without the scan: no move)
     share = np.zeros(nodes.size) if st.surface is None else np.ones(nodes.size)
@@ -1880,8 +1880,8 @@ def _report(st: _Smoothing, t0: float, labels=None) -> dict:
     mesh, g, s, sj = st.mesh, st.g, st.s, st.sj
     change, total, base = _volume_change(st)
     volume_change = {str(kind): float(change[kind] / base[kind]) for kind in np.flatnonzero(base)}
-    bdisp = np.linalg.norm(st.xb - st.xb0, axis=1)
-    idisp = np.linalg.norm(st.x_band - st.x_band0, axis=1) if st.band_nodes.size else np.zeros(0)
+    bdisp = norm(st.xb - st.xb0, axis=1)
+    idisp = norm(st.x_band - st.x_band0, axis=1) if st.band_nodes.size else np.zeros(0)
     max_disp = max(float(bdisp.max()) if bdisp.size else 0.0, float(idisp.max()) if idisp.size else 0.0)
     return {
         "nodes": mesh.n_points,

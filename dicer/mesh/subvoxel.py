@@ -43,6 +43,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy import ndimage, special
 
+from dicer.arrays import norm
 from dicer.errors import DicerError
 from dicer.image import Volume
 from dicer.mesh.model import Mesh, pieces
@@ -317,11 +318,11 @@ class NodeSides:
         """
         centre = x[self.cells].mean(axis=1)
         v = centre[self.elem] - xb[self.rows]
-        v /= np.maximum(np.linalg.norm(v, axis=1), 1e-30)[:, None]
+        v /= np.maximum(norm(v, axis=1), 1e-30)[:, None]
         v *= self.sign[:, None]
         nrm = np.stack([np.bincount(self.rows, weights=v[:, d], minlength=self.b) for d in range(3)], axis=1)
         nrm[self.fixed] = 0.0  # plane nodes stay in their planes (and z in 2D)
-        length = np.linalg.norm(nrm, axis=1)
+        length = norm(nrm, axis=1)
         # a sum of unit vectors that nearly cancels has no direction; at a mirror plane the sum
         # is the mirrored model's, whose images of the node's elements add alike (2^k of them)
         whole = length * (1 << self.mirrored[:, :self.dim].sum(axis=1))
@@ -337,7 +338,7 @@ def _corner_steps(y: np.ndarray, p: np.ndarray, ends: np.ndarray, active: np.nda
     """The corners ``active`` below ``target`` and their nodes' steps (:func:`lift`): (R,) corner
     numbers and (R, 1 + dim, 3) steps, mm."""
     e = y[ends[active]] - y[p[active]][:, None, :]  # (A, dim, 3)
-    length = np.linalg.norm(e, axis=2)
+    length = norm(e, axis=2)
     if dim == 3:
         a, b, c = e[:, 0], e[:, 1], e[:, 2]
         bc = np.cross(b, c)
@@ -467,8 +468,8 @@ def pairs_not_helped(sides: NodeSides, moved: np.ndarray, surface: np.ndarray, l
         return np.zeros(sides.b, bool), []
     ids, rank = np.unique(sides.pair[moved], return_inverse=True)
     w = 1.0 if share is None else share[moved]
-    lifted_off = np.bincount(rank, weights=w * np.linalg.norm(lifted[moved] - surface[moved], axis=1))
-    start_off = np.bincount(rank, weights=w * np.linalg.norm(start[moved] - surface[moved], axis=1))
+    lifted_off = np.bincount(rank, weights=w * norm(lifted[moved] - surface[moved], axis=1))
+    start_off = np.bincount(rank, weights=w * norm(start[moved] - surface[moved], axis=1))
     worse = ids[lifted_off >= start_off]
     return np.isin(sides.pair, worse), [f"{int(p) // sides.top}|{int(p) % sides.top}" for p in worse]
 
@@ -563,7 +564,7 @@ def project(surface: ImageSurface, sides: NodeSides, adj: sp.csr_matrix, degree:
                 "edge_variance_mm2": {k: round(v, 6) for k, v in sorted(widths.items())}}
     # the move from the smoothed position is limited to the voxel's extent along the normal
     d = y - xb
-    length = np.linalg.norm(d, axis=1)
+    length = norm(d, axis=1)
     limit = (np.abs(nrm[:, :dim]) * surface.mesh_spacing).sum(axis=1)
     scale = np.where(length > limit, limit / np.maximum(length, 1e-30), 1.0)
     y = xb + d * scale[:, None]

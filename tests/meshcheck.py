@@ -22,3 +22,25 @@ def pinches(mesh):
         ends = mesh.cells[e[:, None], QUAD_EDGES[s]]
         count += int(np.count_nonzero(np.bincount(ends.ravel()) > 2))
     return count
+
+
+def meshio_vtu_with_grid(mesh, path, meshio_mesh=None):
+    """``mesh`` written by meshio's VTU writer (zlib), as dicer wrote VTU files until its own
+    writer, with the grid's field data put in after <UnstructuredGrid> (meshio's writer drops
+    field data; its reader keeps it): the files of earlier dicer versions. ``meshio_mesh``: the
+    meshio mesh to write instead of ``to_meshio(mesh)`` (changed data)."""
+    import shutil
+
+    import meshio
+
+    from dicer.io.meshes import _field_data_xml, to_meshio
+
+    raw = path.with_suffix(".raw.vtu")
+    meshio.write(raw, to_meshio(mesh) if meshio_mesh is None else meshio_mesh, binary=True, compression="zlib")
+    with open(raw, "rb") as src, open(path, "wb") as dst:
+        head = src.read(4096)
+        tag = b"<UnstructuredGrid>\n"
+        at = head.index(tag) + len(tag)
+        dst.write(head[:at] + _field_data_xml(mesh).encode() + head[at:])
+        shutil.copyfileobj(src, dst, 1 << 22)
+    return raw

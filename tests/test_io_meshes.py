@@ -6,6 +6,7 @@ from dicer.errors import DicerError
 from dicer.io.meshes import read_mesh, write_mesh
 from dicer.mesh.metrics import edge_ratio, scaled_jacobian
 from dicer.mesh.voxel import voxel_mesh
+from meshcheck import meshio_vtu_with_grid
 
 
 @pytest.fixture
@@ -203,10 +204,8 @@ def test_data_vtu_cannot_hold_is_refused(tmp_path, mesh):
 def test_meshio_written_vtu_is_still_read(tmp_path, mesh):
     # files of earlier dicer versions: meshio's VTU (zlib) with the grid's field data put in
     from dicer.errors import DicerError
-    from dicer.io.meshes import _field_data_xml, splice_field_data, to_meshio
-    raw, path = tmp_path / "raw.vtu", tmp_path / "old.vtu"
-    meshio.write(raw, to_meshio(mesh), binary=True, compression="zlib")
-    splice_field_data(raw, path, _field_data_xml(mesh).encode())
+    path = tmp_path / "old.vtu"
+    raw = meshio_vtu_with_grid(mesh, path)
     back = read_mesh(path)
     assert np.array_equal(back.cells, mesh.cells) and np.array_equal(back.lattice, mesh.lattice)
     assert np.array_equal(back.spacing, mesh.spacing) and np.array_equal(back.grid_shape, mesh.grid_shape)

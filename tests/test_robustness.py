@@ -20,6 +20,7 @@ import pytest
 from dicer.cli import main
 
 import hostile  # the damaged-file edits of the hostile re-run (tests/hostile.py)
+from meshcheck import meshio_vtu_with_grid
 
 pydicom = pytest.importorskip("pydicom")
 
@@ -321,9 +322,7 @@ def _resaved_vtu(src: Path, path: Path) -> Path:
 
 def _material_vtu(path: Path, value) -> Path:
     """A meshio VTU of a dicer mesh's data with its grid, element 1's material ``value``."""
-    import meshio
-
-    from dicer.io.meshes import _field_data_xml, splice_field_data, to_meshio
+    from dicer.io.meshes import to_meshio
     from dicer.mesh.voxel import voxel_mesh
 
     mesh = voxel_mesh(np.ones((2, 2, 2), np.uint8))
@@ -331,10 +330,7 @@ def _material_vtu(path: Path, value) -> Path:
     material = m.cell_data["material"][0].astype(np.float64)
     material[0] = value
     m.cell_data["material"] = [material]
-    raw = path.with_suffix(".raw.vtu")
-    meshio.write(raw, m)
-    splice_field_data(raw, path, _field_data_xml(mesh).encode())
-    raw.unlink()
+    meshio_vtu_with_grid(mesh, path, m).unlink()
     return path
 
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 import contextlib
 import io
 import os
-import shutil
 import zlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -128,17 +127,6 @@ def _field_data_xml(mesh: Mesh) -> str:
         for n, t, v in arrays
     )
     return f"<FieldData>\n{rows}{names_xml(mesh.names, mesh.dim)}</FieldData>\n"
-
-
-def splice_field_data(raw: Path, path: Path, block: bytes) -> None:
-    """Copy the VTU ``raw`` to ``path`` with ``block`` (a <FieldData> element) put in after
-    <UnstructuredGrid>: meshio's VTU writer drops field data (its reader keeps it)."""
-    with open(raw, "rb") as src, open(path, "wb") as dst:
-        head = src.read(4096)
-        tag = b"<UnstructuredGrid>\n"
-        at = head.index(tag) + len(tag)
-        dst.write(head[:at] + block + head[at:])
-        shutil.copyfileobj(src, dst, 1 << 22)
 
 
 class _Later:

@@ -20,7 +20,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from dicer import __version__
+from dicer import __version__, library_versions
 from dicer.brief import brief_json, brief_names
 from dicer.errors import DicerError
 from dicer.io import LABEL_SUFFIXES
@@ -1996,13 +1996,25 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"error: {self.prog}: {message}; see '{self.prog} --help'\n")
 
 
+class _Version(argparse.Action):
+    """``--version``: dicer's version and the libraries' it runs on (looked up only when asked)."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, help="show dicer's version and its libraries' and exit")
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        libraries = ", ".join(f"{name} {version}" for name, version in library_versions().items())
+        sys.stdout.write(f"dicer {__version__} ({libraries})\n")  # stdout, as argparse's version action
+        parser.exit(0)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="dicer",
         description="All-hexahedral finite-element models from CT/MR scans (DICER method).",
         epilog="Each stage reads one file and writes one; 'dicer run' chains them. See README.md.",
     )
-    parser.add_argument("--version", action="version", version=f"dicer {__version__}")
+    parser.add_argument("--version", action=_Version)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def command(name, func, help_text, description=None, **options):

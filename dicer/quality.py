@@ -12,7 +12,7 @@ import json
 
 import numpy as np
 
-from dicer import __version__
+from dicer import __version__, library_versions
 from dicer.arrays import nonzero
 from dicer.config import takes_settings
 from dicer.image import count_labels
@@ -477,6 +477,8 @@ def quality_report(mesh: Mesh, *, names: list, poor_scaled_jacobian: float, stre
         else characteristic_length(mesh.points, mesh.cells)
     report = {
         "dicer_version": __version__,
+        # what made the model's last bits: the same versions give the same bytes (constraints.txt)
+        "library_versions": library_versions(),
         "dimension": mesh.dim,
         "element_type": mesh.cell_type,
         "nodes": mesh.n_points,
@@ -673,7 +675,9 @@ def render_html(report: dict, pictures: list[tuple[str, bytes]] = ()) -> str:
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>dicer mesh quality</title>",
         f"<style>{STYLE}</style></head><body>",
-        f"<h1>Mesh quality</h1><p>dicer {html.escape(report['dicer_version'])}</p>",
+        f"<h1>Mesh quality</h1><p>dicer {html.escape(report['dicer_version'])}"
+        + ("" if "library_versions" not in report else " (" + ", ".join(
+            f"{html.escape(k)} {html.escape(v)}" for k, v in report["library_versions"].items()) + ")") + "</p>",
         _table(top),
         notices_html(report),
         parts_html(report),

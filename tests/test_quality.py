@@ -77,6 +77,11 @@ def test_inverted_elements_are_counted_and_html_renders():
     assert report["poor_elements"] >= report["inverted_elements"]
     page = render_html(report)
     assert page.startswith("<!DOCTYPE html>") and "soft_tissue" in page
+    # what made the model: dicer's version and its libraries' (constraints.txt pins them)
+    from dicer import LIBRARIES, library_versions
+
+    assert report["library_versions"] == library_versions() and list(report["library_versions"])[1:] == list(LIBRARIES)
+    assert f"numpy {library_versions()['numpy']}, scipy {library_versions()['scipy']}" in page
 
 
 def test_html_shows_stage_reports_and_pictures():

@@ -23,10 +23,11 @@ system:
 	    || echo "chromium could not be installed: the report test checks the HTML only"; \
 	fi
 
-$(BIN)/dicer: pyproject.toml
+# the libraries at the versions of constraints.txt: the same bytes from the same input a year later
+$(BIN)/dicer: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e '.[test,slurm]'
+	$(BIN)/pip install -q -c constraints.txt -e '.[test,slurm]'
 	@# bytecode now, as a regular install makes it: where PYTHONDONTWRITEBYTECODE is set, every
 	@# dicer process would otherwise compile the package from source (0.1-0.2 s each)
 	$(BIN)/python -m compileall -q dicer
@@ -50,12 +51,12 @@ test-all: setup
 # make bench BENCH_ARGS='--sizes 64,128,256,512' adds 512^3 (long; about 24 GB)
 BENCH_ARGS ?= --repeat 3
 bench: setup
-	$(BIN)/pip install -q -e '.[test,bench]'
+	$(BIN)/pip install -q -c constraints.txt -e '.[test,bench]'
 	$(BIN)/python -m bench --processes $(BENCH_ARGS)
 
 # the stages' library functions, each in its own process, beside PyVista, meshio and automesh
 bench-stages: setup
-	$(BIN)/pip install -q -e '.[test,bench]'
+	$(BIN)/pip install -q -c constraints.txt -e '.[test,bench]'
 	$(BIN)/python -m bench
 
 clean:

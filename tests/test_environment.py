@@ -47,3 +47,49 @@ def test_rules_use_the_environment_and_its_post_deploy_script_installs_dicer():
     for rules in (REPO / "workflow" / "rules").glob("*.smk"):
         text = rules.read_text()
         assert text.count("\nrule ") == text.count("        CONDA_ENV"), rules.name
+
+
+def _pins() -> dict[str, str]:
+    pins = {}
+    for line in (REPO / "constraints.txt").read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            name, version = line.split("==")
+            pins[name.lower().replace("_", "-")] = version.strip()
+    return pins
+
+
+def test_constraints_pin_every_dependency_at_or_above_its_lower_bound():
+    from packaging.version import Version
+
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    pins = _pins()
+    specs = list(project["dependencies"]) + [s for extra in project["optional-dependencies"].values() for s in extra]
+    for spec in specs:
+        name, bound = _name(spec)
+        assert name in pins, f"{name} has no pin in constraints.txt"
+        if bound.startswith(">="):
+            assert Version(pins[name]) >= Version(bound[2:]), (name, pins[name], bound)
+        elif bound.startswith("=="):
+            assert pins[name] == bound[2:], (name, pins[name], bound)
+    assert "dicer" not in pins
+
+
+def test_the_libraries_reported_are_pyprojects_dependencies_at_their_pins():
+    """quality.json's ``library_versions`` and ``dicer --version`` name pyproject's runtime
+    dependencies; the setup (make setup: pip install -c constraints.txt) installs them at the
+    pinned versions, so the same input gives the same bytes on a machine set up later."""
+    import subprocess
+    import sys
+
+    from dicer import LIBRARIES, library_versions
+
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    runtime = [_name(spec)[0] for spec in project["dependencies"]]
+    assert [n.lower().replace("_", "-") for n in LIBRARIES] == runtime
+    versions = library_versions()
+    pins = _pins()
+    assert list(versions) == ["python", *LIBRARIES]
+    assert {n: versions[n] for n in LIBRARIES} == {n: pins[n.lower().replace("_", "-")] for n in LIBRARIES}
+    out = subprocess.run([sys.executable, "-m", "dicer", "--version"], capture_output=True, text=True, check=True)
+    assert out.stdout == "dicer " + __import__("dicer").__version__ + " (" + ", ".join(
+        f"{k} {v}" for k, v in versions.items()) + ")\n" and out.stderr == ""

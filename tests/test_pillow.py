@@ -491,3 +491,30 @@ def test_a_layer_element_out_of_shape_is_named_with_its_check():
     floor = np.array([False, False, True])
     error = _pillow_failure(st, np.ones(3), none, np.array([0.9, 0.9, 0.25]), floor, {"stretched": stretched})
     assert "element 103 (of the layer) at a scaled Jacobian of at least 0.3 (it reaches 0.250, 2 element(s)" in str(error)
+
+
+def test_the_layer_and_the_relaxation_say_what_they_do_while_they_take_their_time(caplog):
+    """The layer's rounds and the labels' relaxation take tens of seconds on a head, with nothing
+    said before: each says when it starts, each round that fails the guard, and what came of it."""
+    from dicer.mesh.labelnet import RELAXATION_STEPS
+
+    lab = shells(12, 3, [(0.0, 4.6, 1)])
+    mesh = voxel_mesh(lab)
+    faces, _, _ = layer_nodes(mesh)
+    caplog.set_level("INFO", logger="dicer")
+    settings = {"pillow": True, "pillow_thickness": 0.3, "coefficient": 0.0, "min_scaled_jacobian": 0.5,
+                "label_samples": "relaxed"}
+    _, rep = smooth_mesh(mesh, settings, labels=Volume(lab, (1.0,) * 3))
+    said = [r.getMessage() for r in caplog.records]
+    info = rep["pillow"]
+    relax = [m for m in said if m.startswith("smooth: relaxing the labels' staircase")]
+    assert len(relax) == 1 and f"{RELAXATION_STEPS} steps; smooth.label_samples: relaxed" in relax[0]
+    assert sum(m.startswith("smooth: relaxed in ") for m in said) == 1
+    assert f"smooth: a pillow layer over {faces.shape[0]} exterior faces, 0.3 voxel thick (smooth.pillow)" in said
+    rounds = [m for m in said if m.startswith("smooth: pillow layer round ")]
+    assert len(rounds) == info["guard_rounds"] >= 1  # the gaps of the test above: rounds that fail
+    assert rounds[0].startswith("smooth: pillow layer round 1: ")
+    done = [m for m in said if m.startswith("smooth: the pillow layer holds ")]
+    assert len(done) == 1 and done[0].startswith(
+        f"smooth: the pillow layer holds {faces.shape[0] - info['faces_without_layer']} of the {faces.shape[0]} "
+        f"exterior faces after {info['guard_rounds']} guard round(s), in ")

@@ -37,9 +37,9 @@ import scipy.sparse as sp
 from dicer.arrays import nonzero, norm
 from dicer.parallel import MAX_WORKERS, cores
 
-__all__ = ["faces_between", "relaxed_staircase", "staircase_vertices"]
+__all__ = ["RELAXATION_STEPS", "faces_between", "relaxed_staircase", "staircase_vertices"]
 
-_ITERATIONS = 1000  # FISTA steps: within 0.024 voxel of 4000 steps' vertices on the Lamé tube at a = 7 (0.005 on the Kirsch plate)
+RELAXATION_STEPS = 1000  # FISTA steps: within 0.024 voxel of 4000 steps' vertices on the Lamé tube at a = 7 (0.005 on the Kirsch plate)
 _LAM = 1e-4  # pull towards the corner, against the bending energy's flat directions
 _MIRROR_PAD = 8  # voxels of reflected labels beyond a mirror plane
 _ROWS_PER_CORE = 20000  # vertices for another core to pay its threads' hand-overs, 4 an iteration
@@ -190,7 +190,7 @@ def _fista(L: sp.csr_matrix, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                 for _ in pool.map(fn, range(parts)):
                     pass
 
-        for _ in range(_ITERATIONS):
+        for _ in range(RELAXATION_STEPS):
             each(product(L_rows, y, u))
             if data is not None:
                 each(misfits)

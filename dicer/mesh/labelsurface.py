@@ -38,6 +38,9 @@ stage; the quality guard then backs the move off as it backs off the pull onto a
 
 from __future__ import annotations
 
+import logging
+import time
+
 import numpy as np
 from scipy import special
 from scipy.spatial import cKDTree
@@ -46,7 +49,7 @@ from dicer.arrays import nonzero, norm
 from dicer.errors import DicerError
 from dicer.mesh.boundary import plane_bits
 from dicer.mesh.faces import neighbour_materials
-from dicer.mesh.labelnet import faces_between, relaxed_staircase
+from dicer.mesh.labelnet import RELAXATION_STEPS, faces_between, relaxed_staircase
 from dicer.mesh.model import Mesh
 from dicer.mesh.subvoxel import normal_density
 from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
@@ -54,6 +57,8 @@ from dicer.parallel import ordered_map
 
 __all__ = ["LabelSurface", "check_labels_for_mesh", "edge_variance", "label_image_samples", "scan_crossings",
            "staircase_samples"]
+
+log = logging.getLogger("dicer")
 
 _FACING = 0.1  # the cosine between a face's and the node's normals from which a face counts fully
 _SHEET = 2.0  # voxels off the tangent plane (besides the bend over r) where another sheet begins
@@ -526,8 +531,13 @@ class LabelSurface:
                 if scan is not None:  # through the scan's placements, voxels along each face's axis
                     # (a face the scan leaves where it is counts there, as its sample does)
                     moves = ((points - unplaced) / spacing).sum(axis=1)
+                # progress: the relaxation takes tens of seconds on a head, before the fit says anything
+                t = time.perf_counter()
+                log.info("smooth: relaxing the labels' staircase within its voxels (%d faces, %d steps; "
+                         "smooth.label_samples: relaxed)", points.shape[0], RELAXATION_STEPS)
                 samples = _mirrored(mesh, relaxed_staircase(np.asarray(labels.array), mesh.spacing[:dim],
                                                             mesh.origin[:dim], mirror=mirror, placed=moves), reach)
+                log.info("smooth: relaxed in %.1f s", time.perf_counter() - t)
             else:
                 samples = _mirrored(mesh, (points, normals, kinds, weights), reach)
         self.points, self.normals, kinds, self.weights = samples

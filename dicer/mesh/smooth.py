@@ -1647,6 +1647,9 @@ def _add_pillow(st: _Smoothing) -> None:
     # which keep their place (the layer ends short of the plane, its side there the surface)
     kept = ~on_plane[at].any(axis=1) if s["bounding_planes"] == "fixed" else np.ones(faces.shape[0], bool)
     at_fixed_planes = int(np.count_nonzero(~kept))
+    # progress: the layer's rounds take tens of seconds on a head
+    log.info("smooth: a pillow layer over %d exterior faces, %g voxel thick (smooth.pillow)", faces.shape[0],
+             float(s["pillow_thickness"]))
     x, xb, sj_accepted = st.x, st.xb, st.sj
     floor = float(s["min_scaled_jacobian"])
     goal = st.xb[b] if st.surface is None else st.surface[b]  # without the scan: the smoothed surface
@@ -1731,6 +1734,8 @@ def _add_pillow(st: _Smoothing) -> None:
                                   {f"an edge shorter than {_SHORTEST_EDGE:g} of its length before": bad_short,
                                    f"its longest edge over {_PILLOW_STRETCH:g} times its shortest": bad_stretch,
                                    "thinner than the layer's least thickness": bad_thin})
+        log.info("smooth: pillow layer round %d: %d element(s) under it and %d of it fail the guard", rounds + 1,
+                 int(bad_under.sum()), int(bad_layer.sum()))
         failing = np.flatnonzero(kept)[bad_layer]
         pulled = np.unique(at[failing])
         pulled = pulled[share[pulled] > 0]
@@ -1769,6 +1774,8 @@ def _add_pillow(st: _Smoothing) -> None:
             "min_scaled_jacobian": float(sj_layer.min()) if sj_layer.size else 1.0}
     st.layer = _Layer(_layer_mesh(st, nodes[rows], outer, cells, owner[kept]), info)
     st.timings["pillow"] = time.perf_counter() - t0
+    log.info("smooth: the pillow layer holds %d of the %d exterior faces after %d guard round(s), in %.1f s",
+             int(np.count_nonzero(kept)), faces.shape[0], rounds, st.timings["pillow"])
 
 
 def _pillow_failure(st: _Smoothing, sj_under: np.ndarray, bad_under: np.ndarray, sj_layer: np.ndarray,

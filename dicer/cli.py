@@ -1294,6 +1294,27 @@ def _benchmark_files(paths, patients) -> dict[str, dict[str, Path]]:
     return found
 
 
+def _warn_of_mixed_versions(quality: dict[str, dict]) -> None:
+    """Warn where the patients' models were made by different versions of dicer or of its
+    libraries (``library_versions``; reports made before it was recorded are left out): their
+    last bits may differ for that alone."""
+    made = {}
+    for report in quality.values():
+        if "dicer_version" in report:
+            made.setdefault("dicer", []).append(report["dicer_version"])
+        for name, version in report.get("library_versions", {}).items():
+            made.setdefault(name, []).append(version)
+    mixed = []
+    for name, versions in made.items():
+        counts = {v: versions.count(v) for v in sorted(set(versions))}
+        if len(counts) > 1:
+            mixed.append(f"{name} " + ", ".join(f"{v} ({n} patient(s))" for v, n in counts.items()))
+    if mixed:
+        log.warning("cohort: the patients' models were made by different versions: %s; a model can differ in its "
+                    "last bits for that alone, so to compare like with like run them again in one environment "
+                    "(make setup installs the versions of constraints.txt)", "; ".join(mixed))
+
+
 def do_cohort(reports: list[str], out: Path, tsv: Path | None = None, benchmarks=None):
     from dicer.cohort import cohort_rows, cohort_tsv, report_problem, render_cohort_html
     from dicer.io.atomic import write_bytes_atomic
@@ -1324,6 +1345,7 @@ def do_cohort(reports: list[str], out: Path, tsv: Path | None = None, benchmarks
             log.info("cohort: the patients' poor thresholds differ (%s); a row counted below another threshold "
                      "than the heading's shows its own", ", ".join(sorted({f"{r['poor_threshold']:g}" for r in
                                                                        quality.values() if "poor_threshold" in r})))
+        _warn_of_mixed_versions(quality)
         write_bytes_atomic(out, render_cohort_html(columns, rows, poor))
         if tsv:
             write_bytes_atomic(tsv, cohort_tsv(columns, rows))

@@ -58,7 +58,7 @@ def report_problem(report) -> str | None:
     sections = {"scaled_jacobian": report.get("scaled_jacobian", {}), "parts": parts,
                 "characteristic_length_mm": report.get("characteristic_length_mm", {}),
                 "explicit_time_step": report.get("explicit_time_step", {}),
-                "materials": report.get("materials", {}),
+                "materials": report.get("materials", {}), "library_versions": report.get("library_versions", {}),
                 "parts.model": parts.get("model", {}) if isinstance(parts, dict) else {}}
     for name, value in sections.items():
         if not isinstance(value, dict):
@@ -77,6 +77,11 @@ def report_problem(report) -> str | None:
     for name, value in numbers.items():
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
             return f"{name!r} is {value!r}, not a number"
+    for name, version in sections["library_versions"].items():
+        if not isinstance(version, str):
+            return f"'library_versions.{name}' is {version!r}, not a version"
+    if not isinstance(report.get("dicer_version", ""), str):
+        return f"'dicer_version' is {report['dicer_version']!r}, not a version"
     for key in ("materials_without_elements", "topology_changed"):
         listed = report.get(key, [])
         if not isinstance(listed, list) or not all(isinstance(m, str) for m in listed):

@@ -310,6 +310,33 @@ def test_cohort_command_and_its_errors(tmp_path):
     assert proc.returncode == 2 and "not a Snakemake benchmark file" in proc.stderr
 
 
+def test_cohort_warns_of_models_made_by_different_versions(tmp_path):
+    """A cohort partly run again a year later, with newer libraries: its models may differ in
+    their last bits for that alone, and the cohort says which versions differ, for how many."""
+    from dicer import library_versions
+
+    here = library_versions()
+    for patient, numpy in (("a", here["numpy"]), ("b", here["numpy"]), ("c", "9.9.9")):
+        (tmp_path / patient).mkdir()
+        report = {**_report(10), "dicer_version": "0.1.0", "library_versions": {**here, "numpy": numpy}}
+        (tmp_path / patient / "quality.json").write_text(json.dumps(report))
+    old = {**_report(10), "dicer_version": "0.1.0"}  # made before the versions were recorded: left out
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "quality.json").write_text(json.dumps(old))
+    proc = _dicer("cohort", *(tmp_path / p / "quality.json" for p in "abd"), "-o", tmp_path / "same.html")
+    assert proc.returncode == 0 and "different versions" not in proc.stderr
+    proc = _dicer("cohort", *(tmp_path / p / "quality.json" for p in "abcd"), "-o", tmp_path / "mixed.html")
+    assert proc.returncode == 0 and (tmp_path / "mixed.html").exists()
+    warned = [line for line in proc.stderr.splitlines() if "different versions" in line]
+    assert len(warned) == 1 and f"numpy {here['numpy']} (2 patient(s)), 9.9.9 (1 patient(s))" in warned[0]
+    assert "scipy" not in warned[0] and "constraints.txt" in warned[0]
+    # a malformed version is refused, not a traceback
+    (tmp_path / "c" / "quality.json").write_text(json.dumps({**_report(10), "library_versions": {"numpy": 2}}))
+    proc = _dicer("cohort", tmp_path / "c" / "quality.json", "-o", tmp_path / "bad.html")
+    assert proc.returncode == 2 and len(proc.stderr.splitlines()) == 1
+    assert "'library_versions.numpy' is 2, not a version" in proc.stderr and not (tmp_path / "bad.html").exists()
+
+
 @pytest.mark.parametrize("report, said", [
     ({"elements": 5, "materials": ["bone"]}, "'materials' is a list, not an object"),
     ({"elements": 5, "scaled_jacobian": 0.5}, "'scaled_jacobian' is a float, not an object"),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["argwhere", "nonzero", "norm"]
+__all__ = ["all_per_row", "any_per_row", "argwhere", "nonzero", "norm"]
 
 
 def nonzero(mask: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -72,3 +72,38 @@ def norm(v: np.ndarray, axis: int = -1, keepdims: bool = False) -> np.ndarray:
         total += part * part
     np.sqrt(total, out=total)
     return np.expand_dims(total, axis) if keepdims else total
+
+
+_ROW_WORDS = {1: np.uint8, 2: np.uint16, 4: np.uint32, 8: np.uint64}
+
+
+def any_per_row(mask: np.ndarray) -> np.ndarray:
+    """(M,) bool: ``mask.any(axis=1)`` of an (M, k) mask.
+
+    For k of 1, 2, 4 or 8 (a voxel's, a face's or an element's nodes), each row's bytes read
+    as one unsigned integer: numpy's reduction over so short an axis takes about twice as long
+    (measured 0.06 s against 0.03 s with the gather, on a head's 2.27 M elements). Other widths
+    go to numpy.
+
+    Parameters
+    ----------
+    mask : (M, k) ndarray
+        Its truth is taken.
+
+    Returns
+    -------
+    (M,) bool ndarray
+    """
+    mask = np.asarray(mask)
+    if mask.ndim != 2 or mask.shape[1] not in _ROW_WORDS:
+        return np.asarray(mask).any(axis=1)
+    rows = np.ascontiguousarray(mask, dtype=bool)
+    return rows.view(_ROW_WORDS[rows.shape[1]])[:, 0] != 0
+
+
+def all_per_row(mask: np.ndarray) -> np.ndarray:
+    """(M,) bool: ``mask.all(axis=1)`` of an (M, k) mask, as :func:`any_per_row`."""
+    mask = np.asarray(mask)
+    if mask.ndim != 2 or mask.shape[1] not in _ROW_WORDS:
+        return mask.all(axis=1)
+    return ~any_per_row(~np.asarray(mask, dtype=bool))

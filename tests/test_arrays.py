@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import array_shapes, arrays
 
-from dicer.arrays import argwhere, nonzero, norm
+from dicer.arrays import all_per_row, any_per_row, argwhere, nonzero, norm
 
 
 @settings(max_examples=200, deadline=None)
@@ -51,3 +51,13 @@ def test_norm_of_vectors_of_mixed_magnitudes_on_a_large_array():
     for axis in (0, 1, 2, -1):
         assert np.array_equal(norm(v, axis=axis), np.linalg.norm(v, axis=axis))
     assert np.array_equal(norm(np.arange(12).reshape(4, 3), axis=1), np.linalg.norm(np.arange(12).reshape(4, 3), axis=1))
+
+
+@settings(max_examples=200, deadline=None)
+@given(arrays(st.sampled_from([np.bool_, np.int8, np.float64]), st.tuples(st.integers(0, 40), st.integers(1, 9))),
+       st.booleans())
+def test_per_row_any_and_all_are_numpys(mask, transposed):
+    if transposed and mask.shape[0] == mask.shape[1]:
+        mask = mask.T  # a view out of C order
+    assert np.array_equal(any_per_row(mask), mask.any(axis=1)) and any_per_row(mask).dtype == bool
+    assert np.array_equal(all_per_row(mask), mask.all(axis=1)) and all_per_row(mask).dtype == bool

@@ -42,6 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dicer.arrays import any_per_row
 from dicer.errors import DicerError
 from dicer.mesh.model import LEVEL_DATA, Mesh
 from dicer.mesh.topology import HEX_EDGES, QUAD_EDGES
@@ -567,7 +568,7 @@ def boundary_graph(mesh: Mesh, points: np.ndarray | None = None, slots: np.ndarr
     cls = np.zeros(n, np.int8)
     cls[bn] = _node_classes(per, deg, flat, edges)
     if maybe.any():  # elements held only by plane nodes that turned out interior are not boundary cells
-        cand = cand[boundary[cells[cand]].any(axis=1)]
+        cand = cand[any_per_row(boundary[cells[cand]])]
     return BoundaryGraph(boundary, edges.nodes, degree, cls, cand, planes)
 
 

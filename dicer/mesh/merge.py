@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from dicer.arrays import all_per_row, any_per_row
 from dicer.config import section_defaults, takes_settings
 from dicer.errors import DicerError
 from dicer.parallel import import_meanwhile, meanwhile, ordered_map
@@ -58,17 +59,6 @@ def _unique(a: np.ndarray) -> np.ndarray:
     """Sorted distinct values of a 1-D integer array (sorting beats numpy's hashed unique here)."""
     a = np.sort(np.asarray(a).ravel())
     return a[np.r_[True, a[1:] != a[:-1]]] if a.size else a
-
-
-def _any(b: np.ndarray) -> np.ndarray:
-    """Row-wise any of an (M, k) bool array, k = 2, 4 or 8 (rows read as one integer)."""
-    b = np.ascontiguousarray(b)
-    return b.view({2: np.uint16, 4: np.uint32, 8: np.uint64}[b.shape[1]])[:, 0] != 0
-
-
-def _all(b: np.ndarray) -> np.ndarray:
-    """Row-wise all of an (M, k) bool array, k = 2, 4 or 8."""
-    return ~_any(~b)
 
 
 def _union(*arrays) -> np.ndarray:
@@ -142,11 +132,11 @@ def _put_same(table: np.ndarray, index: np.ndarray, values: np.ndarray) -> None:
 def _any_at(mask: np.ndarray, index: np.ndarray) -> np.ndarray:
     """(R,) bool: rows of ``index`` (R, k) holding a node flagged in ``mask``, in pieces of rows."""
     if index.size <= CHUNK:
-        return _any(mask[index])
+        return any_per_row(mask[index])
     out = np.empty(index.shape[0], dtype=bool)
 
     def flag(part: slice) -> None:
-        out[part] = _any(np.take(mask, index[part]))  # np.take: about twice as fast as fancy indexing
+        out[part] = any_per_row(np.take(mask, index[part]))  # np.take: about twice as fast as fancy indexing
     _each_piece(flag, index.shape[0], _rows_per_piece(index))
     return out
 
@@ -256,7 +246,7 @@ def _match_faces(a: np.ndarray, b: np.ndarray, n: int) -> tuple[np.ndarray, np.n
         i = np.flatnonzero(ok)
         j = j[i].astype(np.intp)
         i += part.start
-        same = _all(np.take(a, i, axis=0) == np.take(b, j, axis=0))
+        same = all_per_row(np.take(a, i, axis=0) == np.take(b, j, axis=0))
         return i[same], j[same], np.flatnonzero(on_shared) + part.start
     found_i, found_j, hard = zip(*ordered_map(find, pieces(a.shape[0], CHUNK)))
     i, j = np.concatenate(found_i), np.concatenate(found_j)
@@ -435,7 +425,7 @@ def _plane_edges(face: np.ndarray, near: np.ndarray, pairs: np.ndarray
     n64 = np.int64(near.shape[0])
     rows = np.flatnonzero(_any_at(near, face))
     e = face[rows][:, pairs]  # (K, E, 2)
-    ok = _all(near[e].reshape(-1, 2)).reshape(e.shape[:2])
+    ok = all_per_row(near[e].reshape(-1, 2)).reshape(e.shape[:2])
     row = np.broadcast_to(rows[:, None], ok.shape)[ok]
     e = np.sort(e[ok], axis=1).astype(np.int64)
     return e[:, 0] * n64 + e[:, 1], row, e
@@ -479,7 +469,7 @@ def _shared_corners(local: np.ndarray, k: int, changed: np.ndarray) -> np.ndarra
     mine = key[changed].ravel()
     clash = np.zeros(k * c, dtype=bool)
     clash[mine[count[mine] > 1]] = True
-    return np.flatnonzero(_any(clash[key]))
+    return np.flatnonzero(any_per_row(clash[key]))
 
 
 def _pinches(sub: np.ndarray, material: np.ndarray, inside: np.ndarray, changed: np.ndarray, dim: int,
@@ -591,7 +581,7 @@ def _replace_face_nodes(face, hit, far, snapped, snap):
     deleted node replaced by the far end ``far`` of its axis edge and each snapped node by its
     snap target. Returns (row indices (R,), new faces (R, c))."""
     any_snapped = bool(snapped.any())
-    rows = np.flatnonzero(_any(hit) | _any_at(snapped, face) if any_snapped else _any(hit))
+    rows = np.flatnonzero(any_per_row(hit) | _any_at(snapped, face) if any_snapped else any_per_row(hit))
     nodes = np.take(face, rows, axis=0)
     h = np.take(hit, rows, axis=0)
     nodes[h] = far[nodes[h]]
@@ -1155,9 +1145,9 @@ def _build_trial(plane: _Plane, trial: _Trial, cells: np.ndarray) -> None:
         if dirty is not None:
             cells[idx[rows][:, None], cols] = f  # undo the previous round there
         h = _take(now, f)
-        flags[0, rows] = _any(h)
-        flags[1, rows] = _all(h)
-        flags[2, rows] = _any(h & _take(plane.bent, f)) if plane.any_bent else False
+        flags[0, rows] = any_per_row(h)
+        flags[1, rows] = all_per_row(h)
+        flags[2, rows] = any_per_row(h & _take(plane.bent, f)) if plane.any_bent else False
         done, nodes = _replace_face_nodes(f, h, far, snapped_now, trial.snap)
         cells[idx[rows][done][:, None], cols] = nodes
     trial.merged = now[plane.faces[:, 0]]
@@ -1233,7 +1223,7 @@ def _check_trial(plane: _Plane, trial: _Trial, work: _Work, settings: _Settings,
         bad_rows = rows[crowded]
     info["overconnected_nodes"] += int(np.count_nonzero(bad_node))
     if bad_node.any():
-        bad_rows = _union(bad_rows, rows[_any(bad_node[local])])
+        bad_rows = _union(bad_rows, rows[any_per_row(bad_node[local])])
     corners = (work.lattice[cells[checked]] + trial.shift[cells[checked]][:, :, None] * plane.unit) * settings.spacing
     jac = corner_scaled_jacobians(corners.reshape(-1, 3),
                                   np.arange(corners.shape[0] * corners.shape[1]).reshape(checked.size, -1))

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dicer.arrays import nonzero, norm
+from dicer.arrays import all_per_row, nonzero, norm
 from dicer.mesh.faces import face_neighbours
 from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
 
@@ -60,7 +60,7 @@ def surface_faces(cells: np.ndarray, dim: int, n_points: int, planes: np.ndarray
         owner, slot = nonzero(face_neighbours(cells, dim, n_points) < 0)
         mark = np.zeros(n_points, bool)
         mark[nodes] = True
-        whole = mark[cells[owner[:, None], table[slot]]].all(axis=1)
+        whole = all_per_row(mark[cells[owner[:, None], table[slot]]])
         owner, slot = owner[whole], slot[whole]
     faces = cells[owner[:, None], table[slot]]
     in_plane = np.bitwise_and.reduce(planes[faces], axis=1) != 0

@@ -53,7 +53,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from dicer.arrays import nonzero, norm
+from dicer.arrays import any_per_row, nonzero, norm
 from dicer.config import places_faces_by_scan, section_defaults, takes_settings
 from dicer.errors import DicerError
 from dicer.mesh.boundary import (NODE_CLASSES, BoundaryGraph, boundary_graph, bounding_planes, class_counts,
@@ -272,7 +272,7 @@ _ROWS = 65536
 
 def _touching(cells: np.ndarray, mark: np.ndarray) -> np.ndarray:
     """Indices of the elements with at least one node marked in ``mark`` (N,) bool."""
-    return np.flatnonzero(mark[cells].any(axis=1))
+    return np.flatnonzero(any_per_row(mark[cells]))
 
 
 def _corner_slots(cells: np.ndarray, n_points: int) -> np.ndarray:
@@ -709,7 +709,7 @@ class _Elements:
     def holding(self, mark: np.ndarray) -> np.ndarray:
         """(C,) bool: the elements holding a node marked in ``mark`` (N,) bool."""
         if not self.hex:
-            return mark[self.cells[self.elements]].any(axis=1)
+            return any_per_row(mark[self.cells[self.elements]])
         local = mark[self.nodes]
         out = np.zeros(self.elements.size, bool)
 
@@ -1688,7 +1688,7 @@ def _add_pillow(st: _Smoothing) -> None:
             # smoothing left so), and the copies' start: where their nodes were
             moved = np.zeros(n, bool)
             moved[nodes[rows]] = True
-            sub = np.flatnonzero(moved[near_all_cells].any(axis=1))
+            sub = np.flatnonzero(any_per_row(moved[near_all_cells]))
             shrunk = near_all[sub[(_short_edges(near_all_cells[sub], st.x, None, moved, lengths0[sub])
                                    & ~short_before[sub]).any(axis=1)]]
             solved = (layered, level.copy())
@@ -1752,12 +1752,12 @@ def _add_pillow(st: _Smoothing) -> None:
             own[mesh.cells[st.touched[bad_under]]] = True
             under = own.copy()
             under[mesh.cells[_touching(mesh.cells, under)]] = True
-            near = np.flatnonzero(kept & under[faces].any(axis=1))
+            near = np.flatnonzero(kept & any_per_row(under[faces]))
             lower = (level[at[near]] < len(_DEPTHS) - 1).any(axis=1)
             stepped = at[near[lower]].ravel()
             level[stepped] = np.minimum(level[stepped] + 1, len(_DEPTHS) - 1)
             again = near[~lower]
-            at_own = again[own[faces[again]].any(axis=1)]
+            at_own = again[any_per_row(own[faces[again]])]
             drop = np.union1d(drop, at_own if at_own.size else again)
         kept[drop] = False
     st.sj = np.concatenate([sj_under, sj_layer])

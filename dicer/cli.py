@@ -1298,17 +1298,16 @@ def _warn_of_mixed_versions(quality: dict[str, dict]) -> None:
     """Warn where the patients' models were made by different versions of dicer or of its
     libraries (``library_versions``; reports made before it was recorded are left out): their
     last bits may differ for that alone."""
-    made = {}
+    from collections import Counter
+
+    made: dict[str, Counter] = {}
     for report in quality.values():
         if "dicer_version" in report:
-            made.setdefault("dicer", []).append(report["dicer_version"])
+            made.setdefault("dicer", Counter())[report["dicer_version"]] += 1
         for name, version in report.get("library_versions", {}).items():
-            made.setdefault(name, []).append(version)
-    mixed = []
-    for name, versions in made.items():
-        counts = {v: versions.count(v) for v in sorted(set(versions))}
-        if len(counts) > 1:
-            mixed.append(f"{name} " + ", ".join(f"{v} ({n} patient(s))" for v, n in counts.items()))
+            made.setdefault(name, Counter())[version] += 1
+    mixed = [f"{name} " + ", ".join(f"{v} ({counts[v]} patient(s))" for v in sorted(counts))
+             for name, counts in made.items() if len(counts) > 1]
     if mixed:
         log.warning("cohort: the patients' models were made by different versions: %s; a model can differ in its "
                     "last bits for that alone, so to compare like with like run them again in one environment "

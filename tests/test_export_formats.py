@@ -200,6 +200,45 @@ def test_curved_mid_edge_nodes_never_fold_an_element_at_its_nodes_or_faces(tmp_p
     assert cells.shape[0] > 20_000 and det.min() > 0
 
 
+def _bent_cubes(offset: np.ndarray, size: float, bends: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """20-node cubes of edge ``size`` mm at ``offset``, the mid-edge node of edge 0-1 of cube i
+    moved inward by ``bends[i]`` of the edge: points (20 M, 3) and cells (M, 20)."""
+    nodes = (quadratic._HEX_NODES + 1.0) / 2.0 * size + offset
+    points = np.repeat(nodes[None], bends.size, axis=0)
+    points[:, 8, 1] += np.asarray(bends) * size
+    return points.reshape(-1, 3), np.arange(points.shape[0] * 20).reshape(-1, 20)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(-2000.0, 2000.0), st.floats(0.01, 5.0), st.integers(0, 2**32 - 1))
+def test_the_curved_elements_screen_decides_as_the_exact_sums(shift, size, seed):
+    """The fold check's BLAS screen passes only elements clear of the floor by far more than it
+    and the exact sums differ: the same decisions, elements far from the origin and small ones,
+    those a last bit either side of the floor among them."""
+    grads = quadratic._serendipity_gradients(quadratic._HEX_NODES, quadratic._check_points(3))
+    rng = np.random.default_rng(seed)
+    offset = np.array([shift, -0.5 * shift, 0.25 * shift])
+    points, cells = _bent_cubes(offset, size, rng.uniform(0.0, 0.9, 200))
+    points += rng.normal(0.0, 0.03 * size, points.shape)
+    exact = quadratic._det_ratio(points, cells, grads, 3)
+    screen = quadratic._det_ratio(points, cells, grads, 3, screen=True)
+    finite = np.isfinite(exact)
+    assert np.array_equal(finite, np.isfinite(screen))
+    assert np.abs(screen - exact)[finite].max() < 1e-3 * quadratic._SCREEN_MARGIN
+    assert np.array_equal(quadratic._failing(points, cells, grads, 3), ~(exact >= quadratic._CURVED_FLOOR))
+    # the bend at which the exact ratio crosses the floor, to the last bit
+    lo, hi = 0.0, 0.9
+    ratio = lambda t: quadratic._det_ratio(*_bent_cubes(offset, size, np.array([t])), grads, 3)[0]  # noqa: E731
+    assert ratio(lo) >= quadratic._CURVED_FLOOR > ratio(hi)
+    while np.nextafter(lo, hi) < hi:
+        mid = 0.5 * (lo + hi)
+        if mid in (lo, hi):
+            break
+        lo, hi = (mid, hi) if ratio(mid) >= quadratic._CURVED_FLOOR else (lo, mid)
+    points, cells = _bent_cubes(offset, size, np.array([lo, hi]))
+    assert quadratic._failing(points, cells, grads, 3).tolist() == [False, True]
+
+
 def test_curved_mid_edge_nodes_on_a_merged_mesh_follow_the_sphere(caplog):
     """Plane merging's chamfers leave edges off the lattice lines: the mid-edge nodes of the
     boundary edges go onto arcs through the next boundary nodes (they stayed at the

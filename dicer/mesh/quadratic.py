@@ -229,17 +229,22 @@ _ARC_TURN = 45.0
 follows as one curve; a sharper turn is a crease, not a curve."""
 
 
-def _grouped_pairs(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Every ordered pair (i, j), i != j, of entries with the same key."""
+def _grouped_pairs(keys: np.ndarray, rows: int = 1 << 18):
+    """Every ordered pair (i, j), i != j, of entries with the same key, in pieces: for each run
+    of ``rows`` entries i (ascending), its i and j (each i's in the order of a stable sort of
+    the keys)."""
     order = np.argsort(keys, kind="stable")
     ranked = keys[order]
     first = np.searchsorted(ranked, keys, "left")
     counts = np.searchsorted(ranked, keys, "right") - first
-    i = np.repeat(np.arange(keys.size), counts)
-    within = np.arange(i.size) - np.repeat(np.cumsum(counts) - counts, counts)
-    j = order[np.repeat(first, counts) + within]
-    keep = i != j
-    return i[keep], j[keep]
+    for start in range(0, keys.size, rows):
+        stop = min(start + rows, keys.size)
+        n = counts[start:stop]
+        i = np.repeat(np.arange(start, stop), n)
+        within = np.arange(i.size) - np.repeat(np.cumsum(n) - n, n)
+        j = order[np.repeat(first[start:stop], n) + within]
+        keep = i != j
+        yield start, stop, i[keep], j[keep]
 
 
 def _sagitta(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -313,33 +318,39 @@ def arc_midpoints(mesh: Mesh, edges: np.ndarray, index: np.ndarray, boundary_fac
     src = np.concatenate([edges[cand, 0], edges[cand, 1]])
     dst = np.concatenate([edges[cand, 1], edges[cand, 0]])
     bits = plane_bits(mesh)
-    i, j = _grouped_pairs(src)
-    shared = bits[src[i]] & bits[dst[i]]
-    ok = (shared & ~bits[dst[j]]) == 0
-    i, j = i[ok], j[ok]
     xs, xd = x[src], x[dst]
-    beyond = [xd[j]]
-    owner = [i]
     # mirror images across the planes src lies on and dst does not (the mirrored model's edges)
+    mirrors = []
     for axis in range(mesh.dim):
         for high in (0, 3):
             bit = np.uint8(1 << (axis + high))
             on = np.flatnonzero((bits[src] & bit).astype(bool) & ~(bits[dst] & bit).astype(bool))
             image = xd[on].copy()
             image[:, axis] = 2.0 * xs[on, axis] - image[:, axis]
-            beyond.append(image)
-            owner.append(on)
-    beyond, owner = np.concatenate(beyond), np.concatenate(owner)
+            mirrors.append((on, image))
     chord = xd - xs
     length = norm(chord, axis=1)  # once per directed edge, not per continuation
-    u = beyond - xs[owner]
-    cosine = np.sum(u * chord[owner], axis=1) / np.maximum(norm(u, axis=1) * length[owner], 1e-300)
-    best = _first_smallest(owner, cosine)  # per directed edge, the most nearly opposite
-    best = best[cosine[best] <= -np.cos(np.radians(_ARC_TURN))]
     offset = np.zeros((src.size, 3))
     found = np.zeros(src.size, bool)
-    offset[owner[best]] = _sagitta(xs[owner[best]], xd[owner[best]], beyond[best])
-    found[owner[best]] = True
+    # a piece of directed edges at a time: each edge's candidates, the other boundary edges from
+    # its source and its mirror images, in the same order whatever the pieces
+    for start, stop, i, j in _grouped_pairs(src):
+        shared = bits[src[i]] & bits[dst[i]]
+        ok = (shared & ~bits[dst[j]]) == 0
+        i, j = i[ok], j[ok]
+        beyond = [xd[j]]
+        owner = [i]
+        for on, image in mirrors:
+            lo, hi = np.searchsorted(on, [start, stop])
+            beyond.append(image[lo:hi])
+            owner.append(on[lo:hi])
+        beyond, owner = np.concatenate(beyond), np.concatenate(owner)
+        u = beyond - xs[owner]
+        cosine = np.sum(u * chord[owner], axis=1) / np.maximum(norm(u, axis=1) * length[owner], 1e-300)
+        best = _first_smallest(owner, cosine)  # per directed edge, the most nearly opposite
+        best = best[cosine[best] <= -np.cos(np.radians(_ARC_TURN))]
+        offset[owner[best]] = _sagitta(xs[owner[best]], xd[owner[best]], beyond[best])
+        found[owner[best]] = True
     both = offset[: cand.size] + offset[cand.size:]
     count = found[: cand.size].astype(np.int64) + found[cand.size:]
     mid[cand] += both / np.maximum(count, 1)[:, None]
@@ -534,7 +545,16 @@ def quadratic_mesh(mesh: Mesh, boundary_faces: np.ndarray | None = None) -> tupl
         mid_points = _straighten_folds(mesh, edges, index, place(mesh, edges, index, boundary_faces))
     else:
         mid_points = 0.5 * (mesh.points[edges[:, 0]] + mesh.points[edges[:, 1]])
+    # the results built in place, a column at a time: no (E, 3) or (M, 12) temporaries beside them
     points = np.concatenate([mesh.points, mid_points])
-    lattice2 = np.concatenate([2 * mesh.lattice, mesh.lattice[edges[:, 0]] + mesh.lattice[edges[:, 1]]])
-    quadratic = np.concatenate([cells, index + n], axis=1)
+    del mid_points
+    lattice = mesh.lattice
+    lattice2 = np.empty((n + edges.shape[0], lattice.shape[1]), np.int64)
+    np.multiply(lattice, 2, out=lattice2[:n])
+    for c in range(lattice.shape[1]):
+        np.add(lattice[edges[:, 0], c], lattice[edges[:, 1], c], out=lattice2[n:, c])
+    del edges
+    quadratic = np.empty((cells.shape[0], cells.shape[1] + index.shape[1]), np.int64)
+    quadratic[:, :cells.shape[1]] = cells
+    np.add(index, n, out=quadratic[:, cells.shape[1]:])
     return points, quadratic, lattice2

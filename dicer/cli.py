@@ -91,7 +91,7 @@ def _warn_of_unused_settings(args) -> None:
     unused = []
     for item in args.set:
         key = item.split("=", 1)[0].strip()
-        if not any(key == r or key.startswith(r + ".") for r in reads):
+        if key != "preset" and not any(key == r or key.startswith(r + ".") for r in reads):  # a preset: every stage's
             unused.append(key)
     if unused:
         log.warning("%s: --set %s is not read by dicer %s (it reads %s); give it to the stage that uses it, or to "

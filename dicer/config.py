@@ -506,7 +506,8 @@ def _explain(err: jsonschema.ValidationError) -> str:
     if err.validator in ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum") and _range(err.schema):
         return f"{value} is out of range; give {_range(err.schema)}"
     if err.validator == "enum":
-        return f"{value} is not one of {', '.join(map(str, err.validator_value))}"
+        named = ("null" if v is None else str(v) for v in err.validator_value)  # YAML's name for None
+        return f"{value} is not one of {', '.join(named)}"
     if (err.validator == "type" and err.validator_value == "array" and isinstance(err.instance, dict)
             and all(str(k).isdigit() for k in err.instance)):
         # --set a.0.b=... makes a mapping of item numbers, not a list
@@ -891,10 +892,27 @@ def load_config(path: str | Path | None = None, sets: list[str] | tuple = (), se
         source = f"{source} with {sets_named}" if sets_named not in source else source
     user = _label_keys(user)
     validate(user, source)  # unknown keys and types, before defaults hide nothing
+    if user.get("preset") is not None:  # under the user's own keys
+        user = deep_merge(preset_settings(user["preset"]), user)
     if properties_used:
         _say_defaulted_properties(user, source)
     config = _fill(copy.deepcopy(user), schema())
     return validate(config, source)
+
+
+def preset_settings(name: str) -> dict:
+    """The settings of a preset (``dicer/presets/<name>.yaml``, the schema's ``preset`` names).
+
+    Parameters
+    ----------
+    name : str
+
+    Returns
+    -------
+    dict
+        Its sections, without defaults.
+    """
+    return read_config_file(Path(str(resources.files("dicer").joinpath("presets", f"{name}.yaml"))))
 
 
 def stage_settings(config: dict, stage: str) -> dict:

@@ -501,6 +501,9 @@ def test_set_keys_a_stage_does_not_read_are_warned_of(tmp_path, capsys, caplog):
     caplog.clear()
     assert run_cli(capsys, "export", tmp_path / "m.vtu", "-o", tmp_path / "m.inp", "--set", "export.order=2")[0] == 0
     assert not [r for r in caplog.records if "is not read by" in r.getMessage()]
+    # a preset holds settings of every stage: each stage reads its own part of it
+    assert run_cli(capsys, "mesh", tmp_path / "l.npy", "-o", tmp_path / "m.vtu", "--set", "preset=static-stress")[0] == 0
+    assert not [r for r in caplog.records if "is not read by" in r.getMessage()]
     assert run_cli(capsys, "export", tmp_path / "m.vtu", "-o", tmp_path / "m.inp",
                    "--set", "mesh.coordinates=index")[0] == 0
     assert [r for r in caplog.records if "--set mesh.coordinates is not read by dicer export" in r.getMessage()]

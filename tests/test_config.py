@@ -2,6 +2,7 @@ import itertools
 import json
 import re
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -481,3 +482,52 @@ def test_materials_listed_without_their_properties_are_said_by_the_commands_that
         assert main(["labels", str(tmp_path / "seg.nii.gz"), "-o", str(tmp_path / "l.nii.gz"), "--materials",
                      str(tmp_path / "m.json"), "--settings", json.dumps({"materials": listed})]) == 0
         assert any("properties left out of materials" in r.getMessage() for r in caplog.records) == warned
+
+
+def test_a_preset_is_laid_under_the_users_own_keys(tmp_path):
+    """``preset: static-stress`` gives the packaged settings over the defaults (the same as the
+    repository's config/static-stress.yaml); the file's own keys, settings and --set items win."""
+    from pathlib import Path
+
+    from dicer.config import preset_settings
+
+    packaged = preset_settings("static-stress")
+    assert packaged == {"smooth": {"pillow": True, "label_samples": "relaxed"},
+                        "export": {"order": 2, "midside_nodes": "curved"}}
+    config = load_config(sets=["preset=static-stress"])
+    repository = load_config(Path(__file__).parents[1] / "config" / "static-stress.yaml")
+    assert config == {**repository, "preset": "static-stress"}
+    assert config["smooth"]["pillow"] and config["export"]["order"] == 2
+    path = tmp_path / "c.yaml"
+    path.write_text("preset: static-stress\nsmooth:\n  pillow: false\n")
+    config = load_config(path, sets=["export.order=1"], settings={"export": {"midside_nodes": "midpoint"}})
+    assert (config["smooth"]["pillow"], config["smooth"]["label_samples"]) == (False, "relaxed")
+    assert (config["export"]["order"], config["export"]["midside_nodes"]) == (1, "midpoint")
+    # as the workflow reads its config: the settings alone
+    assert load_config(settings={"preset": "static-stress"})["smooth"]["label_samples"] == "relaxed"
+    assert load_config()["preset"] is None
+
+
+def test_the_presets_are_the_packaged_files_and_each_is_a_valid_configuration():
+    from importlib import resources
+
+    from dicer.config import preset_settings, schema
+
+    files = sorted(p.name[:-5] for p in resources.files("dicer").joinpath("presets").iterdir()
+                   if p.name.endswith(".yaml"))
+    assert files == sorted(schema()["properties"]["preset"]["enum"][1:]) and files
+    for name in files:
+        settings = preset_settings(name)
+        assert settings and "preset" not in settings
+        validate(load_config(settings=settings), name)
+
+
+def test_an_unknown_preset_is_one_error_line_and_no_output(tmp_path, capsys):
+    from dicer.cli import main
+
+    np.save(tmp_path / "l.npy", np.ones((4, 4, 4), np.uint8))
+    assert main(["run", "--labels", str(tmp_path / "l.npy"), "-o", str(tmp_path / "out"),
+                 "--set", "preset=static_stress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: config with --set: key 'preset': \"static_stress\" is not one of null, static-stress"]
+    assert not (tmp_path / "out").exists()

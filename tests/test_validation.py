@@ -705,21 +705,22 @@ def test_target_lame_from_a_grey_value_image(tmp_path):
 
 
 def _preset_sets() -> list[str]:
-    """config/static-stress.yaml as --set items (its order aside: every case exports both)."""
-    import yaml
+    """The static-stress preset as --set items (its order aside: every case exports both)."""
+    from dicer.config import preset_settings
 
-    preset = yaml.safe_load((Path(__file__).parents[1] / "config" / "static-stress.yaml").read_text())
+    preset = preset_settings("static-stress")
     return [f"{section}.{key}={str(value).lower() if isinstance(value, bool) else value}"
             for section, keys in preset.items() for key, value in keys.items() if key != "order"]
 
 
 def test_the_static_stress_preset_is_the_validated_settings_and_meets_the_lame_target(tmp_path):
-    """config/static-stress.yaml is today's defaults with the settings that meet every label-only
-    target (docs/validation.md §4): a layer, relaxed samples, curved mid-edge nodes, order 2. The
-    Lamé bore from labels at a = 7 within 3 %, C3D8 and C3D20 (measured +0.3 / -2.1 %)."""
+    """The static-stress preset (``preset: static-stress``, config/static-stress.yaml) is today's
+    defaults with the settings that meet every label-only target (docs/validation.md §4): a
+    layer, relaxed samples, curved mid-edge nodes, order 2. The Lamé bore from labels at a = 7
+    within 3 %, C3D8 and C3D20 (measured +0.3 / -2.1 %)."""
     from dicer.config import default_config, load_config
 
-    preset = load_config(Path(__file__).parents[1] / "config" / "static-stress.yaml")
+    preset = load_config(sets=["preset=static-stress"])
     defaults = default_config()
     changed = {(s, k) for s in defaults if isinstance(defaults[s], dict)
                for k in defaults[s] if preset[s].get(k) != defaults[s][k]}

@@ -2005,7 +2005,8 @@ def _add_materials_option(p: argparse.ArgumentParser) -> None:
 def _add_config_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="FILE", help="YAML configuration (defaults: see config/config.yaml)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
-                   help="override one config key, e.g. --set segment.method=multiotsu (repeatable)")
+                   help="override one config key, e.g. --set segment.method=multiotsu, or take a preset's "
+                        "settings, --set preset=static-stress (repeatable)")
     p.add_argument("--settings", metavar="JSON", help=argparse.SUPPRESS)  # stage settings from the workflow
     p.add_argument("-q", "--quiet", action="store_true", help="log warnings and errors only")
 

@@ -1429,10 +1429,11 @@ def cmd_smooth(args):
         log.warning("smooth: --labels is read by smooth.surface_from_labels only, which is %s: %s is not read",
                     "not used beside the scan's surface (smooth.surface_from_image)" if scan_surface else "off",
                     args.labels)
-    if smooth["label_samples"] == "relaxed" and smooth["surface_from_labels"] and not scan_surface and \
+    if smooth["label_samples"] in ("relaxed", "auto") and smooth["surface_from_labels"] and not scan_surface and \
             args.labels is None:
-        log.warning("smooth: smooth.label_samples: relaxed relaxes the staircase of the label volume: give it with "
-                    "--labels (labels_fixed.nii.gz of dicer run); without it the fit takes the mesh's faces")
+        log.warning("smooth: smooth.label_samples: %s relaxes the staircase of the label volume: give it with "
+                    "--labels (labels_fixed.nii.gz of dicer run); without it the fit takes the mesh's faces",
+                    smooth["label_samples"])
     if args.image is not None and args.labels is None and not scan_surface and places_faces_by_scan(smooth):
         log.warning("smooth: smooth.fit_to_scan places the labels' faces by the scan: it needs --labels beside "
                     "--image (labels_fixed.nii.gz of dicer run); without it the fit takes the mesh's faces, and the "

@@ -534,7 +534,7 @@ class LabelSurface:
                 # progress: the relaxation takes tens of seconds on a head, before the fit says anything
                 t = time.perf_counter()
                 log.info("smooth: relaxing the labels' staircase within its voxels (%d faces, %d steps; "
-                         "smooth.label_samples: relaxed)", points.shape[0], RELAXATION_STEPS)
+                         "smooth.label_samples)", points.shape[0], RELAXATION_STEPS)
                 samples = _mirrored(mesh, relaxed_staircase(np.asarray(labels.array), mesh.spacing[:dim],
                                                             mesh.origin[:dim], mirror=mirror, placed=moves), reach)
                 log.info("smooth: relaxed in %.1f s", time.perf_counter() - t)

@@ -867,8 +867,10 @@ def _pull_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str, lab
                 scan = _image_surface(mesh, s, image, thresholds, image_source)
         def build():
             t = time.perf_counter()
+            # auto: relaxed where no scan places the faces
+            relaxed = s["label_samples"] == "relaxed" or (s["label_samples"] == "auto" and scan is None)
             made = LabelSurface(mesh, s["label_surface_radius"], s["bounding_planes"] == "mirror", labels, scan,
-                                relaxed=s["label_samples"] == "relaxed")
+                                relaxed=relaxed)
             return made, time.perf_counter() - t
 
         from dicer.parallel import cores, meanwhile

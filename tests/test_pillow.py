@@ -508,7 +508,7 @@ def test_the_layer_and_the_relaxation_say_what_they_do_while_they_take_their_tim
     said = [r.getMessage() for r in caplog.records]
     info = rep["pillow"]
     relax = [m for m in said if m.startswith("smooth: relaxing the labels' staircase")]
-    assert len(relax) == 1 and f"{RELAXATION_STEPS} steps; smooth.label_samples: relaxed" in relax[0]
+    assert len(relax) == 1 and f"{RELAXATION_STEPS} steps; smooth.label_samples)" in relax[0]
     assert sum(m.startswith("smooth: relaxed in ") for m in said) == 1
     assert f"smooth: a pillow layer over {faces.shape[0]} exterior faces, 0.3 voxel thick (smooth.pillow)" in said
     rounds = [m for m in said if m.startswith("smooth: pillow layer round ")]

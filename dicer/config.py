@@ -912,7 +912,7 @@ def preset_settings(name: str) -> dict:
     dict
         Its sections, without defaults.
     """
-    return read_config_file(Path(str(resources.files("dicer").joinpath("presets", f"{name}.yaml"))))
+    return read_config_file(Path(str(resources.files("dicer").joinpath("presets").joinpath(f"{name}.yaml"))))
 
 
 def stage_settings(config: dict, stage: str) -> dict:

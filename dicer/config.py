@@ -174,6 +174,24 @@ def _say_defaulted_properties(user: dict, source: str) -> None:
         default["density"])
 
 
+def _say_overridden_preset_keys(name: str, preset: dict, user: dict, source: str) -> None:
+    """Warn of the preset's keys that the configuration sets otherwise: a config file that
+    writes every key at its default (config/config.yaml) keeps none of the preset's."""
+    sets = [(section, key, value) for section, keys in preset.items() for key, value in keys.items()]
+    differ = [f"{section}.{key}: {json.dumps(user[section][key])}" for section, key, value in sets
+              if isinstance(user.get(section), dict) and key in user[section] and user[section][key] != value]
+    if differ:
+        given = ", ".join(f"{section}.{key}: {json.dumps(value)}" for section, key, value in sets)
+        _warn_once(f"{source}: preset {name} sets {given}; the configuration's own {', '.join(differ)} override it: "
+                   "remove those keys to take the preset's")
+
+
+@functools.lru_cache(maxsize=None)
+def _warn_once(message: str) -> None:
+    """A warning said once per process (the workflow loads its configuration once per patient)."""
+    logging.getLogger("dicer").warning("%s", message)
+
+
 def default_config() -> dict:
     """Every key at its schema default.
 
@@ -893,7 +911,9 @@ def load_config(path: str | Path | None = None, sets: list[str] | tuple = (), se
     user = _label_keys(user)
     validate(user, source)  # unknown keys and types, before defaults hide nothing
     if user.get("preset") is not None:  # under the user's own keys
-        user = deep_merge(preset_settings(user["preset"]), user)
+        preset = preset_settings(user["preset"])
+        _say_overridden_preset_keys(user["preset"], preset, user, source)
+        user = deep_merge(preset, user)
     if properties_used:
         _say_defaulted_properties(user, source)
     config = _fill(copy.deepcopy(user), schema())

@@ -559,3 +559,26 @@ def test_the_static_stress_preset_relaxes_a_label_volume_and_places_a_scans_face
     assert np.array_equal(points["labels preset"], points["labels relaxed"])
     smoothed = json.loads((tmp_path / "labels preset" / "smooth.json").read_text())
     assert "samples_relaxed" in json.dumps(smoothed)
+
+
+def test_a_presets_keys_set_otherwise_by_the_configuration_are_said(tmp_path, caplog):
+    """config/config.yaml writes every key at its default, so ``preset: static-stress`` added to
+    it kept none of the preset's settings, silently: the keys that override it are named once."""
+    from pathlib import Path
+
+    from dicer.config import _warn_once
+
+    _warn_once.cache_clear()
+    shipped = Path(__file__).parents[1] / "config" / "config.yaml"
+    caplog.set_level("WARNING", logger="dicer")
+    for _ in range(2):
+        config = load_config(shipped, sets=["preset=static-stress", "export.order=2"])
+    assert (config["smooth"]["pillow"], config["export"]["order"]) == (False, 2)
+    said = [r.getMessage() for r in caplog.records if "preset static-stress" in r.getMessage()]
+    assert said == [f"{shipped} with --set: preset static-stress sets smooth.pillow: true, smooth.label_samples: "
+                    "\"auto\", export.order: 2, export.midside_nodes: \"curved\"; the configuration's own "
+                    "smooth.pillow: false, smooth.label_samples: \"faces\", export.midside_nodes: \"midpoint\" "
+                    "override it: remove those keys to take the preset's"]
+    caplog.clear()
+    load_config(sets=["preset=static-stress"])
+    assert not [r for r in caplog.records if "preset" in r.getMessage()]

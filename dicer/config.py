@@ -175,21 +175,26 @@ def _say_defaulted_properties(user: dict, source: str) -> None:
 
 
 def _say_overridden_preset_keys(name: str, preset: dict, user: dict, source: str) -> None:
-    """Warn of the preset's keys that the configuration sets otherwise: a config file that
-    writes every key at its default (config/config.yaml) keeps none of the preset's."""
+    """Say which of the preset's keys it sets, and warn of those the configuration sets otherwise:
+    a config file that writes every key at its default (config/config.yaml) keeps none of the
+    preset's."""
     sets = [(section, key, value) for section, keys in preset.items() for key, value in keys.items()]
-    differ = [f"{section}.{key}: {json.dumps(user[section][key])}" for section, key, value in sets
-              if isinstance(user.get(section), dict) and key in user[section] and user[section][key] != value]
+    overridden = [isinstance(user.get(section), dict) and key in user[section] and user[section][key] != value
+                  for section, key, value in sets]
+    differ = [f"{s}.{k}: {json.dumps(user[s][k])}" for (s, k, _), o in zip(sets, overridden) if o]
+    taken = [f"{s}.{k}: {json.dumps(value)}" for (s, k, value), o in zip(sets, overridden) if not o]
+    if taken:
+        _say_once(logging.INFO, f"{source}: preset {name} sets {', '.join(taken)}")
     if differ:
         given = ", ".join(f"{section}.{key}: {json.dumps(value)}" for section, key, value in sets)
-        _warn_once(f"{source}: preset {name} sets {given}; the configuration's own {', '.join(differ)} override it: "
-                   "remove those keys to take the preset's")
+        _say_once(logging.WARNING, f"{source}: preset {name} sets {given}; the configuration's own {', '.join(differ)} "
+                                   "override it: remove those keys to take the preset's")
 
 
 @functools.lru_cache(maxsize=None)
-def _warn_once(message: str) -> None:
-    """A warning said once per process (the workflow loads its configuration once per patient)."""
-    logging.getLogger("dicer").warning("%s", message)
+def _say_once(level: int, message: str) -> None:
+    """A message said once per process (the workflow loads its configuration once per patient)."""
+    logging.getLogger("dicer").log(level, "%s", message)
 
 
 def default_config() -> dict:

@@ -566,9 +566,9 @@ def test_a_presets_keys_set_otherwise_by_the_configuration_are_said(tmp_path, ca
     it kept none of the preset's settings, silently: the keys that override it are named once."""
     from pathlib import Path
 
-    from dicer.config import _warn_once
+    from dicer.config import _say_once
 
-    _warn_once.cache_clear()
+    _say_once.cache_clear()
     shipped = Path(__file__).parents[1] / "config" / "config.yaml"
     caplog.set_level("WARNING", logger="dicer")
     for _ in range(2):
@@ -580,5 +580,8 @@ def test_a_presets_keys_set_otherwise_by_the_configuration_are_said(tmp_path, ca
                     "smooth.pillow: false, smooth.label_samples: \"faces\", export.midside_nodes: \"midpoint\" "
                     "override it: remove those keys to take the preset's"]
     caplog.clear()
+    caplog.set_level("INFO", logger="dicer")
     load_config(sets=["preset=static-stress"])
-    assert not [r for r in caplog.records if "preset" in r.getMessage()]
+    assert [(r.levelname, r.getMessage()) for r in caplog.records if "preset" in r.getMessage()] == [
+        ("INFO", "config with --set: preset static-stress sets smooth.pillow: true, smooth.label_samples: \"auto\", "
+                 "export.order: 2, export.midside_nodes: \"curved\"")]

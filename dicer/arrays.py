@@ -96,7 +96,7 @@ def any_per_row(mask: np.ndarray) -> np.ndarray:
     """
     mask = np.asarray(mask)
     if mask.ndim != 2 or mask.shape[1] not in _ROW_WORDS:
-        return np.asarray(mask).any(axis=1)
+        return mask.any(axis=1)
     rows = np.ascontiguousarray(mask, dtype=bool)
     return rows.view(_ROW_WORDS[rows.shape[1]])[:, 0] != 0
 

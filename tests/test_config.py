@@ -492,7 +492,7 @@ def test_a_preset_is_laid_under_the_users_own_keys(tmp_path):
     from dicer.config import preset_settings
 
     packaged = preset_settings("static-stress")
-    assert packaged == {"smooth": {"pillow": True, "label_samples": "auto"},
+    assert packaged == {"smooth": {"pillow": True, "label_samples": "auto", "label_surface_radius": 7},
                         "export": {"order": 2, "midside_nodes": "curved"}}
     config = load_config(sets=["preset=static-stress"])
     repository = load_config(Path(__file__).parents[1] / "config" / "static-stress.yaml")
@@ -541,7 +541,8 @@ def test_the_static_stress_preset_relaxes_a_label_volume_and_places_a_scans_face
     from dicer.io.meshes import read_mesh
 
     assert main(["phantom", "sphere", "--size", "20", "-o", str(tmp_path / "ct.nii.gz"), "-q"]) == 0
-    common = ["--set", "smooth.pillow=true", "--set", "export.order=2", "--set", "export.midside_nodes=curved"]
+    common = ["--set", "smooth.pillow=true", "--set", "smooth.label_surface_radius=7", "--set", "export.order=2",
+              "--set", "export.midside_nodes=curved"]
     runs = {"ct preset": ["run", str(tmp_path / "ct.nii.gz"), "--set", "preset=static-stress"],
             "ct faces": ["run", str(tmp_path / "ct.nii.gz"), *common, "--set", "smooth.label_samples=faces"],
             "ct relaxed": ["run", str(tmp_path / "ct.nii.gz"), *common, "--set", "smooth.label_samples=relaxed"]}
@@ -576,12 +577,13 @@ def test_a_presets_keys_set_otherwise_by_the_configuration_are_said(tmp_path, ca
     assert (config["smooth"]["pillow"], config["export"]["order"]) == (False, 2)
     said = [r.getMessage() for r in caplog.records if "preset static-stress" in r.getMessage()]
     assert said == [f"{shipped} with --set: preset static-stress sets smooth.pillow: true, smooth.label_samples: "
-                    "\"auto\", export.order: 2, export.midside_nodes: \"curved\"; the configuration's own "
-                    "smooth.pillow: false, smooth.label_samples: \"faces\", export.midside_nodes: \"midpoint\" "
-                    "override it: remove those keys to take the preset's"]
+                    "\"auto\", smooth.label_surface_radius: 7, export.order: 2, export.midside_nodes: \"curved\"; "
+                    "the configuration's own smooth.pillow: false, smooth.label_samples: \"faces\", "
+                    "smooth.label_surface_radius: 5, export.midside_nodes: \"midpoint\" override it: remove those "
+                    "keys to take the preset's"]
     caplog.clear()
     caplog.set_level("INFO", logger="dicer")
     load_config(sets=["preset=static-stress"])
     assert [(r.levelname, r.getMessage()) for r in caplog.records if "preset" in r.getMessage()] == [
         ("INFO", "config with --set: preset static-stress sets smooth.pillow: true, smooth.label_samples: \"auto\", "
-                 "export.order: 2, export.midside_nodes: \"curved\"")]
+                 "smooth.label_surface_radius: 7, export.order: 2, export.midside_nodes: \"curved\"")]

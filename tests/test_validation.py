@@ -661,6 +661,27 @@ def test_kirsch_plate_from_six_draws_of_the_images_noise(tmp_path, radius, cps4,
 
 
 @pytest.mark.slow
+def test_the_static_stress_preset_on_six_draws_of_the_images_noise(tmp_path):
+    """The static-stress preset (its layer, the scan's placed faces, the fit's radius 7, curved
+    mid-edge nodes) on the six draws of the noisy grey-value plate (docs/validation.md §1e):
+    CPS8 within 3 % on every draw, quarter and full within 1 % on three; CPS4 reads 2 % low. At
+    the fit's radius 5 (the preset until 7 December 2026) the layer follows the noise closer:
+    CPS4 2.953 +- 0.045 (quarter), within 3 % on five draws, the target on two, CPS8 3.048 +- 0.121
+    within 3 % on one, the target on none."""
+    r = study.kirsch_noise_draws(tmp_path, TODAY + _preset_sets(), 6, log=lambda *a: None)
+    assert all(row["min_sj"] >= 0.3 and row["inverted"] == 0 for row in r["draws"])
+    for name, (q_mean, q_sd, f_mean, f_sd, within, target) in (("CPS4", (2.943, 0.021, 2.932, 0.008, 5, 4)),
+                                                              ("CPS8", (3.004, 0.054, 3.004, 0.027, 6, 3))):
+        got = r[name]
+        assert got["quarter_mean"] == pytest.approx(q_mean, abs=0.01)
+        assert got["full_mean"] == pytest.approx(f_mean, abs=0.01)
+        assert got["quarter_sd"] == pytest.approx(q_sd, abs=0.005)
+        assert got["full_sd"] == pytest.approx(f_sd, abs=0.005)
+        assert (got["within_3_percent"], got["within_target"]) == (within, target)
+    assert r["every_type_within_target"] == 3
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("part,cps4,cps8", [("quarter", (3.3463, 3.3463, 90.0), (3.8421, 3.8421, 90.0)),
                                             ("full", (3.2469, 3.2915, 89.4), (3.3151, 3.4993, 89.4))])
 def test_kirsch_plate_from_a_grey_value_image_with_the_labels_faces_as_they_are(tmp_path, part, cps4, cps8):
@@ -716,20 +737,22 @@ def _preset_sets() -> list[str]:
 def test_the_static_stress_preset_is_the_validated_settings_and_meets_the_lame_target(tmp_path):
     """The static-stress preset (``preset: static-stress``, config/static-stress.yaml) is today's
     defaults with the settings that meet every label-only target (docs/validation.md §4): a
-    layer, relaxed samples, curved mid-edge nodes, order 2. The Lamé bore from labels at a = 7
-    within 3 %, C3D8 and C3D20 (measured +0.3 / -2.1 %)."""
+    layer, relaxed samples, the fit's radius 7, curved mid-edge nodes, order 2. The Lamé bore from
+    labels at a = 7 within 3 %, C3D8 and C3D20 (measured +0.9 / -1.1 %; at the radius 5 +0.3 /
+    -2.1 %)."""
     from dicer.config import default_config, load_config
 
     preset = load_config(sets=["preset=static-stress"])
     defaults = default_config()
     changed = {(s, k) for s in defaults if isinstance(defaults[s], dict)
                for k in defaults[s] if preset[s].get(k) != defaults[s][k]}
-    assert changed == {("smooth", "pillow"), ("smooth", "label_samples"), ("export", "order"),
-                       ("export", "midside_nodes")}
-    assert sorted(_preset_sets()) == sorted([PILLOW, "smooth.label_samples=auto", CURVED])  # labels: relaxed
+    assert changed == {("smooth", "pillow"), ("smooth", "label_samples"), ("smooth", "label_surface_radius"),
+                       ("export", "order"), ("export", "midside_nodes")}
+    assert sorted(_preset_sets()) == sorted([PILLOW, "smooth.label_samples=auto", "smooth.label_surface_radius=7",
+                                             CURVED])  # labels: relaxed
     # the cases start from the smoothing before today's defaults (BASE_SMOOTHING): TODAY restores them
     r = cases.lame(tmp_path, "quarter", TODAY + _preset_sets(), inner=7.0, outer=14.0)
     assert r["inverted"] == 0 and r["min_sj"] >= 0.3
-    for order, measured in ((1, 0.0031), (2, -0.0210)):
+    for order, measured in ((1, 0.0090), (2, -0.0107)):
         assert r[order]["error_mean"] == pytest.approx(measured, abs=0.005)
         assert abs(r[order]["error_mean"]) < 0.03

@@ -180,7 +180,8 @@ def test_changing_export_settings_reruns_only_export_and_later(cohort):
         # takes it; with the file's own keys at their defaults beside it, they win and it says so
         config = yaml.safe_load(original)
         config["preset"] = "static-stress"
-        for section, keys in (("smooth", ("pillow", "label_samples")), ("export", ("order", "midside_nodes"))):
+        for section, keys in (("smooth", ("pillow", "label_samples", "label_surface_radius")),
+                              ("export", ("order", "midside_nodes"))):
             for key in keys:
                 config.get(section, {}).pop(key, None)
         config_path.write_text(yaml.safe_dump(config, sort_keys=False))

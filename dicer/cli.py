@@ -439,6 +439,9 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
                      report["islands"]["removed_parts"], settings["min_component_voxels"],
                      report["islands"]["removed_voxels"], brief_json(removed))
         if not fixed.any():
+            if not np.any(labels.array):
+                raise DicerError(f"{labels_path}: every voxel is 0 (background): there is nothing to fix or mesh; "
+                                 "give the label volume of the part (labelled voxels 1 or more)")
             if report["islands"]["removed_parts"]:
                 raise DicerError(f"{labels_path}: every part of the model is smaller than fix.min_component_voxels="
                                  f"{settings['min_component_voxels']}; lower it (0 keeps every part)")

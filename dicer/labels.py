@@ -156,8 +156,11 @@ def resolve_materials(values, *, materials: list[dict], map: dict, drop: list,  
                          f"takes when it has no entry, so the two would become one material; map value "
                          f"{automatic[name]} too (to {name!r} to join them), or choose another name")
     if not number:
+        if not any(lut):  # nothing but 0: no labels.drop could have left something
+            raise DicerError(f"{source}: every voxel is 0 (background): there is nothing to mesh; give the "
+                             "label volume of the part (labelled voxels 1 or more)")
         raise DicerError(f"{source}: no labelled voxels are left (values found: "
-                         f"{', '.join(str(v) for v in sorted(lut)) or 'none'}, dropped: {sorted(drop)}); "
+                         f"{', '.join(str(v) for v in sorted(lut))}, dropped: {sorted(drop)}); "
                          "check labels.drop in the config")
     given = {m["name"]: m for m in materials}
     # the default materials (a scan's soft tissue and bone) are no entries the user wrote

@@ -455,6 +455,23 @@ def test_run_labels_all_dropped_is_one_error(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_run_labels_all_background_says_so(tmp_path, capsys):
+    """A volume of zeros: nothing was dropped, so the message does not send the user to labels.drop."""
+    src = tmp_path / "seg.npy"
+    np.save(src, np.zeros((3, 3, 3), np.uint8))
+    out = tmp_path / "out"
+    assert _cli("run", "--labels", src, "-o", out) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"error: {src}: every voxel is 0 (background): there is nothing to mesh; give the label volume "
+                   "of the part (labelled voxels 1 or more) (dicer run stopped at the labels stage)"]
+    assert not out.exists()
+    assert _cli("fix", src, "-o", tmp_path / "fixed.nii.gz") == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"error: {src}: every voxel is 0 (background): there is nothing to fix or mesh; give the label volume of "
+        "the part (labelled voxels 1 or more)"]
+    assert not (tmp_path / "fixed.nii.gz").exists()
+
+
 def test_run_names_the_given_file_for_a_fault_of_its_labels(tmp_path, capsys):
     src = tmp_path / "seg.nii.gz"
     a = np.zeros((6, 6, 6), np.int16)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import logging
 import re
 
@@ -237,6 +238,66 @@ def test_the_curved_elements_screen_decides_as_the_exact_sums(shift, size, seed)
         lo, hi = (mid, hi) if ratio(mid) >= quadratic._CURVED_FLOOR else (lo, mid)
     points, cells = _bent_cubes(offset, size, np.array([lo, hi]))
     assert quadratic._failing(points, cells, grads, 3).tolist() == [False, True]
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.floats(-2000.0, 2000.0), st.floats(0.01, 5.0), st.integers(0, 2**32 - 1), st.sampled_from([2, 3]))
+def test_quadratic_volumes_are_the_gauss_sums_of_the_jacobian(shift, size, seed, dim):
+    """The volumes of bent quadratic elements (curved mid-edge nodes) are the 3^d-point Gauss
+    sums of det J, taken here by numpy's determinant; with the mid-edge nodes put at their
+    midpoints, the linear element's volume (the shoelace or the hexahedron's) to rounding."""
+    from dicer.mesh.metrics import element_volumes
+
+    rng = np.random.default_rng(seed)
+    offset = np.array([shift, -0.5 * shift, 0.25 * shift])[:dim]
+    nodes = quadratic._HEX_NODES if dim == 3 else quadratic._QUAD_NODES
+    corners = 2**dim
+    m = 50
+    points = ((nodes[None] + 1.0) / 2.0 * size + offset) + rng.normal(0.0, 0.05 * size, (m,) + nodes.shape)
+    points = np.concatenate([points, np.zeros((m, nodes.shape[0], 3 - dim))], axis=2).reshape(-1, 3)
+    cells = np.arange(m * nodes.shape[0]).reshape(m, -1)
+    g, w = np.array([-np.sqrt(0.6), 0.0, np.sqrt(0.6)]), np.array([5.0, 8.0, 5.0]) / 9.0
+    at = np.array(list(itertools.product(g, repeat=dim)))
+    weight = np.prod(np.array(list(itertools.product(w, repeat=dim))), axis=1)
+    grads = quadratic._serendipity_gradients(nodes, at)
+    exact = np.linalg.det(np.einsum("pka,bkc->bpac", grads, points[cells][..., :dim])) @ weight
+    got = quadratic._gauss_volumes(points, cells, dim)
+    assert np.allclose(got, exact, rtol=1e-9, atol=1e-9 * size**dim)
+    # (the shoelace at 2,000 mm from the origin loses more than the tolerance: taken at the cubes)
+    linear = element_volumes(points - np.append(offset, np.zeros(3 - dim)), cells[:, :corners])
+    assert np.allclose(quadratic._gauss_volumes(points, cells, dim, straight=True), linear, rtol=1e-9,
+                       atol=1e-9 * size**dim)
+
+
+def test_curved_mid_edge_nodes_that_swell_a_small_part_are_said(tmp_path, caplog):
+    """A ball of radius 3 voxels under the static-stress preset: its curved mid-edge nodes add a
+    tenth to the volume quality.json reports (the arcs through few nodes; measured +10.35 %: the
+    deck integrated by Gmsh 160.1 mm^3 against 145.1), which the export says, naming the setting
+    that keeps it; a ball of radius 8 changes by +1.64 %, said at INFO."""
+    from dicer.cli import main
+
+    z, y, x = np.mgrid[:24, :24, :24] - 11.5
+    for radius in (3.01, 8.0):
+        caplog.clear()
+        np.save(tmp_path / "ball.npy", (x * x + y * y + z * z <= radius**2).astype(np.uint8))
+        out = tmp_path / f"out{radius:g}"
+        with caplog.at_level("INFO", logger="dicer"):
+            assert main(["run", "--labels", str(tmp_path / "ball.npy"), "-o", str(out), "-q", "--set",
+                         "preset=static-stress", "--set", "fix.min_component_voxels=0"]) == 0
+        said = [r for r in caplog.records if "curved mid-edge nodes change" in r.getMessage()]
+        model = meshio.read(out / "model.vtu")
+        cells = model.get_cells_type("hexahedron20")
+        deck = quadratic._gauss_volumes(model.points, cells, 3).sum()
+        linear = quadratic._gauss_volumes(model.points, cells, 3, straight=True).sum()
+        change = float(re.search(r"([+-][0-9.]+) %", said[0].getMessage()).group(1))
+        assert len(said) == 1 and change == pytest.approx(100 * (deck / linear - 1), abs=0.05)  # as printed
+        if radius < 4:
+            assert said[0].levelname == "WARNING" and change > 8
+            assert "set export.midside_nodes: midpoint" in said[0].getMessage()
+        else:  # the chords cut inside the sphere, the arcs bulge past it (measured -0.61 %, +1.02 %)
+            ball = 4 / 3 * np.pi * radius**3
+            assert said[0].levelname == "INFO" and 0 < change < 2
+            assert -0.01 < linear / ball - 1 < 0 < deck / ball - 1 < 0.015
 
 
 def test_curved_mid_edge_nodes_on_a_merged_mesh_follow_the_sphere(caplog):

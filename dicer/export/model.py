@@ -442,14 +442,44 @@ def quadratic_nodes(mesh: Mesh, midside_nodes: str, neighbours=None
     across : (M, F) ndarray or None
         With curved: the material across each face (0 for none), which the sets take too.
     """
-    from dicer.mesh.quadratic import quadratic_mesh
+    from dicer.mesh.quadratic import curving_volume_change, quadratic_mesh
 
     across = None
     boundary = None
     if midside_nodes == "curved":
         across = _materials_across(mesh, neighbours)
         boundary = across != mesh.material[:, None].astype(across.dtype)
-    return (*quadratic_mesh(mesh, boundary), across)
+    points, cells, lattice2 = quadratic_mesh(mesh, boundary)
+    if midside_nodes == "curved":
+        _say_curving(mesh, curving_volume_change(mesh, points, cells))
+    return points, cells, lattice2, across
+
+
+CURVING_VOLUME_WARNING = 0.05
+"""A material's volume changed by this share by curved mid-edge nodes is warned of: quality
+reports the linear mesh's (measured 0.0-0.5 % on smooth parts and the head CT, +10 % on a ball
+of radius 3 voxels)."""
+
+
+def _say_curving(mesh: Mesh, change: dict[int, float]) -> None:
+    """Log what curved mid-edge nodes did to the materials' volumes; warn where it is much."""
+    if not change:
+        return
+    names = list(mesh.names or ())
+
+    def name(m: int) -> str:
+        return names[m - 1] if 0 < m <= len(names) else f"material {m}"
+
+    much = {m: v for m, v in change.items() if abs(v) > CURVING_VOLUME_WARNING}
+    if much:
+        log.warning("export: the curved mid-edge nodes change the volume of %s from the linear mesh's (which "
+                    "quality.json reports): parts a few elements across bend their arcs through few nodes; set "
+                    "export.midside_nodes: midpoint to keep the linear mesh's volumes",
+                    ", ".join(f"{name(m)} {100 * v:+.1f} %" for m, v in sorted(much.items())))
+    else:
+        m = max(change, key=lambda k: abs(change[k]))
+        log.info("export: the curved mid-edge nodes change the materials' volumes by %+.2f %% at most (%s)",
+                 100 * change[m], name(m))
 
 
 def _materials_across(mesh: Mesh, neighbours=None) -> np.ndarray:

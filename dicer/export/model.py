@@ -442,16 +442,16 @@ def quadratic_nodes(mesh: Mesh, midside_nodes: str, neighbours=None
     across : (M, F) ndarray or None
         With curved: the material across each face (0 for none), which the sets take too.
     """
-    from dicer.mesh.quadratic import curving_volume_change, quadratic_mesh
+    from dicer.mesh.quadratic import curved_quadratic_mesh, curving_volume_change
 
     across = None
     boundary = None
     if midside_nodes == "curved":
         across = _materials_across(mesh, neighbours)
         boundary = across != mesh.material[:, None].astype(across.dtype)
-    points, cells, lattice2 = quadratic_mesh(mesh, boundary)
+    points, cells, lattice2, curved = curved_quadratic_mesh(mesh, boundary)
     if midside_nodes == "curved":
-        _say_curving(mesh, curving_volume_change(mesh, points, cells))
+        _say_curving(mesh, curving_volume_change(mesh, points, cells, curved))
     return points, cells, lattice2, across
 
 

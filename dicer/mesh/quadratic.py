@@ -454,10 +454,9 @@ def _det_ratio(points: np.ndarray, cells: np.ndarray, grads: np.ndarray, dim: in
     return out
 
 
-def _gauss_volumes(points: np.ndarray, cells: np.ndarray, dim: int, straight: bool = False) -> np.ndarray:
+def _gauss_volumes(points: np.ndarray, cells: np.ndarray, dim: int) -> np.ndarray:
     """(M,) volumes (2D: areas) of quadratic elements (``cells`` (M, K), node positions
-    ``points`` mm) by 3^d-point Gauss quadrature of their Jacobian determinant; ``straight``:
-    with every mid-edge node at its edge's midpoint (the linear element's volume).
+    ``points`` mm) by 3^d-point Gauss quadrature of their Jacobian determinant.
 
     By BLAS, as the fold check's screen (:func:`_det_ratio`): the volumes feed a warning, not
     the deck."""
@@ -467,16 +466,12 @@ def _gauss_volumes(points: np.ndarray, cells: np.ndarray, dim: int, straight: bo
     grads = _serendipity_gradients(_HEX_NODES if dim == 3 else _QUAD_NODES, at)
     p, k = grads.shape[0], grads.shape[1]
     rows = np.ascontiguousarray(grads.transpose(0, 2, 1).reshape(p * dim, k))
-    ends = HEX_EDGES if dim == 3 else QUAD_EDGES
-    corners = k - ends.shape[0]
     out = np.empty(cells.shape[0])
     for start in range(0, cells.shape[0], _BLOCK):
         block = cells[start:start + _BLOCK]
         x = np.empty((k, dim, block.shape[0]))
         for c in range(dim):
             x[:, c] = points[block.T, c]
-        if straight:
-            x[corners:] = 0.5 * (x[ends[:, 0]] + x[ends[:, 1]])
         x -= x[:1].copy()
         jac = (rows @ x.reshape(k, -1)).reshape(p, dim, dim, -1)  # dx_c / dxi_a at (P, a, c, B)
         if dim == 3:
@@ -489,7 +484,8 @@ def _gauss_volumes(points: np.ndarray, cells: np.ndarray, dim: int, straight: bo
     return out
 
 
-def curving_volume_change(mesh: Mesh, points: np.ndarray, cells: np.ndarray) -> dict[int, float]:
+def curving_volume_change(mesh: Mesh, points: np.ndarray, cells: np.ndarray, curved: np.ndarray
+                          ) -> dict[int, float]:
     """What curved mid-edge nodes add to each material's volume: {material: change relative to
     the linear mesh's volume of it (which quality reports)}, for the materials whose elements
     hold a curved one.
@@ -498,27 +494,19 @@ def curving_volume_change(mesh: Mesh, points: np.ndarray, cells: np.ndarray) -> 
     ----------
     mesh : Mesh
         The linear mesh.
-    points, cells : ndarray
-        Its quadratic mesh (:func:`quadratic_mesh`).
+    points, cells, curved : ndarray
+        Its quadratic mesh and the elements holding a curved mid-edge node
+        (:func:`curved_quadratic_mesh`).
     """
-    dim = mesh.dim
-    ends = HEX_EDGES if dim == 3 else QUAD_EDGES
-    corners = cells.shape[1] - ends.shape[0]
-    rows = 1 << 16
-    holding = []
-    for start in range(0, cells.shape[0], rows):  # in pieces: (M, 12, 3) of coordinates would take GBs
-        block = cells[start:start + rows]
-        mid = points[block[:, corners:]]
-        half = 0.5 * (points[block[:, ends[:, 0]]] + points[block[:, ends[:, 1]]])
-        holding.append(start + np.flatnonzero(np.any(mid != half, axis=(1, 2))))
-    holding = np.concatenate(holding)
-    if holding.size == 0:
+    if curved.size == 0:
         return {}
-    added = _gauss_volumes(points, cells[holding], dim) - _gauss_volumes(points, cells[holding], dim, straight=True)
+    linear = np.asarray(mesh.cells)
+    volume = element_volumes(mesh.points, linear)
+    added = _gauss_volumes(points, cells[curved], mesh.dim) - volume[curved]
     material = np.asarray(mesh.material, np.int64)
-    own = np.bincount(material, weights=element_volumes(mesh.points, np.asarray(mesh.cells)))
-    gained = np.bincount(material[holding], weights=added, minlength=own.size)
-    return {int(m): float(gained[m] / own[m]) for m in np.unique(material[holding]) if own[m] > 0}
+    own = np.bincount(material, weights=volume)
+    gained = np.bincount(material[curved], weights=added, minlength=own.size)
+    return {int(m): float(gained[m] / own[m]) for m in np.unique(material[curved]) if own[m] > 0}
 
 
 _SCREEN_MARGIN = 1e-6
@@ -547,9 +535,10 @@ def _failing(points: np.ndarray, cells: np.ndarray, grads: np.ndarray, dim: int,
     return fails
 
 
-def _straighten_folds(mesh: Mesh, edges: np.ndarray, index: np.ndarray, mid: np.ndarray) -> np.ndarray:
+def _straighten_folds(mesh: Mesh, edges: np.ndarray, index: np.ndarray, mid: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
     """``mid`` with the curved mid-edge nodes of elements that the curve folds put back at
-    their edge's midpoint, until no element with a curved node fails (:func:`_failing`: under
+    their edge's midpoint, and (E,) bool: the mid-edge nodes left curved; until no element with a curved node fails (:func:`_failing`: under
     the floor and worse than with straight edges); an element whose mid-edge nodes are all
     midpoints is the linear mesh's, which the smoothing's guard checked. After the first pass
     only the elements around the nodes put back are checked again (the others did not change)."""
@@ -580,11 +569,19 @@ def _straighten_folds(mesh: Mesh, edges: np.ndarray, index: np.ndarray, mid: np.
     if reset:
         logging.getLogger("dicer").info("export: %d curved mid-edge node(s) put back at their edge's midpoint (the "
                                         "curve would fold their elements)", reset)
-    return mid
+    return mid, curved
 
 
 def quadratic_mesh(mesh: Mesh, boundary_faces: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Points, 20-node (8-node) cells and doubled lattice indices of the quadratic mesh.
+    """Points, 20-node (8-node) cells and doubled lattice indices of the quadratic mesh
+    (:func:`curved_quadratic_mesh` without the elements it curved)."""
+    return curved_quadratic_mesh(mesh, boundary_faces)[:3]
+
+
+def curved_quadratic_mesh(mesh: Mesh, boundary_faces: np.ndarray | None = None
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Points, 20-node (8-node) cells and doubled lattice indices of the quadratic mesh, and
+    the elements holding a curved mid-edge node.
 
     Parameters
     ----------
@@ -604,15 +601,20 @@ def quadratic_mesh(mesh: Mesh, boundary_faces: np.ndarray | None = None) -> tupl
     lattice2 : (N + E, 3) int64 ndarray
         Twice the lattice index (a mid-edge node: the sum of its ends' indices), so
         bounding-plane tests stay exact.
+    curved : (C,) int64 ndarray
+        The elements holding a mid-edge node off its edge's midpoint, ascending.
     """
     cells = np.asarray(mesh.cells, dtype=np.int64)
     n = mesh.n_points
     edges, index, along_lines = edges_by_lattice(mesh, cells)
     if boundary_faces is not None:  # along lattice lines where every edge runs on one, else by arcs
         place = curved_midpoints if along_lines else arc_midpoints
-        mid_points = _straighten_folds(mesh, edges, index, place(mesh, edges, index, boundary_faces))
+        mid_points, bent = _straighten_folds(mesh, edges, index, place(mesh, edges, index, boundary_faces))
+        curved = np.flatnonzero(bent[index].any(axis=1))
+        del bent
     else:
         mid_points = 0.5 * (mesh.points[edges[:, 0]] + mesh.points[edges[:, 1]])
+        curved = np.zeros(0, np.int64)
     # the results built in place, a column at a time: no (E, 3) or (M, 12) temporaries beside them
     points = np.concatenate([mesh.points, mid_points])
     del mid_points
@@ -625,4 +627,4 @@ def quadratic_mesh(mesh: Mesh, boundary_faces: np.ndarray | None = None) -> tupl
     quadratic = np.empty((cells.shape[0], cells.shape[1] + index.shape[1]), np.int64)
     quadratic[:, :cells.shape[1]] = cells
     np.add(index, n, out=quadratic[:, cells.shape[1]:])
-    return points, quadratic, lattice2
+    return points, quadratic, lattice2, curved

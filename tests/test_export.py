@@ -651,5 +651,17 @@ def test_coordinates_printed_near_the_voxel_size_are_warned_of(tmp_path, caplog)
     labels = np.ones((3, 3, 3), np.uint8)
     mesh = voxel_mesh(labels, spacing=(1e-3, 1e-3, 1e-3), origin=(-2e4, 0.0, 0.0))  # a shift of 10 % of a voxel
     export_mesh(mesh, tmp_path / "m.inp")
-    assert "of the smallest voxel edge (0.001 mm): the model lies up to 20000 mm from the origin; set " \
-           "export.digits: 13" in caplog.text
+    assert "of the smallest voxel edge (0.001 mm): the model lies up to 20000 mm from the origin and spans " \
+           "0.003 mm; set export.digits: 13, or place the image's origin near the model" in caplog.text
+
+
+def test_a_model_too_long_for_its_voxels_is_not_told_to_move_its_origin(tmp_path):
+    """Voxels 1e-4 x 1e-4 x 1000 mm, the origin at the model: 9 digits cannot print the 0.1 um
+    voxels of a model 22 m long wherever its origin lies, so only more digits are named."""
+    labels = np.zeros((6, 6, 24), np.uint8)
+    labels[1:5, 1:5, 1:23] = 1
+    mesh = voxel_mesh(labels, spacing=(1e-4, 1e-4, 1000.0))
+    with pytest.raises(DicerError) as refused:
+        export_mesh(mesh, tmp_path / "m.inp")
+    assert "spans 22000 mm; set export.digits: 13 (elements could turn inside out)" in str(refused.value)
+    assert "origin near" not in str(refused.value) and not (tmp_path / "m.inp").exists()

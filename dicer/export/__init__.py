@@ -102,9 +102,13 @@ def _check_printed_digits(fmt: Format, model: SolverModel, mesh: Mesh, digits: i
         return
     fix = ("set export.digits: 13" if max(fmt.digits) > printed else
            "export to .inp or .feb with export.digits: 13, or to .exo or .vtu (exact)")
+    # an origin at the model's centre helps only where the model is small beside its distance
+    span = float((model.points.max(axis=0) - model.points.min(axis=0)).max())
+    if span / 2 * 10.0 ** (1 - printed) / 2 <= PRINTED_SHIFT_WARNING * voxel:
+        fix += ", or place the image's origin near the model"
     text = (f"{path}: the coordinates, printed with {printed} significant digits, move nodes by up to {shift:.3g} mm, "
             f"{100 * shift / voxel:.3g} % of the smallest voxel edge ({voxel:g} mm): the model lies up to {reach:.6g} "
-            f"mm from the origin; {fix}, or place the image's origin near the model")
+            f"mm from the origin and spans {span:.6g} mm; {fix}")
     if shift > PRINTED_SHIFT_ERROR * voxel:
         raise DicerError(text + " (elements could turn inside out)")
     log.warning("export: %s", text)

@@ -940,7 +940,7 @@ def do_mesh(labels_path: str, out: Path, config: dict, write=_now):
             log.warning("mesh: the 2D image's direction cosines (%s) are not applied: a 2D model lies in the "
                         "image's index frame, flipped or turned against the scanner's axes as they are "
                         "(docs/coordinates.md)", " ".join(f"{v:g}" for v in labels.direction))
-        _warn_of_long_voxels(labels.spacing)
+        _warn_of_long_voxels(labels.spacing, labels.array.shape)
         try:
             mesh = mesh_labels(labels, **stage_kwargs(config, "mesh"))
         except DicerError as exc:
@@ -955,12 +955,14 @@ LONG_VOXELS = 3.0
 reads poorly (thick clinical slices); the mesh stage says so before it makes them."""
 
 
-def _warn_of_long_voxels(spacing) -> None:
-    """Warn of voxels LONG_VOXELS or more times longer along one axis, with a factor per axis that evens them."""
+def _warn_of_long_voxels(spacing, shape) -> None:
+    """Warn of voxels LONG_VOXELS or more times longer along one axis, with a factor per axis that evens them
+    (at most half the axis's voxels: a coarser grid keeps two)."""
     sizes = [float(v) for v in spacing]
     if max(sizes) < LONG_VOXELS * min(sizes):
         return
-    even = [max(1, int(round(max(sizes) / v))) if v < max(sizes) / 1.5 else 1 for v in sizes]
+    even = [max(1, min(int(round(max(sizes) / v)), n // 2)) if v < max(sizes) / 1.5 else 1
+            for v, n in zip(sizes, shape)]
     long_axes = [1 if v >= max(sizes) / 1.5 else 0 for v in sizes]
     log.warning("mesh: the voxels are %s mm, %.0f times longer along one axis: every element is as long; a "
                 "downsample.factor per axis up to %s makes them nearer cubic (the larger, the more thin parts the "

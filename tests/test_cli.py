@@ -647,17 +647,19 @@ def test_mesh_warns_of_long_voxels_with_a_factor_per_axis(tmp_path, caplog):
     from dicer.image import Volume
     from dicer.io.images import write_image
 
-    lab = np.zeros((12, 12, 4), np.uint8)
-    lab[2:10, 2:10, 1:3] = 1
-    for spacing, said in (((0.5, 0.5, 5.0), True), ((1.0, 1.0, 2.0), False)):
+    # the factor at most half an axis's voxels (a grid 12 voxels across was told 10, which leaves one)
+    for size, spacing, factor in ((24, (0.5, 0.5, 5.0), "[10, 10, 1]"), (12, (0.5, 0.5, 5.0), "[6, 6, 1]"),
+                                  (24, (1.0, 1.0, 2.0), None)):
+        lab = np.zeros((size, size, 4), np.uint8)
+        lab[2:10, 2:10, 1:3] = 1
         write_image(Volume(lab, spacing), tmp_path / "l.nii.gz")
         caplog.clear()
         assert main(["mesh", str(tmp_path / "l.nii.gz"), "-o", str(tmp_path / "m.vtu"), "-q"]) == 0
         warned = [r.getMessage() for r in caplog.records if "times longer along one axis" in r.getMessage()]
-        assert len(warned) == int(said)
-        if said:
+        assert len(warned) == int(factor is not None)
+        if factor:
             assert warned[0].startswith("mesh: the voxels are 0.5 x 0.5 x 5 mm, 10 times longer")
-            assert "up to [10, 10, 1]" in warned[0] and "merge.passes [1, 1, 0]" in warned[0]
+            assert f"up to {factor}" in warned[0] and "merge.passes [1, 1, 0]" in warned[0]
 
 
 def test_run_outputs_hold_every_model_format_workflow_exports_names():

@@ -702,13 +702,13 @@ def test_run_places_the_mid_edge_nodes_of_its_order_2_decks_once(tmp_path, monke
     ball[np.sum(g * g, axis=0) <= 5.2**2] = 1
     np.save(tmp_path / "ball.npy", ball)
     calls = []
-    made = quadratic.quadratic_mesh
+    made = quadratic.curved_quadratic_mesh
 
     def counted(mesh, boundary_faces=None):
         calls.append(boundary_faces is not None)
         return made(mesh, boundary_faces)
 
-    monkeypatch.setattr(quadratic, "quadratic_mesh", counted)
+    monkeypatch.setattr(quadratic, "curved_quadratic_mesh", counted)
     sets = ["--set", "image.spacing=[1,1,1]", "--set", "export.order=2", "--set", "export.midside_nodes=curved"]
     assert main(["run", "--labels", str(tmp_path / "ball.npy"), "-o", str(tmp_path / "out"), "-q", *sets]) == 0
     assert calls == [True]  # two decks, one placement

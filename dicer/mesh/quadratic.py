@@ -497,6 +497,11 @@ def curving_volume_change(mesh: Mesh, points: np.ndarray, cells: np.ndarray, cur
     points, cells, curved : ndarray
         Its quadratic mesh and the elements holding a curved mid-edge node
         (:func:`curved_quadratic_mesh`).
+
+    Returns
+    -------
+    dict
+        {material number: (volume with the curved nodes - linear volume) / linear volume}.
     """
     if curved.size == 0:
         return {}
@@ -573,8 +578,19 @@ def _straighten_folds(mesh: Mesh, edges: np.ndarray, index: np.ndarray, mid: np.
 
 
 def quadratic_mesh(mesh: Mesh, boundary_faces: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Points, 20-node (8-node) cells and doubled lattice indices of the quadratic mesh
-    (:func:`curved_quadratic_mesh` without the elements it curved)."""
+    """Points, 20-node (8-node) cells and doubled lattice indices of the quadratic mesh.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    boundary_faces : (M, F) bool ndarray, optional
+        As for :func:`curved_quadratic_mesh`.
+
+    Returns
+    -------
+    points, cells, lattice2 : ndarray
+        As :func:`curved_quadratic_mesh` gives them (without the elements it curved).
+    """
     return curved_quadratic_mesh(mesh, boundary_faces)[:3]
 
 

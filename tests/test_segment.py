@@ -814,3 +814,11 @@ def test_ranges_outside_a_shifted_ct_name_the_lost_rescale_intercept():
     with _pytest.raises(DicerError) as info:
         check_ranges([[-400.0, -300.0], [100.0, 1000.0]], 2, names, -200.0, 800.0, "ct.nii.gz")
     assert "1024" not in str(info.value)
+    # an MR (0 .. 993), a CT exported as 0 .. 1 or as a windowed 8-bit image: no value near air's
+    # -1000 HU (the hint was given only above 1000)
+    for hi in (993.0, 1.0, 255.0):
+        with _pytest.raises(DicerError, match=r"move the range inside the image's values; the image has no value "
+                                              r"near air's -1000 HU: if it is an MR, or a scan in other units than "
+                                              r"HU, give segment.ranges \(or segment.thresholds\) in its own values, "
+                                              r"or segment.method: multiotsu$"):
+            check_ranges([[-400.0, 0.0], [100.0, 1000.0]], 2, names, 0.0, hi, "mr.nii.gz")

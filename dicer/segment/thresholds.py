@@ -306,13 +306,16 @@ def check_ranges(ranges, k: int, names: list[str], lo: float, hi: float, source:
             raise DicerError(f"{source}: {key} for class '{name}' is [{a:g}, {b:g}]; low must be below high")
         if b <= lo or a >= hi:
             # no negative values up to a thousand and more: a CT whose rescale intercept was lost
-            # (stored as HU + 1024, air near 0) more often than not
-            shifted = ("; a CT stored as HU + 1024 (its rescale intercept lost: air near 0) needs 1024 subtracted, or "
-                       "ranges shifted by +1024 for every material; an MR needs ranges in its own values, or "
-                       "segment.method: multiotsu" if lo > -50 and hi > 1000 else
-                       f"; an image of {few} whole values from 0 is most likely a label volume: give it with "
+            # (stored as HU + 1024, air near 0) more often than not; no value near air's -1000 HU
+            # at all: an MR, or a scan in other units (0 .. 1, a windowed 8-bit export)
+            shifted = (f"; an image of {few} whole values from 0 is most likely a label volume: give it with "
                        "--labels (dicer run --labels, dicer labels)" if (few := _few_whole_values(values, lo, hi))
-                       else "")
+                       else "; a CT stored as HU + 1024 (its rescale intercept lost: air near 0) needs 1024 "
+                       "subtracted, or ranges shifted by +1024 for every material; an MR needs ranges in its own "
+                       "values, or segment.method: multiotsu" if lo > -50 and hi > 1000 else
+                       "; the image has no value near air's -1000 HU: if it is an MR, or a scan in other units "
+                       "than HU, give segment.ranges (or segment.thresholds) in its own values, or segment.method: "
+                       "multiotsu" if lo > -500 else "")
             raise DicerError(f"{source}: {key} for class '{name}' is [{a:g}, {b:g}] but the image's values span "
                              f"{lo:g} .. {hi:g}; move the range inside the image's values{shifted}")
         out.append((a, b))

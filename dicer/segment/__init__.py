@@ -46,6 +46,13 @@ voxels of the part kept (a CT table or headrest holds far less than a body: 1.4 
 head CT; a specimen inside an open sample tube a fifth of the tube)."""
 
 
+AMBIGUOUS_CRITERION = 0.005
+"""Two thresholds of one class whose criterion J differs by less than this, at peaks apart by
+a dip deeper than it, are reported: a small change of the scan outside the body can then
+swap them (the head phantom's bone at 3.5 mm voxels: 180 or 956 HU 1.6e-4 apart, bone -31 %
+with the other; the head CT's second peak lies 0.026 below its first)."""
+
+
 def class_priority(names: list[str], priority, source: str = "") -> list[int]:
     """Class labels in priority order, highest first, from ``segment.priority``.
 
@@ -308,6 +315,53 @@ def _range_warnings(info: dict, names: list[str], lo: float, hi: float) -> list[
     return warnings
 
 
+def _second_peak(thresholds: np.ndarray, values: np.ndarray, taken: int) -> int | None:
+    """The candidate at the highest other peak of a class's criterion curve within
+    AMBIGUOUS_CRITERION of the one taken (index ``taken``), a dip deeper than that between
+    them; None if there is none."""
+    v = np.asarray(values, float)
+    if v.size < 3:
+        return None
+    left = np.r_[True, v[1:] >= v[:-1]]
+    right = np.r_[v[:-1] >= v[1:], True]
+    best = None
+    for j in np.flatnonzero(left & right):  # a loop over the curve's few peaks, not over voxels
+        if abs(int(j) - taken) <= 1 or v[taken] - v[j] > AMBIGUOUS_CRITERION:
+            continue
+        lo, hi = sorted((int(j), taken))
+        if min(v[j], v[taken]) - v[lo:hi + 1].min() > AMBIGUOUS_CRITERION and (best is None or v[j] > v[best]):
+            best = int(j)
+    return best
+
+
+def _ambiguity_warnings(info: dict, names: list[str], array: np.ndarray) -> list[str]:
+    """Warnings (and ``info["ambiguous_thresholds"]``) for classes whose shape-connectivity
+    criterion has a second peak as high as the one taken (:func:`_second_peak`), with the
+    voxels of ``array`` that lie between the two thresholds."""
+    if "criterion" not in info:
+        return []
+    said, found = [], {}
+    for c, name in enumerate(names):
+        curve = info["criterion"][name]
+        t, v = np.asarray(curve["thresholds"], float), np.asarray(curve["values"], float)
+        taken = int(np.argmin(np.abs(t - info["thresholds"][c])))
+        other = _second_peak(t, v, taken)
+        if other is None:
+            continue
+        a, b = sorted((float(t[taken]), float(t[other])))
+        between = int(np.count_nonzero((array >= a) & (array < b)))
+        found[name] = {"taken": float(t[taken]), "other": float(t[other]),
+                       "criterion": [float(v[taken]), float(v[other])], "voxels_between": between}
+        said.append(f"two thresholds of '{name}' score alike by the shape-connectivity criterion: {t[taken]:g} (taken, "
+                    f"J {v[taken]:.6g}) and {t[other]:g} (J {v[other]:.6g}); the {between} voxels between them "
+                    f"({100 * between / array.size:.2g} % of the image) change class with the choice, which a small "
+                    f"change of the scan (its field of view, a table, noise) can swap: check segmentation.png, or set "
+                    f"segment.thresholds")
+    if found:
+        info["ambiguous_thresholds"] = found
+    return said
+
+
 def _histogram_warnings(method: str, array: np.ndarray, values, names: list[str], thresholds) -> list[str]:
     """Warnings for thresholds from the histogram alone (otsu, multiotsu) that cut through one
     tissue's peak (:func:`thresholds_in_a_mode`): the histogram is split into as many classes as
@@ -424,7 +478,8 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
     info["removed_parts"] = {names[c - 1]: p for c, p in minfo["removed_parts"].items() if p["parts"]}
     info["classes"] = label_counts(labels, names)
     warnings = (_empty_class_warnings(info, names, thresholds) + _range_warnings(info, names, lo, hi)
-                + _histogram_warnings(method, searched, values, names, thresholds))
+                + _histogram_warnings(method, searched, values, names, thresholds)
+                + _ambiguity_warnings(info, names, searched))
     for name, removed in info["removed_by_opening"].items():
         kept, thresholded = info["classes"][name]["voxels"], info["thresholded"][name]
         if kept and removed >= OPENED_AWAY * thresholded:  # an empty class has its own warning

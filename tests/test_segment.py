@@ -846,3 +846,24 @@ def test_a_second_peak_of_the_criterion_as_high_as_the_first_is_said():
     assert _second_peak(t, np.array([0.0, 1.0, 0.9, 0.5, 0.4, 0.5, 0.998, 0.9, 0.0]), 1) == 6
     assert _second_peak(t, np.array([0.0, 1.0, 0.999, 0.998, 0.9, 0.5, 0.4, 0.3, 0.0]), 1) is None
     assert _second_peak(t, np.array([0.0, 1.0, 0.9, 0.5, 0.4, 0.5, 0.99, 0.9, 0.0]), 1) is None
+
+
+def test_a_threshold_at_its_ranges_end_in_a_ct_names_large_voxels_not_other_units():
+    """The head CT as 1.91 x 1.91 x 6 mm slices put the bone threshold at 100, its range's end:
+    the warning told a CT in HU to set ranges 'if it is not CT in HU'; with air's -1000 in the
+    image it names the voxels' partial volume instead, and without air the other units."""
+    from dicer.segment import _range_warnings
+
+    names = ["soft_tissue", "bone"]
+    info = {"criterion": {n: {"thresholds": [a, a + 50.0, a + 100.0]} for n, a in zip(names, (-400.0, 100.0))},
+            "thresholds": [-300.0, 100.0], "ranges": [[-400.0, 0.0], [100.0, 1000.0]],
+            "classes": {"background": {"fraction": 0.4}}}
+    ct = _range_warnings(info, names, -1024.0, 2500.0, (1.91, 1.91, 6.0))
+    assert ct == ["the threshold of 'bone' (100) lies at an end of its search range [100, 1000]: the best split may "
+                  "lie outside it; the image spans -1024 .. 2500; the image holds air's -1000, so it is most likely a "
+                  "CT in HU: on voxels of 1.91 x 1.91 x 6 mm thin tissue averages with its surroundings (partial "
+                  "volume) and its values move towards theirs; check segmentation.png and set segment.thresholds, "
+                  "or segment.ranges"]
+    other = _range_warnings(info, names, 0.0, 2500.0, (1.0, 1.0, 1.0))
+    assert len(other) == 1 and other[0].endswith("if it is not CT in HU, set segment.ranges (or segment.thresholds) "
+                                                 "for its values")

@@ -292,18 +292,26 @@ def check_modality(modality: str | None, method: str, thresholds, ranges, source
                      f"or segment.{key} for this image's values")
 
 
-def _range_warnings(info: dict, names: list[str], lo: float, hi: float) -> list[str]:
+def _range_warnings(info: dict, names: list[str], lo: float, hi: float, spacing=()) -> list[str]:
     """Warnings for thresholds that suggest the image is not in the units the settings
-    assume (an MR or a rescaled image under the CT defaults)."""
+    assume (an MR or a rescaled image under the CT defaults), or, in a CT with air, that its
+    voxels average thin tissue with its surroundings (``spacing``, mm)."""
     warnings = []
     for name in names if "criterion" in info else ():
         candidates = info["criterion"][name]["thresholds"]
         t = info["thresholds"][names.index(name)]
         if len(candidates) > 2 and t in (candidates[0], candidates[-1]):
             low, high = info["ranges"][names.index(name)]
+            if lo <= NO_AIR_HU:  # air's -1000: a CT in HU, whose large voxels average thin bone with soft tissue
+                why = (f"the image holds air's -1000, so it is most likely a CT in HU: on voxels of "
+                       f"{' x '.join(f'{v:g}' for v in spacing)} mm thin tissue averages with its surroundings "
+                       "(partial volume) and its values move towards theirs; check segmentation.png and set "
+                       "segment.thresholds, or segment.ranges")
+            else:
+                why = "if it is not CT in HU, set segment.ranges (or segment.thresholds) for its values"
             warnings.append(f"the threshold of '{name}' ({t:g}) lies at an end of its search range [{low:g}, "
                             f"{high:g}]: the best split may lie outside it; the image spans {lo:g} .. {hi:g}; "
-                            "if it is not CT in HU, set segment.ranges (or segment.thresholds) for its values")
+                            f"{why}")
     background = info["classes"]["background"]["fraction"]
     if background < 0.01:
         # no air's -1000 HU, bone's thousands: most likely a CT whose rescale intercept was lost
@@ -477,7 +485,7 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
     info["removed_by_opening"] = {names[c - 1]: n for c, n in minfo["removed_by_opening"].items()}
     info["removed_parts"] = {names[c - 1]: p for c, p in minfo["removed_parts"].items() if p["parts"]}
     info["classes"] = label_counts(labels, names)
-    warnings = (_empty_class_warnings(info, names, thresholds) + _range_warnings(info, names, lo, hi)
+    warnings = (_empty_class_warnings(info, names, thresholds) + _range_warnings(info, names, lo, hi, image.spacing)
                 + _histogram_warnings(method, searched, values, names, thresholds)
                 + _ambiguity_warnings(info, names, searched))
     for name, removed in info["removed_by_opening"].items():

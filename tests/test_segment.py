@@ -856,7 +856,7 @@ def test_a_threshold_at_its_ranges_end_in_a_ct_names_large_voxels_not_other_unit
 
     names = ["soft_tissue", "bone"]
     info = {"criterion": {n: {"thresholds": [a, a + 50.0, a + 100.0]} for n, a in zip(names, (-400.0, 100.0))},
-            "thresholds": [-300.0, 100.0], "ranges": [[-400.0, 0.0], [100.0, 1000.0]],
+            "thresholds": [-350.0, 100.0], "ranges": [[-400.0, 0.0], [100.0, 1000.0]],
             "classes": {"background": {"fraction": 0.4}}}
     ct = _range_warnings(info, names, -1024.0, 2500.0, (1.91, 1.91, 6.0))
     assert ct == ["the threshold of 'bone' (100) lies at an end of its search range [100, 1000]: the best split may "

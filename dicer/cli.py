@@ -860,11 +860,6 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
                     "surface in to the scan's iso-surfaces where the labels lie outside them (parts that downsampling "
                     "or the segmentation's clean-up enlarged), and parts a few voxels across shrink in the fit: set "
                     "smooth.fit_to_scan: false to follow the labels, or lower smooth.label_surface_radius", said)
-    elif said and from_labels and fit.get("samples_relaxed"):  # the fairest staircase rounds thin parts thinner
-        log.warning("%s from the labels' voxels; the relaxed staircase (smooth.label_samples: relaxed, or auto on a "
-                    "label volume) rounds a part two or three voxels across to a thinner one, and the fit shrinks "
-                    "parts a few voxels across: set smooth.label_samples: faces to fit the labels' faces (a rod "
-                    "2 x 2 voxels: -34 %% against -75 %%)", said)
     elif said and from_labels:  # parts too small for the fit, or held back by the quality guard
         log.warning("%s from the labels' voxels; parts a few voxels across shrink most (the fit needs "
                     "smooth.label_surface_radius voxels of surface): lower smooth.coefficient or "

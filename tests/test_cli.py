@@ -403,28 +403,23 @@ def test_smooth_warns_when_it_shrinks_a_small_part(tmp_path, capsys, caplog):
     assert not [r for r in caplog.records if r.levelname == "WARNING"]
 
 
-def test_smooth_names_the_faces_when_the_relaxed_staircase_thins_a_rod(tmp_path, capsys, caplog):
-    """A rod 2 x 2 voxels across: its relaxed staircase (the static-stress preset's on a label
-    volume) rounds it to a third of its section; the warning names smooth.label_samples: faces,
-    which keeps four fifths of it (measured -64.7 % against -17.9 %; run as the preset runs, with
-    merging and the layer, -75 % against -34 % on a rod 32 voxels long)."""
+def test_a_relaxed_staircase_keeps_a_thin_rods_volume_as_the_faces_do(tmp_path, capsys):
+    """A rod 2 x 2 voxels across, smoothed with its staircase relaxed (the static-stress preset's
+    samples on a label volume): the fairing drew its section to a third (-64.7 % against the
+    faces' -17.9 %); each sheet of the relaxed staircase now keeps the labels' volume, and so
+    does the rod (measured +1.0 % against the faces' -17.9 %)."""
     rod = np.zeros((12, 12, 12), np.uint8)
     rod[5:7, 5:7, :] = 1
     np.save(tmp_path / "rod.npy", rod)
-    for argv in (["mesh", tmp_path / "rod.npy", "-o", tmp_path / "m.vtu"],
-                 ["smooth", tmp_path / "m.vtu", "--labels", tmp_path / "rod.npy", "-o", tmp_path / "s.vtu",
-                  "--report", tmp_path / "s.json", "--set", "smooth.label_samples=relaxed"]):
-        assert run_cli(capsys, *argv)[0] == 0
-    relaxed = 100 * json.loads((tmp_path / "s.json").read_text())["volume_change_from_labels_by_material"]["1"]
-    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING" and "volume" in r.getMessage()]
-    assert relaxed < -60 and len(warned) == 1 and "set smooth.label_samples: faces" in warned[0]
-    caplog.clear()
-    assert run_cli(capsys, "smooth", tmp_path / "m.vtu", "--labels", tmp_path / "rod.npy", "-o", tmp_path / "s.vtu",
-                   "--report", tmp_path / "s.json")[0] == 0
-    faces = 100 * json.loads((tmp_path / "s.json").read_text())["volume_change_from_labels_by_material"]["1"]
-    assert relaxed + 25 < faces < -10
-    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING" and "volume" in r.getMessage()]
-    assert len(warned) == 1 and "label_samples" not in warned[0]
+    assert run_cli(capsys, "mesh", tmp_path / "rod.npy", "-o", tmp_path / "m.vtu")[0] == 0
+    change = {}
+    for samples in ("relaxed", "faces"):
+        assert run_cli(capsys, "smooth", tmp_path / "m.vtu", "--labels", tmp_path / "rod.npy", "-o",
+                       tmp_path / "s.vtu", "--report", tmp_path / "s.json", "--set",
+                       f"smooth.label_samples={samples}")[0] == 0
+        change[samples] = 100 * json.loads((tmp_path / "s.json").read_text())[
+            "volume_change_from_labels_by_material"]["1"]
+    assert abs(change["relaxed"]) < 2 and change["faces"] < -15, change
 
 
 def test_stages_warn_when_labels_map_numbers_materials_otherwise_than_the_config(tmp_path, capsys, caplog):

@@ -259,8 +259,9 @@ def _placed_targets(lab: np.ndarray, corner: np.ndarray, inv: np.ndarray, face_n
 
 def _vertex_normals(x: np.ndarray, inv: np.ndarray, face_normal: np.ndarray, spacing: np.ndarray, n: int
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """(n, dim) unit normals into the higher kind and (n,) areas (mm^2; 2D: mm) of the faces
-    ``inv`` (F, k) of the vertices ``x`` (n, dim, voxels), summed at their vertices."""
+    """(n, dim) unit normals into the higher kind and (n,) areas (mm^2; 2D: mm, on voxels of
+    ``spacing`` mm) of the faces ``inv`` (F, k) of the vertices ``x`` (n, dim) in voxels, summed
+    at their vertices."""
     dim, k = x.shape[1], inv.shape[1]
     if dim == 2:
         tangent = x[inv[:, 1]] - x[inv[:, 0]]
@@ -284,8 +285,8 @@ def _volume_kept(x: np.ndarray, corner: np.ndarray, lo: np.ndarray, hi: np.ndarr
 
     The fairing's energy |L L x|^2 is not zero on a circle of few vertices but falls with its
     radius, so a part two or three voxels across relaxed to a fraction of its section (a rod
-    2 x 2 voxels: a quarter); on large parts the sheets sweep next to nothing (the head CT's:
-    0.1 % of a material's volume)."""
+    2 x 2 voxels: a quarter); on large parts the sheets sweep next to nothing (the head CT's
+    materials: under 0.1 % of their volume either way)."""
     from scipy.sparse.csgraph import connected_components
 
     sheets, sheet = connected_components(adj, directed=False)

@@ -543,10 +543,11 @@ def _failing(points: np.ndarray, cells: np.ndarray, grads: np.ndarray, dim: int,
 def _straighten_folds(mesh: Mesh, edges: np.ndarray, index: np.ndarray, mid: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray]:
     """``mid`` with the curved mid-edge nodes of elements that the curve folds put back at
-    their edge's midpoint, and (E,) bool: the mid-edge nodes left curved; until no element with a curved node fails (:func:`_failing`: under
-    the floor and worse than with straight edges); an element whose mid-edge nodes are all
-    midpoints is the linear mesh's, which the smoothing's guard checked. After the first pass
-    only the elements around the nodes put back are checked again (the others did not change)."""
+    their edge's midpoint, until no element with a curved node fails (:func:`_failing`: under
+    the floor and worse than with straight edges), and (E,) bool: the mid-edge nodes left
+    curved. An element whose mid-edge nodes are all midpoints is the linear mesh's, which the
+    smoothing's guard checked. After the first pass only the elements around the nodes put back
+    are checked again (the others did not change)."""
     x = mesh.points
     straight = 0.5 * (x[edges[:, 0]] + x[edges[:, 1]])
     curved = np.any(mid != straight, axis=1)

@@ -8,8 +8,10 @@ one per class, from the outermost (c = 1, the whole body) inwards:
 
 1. ``M'_1 = clean(M_1)`` and ``M'_c = clean(M_c & M'_{c-1})`` for c = 2..K, so that a
    part dropped from an outer class (a headrest) takes its inner classes with it;
-2. ``clean`` = opening by reconstruction (radius ``r_o``), then closing (radius
-   ``r_c``), then the component filters (``min_component_size``, ``keep='largest'``);
+2. ``clean`` = opening by reconstruction (radius ``r_o``), then the component filters
+   (``min_component_size``, ``keep='largest'``), then closing (radius ``r_c``): the parts are
+   chosen before the closing can bridge a voxel's gap between them (a CT table a voxel
+   below the head was kept with it);
 3. a voxel's label is the highest-priority class c that *claims* it, where class c
    claims v when ``v in M'_c`` and ``v not in M'_{c+1}`` (``M'_{K+1}`` is empty);
    a voxel no class claims is background. With nested results (the usual case) exactly
@@ -351,7 +353,8 @@ def clean_labels(labels: np.ndarray, n_classes: int, opening_radius: int, closin
         opened = opening_by_reconstruction(m, opening)
         removed[c] = before - int(np.count_nonzero(opened))
         dropped: list[int] = []
-        m = filter_components(closing(opened, closing_radii), keeps[c - 1], sizes[c - 1], dropped)
+        # the parts chosen before the closing, which would bridge a table a voxel from the body
+        m = closing(filter_components(opened, keeps[c - 1], sizes[c - 1], dropped), closing_radii)
         parts[c] = {"parts": len(dropped) - 1, "voxels": sum(dropped[:-1]),
                     "largest": dropped[0] if len(dropped) > 1 else 0, "largest_kept": dropped[-1]}
         masks.append(m)

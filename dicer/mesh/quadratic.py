@@ -414,41 +414,52 @@ largest, that keeps its curved mid-edge nodes (the quality guard's kind of margi
 solver needs det J > 0 at every integration point)."""
 
 
+def _block_dets(points: np.ndarray, block: np.ndarray, rows: np.ndarray, dim: int, screen: bool) -> np.ndarray:
+    """(P, B) Jacobian determinants of the quadratic elements ``block`` (B, K) at the P points
+    whose shape-function gradients ``rows`` (P d_a, K) hold.
+
+    ``screen``: by a BLAS matrix product of the nodes' offsets from the element's first node,
+    about three times faster; BLAS picks its kernels by the CPU, so these last bits vary from
+    CPU to CPU. Else by numpy's einsum, node by node in the same order on every CPU."""
+    k, b = block.shape[1], block.shape[0]
+    p = rows.shape[0] // dim
+    if screen:
+        # (K, d_c, B): each coordinate gathered whole, less the first node's (the element's
+        # size, not its distance from the origin, sets the error), then one matrix product
+        x = np.empty((k, dim, b))
+        for c in range(dim):
+            x[:, c] = points[block.T, c]
+        x -= x[:1].copy()
+        jac = (rows @ x.reshape(k, dim * b)).reshape(p, dim, dim, b)  # dx_c / dxi_a at (P, a, c, B)
+    else:
+        x = points[block, :dim]  # (B, K, d_c)
+        jac = np.einsum("qk,kn->qn", rows, np.ascontiguousarray(x.transpose(1, 0, 2)).reshape(k, b * dim),
+                        optimize=False).reshape(p, dim, b, dim).transpose(0, 1, 3, 2)
+    if dim == 3:
+        a, bb, c = jac[:, 0], jac[:, 1], jac[:, 2]  # (P, c, B)
+        return (a[:, 0] * (bb[:, 1] * c[:, 2] - bb[:, 2] * c[:, 1])
+                - a[:, 1] * (bb[:, 0] * c[:, 2] - bb[:, 2] * c[:, 0])
+                + a[:, 2] * (bb[:, 0] * c[:, 1] - bb[:, 1] * c[:, 0]))
+    return jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0]
+
+
+def _gradient_rows(grads: np.ndarray, dim: int) -> np.ndarray:
+    """(P d_a, K): the shape functions' gradients ``grads`` (P, K, d) as matrix rows."""
+    return np.ascontiguousarray(grads.transpose(0, 2, 1).reshape(grads.shape[0] * dim, grads.shape[1]))
+
+
 def _det_ratio(points: np.ndarray, cells: np.ndarray, grads: np.ndarray, dim: int, screen: bool = False) -> np.ndarray:
     """(M,) float: the smallest Jacobian determinant of each quadratic element (``cells``
     (M, K), node positions ``points`` mm) over the check points, relative to its largest;
     -inf where the largest is not positive.
 
-    ``screen``: the Jacobians by a BLAS matrix product of the nodes' offsets from the element's
-    first node, about three times faster; BLAS picks its kernels by the CPU, so these last bits
-    vary from CPU to CPU, and only :func:`_failing`'s screen reads them."""
-    p, k = grads.shape[0], grads.shape[1]
-    rows = np.ascontiguousarray(grads.transpose(0, 2, 1).reshape(p * dim, k))  # (P d_a, K)
+    ``screen``: the Jacobians by BLAS (:func:`_block_dets`), whose last bits vary from CPU to
+    CPU: only :func:`_failing`'s screen reads them; the exact sums decide which mid-edge nodes
+    a deck gets."""
+    rows = _gradient_rows(grads, dim)
     out = np.empty(cells.shape[0])
     for start in range(0, cells.shape[0], _BLOCK):
-        block = cells[start:start + _BLOCK]
-        b = block.shape[0]
-        if screen:
-            # (K, d_c, B): each coordinate gathered whole, less the first node's (the element's
-            # size, not its distance from the origin, sets the error), then one matrix product
-            x = np.empty((k, dim, b))
-            for c in range(dim):
-                x[:, c] = points[block.T, c]
-            x -= x[:1].copy()
-            jac = (rows @ x.reshape(k, dim * b)).reshape(p, dim, dim, b)  # dx_c / dxi_a at (P, a, c, B)
-        else:
-            x = points[block, :dim]  # (B, K, d_c)
-            # numpy's einsum, not a matrix product: it sums node by node, in the same order on
-            # every CPU (this test decides which mid-edge nodes a deck gets)
-            jac = np.einsum("qk,kn->qn", rows, np.ascontiguousarray(x.transpose(1, 0, 2)).reshape(k, b * dim),
-                            optimize=False).reshape(p, dim, b, dim).transpose(0, 1, 3, 2)
-        if dim == 3:
-            a, bb, c = jac[:, 0], jac[:, 1], jac[:, 2]  # (P, c, B)
-            det = (a[:, 0] * (bb[:, 1] * c[:, 2] - bb[:, 2] * c[:, 1])
-                   - a[:, 1] * (bb[:, 0] * c[:, 2] - bb[:, 2] * c[:, 0])
-                   + a[:, 2] * (bb[:, 0] * c[:, 1] - bb[:, 1] * c[:, 0]))
-        else:
-            det = jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0]
+        det = _block_dets(points, cells[start:start + _BLOCK], rows, dim, screen)
         big = det.max(axis=0)  # det: (P, B)
         out[start:start + _BLOCK] = np.where(big > 0, det.min(axis=0) / np.where(big > 0, big, 1.0), -np.inf)
     return out
@@ -458,29 +469,15 @@ def _gauss_volumes(points: np.ndarray, cells: np.ndarray, dim: int) -> np.ndarra
     """(M,) volumes (2D: areas) of quadratic elements (``cells`` (M, K), node positions
     ``points`` mm) by 3^d-point Gauss quadrature of their Jacobian determinant.
 
-    By BLAS, as the fold check's screen (:func:`_det_ratio`): the volumes feed a warning, not
+    By BLAS, as the fold check's screen (:func:`_block_dets`): the volumes feed a warning, not
     the deck."""
     g, w = np.array([-np.sqrt(0.6), 0.0, np.sqrt(0.6)]), np.array([5.0, 8.0, 5.0]) / 9.0
     at = np.stack(np.meshgrid(*[g] * dim, indexing="ij"), axis=-1).reshape(-1, dim)
     weight = np.prod(np.stack(np.meshgrid(*[w] * dim, indexing="ij"), axis=-1).reshape(-1, dim), axis=1)
-    grads = _serendipity_gradients(_HEX_NODES if dim == 3 else _QUAD_NODES, at)
-    p, k = grads.shape[0], grads.shape[1]
-    rows = np.ascontiguousarray(grads.transpose(0, 2, 1).reshape(p * dim, k))
+    rows = _gradient_rows(_serendipity_gradients(_HEX_NODES if dim == 3 else _QUAD_NODES, at), dim)
     out = np.empty(cells.shape[0])
     for start in range(0, cells.shape[0], _BLOCK):
-        block = cells[start:start + _BLOCK]
-        x = np.empty((k, dim, block.shape[0]))
-        for c in range(dim):
-            x[:, c] = points[block.T, c]
-        x -= x[:1].copy()
-        jac = (rows @ x.reshape(k, -1)).reshape(p, dim, dim, -1)  # dx_c / dxi_a at (P, a, c, B)
-        if dim == 3:
-            a, b, c = jac[:, 0], jac[:, 1], jac[:, 2]
-            det = (a[:, 0] * (b[:, 1] * c[:, 2] - b[:, 2] * c[:, 1]) - a[:, 1] * (b[:, 0] * c[:, 2] - b[:, 2] * c[:, 0])
-                   + a[:, 2] * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0]))
-        else:
-            det = jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0]
-        out[start:start + _BLOCK] = weight @ det
+        out[start:start + _BLOCK] = weight @ _block_dets(points, cells[start:start + _BLOCK], rows, dim, True)
     return out
 
 

@@ -26,6 +26,7 @@ from dicer.errors import DicerError
 from dicer.io import LABEL_SUFFIXES
 from dicer.io.atomic import all_or_nothing, check_stop, stop_requested
 from dicer.pages import LARGE_JOB, large_job, ordinary_pages, reuse_freed_memory
+from dicer.parallel import one_blas_thread
 
 log = logging.getLogger("dicer")
 
@@ -2239,7 +2240,7 @@ def main(argv: list[str] | None = None) -> int:
         run = args.command == "run"
         ordinary = not run and not large_job(_input_paths(args))
         with contextlib.nullcontext() if run else all_or_nothing(), \
-                ordinary_pages(unless_set=True) if ordinary else contextlib.nullcontext():
+                ordinary_pages(unless_set=True) if ordinary else contextlib.nullcontext(), one_blas_thread():
             args.func(args)
         check_stop()
     except Terminated as exc:

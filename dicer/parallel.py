@@ -40,6 +40,21 @@ def cores() -> int:
     return max(1, min(limits))
 
 
+def one_blas_thread():
+    """A context in which numpy's matrix products (BLAS) run in one thread.
+
+    dicer's own threads work beside its matrix products (a stage's file checked and hashed
+    while the next stage runs, the quality report beside the export, a deck's chunks), and
+    so do other jobs on a shared node; OpenBLAS's threads wait for their cores by spinning,
+    and the products are thin (20 shape functions), so its threads gained nothing and took
+    the cores from the others (docs/benchmark.md). Also where ``OPENBLAS_NUM_THREADS`` or
+    ``OMP_NUM_THREADS`` name more: Snakemake sets them to each job's threads."""
+    import numpy  # noqa: F401 -- loads numpy's BLAS, which the limit reaches only once loaded
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")
+
+
 def ordered_map(fn: Callable, items: Iterable, workers: int | None = None) -> Iterator:
     """``fn(item)`` for each item, yielded in the items' order.
 

@@ -121,6 +121,37 @@ def to_lattice(points: np.ndarray, spacing, origin, direction: np.ndarray) -> np
     return _rotated(points, voxel_centre(spacing, origin), _inverse3(np.asarray(direction, np.float64)))
 
 
+def lattice_shift(spacing, origin, to_spacing, to_origin, direction) -> np.ndarray:
+    """What to add to lattice-frame points of one grid to have them in the lattice frame of
+    another grid of the same scan (another voxel size or origin, the same direction).
+
+    Each grid's frame is its own motion about its own first voxel centre, so two grids apart
+    by a voxel size (downsampling keeps the first voxel's corner, :func:`dicer.image.regridded_origin`)
+    lie in frames a shift ``(I - D^-1) (c' - c)`` apart; zero for the identity, and exactly zero
+    where the centres agree.
+
+    Parameters
+    ----------
+    spacing, origin : sequence of float
+        The points' grid: voxel size and origin, mm (2 or 3 values).
+    to_spacing, to_origin : sequence of float
+        The other grid's.
+    direction : (3, 3) array_like or None
+        Direction cosines of both (None: the identity, or a 2D grid).
+
+    Returns
+    -------
+    (len(spacing),) float64 ndarray
+        mm.
+    """
+    dim = len(spacing)
+    if direction is None or dim != 3:
+        return np.zeros(dim)
+    delta = voxel_centre(to_spacing, to_origin) - voxel_centre(spacing, origin)
+    inv = _inverse3(np.asarray(direction, np.float64).reshape(3, 3))
+    return delta - (inv[:, 0] * delta[0] + inv[:, 1] * delta[1] + inv[:, 2] * delta[2])
+
+
 def _inverse3(d: np.ndarray) -> np.ndarray:
     """The inverse of a 3 x 3 matrix by its cofactors (no LAPACK: the same bytes on every CPU)."""
     cof = np.empty((3, 3))

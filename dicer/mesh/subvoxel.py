@@ -46,6 +46,7 @@ from scipy import ndimage, special
 from dicer.arrays import norm
 from dicer.errors import DicerError
 from dicer.image import Volume
+from dicer.mesh.frame import lattice_shift
 from dicer.mesh.model import Mesh, pieces
 from dicer.mesh.topology import HEX_CORNER_NEIGHBOURS, QUAD_CORNER_NEIGHBOURS
 from dicer.parallel import ordered_map
@@ -166,7 +167,10 @@ class ImageSurface:
                                  "scan the mesh was segmented from")
         spacing = np.asarray(image.spacing, float)
         origin = np.asarray(image.origin, float)
-        m_lo = np.asarray(mesh.origin, float)[:dim]
+        # a mesh on a coarser grid than the scan's (downsample) with turned or flipped axes lies in
+        # a lattice frame of its own: this shift takes its coordinates into the scan's
+        shift = lattice_shift(mesh.spacing[:dim], mesh.origin[:dim], spacing, origin, mesh.direction)
+        m_lo = np.asarray(mesh.origin, float)[:dim] + shift
         m_hi = m_lo + np.asarray(mesh.grid_shape, float)[:dim] * np.asarray(mesh.spacing, float)[:dim]
         i_lo, i_hi = origin, origin + np.asarray(arr.shape, float) * spacing
         tol = 1e-3 * spacing
@@ -188,7 +192,7 @@ class ImageSurface:
         self.mesh_spacing = np.asarray(mesh.spacing, float)[:dim]
         self.sigma = float(sigma)
         # crop to the mesh's nodes and the reach of the profiles and the filter
-        pts = np.asarray(mesh.points, float)[:, :dim]
+        pts = np.asarray(mesh.points, float)[:, :dim] + shift
         reach = (_FAR + 1) * float(self.mesh_spacing.sum())
         sig_vox = self.sigma * float(spacing.min()) / spacing
         lo = np.floor((pts.min(axis=0) - reach - origin) / spacing - 4 * sig_vox - 2).astype(int)
@@ -207,7 +211,8 @@ class ImageSurface:
             sub = ndimage.gaussian_filter(sub, sig_vox, mode="nearest")
         self.array = sub
         self.spacing = spacing
-        self.origin = origin + lo * spacing  # corner of the cropped array's voxel 0
+        # corner of the cropped array's voxel 0, in the mesh's lattice frame
+        self.origin = origin + lo * spacing - shift
 
     def sample(self, points: np.ndarray) -> np.ndarray:
         """Trilinear (2D: bilinear) values of the smoothed image; beyond the image, the nearest edge value.

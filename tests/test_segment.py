@@ -175,6 +175,20 @@ def test_multiotsu_warns_when_it_cuts_one_tissue_in_two():
     assert AIR - 200 < info["thresholds"][0] < AIR + 200  # the air cut in two: what the warning is for
 
 
+@pytest.mark.parametrize("method", ["shape_connectivity", "multiotsu"])
+def test_a_ct_with_its_contrast_inverted_is_warned_of(method):
+    """Negated values (air bright, bone dark) put the air in the densest class: it covers the
+    image's border, where a scan holds air; the scan as it is says nothing of it."""
+    image, truth = head_like(32, noise=60, seed=3)
+    _, info = segment(image, config(method=method), "head.nii.gz")
+    assert not [w for w in info.get("warnings", []) if "of the image's border" in w]
+    inverted = Volume(-image.array, image.spacing)
+    labels, info = segment(inverted, config(method=method), "inverted.nii.gz")
+    said = [w for w in info["warnings"] if "of the image's border" in w]
+    assert len(said) == 1 and said[0].startswith("class 'bone', the densest, covers 100 % of the image's border")
+    assert np.count_nonzero(labels.array[truth == 0] == 2) > 0.9 * np.count_nonzero(truth == 0)  # what it is for
+
+
 def test_otsu_on_an_image_without_air_in_hu_is_warned_of():
     # an MR under the CT materials: multi-Otsu split it and its brightest tissue became 'bone'
     image, truth = head_like(32, noise=60, seed=3)

@@ -235,6 +235,26 @@ def _without_padding(array: np.ndarray, lo: float) -> tuple[np.ndarray, float | 
             lowest)
 
 
+DENSEST_ON_BORDER = 0.5
+"""Share of the image's border voxels in the densest class from which it is warned of: a scan
+holds air, the table or the tissue around the part there (the head CT's bone 0 %; a bone cropped
+to its shaft covers its two cut faces' cross-sections), an image with its contrast inverted its
+air in the densest class (a negated CT phantom: 100 %)."""
+
+
+def _border_warnings(labels: np.ndarray, names: list[str]) -> list[str]:
+    """A warning when the densest class covers most of the image's border: the contrast
+    inverted (values negated: air taken for bone), or the image cropped inside that class."""
+    border = np.concatenate([np.take(labels, end, axis=a).ravel() for a in range(labels.ndim) for end in (0, -1)])
+    share = np.count_nonzero(border == len(names)) / max(border.size, 1)
+    if share < DENSEST_ON_BORDER:
+        return []
+    return [f"class '{names[-1]}', the densest, covers {100 * share:.0f} % of the image's border, where a scan holds "
+            "air, the table or the tissue around the part: if the image's contrast is inverted (air bright, bone dark: "
+            f"negated values), its air is taken for '{names[-1]}'; check segmentation.png, and negate the image or "
+            "set segment.thresholds"]
+
+
 def _empty_class_warnings(info: dict, names: list[str], thresholds) -> list[str]:
     """A warning for each class left without a voxel: its material gets no elements."""
     warnings = []
@@ -487,7 +507,7 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
     info["classes"] = label_counts(labels, names)
     warnings = (_empty_class_warnings(info, names, thresholds) + _range_warnings(info, names, lo, hi, image.spacing)
                 + _histogram_warnings(method, searched, values, names, thresholds)
-                + _ambiguity_warnings(info, names, searched))
+                + _ambiguity_warnings(info, names, searched) + _border_warnings(labels, names))
     for name, removed in info["removed_by_opening"].items():
         kept, thresholded = info["classes"][name]["voxels"], info["thresholded"][name]
         if kept and removed >= OPENED_AWAY * thresholded:  # an empty class has its own warning

@@ -1001,10 +1001,14 @@ def do_export(mesh_path: str, out: Path, config: dict, mesh=None, neighbours=Non
         named = [m["name"] for m in config["materials"]]
         if any(a != b for a, b in zip(mesh.names, named)):  # properties go by material number: the mesh's own names say which were meant
             given = materials_path or "the config"
+            fix = (f"unless {materials_path} was written with this mesh's labels (by the dicer run or dicer labels "
+                   "that made them) and the mesh without it, the deck's materials are another model's: give that "
+                   "materials.json" if materials_path else
+                   "give --materials materials.json (written by dicer labels / dicer run --labels) or a config with "
+                   "these materials")
             log.warning("export: the mesh names its materials %s, %s %s; the deck takes %s's names and properties "
-                        "by material number: give --materials materials.json (written by dicer labels / dicer run "
-                        "--labels) or a config with these materials", brief_names(mesh.names), given,
-                        brief_names(named[:len(mesh.names)]), given)
+                        "by material number; %s", brief_names(mesh.names), given,
+                        brief_names(named[:len(mesh.names)]), given, fix)
         info = export_mesh(mesh, out, **stage_kwargs(config, "export"), source=mesh_path, neighbours=neighbours,
                            quadratic=quadratic)
         # the summary's keys sorted, its materials in label order

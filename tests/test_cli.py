@@ -539,6 +539,8 @@ def test_a_materials_file_that_does_not_match_the_mesh_is_refused_or_warned_of(t
         assert len(warned) == 1 and f"names its materials label_1, label_2, {other} bone, label_2" in warned[0], warned
     assert json.loads(outputs["quality"].read_text())["materials"].keys() == {"label_1", "label_2"}
     assert "ELSET=bone" in outputs["export"].read_text()  # the deck takes the file's names, as it said
+    # and says what follows if the file is another model's, not to give the file it was given
+    assert f"unless {other} was written with this mesh's labels" in warned[0] and "give --materials" not in warned[0]
 
 
 def test_set_keys_a_stage_does_not_read_are_warned_of(tmp_path, capsys, caplog):
@@ -752,3 +754,16 @@ def test_run_places_the_mid_edge_nodes_of_its_order_2_decks_once(tmp_path, monke
     np.testing.assert_array_equal(run.cells[0].data, alone.cells[0].data)
     inp = (tmp_path / "out" / "model.inp").read_text()
     assert "C3D20" in inp
+
+
+@pytest.mark.parametrize("stage", ["merge", "smooth", "export", "quality"])
+def test_a_label_image_given_as_the_mesh_is_named_an_image(tmp_path, capsys, stage):
+    """meshio called a complete label volume a damaged mesh ("is the file complete?")."""
+    from dicer.image import Volume
+    from dicer.io.images import write_image
+
+    write_image(Volume(np.ones((4, 4, 4), np.uint8), (1.0, 1.0, 1.0)), tmp_path / "labels.nii.gz")
+    out = tmp_path / ("out.json" if stage == "quality" else "out.inp" if stage == "export" else "out.vtu")
+    code, err = run_cli(capsys, stage, tmp_path / "labels.nii.gz", "-o", out)
+    assert code == 2 and err.count("\n") == 1 and not out.exists()
+    assert err.startswith(f"error: {tmp_path / 'labels.nii.gz'}: is an image, not a mesh; give a mesh a dicer stage")

@@ -763,6 +763,11 @@ def _read_meshio(path: Path, name: str):
     """The parts of any mesh file meshio reads, as _read_raw_vtu returns them."""
     import meshio
 
+    from dicer.io import LABEL_SUFFIXES
+
+    if path.name.lower().endswith(LABEL_SUFFIXES + (".dcm",)):  # meshio would call it a damaged mesh
+        raise DicerError(f"{name}: is an image, not a mesh; give a mesh a dicer stage wrote (mesh.vtu, merged.vtu, "
+                         "smoothed.vtu)")
     try:
         with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
             fmt = "vtu" if path.suffix.lower() == ".vtu" else None

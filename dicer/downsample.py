@@ -72,6 +72,27 @@ def reduction_factor(spacing, *, factor, voxel_size, source: str = "") -> tuple[
     return tuple(int(x) for x in f)
 
 
+VOXEL_SIZE_ROUNDED = 0.2
+"""Relative difference between ``downsample.voxel_size`` and the voxels it gives (a whole number
+of the volume's per axis, none finer) above which it is said."""
+
+
+def _say_rounded_voxel_size(voxel_size, spacing, factor) -> None:
+    """Warn when the voxels a ``downsample.voxel_size`` gives differ from it by more than
+    VOXEL_SIZE_ROUNDED on an axis: 0.7 mm asked of 0.5 mm voxels gives 0.5 mm, 0.25 mm gives 0.5 mm
+    (downsampling does not refine)."""
+    asked = list(voxel_size) if isinstance(voxel_size, (list, tuple)) else [voxel_size] * len(spacing)
+    got = [f * float(s) for f, s in zip(factor, spacing)]
+    if all(abs(g / float(a) - 1) <= VOXEL_SIZE_ROUNDED for g, a in zip(got, asked)):
+        return
+    import logging
+
+    size = lambda v: " x ".join(f"{float(x):g}" for x in v)  # noqa: E731
+    logging.getLogger("dicer").warning(
+        "downsample: voxel_size %s mm gives voxels of %s mm, a whole number of the volume's %s mm voxels per axis "
+        "(factor %s; downsampling never makes them finer)", size(asked), size(got), size(spacing), list(factor))
+
+
 def vote(labels: np.ndarray, factor, n_classes: int, min_fraction: float, priority=None,
          plurality: bool = False) -> np.ndarray:
     """Reduce a label array by the thin-class vote (see the module notes).
@@ -226,6 +247,8 @@ def downsample(labels: Volume, *, names: list[str], factor, voxel_size, min_frac
         raise DicerError(f"{source}: labels span {int(array.min())} .. {int(array.max())} but the config names "
                          f"{k} material(s) (labels 0..{k}); use the config the labels were segmented with")
     factor = reduction_factor(labels.spacing, factor=factor, voxel_size=voxel_size, source=source)
+    if voxel_size is not None:
+        _say_rounded_voxel_size(voxel_size, labels.spacing, factor)
     morphology = True if morphology is None else bool(morphology)  # null: a scan's default (for_label_volume)
     before = {n: v["voxels"] for n, v in label_counts(array, names).items()}
     info = {"factor": list(factor), "shape_before": list(array.shape), "vote": vote or "priority",

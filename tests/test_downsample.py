@@ -83,6 +83,21 @@ def test_voxel_size_wins_over_factor_and_padding():
     assert (out.array == 1).all()
 
 
+@pytest.mark.parametrize("target, said", [(0.25, True), ([0.7, 0.7, 2.0], True), ([1.0, 1.0, 2.0], False),
+                                          ([1.2, 1.2, 2.0], False), (1.0, True)])
+def test_a_voxel_size_the_whole_factors_miss_is_said(caplog, target, said):
+    """The factor is a whole number of voxels per axis: 0.7 mm of 0.5 mm voxels gives 0.5 mm,
+    0.25 mm gives 0.5 mm (no refining), 1 mm of the 2 mm slices 2 mm; 1.2 mm gives 1.0 mm, within a
+    fifth, unsaid."""
+    lab = np.ones((8, 8, 4), np.uint8)
+    _, info = downsample(Volume(lab, (0.5, 0.5, 2.0)), config(voxel_size=target), "x.nii")
+    warned = [r.getMessage() for r in caplog.records if r.getMessage().startswith("downsample: voxel_size")]
+    assert len(warned) == int(said)
+    if said:
+        got = " x ".join(f"{f * s:g}" for f, s in zip(info["factor"], (0.5, 0.5, 2.0)))
+        assert f"gives voxels of {got} mm" in warned[0]
+
+
 def test_a_factor_beside_a_voxel_size_is_said_to_be_unused(tmp_path, caplog):
     from dicer.cli import main
 

@@ -3,9 +3,10 @@
 __version__ = "0.1.0"
 
 LIBRARIES = ("numpy", "scipy", "scikit-image", "meshio", "netCDF4", "PyYAML", "SimpleITK", "pydicom",
-             "jsonschema", "matplotlib", "snakemake")
+             "jsonschema", "matplotlib", "snakemake", "threadpoolctl")
 """The distributions dicer runs on (pyproject.toml's dependencies): their versions decide a
-model's last bits (numpy's and scipy's arithmetic, the readers, the pictures)."""
+model's last bits (numpy's and scipy's arithmetic, the readers, the pictures; threadpoolctl
+holds numpy's BLAS to one thread, dicer.parallel.one_blas_thread)."""
 
 
 def library_versions() -> dict[str, str]:

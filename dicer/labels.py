@@ -66,6 +66,13 @@ def segment_map(segments: dict[int, str], source: str = "labels") -> dict[str, s
     apart: dict[str, dict[str, int]] = {}  # name -> segment name -> its smallest label value
     for value in sorted(names, key=int):
         apart.setdefault(names[value], {}).setdefault(texts[value], int(value))
+    shared: dict[str, list[str]] = {}  # a segment name -> its label values, where several
+    for value in sorted(names, key=int):
+        shared.setdefault(texts[value], []).append(value)
+    shared = {text: values for text, values in shared.items() if len(values) > 1}
+    if shared:  # one material, with no interface between them: meant, or two tissues named alike
+        log.warning("labels: segments of %s share a name and become one material: %s; give labels.map to keep them "
+                    "apart", source, brief_names([f"{text!r} (values {', '.join(v)})" for text, v in shared.items()]))
     renamed = []
     for value, name in names.items():
         if len(apart[name]) > 1:

@@ -697,8 +697,13 @@ def test_slicer_segments_named_apart_stay_apart(caplog):
         "value: 'Left hippocampus subfield CA1 head part' -> Left_hippocampus_subfield_CA1_1, 'Left hippocampus "
         "subfield CA1 head tail' -> Left_hippocampus_subfield_CA1_2, 'Left hippocampus subfield CA1 head x' -> "
         "Left_hippocampus_subfield_CA1_12; give labels.map to name them"]
-    # segments of one name share their material ("Bone " is "Bone"), and take its smallest value
-    assert segment_map({1: "Bone", 2: "Bone", 3: "Skin"}) == {"1": "Bone", "2": "Bone", "3": "Skin"}
+    # segments of one name share their material ("Bone " is "Bone"), and take its smallest value;
+    # said, as two tissues named alike lose the interface between them
+    caplog.clear()
+    assert segment_map({1: "Bone", 2: "Bone", 3: "Skin"}, "b.seg.nrrd") == {"1": "Bone", "2": "Bone", "3": "Skin"}
+    assert [r.getMessage() for r in caplog.records] == [
+        "labels: segments of b.seg.nrrd share a name and become one material: 'Bone' (values 1, 2); give labels.map "
+        "to keep them apart"]
     assert segment_map({1: "Bone", 2: "Bone ", 3: "Bone."}) == {"1": "Bone_1", "2": "Bone_1", "3": "Bone_3"}
     # letters NFKD keeps whole are spelled, not dropped
     assert segment_map({1: "Øre", 2: "Straße"}) == {"1": "Ore", "2": "Strasse"}

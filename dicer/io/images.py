@@ -243,8 +243,10 @@ def _finish(array: np.ndarray, spacing, origin, path, dtype=np.float32, directio
     singles = [ax for ax, n in enumerate(array.shape) if n == 1]
     if array.ndim == 3 and len(singles) == 1:
         ax = singles[0]
+        centre = origin[ax] + spacing[ax] / 2  # the slice's position along its axis, which a 2D model drops
         _warn_once("%s: one voxel along %s (%g mm): read as a 2D image, meshed with quadrilaterals; the deck's "
-                   "section thickness is export.thickness, not this", Path(path).name, "xyz"[ax], spacing[ax],
+                   "section thickness is export.thickness, not this%s", Path(path).name, "xyz"[ax], spacing[ax],
+                   f"; the model lies at {'xyz'[ax]} = 0, not at the slice's {centre:g} mm" if centre else "",
                    level=logging.INFO)
         turned = direction is not None and not np.allclose(np.reshape(direction, (3, 3)), np.eye(3))
         if ax != 2 or turned:  # a sagittal or coronal slice, or one the scanner holds flipped or oblique

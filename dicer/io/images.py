@@ -1623,7 +1623,8 @@ def read_labels(path: str | os.PathLike, spacing=None) -> Volume:
     lo, hi = (array.min().item(), array.max().item()) if array.size else (0, 0)
     if lo < 0:
         raise DicerError(f"{path}: the labels contain negative values (min {lo:g}); use 0 for background "
-                         "and 1..K for materials" + ("; a scan's values (a CT's air is near -1000) are segmented "
+                         "and 1..K for materials (rewrite the file so: labels.map and labels.drop name values "
+                         "from 1)" + ("; a scan's values (a CT's air is near -1000) are segmented "
                                                      "from the IMAGE of dicer run (or dicer segment), not given "
                                                      "as labels" if lo <= -100 else ""))
     dtype = np.uint8 if hi < 256 else np.int16 if hi <= np.iinfo(np.int16).max else np.int32

@@ -347,6 +347,8 @@ def test_patran_names_the_materials_in_packet_21(tmp_path):
     # names that differ in case only once cut: one name to a solver reading upper case
     (["Left_Hippocampus_head", "LEFT_HIPPOCAMpus_tail", "left_hippocaMPUS_body"],
      ["Left_Hippo_1", "LEFT_HIPPO_2", "left_hippo_3"]),
+    # a name ending in a number keeps it whole: label_697050 would read as another label
+    (["label_69705095", "label_2", "Cortex_left_1001"], ["lab_69705095", "label_2", "Cortex_1001"]),
 ])
 def test_patran_component_names_are_unique(names, want):
     from types import SimpleNamespace

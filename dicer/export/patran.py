@@ -66,11 +66,28 @@ COMPONENT_TYPES = {(3, 1): 12, (3, 2): 112, (2, 1): 8, (2, 2): 108}
 """Named-component entity type of the model's elements, by (dimension, order)."""
 
 
+def _cut(name: str, width: int = 12) -> str:
+    """``name`` in ``width`` characters: a name ending in a number keeps the number whole and
+    loses letters before it (``label_69705095`` -> ``lab_69705095``, not ``label_697050``, which
+    reads as another label)."""
+    if len(name) <= width:
+        return name
+    import re
+
+    number = re.search(r"_?([0-9]+)$", name)
+    if number and len(number.group(1)) + 2 <= width:
+        head = name[:number.start()][:width - len(number.group(1)) - 1].rstrip("_")
+        if head:
+            return f"{head}_{number.group(1)}"
+    return name[:width]
+
+
 def component_names(model) -> dict[int, str]:
     """Packet 21 name of each material present.
 
-    Its name when it fits the 12 columns of the card and no other name cut to 12 is the
-    same in upper case; else the name cut and ended by ``_<label>``, cut shorter where that would be
+    Its name when it fits the 12 columns of the card and no other name cut to 12 (a trailing
+    number kept whole, :func:`_cut`) is the same in upper case; else the name cut and ended by
+    ``_<label>``, cut shorter where that would be
     another material's name (so the names are unique and a name that fits stays the
     user's own).
 
@@ -84,7 +101,7 @@ def component_names(model) -> dict[int, str]:
         Label -> name.
     """
     labels = list(model.labels())
-    cut = {k: model.names[k][:12] for k in labels}
+    cut = {k: _cut(model.names[k]) for k in labels}
     # compared in upper case: solvers read names so (Left_Hippoca and LEFT_HIPPOCA are one)
     count = Counter(v.upper() for v in cut.values())
     out = {k: v for k, v in cut.items() if count[v.upper()] == 1}

@@ -409,16 +409,27 @@ def test_dicom_tolerance_and_decreasing_positions(tmp_path):
     np.testing.assert_array_equal(v.array[0, 0], np.arange(5, -1, -1) * 200.0 - 1024)
 
 
-@pytest.mark.parametrize("damage", ["truncated", "header only", "random bytes"])
+@pytest.mark.parametrize("damage", ["truncated", "header only", "random bytes", "short pixel data"])
 def test_dicom_damaged_slice_named(tmp_path, damage):
+    """Also a slice whose pixel data element is shorter than its rows and columns promise, the
+    file otherwise whole: GDCM read it padded with zeros, air over the rest of the slice."""
+    import pydicom
+
     folder = _series_at(tmp_path, [0.0, 2.0, 4.0, 6.0, 8.0, 10.0])
     slice_file = sorted(folder.iterdir())[3]
     data = slice_file.read_bytes()
-    slice_file.write_bytes({"truncated": data[:-40], "header only": data[:300],
-                            "random bytes": RNG.integers(0, 256, 4000).astype(np.uint8).tobytes()}[damage])
+    if damage == "short pixel data":
+        ds = pydicom.dcmread(slice_file)
+        ds.PixelData = ds.PixelData[:50]
+        ds.save_as(slice_file)
+    else:
+        slice_file.write_bytes({"truncated": data[:-40], "header only": data[:300],
+                                "random bytes": RNG.integers(0, 256, 4000).astype(np.uint8).tobytes()}[damage])
     with pytest.raises(DicerError) as err:
         read_image(folder)
     assert str(err.value).startswith(f"{slice_file}: this slice of the DICOM series cannot be read")
+    if damage == "short pixel data":
+        assert "its pixel data holds 50 bytes where its header promises 160, 10 x 8 x 16 bits" in str(err.value)
 
 
 def test_dicom_notes_and_dicomdir_beside_the_series(tmp_path):

@@ -1152,6 +1152,29 @@ def _slice_error(path: str, detail: str) -> DicerError:
                       "or damaged: copy it again from the scanner or archive")
 
 
+def _check_pixel_data(name: str) -> None:
+    """Refuse a slice whose uncompressed pixel data is shorter than its header's rows, columns,
+    samples and bits promise: GDCM reads it padded with zeros (a slice cut to 1000 of its 3200
+    bytes became air, -1024 HU, over two thirds of it: exit 0, no word)."""
+    import pydicom
+
+    try:  # the pixel data's length from its element header, its bytes left unread
+        ds = pydicom.dcmread(name, defer_size=1024, force=True)
+        element = ds.get_item(0x7FE00010)
+        rows, columns = int(ds.Rows), int(ds.Columns)
+        bits, samples = int(ds.BitsAllocated), int(ds.get("SamplesPerPixel", 1))
+        frames = int(ds.get("NumberOfFrames", 1) or 1)
+    except Exception:  # noqa: BLE001 -- no such tags, or pydicom reads the file otherwise: GDCM's checks decide
+        return
+    length = getattr(element, "length", None)
+    if length is None or length == 0xFFFFFFFF:  # encapsulated (compressed): its own decoder checks it
+        return
+    promised = rows * columns * samples * frames * bits // 8
+    if length < promised:
+        raise _slice_error(name, f"its pixel data holds {length} bytes where its header promises {promised}, "
+                                 f"{columns} x {rows} x {bits} bits")
+
+
 def _read_dicom_slices(names: list[str]):
     """Read every slice file: headers first (geometry, checked), then the pixels into one array.
 
@@ -1182,6 +1205,7 @@ def _read_dicom_slices(names: list[str]):
         except RuntimeError as exc:
             raise _slice_error(name, _itk_message(exc)) from None
         _check_orientation_tag(reader, name)
+        _check_pixel_data(name)
         # a slice of another patient or study filed under the series' UID: compared, never shown
         sessions.add(tuple(reader.GetMetaData(tag).strip() if reader.HasMetaDataKey(tag) else ""
                            for tag, _, _ in _SESSION_TAGS))

@@ -35,7 +35,8 @@ def write_nifti(path: Path, array: np.ndarray, spacing=SPACING, offset=OFFSET, c
     struct.pack_into("<i", head, 0, 348)
     struct.pack_into("<8h", head, 40, 3, *array.shape, 1, 1, 1, 1)
     struct.pack_into("<2h", head, 70, 4, 16)  # int16
-    struct.pack_into("<8f", head, 76, 1.0, spacing, spacing, spacing, 1, 1, 1, 1)
+    # pixdim beyond the three axes: free too (a time step, or a birth date)
+    struct.pack_into("<8f", head, 76, 1.0, spacing, spacing, spacing, 19840512.0, 445566.0, 1, 1)
     struct.pack_into("<f", head, 108, 352.0)
     struct.pack_into("<f", head, 112, 1.0)
     # free text as some tools fill it: a patient's name and record numbers (never passed on)
@@ -302,8 +303,10 @@ def test_run_labels_end_to_end(labelled, tmp_path, caplog):
     for path in out.iterdir():
         data = gzip.decompress(path.read_bytes()) if path.name.endswith(".gz") else path.read_bytes()
         assert not any(text in data for text in (b"DOE", b"JANE", b"MRN445566", b"ACC998877")), path.name
-        if path.name.endswith(".nii.gz"):  # nor its free numbers
-            assert not any(data[a:b].strip(b"\0") for a, b in ((32, 38), (56, 68), (74, 76), (120, 123), (132, 148)))
+        if path.name.endswith(".nii.gz"):  # nor its free numbers, nor the sizes of axes it has not
+            assert not any(data[a:b].strip(b"\0") for a, b in ((32, 38), (56, 68), (74, 76), (92, 108), (120, 123),
+                                                                 (132, 148)))
+            assert struct.unpack_from("<4h", data, 48) == (1, 1, 1, 1)
     # a rerun writes the same bytes
     first = {p.name: p.read_bytes() for p in out.iterdir()}
     assert _cli("run", "--labels", src, "-o", tmp_path / "again", "--config", config) == 0

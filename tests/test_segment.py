@@ -187,6 +187,13 @@ def test_a_ct_with_its_contrast_inverted_is_warned_of(method):
     said = [w for w in info["warnings"] if "of the image's border" in w]
     assert len(said) == 1 and said[0].startswith("class 'bone', the densest, covers 100 % of the image's border")
     assert np.count_nonzero(labels.array[truth == 0] == 2) > 0.9 * np.count_nonzero(truth == 0)  # what it is for
+    # a specimen filling an image of other units (a test plate of 0 and 1000 around a hole) is left alone
+    from dicer.segment import _border_warnings
+
+    plate = np.full((20, 20, 4), 2, np.uint8)
+    plate[8:12, 8:12, :] = 0
+    assert _border_warnings(plate, ["soft_tissue", "bone"], 0.0) == []
+    assert len(_border_warnings(plate, ["soft_tissue", "bone"], -1000.0)) == 1
 
 
 def test_otsu_on_an_image_without_air_in_hu_is_warned_of():

@@ -242,9 +242,13 @@ to its shaft covers its two cut faces' cross-sections), an image with its contra
 air in the densest class (a negated CT phantom: 100 %)."""
 
 
-def _border_warnings(labels: np.ndarray, names: list[str]) -> list[str]:
-    """A warning when the densest class covers most of the image's border: the contrast
-    inverted (values negated: air taken for bone), or the image cropped inside that class."""
+def _border_warnings(labels: np.ndarray, names: list[str], lo: float) -> list[str]:
+    """A warning when the densest class covers most of the border of an image that holds air's
+    values in HU (``lo``, its lowest, at most ``NO_AIR_HU``): the contrast inverted (values negated:
+    air taken for bone), or a CT cropped inside that class. A specimen filling an image of other
+    units (a test plate of 0 and 1000) is not a CT in HU and is left alone."""
+    if lo > NO_AIR_HU:
+        return []
     border = np.concatenate([np.take(labels, end, axis=a).ravel() for a in range(labels.ndim) for end in (0, -1)])
     share = np.count_nonzero(border == len(names)) / max(border.size, 1)
     if share < DENSEST_ON_BORDER:
@@ -507,7 +511,7 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
     info["classes"] = label_counts(labels, names)
     warnings = (_empty_class_warnings(info, names, thresholds) + _range_warnings(info, names, lo, hi, image.spacing)
                 + _histogram_warnings(method, searched, values, names, thresholds)
-                + _ambiguity_warnings(info, names, searched) + _border_warnings(labels, names))
+                + _ambiguity_warnings(info, names, searched) + _border_warnings(labels, names, lo))
     for name, removed in info["removed_by_opening"].items():
         kept, thresholded = info["classes"][name]["voxels"], info["thresholded"][name]
         if kept and removed >= OPENED_AWAY * thresholded:  # an empty class has its own warning

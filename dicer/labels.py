@@ -337,7 +337,7 @@ def _write_nifti_like(header: bytes, endian: str, array: np.ndarray, path: Path)
     """Write ``array`` ([x, y, z]) as a .nii.gz with ``header``: the data type, the intensity
     scaling and the display range change, and the free-text fields and the numbers free of
     meaning for a label volume are blanked; dims, pixdim, qform, sform and codes stay the
-    input's, byte for byte, along the volume's axes (beyond them one voxel of no size)."""
+    input's, byte for byte, along the volume's axes (beyond them one voxel of size 1)."""
     from dicer.io.atomic import atomic_path
 
     head = bytearray(header)
@@ -361,7 +361,7 @@ def _write_nifti_like(header: bytes, endian: str, array: np.ndarray, path: Path)
     ndim = min(max(struct.unpack_from(endian + "h", head, 40)[0], 1), 7)
     for axis in range(ndim + 1, 8):
         struct.pack_into(endian + "h", head, 40 + 2 * axis, 1)  # dim: one voxel along it
-        struct.pack_into(endian + "f", head, 76 + 4 * axis, 0.0)  # pixdim: none
+        struct.pack_into(endian + "f", head, 76 + 4 * axis, 1.0)  # pixdim: as nibabel writes an unused one
     data = contiguous(array.T, array.dtype.newbyteorder(endian))  # x fastest
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0, filename="",

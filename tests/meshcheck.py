@@ -24,6 +24,40 @@ def pinches(mesh):
     return count
 
 
+def node_pinches(mesh):
+    """Nodes where a material's surface (3D) is pinched: its faces around the node form two
+    fans or more, which meet at the node only (the paper's type B). Each fan is followed by
+    hand, face to face across the edges at the node."""
+    from dicer.mesh.topology import HEX_FACES
+
+    cells, material = np.asarray(mesh.cells), np.asarray(mesh.material)
+    count = 0
+    for k in np.unique(material):
+        faces = cells[material == k][:, HEX_FACES].reshape(-1, 4)
+        key, seen = np.unique(np.sort(faces, axis=1), axis=0, return_counts=True)
+        boundary = [tuple(f) for f in faces if seen[np.searchsorted(
+            key.view([("", key.dtype)] * 4).ravel(), np.sort(f).view([("", key.dtype)] * 4))][0] == 1]
+        around = {}
+        for f in boundary:
+            for i, v in enumerate(f):
+                around.setdefault(v, []).append({f[i - 1], f[(i + 1) % 4]})
+        for v, ends in around.items():
+            fans, left = 0, list(range(len(ends)))
+            while left:
+                fans += 1
+                reach = set(ends[left.pop()])
+                grew = True
+                while grew:
+                    grew = False
+                    for j in list(left):
+                        if ends[j] & reach:
+                            reach |= ends[j]
+                            left.remove(j)
+                            grew = True
+            count += fans > 1
+    return count
+
+
 def meshio_vtu_with_grid(mesh, path, meshio_mesh=None):
     """``mesh`` written by meshio's VTU writer (zlib), as dicer wrote VTU files until its own
     writer, with the grid's field data put in after <UnstructuredGrid> (meshio's writer drops

@@ -530,6 +530,62 @@ def _pinches(sub: np.ndarray, material: np.ndarray, inside: np.ndarray, changed:
     return _unique(owner[pinched])
 
 
+def _node_pinches(sub: np.ndarray, material: np.ndarray, inside: np.ndarray, changed: np.ndarray,
+                  local: np.ndarray, bits: np.ndarray | None = None) -> np.ndarray:
+    """Rows of the hexahedra ``sub`` (R, 8) at a node where a material's surface, or the
+    exterior, is pinched: its faces around the node form two fans or more that meet at the node
+    only. Counted at the nodes ``inside`` ((N,) bool: all their elements in ``sub``) that a
+    ``changed`` row ((R,) bool) holds; ``material`` (R,). With ``bits`` ((k,) uint8 plane bits of
+    the nodes ``local`` (R, 8) numbers) a face in a bounding plane is no surface (it meets its
+    mirror image); the fans' count is then the mirrored model's."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    facets = sub[:, HEX_FACES].reshape(-1, 4).astype(np.int64)  # (6R, 4)
+    key = np.sort(facets, axis=1)
+    n64 = np.int64(inside.shape[0])
+    key1, key2 = key[:, 0] * n64 + key[:, 1], key[:, 2] * n64 + key[:, 3]
+    top = np.int64(int(material.max(initial=0)) + 2)  # the exterior's group: top - 1
+    owner = np.repeat(np.arange(sub.shape[0]), 6)
+    flat = np.zeros(facets.shape[0], dtype=bool)
+    if bits is not None:
+        lf = local[:, HEX_FACES].reshape(-1, 4)
+        flat = np.bitwise_and.reduce(bits[lf], axis=1) != 0
+    groups, faces_of = [], []
+    for group in (material.astype(np.int64), np.full(sub.shape[0], top - 1)):  # each material, the exterior
+        g = np.repeat(group, 6)
+        order = np.lexsort((g, key2, key1))
+        same = (key1[order][1:] == key1[order][:-1]) & (key2[order][1:] == key2[order][:-1]) & \
+            (g[order][1:] == g[order][:-1])
+        inner = flat.copy()
+        inner[order[1:][same]] = True
+        inner[order[:-1][same]] = True
+        outer = np.flatnonzero(~inner)
+        groups.append(g[outer])
+        faces_of.append(outer)
+    outer, group = np.concatenate(faces_of), np.concatenate(groups)
+    f = facets[outer]  # (F, 4): one incidence per corner, its two edges at the corner
+    node = f.ravel()
+    incidence = np.arange(node.size)
+    g4 = np.repeat(group, 4)
+    ends = np.concatenate([f[:, [3, 0, 1, 2]].ravel(), f[:, [1, 2, 3, 0]].ravel()])
+    edge = (np.concatenate([node, node]) * n64 + ends) * top + np.concatenate([g4, g4])
+    order = np.argsort(edge, kind="stable")
+    link = edge[order][1:] == edge[order][:-1]  # two incidences of a node sharing an edge: one fan
+    who = np.concatenate([incidence, incidence])[order]
+    graph = coo_matrix((np.ones(int(np.count_nonzero(link))), (who[:-1][link], who[1:][link])),
+                       shape=(node.size, node.size))
+    _, fan = connected_components(graph, directed=False)
+    pair = node * top + g4
+    fans = np.unique(np.stack([pair, fan]), axis=1)[0]  # one entry per (node, group, fan)
+    pairs, count = np.unique(fans, return_counts=True)
+    split = pairs[count > 1]
+    at = np.isin(pair, split) & inside[node]
+    rows = np.repeat(owner[outer], 4)
+    touched = np.unique(pair[at & changed[rows]])  # a pinch already in the input is not the step's
+    return _unique(rows[np.isin(pair, touched) & at])
+
+
 def _plane_bits(lat: np.ndarray, high: np.ndarray, dim: int) -> np.ndarray:
     """(K,) uint8 for lattice positions ``lat`` (K, 3): bit a set on the image's low bounding
     plane normal to axis a (index 0), bit 3 + a on the high one (index ``high[a]``), as
@@ -658,7 +714,8 @@ def _compact(rows: np.ndarray, keep: np.ndarray, new_id: np.ndarray | None = Non
 
 _STEP_FIGURES = ("merged_pairs", "chamfered_elements", "regions", "regions_merged", "blocked_material",
                  "blocked_thin", "blocked_overlap", "blocked_connectivity", "rim_nodes_refused", "retry_rounds",
-                 "overconnected_nodes", "inverted_elements", "crowded_faces", "shared_corners", "pinched_edges")
+                 "overconnected_nodes", "inverted_elements", "crowded_faces", "shared_corners", "pinched_edges",
+                 "pinched_nodes")
 """The figures of every step's report (a step that merges also counts rim nodes moved and joined)."""
 
 
@@ -1247,6 +1304,12 @@ def _check_trial(plane: _Plane, trial: _Trial, work: _Work, settings: _Settings,
         # would not be closed there.
         pinched = _pinches(sub, work.material[rows], in_s, changed, dim, local, bits)
         info["pinched_edges"] += int(pinched.size)
+        bad_rows = rows[pinched]
+    if bad_rows.size == 0 and dim == 3:
+        # and at a node only (a filled notch beside another material): the paper's type B, which
+        # ``dicer fix`` took out too; each material's surface and the exterior
+        pinched = _node_pinches(sub, work.material[rows], in_s, changed, local, bits)
+        info["pinched_nodes"] += int(pinched.size)
         bad_rows = rows[pinched]
     return bad_rows
 

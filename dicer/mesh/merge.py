@@ -569,9 +569,10 @@ def _node_pinches(sub: np.ndarray, material: np.ndarray, inside: np.ndarray, cha
     incidence = np.arange(node.size)
     g4 = np.repeat(group, 4)
     ends = np.concatenate([f[:, [3, 0, 1, 2]].ravel(), f[:, [1, 2, 3, 0]].ravel()])
-    edge = (np.concatenate([node, node]) * n64 + ends) * top + np.concatenate([g4, g4])
-    order = np.argsort(edge, kind="stable")
-    link = edge[order][1:] == edge[order][:-1]  # two incidences of a node sharing an edge: one fan
+    at_node, at_group = np.concatenate([node, node]), np.concatenate([g4, g4])
+    order = np.lexsort((at_group, ends, at_node))  # columns, not one key: no overflow on any mesh
+    a, e, g = at_node[order], ends[order], at_group[order]
+    link = (a[1:] == a[:-1]) & (e[1:] == e[:-1]) & (g[1:] == g[:-1])  # an edge two incidences share: one fan
     who = np.concatenate([incidence, incidence])[order]
     graph = coo_matrix((np.ones(int(np.count_nonzero(link))), (who[:-1][link], who[1:][link])),
                        shape=(node.size, node.size))

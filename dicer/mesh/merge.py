@@ -546,29 +546,38 @@ def _node_pinches(sub: np.ndarray, material: np.ndarray, inside: np.ndarray, cha
     n64 = np.int64(inside.shape[0])
     key1, key2 = key[:, 0] * n64 + key[:, 1], key[:, 2] * n64 + key[:, 3]
     top = np.int64(int(material.max(initial=0)) + 2)  # the exterior's group: top - 1
-    owner = np.repeat(np.arange(sub.shape[0]), 6)
+    mat = np.repeat(material.astype(np.int64), 6)
+    order = np.lexsort((mat, key2, key1))  # one sort: a face's twins lie next to it
+    same_face = (key1[order][1:] == key1[order][:-1]) & (key2[order][1:] == key2[order][:-1])
+    same_mat = same_face & (mat[order][1:] == mat[order][:-1])
     flat = np.zeros(facets.shape[0], dtype=bool)
-    if bits is not None:
+    if bits is not None:  # a face in a bounding plane meets its mirror image
         lf = local[:, HEX_FACES].reshape(-1, 4)
         flat = np.bitwise_and.reduce(bits[lf], axis=1) != 0
-    groups, faces_of = [], []
-    for group in (material.astype(np.int64), np.full(sub.shape[0], top - 1)):  # each material, the exterior
-        g = np.repeat(group, 6)
-        order = np.lexsort((g, key2, key1))
-        same = (key1[order][1:] == key1[order][:-1]) & (key2[order][1:] == key2[order][:-1]) & \
-            (g[order][1:] == g[order][:-1])
+    # only the nodes a changed element holds, inside: the others are not this step's
+    near = np.zeros(inside.shape[0], dtype=bool)
+    near[sub[changed].ravel()] = True
+    near &= inside
+    at_near = near[facets].any(axis=1)
+    faces_of, groups = [], []
+    for link, group in ((same_mat, mat), (same_face, np.full(mat.shape, top - 1))):  # each material, the exterior
         inner = flat.copy()
-        inner[order[1:][same]] = True
-        inner[order[:-1][same]] = True
-        outer = np.flatnonzero(~inner)
-        groups.append(g[outer])
+        inner[order[1:][link]] = True
+        inner[order[:-1][link]] = True
+        outer = np.flatnonzero(~inner & at_near)
         faces_of.append(outer)
+        groups.append(group[outer])
     outer, group = np.concatenate(faces_of), np.concatenate(groups)
-    f = facets[outer]  # (F, 4): one incidence per corner, its two edges at the corner
-    node = f.ravel()
+    node = facets[outer].ravel()  # one incidence per face corner, with its two edges at the corner
+    keep = np.flatnonzero(near[node])
+    face_of = keep // 4
+    node, g4 = node[keep], group[face_of]
+    if node.size == 0:
+        return np.empty(0, dtype=np.int64)
+    f = facets[outer]
+    corner = keep % 4
+    ends = np.concatenate([f[face_of, (corner + 3) % 4], f[face_of, (corner + 1) % 4]])
     incidence = np.arange(node.size)
-    g4 = np.repeat(group, 4)
-    ends = np.concatenate([f[:, [3, 0, 1, 2]].ravel(), f[:, [1, 2, 3, 0]].ravel()])
     at_node, at_group = np.concatenate([node, node]), np.concatenate([g4, g4])
     order = np.lexsort((at_group, ends, at_node))  # columns, not one key: no overflow on any mesh
     a, e, g = at_node[order], ends[order], at_group[order]
@@ -577,14 +586,17 @@ def _node_pinches(sub: np.ndarray, material: np.ndarray, inside: np.ndarray, cha
     graph = coo_matrix((np.ones(int(np.count_nonzero(link))), (who[:-1][link], who[1:][link])),
                        shape=(node.size, node.size))
     _, fan = connected_components(graph, directed=False)
-    pair = node * top + g4
-    fans = np.unique(np.stack([pair, fan]), axis=1)[0]  # one entry per (node, group, fan)
-    pairs, count = np.unique(fans, return_counts=True)
-    split = pairs[count > 1]
-    at = np.isin(pair, split) & inside[node]
-    rows = np.repeat(owner[outer], 4)
-    touched = np.unique(pair[at & changed[rows]])  # a pinch already in the input is not the step's
-    return _unique(rows[np.isin(pair, touched) & at])
+    # the fans of each (node, group): sorted by both, a new fan where either changes
+    order = np.lexsort((fan, g4, node))
+    n_s, g_s, f_s = node[order], g4[order], fan[order]
+    new_pair = np.r_[True, (n_s[1:] != n_s[:-1]) | (g_s[1:] != g_s[:-1])]
+    new_fan = new_pair | np.r_[True, f_s[1:] != f_s[:-1]]
+    pair = np.cumsum(new_pair) - 1
+    split = np.bincount(pair, weights=new_fan)[pair] > 1
+    rows = np.repeat(outer // 6, 4)[keep][order]
+    touched = np.zeros(int(pair[-1]) + 1, dtype=bool)
+    touched[pair[split & changed[rows]]] = True  # a pinch already in the input is not the step's
+    return _unique(rows[split & touched[pair]])
 
 
 def _plane_bits(lat: np.ndarray, high: np.ndarray, dim: int) -> np.ndarray:

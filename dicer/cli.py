@@ -686,6 +686,14 @@ def _volume_changes(stage: str, percent: dict, material_names: list) -> str | No
         f" and {len(big) - 8} more)" if len(big) > 8 else ")")
 
 
+def _in_plane_passes(spacing, passes) -> tuple[list[int], bool]:
+    """``merge.passes`` with 0 across the coarse axes (voxels twice the finest or longer), and
+    whether there are such axes."""
+    spacing = [float(v) for v in spacing]
+    coarse = [v >= 2 * min(spacing) for v in spacing]
+    return [0 if c else int(p) for c, p in zip(coarse, list(passes) + [0] * 3)], any(coarse)
+
+
 def _warn_of_volume_change(report: dict, mesh, settings: dict, fit_radius: float | None = None) -> None:
     """Warn when merging changed a material's volume by more than STAGE_VOLUME_WARNING percent:
     chamfers fill whole voxel steps, and across a coarse axis of anisotropic voxels (thick
@@ -700,15 +708,14 @@ def _warn_of_volume_change(report: dict, mesh, settings: dict, fit_radius: float
     if said is None:
         return
     spacing = np.asarray(mesh.spacing[:mesh.dim], float)
-    coarse = spacing >= 2 * spacing.min()
+    passes, coarse = _in_plane_passes(spacing, settings.get("passes", (1, 1, 1)))
     hint = "set merge.passes to 0 for the axes that must keep their surface, or merge.min_thickness"
-    if coarse.any() and settings.get("method") == "planes":
-        passes = [0 if c else int(p) for c, p in zip(coarse, list(settings["passes"]) + [0] * 3)]
+    if coarse and settings.get("method") == "planes":
         hint = (f"the voxels are {' x '.join(f'{v:g}' for v in spacing)} mm: merging across the coarse axis fills "
                 f"steps of a whole slice; set merge.passes={passes} to merge in-plane only")
     if fit_radius is None:
         log.warning("%s; %s", said, hint)
-    elif coarse.any():  # the fit's window, in units of the finest voxel, is short of a thick slice
+    elif coarse:  # the fit's window, in units of the finest voxel, is short of a thick slice
         log.warning("%s; %s: the smoothing's fit to the labels takes back little of it, its window "
                     "(smooth.label_surface_radius %g x %g mm) being shorter than the %g mm voxels", said, hint,
                     fit_radius, spacing.min(), spacing.max())
@@ -875,10 +882,9 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
                     "smooth.fit_to_scan: false to follow the labels, or lower smooth.label_surface_radius", said)
     elif said and from_labels and grew:  # merging's chamfers left where the fit's window held too few samples
         spacing = [float(v) for v in smoothed.spacing[:smoothed.dim]]
-        coarse = [v >= 2 * min(spacing) for v in spacing]
-        passes = [0 if c else int(p) for c, p in zip(coarse, config["merge"]["passes"])]
+        passes, coarse = _in_plane_passes(spacing, config["merge"]["passes"])
         how = (f"on {' x '.join(f'{v:g}' for v in spacing)} mm voxels merge in-plane only (merge.passes={passes}), "
-               "or merge less (merge.min_thickness)" if any(coarse) else
+               "or merge less (merge.min_thickness)" if coarse else
                "merge less (merge.passes, merge.min_thickness), or raise smooth.label_surface_radius")
         log.warning("%s from the labels' voxels; the fit to the labels left what merging's slopes (chamfers) added "
                     "where its window (smooth.label_surface_radius voxels of the finest axis) held too few samples: "

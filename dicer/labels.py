@@ -64,10 +64,9 @@ def segment_map(segments: dict[int, str], source: str = "labels") -> dict[str, s
     # segments named apart that come out alike (letters dropped, names cut at 32 characters)
     # stay apart: each name takes its smallest label value; segments of one name share it
     apart: dict[str, dict[str, int]] = {}  # name -> segment name -> its smallest label value
-    for value in sorted(names, key=int):
-        apart.setdefault(names[value], {}).setdefault(texts[value], int(value))
     shared: dict[str, list[str]] = {}  # a segment name -> its label values, where several
     for value in sorted(names, key=int):
+        apart.setdefault(names[value], {}).setdefault(texts[value], int(value))
         shared.setdefault(texts[value], []).append(value)
     shared = {text: values for text, values in shared.items() if len(values) > 1}
     if shared:  # one material, with no interface between them: meant, or two tissues named alike

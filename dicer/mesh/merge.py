@@ -472,30 +472,49 @@ def _shared_corners(local: np.ndarray, k: int, changed: np.ndarray) -> np.ndarra
     return np.flatnonzero(any_per_row(clash[key]))
 
 
+@dataclass(frozen=True)
+class _Faces:
+    """The faces of a trial's elements (R, c), sorted so that a face's twins lie next to it:
+    ``facets`` (R, F, k) corners, ``order`` (RF,) the sort, ``same_face`` (RF - 1,) where
+    neighbours in it are one face, ``same_material`` where they are also of one material."""
+
+    facets: np.ndarray
+    order: np.ndarray
+    same_face: np.ndarray
+    same_material: np.ndarray
+
+
+def _sorted_faces(sub: np.ndarray, material: np.ndarray, n: int, dim: int) -> _Faces:
+    """:class:`_Faces` of the elements ``sub`` (R, c) of ``material`` (R,), nodes < ``n``."""
+    facets = sub[:, HEX_FACES] if dim == 3 else sub[:, QUAD_EDGES]  # (R, F, k)
+    f = np.sort(facets.reshape(-1, facets.shape[2]), axis=1).astype(np.int64)
+    n64 = np.int64(n)
+    mat = np.repeat(material.astype(np.int64), facets.shape[1])
+    key1 = f[:, 0] * n64 + f[:, 1]
+    key2 = f[:, 2] * n64 + f[:, 3] if dim == 3 else np.zeros_like(key1)
+    order = np.lexsort((mat, key2, key1))
+    same_face = (key1[order][1:] == key1[order][:-1]) & (key2[order][1:] == key2[order][:-1])
+    return _Faces(facets, order, same_face, same_face & (mat[order][1:] == mat[order][:-1]))
+
+
 def _pinches(sub: np.ndarray, material: np.ndarray, inside: np.ndarray, changed: np.ndarray, dim: int,
-             local: np.ndarray | None = None, bits: np.ndarray | None = None) -> np.ndarray:
+             faces: _Faces, local: np.ndarray | None = None, bits: np.ndarray | None = None) -> np.ndarray:
     """Rows of ``sub`` (R, c) where two elements of one material touch along an edge only
     (2D: at a node only), at an edge (node) of a ``changed`` row ((R,) bool).
 
     Such a contact leaves the material's surface open (four of its faces at one edge), as
     ``dicer fix`` removes it from the labels. Counted at the edges with both ends
     ``inside`` ((N,) bool): every element at them is in ``sub``, so the count is exact.
-    ``material`` (R,) gives each row's material. With ``bits`` ((k,) uint8 ``_plane_bits``
-    of the nodes ``local`` (R, c) numbers) counted in the model mirrored at the bounding
-    planes: a face on a plane meets its mirror image (not surface), an edge on planes
-    has 2^planes images of every other face at it.
+    ``material`` (R,) gives each row's material, ``faces`` their sorted faces
+    (:func:`_sorted_faces`). With ``bits`` ((k,) uint8 ``_plane_bits`` of the nodes ``local``
+    (R, c) numbers) counted in the model mirrored at the bounding planes: a face on a plane
+    meets its mirror image (not surface), an edge on planes has 2^planes images of every other
+    face at it.
     """
-    facets = sub[:, HEX_FACES] if dim == 3 else sub[:, QUAD_EDGES]  # (R, F, k)
+    facets, order, same = faces.facets, faces.order, faces.same_material
     per = facets.shape[1]
-    f = np.sort(facets.reshape(-1, facets.shape[2]), axis=1).astype(np.int64)
     n64 = np.int64(inside.shape[0])
-    mat = np.repeat(material.astype(np.int64), per)
-    key1 = f[:, 0] * n64 + f[:, 1]
-    key2 = f[:, 2] * n64 + f[:, 3] if dim == 3 else np.zeros_like(key1)
-    order = np.lexsort((mat, key2, key1))
-    same = (key1[order][1:] == key1[order][:-1]) & (key2[order][1:] == key2[order][:-1]) & \
-        (mat[order][1:] == mat[order][:-1])
-    inner = np.zeros(f.shape[0], dtype=bool)  # a face between two elements of one material
+    inner = np.zeros(order.shape[0], dtype=bool)  # a face between two elements of one material
     inner[order[1:][same]] = True
     inner[order[:-1][same]] = True
     outer = np.flatnonzero(~inner)
@@ -531,25 +550,21 @@ def _pinches(sub: np.ndarray, material: np.ndarray, inside: np.ndarray, changed:
 
 
 def _node_pinches(sub: np.ndarray, material: np.ndarray, inside: np.ndarray, changed: np.ndarray,
-                  local: np.ndarray, bits: np.ndarray | None = None) -> np.ndarray:
+                  faces: _Faces, local: np.ndarray, bits: np.ndarray | None = None) -> np.ndarray:
     """Rows of the hexahedra ``sub`` (R, 8) at a node where a material's surface, or the
     exterior, is pinched: its faces around the node form two fans or more that meet at the node
     only. Counted at the nodes ``inside`` ((N,) bool: all their elements in ``sub``) that a
-    ``changed`` row ((R,) bool) holds; ``material`` (R,). With ``bits`` ((k,) uint8 plane bits of
-    the nodes ``local`` (R, 8) numbers) a face in a bounding plane is no surface (it meets its
-    mirror image); the fans' count is then the mirrored model's."""
+    ``changed`` row ((R,) bool) holds; ``material`` (R,), ``faces`` (:func:`_sorted_faces`). With
+    ``bits`` ((k,) uint8 plane bits of the nodes ``local`` (R, 8) numbers) a face in a bounding
+    plane is no surface (it meets its mirror image); the fans' count is then the mirrored
+    model's."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    facets = sub[:, HEX_FACES].reshape(-1, 4).astype(np.int64)  # (6R, 4)
-    key = np.sort(facets, axis=1)
-    n64 = np.int64(inside.shape[0])
-    key1, key2 = key[:, 0] * n64 + key[:, 1], key[:, 2] * n64 + key[:, 3]
+    facets = faces.facets.reshape(-1, 4).astype(np.int64)  # (6R, 4)
+    order, same_face, same_mat = faces.order, faces.same_face, faces.same_material
     top = np.int64(int(material.max(initial=0)) + 2)  # the exterior's group: top - 1
     mat = np.repeat(material.astype(np.int64), 6)
-    order = np.lexsort((mat, key2, key1))  # one sort: a face's twins lie next to it
-    same_face = (key1[order][1:] == key1[order][:-1]) & (key2[order][1:] == key2[order][:-1])
-    same_mat = same_face & (mat[order][1:] == mat[order][:-1])
     flat = np.zeros(facets.shape[0], dtype=bool)
     if bits is not None:  # a face in a bounding plane meets its mirror image
         lf = local[:, HEX_FACES].reshape(-1, 4)
@@ -1315,15 +1330,16 @@ def _check_trial(plane: _Plane, trial: _Trial, work: _Work, settings: _Settings,
         # A chamfer or a moved rim node can leave two elements of one material touching
         # along an edge only, a contact ``dicer fix`` took out: the material's surface
         # would not be closed there.
-        pinched = _pinches(sub, work.material[rows], in_s, changed, dim, local, bits)
+        faces = _sorted_faces(sub, work.material[rows], n, dim)
+        pinched = _pinches(sub, work.material[rows], in_s, changed, dim, faces, local, bits)
         info["pinched_edges"] += int(pinched.size)
         bad_rows = rows[pinched]
-    if bad_rows.size == 0 and dim == 3:
-        # and at a node only (a filled notch beside another material): the paper's type B, which
-        # ``dicer fix`` took out too; each material's surface and the exterior
-        pinched = _node_pinches(sub, work.material[rows], in_s, changed, local, bits)
-        info["pinched_nodes"] += int(pinched.size)
-        bad_rows = rows[pinched]
+        if bad_rows.size == 0 and dim == 3:
+            # and at a node only (a filled notch beside another material): the paper's type B,
+            # which ``dicer fix`` took out too; each material's surface and the exterior
+            pinched = _node_pinches(sub, work.material[rows], in_s, changed, faces, local, bits)
+            info["pinched_nodes"] += int(pinched.size)
+            bad_rows = rows[pinched]
     return bad_rows
 
 

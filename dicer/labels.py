@@ -336,7 +336,8 @@ def _write_nifti_like(header: bytes, endian: str, array: np.ndarray, path: Path)
     """Write ``array`` ([x, y, z]) as a .nii.gz with ``header``: the data type, the intensity
     scaling and the display range change, and the free-text fields and the numbers free of
     meaning for a label volume are blanked; dims, pixdim, qform, sform and codes stay the
-    input's, byte for byte, along the volume's axes (beyond them one voxel of size 1)."""
+    input's, byte for byte, along the volume's axes (beyond them a 0 or 1 stays, other numbers
+    become ITK's 1 voxel of size 0)."""
     from dicer.io.atomic import atomic_path
 
     head = bytearray(header)
@@ -356,11 +357,14 @@ def _write_nifti_like(header: bytes, endian: str, array: np.ndarray, path: Path)
     # or record number: none of it is passed on
     for start, length in _NIFTI_TEXT + _NIFTI_FREE_NUMBERS:
         head[start:start + length] = bytes(length)
-    # the axes beyond the volume's (a time step, a fifth axis): free to hold a date, a record number
+    # the axes beyond the volume's (a time step, a fifth axis): free to hold a date, a record number;
+    # the 0 or 1 that ITK and nibabel write there stays, anything else becomes ITK's
     ndim = min(max(struct.unpack_from(endian + "h", head, 40)[0], 1), 7)
     for axis in range(ndim + 1, 8):
-        struct.pack_into(endian + "h", head, 40 + 2 * axis, 1)  # dim: one voxel along it
-        struct.pack_into(endian + "f", head, 76 + 4 * axis, 1.0)  # pixdim: as nibabel writes an unused one
+        if struct.unpack_from(endian + "h", head, 40 + 2 * axis)[0] not in (0, 1):
+            struct.pack_into(endian + "h", head, 40 + 2 * axis, 1)  # dim: one voxel along it
+        if struct.unpack_from(endian + "f", head, 76 + 4 * axis)[0] not in (0.0, 1.0):
+            struct.pack_into(endian + "f", head, 76 + 4 * axis, 0.0)  # pixdim
     data = contiguous(array.T, array.dtype.newbyteorder(endian))  # x fastest
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as raw, gzip.GzipFile(fileobj=raw, mode="wb", mtime=0, filename="",

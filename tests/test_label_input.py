@@ -306,7 +306,7 @@ def test_run_labels_end_to_end(labelled, tmp_path, caplog):
         if path.name.endswith(".nii.gz"):  # nor its free numbers, nor the sizes of axes it has not
             assert not any(data[a:b].strip(b"\0") for a, b in ((32, 38), (56, 68), (74, 76), (120, 123), (132, 148)))
             assert struct.unpack_from("<4h", data, 48) == (1, 1, 1, 1)
-            assert struct.unpack_from("<4f", data, 92) == (1.0, 1.0, 1.0, 1.0)
+            assert struct.unpack_from("<4f", data, 92) == (0.0, 0.0, 1.0, 1.0)  # the input's 1s stay
     # a rerun writes the same bytes
     first = {p.name: p.read_bytes() for p in out.iterdir()}
     assert _cli("run", "--labels", src, "-o", tmp_path / "again", "--config", config) == 0

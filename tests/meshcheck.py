@@ -24,6 +24,21 @@ def pinches(mesh):
     return count
 
 
+def exterior_pinches(mesh):
+    """Edges (3D) or nodes (2D) of the whole mesh's exterior, all materials together, on
+    more than two exterior faces: where the exterior surface touches itself."""
+    from dicer.mesh.faces import face_neighbours
+    from dicer.mesh.topology import HEX_FACES
+
+    cells = np.asarray(mesh.cells, np.int64)
+    e, s = np.nonzero(face_neighbours(cells, mesh.dim, mesh.n_points) < 0)
+    if mesh.dim == 2:
+        return int(np.count_nonzero(np.bincount(cells[e[:, None], QUAD_EDGES[s]].ravel()) > 2))
+    f = cells[e[:, None], HEX_FACES[s]]
+    edges = np.sort(np.stack([f, np.roll(f, -1, axis=1)], axis=-1).reshape(-1, 2), axis=1)
+    return int(np.count_nonzero(np.unique(edges, axis=0, return_counts=True)[1] > 2))
+
+
 def node_pinches(mesh):
     """Nodes where a material's surface (3D) is pinched: its faces around the node form two
     fans or more, which meet at the node only (the paper's type B). Each fan is followed by

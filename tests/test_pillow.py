@@ -19,7 +19,7 @@ from dicer.mesh.smooth import smooth_mesh
 from dicer.mesh.topology import HEX_FACES, QUAD_EDGES
 from dicer.mesh.voxel import voxel_mesh
 
-from meshcheck import pinches
+from meshcheck import exterior_pinches, pinches
 from test_smooth_mirror import shells
 
 ON = {"pillow": True}
@@ -246,6 +246,8 @@ def test_random_volumes_get_a_valid_conforming_layer(seed, dim, kinds):
     assert np.all(element_volumes(out.points, out.cells[mesh.n_cells:]) > 0)
     # no two elements of one material touch along an edge only (2D: at a node only)
     assert pinches(mesh) == 0 and pinches(out) == 0
+    # nor does the exterior of all materials touch itself where the input's did not
+    assert exterior_pinches(out) <= exterior_pinches(mesh)
     # conforming: the exterior is the layer's outer faces, the faces left in bounding planes
     # and the layer's sides there
     table = HEX_FACES if dim == 3 else QUAD_EDGES
@@ -255,6 +257,25 @@ def test_random_volumes_get_a_valid_conforming_layer(seed, dim, kinds):
     sides = nb_out[mesh.n_cells:, 2:] if dim == 3 else nb_out[mesh.n_cells:, [1, 3]]  # S3-S6; 2D: a-a', b'-b
     assert table.shape[0] > 0
     assert int(np.count_nonzero(nb_out < 0)) == faces.shape[0] + in_plane + int(np.count_nonzero(sides < 0))
+
+
+def test_two_materials_layers_meet_along_more_than_the_edge_to_a_node_s_copy():
+    """Layer elements of two materials that share a node's copy and nothing else would pinch
+    the exterior along the edge from the node to its copy (four faces there): a seeded
+    3-material volume had 5 such edges when each material kept its own fan."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(0)
+    noise = ndimage.gaussian_filter(rng.random((24, 24, 24)), 2.0)
+    lab = np.digitize(noise, np.quantile(noise, [0.35, 0.57, 0.78])).astype(np.uint8)
+    lab, _ = fix_connectivity(lab)
+    mesh = voxel_mesh(lab)
+    out, rep = smooth_mesh(mesh, ON)
+    faces = layer_nodes(mesh)[0].shape[0]
+    assert np.unique(out.material[mesh.n_cells:]).size == 3
+    assert rep["pillow"]["elements_added"] > 0.6 * faces
+    assert exterior_pinches(mesh) == 0 and exterior_pinches(out) == 0
+    assert pinches(out) == 0
 
 
 def test_the_depth_steps_down_to_half_and_a_quarter_and_grows_from_there():

@@ -150,16 +150,17 @@ def pillow_cells(faces: np.ndarray, new_id: np.ndarray) -> np.ndarray:
 
 
 def one_fan_per_node(faces: np.ndarray, kept: np.ndarray, material: np.ndarray) -> np.ndarray:
-    """The faces of the layer with, at every node, one fan of each material's faces.
+    """The faces of the layer with, at every node, one fan of faces, and of each material's.
 
-    All new elements at a node share the edge from the node to its copy. Two of one
-    material there that no chain of that material's faces (joined by their edges) links
-    share only that edge: the material's surface would not be closed (a gap in the layer
-    around the node, another material's face between them, or a surface that touches
-    itself there). At such a node the faces of all but the largest of the material's
-    fans lose their element (ties: the fan of the lowest face); repeated until every node
-    has one fan per material. An edge of more than two faces joins none of them.
-    2D (edges): unchanged.
+    All new elements at a node share the edge from the node to its copy. Two that no chain
+    of faces (joined by their edges) links share only that edge: the exterior would be
+    pinched along it, four faces at one edge (a gap in the layer around the node, or a
+    surface that touches itself there). Two of one material that no chain of that
+    material's faces links would leave the material's surface open (another material's
+    face between them). At such a node the faces of all but the largest fan lose their
+    element (ties: the fan of the lowest face), first of the fans of all materials
+    together, then of each material's; repeated until every node has one fan. An edge of
+    more than two faces joins none of them. 2D (edges): unchanged.
 
     Parameters
     ----------
@@ -175,9 +176,6 @@ def one_fan_per_node(faces: np.ndarray, kept: np.ndarray, material: np.ndarray) 
     (F,) bool ndarray
         ``kept`` with the faces of the other fans dropped.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     kept = kept.copy()
     if faces.shape[1] != 4:
         return kept
@@ -197,27 +195,39 @@ def one_fan_per_node(faces: np.ndarray, kept: np.ndarray, material: np.ndarray) 
         group = np.cumsum(start) - 1
         pair = np.flatnonzero(~start[1:] & (np.bincount(group)[group[1:]] == 2))  # sorted i, i + 1: the two
         p, q = order[pair], order[pair + 1]  # edge slots: face * 4 + corner
-        take = mat[p // 4] == mat[q // 4]
-        p, q = p[take], q[take]
         p_next, q_next = p - p % 4 + nxt[p % 4], q - q % 4 + nxt[q % 4]
         same = f.ravel()[p] == f.ravel()[q]  # both faces run the edge the same way
         a = np.r_[p, p_next]
         b = np.r_[np.where(same, q, q_next), np.where(same, q_next, q)]
-        graph = coo_matrix((np.ones(a.size, np.int8), (a, b)), shape=(k, k))
-        _, fan = connected_components(graph, directed=True, connection="weak")
-        # (node, material, fan) groups of the corners; more than one per node and material: drop
+        one_kind = np.tile(mat[p // 4] == mat[q // 4], 2)
         node, kind, face = f.ravel(), np.repeat(mat, 4), np.arange(k) // 4
-        by = np.lexsort((face, fan, kind, node))
-        node, kind, fan, face = node[by], kind[by], fan[by], face[by]
-        head = np.r_[True, (node[1:] != node[:-1]) | (kind[1:] != kind[:-1]) | (fan[1:] != fan[:-1])]
-        lead = np.flatnonzero(head)
-        size = np.diff(np.r_[lead, node.size])
-        g_node, g_kind, g_face = node[lead], kind[lead], face[lead]  # g_face: the fan's lowest face
-        pick = np.lexsort((g_face, -size, g_kind, g_node))
-        best = np.r_[True, (g_node[pick][1:] != g_node[pick][:-1]) | (g_kind[pick][1:] != g_kind[pick][:-1])]
-        if best.all():
+        drop = _smaller_fans(node, np.zeros(k, np.int64), face, _fans(a, b, k))
+        if drop.size == 0:
+            drop = _smaller_fans(node, kind, face, _fans(a[one_kind], b[one_kind], k))
+        if drop.size == 0:
             return kept
-        loses = np.zeros(lead.size, bool)
-        loses[pick[~best]] = True
-        drop = np.unique(face[loses[np.cumsum(head) - 1]])
         kept[idx[drop]] = False
+
+
+def _fans(a: np.ndarray, b: np.ndarray, k: int) -> np.ndarray:
+    """(k,) the fan of every face corner, corners ``a`` and ``b`` joined."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    graph = coo_matrix((np.ones(a.size, np.int8), (a, b)), shape=(k, k))
+    return connected_components(graph, directed=True, connection="weak")[1]
+
+
+def _smaller_fans(node: np.ndarray, kind: np.ndarray, face: np.ndarray, fan: np.ndarray) -> np.ndarray:
+    """The faces of every fan but the largest of its (node, kind) (ties: the lowest face's)."""
+    by = np.lexsort((face, fan, kind, node))
+    node, kind, fan, face = node[by], kind[by], fan[by], face[by]
+    head = np.r_[True, (node[1:] != node[:-1]) | (kind[1:] != kind[:-1]) | (fan[1:] != fan[:-1])]
+    lead = np.flatnonzero(head)
+    size = np.diff(np.r_[lead, node.size])
+    g_node, g_kind, g_face = node[lead], kind[lead], face[lead]  # g_face: the fan's lowest face
+    pick = np.lexsort((g_face, -size, g_kind, g_node))
+    best = np.r_[True, (g_node[pick][1:] != g_node[pick][:-1]) | (g_kind[pick][1:] != g_kind[pick][:-1])]
+    loses = np.zeros(lead.size, bool)
+    loses[pick[~best]] = True
+    return np.unique(face[loses[np.cumsum(head) - 1]])

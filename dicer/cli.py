@@ -445,9 +445,8 @@ def do_fix(labels_path: str, out: Path, config: dict, report_path: Path | None =
                                  "give the label volume of the part (labelled voxels 1 or more)")
             if report["islands"]["removed_parts"]:
                 raise DicerError(f"{labels_path}: every part of the model is smaller than fix.min_component_voxels="
-                                 f"{settings['min_component_voxels']} (parts joined by faces: voxels that touch only "
-                                 "at edges or corners, as a layer one voxel thick across the voxels' diagonal, count "
-                                 "apart until the fixes join them); lower it (0 keeps every part)")
+                                 f"{settings['min_component_voxels']} (voxels joined by faces, edges or corners, and "
+                                 "by faces after the connectivity fixes); lower it (0 keeps every part)")
             raise DicerError(f"{labels_path}: the connectivity fixes left no voxel (a part one voxel thin is "
                              "filled by its neighbours' class in the type C majority rounds); set "
                              "fix.majority_rounds=0 or fix.type_c=false to keep it")

@@ -711,18 +711,23 @@ def _type_c_sites(w: np.ndarray) -> int:
     return int(sum(np.count_nonzero(s) for s in sites))
 
 
-def remove_islands(labels: np.ndarray, min_voxels: int) -> tuple[np.ndarray, dict]:
+def remove_islands(labels: np.ndarray, min_voxels: int, joined_by: str = "faces") -> tuple[np.ndarray, dict]:
     """Set to background every part of the model smaller than ``min_voxels`` voxels.
 
     A part is a connected component of the non-background voxels through shared faces
     (the elements of a mesh hold together only through faces): a part that small floats
     free of the main body, and one floating element makes a static solve singular.
+    Before the connectivity fixes, which join voxels touching at an edge or a corner,
+    parts are counted through those too (``joined_by="corners"``): a structure one voxel
+    thick across the voxels' diagonal is a row of parts of a voxel each until then.
 
     Parameters
     ----------
     labels : (nx, ny[, nz]) int ndarray
         0 background.
     min_voxels : int
+    joined_by : {"faces", "corners"}
+        Voxels of one part share a face, or a face, an edge or a corner.
 
     Returns
     -------
@@ -734,7 +739,7 @@ def remove_islands(labels: np.ndarray, min_voxels: int) -> tuple[np.ndarray, dic
     from scipy import ndimage
 
     solid = labels != 0
-    parts, n = ndimage.label(solid)
+    parts, n = ndimage.label(solid, structure=np.ones((3,) * labels.ndim, bool) if joined_by == "corners" else None)
     report = {"parts": int(n), "removed_parts": 0, "removed_voxels": 0, "removed_by_material": {}}
     if n == 0 or min_voxels <= 1:
         return labels, report
@@ -785,9 +790,10 @@ def fix_stage(labels: np.ndarray, *, names: dict[str, str], min_component_voxels
     values, ranked = None, labels
     if priority is not None:
         values, ranked = priority_order(labels, names, priority)
-    # floating parts go first (the fixes need not work on them) and again after the fixes
-    # (which can cut a thin bridge)
-    array, islands = remove_islands(ranked, min_component_voxels)
+    # floating parts go first (the fixes need not work on them; parts touching at an edge or
+    # a corner are not floating, the fixes join them) and again after the fixes (which can
+    # cut a thin bridge)
+    array, islands = remove_islands(ranked, min_component_voxels, joined_by="corners")
     fixed, report = fix_connectivity.__wrapped__(array, max_iterations=max_iterations, type_c=type_c,
                                      max_type_c_rounds=max_type_c_rounds, majority_rounds=majority_rounds)
     fixed, after = remove_islands(fixed, min_component_voxels)

@@ -316,6 +316,35 @@ def test_floating_parts_below_the_size_are_removed():
     assert out.sum() == labels.sum() - 2 - 16
     same, report = remove_islands(labels, 0)
     assert same is labels and report["removed_parts"] == 0
+    # through edges and corners the corner voxel belongs to the body
+    out, report = remove_islands(labels, 9, joined_by="corners")
+    assert report["parts"] == 3 and report["removed_parts"] == 2 and report["removed_voxels"] == 9
+    assert out[12, 12, 12] == 1
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_structure_one_voxel_thick_across_the_diagonal_is_joined_not_removed(dim):
+    """A strut and a plate one voxel thick across the voxels' diagonal (thin oblique bone,
+    downsampled) are rows of parts a voxel each through faces: removed whole as floating
+    parts before the fixes could join them, they now reach the fixes and become a model
+    held together through faces."""
+    from scipy import ndimage
+
+    from dicer.connectivity import fix_stage
+
+    labels = np.zeros((24,) * dim, np.uint8)
+    labels[tuple(slice(2, 10) for _ in range(dim))] = 1  # a body of 8^dim voxels
+    i = np.arange(10, 22)
+    if dim == 2:  # a strut off the body's corner, 12 parts of a voxel
+        labels[i, i] = 1
+    else:  # a plate off the body's edge, 8 deep: 12 parts of 8 voxels
+        labels[i[:, None], i[:, None], np.arange(2, 10)] = 1
+    fixed, report = fix_stage(labels, names={"1": "bone"}, min_component_voxels=64, max_iterations=10, type_c=True,
+                              max_type_c_rounds=4, majority_rounds=0, priority=None)
+    assert report["islands"]["removed_voxels"] == 0
+    assert np.all(fixed[labels == 1] == 1)  # every voxel kept: the fixes only add
+    assert ndimage.label(fixed != 0)[1] == 1 and report["islands"]["parts"] == 1
+    assert report["joined_parts"] == 12
 
 
 def test_fix_priority_makes_the_result_independent_of_the_label_numbers():

@@ -637,8 +637,9 @@ def test_coordinates_printed_too_coarse_for_the_voxels_are_refused(tmp_path, cap
     path = tmp_path / f"m{suffix}"
     config = {"export": {"digits": digits}}
     if outcome == "refused":
-        with pytest.raises(DicerError, match=r"printed with 9 significant digits, move nodes by up to 0\.001 mm, "
-                                             r"1e\+03 % of the smallest voxel edge \(0\.0001 mm\)"):
+        with pytest.raises(DicerError, match=r"printed with 9 significant digits, move nodes by up to 0\.0004 mm along "
+                                             r"a voxel axis, 400 % of that axis's voxel edge: .* \(24 element\(s\) "
+                                             r"turn inside out as printed\)"):
             export_mesh(mesh, path, config)
         assert not path.exists()
     else:
@@ -648,20 +649,45 @@ def test_coordinates_printed_too_coarse_for_the_voxels_are_refused(tmp_path, cap
 
 
 def test_coordinates_printed_near_the_voxel_size_are_warned_of(tmp_path, caplog):
+    """Nine digits of -19999.999467 mm print it to a tenth of a micrometre: 3.3 % of the 1 um
+    voxels. The same model 33 nm over prints as it is: no warning."""
     labels = np.ones((3, 3, 3), np.uint8)
-    mesh = voxel_mesh(labels, spacing=(1e-3, 1e-3, 1e-3), origin=(-2e4, 0.0, 0.0))  # a shift of 10 % of a voxel
+    mesh = voxel_mesh(labels, spacing=(1e-3, 1e-3, 1e-3), origin=(-2e4 + 3.3e-5, 0.0, 0.0))
     export_mesh(mesh, tmp_path / "m.inp")
-    assert "of the smallest voxel edge (0.001 mm): the model lies up to 20000 mm from the origin and spans " \
-           "0.003 mm; set export.digits: 13, or place the image's origin near the model" in caplog.text
+    assert "move nodes by up to 3.3e-05 mm along a voxel axis, 3.3 % of that axis's voxel edge: the model lies up to " \
+           "20000 mm from the origin and spans 0.003 mm; set export.digits: 13, or place the image's origin near the " \
+           "model" in caplog.text
+    caplog.clear()
+    export_mesh(voxel_mesh(labels, spacing=(1e-3, 1e-3, 1e-3), origin=(-2e4, 0.0, 0.0)), tmp_path / "n.inp")
+    assert "significant digits" not in caplog.text
 
 
-def test_a_model_too_long_for_its_voxels_is_not_told_to_move_its_origin(tmp_path):
-    """Voxels 1e-4 x 1e-4 x 1000 mm, the origin at the model: 9 digits cannot print the 0.1 um
-    voxels of a model 22 m long wherever its origin lies, so only more digits are named."""
+@pytest.mark.parametrize("spacing, order, inverted", [(0.25, 1, 240), (0.5, 2, 192)])
+def test_elements_printed_inside_out_are_refused(tmp_path, spacing, order, inverted):
+    """A smoothed ball 10 km from the origin: 9 digits move its nodes by up to 20 % (0.25 mm
+    voxels) and 10 % (0.5 mm, curved 20-node elements) of a voxel, under the 25 % refused
+    before, and CalculiX stopped on the deck's nonpositive Jacobians. The elements are
+    checked as printed: refused; 13 digits print them as they are."""
+    from dicer.mesh.smooth import smooth_mesh
+
+    g = np.indices((16, 16, 16)).astype(float) - 7.5
+    labels = (np.sqrt((g ** 2).sum(0)) <= 6).astype(np.uint8)
+    mesh = smooth_mesh(voxel_mesh(labels, spacing=(spacing,) * 3, origin=(1e7,) * 3), {})[0]
+    export = {"order": order, "midside_nodes": "curved"}
+    with pytest.raises(DicerError, match=rf"\({inverted} element\(s\) turn inside out as printed\)$"):
+        export_mesh(mesh, tmp_path / "m.inp", {"export": export})
+    assert not (tmp_path / "m.inp").exists()
+    export_mesh(mesh, tmp_path / "m.inp", {"export": export | {"digits": 13}})
+
+
+def test_a_model_long_for_its_voxels_is_printed_against_each_axis_s_voxels(tmp_path, caplog):
+    """Voxels 1e-4 x 1e-4 x 1000 mm, the origin at the model: 9 digits print z to 1e-5 mm
+    of its 1000 mm voxels and x and y exactly. Set against the smallest voxel edge the z
+    rounding was 10 % of a voxel and the export refused the model."""
     labels = np.zeros((6, 6, 24), np.uint8)
     labels[1:5, 1:5, 1:23] = 1
     mesh = voxel_mesh(labels, spacing=(1e-4, 1e-4, 1000.0))
-    with pytest.raises(DicerError) as refused:
-        export_mesh(mesh, tmp_path / "m.inp")
-    assert "spans 22000 mm; set export.digits: 13 (elements could turn inside out)" in str(refused.value)
-    assert "origin near" not in str(refused.value) and not (tmp_path / "m.inp").exists()
+    export_mesh(mesh, tmp_path / "m.inp")
+    assert "significant digits" not in caplog.text
+    deck = meshio.read(tmp_path / "m.inp")
+    assert np.abs(deck.points - mesh.points).max() <= 1e-5

@@ -27,6 +27,7 @@ from dicer.export.model import (DEFAULT_TYPES, ELEMENT_TYPES, SolverModel, prepa
                                 scanner_mesh)
 from dicer.export.provenance import file_sha256, provenance, settings_hash
 from dicer.export.registry import EXPORT_SUFFIXES, FORMATS, format_of
+from dicer.export.textfmt import printed_values
 from dicer.io.atomic import atomic_path, flush_meanwhile, write_error
 from dicer.mesh.faces import face_neighbours, neighbour_materials
 from dicer.mesh.model import Mesh
@@ -86,9 +87,9 @@ edge, from which the export warns and from which it refuses (elements may turn i
 
 def _check_printed_digits(fmt: Format, model: SolverModel, mesh: Mesh, digits: int, path: Path) -> None:
     """Warn, or refuse, where printing the coordinates with the format's significant digits
-    moves nodes by a fair part of a voxel: a model far from the origin next to its voxel size
-    (micro-CT voxels with the scanner's origin metres away); and say when the format prints
-    other digits than ``export.digits`` asks."""
+    moves nodes by a fair part of a voxel (a model far from the origin next to its voxel size:
+    micro-CT voxels with the scanner's origin metres away) or turns an element inside out;
+    and say when the format prints other digits than ``export.digits`` asks."""
     if not fmt.digits or not model.n_points:
         return
     printed = digits if digits in fmt.digits else fmt.digits[0]
@@ -96,9 +97,23 @@ def _check_printed_digits(fmt: Format, model: SolverModel, mesh: Mesh, digits: i
         log.warning("export: %s prints coordinates with %d significant digits (its fixed columns); export.digits %d "
                     "applies to .inp and .feb", path, printed, digits)
     reach = max(float(model.points.max()), -float(model.points.min()))
-    shift = reach * 10.0 ** (1 - printed) / 2  # half a unit in the last digit of the largest coordinate
-    voxel = float(np.min(np.asarray(mesh.spacing, float)[:mesh.dim]))
-    if shift <= PRINTED_SHIFT_WARNING * voxel:
+    bound = reach * 10.0 ** (1 - printed) / 2  # half a unit in the last digit of the largest coordinate
+    spacing = np.asarray(mesh.spacing, float)[:mesh.dim]
+    voxel = float(np.min(spacing))
+    if bound <= PRINTED_SHIFT_WARNING * voxel:
+        return
+    try:
+        as_printed = printed_values(model.points, printed)
+    except ValueError:
+        return  # no field holds them: the writer says so
+    # each node's move along the voxel axes, in voxels of that axis (a voxel 1000 times
+    # longer along z takes 1000 times the move along z)
+    moved = as_printed - model.points
+    if mesh.direction is not None:
+        moved = moved @ np.asarray(mesh.direction, float)
+    share = float((np.abs(moved[:, :mesh.dim]) / spacing).max())
+    inverted = _inverted_as_printed(model, as_printed)
+    if share <= PRINTED_SHIFT_WARNING and not inverted:
         return
     fix = ("set export.digits: 13" if max(fmt.digits) > printed else
            "export to .inp or .feb with export.digits: 13, or to .exo or .vtu (exact)")
@@ -106,12 +121,29 @@ def _check_printed_digits(fmt: Format, model: SolverModel, mesh: Mesh, digits: i
     span = float((model.points.max(axis=0) - model.points.min(axis=0)).max())
     if span / 2 * 10.0 ** (1 - printed) / 2 <= PRINTED_SHIFT_WARNING * voxel:
         fix += ", or place the image's origin near the model"
-    text = (f"{path}: the coordinates, printed with {printed} significant digits, move nodes by up to {shift:.3g} mm, "
-            f"{100 * shift / voxel:.3g} % of the smallest voxel edge ({voxel:g} mm): the model lies up to {reach:.6g} "
-            f"mm from the origin and spans {span:.6g} mm; {fix}")
-    if shift > PRINTED_SHIFT_ERROR * voxel:
+    text = (f"{path}: the coordinates, printed with {printed} significant digits, move nodes by up to "
+            f"{float(np.abs(moved).max()):.3g} mm along a voxel axis, {100 * share:.3g} % of that axis's voxel edge: the model lies up to {reach:.6g} mm from the origin and spans "
+            f"{span:.6g} mm; {fix}")
+    if inverted:
+        raise DicerError(text + f" ({inverted} element(s) turn inside out as printed)")
+    if share > PRINTED_SHIFT_ERROR:
         raise DicerError(text + " (elements could turn inside out)")
     log.warning("export: %s", text)
+
+
+def _inverted_as_printed(model: SolverModel, as_printed: np.ndarray) -> int:
+    """Elements of ``model`` inside out at the coordinates ``as_printed`` and not at its own:
+    a corner's scaled Jacobian (order 1), the determinant at the quadratic check points
+    (order 2)."""
+    if model.order == 2:
+        from dicer.mesh.quadratic import folded_elements
+
+        before = folded_elements(model.points, model.cells, model.dim)
+        return int(np.count_nonzero(folded_elements(as_printed, model.cells, model.dim) & ~before))
+    from dicer.mesh.metrics import scaled_jacobian
+
+    before = scaled_jacobian(model.points, model.cells) <= 0
+    return int(np.count_nonzero((scaled_jacobian(as_printed, model.cells) <= 0) & ~before))
 
 
 @takes_settings("export")

@@ -218,6 +218,31 @@ def _mantissa(x: np.ndarray, p: int, fortran: bool):
     return m, e
 
 
+def printed_values(values: np.ndarray, digits: int) -> np.ndarray:
+    """The numbers ``values`` print as with ``digits`` significant digits (:func:`sci_digits`).
+
+    Parameters
+    ----------
+    values : float ndarray
+    digits : int
+
+    Returns
+    -------
+    float64 ndarray
+        The same shape.
+
+    Raises
+    ------
+    ValueError
+        As :func:`sci_digits`.
+    """
+    x = np.asarray(values, dtype=np.float64)
+    m, e = _mantissa(x.ravel(), digits, False)
+    k = e - digits + 1  # |x| printed: m * 10**k
+    mag = np.where(k >= 0, m * 10.0 ** np.maximum(k, 0), m / 10.0 ** np.maximum(-k, 0))
+    return np.copysign(mag, x.ravel()).reshape(x.shape)
+
+
 def sci_digits(values: np.ndarray, fmt: Sci, lead: bytes = b"") -> np.ndarray:
     """Floats in scientific notation, as bytes.
 

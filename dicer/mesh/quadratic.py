@@ -465,6 +465,14 @@ def _det_ratio(points: np.ndarray, cells: np.ndarray, grads: np.ndarray, dim: in
     return out
 
 
+def folded_elements(points: np.ndarray, cells: np.ndarray, dim: int) -> np.ndarray:
+    """(M,) bool: quadratic elements (``cells`` (M, 20) or (M, 8), VTK order; ``points``
+    mm) whose Jacobian determinant is not positive at one of the check points (the Gauss
+    points of full and reduced integration, the nodes, the faces' Gauss points)."""
+    grads = _serendipity_gradients(_HEX_NODES if dim == 3 else _QUAD_NODES, _check_points(dim))
+    return ~(_det_ratio(points, cells, grads, dim) > 0)
+
+
 def _gauss_volumes(points: np.ndarray, cells: np.ndarray, dim: int) -> np.ndarray:
     """(M,) volumes (2D: areas) of quadratic elements (``cells`` (M, K), node positions
     ``points`` mm) by 3^d-point Gauss quadrature of their Jacobian determinant.

@@ -685,6 +685,27 @@ def test_zero_or_negative_spacing(tmp_path):
         write_image(Volume(HU, (1.0, 0.0, 1.0)), tmp_path / "w.nii.gz")
 
 
+@pytest.mark.parametrize("size", [1e-20, 1e-8, 2e6, 1e18])
+def test_voxel_sizes_no_scan_has_are_refused_or_replaced(tmp_path, size, caplog):
+    """Voxels smaller than an atom or larger than a kilometre: a header in other units or
+    damaged. 1e18 mm voxels overflowed the smoothing's squared edges (an error naming
+    non-finite coordinates), 1e-20 mm ones were smoothed 0.4 to 0.75 voxel from the same
+    model at 1 mm, without a word."""
+    path = tmp_path / "s.nii.gz"
+    img = sitk.GetImageFromArray(np.ones((4, 4, 4), np.uint8))
+    img.SetSpacing((1.0, size, 1.0))
+    sitk.WriteImage(img, str(path))
+    with pytest.raises(DicerError, match=r"s\.nii\.gz: the header's voxel spacing \(pixdim\) is 1, .* mm: zero, "
+                                         r"negative, not finite or outside 1e-07 to 1e\+06 mm; fix the spacing"):
+        read_image(path)
+    assert read_image(path, spacing=(1.0, 0.5, 1.0)).spacing[1] == 0.5
+    assert "outside 1e-07 to 1e+06 mm; using image.spacing" in caplog.text
+    np.save(tmp_path / "a.npy", HU)
+    with pytest.raises(DicerError, match="outside 1e-07 to 1e\\+06 mm; give every axis its voxel size in mm"):
+        read_image(tmp_path / "a.npy", spacing=(1.0, size, 1.0))
+    read_image(tmp_path / "a.npy", spacing=(1.0, 1e-7, 1e6))  # the range's ends are scans' voxels
+
+
 def test_one_dimensional_image_refused(tmp_path):
     np.save(tmp_path / "line.npy", np.zeros((5, 1, 1)))
     with pytest.raises(DicerError, match="2D or 3D"):

@@ -199,12 +199,20 @@ def _f32_decimal(values) -> tuple[float, ...]:
     return tuple(out)
 
 
+SPACING_RANGE_MM = (1e-7, 1e6)
+"""Voxel sizes read as damaged or in other units than mm: a tenth of a nanometre (an atom)
+to a kilometre. Beyond them the stages' arithmetic leaves its range (the squared edges of
+1e18 mm voxels overflow; 1e-20 mm voxels smoothed 0.4 to 0.75 voxel from the same model's
+at 1 mm)."""
+
+
 def _check_spacing(spacing, path, source: str) -> tuple[float, ...]:
     spacing = tuple(float(s) for s in spacing)
-    if not all(np.isfinite(s) and s > 0 for s in spacing):
+    if _bad_spacing(spacing):
+        low, high = SPACING_RANGE_MM
         raise DicerError(
             f"{path}: voxel spacing {', '.join(f'{s:g}' for s in spacing)} mm ({source}) has a zero, "
-            "negative or non-finite value; give every axis a positive voxel size in mm"
+            f"negative or non-finite value or one outside {low:g} to {high:g} mm; give every axis its voxel size in mm"
         )
     return spacing
 
@@ -817,14 +825,15 @@ def _check_raw_size(path: Path, suffix: str) -> None:
 
 
 def _bad_spacing(spacing) -> bool:
-    return not all(np.isfinite(sp) and sp > 0 for sp in spacing)
+    return not all(np.isfinite(sp) and SPACING_RANGE_MM[0] <= sp <= SPACING_RANGE_MM[1] for sp in spacing)
 
 
 def _spacing_error(path: Path, spacing, what: str) -> DicerError:
+    low, high = SPACING_RANGE_MM
     return DicerError(
         f"{path}: the header's voxel spacing{what} is {', '.join(f'{sp:g}' for sp in spacing)} mm: zero, "
-        "negative or not finite; fix the spacing in the header, or set image.spacing to the voxel size "
-        "in mm (x, y, z) to use instead"
+        f"negative, not finite or outside {low:g} to {high:g} mm; fix the spacing in the header, or set "
+        "image.spacing to the voxel size in mm (x, y, z) to use instead"
     )
 
 
@@ -911,8 +920,8 @@ def _read_file(path: Path, spacing_arg, dtype=np.float32, keep_direction=False) 
     if bad_header_spacing:
         # the user's image.spacing replaces a header spacing that cannot be right; the
         # header's origin is dropped with it (it was placed with that spacing)
-        log.warning("%s: the header's voxel spacing is zero, negative or not finite; using image.spacing %s",
-                    path.name, spacing_arg)
+        log.warning("%s: the header's voxel spacing is zero, negative, not finite or outside %g to %g mm; using "
+                    "image.spacing %s", path.name, *SPACING_RANGE_MM, spacing_arg)
     # TIFF and PNG resolution tags are unreliable (dpi, not mm): use the given spacing
     own = suffix not in _TIFF + _PNG and not bad_header_spacing
     if own and spacing_arg is not None:

@@ -780,12 +780,13 @@ def test_label_volumes_of_the_wrong_kind_say_what_they_look_like(tmp_path, capsy
     assert _cli("run", tmp_path / "labels.nii.gz", "-o", tmp_path / "out") == 2
     assert "the image's values span 0 .. 2; move the range inside the image's values; an image of 3 whole values " \
            "from 0 is most likely a label volume: give it with --labels" in capsys.readouterr().err
-    # no background: the whole box is solid, said
-    write_image(Volume(lab + 10, (1.0, 1.0, 1.0)), tmp_path / "shifted.nii.gz")
+    # no background: the whole box is solid, said (values in whole: %g printed 15229600 as 1.52296e+07)
+    write_image(Volume(lab.astype(np.int32) + 15229600, (1.0, 1.0, 1.0)), tmp_path / "shifted.nii.gz")
     caplog.clear()
     assert _cli("labels", tmp_path / "shifted.nii.gz", "-o", tmp_path / "l.nii.gz") == 0
     assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == [
-        f"labels: every voxel of {tmp_path / 'shifted.nii.gz'} is a material (values 10, 11, 12), so the model fills "
+        f"labels: every voxel of {tmp_path / 'shifted.nii.gz'} is a material (values 15229600, 15229601, 15229602), "
+        "so the model fills "
         "the whole image box; if the background has a value of its own (a header's scl_inter, an atlas's 'unknown'), "
         "set labels.drop: [value]"]
 

@@ -865,12 +865,12 @@ def name_clash(names: list[str], sets=SET_KINDS) -> str | None:
 def _label_keys(user: dict) -> dict:
     """``labels.map`` with its keys as strings: YAML reads ``3: brain`` with an integer key,
     JSON (the workflow's settings) and ``--set labels.map.3=brain`` with a string one, and
-    both must give one config (and one config hash)."""
+    both must give one config (and one config hash). Other keys become text too, so that the
+    schema refuses them (``1.9: a`` was read as label 1, ``yes: a`` as label 1)."""
     section = user.get("labels")
     if isinstance(section, dict) and isinstance(section.get("map"), dict):
         section = dict(section)
-        section["map"] = {(str(k) if isinstance(k, int) and not isinstance(k, bool) else k): v
-                          for k, v in section["map"].items()}
+        section["map"] = {(k if isinstance(k, str) else str(k)): v for k, v in section["map"].items()}
         user = {**user, "labels": section}
     return user
 

@@ -333,6 +333,11 @@ def test_label_values_read_as_decimal_and_once(tmp_path):
     with pytest.raises(DicerError, match=r"key 'labels.map': \"08\" is not a label value to mesh: give a whole "
                                          r"number from 1, without leading zeros \(8, not 08\); 0 is the background"):
         load_config(path)
+    # a key that is no whole number was cut to one: 2.7 named label 2, yes label 1
+    for key, text in (("2.7", "2.7"), ("yes", "True")):
+        path.write_text(f"labels:\n  map: {{{key}: cortex}}\n")
+        with pytest.raises(DicerError, match=rf"key 'labels.map': \"{text}\" is not a label value to mesh"):
+            load_config(path)
     # an atlas's lookup table with several names no solver takes: all named in one error
     path.write_text("labels:\n  map: {2: Left-Cortex, 4: '3rd-Ventricle', 5: ok_name, 7: 'a b'}\n")
     with pytest.raises(DicerError, match=r"key 'labels.map': 3 names are not a name: give a letter, .* "
@@ -587,3 +592,11 @@ def test_a_presets_keys_set_otherwise_by_the_configuration_are_said(tmp_path, ca
     assert [(r.levelname, r.getMessage()) for r in caplog.records if "preset" in r.getMessage()] == [
         ("INFO", "config with --set: preset static-stress sets smooth.pillow: true, smooth.label_samples: \"auto\", "
                  "smooth.label_surface_radius: 7, export.order: 2, export.midside_nodes: \"curved\"")]
+
+
+@pytest.mark.parametrize("item", ["downsample.factor=99999999999999999999", "downsample.factor=[1e30,1,1]",
+                                  "downsample.voxel_size=1e300"])
+def test_downsampling_beyond_any_image_is_refused_by_the_schema(item):
+    """Factors past int64 ended in an OverflowError traceback when the run estimated its memory."""
+    with pytest.raises(DicerError, match=r"key 'downsample\.(factor|voxel_size)': .*<= 1000000"):
+        load_config(None, [item])

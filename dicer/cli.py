@@ -2050,8 +2050,29 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("-q", "--quiet", action="store_true", help="log warnings and errors only")
 
 
+class _StoreOnce(argparse._StoreAction):
+    """An option given twice is refused: argparse kept the last (``--config a.yaml --config
+    b.yaml`` read b.yaml alone, without a word)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        given = namespace.__dict__.setdefault("_given", set())
+        if self.option_strings and self.dest in given:
+            parser.error(f"{'/'.join(self.option_strings)} is given twice; give it once (--set repeats: "
+                         "--config FILE --set key=value overrides one file's settings)")
+        given.add(self.dest)
+        super().__call__(parser, namespace, values, option_string)
+
+
 class _Parser(argparse.ArgumentParser):
-    """Usage errors in the command's one error line too (exit status 2, as argparse's)."""
+    """Usage errors in the command's one error line too (exit status 2, as argparse's); an
+    option given twice is an error, and options are not taken by their beginnings
+    (``--sett`` read as the workflow's hidden ``--settings``)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+        self.register("action", "store", _StoreOnce)
+        self.register("action", None, _StoreOnce)
 
     def error(self, message):
         self.exit(2, f"error: {self.prog}: {message}; see '{self.prog} --help'\n")

@@ -767,3 +767,26 @@ def test_a_label_image_given_as_the_mesh_is_named_an_image(tmp_path, capsys, sta
     code, err = run_cli(capsys, stage, tmp_path / "labels.nii.gz", "-o", out)
     assert code == 2 and err.count("\n") == 1 and not out.exists()
     assert err.startswith(f"error: {tmp_path / 'labels.nii.gz'}: is an image, not a mesh; give a mesh a dicer stage")
+
+
+@pytest.mark.parametrize("twice", [["--config", "a.yaml", "--config", "b.yaml"], ["--labels", "x.nii.gz"],
+                                   ["-o", "elsewhere"]])
+def test_an_option_given_twice_is_refused(tmp_path, capsys, monkeypatch, twice):
+    """argparse kept the last of two --config files (the output as of b.yaml alone, no word)."""
+    for name in ("a.yaml", "b.yaml"):
+        (tmp_path / name).write_text("smooth: {coefficient: 0.5}\n")
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as done:
+        main(["run", "--labels", "x.nii.gz", "-o", "out", *twice])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert done.value.code == 2 and len(err) == 1
+    assert err[0].startswith(f"error: dicer run: {'-o/--output' if twice[0] == '-o' else twice[0]} is given twice")
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_option_is_not_taken_by_its_beginning(capsys):
+    """``--sett`` was read as the workflow's hidden --settings: 'not valid JSON'."""
+    with pytest.raises(SystemExit) as done:
+        main(["run", "--labels", "x.nii.gz", "-o", "out", "--sett", "smooth.coefficient=0.5"])
+    assert done.value.code == 2
+    assert capsys.readouterr().err == "error: dicer: unrecognized arguments: --sett; see 'dicer --help'\n"

@@ -1265,6 +1265,9 @@ def _report_of(mesh, config: dict, labels, original, metrics: dict, sj, stage_re
             except OSError as exc:
                 raise DicerError(f"{path}: cannot read the picture ({exc.strerror}); give an existing PNG "
                                  "with --picture") from None
+            if not shown[-1][1].startswith(b"\x89PNG\r\n\x1a\n"):  # the page embeds it as a PNG
+                raise DicerError(f"{path}: not a PNG picture (the report would show a broken image); give a PNG "
+                                 "with --picture, such as segmentation.png")
         write_bytes_atomic(html, render_html(report, shown))
     return report
 
@@ -1525,6 +1528,8 @@ def cmd_phantom(args):
 
     if args.name not in PHANTOMS:
         raise DicerError(f"phantom {args.name!r} is unknown; choose one of {', '.join(sorted(PHANTOMS))}")
+    if args.seed < 0:
+        raise DicerError(f"phantom: --seed {args.seed} is negative; give a whole number from 0")
     out = _check_output(args.output, (".nii", ".nii.gz", ".nrrd", ".mha"), "the phantom image")
     with _Stage("phantom"):
         image = make_phantom(args.name, size=args.size, noise=args.noise, seed=args.seed)

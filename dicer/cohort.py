@@ -86,6 +86,8 @@ def report_problem(report) -> str | None:
         listed = report.get(key, [])
         if not isinstance(listed, list) or not all(isinstance(m, str) for m in listed):
             return f"{key!r} is {listed!r}, not a list of names"
+    if "scaled_jacobian" not in report:  # a stage's report (smooth.json) counts elements too
+        return "no scaled Jacobian: a stage's report?"
     return None
 
 

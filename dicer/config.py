@@ -235,7 +235,10 @@ class _Loader(yaml.SafeLoader):
 
     def construct_mapping(self, node, deep=False):
         seen = {}
-        for key_node, _ in node.value:
+        # merge keys (``<<: *base``) first: their keys may be given again, which overrides them
+        explicit = [pair for pair in node.value if pair[0].tag != "tag:yaml.org,2002:merge"]
+        self.flatten_mapping(node)
+        for key_node, _ in explicit:
             key = self.construct_object(key_node, deep=deep)
             # 8 and "8" are one key once the config is JSON (labels.map keys become strings)
             key = str(key) if isinstance(key, int) and not isinstance(key, bool) else key
@@ -364,7 +367,11 @@ _Loader.yaml_implicit_resolvers = {
 def _yaml(text: str, source: str):
     """``text`` parsed with ``_Loader``; DicerError naming ``source`` on bad YAML."""
     try:
-        return yaml.load(text, Loader=_Loader)  # noqa: S506  (_Loader is a SafeLoader)
+        tree = yaml.load(text, Loader=_Loader)  # noqa: S506  (_Loader is a SafeLoader)
+        if _holds_itself(tree):
+            raise DicerError(f"{source}: an anchor refers to itself (a section inside its own alias, "
+                             "'a: &a [*a]'); write the values out")
+        return tree
     except DuplicateKey as dup:
         raise DicerError(f"{source}: key '{dup.key}' is given twice (lines {dup.first} and {dup.line}) in one "
                          "section; keep one") from None
@@ -373,6 +380,16 @@ def _yaml(text: str, source: str):
         where = f" at line {mark.line + 1}" if mark else ""
         raise DicerError(f"{source}: not valid YAML{where} ({getattr(exc, 'problem', None) or 'syntax'}); "
                          "fix the syntax (quote strings)") from None
+
+
+def _holds_itself(tree, inside: tuple = ()) -> bool:
+    """Whether a list or mapping of ``tree`` holds itself (a YAML alias inside its anchor)."""
+    if not isinstance(tree, (dict, list)):
+        return False
+    if any(tree is outer for outer in inside):
+        return True
+    values = tree.values() if isinstance(tree, dict) else tree
+    return any(_holds_itself(v, (*inside, tree)) for v in values)
 
 
 def parse_set(item: str, source: str = "--set") -> dict:

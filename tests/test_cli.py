@@ -790,3 +790,10 @@ def test_an_option_is_not_taken_by_its_beginning(capsys):
         main(["run", "--labels", "x.nii.gz", "-o", "out", "--sett", "smooth.coefficient=0.5"])
     assert done.value.code == 2
     assert capsys.readouterr().err == "error: dicer: unrecognized arguments: --sett; see 'dicer --help'\n"
+
+
+def test_a_negative_phantom_seed_is_refused(tmp_path, capsys):
+    """numpy's ValueError ended in a traceback."""
+    assert main(["phantom", "head", "-o", str(tmp_path / "p.nii.gz"), "--seed", "-1"]) == 2
+    assert capsys.readouterr().err == "error: phantom: --seed -1 is negative; give a whole number from 0\n"
+    assert not (tmp_path / "p.nii.gz").exists()

@@ -600,3 +600,20 @@ def test_downsampling_beyond_any_image_is_refused_by_the_schema(item):
     """Factors past int64 ended in an OverflowError traceback when the run estimated its memory."""
     with pytest.raises(DicerError, match=r"key 'downsample\.(factor|voxel_size)': .*<= 1000000"):
         load_config(None, [item])
+
+
+def test_yaml_merge_keys_are_read_and_an_anchor_inside_itself_refused(tmp_path):
+    """``<<: *soft`` is YAML (it was refused as 'not valid YAML ... quote strings'), a key after
+    it overrides the merged one; 'a: &a [*a]' ended in a RecursionError traceback."""
+    path = tmp_path / "c.yaml"
+    path.write_text("materials:\n  - &soft {name: soft, youngs_modulus: 1, poissons_ratio: 0.3, density: 1.0e-9}\n"
+                    "  - {<<: *soft, name: bone, youngs_modulus: 10}\n")
+    materials = load_config(path)["materials"]
+    assert [(m["name"], m["youngs_modulus"], m["poissons_ratio"]) for m in materials] == [("soft", 1, 0.3),
+                                                                                        ("bone", 10, 0.3)]
+    path.write_text("smooth: {coefficient: 0.5, coefficient: 0.6}\n")
+    with pytest.raises(DicerError, match="key 'coefficient' is given twice"):
+        load_config(path)
+    path.write_text("smooth: &a {pillow: [*a]}\n")
+    with pytest.raises(DicerError, match=r"c\.yaml: an anchor refers to itself .*; write the values out$"):
+        load_config(path)

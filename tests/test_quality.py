@@ -306,6 +306,13 @@ def test_stage_reports_and_pictures_are_named_by_content_not_by_file_name(tmp_pa
         err = capsys.readouterr().err
         assert err.startswith("error: ") and said in err and err.count("\n") == 1
         assert not (tmp_path / "bad.json").exists()
+    # a picture that is no PNG (a slip for segmentation.png) was embedded as a broken image
+    html = tmp_path / "bad.html"
+    assert main(base + ["--html", str(html), "--picture", str(run / "fix.json")]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"error: {run / 'fix.json'}: not a PNG picture (the report would show a broken image); give a PNG "
+                   "with --picture, such as segmentation.png\n")
+    assert not html.exists() and not (tmp_path / "bad.json").exists()
 
 
 def test_node_classes_in_the_report_count_the_irregular_ones():

@@ -344,6 +344,7 @@ def test_cohort_warns_of_models_made_by_different_versions(tmp_path):
     ({"elements": 5, "materials": {"bone": {"volume_change_percent": True}}},
      "'materials.bone.volume_change_percent' is True, not a number"),
     ([1, 2], "the file holds a list, not an object"),
+    ({"elements": 5, "nodes": 9, "node_classes": {"A": 1}}, "no scaled Jacobian: a stage's report?"),  # smooth.json
 ])
 def test_cohort_refuses_a_report_of_other_types(tmp_path, report, said):
     """Valid JSON of other types gave a traceback."""

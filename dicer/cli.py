@@ -2023,19 +2023,37 @@ def _keep_failed(staging: Path, failed: Path) -> bool:
 
 
 def _publish(staging: Path, outdir: Path) -> None:
-    """Move a finished run's files into ``outdir``: each file by an atomic rename over the
-    old one, then the results of an earlier run that this one did not write are removed
-    (so the folder never mixes two runs' results)."""
+    """Move a finished run's files into ``outdir``, all or none: an earlier run's results go
+    aside first (beside the folder, on its disk), then each new file by an atomic rename;
+    where a rename fails the new files go back to ``staging`` and the earlier ones back into
+    ``outdir`` (a file that could not be replaced left the folder mixing two runs), so the
+    folder never mixes two runs' results."""
     outdir.mkdir(parents=True, exist_ok=True)
-    written = {p.name for p in staging.iterdir()}
-    for name in sorted(written):
-        os.replace(staging / name, outdir / name)
-    for name in RUN_OUTPUTS:
-        if name not in written:
-            (outdir / name).unlink(missing_ok=True)
+    written = sorted(p.name for p in staging.iterdir())
+    aside = outdir.parent / f".{outdir.name}.previous"
+    if aside.exists():
+        shutil.rmtree(aside)
+    aside.mkdir()
+    moved_aside: list[str] = []
+    placed: list[str] = []
+    try:
+        for name in sorted(set(written) | set(RUN_OUTPUTS)):
+            if (outdir / name).exists():
+                os.replace(outdir / name, aside / name)
+                moved_aside.append(name)
+        for name in written:
+            os.replace(staging / name, outdir / name)
+            placed.append(name)
+    except BaseException:  # a failed rename, or an interrupt between two
+        with contextlib.suppress(OSError):
+            for name in reversed(placed):
+                os.replace(outdir / name, staging / name)
+            for name in reversed(moved_aside):
+                os.replace(aside / name, outdir / name)
+            aside.rmdir()
+        raise
+    shutil.rmtree(aside, ignore_errors=True)
     staging.rmdir()
-
-
 
 
 # --- parser ---------------------------------------------------------------------------

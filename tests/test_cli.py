@@ -5,6 +5,7 @@ import logging
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -797,3 +798,31 @@ def test_a_negative_phantom_seed_is_refused(tmp_path, capsys):
     assert main(["phantom", "head", "-o", str(tmp_path / "p.nii.gz"), "--seed", "-1"]) == 2
     assert capsys.readouterr().err == "error: phantom: --seed -1 is negative; give a whole number from 0\n"
     assert not (tmp_path / "p.nii.gz").exists()
+
+
+def test_results_that_cannot_all_be_moved_in_leave_the_folder_as_it_was(tmp_path, capsys, monkeypatch):
+    """A file of the folder that could not be replaced (an immutable model.inp) left it mixing
+    two runs: the new fix.json and mesh.vtu beside the old model.inp."""
+    lab = np.zeros((8, 8, 8), np.uint8)
+    lab[1:7, 1:7, 1:7] = 1
+    np.save(tmp_path / "l.npy", lab)
+    out = tmp_path / "out"
+    assert main(["run", "--labels", str(tmp_path / "l.npy"), "-o", str(out), "-q"]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    replace = os.replace
+
+    def refuse_one(src, dst):  # as chattr +i: neither moved away nor replaced
+        if out / "model.inp" in (Path(src), Path(dst)):
+            raise PermissionError(1, "Operation not permitted")
+        return replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", refuse_one)
+    capsys.readouterr()
+    assert main(["run", "--labels", str(tmp_path / "l.npy"), "-o", str(out), "-q",
+                 "--set", "smooth.coefficient=0.5"]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"error: {out}: cannot move the results into the folder (Operation not permitted); they are in "
+                   f"{tmp_path / 'out.failed'}\n")
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert (tmp_path / "out.failed" / "model.inp").read_bytes() != before["model.inp"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["l.npy", "out", "out.failed"]

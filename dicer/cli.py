@@ -1567,6 +1567,14 @@ def _check_export_dims(config: dict, dim: int, source: str) -> None:
         dims = " and ".join(f"{d}D" for d in cannot[0][1].dims)
         raise DicerError(f"{source}: a {dim}D image, and workflow.exports names {named}, which hold"
                          f"{'s' if len(cannot) == 1 else ''} {dims} models only; drop {them} from workflow.exports")
+    from dicer.export.model import ELEMENT_TYPES, element_types
+
+    etype = config["export"]["element_type"]
+    if etype is not None and ELEMENT_TYPES[etype][0] != dim:  # found at the export, after every stage
+
+        raise DicerError(f"{source}: a {dim}D image, and export.element_type {etype} is for {3 if dim == 2 else 2}D "
+                         f"models; use one of {', '.join(element_types(dim, config['export']['order']))}, or "
+                         "leave export.element_type out (null: the default of the order)")
 
 
 def _check_exodus_size(config: dict, labels, source: str) -> None:

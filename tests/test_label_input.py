@@ -521,6 +521,12 @@ def test_run_refuses_a_2d_model_for_a_3d_only_format_before_any_stage(tmp_path, 
         f"error: {src}: a 2D image, and workflow.exports names k (lsdyna), feb (febio), which hold 3D models only; "
         "drop k and feb from workflow.exports")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["seg.npy"]
+    # an element type of the other dimension (found at the export, every stage run and out.failed left)
+    assert _cli("run", "--labels", src, "-o", out, "--set", "export.element_type=C3D8") == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"error: {src}: a 2D image, and export.element_type C3D8 is for 3D models; use one of CPS4, CPS4R, CPE4, CPE4R, or "
+        "leave export.element_type out (null: the default of the order)")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["seg.npy"]
 
 
 @pytest.mark.parametrize("sets, key", [

@@ -2106,6 +2106,7 @@ class _Parser(argparse.ArgumentParser):
         self.register("action", None, _StoreOnce)
 
     def error(self, message):
+        message = message.replace("\r", "\\r").replace("\n", "\\n")
         self.exit(2, f"error: {self.prog}: {message}; see '{self.prog} --help'\n")
 
 
@@ -2332,7 +2333,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: terminated (SIGTERM, e.g. a cluster time limit); {kept}", file=sys.stderr)
         return 143
     except DicerError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        # one line, also where a path holds a line break
+        print("error: " + str(exc).replace("\r", "\\r").replace("\n", "\\n"), file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
         kept = "; ".join(getattr(exc, "__notes__", ())) or "no output was kept"

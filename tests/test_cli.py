@@ -826,3 +826,10 @@ def test_results_that_cannot_all_be_moved_in_leave_the_folder_as_it_was(tmp_path
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
     assert (tmp_path / "out.failed" / "model.inp").read_bytes() != before["model.inp"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["l.npy", "out", "out.failed"]
+
+
+def test_an_error_stays_one_line_where_a_path_holds_a_line_break(tmp_path, capsys):
+    """The message was split over two lines at the path's newline."""
+    assert main(["run", "--labels", str(tmp_path / "no\nsuch.nii.gz"), "-o", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"error: {tmp_path}/no\\nsuch.nii.gz: no such file")

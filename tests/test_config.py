@@ -617,3 +617,15 @@ def test_yaml_merge_keys_are_read_and_an_anchor_inside_itself_refused(tmp_path):
     path.write_text("smooth: &a {pillow: [*a]}\n")
     with pytest.raises(DicerError, match=r"c\.yaml: an anchor refers to itself .*; write the values out$"):
         load_config(path)
+
+
+@pytest.mark.parametrize("item, said", [
+    ("materials=[{name: a, youngs_modulus: 1.5e10}]", r"materials\.0\.youngs_modulus': 15000000000\.0 is out of range"),
+    ("materials=[{name: a, density: 1900}]", r"materials\.0\.density': 1900 is out of range"),
+    ("image.crop={unit: voxels, min: [0, 0, 0], max: [99999999999999999999, 30, 30]}", r"image\.crop': max\.0"),
+])
+def test_properties_in_other_units_and_crops_past_any_image_are_refused(item, said):
+    """E in Pa and densities in kg/m^3 passed (E 1e308 made an explicit time step of 0.0 s and
+    numpy's overflow warnings); a crop past int64 was printed as -9223372036854775808."""
+    with pytest.raises(DicerError, match=said):
+        load_config(None, [item])

@@ -466,9 +466,22 @@ def _det_ratio(points: np.ndarray, cells: np.ndarray, grads: np.ndarray, dim: in
 
 
 def folded_elements(points: np.ndarray, cells: np.ndarray, dim: int) -> np.ndarray:
-    """(M,) bool: quadratic elements (``cells`` (M, 20) or (M, 8), VTK order; ``points``
-    mm) whose Jacobian determinant is not positive at one of the check points (the Gauss
-    points of full and reduced integration, the nodes, the faces' Gauss points)."""
+    """Quadratic elements whose Jacobian determinant is not positive at one of the check
+    points (the Gauss points of full and reduced integration, the nodes, the faces' Gauss
+    points).
+
+    Parameters
+    ----------
+    points : (N, 3) float64 ndarray
+        Node positions, mm.
+    cells : (M, 20) or (M, 8) int ndarray
+        Quadratic hexahedra or quads, VTK order.
+    dim : {2, 3}
+
+    Returns
+    -------
+    (M,) bool ndarray
+    """
     grads = _serendipity_gradients(_HEX_NODES if dim == 3 else _QUAD_NODES, _check_points(dim))
     return ~(_det_ratio(points, cells, grads, dim) > 0)
 

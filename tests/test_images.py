@@ -717,6 +717,28 @@ def test_write_image_unknown_extension(tmp_path):
         write_image(Volume(HU, SPACING), tmp_path / "a.png")
 
 
+def test_tiff_resolution_tags_are_named_where_they_are_not_taken(tmp_path, caplog):
+    """A TIFF whose tags give 0.1 mm was said to carry no voxel size (and was meshed 10 times
+    as long)."""
+    img = sitk.GetImageFromArray((np.arange(64 * 64).reshape(64, 64) % 200).astype(np.uint8))
+    img.SetSpacing((0.1, 0.1))
+    sitk.WriteImage(img, str(tmp_path / "s.tif"))
+    with caplog.at_level(logging.WARNING, logger="dicer"):
+        assert read_image(tmp_path / "s.tif").spacing == (1.0, 1.0)
+    assert "s.tif: the file's resolution tags give 0.1 x 0.1 mm per pixel, which is not taken as the voxel size" \
+           in caplog.text and "no voxel size" not in caplog.text
+    assert read_image(tmp_path / "s.tif", spacing=(0.1, 0.1)).spacing == (0.1, 0.1)
+
+
+def test_a_png_of_grey_and_alpha_is_named_so(tmp_path):
+    """ITK names no pixel type for it: 'check that the file is complete' misled."""
+    path = tmp_path / "la.png"
+    sitk.WriteImage(sitk.GetImageFromArray(np.zeros((16, 16, 2), np.uint8), isVector=True), str(path))
+    with pytest.raises(DicerError, match=r"la\.png: a PNG of grey and alpha channels; dicer reads single-channel "
+                                         r"\(greyscale\) images: convert it to greyscale without alpha$"):
+        read_image(path)
+
+
 @pytest.mark.parametrize("name", ["bad.nii.gz", "bad.nii", "bad.nrrd", "bad.mha", "bad.npy", "bad.png"])
 def test_garbage_file_is_unreadable(tmp_path, name):
     path = tmp_path / name

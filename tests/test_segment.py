@@ -212,6 +212,47 @@ def test_otsu_on_an_image_without_air_in_hu_is_warned_of():
     assert "brightest" not in said[0]
 
 
+def test_the_default_ct_ranges_on_an_image_without_air_in_hu_are_warned_of():
+    """An MR offset below zero (its background -450) took its brain for 'bone' at 15 GPa under
+    the default segment.ranges, exit 0 and not a line."""
+    image, truth = head_like(32, noise=60, seed=3)
+    mr = Volume(np.where(truth == 0, -450.0, np.where(truth == 1, 350.0, 1350.0))
+                + np.abs(np.random.default_rng(5).normal(0, 40, truth.shape)), image.spacing)
+    _, info = segment(mr, config(), "mr.nii.gz")
+    said = [w for w in info["warnings"] if w.startswith("the image holds no value below -500")]
+    assert len(said) == 1 and "the default segment.ranges are CT values in HU and made 'soft_tissue' from" in said[0]
+    assert said[0].endswith("for an MR set segment.method: multiotsu (docs/segmentation.md), or segment.ranges for "
+                            "this image's values")
+    # a CT with air, or ranges of the user's own: no such line
+    _, info = segment(image, config(), "ct.nii.gz")
+    assert not [w for w in info.get("warnings", []) if w.startswith("the image holds no value below -500")]
+    _, info = segment(mr, config(ranges=[[-200, 900], [900, 2000]]), "mr.nii.gz")
+    assert not [w for w in info.get("warnings", []) if w.startswith("the image holds no value below -500")]
+
+
+def test_histogram_thresholds_lie_midway_across_an_empty_gap():
+    """Otsu's criterion is flat across an empty gap and the search took its lower end, the
+    lower class's own value: smooth.fit_to_scan then grew a ball of 1000 on 0 by 24 %."""
+    from dicer.segment.thresholds import multiotsu_thresholds, otsu_thresholds
+
+    r = np.sqrt(((np.indices((40, 40, 40)) - 19.5) ** 2).sum(0))
+    assert otsu_thresholds(np.where(r < 10, 1000.0, 0.0).ravel(), 1, ["x"], "s") == [500.0]
+    t = multiotsu_thresholds(np.select([r < 6, r < 12], [234.0, 110.0], 0.0).ravel(), 2, ["a", "b"], "s")
+    assert abs(t[0] - 55) < 1 and abs(t[1] - 172) < 1  # midway, within half a bin of 0.9
+    # with values in the gap (noise, partial volume) the criterion decides alone
+    noisy = np.where(r < 10, 1000.0, 0.0) + np.random.default_rng(0).normal(0, 150, r.shape)
+    assert 300 < otsu_thresholds(noisy.ravel(), 1, ["x"], "s")[0] < 700
+
+
+def test_otsu_of_one_material_at_a_peak_says_so_without_naming_materials_listed():
+    noise = Volume(np.random.default_rng(2).normal(0, 400, (24, 24, 16)), (1.0, 1.0, 1.0))
+    one = load_config(settings={"materials": [{"name": "head"}], "segment": {"method": "otsu"}})
+    _, info = segment(noise, one, "n.nii.gz")
+    said = [w for w in info["warnings"] if w.startswith("otsu put the threshold")]
+    assert len(said) == 1 and "the image holds one tissue and its background alike" in said[0]
+    assert "fewer tissues than the materials listed" not in said[0]
+
+
 def test_segment_2d():
     image, truth = head_like(32)
     im2 = Volume(image.array[:, :, 16].copy(), (0.5, 0.7))
@@ -918,3 +959,15 @@ def test_a_table_a_voxel_below_the_head_is_dropped():
             assert any(w.startswith("segment.keep dropped 1 part(s) of 'soft_tissue'") for w in info["warnings"])
     truth = int(np.count_nonzero(lab == 2))
     assert abs(bone[1] - truth) < 0.01 * truth and bone[0] > truth + lab.shape[0] * 2 * lab.shape[2]
+
+
+def test_a_label_image_given_as_a_scan_is_told_how_to_give_it_as_labels():
+    """A label PNG was told to be given with --labels, which reads no PNG."""
+    lab = np.zeros((24, 24), np.float32)
+    lab[4:20, 4:20], lab[8:12, 8:12] = 3, 7
+    for source, after in (("lab.png", " after saving it as NIfTI (.nii.gz), which --labels reads"),
+                          ("lab.nii.gz", "")):
+        with pytest.raises(DicerError) as refused:
+            segment(Volume(lab, (1.0, 1.0)), config(), source)
+        assert str(refused.value).endswith("most likely a label volume: give it with --labels (dicer run --labels, "
+                                           f"dicer labels){after}")

@@ -353,7 +353,8 @@ def _from_sitk(image: sitk.Image, path, spacing_arg=None, own_spacing=True, nift
     else:
         # the format carries no reliable voxel size: origin at 0, spacing given or 1
         origin = [0.0] * len(size)
-        spacing = _default_spacing(spacing_arg, array.shape, path)
+        tags = None if all(float(v) == 1.0 for v in spacing) else spacing  # a TIFF's or PNG's resolution
+        spacing = _default_spacing(spacing_arg, array.shape, path, tags)
     corner = [o - s / 2 for o, s in zip(origin, spacing)] if own_spacing else origin
     return _finish(array, spacing, corner, path, dtype=dtype, direction=direction)
 
@@ -363,15 +364,23 @@ def _final_ndim(shape) -> int:
     return len(shape) - 1 if len(shape) == 3 and singles == 1 else len(shape)
 
 
-def _default_spacing(spacing_arg, shape, path) -> list[float]:
+def _default_spacing(spacing_arg, shape, path, tags=None) -> list[float]:
     """Spacing for every axis of an array of ``shape`` from the user's value, else 1 mm.
 
     Accepts a number, one value per axis of ``shape``, or one per axis left after
     dropping a singleton axis (that axis then gets 1). A 2D image takes the first two
     of three values, so one ``image.spacing`` serves slice stacks and single slices.
+    ``tags``: the voxel size a TIFF's or PNG's resolution tags give (not taken), for the
+    warning.
     """
     ndim, final = len(shape), _final_ndim(shape)
     if spacing_arg is None:
+        if tags is not None:  # "carries no voxel size" was untrue, and 0.1 mm tags made a model 10 times long
+            log.warning("%s: the file's resolution tags give %s mm per pixel, which is not taken as the voxel size "
+                        "(a TIFF's or PNG's resolution is most often a screen's or a printer's); using 1 mm per "
+                        "axis: set image.spacing to the voxel size", Path(path).name,
+                        " x ".join(f"{float(v):g}" for v in tags))
+            return [1.0] * ndim
         log.warning("%s: the file carries no voxel size; using 1 mm per axis (set image.spacing to override)",
                     Path(path).name)
         return [1.0] * ndim
@@ -824,6 +833,19 @@ def _check_raw_size(path: Path, suffix: str) -> None:
 # --- reading -----------------------------------------------------------------------
 
 
+def _png_channels(path: Path) -> str | None:
+    """The channels of a PNG with more than one (from its IHDR chunk's colour type), or None."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(26)
+    except OSError:
+        return None
+    if len(head) < 26 or not head.startswith(b"\x89PNG\r\n\x1a\n"):
+        return None
+    return {2: "red, green and blue channels", 4: "grey and alpha channels",
+            6: "red, green, blue and alpha channels"}.get(head[25])
+
+
 def _bad_spacing(spacing) -> bool:
     return not all(np.isfinite(sp) and SPACING_RANGE_MM[0] <= sp <= SPACING_RANGE_MM[1] for sp in spacing)
 
@@ -905,6 +927,10 @@ def _read_file(path: Path, spacing_arg, dtype=np.float32, keep_direction=False) 
             raise DicerError(f"{path}: a NIfTI-2 file, which the image reader (ITK's NIfTI-1 reader) does not "
                              "read; save it as NIfTI-1 (nibabel: nib.save(nib.Nifti1Image(img.dataobj, img.affine, "
                              "img.header), 'scan.nii.gz')) or as .nrrd or .mha") from None
+        channels = _png_channels(path) if suffix in _PNG else None
+        if channels:  # grey and alpha: ITK names no pixel type for it ("check that the file is complete" misled)
+            raise DicerError(f"{path}: a PNG of {channels}; dicer reads single-channel (greyscale) images: convert "
+                             "it to greyscale without alpha") from None
         raise DicerError(f"{path}: cannot read the image ({msg}); check that the file is complete and in a "
                          f"supported format ({_SUPPORTED})") from None
     _check_orthonormal(image, path)

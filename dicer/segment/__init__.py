@@ -35,6 +35,9 @@ NO_AIR_HU = -500.0
 """A CT in HU holds air (about -1000) around the body; an image whose lowest value lies above
 this is an MR, a rescaled image or one cropped inside the body."""
 
+WHOLE_BOX = 0.01
+"""A model whose image holds less background than this share fills its box (warned)."""
+
 OPENED_AWAY = 0.1
 """Share of a class's thresholded voxels whose removal by the opening is warned of (0.2 % of
 the head CT's bone, 7 % of the head phantom's soft tissue; a 10 mm plate on 5 mm slices 64 %;
@@ -303,13 +306,10 @@ def check_modality(modality: str | None, method: str, thresholds, ranges, source
         ``thresholds``, on an image of a modality in :data:`NOT_IN_HU`.
     """
     kind = NOT_IN_HU.get(modality or "")
-    if kind is None or method not in ("shape_connectivity", "manual"):
+    key = _default_hu_key(method, thresholds, ranges)
+    if kind is None or key is None:
         return
-    key = "ranges" if method == "shape_connectivity" else "thresholds"
-    given = ranges if method == "shape_connectivity" else thresholds
     default = section_defaults("segment")[key]
-    if np.shape(given) != np.shape(default) or not np.array_equal(np.asarray(given, float), default):
-        return
     raise DicerError(f"{source}: the scan is {kind} (DICOM Modality {modality}), not a CT, and segment.method "
                      f"{method} takes the default segment.{key} {json.dumps(default)}, which are CT values in HU; "
                      f"set segment.method: multiotsu (thresholds from the image's histogram, docs/segmentation.md), "
@@ -337,7 +337,7 @@ def _range_warnings(info: dict, names: list[str], lo: float, hi: float, spacing=
                             f"{high:g}]: the best split may lie outside it; the image spans {lo:g} .. {hi:g}; "
                             f"{why}")
     background = info["classes"]["background"]["fraction"]
-    if background < 0.01:
+    if background < WHOLE_BOX:
         # no air's -1000 HU, bone's thousands: most likely a CT whose rescale intercept was lost
         offset = (f"; the image spans {lo:g} .. {hi:g}, with no value near air's -1000 HU: a CT stored as HU + 1024 "
                   "(its rescale intercept lost, air near 0) needs 1024 subtracted" if lo > -200 and hi > 1000 else "")
@@ -394,6 +394,35 @@ def _ambiguity_warnings(info: dict, names: list[str], array: np.ndarray) -> list
     return said
 
 
+def _default_hu_key(method: str, thresholds, ranges) -> str | None:
+    """``"ranges"`` or ``"thresholds"`` where ``method`` takes the schema's default values of
+    that key (CT values in HU), else None."""
+    if method not in ("shape_connectivity", "manual"):
+        return None
+    key, given = ("ranges", ranges) if method == "shape_connectivity" else ("thresholds", thresholds)
+    default = section_defaults("segment")[key]
+    if np.shape(given) != np.shape(default) or not np.array_equal(np.asarray(given, float), default):
+        return None
+    return key
+
+
+def _default_hu_warnings(method: str, ranges, thresholds, array: np.ndarray, names: list[str], taken) -> list[str]:
+    """A warning where the default CT settings (``segment.ranges`` of shape_connectivity,
+    ``segment.thresholds`` of manual), values in HU, meet an image without air's HU: an MR
+    offset or normalised to values below zero took its brain for bone without a word."""
+    key = _default_hu_key(method, thresholds, ranges)
+    if key is None:
+        return []
+    lowest = float(np.nanmin(array)) if array.size else 0.0
+    if lowest <= NO_AIR_HU:
+        return []
+    classes = ", ".join(f"'{n}' from {float(t):g}" for n, t in zip(names, taken))
+    return [f"the image holds no value below {NO_AIR_HU:g} (its lowest is {lowest:g}): no air in HU, so it is not a "
+            f"CT in HU (an MR, or an image rescaled or normalised) or holds no air (cropped inside the body); the "
+            f"default segment.{key} are CT values in HU and made {classes}: check segmentation.png; for an MR set "
+            "segment.method: multiotsu (docs/segmentation.md), or segment.ranges for this image's values"]
+
+
 def _histogram_warnings(method: str, array: np.ndarray, values, names: list[str], thresholds) -> list[str]:
     """Warnings for thresholds from the histogram alone (otsu, multiotsu) that cut through one
     tissue's peak (:func:`thresholds_in_a_mode`): the histogram is split into as many classes as
@@ -406,10 +435,13 @@ def _histogram_warnings(method: str, array: np.ndarray, values, names: list[str]
     cut = thresholds_in_a_mode(values, thresholds)
     if cut:
         which = ", ".join(f"'{names[i]}' ({float(thresholds[i]):g})" for i in cut)
+        fewer = ("the scan holds fewer tissues than the materials listed, and the classes are not the tissues they "
+                 "are named after; list only the materials the scan holds" if len(names) > 1 else
+                 "the image holds one tissue and its background alike (noise, or a tissue filling the image), and "
+                 f"'{names[0]}' is a part of its values, not a tissue; check segmentation.png")
         said.append(f"{method} put the threshold of {which} at a peak of the image's histogram, inside one tissue's "
-                    "values, not between two: the scan holds fewer tissues than the materials listed, and the classes "
-                    "are not the tissues they are named after; list only the materials the scan holds, or set "
-                    "segment.method: manual (or shape_connectivity with segment.ranges)")
+                    f"values, not between two: {fewer}, or set segment.method: manual (or shape_connectivity with "
+                    "segment.ranges)")
     lowest = float(np.nanmin(array)) if array.size else 0.0
     if lowest > NO_AIR_HU:
         # Otsu splits any values; the classes take the materials' names in order of intensity
@@ -511,6 +543,7 @@ def segment(image: Volume, *, names: list[str], method: str, thresholds, ranges,
     info["classes"] = label_counts(labels, names)
     warnings = (_empty_class_warnings(info, names, thresholds) + _range_warnings(info, names, lo, hi, image.spacing)
                 + _histogram_warnings(method, searched, values, names, thresholds)
+                + _default_hu_warnings(method, ranges, thresholds, searched, names, info["thresholds"])
                 + _ambiguity_warnings(info, names, searched) + _border_warnings(labels, names, lo))
     for name, removed in info["removed_by_opening"].items():
         kept, thresholded = info["classes"][name]["voxels"], info["thresholded"][name]

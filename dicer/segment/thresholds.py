@@ -145,7 +145,40 @@ def otsu_thresholds(values: np.ndarray, k: int, names: list[str], source: str) -
         raise DicerError(f"{source}: segment.method=otsu finds one threshold but the config names {k} materials "
                          f"({', '.join(names)}); use segment.method=multiotsu or shape_connectivity")
     with _quiet():
-        return [float(threshold_otsu(values))]
+        threshold = float(threshold_otsu(values))
+        counts, centres = histogram(np.asarray(values, np.float64).reshape(-1), 256, source_range="image")
+    return mid_gap([threshold], counts, centres)
+
+
+def mid_gap(thresholds, counts: np.ndarray, centres: np.ndarray) -> list[float]:
+    """Thresholds moved to the middle of the empty bins they end at.
+
+    Otsu's criterion is the same for any threshold in a gap of the histogram, and the search
+    takes its first bin: the lower class's own value. The voxels' classes are the same
+    anywhere in the gap, but a surface placed at the threshold's level in the image
+    (``smooth.fit_to_scan``) lies midway between the classes only at its middle (a ball of
+    value 1000 on 0: the fit grew it by 24 % at the gap's lower end).
+
+    Parameters
+    ----------
+    thresholds : sequence of float
+        Each at the centre of a filled bin or between two.
+    counts, centres : (B,) ndarray
+        The histogram the thresholds were found on.
+
+    Returns
+    -------
+    list of float
+    """
+    filled = np.flatnonzero(counts)
+    at = centres[filled]
+    out = []
+    for t in thresholds:  # K thresholds, a few
+        i = int(np.searchsorted(at, t, side="right"))  # filled[i - 1]: the last filled bin at or below t
+        if 0 < i < filled.size and filled[i] - filled[i - 1] > 1:
+            t = 0.5 * (at[i - 1] + at[i])
+        out.append(float(t))
+    return out
 
 
 def multiotsu_thresholds(values: np.ndarray, k: int, names: list[str], source: str) -> list[float]:
@@ -171,7 +204,7 @@ def multiotsu_thresholds(values: np.ndarray, k: int, names: list[str], source: s
         raise DicerError(f"{source}: multi-Otsu cannot split the image into {k + 1} classes (its 256-bin histogram "
                          f"holds {filled.size} values); use fewer materials or segment.method=manual")
     bins = filled[:-1] if filled.size == k + 1 else multiotsu_bins(counts, k)
-    return [float(x) for x in centres[bins]]
+    return mid_gap(centres[bins], counts, centres)
 
 
 def multiotsu_bins(counts: np.ndarray, thresholds: int) -> np.ndarray:
@@ -252,6 +285,15 @@ def thresholds_in_a_mode(values: np.ndarray, thresholds) -> list[int]:
 # --- shape connectivity (Lie) -------------------------------------------------------------
 
 
+def _as_label_file(source: str) -> str:
+    """What a label volume in a file --labels does not read (a PNG, a TIFF, a DICOM folder)
+    must become first."""
+    from dicer.io import LABEL_SUFFIXES
+
+    name = str(source).lower()
+    return "" if name.endswith(LABEL_SUFFIXES) else " after saving it as NIfTI (.nii.gz), which --labels reads"
+
+
 def _few_whole_values(values, lo: float, hi: float) -> int:
     """How many distinct whole values an image of 0 .. 255 holds when they are few (64 at most,
     as a label volume's), else 0."""
@@ -309,7 +351,8 @@ def check_ranges(ranges, k: int, names: list[str], lo: float, hi: float, source:
             # (stored as HU + 1024, air near 0) more often than not; no value near air's -1000 HU
             # at all: an MR, or a scan in other units (0 .. 1, a windowed 8-bit export)
             shifted = (f"; an image of {few} whole values from 0 is most likely a label volume: give it with "
-                       "--labels (dicer run --labels, dicer labels)" if (few := _few_whole_values(values, lo, hi))
+                       f"--labels (dicer run --labels, dicer labels){_as_label_file(source)}"
+                       if (few := _few_whole_values(values, lo, hi))
                        else "; a CT stored as HU + 1024 (its rescale intercept lost: air near 0) needs 1024 "
                        "subtracted, or ranges shifted by +1024 for every material; an MR needs ranges in its own "
                        "values, or segment.method: multiotsu" if lo > -50 and hi > 1000 else

@@ -971,3 +971,18 @@ def test_a_label_image_given_as_a_scan_is_told_how_to_give_it_as_labels():
             segment(Volume(lab, (1.0, 1.0)), config(), source)
         assert str(refused.value).endswith("most likely a label volume: give it with --labels (dicer run --labels, "
                                            f"dicer labels){after}")
+
+
+def test_multiotsu_names_far_values_that_crowd_the_histogram():
+    """0.5 % of the voxels at 1e6 (above the 99.9 % clip) left the image in 2 of 256 bins:
+    'holds 2 values' blamed the materials, not the outliers."""
+    from dicer.segment.thresholds import histogram_values, multiotsu_thresholds
+
+    r = np.sqrt(((np.indices((40, 40, 40)) - 19.5) ** 2).sum(0))
+    a = np.select([r < 6, r < 12], [234.0, 110.0], 0.0) + np.random.default_rng(0).normal(0, 5, r.shape)
+    a.ravel()[np.random.default_rng(1).choice(a.size, a.size // 200, replace=False)] = 1e6
+    with pytest.raises(DicerError, match=r"holds 2 values: its values crowd into 2 of the 256 bins, the histogram "
+                                         r"stretched to 998047 by 320 voxels far above the others"):
+        multiotsu_thresholds(histogram_values(a), 2, ["a", "b"], "s")
+    with pytest.raises(DicerError, match=r"holds 2 values\); use fewer materials"):  # two values indeed
+        multiotsu_thresholds(np.r_[np.zeros(100), np.ones(100)], 2, ["a", "b"], "s")

@@ -201,8 +201,12 @@ def multiotsu_thresholds(values: np.ndarray, k: int, names: list[str], source: s
         counts, centres = histogram(values, 256, source_range="image")
     filled = np.flatnonzero(counts)
     if filled.size < k + 1:
+        few = filled.size == np.unique(values[: 1 << 20]).size  # a label image or a mask: few values indeed
+        why = ("" if few else f": its values crowd into {filled.size} of the 256 bins, the histogram stretched to "
+               f"{float(centres[filled[-1]]):g} by {int(counts[filled[-1]])} voxels far above the others (above the "
+               "99.9 % quantile at which it is clipped); remove or clip them first (metal, a scanner's marker value)")
         raise DicerError(f"{source}: multi-Otsu cannot split the image into {k + 1} classes (its 256-bin histogram "
-                         f"holds {filled.size} values); use fewer materials or segment.method=manual")
+                         f"holds {filled.size} values{why}); use fewer materials or segment.method=manual")
     bins = filled[:-1] if filled.size == k + 1 else multiotsu_bins(counts, k)
     return mid_gap(centres[bins], counts, centres)
 

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from dicer.errors import DicerError
-from dicer.mesh.merge import merge_planes, thick_elements
+from dicer.mesh.merge import merge_mesh, merge_planes, thick_elements
 from dicer.mesh.metrics import element_volumes, scaled_jacobian
 from dicer.mesh.topology import HEX_EDGES, HEX_FACES, QUAD_EDGES
 from dicer.mesh.voxel import voxel_mesh
@@ -798,3 +798,25 @@ def test_a_graded_mesh_at_the_image_planes_is_checked_with_its_mirror_images(pad
     assert (graded.lattice == -1).any()
     _, checks = merge._check_settings(graded, (1, 1, 1), "region", 0.2, True, (0, 1, 2))
     assert (checks.mirror_planes is None) == (pad == 2)
+
+
+def test_elements_turned_from_vtk_order_or_inside_out_are_refused():
+    """A mesh whose hexahedra another tool wrote with their corners turned ([1, 2, 3, 0, 5, 6,
+    7, 4]) or reversed (inside out) merged its 912 elements to 880 or 594 where they merge to
+    816, without a word: the boxes were taken for irregular elements."""
+    r = np.sqrt(((np.indices((16, 14, 12)) - np.array([7.5, 6.5, 5.5])[:, None, None, None]) ** 2).sum(0))
+    mesh = voxel_mesh(np.select([r < 3, r < 6], [2, 1], 0).astype(np.uint8))
+    assert merge_mesh(mesh, {})[0].n_cells == 816
+    for perm, every in (([1, 2, 3, 0, 5, 6, 7, 4], 1), (list(range(7, -1, -1)), 1), ([1, 2, 3, 0, 5, 6, 7, 4], 2)):
+        turned = mesh.copy()
+        turned.cells[::every] = turned.cells[::every][:, perm]
+        with pytest.raises(DicerError, match=rf"^{mesh.n_cells // every} element\(s\) are lattice boxes with their "
+                                             r"corners in another order than VTK's"):
+            merge_mesh(turned, {})
+    flat = mesh.copy()
+    flat.cells[5, 1] = flat.cells[5, 0]
+    with pytest.raises(DicerError, match=r"^1 element\(s\) of the mesh are degenerate or inverted"):
+        merge_mesh(flat, {})
+    # a merged mesh (its chamfers are no boxes) merges again
+    merged = merge_mesh(mesh, {})[0]
+    assert merge_mesh(merged, {})[0].n_cells <= merged.n_cells

@@ -1630,6 +1630,7 @@ def merge_planes(mesh: Mesh, *, passes, min_thickness: float, granularity: str, 
     index = np.int32 if mesh.n_points < 2**31 - 1 else np.int64  # halves memory traffic
     cells = _copy_as(mesh.cells, index)
     box0, size = _lattice_boxes(cells, mesh.lattice, settings.dim)
+    _refuse_irregular_input(mesh, cells[~box0], settings.dim)
     on_lattice = _on_lattice(mesh)
     vol_before = _material_volumes(mesh, box0, on_lattice, size)
     report = {"passes": list(counts), "granularity": granularity, "min_thickness": float(min_thickness),
@@ -1693,6 +1694,29 @@ def merge_mesh(mesh: Mesh, *, method: str, templates: dict, passes, min_thicknes
                          "smoothing")
     return merge_planes.__wrapped__(mesh, passes=passes, min_thickness=float(min_thickness), granularity=granularity,
                                     min_scaled_jacobian=float(min_scaled_jacobian), rim_moves=rim_moves)
+
+
+def _refuse_irregular_input(mesh: Mesh, irregular: np.ndarray, dim: int) -> None:
+    """Refuse elements that are no lattice box in VTK order (``irregular``, their cells; a
+    merged mesh's chamfers are few) where they are lattice boxes with their corners in another
+    order, or inside out: merging took a whole mesh of turned corners for irregular elements
+    (895 elements merged to 797 where they merge to 610, without a word)."""
+    if irregular.shape[0] == 0:
+        return
+    corners = mesh.lattice[irregular][..., :dim]  # (K, corners, dim)
+    lo, hi = corners.min(axis=1, keepdims=True), corners.max(axis=1, keepdims=True)
+    at_ends = ((corners == lo) | (corners == hi)).all(axis=(1, 2)) & (hi > lo).all(axis=(1, 2))
+    code = ((corners == hi) * (1 << np.arange(dim))).sum(axis=2)  # which corner of the box each is
+    turned = int(np.count_nonzero(at_ends & (np.sort(code, axis=1) == np.arange(1 << dim)).all(axis=1)))
+    if turned:
+        raise DicerError(f"{turned} element(s) are lattice boxes with their corners in another order than VTK's "
+                         "(turned or mirrored by the tool that wrote them), which merging would take for irregular "
+                         "elements; remesh from the labels with 'dicer mesh'")
+    flat = int(np.count_nonzero(corner_scaled_jacobians(mesh.points, irregular).min(axis=1) <= 0))
+    if flat:
+        raise DicerError(f"{flat} element(s) of the mesh are degenerate or inverted (a corner's scaled Jacobian of 0 "
+                         "or less); merging takes the meshes of dicer mesh and dicer merge: remesh from the labels "
+                         "with 'dicer mesh'")
 
 
 def _lattice_boxes(cells: np.ndarray, lattice: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:

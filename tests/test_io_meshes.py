@@ -438,3 +438,65 @@ def test_a_mesh_of_tens_of_thousands_of_materials_reads_back(tmp_path):
     assert back.names == mesh.names and back.n_cells == n
     assert np.array_equal(back.material, mesh.material)
     assert mesh_elements(path) == n
+
+
+def _ball_mesh(dim=3):
+    r = np.sqrt(((np.indices((12,) * dim) - 5.5) ** 2).sum(0))
+    return voxel_mesh(np.select([r < 2.5, r < 5], [2, 1], 0).astype(np.uint8))
+
+
+def _edited(field: str, value):
+    def edit(m, mesh):
+        if field in ("spacing", "origin", "grid_shape"):
+            from dataclasses import replace
+
+            return m, replace(mesh, **{field: np.asarray(value)})
+        if field == "material":
+            m.cell_data["material"] = [np.where(m.cell_data["material"][0] == 1, 1, value).astype(np.int64)]
+        elif field == "lattice":
+            m.point_data["lattice"] = value(m.point_data["lattice"])
+        else:  # the points
+            m.points = value(m.points)
+        return m, mesh
+    return edit
+
+
+@pytest.mark.parametrize("dim, edit, said", [
+    (3, _edited("material", 2**32 + 2), r"element\(s\) have material 4294967298, past the largest material number"),
+    (3, _edited("lattice", lambda a: a[:, :1]), r"'lattice' point data hold \d+ values for \d+ nodes of a 3D mesh"),
+    (3, _edited("lattice", lambda a: a + 0.5), r"'lattice' point data hold values that are not whole numbers"),
+    (3, _edited("spacing", [1.0, 1.0, 1.0, 1.0]), r"field data 'spacing' holds 4 value\(s\) \(1, 1, 1, 1\)"),
+    (3, _edited("origin", [np.nan, 0.0, 0.0]), r"field data 'origin' holds 3 value\(s\) \(nan, 0, 0\) where a 3D mesh"),
+    (3, _edited("spacing", [-1.0, 1.0, 1.0]), r"field data 'spacing' is -1, 1, 1 mm, outside 1e-07 to 1e\+06 mm"),
+    (3, _edited("grid_shape", [4, 4, 4]), r"lattice indices reach 11, 11, 11, past the field data's grid_shape 4, 4, 4"),
+    (3, _edited("grid_shape", [0, 12, 12]), r"field data 'grid_shape' is 0, 12, 12, not whole numbers of voxels"),
+    (2, _edited("points", lambda p: p + np.r_[0.0, 0.0, 0.5]), r"node\(s\) of the 2D mesh lie off its plane \(z up to 0\.5"),
+])
+def test_mesh_files_whose_data_no_stage_takes_are_refused(tmp_path, dim, edit, said):
+    """A dicer mesh edited by another tool: material 2**32 + 2 read as 2 (exit 0), grid_shape
+    [4, 4, 4] put 80 interior nodes into the X1 set, a spacing of -1 moved smoothed nodes by
+    0.86 mm, quads off their plane were exported as CPS4, and 1-column lattices or 4-value
+    spacings ended in tracebacks."""
+    from dicer.io.meshes import to_meshio
+
+    mesh = _ball_mesh(dim)
+    m, grid = edit(to_meshio(mesh), mesh)
+    meshio_vtu_with_grid(grid, tmp_path / "m.vtu", m)
+    with pytest.raises(DicerError, match=r"m\.vtu: .*" + said + r".*the file is damaged or was edited"):
+        read_mesh(tmp_path / "m.vtu")
+    meshio_vtu_with_grid(mesh, tmp_path / "good.vtu")
+    assert read_mesh(tmp_path / "good.vtu").n_cells == mesh.n_cells
+
+
+def test_a_solver_deck_given_as_a_mesh_is_named_so(tmp_path):
+    """An exported .inp, .msh or .exo was 'a mesh with no material cell data: make it with
+    dicer mesh', a .feb 'cannot read mesh (ReadError)'."""
+    from dicer.export.registry import EXPORT_SUFFIXES
+    from dicer.io.meshes import _DECK_SUFFIXES
+
+    assert set(_DECK_SUFFIXES) == set(EXPORT_SUFFIXES) - {".vtu"}
+    for suffix in _DECK_SUFFIXES:
+        (tmp_path / f"model{suffix}").write_text("anything")
+        with pytest.raises(DicerError, match=rf"model\{suffix}: a solver deck \(what dicer export writes\) holds no "
+                                             "mesh for dicer's stages"):
+            read_mesh(tmp_path / f"model{suffix}")

@@ -31,7 +31,7 @@ import numpy as np
 
 from dicer.errors import DicerError
 from dicer.image import MAX_LABEL, Volume
-from dicer.io import LABEL_SUFFIXES
+from dicer.io import LABEL_SUFFIXES, SPACING_RANGE_MM
 from dicer.io.atomic import atomic_path, captured_stderr, disk_full
 from dicer.parallel import contiguous
 
@@ -197,13 +197,6 @@ def _f32_decimal(values) -> tuple[float, ...]:
         digits = len(short.lower().split("e")[0].replace("-", "").replace(".", "").strip("0"))
         out.append(float(short) if digits <= 6 else float(np.float32(v)))
     return tuple(out)
-
-
-SPACING_RANGE_MM = (1e-7, 1e6)
-"""Voxel sizes read as damaged or in other units than mm: a tenth of a nanometre (an atom)
-to a kilometre. Beyond them the stages' arithmetic leaves its range (the squared edges of
-1e18 mm voxels overflow; 1e-20 mm voxels smoothed 0.4 to 0.75 voxel from the same model's
-at 1 mm)."""
 
 
 def _check_spacing(spacing, path, source: str) -> tuple[float, ...]:

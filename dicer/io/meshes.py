@@ -33,6 +33,7 @@ from xml.etree import ElementTree as ET
 import numpy as np
 
 from dicer.errors import DicerError
+from dicer.io import SPACING_RANGE_MM
 from dicer.io.atomic import atomic_path
 from dicer.mesh.frame import check_direction, mirrored, to_lattice
 from dicer.mesh.metrics import QUALITY_DATA, lattice_box_quality, quality_arrays, scaled_jacobian
@@ -785,10 +786,13 @@ def _read_meshio(path: Path, name: str):
     return types.pop(), m.points, cells, dict(m.point_data), cell_data, m.field_data
 
 
+_EDITED = "the file is damaged or was edited: write it again with the dicer stage that made it"
+
+
 def _check_arrays(name, points, cells, material, lattice, level=None) -> None:
     """Refuse a mesh file whose arrays no stage can work on (a damaged or hand-edited file):
     the stages would index past the nodes, carry NaN into every output, or misplace nodes."""
-    fix = "the file is damaged or was edited: write it again with the dicer stage that made it"
+    fix = _EDITED
     if cells.size and (cells.min() < 0 or cells.max() >= len(points)):
         bad = int(np.count_nonzero((cells < 0) | (cells >= len(points))))
         raise DicerError(f"{name}: {bad} element corner(s) refer to nodes that do not exist (valid node "
@@ -815,11 +819,44 @@ def _check_arrays(name, points, cells, material, lattice, level=None) -> None:
             raise DicerError(f"{name}: {int(np.count_nonzero(bad))} node(s) have a negative lattice index; {fix}")
 
 
+def _grid_fields(name, fd: dict, dim: int, lattice: np.ndarray, fix: str) -> tuple[np.ndarray, ...]:
+    """The field data ``spacing``, ``origin`` and ``grid_shape`` (3 values each; a 2D mesh's
+    third padded), checked: the plane sets and the smoothing read the image's border from
+    them (grid_shape [4, 4, 4] put 80 interior nodes into the X1 set, a spacing of -1 moved
+    smoothed nodes by 0.86 mm, and 2 or 4 values ended in tracebacks)."""
+    values = {}
+    for key, pad in (("spacing", 1.0), ("origin", 0.0), ("grid_shape", 1)):
+        v = np.asarray(fd[key], np.float64).ravel()
+        if v.size == 2 and dim == 2:
+            v = np.r_[v, pad]
+        if v.size != 3 or not np.isfinite(v).all():
+            raise DicerError(f"{name}: field data {key!r} holds {v.size} value(s) ({', '.join(f'{x:g}' for x in v)}) "
+                             f"where a {dim}D mesh has 3 finite numbers; {fix}")
+        values[key] = v
+    spacing, origin, shape = values["spacing"], values["origin"], values["grid_shape"]
+    low, high = SPACING_RANGE_MM
+    if not ((spacing >= low) & (spacing <= high)).all():
+        raise DicerError(f"{name}: field data 'spacing' is {', '.join(f'{x:g}' for x in spacing)} mm, outside "
+                         f"{low:g} to {high:g} mm; {fix}")
+    if not ((shape >= 1) & (shape == np.round(shape)) & (shape < 2**53)).all():
+        raise DicerError(f"{name}: field data 'grid_shape' is {', '.join(f'{x:g}' for x in shape)}, not whole "
+                         f"numbers of voxels from 1; {fix}")
+    shape = shape.astype(np.int64)
+    reach = lattice.max(axis=0, initial=0)[:dim] if lattice.size else np.zeros(dim, np.int64)
+    if (reach > shape[:dim]).any():
+        raise DicerError(f"{name}: the nodes' lattice indices reach {', '.join(map(str, reach))}, past the field "
+                         f"data's grid_shape {', '.join(map(str, shape[:dim]))}; {fix}")
+    return spacing, origin, shape
+
+
 def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data, widen: bool | str = True) -> Mesh:
     """A Mesh from the arrays of a file, with dicer's checks of its data. ``widen=False``
     keeps the file's integer types (a read-back compared with the mesh written: no copy);
     ``"lattice"`` widens the lattice and leaves an Int32 connectivity as it is."""
     cells, lattice = np.asarray(cells), np.asarray(point_data.get("lattice", ()))
+    fix = _EDITED
+    if lattice.dtype.kind == "f" and not (np.isfinite(lattice).all() and (lattice == np.round(lattice)).all()):
+        raise DicerError(f"{name}: the 'lattice' point data hold values that are not whole numbers; {fix}")
     if widen:
         if widen != "lattice" or cells.dtype not in (np.int32, np.int64):
             cells = cells.astype(np.int64, copy=False)
@@ -837,13 +874,25 @@ def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data,
         raise DicerError(f"{name}: {int(np.count_nonzero(material < 1))} element(s) have material {int(material.min())}"
                          "; material numbers are labels 1..K (0 is background, which has no elements): write the "
                          "mesh again with the dicer stage that made it")
+    if material.size and material.max() > np.iinfo(np.int32).max:  # cast below: 2**32 + 2 became 2
+        raise DicerError(f"{name}: {int(np.count_nonzero(material > np.iinfo(np.int32).max))} element(s) have "
+                         f"material {material.max():.0f}, past the largest material number dicer keeps "
+                         f"({np.iinfo(np.int32).max}); {fix}")
     material = material.astype(np.int32, copy=False)
+    dim = 3 if cells.ndim == 2 and cells.shape[1] == 8 else 2
+    if lattice.size != len(points) * dim and lattice.size != len(points) * 3:
+        raise DicerError(f"{name}: the 'lattice' point data hold {lattice.size} values for {len(points)} nodes of "
+                         f"a {dim}D mesh ({dim} per node); {fix}")
     lattice = lattice.reshape(len(points), -1)
     if lattice.shape[1] == 2:
         lattice = np.column_stack([lattice, np.zeros(len(lattice), np.int64)])
     points = np.asarray(points).astype(np.float64, copy=False)
     if points.shape[1] == 2:
         points = np.column_stack([points, np.zeros(len(points))])
+    elif dim == 2 and points.size and np.any(points[:, 2] != 0):  # exported as CPS4 off their plane
+        raise DicerError(f"{name}: {int(np.count_nonzero(points[:, 2]))} node(s) of the 2D mesh lie off its plane "
+                         f"(z up to {float(np.abs(points[:, 2]).max()):g} mm, where dicer's 2D meshes have z = 0); "
+                         f"{fix}")
     _check_arrays(name, points, cells, material, lattice, cell_data.get(LEVEL_DATA))
     fd = field_data
     missing = [k for k in ("spacing", "origin", "grid_shape") if k not in fd]
@@ -853,9 +902,7 @@ def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data,
         raise DicerError(f"{name}: the mesh file has no grid data ({', '.join(missing)} field data, which dicer's "
                          "stages write and tools such as meshio drop when they save a mesh again); use the "
                          "file the dicer stage wrote")
-    spacing = np.asarray(fd["spacing"], float).ravel()
-    origin = np.asarray(fd["origin"], float).ravel()
-    grid_shape = np.asarray(fd["grid_shape"], np.int64).ravel()
+    spacing, origin, grid_shape = _grid_fields(name, fd, dim, lattice, fix)
     point_data = {k: np.asarray(v) for k, v in point_data.items() if k != "lattice"}
     cell_data = {k: np.asarray(v) for k, v in cell_data.items() if k != "material"}
     names = names_from_field_data(fd)
@@ -879,6 +926,9 @@ def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data,
     return mesh
 
 
+_DECK_SUFFIXES = (".inp", ".k", ".key", ".dyn", ".out", ".neu", ".msh", ".exo", ".e", ".feb")
+
+
 def read_mesh(path: str | os.PathLike, source: str | None = None, mapped: bool = False) -> Mesh:
     """Read a dicer VTU (or any meshio format holding one hex or quad block with dicer's data).
 
@@ -893,7 +943,11 @@ def read_mesh(path: str | os.PathLike, source: str | None = None, mapped: bool =
     name = source or str(path)
     if not path.exists():
         raise DicerError(f"{name}: mesh file not found; check the path")
-    parts = _read_raw_vtu(path, name, mapped) if path.suffix.lower() == ".vtu" and path.is_file() else None
+    suffix = "".join(path.suffixes[-1:]).lower()
+    if suffix in _DECK_SUFFIXES:  # "no 'material' cell data; make it with 'dicer mesh'" misled
+        raise DicerError(f"{name}: a solver deck (what dicer export writes) holds no mesh for dicer's stages; give "
+                         "the mesh a stage wrote (smoothed.vtu of dicer run) or an exported model.vtu")
+    parts = _read_raw_vtu(path, name, mapped) if suffix == ".vtu" and path.is_file() else None
     if parts:
         _refuse_quadratic(name, {parts[0]})
     mesh = _assemble(name, *(parts or _read_meshio(path, name)), widen="lattice" if mapped else True)

@@ -453,8 +453,8 @@ def _edited(field: str, value):
             return m, replace(mesh, **{field: np.asarray(value)})
         if field == "material":
             m.cell_data["material"] = [np.where(m.cell_data["material"][0] == 1, 1, value).astype(np.int64)]
-        elif field == "lattice":
-            m.point_data["lattice"] = value(m.point_data["lattice"])
+        elif field in ("lattice", "node_class"):
+            m.point_data[field] = value(m.point_data.get(field, np.zeros(len(m.points), np.int8)))
         else:  # the points
             m.points = value(m.points)
         return m, mesh
@@ -470,6 +470,8 @@ def _edited(field: str, value):
     (3, _edited("spacing", [-1.0, 1.0, 1.0]), r"field data 'spacing' is -1, 1, 1 mm, outside 1e-07 to 1e\+06 mm"),
     (3, _edited("grid_shape", [4, 4, 4]), r"lattice indices reach 11, 11, 11, past the field data's grid_shape 4, 4, 4"),
     (3, _edited("grid_shape", [0, 12, 12]), r"field data 'grid_shape' is 0, 12, 12, not whole numbers of voxels"),
+    (3, _edited("node_class", lambda n: n - 1), r"the 'node_class' point data are not one code 0\.\.7 per node"),
+    (3, _edited("node_class", lambda n: np.c_[n, n]), r"the 'node_class' point data are not one code 0\.\.7 per node"),
     (2, _edited("points", lambda p: p + np.r_[0.0, 0.0, 0.5]), r"node\(s\) of the 2D mesh lie off its plane \(z up to 0\.5"),
 ])
 def test_mesh_files_whose_data_no_stage_takes_are_refused(tmp_path, dim, edit, said):

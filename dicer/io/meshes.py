@@ -904,6 +904,12 @@ def _assemble(name, cell_type, points, cells, point_data, cell_data, field_data,
                          "file the dicer stage wrote")
     spacing, origin, grid_shape = _grid_fields(name, fd, dim, lattice, fix)
     point_data = {k: np.asarray(v) for k, v in point_data.items() if k != "lattice"}
+    if "node_class" in point_data:  # codes 0..7 (interior, A-F, X): others ended quality in a traceback
+        codes = point_data["node_class"]
+        if codes.shape != (len(points),) or codes.dtype.kind not in "iu" or codes.min(initial=0) < 0 or \
+                codes.max(initial=0) > 7:
+            raise DicerError(f"{name}: the 'node_class' point data are not one code 0..7 per node (shape "
+                             f"{codes.shape}, type {codes.dtype}); {fix}")
     cell_data = {k: np.asarray(v) for k, v in cell_data.items() if k != "material"}
     names = names_from_field_data(fd)
     direction = None

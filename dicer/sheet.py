@@ -135,6 +135,36 @@ _LABEL_MORPHOLOGY = ("segment.opening_radius", "segment.closing_radius", "segmen
 with downsample.morphology: true."""
 
 
+def _inert(key: str, config: dict) -> str | None:
+    """Why ``key`` acts on nothing under ``config``'s other settings (another method's, a
+    switch that is off), or None (a patient's downsample.factor under the cohort's
+    voxel_size, or merge.passes under templates, changed nothing without a word)."""
+    def under(prefix: str) -> bool:
+        return key == prefix or key.startswith(prefix + ".")
+
+    smooth, merge, segment, export = config["smooth"], config["merge"], config["segment"], config["export"]
+    if key == "downsample.factor" and config["downsample"]["voxel_size"] is not None:
+        return "is replaced by downsample.voxel_size, which is set"
+    if under("smooth.coefficients") and smooth["coefficient"] is not None:
+        return "is replaced by smooth.coefficient, which is set (one coefficient for every node class)"
+    if key == "smooth.pillow_thickness" and not smooth["pillow"]:
+        return "sets the pillow layer, and smooth.pillow is off"
+    if under("merge.templates") and merge["method"] != "templates":
+        return f"acts with merge.method: templates, and merge.method is {merge['method']}"
+    if merge["method"] == "templates" and key.split(".")[:2] in (["merge", k] for k in (
+            "passes", "min_thickness", "granularity", "min_scaled_jacobian", "rim_moves")):
+        return "acts with merge.method: planes, and merge.method is templates"
+    if under("segment.thresholds") and segment["method"] != "manual":
+        return f"acts with segment.method: manual, and segment.method is {segment['method']}"
+    if under("segment.ranges") and segment["method"] != "shape_connectivity":
+        return f"acts with segment.method: shape_connectivity, and segment.method is {segment['method']}"
+    if key == "export.midside_nodes" and export["order"] == 1:
+        return "places the mid-edge nodes of export.order 2, and export.order is 1"
+    if key == "export.febio_material" and "feb" not in config["workflow"]["exports"]:
+        return "acts on .feb models, and workflow.exports names no feb"
+    return None
+
+
 def unread_settings(items, config: dict, label_volume: bool) -> list[tuple[str, str]]:
     """The settings of ``items`` (``KEY=VALUE`` overrides or ``--set`` items) that no stage reads
     under ``config``, each with why: the downsampling's own settings act only with a
@@ -162,6 +192,10 @@ def unread_settings(items, config: dict, label_volume: bool) -> list[tuple[str, 
     found = []
     for item in items:
         for key in sorted(_leaves(parse_set(item.strip()))):
+            why = _unread_override(key, label_volume) or _inert(key, config)
+            if why:
+                found.append((key, why))
+                continue
             in_downsample = key.startswith("downsample.") and key not in ("downsample.factor", "downsample.voxel_size")
             serves_it = label_volume and (key in _LABEL_MORPHOLOGY or key == "segment.priority")
             if not downsampled and (in_downsample or serves_it):

@@ -180,3 +180,30 @@ def test_settings_no_stage_reads_are_found(label_volume, sets, unread):
     found = unread_settings(sets, for_label_volume(loaded) if label_volume else loaded, label_volume)
     assert [key for key, _ in found] == unread
     assert all("downsample" in why for _, why in found)  # names what would make it read
+
+
+@pytest.mark.parametrize("sets, unread, said", [
+    (["downsample.voxel_size=2", "downsample.factor=3"], ["downsample.factor"], "replaced by downsample.voxel_size"),
+    (["smooth.coefficient=0.8", "smooth.coefficients={A: 0.3}"], ["smooth.coefficients.A"], "replaced by smooth.coefficient"),
+    (["smooth.pillow_thickness=0.4"], ["smooth.pillow_thickness"], "smooth.pillow is off"),
+    (["merge.templates={levels: 1}"], ["merge.templates.levels"], "merge.method is planes"),
+    (["merge.method=templates", "merge.passes=[0, 0, 0]"], ["merge.passes"], "merge.method is templates"),
+    (["segment.thresholds=[-500, 100]"], ["segment.thresholds"], "segment.method is shape_connectivity"),
+    (["segment.method=manual", "segment.ranges=[[-300, 0], [200, 900]]"], ["segment.ranges"], "segment.method is manual"),
+    (["export.midside_nodes=curved"], ["export.midside_nodes"], "export.order is 1"),
+    (["export.febio_material=neo-Hookean"], ["export.febio_material"], "workflow.exports names no feb"),
+    (["smooth.pillow=true", "smooth.pillow_thickness=0.4", "export.order=2", "export.midside_nodes=curved",
+      "segment.method=manual", "segment.thresholds=[-500, 100]"], [], ""),
+])
+def test_settings_another_setting_turns_off_are_found(sets, unread, said):
+    """A patient's downsample.factor under the cohort's voxel_size, merge.passes under
+    templates, curved mid-edge nodes at order 1 ... changed nothing, accepted without a word."""
+    from dicer.config import deep_merge, load_config, parse_set
+    from dicer.sheet import unread_settings
+
+    config = {}
+    for item in sets:
+        config = deep_merge(config, parse_set(item))
+    found = unread_settings(sets, load_config(settings=config), False)
+    assert [key for key, _ in found] == unread
+    assert all(said in why for _, why in found)

@@ -986,3 +986,12 @@ def test_multiotsu_names_far_values_that_crowd_the_histogram():
         multiotsu_thresholds(histogram_values(a), 2, ["a", "b"], "s")
     with pytest.raises(DicerError, match=r"holds 2 values\); use fewer materials"):  # two values indeed
         multiotsu_thresholds(np.r_[np.zeros(100), np.ones(100)], 2, ["a", "b"], "s")
+
+
+def test_more_ranges_than_materials_says_so():
+    """'(missing: none)' named no cause where one material was given against two ranges."""
+    one = load_config(settings={"materials": [{"name": "a"}]})
+    with pytest.raises(DicerError, match=r"segment\.ranges has 2 range\(s\) for 1 material\(s\) \(a\); give one "
+                                         r"\[low, high\] per material \(1 more than the materials: the materials "
+                                         r"section lists fewer than segment\.ranges\)"):
+        segment(Volume(np.random.default_rng(0).normal(0, 500, (10, 10, 10)), (1.0, 1.0, 1.0)), one, "x.nii.gz")

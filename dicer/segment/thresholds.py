@@ -340,9 +340,11 @@ def check_ranges(ranges, k: int, names: list[str], lo: float, hi: float, source:
     key = "segment.ranges"
     given = list(ranges or [])
     if len(given) != k:
-        missing = ", ".join(f"'{n}'" for n in names[len(given):]) or "none"
+        missing = ", ".join(f"'{n}'" for n in names[len(given):])
+        which = (f"missing: {missing}" if missing else
+                 f"{len(given) - k} more than the materials: the materials section lists fewer than segment.ranges")
         raise DicerError(f"{source}: {key} has {len(given)} range(s) for {k} material(s) ({', '.join(names)}); "
-                         f"give one [low, high] per material (missing: {missing})")
+                         f"give one [low, high] per material ({which})")
     out = []
     for name, r in zip(names, given):
         if len(r) != 2:

@@ -455,6 +455,9 @@ def _edited(field: str, value):
             m.cell_data["material"] = [np.where(m.cell_data["material"][0] == 1, 1, value).astype(np.int64)]
         elif field in ("lattice", "node_class"):
             m.point_data[field] = value(m.point_data.get(field, np.zeros(len(m.points), np.int8)))
+        elif field == "unused":  # one node more, at the origin, in no element
+            m.points = np.vstack([m.points, np.zeros((1, 3))])
+            m.point_data = {k: np.concatenate([v, v[:1] * 0]) for k, v in m.point_data.items()}
         else:  # the points
             m.points = value(m.points)
         return m, mesh
@@ -472,6 +475,7 @@ def _edited(field: str, value):
     (3, _edited("grid_shape", [0, 12, 12]), r"field data 'grid_shape' is 0, 12, 12, not whole numbers of voxels"),
     (3, _edited("node_class", lambda n: n - 1), r"the 'node_class' point data are not one code 0\.\.7 per node"),
     (3, _edited("node_class", lambda n: np.c_[n, n]), r"the 'node_class' point data are not one code 0\.\.7 per node"),
+    (3, _edited("unused", None), r"1 node\(s\) belong to no element \(e\.g\. node 823\), and would enter"),
     (2, _edited("points", lambda p: p + np.r_[0.0, 0.0, 0.5]), r"node\(s\) of the 2D mesh lie off its plane \(z up to 0\.5"),
 ])
 def test_mesh_files_whose_data_no_stage_takes_are_refused(tmp_path, dim, edit, said):

@@ -797,6 +797,11 @@ def _check_arrays(name, points, cells, material, lattice, level=None) -> None:
         bad = int(np.count_nonzero((cells < 0) | (cells >= len(points))))
         raise DicerError(f"{name}: {bad} element corner(s) refer to nodes that do not exist (valid node "
                          f"numbers 0..{len(points) - 1}); {fix}")
+    if cells.size:
+        unused = np.flatnonzero(np.bincount(cells.ravel(), minlength=len(points)) == 0)
+        if unused.size:  # such a node alone made the X0, Y0 and Z0 node sets of a model on none of them
+            raise DicerError(f"{name}: {unused.size} node(s) belong to no element (e.g. node {int(unused[0])}), and "
+                             f"would enter the node sets of the planes they lie on; {fix}")
     finite = np.isfinite(points)
     if not finite.all():
         raise DicerError(f"{name}: {int(np.count_nonzero(~finite.all(axis=1)))} node(s) have NaN or infinite "

@@ -340,8 +340,8 @@ def do_labels(labels_path: str, out: Path, config: dict, materials_path: Path | 
             values = np.unique(labels.array)
             log.warning("labels: every voxel of %s is a material (values %s), so the model fills the whole image "
                         "box; if the background has a value of its own (a header's scl_inter, an atlas's 'unknown'), "
-                        "set labels.drop: [value]", labels_path, brief_names([f"{v:.10g}" if isinstance(v, float) else str(v)
-                                                          for v in values.tolist()]))
+                        "set labels.drop: [value]", labels_path,
+                        brief_names([f"{v:.10g}" if isinstance(v, float) else str(v) for v in values.tolist()]))
         write_mapped_labels(mapped, labels_path, out)
         if materials_path:
             written = [{"name": m["name"]} for m in materials] if names_only else materials
@@ -1586,7 +1586,6 @@ def _check_export_dims(config: dict, dim: int, source: str) -> None:
 
     etype = config["export"]["element_type"]
     if etype is not None and ELEMENT_TYPES[etype][0] != dim:  # found at the export, after every stage
-
         raise DicerError(f"{source}: a {dim}D image, and export.element_type {etype} is for {3 if dim == 2 else 2}D "
                          f"models; use one of {', '.join(element_types(dim, config['export']['order']))}, or "
                          "leave export.element_type out (null: the default of the order)")

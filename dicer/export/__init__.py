@@ -122,8 +122,8 @@ def _check_printed_digits(fmt: Format, model: SolverModel, mesh: Mesh, digits: i
     if span / 2 * 10.0 ** (1 - printed) / 2 <= PRINTED_SHIFT_WARNING * voxel:
         fix += ", or place the image's origin near the model"
     text = (f"{path}: the coordinates, printed with {printed} significant digits, move nodes by up to "
-            f"{float(np.abs(moved).max()):.3g} mm along a voxel axis, {100 * share:.3g} % of that axis's voxel edge: the model lies up to {reach:.6g} mm from the origin and spans "
-            f"{span:.6g} mm; {fix}")
+            f"{float(np.abs(moved).max()):.3g} mm along a voxel axis, {100 * share:.3g} % of that axis's voxel edge: "
+            f"the model lies up to {reach:.6g} mm from the origin and spans {span:.6g} mm; {fix}")
     if inverted:
         raise DicerError(text + f" ({inverted} element(s) turn inside out as printed)")
     if share > PRINTED_SHIFT_ERROR:

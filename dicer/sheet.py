@@ -165,6 +165,19 @@ def _inert(key: str, config: dict) -> str | None:
     return None
 
 
+def unknown_priorities(config: dict) -> str | None:
+    """What ``fix.priority`` or ``segment.priority`` of a segmented scan's ``config`` names
+    that its materials do not hold (found only when the fix or segment stage ran, a patient's
+    earlier stages done), or None."""
+    names = [m["name"] for m in config["materials"]]
+    for key, given in (("segment.priority", config["segment"]["priority"]), ("fix.priority", config["fix"]["priority"])):
+        unknown = [n for n in given or [] if n not in names]
+        if unknown:
+            return (f"{key} names {', '.join(map(repr, unknown))}, which the materials do not hold (they are "
+                    f"{', '.join(names)}); list material names")
+    return None
+
+
 def unread_settings(items, config: dict, label_volume: bool) -> list[tuple[str, str]]:
     """The settings of ``items`` (``KEY=VALUE`` overrides or ``--set`` items) that no stage reads
     under ``config``, each with why: the downsampling's own settings act only with a

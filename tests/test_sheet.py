@@ -207,3 +207,16 @@ def test_settings_another_setting_turns_off_are_found(sets, unread, said):
     found = unread_settings(sets, load_config(settings=config), False)
     assert [key for key, _ in found] == unread
     assert all(said in why for _, why in found)
+
+
+def test_priorities_naming_no_material_are_found_before_any_stage():
+    """A patient's fix.priority=[metal] stopped the run at its fix stage, its segment and
+    downsample stages done, naming a results file and not the sheet's line."""
+    from dicer.config import load_config
+    from dicer.sheet import unknown_priorities
+
+    assert unknown_priorities(load_config()) is None
+    assert unknown_priorities(load_config(settings={"fix": {"priority": ["metal", "bone"]}})) == (
+        "fix.priority names 'metal', which the materials do not hold (they are soft_tissue, bone); list material names")
+    assert unknown_priorities(load_config(settings={"segment": {"priority": ["Bone"]}})).startswith(
+        "segment.priority names 'Bone'")

@@ -14,7 +14,7 @@ from dicer.config import (deep_merge, downsample_applies, for_label_volume, load
 from dicer.errors import DicerError
 from dicer.io.images import check_input_kind
 from dicer.phantoms import PHANTOMS
-from dicer.sheet import beside_sheet, read_sheet, scan_files, unread_settings
+from dicer.sheet import beside_sheet, read_sheet, scan_files, unknown_priorities, unread_settings
 
 # the rules call the `dicer` installed beside this Snakemake
 os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", "")
@@ -170,6 +170,9 @@ def patient_config(patient):
     loaded = for_label_volume(loaded) if label_volume else loaded
     for key, why in unread_settings(overrides, loaded, label_volume):
         raise WorkflowError(f"patient {patient!r}: override {key!r} {why}, so it would change nothing: remove it")
+    unknown = None if label_volume else unknown_priorities(loaded)
+    if unknown:
+        raise WorkflowError(f"patient {patient!r}: {unknown}")
     return loaded
 
 

@@ -36,3 +36,4 @@ onsuccess:
 onerror:
     say_skipped()
     say_stale()
+    say_cohort_left()

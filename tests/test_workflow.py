@@ -239,6 +239,21 @@ def test_a_sheet_whose_every_patient_is_skipped_stops_the_run(tmp_path):
             "line 2), gone (no/such/other.nii.gz, line 3); fix the paths") in out
 
 
+def test_a_failed_run_says_the_cohort_table_left_from_an_earlier_one_is_not_current(tmp_path):
+    """A patient's failed run left results/cohort.tsv of an earlier run (its old row and the
+    others' figures of older settings) in place without a word."""
+    workdir = _cohort(tmp_path)
+    (workdir / "broken.nii.gz").write_bytes(b"\x1f\x8b\x08\x00" + bytes(40))  # a truncated gzip
+    (workdir / "config" / "patients.tsv").write_text("patient\timage\nbroken\tbroken.nii.gz\n")
+    (workdir / "results").mkdir()
+    for name in ("cohort.html", "cohort.tsv"):
+        (workdir / "results" / name).write_text("an earlier run's\n")
+    proc = _snakemake(workdir, check=False)
+    assert proc.returncode != 0
+    assert ("dicer workflow: results/cohort.html and results/cohort.tsv were not made again and show the cohort as "
+            "an earlier run left it") in proc.stderr
+
+
 def test_sheet_with_a_byte_order_mark_and_a_bad_column(tmp_path):
     workdir = _cohort(tmp_path)
     sheet = workdir / "config" / "patients.tsv"

@@ -124,6 +124,17 @@ def stale_models():
             for path in [os.path.join(RESULTS, patient, f"model{suffix}")] if os.path.exists(path)]
 
 
+def say_cohort_left():
+    """onerror: a cohort table of an earlier run stays where this run stopped before making it
+    again (a failed patient's old row, other patients' old figures): said, not silent."""
+    left = [p for p in (os.path.join(RESULTS, "cohort.html"), os.path.join(RESULTS, "cohort.tsv"))
+            if os.path.exists(p)]
+    if left:
+        print(f"dicer workflow: {' and '.join(left)} were not made again and show the cohort as an earlier run left "
+              "it (rows of failed patients and figures of older settings among them); they are made again when "
+              "every patient's run finishes", file=sys.stderr)
+
+
 def say_stale():
     """At the start (the main process: not each cluster job) and at the end of a run: the model
     files the workflow no longer updates."""

@@ -1193,6 +1193,11 @@ def do_quality(mesh_path: str, out: Path, config: dict, labels_path: str | None 
         log.info("quality: wrote %s (min scaled Jacobian %.3f, %d inverted, %d part(s)%s)", out,
                  report["scaled_jacobian"]["min"], report["inverted_elements"], report["parts"]["model"]["parts"],
                  f", explicit time step {step['smallest_s']:.3g} s in {step['material']}" if step else "")
+        if report["inverted_elements"]:  # the stages never make one: a mesh another tool made or edited
+            log.warning("quality: %d of the %d elements are inverted or degenerate (scaled Jacobian 0 or less: "
+                        "corners in another order or folded); no solver takes them, and the volumes here count "
+                        "them negative; export and surface refuse them: remesh from the labels with dicer mesh",
+                        report["inverted_elements"], report["elements"])
         whole = report["parts"]["model"]
         if whole["parts"] > 1:  # each part needs supports of its own, else a static solve is singular
             log.warning("quality: the model is %d parts joined by no face: %d element(s) float free of the largest "

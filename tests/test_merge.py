@@ -802,7 +802,7 @@ def test_a_graded_mesh_at_the_image_planes_is_checked_with_its_mirror_images(pad
 
 def test_elements_turned_from_vtk_order_or_inside_out_are_refused():
     """A mesh whose hexahedra another tool wrote with their corners turned ([1, 2, 3, 0, 5, 6,
-    7, 4]) or reversed (inside out) merged its 912 elements to 880 or 594 where they merge to
+    7, 4]) or reversed ([7, 6, ..., 0]) merged its 912 elements to 880 or 594 where they merge to
     816, without a word: the boxes were taken for irregular elements."""
     r = np.sqrt(((np.indices((16, 14, 12)) - np.array([7.5, 6.5, 5.5])[:, None, None, None]) ** 2).sum(0))
     mesh = voxel_mesh(np.select([r < 3, r < 6], [2, 1], 0).astype(np.uint8))

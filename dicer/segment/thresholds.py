@@ -157,7 +157,8 @@ def mid_gap(thresholds, counts: np.ndarray, centres: np.ndarray) -> list[float]:
     takes its first bin: the lower class's own value. The voxels' classes are the same
     anywhere in the gap, but a surface placed at the threshold's level in the image
     (``smooth.fit_to_scan``) lies midway between the classes only at its middle (a ball of
-    value 1000 on 0: the fit grew it by 24 % at the gap's lower end).
+    value 1000 on 0, radius 8 voxels: 2,391 mm^3 against its 2,145 at the gap's lower end, 2,157 at
+    its middle).
 
     Parameters
     ----------

@@ -618,6 +618,10 @@ def test_bad_override_stops_the_run_naming_the_sheet_line_without_traceback(tmp_
     assert proc.returncode != 0
     assert "patients.tsv, line 3: patient bone: config: unknown key 'fix.colour'" in out
     assert "Traceback" not in out and "InputFunctionException" not in out
+    # one line, as dicer's commands end (Snakemake's WorkflowError added the rule file's lines)
+    said = [line for line in proc.stderr.splitlines() if "fix.colour" in line]
+    assert len(said) == 1 and said[0].startswith("error: config/patients.tsv, line 3: patient bone:")
+    assert "common.smk" not in out
 
 
 def test_a_rows_file_of_another_kind_stops_the_run_naming_the_sheet_line(tmp_path):

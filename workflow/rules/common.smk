@@ -16,6 +16,13 @@ from dicer.io.images import check_input_kind
 from dicer.phantoms import PHANTOMS
 from dicer.sheet import beside_sheet, read_sheet, scan_files, unknown_priorities, unread_settings
 
+def _stop(message):
+    """End the run on a bad config or sheet with one line, as dicer's commands end (a
+    WorkflowError printed the rule file's name and line and Snakemake's traceback lines)."""
+    print(f"error: {message}", file=sys.stderr)
+    raise SystemExit(1)
+
+
 # the rules call the `dicer` installed beside this Snakemake
 os.environ["PATH"] = os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", "")
 
@@ -39,7 +46,7 @@ try:
     config.update(_read)
     CONFIG = load_config(settings=config, properties_used=True)
 except DicerError as exc:
-    raise WorkflowError(str(exc) if str(exc).startswith("config") else f"config: {exc}")
+    _stop(str(exc) if str(exc).startswith("config") else f"config: {exc}")
 
 # one spelling per folder: Snakemake keys its records of past runs by the path as written, so
 # "results" and its absolute path would not share them (a later change would leave stale models)
@@ -47,8 +54,8 @@ RESULTS = os.path.normpath(CONFIG["workflow"]["results"])
 if os.path.isabs(RESULTS) and os.path.relpath(RESULTS).split(os.sep)[0] != os.pardir:
     RESULTS = os.path.relpath(RESULTS)
 if RESULTS == os.curdir:
-    raise WorkflowError(f"config: key 'workflow.results': {CONFIG['workflow']['results']!r} is the working folder "
-                        "itself; give a folder for the results (default: results)")
+    _stop(f"config: key 'workflow.results': {CONFIG['workflow']['results']!r} is the working folder "
+          "itself; give a folder for the results (default: results)")
 PHANTOM_DIR = "resources/phantoms"
 # the environment every rule runs in (used with --software-deployment-method conda); its
 # post-deploy script installs dicer from this checkout, found through DICER_SOURCE
@@ -69,7 +76,7 @@ def _read_patients(path):
     try:
         return read_sheet(path, schema)
     except DicerError as exc:
-        raise WorkflowError(str(exc))
+        _stop(str(exc))
 
 
 def _available(row, number, sheet):
@@ -79,23 +86,23 @@ def _available(row, number, sheet):
     if Path(image).parent == Path(PHANTOM_DIR):
         name = Path(image).name
         if not name.endswith(".nii.gz") or name[: -len(".nii.gz")] not in PHANTOMS:
-            raise WorkflowError(f"{where}: {image}: the workflow makes {PHANTOM_DIR}/<name>.nii.gz for the phantoms "
-                                f"{', '.join(sorted(PHANTOMS))}; name one of them")
+            _stop(f"{where}: {image}: the workflow makes {PHANTOM_DIR}/<name>.nii.gz for the phantoms "
+                  f"{', '.join(sorted(PHANTOMS))}; name one of them")
         return True
     other = beside_sheet(image, sheet)
     if Path(image).exists():
         try:  # a file of another kind: said here, naming the line, not in the patient's first job
             check_input_kind(image, labels=not row.get("image"))
         except DicerError as exc:
-            raise WorkflowError(f"{where}: {exc}")
+            _stop(f"{where}: {exc}")
         if other is not None:
             print(f"dicer workflow: {where}: reading {image} from the working folder, not {other} beside the sheet "
                   "(paths in the sheet are taken from the working folder)", file=sys.stderr)
         return True
     hint = f" ({other} beside the sheet exists: paths in the sheet are taken from the working folder)" if other else ""
     if not CONFIG["workflow"]["skip_missing"]:
-        raise WorkflowError(f"{where}: {image} not found{hint}; fix the path, or set workflow.skip_missing: true to "
-                            "skip such rows")
+        _stop(f"{where}: {image} not found{hint}; fix the path, or set workflow.skip_missing: true to "
+              "skip such rows")
     print(f"dicer workflow: skipping patient {row['patient']}: {image} not found{hint}", file=sys.stderr)
     SKIPPED.append(f"{row['patient']} ({image}, line {number})")
     return False
@@ -149,8 +156,8 @@ def say_stale():
 SHEET = _read_patients(CONFIG["workflow"]["patients"])
 PATIENTS = {row["patient"]: row for number, row in SHEET if _available(row, number, CONFIG["workflow"]["patients"])}
 if SHEET and not PATIENTS:  # a run that makes nothing would end as a success
-    raise WorkflowError(f"{CONFIG['workflow']['patients']}: every patient was skipped, their input not found: "
-                        f"{', '.join(SKIPPED)}; fix the paths (taken from the working folder, not the sheet's)")
+    _stop(f"{CONFIG['workflow']['patients']}: every patient was skipped, their input not found: "
+          f"{', '.join(SKIPPED)}; fix the paths (taken from the working folder, not the sheet's)")
 
 
 def _one_of(names):
@@ -197,7 +204,7 @@ def _check_overrides():
         try:
             patient_config(patient)
         except (WorkflowError, DicerError) as exc:
-            raise WorkflowError(f"{sheet}, line {lines[patient]}: {exc}")
+            _stop(f"{sheet}, line {lines[patient]}: {exc}")
 
 
 _check_overrides()

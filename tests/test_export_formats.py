@@ -230,8 +230,9 @@ def test_the_curved_elements_screen_decides_as_the_exact_sums(shift, size, seed)
     assert np.array_equal(finite, np.isfinite(screen))
     assert np.abs(screen - exact)[finite].max() < 1e-3 * quadratic._SCREEN_MARGIN
     assert np.array_equal(quadratic._failing(points, cells, grads, 3), ~(exact >= quadratic._CURVED_FLOOR))
-    # the bend at which the exact ratio crosses the floor, to the last bit
-    lo, hi = 0.0, 0.9
+    # the bend at which the exact ratio crosses the floor, to the last bit (the ratio is 1 minus
+    # the bend: 0.1 at 0.9, to rounding either side, so the search starts beyond it)
+    lo, hi = 0.0, 0.95
     ratio = lambda t: quadratic._det_ratio(*_bent_cubes(offset, size, np.array([t])), grads, 3)[0]  # noqa: E731
     assert ratio(lo) >= quadratic._CURVED_FLOOR > ratio(hi)
     while np.nextafter(lo, hi) < hi:

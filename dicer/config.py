@@ -1221,6 +1221,27 @@ def _canonical_numbers(value):
     return value
 
 
+def unknown_materials(materials: list[str], priority, key: str) -> str | None:
+    """What a priority list (``key``: ``fix.priority``, ``segment.priority``) names that the
+    ``materials`` do not hold, as a message, or None.
+
+    Parameters
+    ----------
+    materials : list of str
+    priority : list of str or None
+    key : str
+
+    Returns
+    -------
+    str or None
+    """
+    unknown = [n for n in priority or [] if n not in materials]
+    if not unknown:
+        return None
+    return (f"{key} names {', '.join(map(repr, unknown))}, which the materials do not hold (they are "
+            f"{', '.join(materials)}); list material names")
+
+
 def material_names(config: dict) -> dict[int, str]:
     """Class names by label value.
 

@@ -34,7 +34,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from dicer.arrays import argwhere, nonzero
-from dicer.config import takes_settings
+from dicer.config import takes_settings, unknown_materials
 from dicer.errors import DicerError
 from dicer.image import count_labels
 
@@ -843,10 +843,9 @@ def check_priority(materials: list[str], priority: list[str]) -> None:
     DicerError
         Naming the unknown names and the materials.
     """
-    unknown = [n for n in priority if n not in materials]
-    if unknown:
-        raise DicerError(f"fix.priority names {', '.join(map(repr, unknown))}, which the materials do not hold "
-                         f"(they are {', '.join(materials)}); list material names")
+    said = unknown_materials(materials, priority, "fix.priority")
+    if said:
+        raise DicerError(said)
 
 
 def priority_order(labels: np.ndarray, names: dict[str, str], priority: list[str]) -> tuple[np.ndarray, np.ndarray]:

@@ -151,8 +151,8 @@ def _inert(key: str, config: dict) -> str | None:
         return "sets the pillow layer, and smooth.pillow is off"
     if under("merge.templates") and merge["method"] != "templates":
         return f"acts with merge.method: templates, and merge.method is {merge['method']}"
-    if merge["method"] == "templates" and key.split(".")[:2] in (["merge", k] for k in (
-            "passes", "min_thickness", "granularity", "min_scaled_jacobian", "rim_moves")):
+    planes_only = ("passes", "min_thickness", "granularity", "min_scaled_jacobian", "rim_moves")
+    if merge["method"] == "templates" and any(under(f"merge.{k}") for k in planes_only):
         return "acts with merge.method: planes, and merge.method is templates"
     if under("segment.thresholds") and segment["method"] != "manual":
         return f"acts with segment.method: manual, and segment.method is {segment['method']}"
@@ -169,13 +169,11 @@ def unknown_priorities(config: dict) -> str | None:
     """What ``fix.priority`` or ``segment.priority`` of a segmented scan's ``config`` names
     that its materials do not hold (found only when the fix or segment stage ran, a patient's
     earlier stages done), or None."""
+    from dicer.config import unknown_materials
+
     names = [m["name"] for m in config["materials"]]
-    for key, given in (("segment.priority", config["segment"]["priority"]), ("fix.priority", config["fix"]["priority"])):
-        unknown = [n for n in given or [] if n not in names]
-        if unknown:
-            return (f"{key} names {', '.join(map(repr, unknown))}, which the materials do not hold (they are "
-                    f"{', '.join(names)}); list material names")
-    return None
+    return (unknown_materials(names, config["segment"]["priority"], "segment.priority")
+            or unknown_materials(names, config["fix"]["priority"], "fix.priority"))
 
 
 def unread_settings(items, config: dict, label_volume: bool) -> list[tuple[str, str]]:

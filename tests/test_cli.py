@@ -441,8 +441,10 @@ def test_smooth_warns_when_it_shrinks_a_small_part(tmp_path, capsys, caplog):
 def test_a_relaxed_staircase_keeps_a_thin_rods_volume_as_the_faces_do(tmp_path, capsys):
     """A rod 2 x 2 voxels across, smoothed with its staircase relaxed (the static-stress preset's
     samples on a label volume): the fairing drew its section to a third (-64.7 % against the
-    faces' -17.9 %); each sheet of the relaxed staircase now keeps the labels' volume, and so
-    does the rod (measured +1.0 % against the faces' -17.9 %)."""
+    faces' -17.9 %); each sheet of the relaxed staircase now keeps the labels' volume to first
+    order, and so does the rod (measured +3.0 % against the faces' -17.9 %: the rod reaches the
+    image's ends, mirrors, so it is an endless rod, whose section relaxes to +3.3 % as
+    tests/test_labelnet.py's does; +1.0 % while the mirrors were 8 voxels of reflected labels)."""
     rod = np.zeros((12, 12, 12), np.uint8)
     rod[5:7, 5:7, :] = 1
     np.save(tmp_path / "rod.npy", rod)
@@ -454,7 +456,7 @@ def test_a_relaxed_staircase_keeps_a_thin_rods_volume_as_the_faces_do(tmp_path, 
                        f"smooth.label_samples={samples}")[0] == 0
         change[samples] = 100 * json.loads((tmp_path / "s.json").read_text())[
             "volume_change_from_labels_by_material"]["1"]
-    assert abs(change["relaxed"]) < 2 and change["faces"] < -15, change
+    assert abs(change["relaxed"]) < 4 and change["faces"] < -15, change
 
 
 def test_stages_warn_when_labels_map_numbers_materials_otherwise_than_the_config(tmp_path, capsys, caplog):

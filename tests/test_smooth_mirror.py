@@ -32,6 +32,26 @@ def node_index(mesh):
     return table
 
 
+def layer_copies(part, n_part, full, n_full, offset):
+    """The full model's rows of the part's pillow-layer copies (nodes from ``n_part`` on; -1:
+    none): the copy of the same lattice node nearest to each, and the part's copies must be as
+    many as the full model's within the part (a copy one side has and the other has not either
+    fails that count or lies an eighth of a voxel or more from the nearest other)."""
+    from scipy.spatial import cKDTree
+
+    lattice = part.lattice[n_part:] + offset
+    held = np.all(full.lattice[n_full:] >= offset, axis=1)
+    copies = n_full + np.flatnonzero(held)
+    assert copies.size == lattice.shape[0]
+    if copies.size == 0:
+        return np.zeros(0, np.int64)
+    shift = offset * part.spacing
+    _, nearest = cKDTree(full.points[copies]).query(part.points[n_part:] + shift)
+    rows = copies[nearest]
+    same_node = np.all(full.lattice[rows] == lattice, axis=1)
+    return np.where(same_node, rows, -1)
+
+
 def mirror_asymmetry(mesh, out, axes):
     """Largest change of the smoothed nodes under reflection across each mid plane."""
     table = node_index(mesh)
@@ -40,9 +60,10 @@ def mirror_asymmetry(mesh, out, axes):
         n = int(mesh.grid_shape[a])
         lat = mesh.lattice.copy()
         lat[:, a] = n - lat[:, a]
-        image = out.points[table[tuple(lat.T)]].copy()
+        nodes = out.points[: mesh.n_points]  # the layer's copies: compared by cut_versus_full
+        image = nodes[table[tuple(lat.T)]].copy()
         image[:, a] = n * mesh.spacing[a] - image[:, a]
-        worst = max(worst, float(np.abs(image - out.points).max()))
+        worst = max(worst, float(np.abs(image - nodes).max()))
     return worst
 
 
@@ -62,7 +83,8 @@ def cut_versus_full(lab, cut_axes, settings=None, merged=False):
     (full_mesh, part_mesh), ((full, rep_full), (part, rep_part)) = meshes, smoothed
     offset = np.zeros(3, np.int64)
     offset[list(cut_axes)] = [half[a] for a in cut_axes]
-    rows = node_index(full_mesh)[tuple((part_mesh.lattice + offset).T)]
+    rows = np.concatenate([node_index(full_mesh)[tuple((part_mesh.lattice + offset).T)],
+                           layer_copies(part, part_mesh.n_points, full, full_mesh.n_points, offset)])
     assert np.all(rows >= 0)
     diff = float(np.abs(part.points + offset * part_mesh.spacing - full.points[rows]).max())
     same_classes = np.array_equal(part.point_data["node_class"], full.point_data["node_class"][rows])
@@ -166,6 +188,25 @@ def test_merged_octant_is_the_whole_ball_merged(ball, cut):
     # ball's merge moves onto them: it saw 6 of a plane node's 7 neighbours)
     whole, part = merged_corners(ball, cut)
     assert whole == part
+
+
+STATIC_STRESS = {"label_samples": "relaxed", "pillow": True, "label_surface_radius": 7}  # the preset's smoothing
+
+
+@pytest.mark.parametrize("settings", [{"label_samples": "relaxed"}, STATIC_STRESS], ids=["relaxed", "static-stress"])
+def test_a_cut_staircase_relaxed_smooths_like_the_whole(disc, ball, settings):
+    """A label volume's staircase relaxed within its voxels (smooth.label_samples: relaxed), the
+    static-stress preset's pillow layer over it: the quarter disc, the quarter tube and the
+    octant of the ball get the whole models' nodes, layer copies too. Measured 1.7e-7 (disc)
+    and 2.3e-7 voxel (ball); until the relaxation took the mirrors as an endless staircase
+    (8 voxels of reflected labels before) 0.046 and 0.139 voxel."""
+    for lab, cuts in ((disc, (0, 1)), (np.repeat(disc[:, :, None], 2, axis=2), (0, 1)), (ball, (0, 1, 2))):
+        diff, same_classes, asym, rep_full, rep_part = cut_versus_full(lab, cuts, settings, merged=True)
+        assert rep_part["surface_from_labels"]["nodes_moved"] > 0
+        assert diff < 1e-6 and asym < 1e-6
+        assert same_classes
+        if settings.get("pillow"):
+            assert rep_part["pillow"]["elements"] > 0
 
 
 def test_free_and_fixed_planes_do_not_mirror(ball, disc):

@@ -43,7 +43,7 @@ __all__ = ["RELAXATION_STEPS", "faces_between", "relaxed_staircase", "staircase_
 
 RELAXATION_STEPS = 1000  # FISTA steps: within 0.024 voxel of 4000 steps' vertices on the Lamé tube at a = 7 (0.005 on the Kirsch plate)
 _LAM = 1e-4  # pull towards the corner, against the bending energy's flat directions
-_MIRROR_PAD = 8  # voxels of reflected labels beyond a mirror plane
+_FOLD_PAD = 2  # voxels of reflected labels beyond a mirror plane: every vertex within has its neighbours' neighbours
 _ROWS_PER_CORE = 20000  # vertices for another core to pay its threads' hand-overs, 4 an iteration
 _PLACED = 0.1  # the pull of a face to where the scan placed it, against the fairing
 
@@ -126,18 +126,77 @@ def staircase_vertices(lab: np.ndarray):
     return corner, vpair, junction, inv.reshape(keys.shape), face_normal, shape, top
 
 
+class _Fold:
+    """A staircase cut by mirrors: the image's edges, each axis's two planes facing mirrors,
+    so that the cut staircase stands for the endless one they reflect (a cut model relaxes as
+    the whole one, to rounding). The labels are reflected ``_FOLD_PAD`` voxels beyond each
+    edge, so every vertex within the mirrors has its whole neighbourhood two edges deep; each
+    vertex beyond them is the mirror image of one within (``rep``): its coordinates ``sign``
+    times that vertex's plus ``shift``, in the padded voxels.
+
+    Attributes
+    ----------
+    inside : (V,) bool ndarray
+        The vertices within the mirrors (on them too).
+    rep : (V,) int64 ndarray
+        For each vertex, the number among those inside of the vertex it images.
+    sign, shift : (V, dim) float64 ndarray
+    share : (n,) float64 ndarray
+        For each vertex inside, 1/2 per mirror plane it lies on: the part of it one copy holds.
+    """
+
+    def __init__(self, corner: np.ndarray, vpair: np.ndarray, shape: np.ndarray, extent: np.ndarray, pad: int):
+        c = corner - pad  # voxels from the image's corner
+        period = 2.0 * extent
+        r = np.mod(c, period)
+        back = r > extent
+        folded = np.where(back, period - r, r)
+        self.sign = np.where(back, -1.0, 1.0)
+        self.shift = (c - self.sign * folded) + pad * (1.0 - self.sign)  # in the padded voxels
+        self.inside = np.all((c >= 0) & (c <= extent), axis=1)
+        size = np.int64(np.prod(shape))
+        strides = np.cumprod(np.r_[1, shape[::-1][:-1]])[::-1].astype(np.int64)
+        code = lambda p, q: q * size + np.rint(p + pad).astype(np.int64) @ strides  # noqa: E731
+        own = code(c[self.inside], vpair[self.inside])
+        order = np.argsort(own)
+        want = code(folded, vpair)
+        at = np.clip(np.searchsorted(own[order], want), 0, own.size - 1)
+        if own.size == 0 or not np.array_equal(own[order][at], want):
+            raise AssertionError("a vertex beyond a mirror has no image within it")  # the pad is symmetric
+        self.rep = order[at]
+        on_planes = np.count_nonzero((c[self.inside] == 0) | (c[self.inside] == extent), axis=1)
+        self.share = 0.5 ** on_planes
+
+    def unfold(self, x: np.ndarray, shifted: bool) -> np.ndarray:
+        """(V, dim) every vertex's coordinates (``shifted``: positions; else the differences
+        the operators make, which mirror without the shift) from those inside (n, dim)."""
+        out = self.sign * x[self.rep]
+        if shifted:
+            out += self.shift
+        return out
+
+
 def _fista(L: sp.csr_matrix, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-           data: tuple[sp.csr_matrix, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+           data: tuple[sp.csr_matrix, np.ndarray, np.ndarray] | None = None, fold: _Fold | None = None
+           ) -> np.ndarray:
     """argmin |L L x|^2 + _LAM |x - x0|^2 (+ sum W (A x - Y)^2) over lo <= x <= hi, each
-    column on its own; (n, k). ``data``: A (F, n), Y and W (F, k)."""
-    Lt = L.T.tocsr()
+    column on its own; (n, k). ``data``: A (F, n), Y and W (F, k). With ``fold`` the n
+    unknowns are the vertices within the mirrors and L and A act on all the staircase's
+    vertices, the others being mirror images of them (:class:`_Fold`): the sums of an endless
+    mirrored staircase, on one copy of it."""
+    unfold = (lambda v, shifted: v) if fold is None else fold.unfold  # noqa: E731
+    inside = slice(None) if fold is None else fold.inside
+    Lt = L[:, inside].T.tocsr()
     # the gradient's Lipschitz constant 2 (|L|^4 + lam (+ |W| |A|^2)), |L|_2^2 <= |L|_1 |L|_inf;
-    # L applied twice costs less than the product's denser matrix
-    norm2 = lambda m: float(abs(m).sum(axis=0).max()) * float(abs(m).sum(axis=1).max())  # noqa: E731
+    # L applied twice costs less than the product's denser matrix. Folded: the columns of the
+    # vertices within the mirrors hold every column's sum, and the rows are theirs
+    norm2 = lambda m: float(abs(m[:, inside]).sum(axis=0).max()) * float(abs(m[inside] if m is L else m).sum(  # noqa: E731
+        axis=1).max())
     lip = 2.0 * (norm2(L) ** 2 + _LAM)
+    L = L[inside].tocsr()
     if data is not None:
         A, Y, W = data
-        At = A.T.tocsr()
+        At = A[:, inside].T.tocsr()
         lip += 2.0 * float(W.max(initial=0.0)) * norm2(A)
     step = 1.0 / lip
     # the rows in blocks, one per core: a row's sums are the same in any block, so the
@@ -166,7 +225,7 @@ def _fista(L: sp.csr_matrix, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
         # y - step grad, clipped, and nxt + momentum (nxt - x), in place (the same operations
         # in the same order: a fresh array of this size costs its pages again each time)
         r = rows[i]
-        grad = Lt_rows[i] @ w
+        grad = Lt_rows[i] @ w_all
         grad *= 2.0
         np.subtract(y[r], x0[r], out=pull[r])
         pull[r] *= 2.0 * _LAM
@@ -182,7 +241,7 @@ def _fista(L: sp.csr_matrix, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
 
     def misfits(i):
         f = frows[i]
-        misfit[f] = W[f] * (A_rows[i] @ y - Y[f])
+        misfit[f] = W[f] * (A_rows[i] @ y_all - Y[f])
 
     with ThreadPoolExecutor(parts) as pool:
         def each(fn):  # every block done before the next product reads them
@@ -193,13 +252,15 @@ def _fista(L: sp.csr_matrix, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                     pass
 
         for _ in range(RELAXATION_STEPS):
-            each(product(L_rows, y, u))
+            y_all = unfold(y, True)
+            each(product(L_rows, y_all, u))
             if data is not None:
                 each(misfits)
-            each(product(L_rows, u, v))
-            each(product(Lt_rows, v, w))
+            each(product(L_rows, unfold(u, False), v))
+            each(product(Lt_rows, unfold(v, False), w))
             t_next = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
             momentum = (t - 1.0) / t_next
+            w_all = unfold(w, False)
             each(lambda i: descend(i, momentum))
             x, nxt = nxt, x
             t = t_next
@@ -310,10 +371,11 @@ def relaxed_staircase(lab: np.ndarray, spacing, origin, mirror: bool = False, pl
     spacing, origin : sequence of float
         mm per voxel and the corner of voxel 0, per axis.
     mirror : bool, optional
-        The image's edges are mirrors (``bounding_planes: mirror``): the labels are reflected
-        ``_MIRROR_PAD`` voxels beyond each edge for the relaxation, so a cut model relaxes as
-        the whole one does near its cut (the Kirsch plate's quarter reads within 0.1 % of the
-        whole plate); else a vertex on an edge stays in its plane.
+        The image's edges are mirrors (``bounding_planes: mirror``): the staircase is relaxed as
+        the endless one they reflect (:class:`_Fold`), so a cut model relaxes as the whole one,
+        to rounding; a vertex on a mirror stands for itself and its images, so its weight is
+        halved per mirror it lies on (the fit's mirrored samples count it once per image).
+        Else a vertex on an edge stays in its plane.
     placed : (S,) float64 ndarray, optional
         Where a scan placed each face between two kinds (``dicer.mesh.labelsurface.scan_crossings``):
         its move along the face's axis, in voxels towards higher indices, NaN where the scan
@@ -338,7 +400,7 @@ def relaxed_staircase(lab: np.ndarray, spacing, origin, mirror: bool = False, pl
     spacing = np.asarray(spacing, float)[:dim]
     origin = np.asarray(origin, float)[:dim]
     extent = np.asarray(lab.shape, float)
-    pad = _MIRROR_PAD if mirror else 0
+    pad = _FOLD_PAD if mirror else 0
     if pad:
         lab = np.pad(lab, pad, mode="symmetric")
     corner, vpair, junction, inv, face_normal, shape, top = staircase_vertices(lab)
@@ -352,16 +414,22 @@ def relaxed_staircase(lab: np.ndarray, spacing, origin, mirror: bool = False, pl
     degree = np.asarray(adj.sum(axis=1)).ravel()
     L = (sp.identity(n, format="csr") - sp.diags(1.0 / degree) @ adj).tocsr()
     half = np.where(junction, 0.0, 0.5)[:, None] * np.ones((1, dim))
-    edge = (corner == 0) | (corner == shape[:dim] - 1)  # on the image's edge: stays in that plane
+    # on the image's edge (a mirror: on a plane of symmetry, as its images are): stays in that plane
+    edge = (corner == pad) | (corner == shape[:dim] - 1 - pad)
     half[edge] = 0.0
     data = None if placed is None else _placed_targets(lab, corner, inv, face_normal, pad, np.asarray(placed, float))
     lo, hi = corner - half, corner + half
-    x = _fista(L, corner, lo, hi, data)
+    fold = _Fold(corner, vpair, shape[:dim], extent, pad) if pad else None
+    inside = slice(None) if fold is None else fold.inside
+    share = 1.0 if fold is None else fold.share
+    x = _fista(L, corner[inside], lo[inside], hi[inside], data, fold)
+    positions = (lambda x: x) if fold is None else (lambda x: fold.unfold(x, True))  # noqa: E731
     if data is None:  # the labels' volume kept: without a scan's places the fairing alone draws small parts in
-        x = _volume_kept(x, corner, lo, hi, adj, *_vertex_normals(x, inv, face_normal, np.ones(dim), n))
-    normals, size = _vertex_normals(x, inv, face_normal, spacing, n)
+        towards, area = _vertex_normals(positions(x), inv, face_normal, np.ones(dim), n)
+        sheets = adj if fold is None else (adj[fold.inside] @ sp.csr_matrix(
+            (np.ones(n), (np.arange(n), fold.rep)), shape=(n, x.shape[0]))).tocsr()
+        x = _volume_kept(x, corner[inside], lo[inside], hi[inside], sheets, towards[inside], area[inside] * share)
+    normals, size = _vertex_normals(positions(x), inv, face_normal, spacing, n)
     kinds = np.stack([vpair // top, vpair % top], axis=1)
-    x -= pad
-    # a vertex on a mirror plane may lie a rounding off it: kept (else its count follows the last bit)
-    inside = np.all((x >= -1e-9) & (x <= extent + 1e-9), axis=1) if pad else np.ones(n, bool)
-    return origin + x[inside] * spacing, normals[inside], kinds[inside], size[inside]
+    x = x - pad
+    return origin + x * spacing, normals[inside], kinds[inside], size[inside] * share

@@ -138,6 +138,8 @@ class _Fold:
     ----------
     inside : (V,) bool ndarray
         The vertices within the mirrors (on them too).
+    ghosts : (G,) int64 ndarray
+        The vertices beyond the mirrors.
     rep : (V,) int64 ndarray
         For each vertex, the number among those inside of the vertex it images.
     sign, shift : (V, dim) float64 ndarray
@@ -154,6 +156,7 @@ class _Fold:
         self.sign = np.where(back, -1.0, 1.0)
         self.shift = (c - self.sign * folded) + pad * (1.0 - self.sign)  # in the padded voxels
         self.inside = np.all((c >= 0) & (c <= extent), axis=1)
+        self.ghosts = np.flatnonzero(~self.inside)
         size = np.int64(np.prod(shape))
         strides = np.cumprod(np.r_[1, shape[::-1][:-1]])[::-1].astype(np.int64)
         code = lambda p, q: q * size + np.rint(p + pad).astype(np.int64) @ strides  # noqa: E731
@@ -166,6 +169,14 @@ class _Fold:
         self.rep = order[at]
         on_planes = np.count_nonzero((c[self.inside] == 0) | (c[self.inside] == extent), axis=1)
         self.share = 0.5 ** on_planes
+
+    def ghost_values(self, x: np.ndarray, shifted: bool) -> np.ndarray:
+        """(G, dim) the coordinates of the vertices beyond the mirrors (``ghosts``), as :meth:`unfold`."""
+        g = self.ghosts
+        out = self.sign[g] * x[self.rep[g]]
+        if shifted:
+            out += self.shift[g]
+        return out
 
     def unfold(self, x: np.ndarray, shifted: bool) -> np.ndarray:
         """(V, dim) every vertex's coordinates (``shifted``: positions; else the differences
@@ -184,8 +195,13 @@ def _fista(L: sp.csr_matrix, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     unknowns are the vertices within the mirrors and L and A act on all the staircase's
     vertices, the others being mirror images of them (:class:`_Fold`): the sums of an endless
     mirrored staircase, on one copy of it."""
-    unfold = (lambda v, shifted: v) if fold is None else fold.unfold  # noqa: E731
+    # the vertices beyond the mirrors apart (few: two voxels deep), so the products over those
+    # within take the unknowns as they are
+    ghost = (lambda v, shifted: None) if fold is None else fold.ghost_values  # noqa: E731
     inside = slice(None) if fold is None else fold.inside
+
+    def split(m: sp.csr_matrix) -> tuple[sp.csr_matrix, sp.csr_matrix | None]:
+        return m[:, inside].tocsr(), None if fold is None else m[:, fold.ghosts].tocsr()
     Lt = L[:, inside].T.tocsr()
     # the gradient's Lipschitz constant 2 (|L|^4 + lam (+ |W| |A|^2)), |L|_2^2 <= |L|_1 |L|_inf;
     # L applied twice costs less than the product's denser matrix. Folded: the columns of the
@@ -204,11 +220,11 @@ def _fista(L: sp.csr_matrix, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     parts = min(cores(), MAX_WORKERS) if x0.shape[0] >= _ROWS_PER_CORE else 1
     cut = np.linspace(0, x0.shape[0], parts + 1).astype(np.int64)
     rows = [slice(int(cut[i]), int(cut[i + 1])) for i in range(parts)]
-    L_rows, Lt_rows = [L[r] for r in rows], [Lt[r] for r in rows]
+    L_rows, Lt_rows = [split(L[r]) for r in rows], [split(Lt[r]) for r in rows]
     if data is not None:
         fcut = np.linspace(0, A.shape[0], parts + 1).astype(np.int64)
         frows = [slice(int(fcut[i]), int(fcut[i + 1])) for i in range(parts)]
-        A_rows, At_rows = [A[r] for r in frows], [At[r] for r in rows]
+        A_rows, At_rows = [split(A[r]) for r in frows], [At[r] for r in rows]
     x = x0.copy()
     y = x0.copy()
     nxt = np.empty_like(x0)
@@ -216,16 +232,25 @@ def _fista(L: sp.csr_matrix, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     misfit = None if data is None else np.empty_like(Y)
     t = 1.0
 
-    def product(m_rows, vec, out):
+    def times(m: tuple, vec: np.ndarray, beyond: np.ndarray | None) -> np.ndarray:
+        within, mirrored = m
+        out = within @ vec
+        if beyond is not None:
+            out += mirrored @ beyond
+        return out
+
+    def product(m_rows, vec, out, shifted=False):
+        beyond = ghost(vec, shifted)
+
         def one(i):
-            out[rows[i]] = m_rows[i] @ vec
+            out[rows[i]] = times(m_rows[i], vec, beyond)
         return one
 
     def descend(i, momentum):
         # y - step grad, clipped, and nxt + momentum (nxt - x), in place (the same operations
         # in the same order: a fresh array of this size costs its pages again each time)
         r = rows[i]
-        grad = Lt_rows[i] @ w_all
+        grad = times(Lt_rows[i], w, w_beyond)
         grad *= 2.0
         np.subtract(y[r], x0[r], out=pull[r])
         pull[r] *= 2.0 * _LAM
@@ -241,7 +266,7 @@ def _fista(L: sp.csr_matrix, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
 
     def misfits(i):
         f = frows[i]
-        misfit[f] = W[f] * (A_rows[i] @ y_all - Y[f])
+        misfit[f] = W[f] * (times(A_rows[i], y, y_beyond) - Y[f])
 
     with ThreadPoolExecutor(parts) as pool:
         def each(fn):  # every block done before the next product reads them
@@ -252,15 +277,15 @@ def _fista(L: sp.csr_matrix, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                     pass
 
         for _ in range(RELAXATION_STEPS):
-            y_all = unfold(y, True)
-            each(product(L_rows, y_all, u))
+            y_beyond = ghost(y, True)
+            each(product(L_rows, y, u, True))
             if data is not None:
                 each(misfits)
-            each(product(L_rows, unfold(u, False), v))
-            each(product(Lt_rows, unfold(v, False), w))
+            each(product(L_rows, u, v))
+            each(product(Lt_rows, v, w))
             t_next = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
             momentum = (t - 1.0) / t_next
-            w_all = unfold(w, False)
+            w_beyond = ghost(w, False)
             each(lambda i: descend(i, momentum))
             x, nxt = nxt, x
             t = t_next

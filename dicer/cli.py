@@ -848,6 +848,13 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
         if m is not mesh:  # read from a file: a mesh dicer run hands on is never smoothed yet
             from dicer.mesh.model import nodes_off_lattice
 
+            import numpy as np
+
+            shared = m.n_points - np.unique(np.asarray(m.lattice), axis=0).shape[0]
+            if shared:  # the layer's nodes are copies of the surface's, at their lattice points
+                raise _InputError(f"{mesh_path}: {shared} of the mesh's {m.n_points} nodes share a lattice point "
+                                  "with another (a pillow layer's copies: it was smoothed with smooth.pillow); "
+                                  "smooth the mesh of dicer mesh or dicer merge")
             moved = nodes_off_lattice(m)
             if moved:
                 log.warning("smooth: %d of the mesh's %d nodes lie off their lattice points already: it was smoothed "

@@ -412,16 +412,17 @@ def test_smooth_settings_the_others_leave_unused_are_said():
     from dicer.config import unused_smooth_settings
 
     assert unused_smooth_settings(load_config()["smooth"]) == []
-    sets = ["smooth.image_sigma=1", "smooth.pillow_thickness=0.5", "smooth.surface_from_labels=false",
-            "smooth.label_surface_radius=8", "smooth.label_samples=relaxed"]
+    sets = ["smooth.image_sigma=1", "smooth.pillow=false", "smooth.pillow_thickness=0.5",
+            "smooth.surface_from_labels=false", "smooth.label_surface_radius=8", "smooth.label_samples=relaxed"]
     assert unused_smooth_settings(load_config(sets=sets)["smooth"]) == [
         "smooth.image_sigma=1 is not used: it smooths the scan for smooth.surface_from_image or smooth.fit_to_scan, "
         "which these settings leave unused",
         "smooth.pillow_thickness=0.5 is not used: it is the thickness of the layer smooth.pillow adds, which is off",
         "smooth.label_samples=\"relaxed\" is not used: it shapes the fit of smooth.surface_from_labels, which is off",
         "smooth.label_surface_radius=8 is not used: it shapes the fit of smooth.surface_from_labels, which is off"]
-    # used: said of nothing (image_sigma smooths the scan for fit_to_scan, on by default)
-    used = ["smooth.image_sigma=1", "smooth.pillow=true", "smooth.pillow_thickness=0.5"]
+    # used: said of nothing (image_sigma smooths the scan for fit_to_scan, pillow_thickness the
+    # layer: both on by default)
+    used = ["smooth.image_sigma=1", "smooth.pillow_thickness=0.5"]
     assert unused_smooth_settings(load_config(sets=used)["smooth"]) == []
     # a fit_to_scan turned off reads no scan: image_sigma unused; relaxed samples are placed by it
     assert unused_smooth_settings(load_config(sets=["smooth.image_sigma=1", "smooth.fit_to_scan=false"])["smooth"])[
@@ -437,8 +438,8 @@ def test_unused_smooth_settings_are_said_by_the_commands_that_smooth_only(tmp_pa
     assert main(["export", str(tmp_path / "none.vtu"), "-o", str(tmp_path / "m.inp"), "--set",
                  "smooth.pillow_thickness=0.5"]) == 2
     assert not [r for r in caplog.records if "is not used" in r.getMessage()]
-    assert main(["smooth", str(tmp_path / "none.vtu"), "-o", str(tmp_path / "s.vtu"), "--set",
-                 "smooth.pillow_thickness=0.5"]) == 2
+    assert main(["smooth", str(tmp_path / "none.vtu"), "-o", str(tmp_path / "s.vtu"), "--set", "smooth.pillow=false",
+                 "--set", "smooth.pillow_thickness=0.5"]) == 2
     assert [r.getMessage() for r in caplog.records if "is not used" in r.getMessage()] == [
         "smooth: smooth.pillow_thickness=0.5 is not used: it is the thickness of the layer smooth.pillow adds, which "
         "is off"]
@@ -534,7 +535,8 @@ def test_an_unknown_preset_is_one_error_line_and_no_output(tmp_path, capsys):
     assert main(["run", "--labels", str(tmp_path / "l.npy"), "-o", str(tmp_path / "out"),
                  "--set", "preset=static_stress"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["error: config with --set: key 'preset': \"static_stress\" is not one of null, static-stress"]
+    assert err == ["error: config with --set: key 'preset': \"static_stress\" is not one of null, static-stress, "
+                   "explicit-dynamics"]
     assert not (tmp_path / "out").exists()
 
 
@@ -568,8 +570,8 @@ def test_the_static_stress_preset_relaxes_a_label_volume_and_places_a_scans_face
 
 
 def test_a_presets_keys_set_otherwise_by_the_configuration_are_said(tmp_path, caplog):
-    """config/config.yaml writes every key at its default, so ``preset: static-stress`` added to
-    it kept none of the preset's settings, silently: the keys that override it are named once."""
+    """config/config.yaml writes every key at its default, so ``preset: explicit-dynamics`` added
+    to it kept none of the preset's settings, silently: the keys that override it are named once."""
     from pathlib import Path
 
     from dicer.config import _say_once
@@ -578,14 +580,20 @@ def test_a_presets_keys_set_otherwise_by_the_configuration_are_said(tmp_path, ca
     shipped = Path(__file__).parents[1] / "config" / "config.yaml"
     caplog.set_level("WARNING", logger="dicer")
     for _ in range(2):
-        config = load_config(shipped, sets=["preset=static-stress", "export.order=2"])
-    assert (config["smooth"]["pillow"], config["export"]["order"]) == (False, 2)
-    said = [r.getMessage() for r in caplog.records if "preset static-stress" in r.getMessage()]
-    assert said == [f"{shipped} with --set: preset static-stress sets smooth.pillow: true, smooth.label_samples: "
-                    "\"auto\", smooth.label_surface_radius: 7, export.order: 2, export.midside_nodes: \"curved\"; "
-                    "the configuration's own smooth.pillow: false, smooth.label_samples: \"faces\", "
-                    "smooth.label_surface_radius: 5, export.midside_nodes: \"midpoint\" override it: remove those "
-                    "keys to take the preset's"]
+        config = load_config(shipped, sets=["preset=explicit-dynamics", "export.midside_nodes=midpoint"])
+    assert (config["smooth"]["pillow"], config["export"]["midside_nodes"]) == (True, "midpoint")
+    said = [r.getMessage() for r in caplog.records if "preset explicit-dynamics" in r.getMessage()]
+    assert said == [f"{shipped} with --set: preset explicit-dynamics sets smooth.pillow: false, smooth.label_samples: "
+                    "\"faces\", smooth.label_surface_radius: 5, export.midside_nodes: \"midpoint\"; "
+                    "the configuration's own smooth.pillow: true, smooth.label_samples: \"auto\", "
+                    "smooth.label_surface_radius: 7 override it: remove those keys to take the preset's"]
+    # static-stress sets export.order besides the defaults: the shipped file's order 1 overrides it
+    caplog.clear()
+    assert load_config(shipped, sets=["preset=static-stress"])["export"]["order"] == 1
+    assert [r.getMessage() for r in caplog.records if "preset static-stress" in r.getMessage()] == [
+        f"{shipped} with --set: preset static-stress sets smooth.pillow: true, smooth.label_samples: \"auto\", "
+        "smooth.label_surface_radius: 7, export.order: 2, export.midside_nodes: \"curved\"; the configuration's own "
+        "export.order: 1 override it: remove those keys to take the preset's"]
     caplog.clear()
     caplog.set_level("INFO", logger="dicer")
     load_config(sets=["preset=static-stress"])

@@ -568,7 +568,8 @@ def test_a_flipped_scan_downsampled_gives_the_model_its_unflipped_copy_gives(tmp
         sitk.WriteImage(image, str(tmp_path / f"{name}.nii.gz"), True)
         _run("run", tmp_path / f"{name}.nii.gz", "-o", tmp_path / name, "--set", "materials=[{name: bone}]",
              "--set", "segment.method=otsu", "--set", "downsample.factor=3",
-             "--set", "merge.passes=[0, 0, 0]")  # merging pairs layers from index 0: not mirror-alike
+             "--set", "merge.passes=[0, 0, 0]",  # merging pairs layers from index 0: not mirror-alike
+             "--set", "preset=explicit-dynamics")
         model = meshio.read(tmp_path / name / "model.vtu")
         cells = model.cells[0].data
         centres[name] = model.points[cells].mean(axis=1).mean(axis=0)

@@ -149,7 +149,8 @@ def test_run_with_crop_pulls_onto_the_scan_where_the_uncropped_run_does(tmp_path
     config = tmp_path / "config.yaml"
     config.write_text("segment: {method: manual, thresholds: [0], opening_radius: 0, closing_radius: 0, keep: all}\n"
                       "materials: [{name: solid, youngs_modulus: 1000, poissons_ratio: 0.3}]\n"
-                      "smooth: {surface_from_image: true}\nmerge: {passes: [0, 0, 0]}\n")
+                      "smooth: {surface_from_image: true}\nmerge: {passes: [0, 0, 0]}\n"
+                      "preset: explicit-dynamics\n")  # no pillow layer: one node per lattice point
     start = [2, 1, 1]
     crop = f"image.crop={{unit: voxels, min: {start}, max: [19, 20, 18]}}"
     models = []

@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dicer.config import load_config
+from dicer.config import load_config, preset_settings
 from dicer.errors import DicerError
 from dicer.export import (
     EXPORT_SUFFIXES,
@@ -26,6 +26,9 @@ from dicer.export.textfmt import Sci, aligned_width, int_digits, int_line_blocks
 from dicer.io.meshes import read_mesh
 from dicer.mesh.topology import HEX_FACES
 from dicer.mesh.voxel import voxel_mesh
+
+
+WITHOUT_THE_LAYER = preset_settings("explicit-dynamics")["smooth"]  # smoothing with no pillow layer
 
 
 @pytest.fixture
@@ -237,8 +240,8 @@ def test_plane_sets_hold_only_nodes_on_their_plane(tmp_path, caplog, mesh, order
     r = np.hypot(g[0], g[1])
     tube = voxel_mesh(((r < 5) & (r > 2)).astype(np.uint8))
     cfg = {"export": {"order": order, "sets": ["planes"]}}
-    mirrored, _ = smooth_mesh(tube, {})
-    loose, _ = smooth_mesh(tube, {"bounding_planes": "free", "keep_bounding_planes": False})
+    mirrored, _ = smooth_mesh(tube, WITHOUT_THE_LAYER)
+    loose, _ = smooth_mesh(tube, {**WITHOUT_THE_LAYER, "bounding_planes": "free", "keep_bounding_planes": False})
     # mirror planes keep every plane node on its plane: the sets are those of the lattice
     model = prepare_model(mirrored, cfg, path=tmp_path / "m.inp")
     assert sorted(model.node_sets) == ["Z0", "Z1"] and "moved nodes" not in caplog.text
@@ -672,7 +675,7 @@ def test_elements_printed_inside_out_are_refused(tmp_path, spacing, order, inver
 
     g = np.indices((16, 16, 16)).astype(float) - 7.5
     labels = (np.sqrt((g ** 2).sum(0)) <= 6).astype(np.uint8)
-    mesh = smooth_mesh(voxel_mesh(labels, spacing=(spacing,) * 3, origin=(1e7,) * 3), {})[0]
+    mesh = smooth_mesh(voxel_mesh(labels, spacing=(spacing,) * 3, origin=(1e7,) * 3), WITHOUT_THE_LAYER)[0]
     export = {"order": order, "midside_nodes": "curved"}
     with pytest.raises(DicerError, match=rf"\({inverted} element\(s\) turn inside out as printed\)$"):
         export_mesh(mesh, tmp_path / "m.inp", {"export": export})

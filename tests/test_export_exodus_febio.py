@@ -169,7 +169,7 @@ def _ints(text: str) -> list[int]:
 
 @pytest.mark.parametrize("order", [1, 2])
 def test_febio_structure(tmp_path, mesh, order):
-    config = cfg(order=order)
+    config = cfg(order=order, midside_nodes="midpoint")
     export_mesh(mesh, tmp_path / "m.inp", config)
     export_mesh(mesh, tmp_path / "m.feb", config)
     model = prepare_model(mesh, config)

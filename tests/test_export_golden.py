@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from dicer import __version__
-from dicer.config import load_config
+from dicer.config import load_config, preset_settings
 from dicer.export import export_mesh
 from dicer.export.stl import write_surfaces
 from dicer.mesh.voxel import voxel_mesh
@@ -92,9 +92,12 @@ def _mesh(dim: int, direction=None):
 
 
 def _config(export: dict) -> dict:
+    """The settings the digests were recorded at (the headings hash them): the explicit-dynamics
+    preset's under the case's."""
+    preset = preset_settings("explicit-dynamics")
     return load_config(settings={"materials": [{"name": "bone", "youngs_modulus": 17000.0, "poissons_ratio": 0.3},
                                                {"name": "soft", "youngs_modulus": 1.5, "density": 1.1e-9}],
-                                 "export": export})
+                                 "smooth": preset["smooth"], "export": preset["export"] | export})
 
 
 def _digests(tmp: Path, narrow: bool = False) -> dict[str, str]:

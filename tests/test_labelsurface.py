@@ -10,6 +10,7 @@ from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 
 from dicer.cli import main
+from dicer.config import preset_settings
 from dicer.connectivity import fix_connectivity
 from dicer.errors import DicerError
 from dicer.image import Volume
@@ -24,6 +25,9 @@ from tests.test_smooth_mirror import BALL, DISC, cut_versus_full, shells
 
 ON = {"surface_from_labels": True}  # the default, named for the tests that compare with OFF
 OFF = {"surface_from_labels": False}  # the labels' smoothing alone
+# the fit's own figures were measured without the pillow layer, on the labels' faces, over 5
+# voxels: the preset explicit-dynamics, laid under the cases that pin them
+WITHOUT_THE_LAYER = preset_settings("explicit-dynamics")["smooth"]
 R = 16.3
 CENTRE = np.array([20.31, 19.77, 20.13])  # off the lattice
 
@@ -142,8 +146,8 @@ def test_the_fit_of_a_tilted_plane_is_flat_and_no_farther_than_its_staircase(slo
 def sphere(request):
     dim = request.param
     mesh = voxel_mesh(ball_labels(dim))
-    labels_only, _ = smooth_mesh(mesh, OFF)
-    fitted, report = smooth_mesh(mesh, ON)
+    labels_only, _ = smooth_mesh(mesh, {**WITHOUT_THE_LAYER, **OFF})
+    fitted, report = smooth_mesh(mesh, {**WITHOUT_THE_LAYER, **ON})
     return dim, mesh, labels_only, fitted, report
 
 
@@ -170,7 +174,7 @@ def test_sphere_from_labels_alone(sphere):
 
 def test_on_by_default_and_reproducible(sphere):
     dim, mesh, labels_only, fitted, _ = sphere
-    again, _ = smooth_mesh(mesh, {})
+    again, _ = smooth_mesh(mesh, WITHOUT_THE_LAYER)  # the fit not named
     assert np.array_equal(again.points, fitted.points)  # threads fit disjoint chunks
     assert not np.array_equal(labels_only.points, fitted.points)
 
@@ -179,8 +183,8 @@ def test_two_interfaces_each_fitted_to_its_own_staircase():
     # the outer surface (0|1) and the interface (1|2) of a ball in a shell, each from the faces
     # of its own pair of kinds
     mesh = voxel_mesh(ball_labels(3, radii=(R, 9.7)))
-    before, _ = smooth_mesh(mesh, OFF)
-    after, report = smooth_mesh(mesh, ON)
+    before, _ = smooth_mesh(mesh, {**WITHOUT_THE_LAYER, **OFF})
+    after, report = smooth_mesh(mesh, {**WITHOUT_THE_LAYER, **ON})
     inner = radial(mesh, before, 3, 9.7, kinds=[2]), radial(mesh, after, 3, 9.7, kinds=[2])
     outer = radial(mesh, before, 3, R, kinds=[1]), radial(mesh, after, 3, R, kinds=[1])
     assert outer[1][0] < 0.6 * outer[0][0]  # measured 0.137 -> 0.078 (floor 0.2: 0.061)
@@ -204,8 +208,8 @@ def test_a_pair_the_sharpening_would_roughen_stays_with_the_labels(monkeypatch):
         return out
 
     monkeypatch.setattr(subvoxel, "lift", rough)
-    before, _ = smooth_mesh(mesh, OFF)
-    after, report = smooth_mesh(mesh, ON)
+    before, _ = smooth_mesh(mesh, {**WITHOUT_THE_LAYER, **OFF})
+    after, report = smooth_mesh(mesh, {**WITHOUT_THE_LAYER, **ON})
     assert report["surface_from_labels"]["pairs_left_to_the_labels"] == ["1|2"]
     assert radial(mesh, after, 3, 9.7, kinds=[2]) == radial(mesh, before, 3, 9.7, kinds=[2])
     assert radial(mesh, after, 3, R, kinds=[1])[0] < 0.085
@@ -220,12 +224,12 @@ def test_a_thin_plate_keeps_its_thickness():
     d = (x - 14.0) @ n
     lab = fix_connectivity((np.abs(d) < 1.2).astype(np.uint8))[0]
     mesh = voxel_mesh(lab)
-    out, report = smooth_mesh(mesh, {**ON, "bounding_planes": "mirror"})
+    out, report = smooth_mesh(mesh, {**WITHOUT_THE_LAYER, **ON, "bounding_planes": "mirror"})
     nodes = np.flatnonzero(boundary_graph(mesh).boundary)
     nodes = nodes[np.all(np.abs(mesh.points[nodes, :2] - 14.0) < 8, axis=1)]
     half = np.abs((out.points[nodes] - 14.0) @ n)
     assert abs(half.mean() - 1.2) < 0.05
-    base, _ = smooth_mesh(mesh, OFF)
+    base, _ = smooth_mesh(mesh, {**WITHOUT_THE_LAYER, **OFF})
     assert np.abs(half - 1.2).mean() < np.abs(np.abs((base.points[nodes] - 14.0) @ n) - 1.2).mean()
 
 
@@ -254,8 +258,9 @@ def test_smooth_command_reports_the_fit(tmp_path, caplog):
     write_mesh(voxel_mesh(ball_labels(2)), tmp_path / "mesh.vtu")
     out = tmp_path / "smoothed.vtu"
     with caplog.at_level("INFO", logger="dicer"):
-        assert main(["smooth", str(tmp_path / "mesh.vtu"), "-o", str(out), "--set", "smooth.label_surface_radius=4",
-                     "--report", str(tmp_path / "smooth.json")]) == 0
+        # without the pillow layer (the preset explicit-dynamics): the output has the input's nodes
+        assert main(["smooth", str(tmp_path / "mesh.vtu"), "-o", str(out), "--set", "preset=explicit-dynamics",
+                     "--set", "smooth.label_surface_radius=4", "--report", str(tmp_path / "smooth.json")]) == 0
     report = json.loads((tmp_path / "smooth.json").read_text())
     # progress on the stage's longest step: the fit, before and after
     said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("smooth: fit")]
@@ -276,8 +281,9 @@ def test_a_fit_that_reaches_few_nodes_is_warned_of(tmp_path, caplog):
     lab[5:7, 5:7, 5:7] = 1
     write_mesh(voxel_mesh(lab), tmp_path / "mesh.vtu")
     out = tmp_path / "smoothed.vtu"
-    assert main(["smooth", str(tmp_path / "mesh.vtu"), "-o", str(out), "--set", "smooth.surface_from_labels=true",
-                 "--report", str(tmp_path / "smooth.json")]) == 0
+    # measured at the fit over 5 voxels: the preset explicit-dynamics
+    assert main(["smooth", str(tmp_path / "mesh.vtu"), "-o", str(out), "--set", "preset=explicit-dynamics", "--set",
+                 "smooth.surface_from_labels=true", "--report", str(tmp_path / "smooth.json")]) == 0
     report = json.loads((tmp_path / "smooth.json").read_text())["surface_from_labels"]
     assert report["nodes_on_the_fitted_surface"] == 0 and report["nodes_between_two_kinds"] == 26
     warned = [r.getMessage() for r in caplog.records if "fitted to the labels" in r.getMessage()]
@@ -348,8 +354,9 @@ def merged_ball(dim):
 def test_a_merged_ball_fitted_to_its_labels_keeps_their_surface(dim):
     lab, vox, merged = merged_ball(dim)
     exact = 4 / 3 * np.pi * R**3 if dim == 3 else np.pi * R**2
-    on_faces, _ = smooth_mesh(merged)
-    on_labels, report = smooth_mesh(merged, labels=Volume(lab, (1.0,) * dim))
+    # measured without the pillow layer, on the labels' faces: the preset explicit-dynamics
+    on_faces, _ = smooth_mesh(merged, WITHOUT_THE_LAYER)
+    on_labels, report = smooth_mesh(merged, WITHOUT_THE_LAYER, labels=Volume(lab, (1.0,) * dim))
     # measured: the merged mesh's faces (chamfers fill steps, +5.5 % / +2.3 % volume) put the
     # surface 0.327 / 0.224 voxel off the sphere on average, +4.8 % / +2.2 % volume; the labels
     # 0.111 / 0.114, -0.55 % / -0.06 % (the voxel mesh's own fit: 0.075 / 0.098); in 3D the
@@ -364,8 +371,8 @@ def test_a_merged_ball_fitted_to_its_labels_keeps_their_surface(dim):
     assert report["volume_change_from_labels_by_material"]["1"] == pytest.approx(volume / voxels - 1, abs=1e-9)
     assert report["min_scaled_jacobian"] >= 0.3 and report["inverted_elements"] == 0
     # the voxel mesh itself fits alike with its labels or its faces (the same samples)
-    alone, _ = smooth_mesh(vox)
-    given, _ = smooth_mesh(vox, labels=Volume(lab, (1.0,) * dim))
+    alone, _ = smooth_mesh(vox, WITHOUT_THE_LAYER)
+    given, _ = smooth_mesh(vox, WITHOUT_THE_LAYER, labels=Volume(lab, (1.0,) * dim))
     assert np.abs(alone.points - given.points).max() < 1e-9
 
 
@@ -537,9 +544,13 @@ def test_a_ct_ball_fitted_to_its_labels_placed_by_the_scan(dim):
     def error(out):
         return np.linalg.norm(out.points[nodes, :dim] - CT_CENTRE[:dim], axis=1) - CT_R
 
-    alone, _ = smooth_mesh(mesh, {"fit_to_scan": False}, labels=labels, image=scan, thresholds=[500.0])
-    placed, report = smooth_mesh(mesh, labels=labels, image=scan, thresholds=[500.0])  # fit_to_scan: the default
-    relaxed = smooth_mesh(mesh, {"label_samples": "relaxed"}, labels=labels, image=scan, thresholds=[500.0])
+    # measured without the pillow layer, over 5 voxels: the preset explicit-dynamics
+    alone, _ = smooth_mesh(mesh, {**WITHOUT_THE_LAYER, "fit_to_scan": False}, labels=labels, image=scan,
+                           thresholds=[500.0])
+    placed, report = smooth_mesh(mesh, WITHOUT_THE_LAYER, labels=labels, image=scan,
+                                 thresholds=[500.0])  # fit_to_scan: the default
+    relaxed = smooth_mesh(mesh, {**WITHOUT_THE_LAYER, "label_samples": "relaxed"}, labels=labels, image=scan,
+                          thresholds=[500.0])
     # the staircase relaxed through the faces' places: mean / max |r - R| measured 3D 0.067 / 0.25,
     # 2D 0.059 / 0.24 (not placed: 0.072 / 0.34, 0.093 / 0.30)
     assert relaxed[1]["surface_from_labels"]["share_of_faces_placed_by_the_scan"] > 0.5
@@ -557,7 +568,8 @@ def test_a_ct_ball_fitted_to_its_labels_placed_by_the_scan(dim):
     # the edge's variance: 1/12 (partial volume) + 0.6^2 (the phantom's blur) + 0.5^2 (image_sigma)
     assert fit["edge_variance_mm2"]["0|1"] == pytest.approx(1 / 12 + 0.36 + 0.25, rel=0.02)  # measured 0.691, 0.685
     assert report["min_scaled_jacobian"] >= 0.3 and report["inverted_elements"] == 0
-    assert "samples_placed_by_the_scan" not in smooth_mesh(mesh, labels=labels)[1]["surface_from_labels"]
+    assert "samples_placed_by_the_scan" not in smooth_mesh(mesh, WITHOUT_THE_LAYER, labels=labels)[1][
+        "surface_from_labels"]
 
 
 @pytest.mark.parametrize("dim", [3, 2])
@@ -640,7 +652,9 @@ def test_dicer_run_on_a_scan_places_the_faces_by_it(tmp_path, caplog):
     from tests.test_smooth_image import ct_ball
 
     write_image(Volume(ct_ball(3), (1.0, 1.0, 1.0)), tmp_path / "ball.nii.gz")
-    (tmp_path / "c.yaml").write_text("materials:\n  - {name: solid, youngs_modulus: 1000, poissons_ratio: 0.3}\n"
+    # the labels' faces (placed or not) as the fit's samples: the preset explicit-dynamics
+    (tmp_path / "c.yaml").write_text("preset: explicit-dynamics\n"
+                                     "materials:\n  - {name: solid, youngs_modulus: 1000, poissons_ratio: 0.3}\n"
                                      "segment: {method: manual, thresholds: [500], opening_radius: 0, "
                                      "closing_radius: 0, keep: all}\n")
     reports = {}
@@ -794,8 +808,9 @@ def test_a_node_in_the_middle_of_a_flat_run_is_fitted(part, monkeypatch):
         return lift(sides, on_surface, floor, weight)
 
     monkeypatch.setattr(subvoxel, "lift", capture)
-    out, report = smooth_mesh(voxel_mesh(lab), labels=Volume(lab, (1.0, 1.0)), image=Volume(image, (1.0, 1.0)),
-                              thresholds=[500.0])
+    # measured over 5 voxels, without the pillow layer: the preset explicit-dynamics
+    out, report = smooth_mesh(voxel_mesh(lab), WITHOUT_THE_LAYER, labels=Volume(lab, (1.0, 1.0)),
+                              image=Volume(image, (1.0, 1.0)), thresholds=[500.0])
     fit = report["surface_from_labels"]
     assert fit["nodes_moved"] == fit["nodes_between_two_kinds"] == (15 if part == "quarter" else 56)
     centre = np.zeros(2) if part == "quarter" else np.array(lab.shape) / 2
@@ -817,8 +832,9 @@ def test_a_leaning_fit_is_fitted_again_along_its_own_normal():
     image = ct_ball(3)
     lab = fix_connectivity((image >= 500).astype(np.uint8))[0]
     merged, _ = merge_planes(voxel_mesh(lab))
-    out, report = smooth_mesh(merged, labels=Volume(lab, (1.0,) * 3), image=Volume(image, (1.0,) * 3),
-                              thresholds=[500.0])
+    # measured without the pillow layer, over 5 voxels: the preset explicit-dynamics
+    out, report = smooth_mesh(merged, WITHOUT_THE_LAYER, labels=Volume(lab, (1.0,) * 3),
+                              image=Volume(image, (1.0,) * 3), thresholds=[500.0])
     nodes = np.flatnonzero(boundary_graph(merged).boundary)
     error = np.abs(np.linalg.norm(out.points[nodes] - CT_CENTRE, axis=1) - CT_R)
     assert error.max() < 0.3 and error.mean() < 0.105 and np.count_nonzero(error > 0.2) < 100

@@ -763,7 +763,16 @@ def test_a_smoothed_mesh_is_refused_by_merge_and_warned_of_by_smooth(tmp_path, c
     err = capsys.readouterr().err
     assert "nodes lie off their lattice points (a smoothed mesh): plane merging works on meshes from dicer mesh" in err
     assert not (tmp_path / "again.vtu").exists()
-    assert main(["smooth", str(tmp_path / "smoothed.vtu"), "-o", str(tmp_path / "twice.vtu"), "-q"]) == 0
+    # at the defaults the smoothed mesh carries a pillow layer: refused, naming it
+    assert main(["smooth", str(tmp_path / "smoothed.vtu"), "-o", str(tmp_path / "twice.vtu"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {tmp_path / 'smoothed.vtu'}: ") and "a pillow layer's copies" in err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "twice.vtu").exists()
+    # without the layer it is smoothed again, with a warning
+    assert main(["smooth", str(tmp_path / "merged.vtu"), "-o", str(tmp_path / "bare.vtu"), "-q", "--set",
+                 "smooth.pillow=false"]) == 0
+    assert main(["smooth", str(tmp_path / "bare.vtu"), "-o", str(tmp_path / "twice.vtu"), "-q", "--set",
+                 "smooth.pillow=false"]) == 0
     assert "lie off their lattice points already: it was smoothed before" in caplog.text
 
 

@@ -2,12 +2,14 @@
 on the smooth surface, the elements under the layer moved inward."""
 
 import json
+import re
 
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from dicer.config import preset_settings
 from dicer.connectivity import fix_connectivity
 from dicer.errors import DicerError
 from dicer.image import Volume
@@ -22,7 +24,8 @@ from dicer.mesh.voxel import voxel_mesh
 from meshcheck import exterior_pinches, pinches
 from test_smooth_mirror import shells
 
-ON = {"pillow": True}
+ON = {"pillow": True}  # the default, named for the tests that compare with OFF
+OFF = {"pillow": False}
 
 
 def layer_nodes(mesh):
@@ -122,7 +125,7 @@ def test_labels_only_layer_under_the_smoothed_surface(dim):
     lab = shells(n, dim, [(0.0, 0.37 * n, 1)])
     mesh = voxel_mesh(lab)
     alone = {"surface_from_labels": False, "min_scaled_jacobian": 0.2}  # the labels' smoothing, no fit, no back-off
-    plain, rep0 = smooth_mesh(mesh, alone)
+    plain, rep0 = smooth_mesh(mesh, {**OFF, **alone})
     out, rep = smooth_mesh(mesh, {**ON, **alone})
     faces, owner, nodes = layer_nodes(mesh)
     n0, m0 = mesh.n_points, mesh.n_cells
@@ -178,7 +181,7 @@ def test_fixed_bounding_planes_keep_their_nodes_under_a_layer():
     lab = shells(24, 3, [(0.0, 9.3, 1)])[12:, 12:, 12:]  # an octant of a ball: three cut planes
     mesh = voxel_mesh(lab)
     out, report = smooth_mesh(mesh, {"pillow": True, "bounding_planes": "fixed"})
-    without, _ = smooth_mesh(mesh, {"bounding_planes": "fixed"})
+    without, _ = smooth_mesh(mesh, {**OFF, "bounding_planes": "fixed"})
     on_plane = bounding_planes(mesh, mesh.points).any(axis=1)
     assert on_plane.sum() > 100
     assert np.array_equal(out.points[:mesh.n_points][on_plane], without.points[on_plane])
@@ -188,11 +191,11 @@ def test_fixed_bounding_planes_keep_their_nodes_under_a_layer():
     # would have elements thinner (volume over largest face) than 0.8 of an eighth of a voxel
     assert report["pillow"]["faces_at_fixed_planes"] == 51
     layer = out.cells[-report["pillow"]["elements_added"]:]
-    assert characteristic_length(out.points, layer).min() >= 0.1  # measured 0.111
+    assert characteristic_length(out.points, layer).min() >= 0.1  # measured 0.114 (on the labels' faces: 0.111)
     assert scaled_jacobian(out.points, out.cells).min() >= 0.3
 
 
-def test_layer_leaves_gaps_where_it_cannot_keep_the_floor():
+def test_layer_leaves_gaps_where_it_cannot_keep_the_floor(caplog):
     # no smoothing (every element a unit cube) and a floor of 0.5: grown along the surface's
     # diagonal directions at the staircase's corners, the layer's elements there shear below
     # it, so the layer leaves those faces out (measured 96 of 408); elsewhere it stays
@@ -210,16 +213,24 @@ def test_layer_leaves_gaps_where_it_cannot_keep_the_floor():
     nb = face_neighbours(np.asarray(out.cells, np.int64), 3, out.n_points)
     sides = nb[mesh.n_cells:, 2:]
     assert int(np.count_nonzero(nb < 0)) == faces.shape[0] + int(np.count_nonzero(sides < 0))
-    # the pillow's guard rounds are bounded: a layer that still fails after them is an error
+    # the pillow's guard rounds are bounded: a layer that still fails after them is given up,
+    # with a warning naming the failing element, and the mesh smoothed without it (the layer is
+    # on by default: a thin part must not stop the stage)
     from dicer.mesh import smooth as smooth_module
 
     original_rounds = smooth_module._PILLOW_ROUNDS
     try:
         smooth_module._PILLOW_ROUNDS = 0
-        with pytest.raises(DicerError, match=r"pillow layer cannot keep element \d+ .* smooth.pillow: false"):
-            smooth_mesh(mesh, settings)
+        with caplog.at_level("WARNING", logger="dicer"):
+            bare, rep = smooth_mesh(mesh, settings)
     finally:
         smooth_module._PILLOW_ROUNDS = original_rounds
+    said = [r.getMessage() for r in caplog.records if "no pillow layer" in r.getMessage()]
+    assert len(said) == 1 and re.search(r"cannot keep element \d+", said[0])
+    assert rep["pillow"]["given_up"] and rep["pillow"]["elements_added"] == 0
+    assert rep["pillow"]["faces_without_layer"] == faces.shape[0]
+    assert bare.n_cells == mesh.n_cells and bare.n_points == mesh.n_points
+    assert scaled_jacobian(bare.points, bare.cells).min() >= 0.5
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -351,16 +362,17 @@ def _wedge():
     return a
 
 
-@pytest.mark.parametrize("settings", [{}, {"pillow": True}, {"pillow": True, "pillow_thickness": 0.9}])
+@pytest.mark.parametrize("settings", [OFF, ON, {**ON, "pillow_thickness": 0.9}])
 def test_volume_change_of_a_merged_mesh_is_the_mesh_s(settings):
     """The report measured a merged mesh's volume before smoothing from lattice boxes, which
-    chamfers are not: -7.1 % reported for a mesh whose volume changed by +0.02 %."""
+    chamfers are not: -7.1 % reported for a mesh whose volume changed by +0.02 %. Measured on
+    the labels' faces, over 5 voxels: the preset explicit-dynamics."""
     from dicer.mesh.merge import merge_mesh
 
     merged, _ = merge_mesh(voxel_mesh(_wedge()), {})
     assert merged.n_cells < 936  # chamfered: 126 elements
     before = element_volumes(merged.points, merged.cells).sum()
-    out, rep = smooth_mesh(merged, settings)
+    out, rep = smooth_mesh(merged, {**preset_settings("explicit-dynamics")["smooth"], **settings})
     after = element_volumes(out.points, out.cells).sum()
     assert rep["volume_change"] == pytest.approx((after - before) / before, abs=1e-9)
     assert abs(rep["volume_change"]) < 0.01

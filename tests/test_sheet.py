@@ -185,7 +185,7 @@ def test_settings_no_stage_reads_are_found(label_volume, sets, unread):
 @pytest.mark.parametrize("sets, unread, said", [
     (["downsample.voxel_size=2", "downsample.factor=3"], ["downsample.factor"], "replaced by downsample.voxel_size"),
     (["smooth.coefficient=0.8", "smooth.coefficients={A: 0.3}"], ["smooth.coefficients.A"], "replaced by smooth.coefficient"),
-    (["smooth.pillow_thickness=0.4"], ["smooth.pillow_thickness"], "smooth.pillow is off"),
+    (["smooth.pillow=false", "smooth.pillow_thickness=0.4"], ["smooth.pillow_thickness"], "smooth.pillow is off"),
     (["merge.templates={levels: 1}"], ["merge.templates.levels"], "merge.method is planes"),
     (["merge.method=templates", "merge.passes=[0, 0, 0]"], ["merge.passes"], "merge.method is templates"),
     (["segment.thresholds=[-500, 100]"], ["segment.thresholds"], "segment.method is shape_connectivity"),

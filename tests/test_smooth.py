@@ -1,4 +1,9 @@
-"""Boundary and interior smoothing with the quality guard: the measured acceptance figures."""
+"""Boundary and interior smoothing with the quality guard: the measured acceptance figures.
+
+These are the figures of the per-class smoothing itself, so every case here smooths without the
+pillow layer that the defaults add over it (the preset explicit-dynamics' smooth settings;
+the layer: tests/test_pillow.py).
+"""
 
 import numpy as np
 import pytest
@@ -8,8 +13,18 @@ from dicer.errors import DicerError
 from dicer.mesh.boundary import boundary_graph
 from dicer.mesh.metrics import element_volumes, scaled_jacobian
 from dicer.mesh.model import Mesh
-from dicer.mesh.smooth import DEFAULTS, smooth_mesh, smoothing_settings
+from dicer.config import preset_settings
+from dicer.mesh.smooth import DEFAULTS, smoothing_settings
+from dicer.mesh.smooth import smooth_mesh as smooth_with_the_layer
 from dicer.mesh.voxel import voxel_mesh
+
+WITHOUT_THE_LAYER = preset_settings("explicit-dynamics")["smooth"]
+
+
+def smooth_mesh(mesh, settings=None, **kwargs):
+    """``dicer.mesh.smooth.smooth_mesh`` without the pillow layer (``settings`` laid over that)."""
+    return smooth_with_the_layer(mesh, {**WITHOUT_THE_LAYER, **(settings or {})}, **kwargs)
+
 
 CENTRE = np.array([20.31, 19.77, 20.13])  # off the lattice
 
@@ -541,7 +556,8 @@ def test_rounds_after_the_back_off_keep_the_failing_elements_as_they_were(monkey
     with caplog.at_level("INFO", logger="dicer"):
         assert main(["smooth", str(tmp_path / "m.vtu"), "-o", str(tmp_path / "s.vtu"), "--set",
                      "smooth.coefficient=0.9", "--set", "smooth.min_scaled_jacobian=0.4", "--set",
-                     "smooth.surface_from_labels=false", "--set", "smooth.max_backoff_rounds=2"]) == 0
+                     "smooth.surface_from_labels=false", "--set", "smooth.max_backoff_rounds=2", "--set",
+                     "preset=explicit-dynamics"]) == 0
     said = [r.getMessage() for r in caplog.records if "back-off rounds did not keep" in r.getMessage()]
     assert len(said) == 1 and f"kept {rep['frozen_nodes']} boundary nodes" in said[0]
     rounds = [r.getMessage() for r in caplog.records if "below smooth.min_scaled_jacobian=0.4: back-off round" in

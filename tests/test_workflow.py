@@ -179,22 +179,22 @@ def test_changing_export_settings_reruns_only_export_and_later(cohort):
         # a preset (smooth and export settings) in the config file, its keys left to it: the cohort
         # takes it; with the file's own keys at their defaults beside it, they win and it says so
         config = yaml.safe_load(original)
-        config["preset"] = "static-stress"
+        config["preset"] = "explicit-dynamics"
         for section, keys in (("smooth", ("pillow", "label_samples", "label_surface_radius")),
-                              ("export", ("order", "midside_nodes"))):
+                              ("export", ("midside_nodes",))):
             for key in keys:
                 config.get(section, {}).pop(key, None)
         config_path.write_text(yaml.safe_dump(config, sort_keys=False))
         jobs = _planned_jobs(_snakemake(cohort, "-n"))
         assert jobs == {"smooth": 2, "export": 4, "quality": 2, "cohort": 1, "all": 1}
         config = yaml.safe_load(original)
-        config["preset"] = "static-stress"
-        config["export"] = {**config.get("export", {}), "order": 1}
+        config["preset"] = "explicit-dynamics"
         config_path.write_text(yaml.safe_dump(config, sort_keys=False))
         proc_kept = _snakemake(cohort, "-n")
-        said = [line for line in (proc_kept.stdout + proc_kept.stderr).splitlines() if "preset static-stress" in line]
-        assert len(said) == 1 and "the configuration's own smooth.pillow: false" in said[0]
-        assert "export.order: 1, export.midside_nodes: \"midpoint\" override it" in said[0]
+        said = [line for line in (proc_kept.stdout + proc_kept.stderr).splitlines()
+                if "preset explicit-dynamics" in line]
+        assert len(said) == 1 and "the configuration's own smooth.pillow: true" in said[0]
+        assert "smooth.label_surface_radius: 7, export.midside_nodes: \"curved\" override it" in said[0]
     finally:
         config_path.write_text(original)
 

@@ -1435,6 +1435,7 @@ def _solve_with_guard(st: _Smoothing) -> None:
 # --- the pillow layer --------------------------------------------------------------------------
 
 _PILLOW_ROUNDS = 40  # guard rounds of the layer
+_PILLOW_LAST_ROUNDS = 4  # the rounds before the last, where the faces at every failing element leave the layer
 _PILLOW_ROOM = 0.02  # with the layer the smoothing keeps its elements this far above the floor: room for the move
 _PILLOW_THINNEST = (0.5, 0.125)
 """No copy comes closer to its node than the first share of smooth.pillow_thickness or the
@@ -1621,10 +1622,9 @@ def _add_pillow(st: _Smoothing) -> None:
     its elements ``_PILLOW_ROOM`` above the floor. Sets ``st.layer``, and ``st.x``, ``st.xb``,
     ``st.x_band``, ``st.sj`` (the checked elements, then the new ones) for the report.
 
-    Raises
-    ------
-    DicerError
-        An element still fails after ``_PILLOW_ROUNDS`` rounds.
+    In the last ``_PILLOW_LAST_ROUNDS`` rounds every failing element's faces leave the layer;
+    where an element still fails after ``_PILLOW_ROUNDS`` rounds, the stage warns and keeps the
+    smoothing without the layer (``given_up`` in the report).
     """
     from dicer.mesh.pillow import one_fan_per_node, outward_normals, pillow_cells, surface_faces
 
@@ -1671,7 +1671,8 @@ def _add_pillow(st: _Smoothing) -> None:
     last = None  # the positions and values of the last scaled Jacobian of the elements under the layer
     level = np.zeros(nodes.size, np.int8)  # the surface nodes' steps down _DEPTHS
     fanned = None  # the faces one_fan_per_node last returned: unchanged, it returns them again
-    for rounds in range(_PILLOW_ROUNDS + 1):
+    given_up = False
+    for rounds in range(_PILLOW_ROUNDS + 2):
         if fanned is None or not np.array_equal(fanned, kept):
             kept = one_fan_per_node(faces, kept, mesh.material[owner])
             fanned = kept.copy()
@@ -1731,7 +1732,19 @@ def _add_pillow(st: _Smoothing) -> None:
             bad_under = _fails_under_layer(sj_under, sj_accepted, floor, shrunk)
         if not (bad_under.any() or bad_layer.any()):
             break
-        if rounds == _PILLOW_ROUNDS:
+        if rounds == _PILLOW_ROUNDS and not given_up:
+            # the layer did not settle: the mesh is smoothed without it rather than stopped
+            error = _pillow_failure(st, sj_under, bad_under, sj_layer, bad_sj,
+                                    {f"an edge shorter than {_SHORTEST_EDGE:g} of its length before": bad_short,
+                                     f"its longest edge over {_PILLOW_STRETCH:g} times its shortest": bad_stretch,
+                                     "thinner than the layer's least thickness": bad_thin})
+            log.warning("smooth: no pillow layer: after %d guard rounds %s; the surface is the smoothing's without "
+                        "it (thin or sharply folded parts; set smooth.pillow: false to skip the layer's rounds)",
+                        rounds, str(error).split("; set smooth.pillow")[0])
+            given_up = True
+            kept[:] = False
+            continue
+        if rounds > _PILLOW_ROUNDS:
             raise _pillow_failure(st, sj_under, bad_under, sj_layer, bad_sj,
                                   {f"an edge shorter than {_SHORTEST_EDGE:g} of its length before": bad_short,
                                    f"its longest edge over {_PILLOW_STRETCH:g} times its shortest": bad_stretch,
@@ -1761,6 +1774,13 @@ def _add_pillow(st: _Smoothing) -> None:
             again = near[~lower]
             at_own = again[any_per_row(own[faces[again]])]
             drop = np.union1d(drop, at_own if at_own.size else again)
+            if rounds >= _PILLOW_ROUNDS - _PILLOW_LAST_ROUNDS:
+                drop = np.union1d(drop, near)
+        if rounds >= _PILLOW_ROUNDS - _PILLOW_LAST_ROUNDS:
+            # a layer that halving and stepping down did not settle: the faces there leave it
+            # (their nodes back where the smoothing put them, its elements as accepted), so the
+            # default smoothing does not stop on a thin part
+            drop = np.union1d(drop, failing)
         kept[drop] = False
     st.sj = np.concatenate([sj_under, sj_layer])
     from dicer.mesh.labelsurface import LabelSurface
@@ -1768,6 +1788,7 @@ def _add_pillow(st: _Smoothing) -> None:
     from_scan = st.pull is not None and not isinstance(st.pull.surface, LabelSurface)
     info = {"surface": "image" if from_scan else "labels", "elements_added": int(cells.shape[0]),
             "nodes_added": int(rows.size), "faces_without_layer": int(np.count_nonzero(~kept)),
+            "given_up": given_up,
             "faces_at_fixed_planes": at_fixed_planes,
             "thickness_voxels": float(s["pillow_thickness"]), "guard_rounds": rounds,
             "nodes_held_off_the_surface": 0 if st.surface is None else int(np.count_nonzero(share[rows] < 1.0)),

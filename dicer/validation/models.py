@@ -29,9 +29,14 @@ BASE_SMOOTHING = """\
 smooth:  # the study's base, the smoothing defaults until 5 December 2026: a row's --set changes it
   surface_from_labels: false
   min_scaled_jacobian: 0.2
+  pillow: false
+  label_samples: faces
+  label_surface_radius: 5
 """
-"""The smoothing every case starts from: the labels' smoothing alone at the floor 0.2 (today's
-defaults, the labels' fit and the floor 0.3, are the row ``labels fit+merge, min SJ 0.3``)."""
+"""The smoothing every case starts from: the labels' smoothing alone at the floor 0.2, without
+the pillow layer (the defaults until 5 December 2026; those until 7 December 2026, the labels'
+fit and the floor 0.3, are the row ``labels fit+merge, min SJ 0.3``, and today's add the layer,
+a label volume's staircase relaxed and the fit over 7 voxels: ``dicer.validation.study.DEFAULTS``)."""
 
 CONFIG = f"""\
 labels:
@@ -40,6 +45,7 @@ materials:
   - {{name: solid, youngs_modulus: {E_MODULUS}, poissons_ratio: {POISSON}, density: {DENSITY}}}
 export:
   thickness: 1.0
+  midside_nodes: midpoint  # the study's base: a row's --set changes it
 {BASE_SMOOTHING}"""
 
 SCAN_CONFIG = f"""\
@@ -54,8 +60,12 @@ segment:
 smooth:
   surface_from_image: true
   min_scaled_jacobian: 0.2  # the study's base (BASE_SMOOTHING)
+  pillow: false
+  label_samples: faces
+  label_surface_radius: 5
 export:
   thickness: 1.0
+  midside_nodes: midpoint
 """
 """A grey-value image: one material above the threshold, no morphology (the threshold alone
 decides, as the label images' voxel-centre rule does), and the smoothing pulls the surface

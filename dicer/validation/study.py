@@ -45,7 +45,10 @@ LAME_SCAN_RADII = (7.0, 14.0)
 MIN_SJ_03 = "smooth.min_scaled_jacobian=0.3"  # the validation targets' quality floor as the guard's floor
 PILLOW = "smooth.pillow=true"  # a layer of elements over the surface (docs/smoothing.md §3b)
 FIT = "smooth.surface_from_labels=true"  # the surface fitted to the labels' staircase (docs/smoothing.md §3c)
-TODAY = ["smooth.surface_from_image=false", FIT, MIN_SJ_03]  # the scan's settings changed back to today's defaults
+TODAY = ["smooth.surface_from_image=false", FIT, MIN_SJ_03]  # the base changed to the defaults until 7 December 2026
+# the defaults since 7 December 2026: those and the pillow layer, a label volume's staircase
+# relaxed (a scan's faces placed by it), the fit over 7 voxels, curved mid-edge nodes
+DEFAULTS = TODAY + [PILLOW, "smooth.label_samples=auto", "smooth.label_surface_radius=7", "export.midside_nodes=curved"]
 FIT_TO_SCAN = "smooth.fit_to_scan=true"  # the labels' faces placed within their voxels by the scan (§3c)
 CURVED = "export.midside_nodes=curved"  # order 2: boundary mid-edge nodes on the surface's curve (arcs on merged meshes)
 UNPLACED = "smooth.fit_to_scan=false"  # the labels' faces as they are (the scan's default until 5 December 2026)

@@ -1662,7 +1662,8 @@ class _MemoryError(DicerError):
     would, with nothing written."""
 
 
-def _check_memory(source: str, config: dict, elements: int | None = None, faces: int | None = None) -> None:
+def _check_memory(source: str, config: dict, elements: int | None = None, faces: int | None = None,
+                  label_volume: bool = False) -> None:
     """DicerError when the run's fitted peak memory (dicer/resources.py) exceeds what this
     machine or job may use: before any stage, for the stages that read the scan; with the
     mesh's ``elements`` and surface ``faces`` (after fix), for the stages from the mesh on.
@@ -1682,7 +1683,12 @@ def _check_memory(source: str, config: dict, elements: int | None = None, faces:
                                source=source) if downsample_applies(config) else 1)
     whole, voxels = voxels, _cropped_voxels(voxels, spacing, config["image"]["crop"])
     order = stage_kwargs(config, "export")["order"]
-    need, have = run_peak_mb(voxels, factor, elements, order, faces), machine_memory_mb()
+    smooth = stage_kwargs(config, "smooth")
+    # the smooth stage relaxes the staircase where no scan places its faces (smooth.label_samples)
+    relaxed = (smooth["surface_from_labels"] and not smooth["surface_from_image"] and
+               (smooth["label_samples"] == "relaxed" or
+                (smooth["label_samples"] == "auto" and (label_volume or not smooth["fit_to_scan"]))))
+    need, have = run_peak_mb(voxels, factor, elements, order, faces, relaxed), machine_memory_mb()
     if voxels < whole:  # the whole scan is read (as float32) before it is cut
         need += whole * 4 / 2**20
     if have is None or need <= have:
@@ -1693,7 +1699,7 @@ def _check_memory(source: str, config: dict, elements: int | None = None, faces:
         shrink = voxel_reduction(factor) / voxel_reduction(coarser)
         fewer = None if elements is None else int(elements * shrink)
         less = None if elements is None or faces is None else int(faces * shrink ** (2 / 3))
-        return run_peak_mb(voxels, coarser, fewer, order, less)
+        return run_peak_mb(voxels, coarser, fewer, order, less, relaxed)
 
     fits = [(f, p) for f, p in ((f, peak(f)) for f in range(2, 9)) if p <= 0.8 * have]
     hint = (f"set downsample.factor: {fits[0][0]} (about {fits[0][1] / 1024:.1f} GB)" if fits
@@ -1927,7 +1933,7 @@ def _run_staged(args, config: dict, outdir: Path, source: str) -> None:
         faces = surface_faces(fixed)
         del fixed
         if not args.skip_memory_check:  # the mesh's size is known now
-            _check_memory(source, config, elements, faces)
+            _check_memory(source, config, elements, faces, args.labels is not None)
         # each stage hands its mesh to the next in memory, so the next stage need not read
         # the file again; with a second core (and memory), the file is written and checked
         # in a second thread meanwhile (the stages only read their input mesh)

@@ -161,14 +161,18 @@ ELEMENT_FRACTION = 0.5
 #: measured peaks on thirteen scans (docs/robustness.md, "Memory": the shell phantom 64^3 to
 #: 512^3, the head, long-bone, sphere and block phantoms, the head CT at factors 1 and 2 and
 #: its labels), rounded up: `python workflow/scripts/fit_resources.py docs/run-memory.tsv`
-RUN_MESH = (260, 315, 2170)
+RUN_MESH = (300, 380, 2155)
 #: with ``export.order`` 2, added to RUN_MESH: MB per million elements and per million surface
 #: faces for the quadratic mesh the exports hold (its mid-edge nodes placed and, curved, checked
 #: for folds), the smallest upper bound of the same scans run with curved C3D20 decks
 #: (docs/run-memory.tsv's order 2 rows: 1.00-1.54 times their peaks, the head CT's 3.86 GB as
 #: 3.86 GB). Until then the export_inp_order2 row's 1,538 MB per million elements stood here:
 #: 1.20 times the head CT's peak, 2.15 times the long-bone phantom's.
-RUN_MESH_ORDER2 = (655, 1110)
+RUN_MESH_ORDER2 = (550, 1440)
+#: added to RUN_MESH where the smooth stage relaxes a label volume's staircase (``dicer run
+#: --labels`` at the defaults, ``smooth.label_samples: relaxed``): MB per million surface faces,
+#: the smallest that bounds docs/run-memory.tsv's label-volume rows (its scan rows fit RUN_MESH)
+RUN_RELAXED = 110
 #: surface faces per element assumed where a caller knows only the elements: the most of the
 #: measured scans (the head CT at factor 2: 0.32)
 FACE_FRACTION = 0.35
@@ -287,7 +291,7 @@ def surface_faces(labels: np.ndarray) -> int:
 
 
 def run_peak_mb(voxels: int, factor=1, elements: int | None = None, order: int = 1,
-                faces: int | None = None) -> int:
+                faces: int | None = None, relaxed: bool = False) -> int:
     """Fitted peak memory of ``dicer run``.
 
     Without ``elements`` (before the scan is segmented): the stages that read the scan or
@@ -309,6 +313,8 @@ def run_peak_mb(voxels: int, factor=1, elements: int | None = None, order: int =
         ``export.order``.
     faces : int, optional
         Surface faces of the voxel mesh.
+    relaxed : bool, optional
+        The smooth stage relaxes a label volume's staircase (RUN_RELAXED on top).
 
     Returns
     -------
@@ -322,6 +328,7 @@ def run_peak_mb(voxels: int, factor=1, elements: int | None = None, order: int =
         if order == 2:
             mb_per_m, mb_per_face_m = mb_per_m + RUN_MESH_ORDER2[0], mb_per_face_m + RUN_MESH_ORDER2[1]
         faces = FACE_FRACTION * elements if faces is None else faces
+        mb_per_face_m += RUN_RELAXED if relaxed else 0
         peaks.append(base_mb + mb_per_m * elements / 1e6 + mb_per_face_m * faces / 1e6)
     return int(max(peaks))
 

@@ -13,9 +13,9 @@ def test_peak_estimate_grows_with_voxels_and_elements_and_shrinks_with_downsampl
     scan = resources.run_peak_mb(512**3)
     assert 2_000 < scan < 5_000
     # with the mesh's size: dicer run on the 512^3 CT (51.2 M elements, 1.45 M surface faces)
-    # measured 17.9 GB
+    # measured 20.2 GB (17.9 GB before the pillow layer was on by default)
     full = resources.run_peak_mb(512**3, elements=51_229_208, faces=1_445_136)
-    assert 17_905 < full < 1.1 * 17_905
+    assert 20_237 < full < 1.15 * 20_237
     # a factor 2 leaves 1/8 of the elements, 1/4 of the faces
     assert resources.run_peak_mb(512**3, 2, elements=51_229_208 // 8, faces=1_445_136 // 4) < full / 5
     # per-axis factors count by the voxels they leave: (2, 2, 1) as (4, 1, 1), between factors 1 and 2
@@ -44,10 +44,11 @@ def test_the_run_estimate_bounds_every_measured_run_closely():
     ratios = {1: [], 2: []}
     for r in rows:
         need = resources.run_peak_mb(int(r["voxels"]), int(r["factor"]), int(r["elements"]), int(r["order"]),
-                                     faces=int(r["faces"]))
+                                     faces=int(r["faces"]), relaxed="labels" in r["scan"])
         ratios[int(r["order"])].append(need / float(r["peak_mb"]))
-    # order 2 (curved C3D20 decks) reads the long-bone and block phantoms' runs 1.5 times over
-    assert min(ratios[1] + ratios[2]) >= 1.0 and max(ratios[1]) <= 1.35 and max(ratios[2]) <= 1.6, ratios
+    # order 2 (curved C3D20 decks) reads the long-bone and block phantoms' runs 1.6 and 1.75 times
+    # over (their few faces per element: the slopes are the thin-walled scans')
+    assert min(ratios[1] + ratios[2]) >= 1.0 and max(ratios[1]) <= 1.35 and max(ratios[2]) <= 1.8, ratios
     # without the faces the thin-walled head CT is not underestimated either
     ct = next(r for r in rows if r["scan"] == "head CT" and r["factor"] == "1")
     assert resources.run_peak_mb(int(ct["voxels"]), 1, int(ct["elements"])) >= float(ct["peak_mb"])
@@ -126,7 +127,8 @@ def test_the_hint_names_a_factor_that_fits(tmp_path, monkeypatch):
     _check_memory("scan.nii.gz", default_config())                  # its segment, downsample and fix fit
     with pytest.raises(DicerError) as err:
         _check_memory("scan.nii.gz", default_config(), elements=512**3)
-    assert "134,217,728 elements" in str(err.value) and "downsample.factor: 2" in str(err.value)
+    # (its faces unknown, taken as 0.35 per element: factor 2's 19.3 GB is over 80 % of 24 GB)
+    assert "134,217,728 elements" in str(err.value) and "downsample.factor: 3" in str(err.value)
     _check_memory("scan.nii.gz", default_config(), elements=51_200_000, faces=1_445_136)  # the CT phantom's 38 % fits
     with pytest.raises(DicerError, match="51,200,000 elements"):  # as many elements, thin walls: 35 % faces
         _check_memory("scan.nii.gz", default_config(), elements=51_200_000, faces=18_000_000)

@@ -48,25 +48,35 @@ def _upper_bound(size, peak, offset) -> tuple[int, ...]:
     return tuple(5 * math.ceil(c / 5 - 1e-9) for c in best.x)
 
 
-def fit_run(path: str) -> tuple[tuple[int, int, int], tuple[int, int]]:
-    """RUN_MESH and RUN_MESH_ORDER2 from whole `dicer run` peaks (docs/run-memory.tsv): the
-    baseline, MB per million elements and per million surface faces of the smallest upper bound
-    of the order-1 runs; then what the order-2 runs need on top, per million elements and faces."""
+def fit_run(path: str) -> tuple[tuple[int, int, int], tuple[int, int], int]:
+    """RUN_MESH, RUN_MESH_ORDER2 and RUN_RELAXED from whole `dicer run` peaks
+    (docs/run-memory.tsv): the baseline, MB per million elements and per million surface faces
+    of the smallest upper bound of the order-1 runs of scans; what the order-2 runs of scans need
+    on top, per million elements and faces; and the MB per million faces the runs of label
+    volumes (their staircase relaxed: rows named ``labels``) need on top of those."""
     import numpy as np
 
     with open(path, encoding="utf-8") as handle:
         rows = list(csv.DictReader((line for line in handle if not line.startswith("#")), delimiter="\t"))
-    size = {o: np.array([[1.0, int(r["elements"]) / 1e6, int(r["faces"]) / 1e6] for r in rows if r["order"] == o])
+    scans = [r for r in rows if "labels" not in r["scan"]]
+    size = {o: np.array([[1.0, int(r["elements"]) / 1e6, int(r["faces"]) / 1e6] for r in scans if r["order"] == o])
             for o in "12"}
-    peak = {o: np.array([float(r["peak_mb"]) for r in rows if r["order"] == o]) for o in "12"}
+    peak = {o: np.array([float(r["peak_mb"]) for r in scans if r["order"] == o]) for o in "12"}
     linear = _upper_bound(size["1"], peak["1"], 0.0)
-    return linear, _upper_bound(size["2"][:, 1:], peak["2"], size["2"] @ np.array(linear, float))
+    quadratic = _upper_bound(size["2"][:, 1:], peak["2"], size["2"] @ np.array(linear, float))
+    extra = 0.0
+    for r in rows:
+        if "labels" in r["scan"]:
+            coef = np.array(linear, float) + (np.r_[0.0, quadratic] if r["order"] == "2" else 0.0)
+            need = coef @ [1.0, int(r["elements"]) / 1e6, int(r["faces"]) / 1e6]
+            extra = max(extra, (float(r["peak_mb"]) - need) / (int(r["faces"]) / 1e6))
+    return linear, quadratic, int(np.ceil(extra / 10.0) * 10)
 
 
 if __name__ == "__main__":
     if Path(sys.argv[1]).name == "run-memory.tsv":
-        linear, quadratic = fit_run(sys.argv[1])
-        print(f"RUN_MESH = {linear}\nRUN_MESH_ORDER2 = {quadratic}")
+        linear, quadratic, relaxed = fit_run(sys.argv[1])
+        print(f"RUN_MESH = {linear}\nRUN_MESH_ORDER2 = {quadratic}\nRUN_RELAXED = {relaxed}")
     else:
         for stage, (base_mb, mb_per_m, base_s, s_per_m) in fit(sys.argv[1]).items():
             print(f'    "{stage}": ({base_mb}, {mb_per_m}, {base_s}, {s_per_m}),')

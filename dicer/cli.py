@@ -850,8 +850,10 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
 
             import numpy as np
 
-            shared = m.n_points - np.unique(np.asarray(m.lattice), axis=0).shape[0]
-            if shared:  # the layer's nodes are copies of the surface's, at their lattice points
+            # the layer's nodes are copies of the surface's, at their lattice points (a graded
+            # mesh's templates place nodes between lattice points, at shared rounded ones)
+            shared = 0 if is_graded(m) else m.n_points - np.unique(np.asarray(m.lattice), axis=0).shape[0]
+            if shared:
                 raise _InputError(f"{mesh_path}: {shared} of the mesh's {m.n_points} nodes share a lattice point "
                                   "with another (a pillow layer's copies: it was smoothed with smooth.pillow); "
                                   "smooth the mesh of dicer mesh or dicer merge")

@@ -1732,23 +1732,20 @@ def _add_pillow(st: _Smoothing) -> None:
             bad_under = _fails_under_layer(sj_under, sj_accepted, floor, shrunk)
         if not (bad_under.any() or bad_layer.any()):
             break
-        if rounds == _PILLOW_ROUNDS and not given_up:
-            # the layer did not settle: the mesh is smoothed without it rather than stopped
+        if rounds >= _PILLOW_ROUNDS:
             error = _pillow_failure(st, sj_under, bad_under, sj_layer, bad_sj,
                                     {f"an edge shorter than {_SHORTEST_EDGE:g} of its length before": bad_short,
                                      f"its longest edge over {_PILLOW_STRETCH:g} times its shortest": bad_stretch,
                                      "thinner than the layer's least thickness": bad_thin})
+            if given_up:  # without a layer the smoothing's own elements fail: not the layer's doing
+                raise error
+            # the layer did not settle: the mesh is smoothed without it rather than stopped
             log.warning("smooth: no pillow layer: after %d guard rounds %s; the surface is the smoothing's without "
                         "it (thin or sharply folded parts; set smooth.pillow: false to skip the layer's rounds)",
                         rounds, str(error).split("; set smooth.pillow")[0])
             given_up = True
             kept[:] = False
             continue
-        if rounds > _PILLOW_ROUNDS:
-            raise _pillow_failure(st, sj_under, bad_under, sj_layer, bad_sj,
-                                  {f"an edge shorter than {_SHORTEST_EDGE:g} of its length before": bad_short,
-                                   f"its longest edge over {_PILLOW_STRETCH:g} times its shortest": bad_stretch,
-                                   "thinner than the layer's least thickness": bad_thin})
         log.info("smooth: pillow layer round %d: %d element(s) under it and %d of it fail the guard", rounds + 1,
                  int(bad_under.sum()), int(bad_layer.sum()))
         failing = np.flatnonzero(kept)[bad_layer]

@@ -852,7 +852,10 @@ def do_smooth(mesh_path: str, out: Path, config: dict, report_path: Path | None 
 
             # the layer's nodes are copies of the surface's, at their lattice points (a graded
             # mesh's templates place nodes between lattice points, at shared rounded ones)
-            shared = 0 if is_graded(m) else m.n_points - np.unique(np.asarray(m.lattice), axis=0).shape[0]
+            lattice = np.asarray(m.lattice, np.int64)  # one key per lattice point: a sort of ints
+            lattice = lattice - lattice.min(axis=0, initial=0)
+            key = np.ravel_multi_index(lattice.T, lattice.max(axis=0, initial=0) + 1) if lattice.size else lattice
+            shared = 0 if is_graded(m) else m.n_points - np.unique(key).size
             if shared:
                 raise _InputError(f"{mesh_path}: {shared} of the mesh's {m.n_points} nodes share a lattice point "
                                   "with another (a pillow layer's copies: it was smoothed with smooth.pillow); "
@@ -1672,7 +1675,7 @@ def _check_memory(source: str, config: dict, elements: int | None = None, faces:
     The kernel would otherwise kill the run without a message."""
     import numpy as np
 
-    from dicer.config import downsample_applies, stage_kwargs
+    from dicer.config import downsample_applies, places_faces_by_scan, relaxes_staircase, stage_kwargs
     from dicer.downsample import reduction_factor
     from dicer.resources import machine_memory_mb, run_peak_mb, scan_header, voxel_reduction
 
@@ -1686,10 +1689,8 @@ def _check_memory(source: str, config: dict, elements: int | None = None, faces:
     whole, voxels = voxels, _cropped_voxels(voxels, spacing, config["image"]["crop"])
     order = stage_kwargs(config, "export")["order"]
     smooth = stage_kwargs(config, "smooth")
-    # the smooth stage relaxes the staircase where no scan places its faces (smooth.label_samples)
     relaxed = (smooth["surface_from_labels"] and not smooth["surface_from_image"] and
-               (smooth["label_samples"] == "relaxed" or
-                (smooth["label_samples"] == "auto" and (label_volume or not smooth["fit_to_scan"]))))
+               relaxes_staircase(smooth, not label_volume and places_faces_by_scan(smooth)))
     need, have = run_peak_mb(voxels, factor, elements, order, faces, relaxed), machine_memory_mb()
     if voxels < whole:  # the whole scan is read (as float32) before it is cut
         need += whole * 4 / 2**20

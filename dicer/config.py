@@ -806,6 +806,24 @@ def places_faces_by_scan(smooth: dict) -> bool:
     return bool(smooth["fit_to_scan"] and smooth["surface_from_labels"])
 
 
+def relaxes_staircase(smooth: dict, placed: bool) -> bool:
+    """Whether the labels' fit takes their staircase relaxed within its voxels
+    (``smooth.label_samples``: relaxed, or auto where no scan places the faces).
+
+    Parameters
+    ----------
+    smooth : dict
+        The smooth section with every key.
+    placed : bool
+        A scan places the labels' faces (:func:`places_faces_by_scan`, and the scan given).
+
+    Returns
+    -------
+    bool
+    """
+    return smooth["label_samples"] == "relaxed" or (smooth["label_samples"] == "auto" and not placed)
+
+
 SET_KINDS = ("planes", "materials", "interfaces", "exterior")
 """The kinds of node and element sets an export can write (``export.sets``)."""
 

@@ -206,9 +206,10 @@ def _fista(L: sp.csr_matrix, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     # the gradient's Lipschitz constant 2 (|L|^4 + lam (+ |W| |A|^2)), |L|_2^2 <= |L|_1 |L|_inf;
     # L applied twice costs less than the product's denser matrix. Folded: the columns of the
     # vertices within the mirrors hold every column's sum, and the rows are theirs
-    norm2 = lambda m: float(abs(m[:, inside]).sum(axis=0).max()) * float(abs(m[inside] if m is L else m).sum(  # noqa: E731
-        axis=1).max())
-    lip = 2.0 * (norm2(L) ** 2 + _LAM)
+    def norm2(m: sp.csr_matrix, rows=slice(None)) -> float:
+        return float(abs(m[:, inside]).sum(axis=0).max()) * float(abs(m[rows]).sum(axis=1).max())
+
+    lip = 2.0 * (norm2(L, inside) ** 2 + _LAM)
     L = L[inside].tocsr()
     if data is not None:
         A, Y, W = data

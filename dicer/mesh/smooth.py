@@ -54,7 +54,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from dicer.arrays import any_per_row, nonzero, norm
-from dicer.config import places_faces_by_scan, section_defaults, takes_settings
+from dicer.config import places_faces_by_scan, relaxes_staircase, section_defaults, takes_settings
 from dicer.errors import DicerError
 from dicer.mesh.boundary import (NODE_CLASSES, BoundaryGraph, boundary_graph, bounding_planes, class_counts,
                                  mirror_share, mirror_weights, plane_axes, plane_bits)
@@ -867,10 +867,8 @@ def _pull_surface(mesh: Mesh, s: dict, image, thresholds, image_source: str, lab
                 scan = _image_surface(mesh, s, image, thresholds, image_source)
         def build():
             t = time.perf_counter()
-            # auto: relaxed where no scan places the faces
-            relaxed = s["label_samples"] == "relaxed" or (s["label_samples"] == "auto" and scan is None)
             made = LabelSurface(mesh, s["label_surface_radius"], s["bounding_planes"] == "mirror", labels, scan,
-                                relaxed=relaxed)
+                                relaxed=relaxes_staircase(s, scan is not None))
             return made, time.perf_counter() - t
 
         from dicer.parallel import cores, meanwhile

@@ -1504,9 +1504,10 @@ def cmd_smooth(args):
                     args.labels)
     if smooth["label_samples"] in ("relaxed", "auto") and smooth["surface_from_labels"] and not scan_surface and \
             args.labels is None:
-        log.warning("smooth: smooth.label_samples: %s relaxes the staircase of the label volume: give it with "
-                    "--labels (labels_fixed.nii.gz of dicer run); without it the fit takes the mesh's faces",
-                    smooth["label_samples"])
+        # asked for by name, a warning; the default's (auto) a note: a bare 'dicer smooth' is no mistake
+        (log.warning if smooth["label_samples"] == "relaxed" else log.info)(
+            "smooth: smooth.label_samples: %s relaxes the staircase of the label volume: give it with --labels "
+            "(labels_fixed.nii.gz of dicer run); without it the fit takes the mesh's faces", smooth["label_samples"])
     if args.image is not None and args.labels is None and not scan_surface and places_faces_by_scan(smooth):
         log.warning("smooth: smooth.fit_to_scan places the labels' faces by the scan: it needs --labels beside "
                     "--image (labels_fixed.nii.gz of dicer run); without it the fit takes the mesh's faces, and the "

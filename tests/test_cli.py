@@ -854,3 +854,19 @@ def test_a_box_filled_by_the_fixes_is_warned_of(tmp_path, caplog):
     np.save(tmp_path / "l.npy", labels)
     assert main(["fix", str(tmp_path / "l.npy"), "-o", str(tmp_path / "f.nii.gz"), "-q"]) == 0
     assert not [r for r in caplog.records if "of the image is background" in r.getMessage()]
+
+
+def test_a_bare_smooth_is_not_warned_that_the_default_relaxation_needs_the_labels(tmp_path, capsys, caplog):
+    """``dicer smooth mesh.vtu`` without --labels at the defaults (label_samples: auto) fits the
+    mesh's faces: said as a note, not warned at every call; relaxed asked for by name is warned."""
+    lab = np.zeros((8, 8, 8), np.uint8)
+    lab[2:6, 2:6, 2:6] = 1
+    np.save(tmp_path / "l.npy", lab)
+    assert run_cli(capsys, "mesh", tmp_path / "l.npy", "-o", tmp_path / "m.vtu")[0] == 0
+    for samples, level in ((None, "INFO"), ("relaxed", "WARNING")):
+        caplog.clear()
+        sets = [] if samples is None else ["--set", f"smooth.label_samples={samples}"]
+        with caplog.at_level("INFO", logger="dicer"):
+            assert run_cli(capsys, "smooth", tmp_path / "m.vtu", "-o", tmp_path / "s.vtu", *sets)[0] == 0
+        said = [r for r in caplog.records if "relaxes the staircase of the label volume" in r.getMessage()]
+        assert [r.levelname for r in said] == [level]
